@@ -1,0 +1,1 @@
+"""mocapd: the recognition engine and the service (features, index, keyframes, templates, CLI)."""

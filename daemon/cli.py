@@ -1,0 +1,137 @@
+"""The ``mocapd`` command line (also ``python -m daemon``).
+
+Exit status: 0 on success, 2 on bad input (unreadable or malformed files, bad options), with one
+line on stderr naming the file and line.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+from typing import TextIO
+
+import numpy as np
+
+from daemon.config import Config, ConfigError, Units, load_config
+from replay import JOINT_NAMES, KinematicModel, MocapFormatError, Motion, read_amc, read_asf
+
+
+def _parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="mocapd", description="Streaming motion recognition over ASF/AMC motion capture."
+    )
+    parser.add_argument(
+        "--config", type=Path, default=None, help="config.yaml to read (default: built-in defaults)"
+    )
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    info = sub.add_parser("info", help="describe a recording: frames, duration, bones, joints")
+    info.add_argument("--asf", type=Path, required=True)
+    info.add_argument("--amc", type=Path, required=True, help="AMC file, plain or gzip")
+    info.add_argument(
+        "--fps", type=float, default=None, help="frame rate if the AMC states none (default: config, 120)"
+    )
+    info.add_argument("--json", action="store_true", help="print one JSON object instead of text")
+
+    pos = sub.add_parser("positions", help="write joint positions as CSV: frame,joint,x,y,z")
+    pos.add_argument("--asf", type=Path, required=True)
+    pos.add_argument("--amc", type=Path, required=True, help="AMC file, plain or gzip")
+    pos.add_argument("--csv", type=Path, required=True, help="output CSV ('-' for stdout)")
+    pos.add_argument("--cm", action="store_true", help="centimetres (ASF length / :units length x 2.54)")
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = _parser().parse_args(argv)
+    try:
+        config = load_config(args.config)
+        if args.command == "info":
+            return _info(args, config)
+        if args.command == "positions":
+            return _positions(args, config)
+    except (MocapFormatError, ConfigError) as exc:
+        print(f"mocapd: {exc}", file=sys.stderr)
+        return 2
+    except OSError as exc:
+        print(f"mocapd: {exc.filename}: {exc.strerror}", file=sys.stderr)
+        return 2
+    raise AssertionError(args.command)
+
+
+def _load(asf: Path, amc: Path) -> Motion:
+    return read_amc(amc, read_asf(asf))
+
+
+def _info(args: argparse.Namespace, config: Config) -> int:
+    motion = _load(args.asf, args.amc)
+    skeleton = motion.skeleton
+    if motion.header.frame_rate is not None and args.fps is None:
+        rate, rate_from = motion.header.frame_rate, "from the AMC file"
+    elif args.fps is not None:
+        rate, rate_from = args.fps, "given"
+    else:
+        rate, rate_from = config.replay.frame_rate_hz, "assumed"
+    model = KinematicModel(skeleton)
+    joints = [] if model.missing_joint_bones else list(JOINT_NAMES)
+    summary = {
+        "asf": str(args.asf),
+        "amc": str(args.amc),
+        "skeleton": skeleton.name,
+        "frames": len(motion),
+        "first_frame": int(motion.frames[0]),
+        "last_frame": int(motion.frames[-1]),
+        "frame_rate_hz": rate,
+        "frame_rate_source": rate_from,
+        "duration_s": len(motion) / rate,
+        "angle_unit": motion.header.angle_unit,
+        "length_unit": skeleton.length_unit,
+        "bones": [b.name for b in skeleton.bones],
+        "channels": len(skeleton.channel_names),
+        "joints": joints,
+        "missing_joint_bones": list(model.missing_joint_bones),
+    }
+    if args.json:
+        print(json.dumps(summary))
+        return 0
+    units = f"length unit {skeleton.length_unit}, angles in {skeleton.angle_unit}"
+    print(f"asf:        {args.asf} ({skeleton.name or 'unnamed'}; {units})")
+    print(f"amc:        {args.amc} (angles in {motion.header.angle_unit})")
+    print(f"frames:     {len(motion)} (AMC frames {motion.frames[0]}-{motion.frames[-1]})")
+    print(f"duration:   {len(motion) / rate:.3f} s at {rate:g} Hz ({rate_from})")
+    print(f"bones:      {len(skeleton.bones)}: {' '.join(b.name for b in skeleton.bones)}")
+    print(f"channels:   {len(skeleton.channel_names)}")
+    if joints:
+        print(f"joints:     {len(joints)}: {' '.join(joints)}")
+    else:
+        print(f"joints:     none (skeleton lacks {', '.join(model.missing_joint_bones)})")
+    return 0
+
+
+def _positions(args: argparse.Namespace, config: Config) -> int:
+    motion = _load(args.asf, args.amc)
+    model = KinematicModel(motion.skeleton)
+    unit: Units = "cm" if args.cm or config.replay.units == "cm" else "asf"
+    joints = model.joints(model.positions(motion.channels, unit))
+    if str(args.csv) == "-":
+        _write_positions(sys.stdout, motion.frames, joints)
+    else:
+        with open(args.csv, "w", encoding="utf-8", newline="") as out:
+            _write_positions(out, motion.frames, joints)
+    return 0
+
+
+def _write_positions(out: TextIO, frames: np.ndarray, joints: np.ndarray) -> None:
+    """``frames`` shape ``(N,)``, ``joints`` shape ``(N, J, 3)`` in :data:`JOINT_NAMES` order."""
+    out.write("frame,joint,x,y,z\n")
+    names = np.array(JOINT_NAMES, dtype=object)
+    block = len(JOINT_NAMES)
+    for start in range(0, len(frames), 1024):
+        f = frames[start : start + 1024]
+        xyz = joints[start : start + 1024].reshape(-1, 3)
+        rows = zip(
+            np.repeat(f, block).tolist(), np.tile(names, len(f)).tolist(), *xyz.T.tolist(), strict=True
+        )
+        out.writelines(f"{fr},{j},{x:.6f},{y:.6f},{z:.6f}\n" for fr, j, x, y, z in rows)

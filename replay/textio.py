@@ -1,0 +1,45 @@
+"""Opening recordings: plain or gzip (told by the magic bytes, not the name), CRLF or LF.
+
+gzip goes through ISA-L (``isal``), which inflates about 2.5x faster than zlib on these files.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import BinaryIO, cast
+
+from isal import igzip, isal_zlib
+
+from replay.errors import MocapFormatError
+
+GZIP_MAGIC = b"\x1f\x8b"
+GZIP_ERRORS: tuple[type[BaseException], ...] = (EOFError, OSError, cast(type[BaseException], isal_zlib.error))
+
+
+def is_gzip(path: str | Path) -> bool:
+    with open(path, "rb") as probe:
+        return probe.read(2) == GZIP_MAGIC
+
+
+def open_binary(path: str | Path) -> BinaryIO:
+    """Open ``path`` for reading bytes, decompressing transparently if it is gzip."""
+    if is_gzip(path):
+        return cast(BinaryIO, igzip.open(path, "rb"))  # type: ignore[no-untyped-call]
+    return open(path, "rb")
+
+
+def read_bytes(path: str | Path) -> bytes:
+    """The whole (decompressed) content of ``path``; a damaged gzip stream is a format error."""
+    with open(path, "rb") as f:
+        raw = f.read()
+    if raw[:2] != GZIP_MAGIC:
+        return raw
+    try:
+        return cast(bytes, igzip.decompress(raw))  # type: ignore[no-untyped-call]
+    except GZIP_ERRORS as exc:
+        raise MocapFormatError(str(path), None, f"damaged or truncated gzip data ({exc})") from None
+
+
+def read_text_lines(path: str | Path) -> list[str]:
+    """Lines of a small text file (an ASF), without line terminators. Latin-1, so no byte fails."""
+    return read_bytes(path).decode("latin-1").replace("\r\n", "\n").replace("\r", "\n").split("\n")
