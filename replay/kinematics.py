@@ -180,7 +180,8 @@ class KinematicModel:
 
     def positions_frame(self, channels: FloatArray, unit: Unit = "asf") -> FloatArray:
         """Positions of all nodes for one frame: ``channels`` shape ``(C,)`` gives shape ``(nodes, 3)``."""
-        return self.positions(np.asarray(channels, dtype=np.float64)[None, :], unit)[0]
+        one: FloatArray = self.positions(np.asarray(channels, dtype=np.float64)[None, :], unit)[0]
+        return one
 
     def joints(self, node_positions: FloatArray) -> FloatArray:
         """Select the standard joints (:data:`replay.joints.JOINT_NAMES`): shape ``(..., nodes, 3)``
