@@ -10,11 +10,10 @@ reading + batch forward kinematics together. Each figure is the best of ``--repe
 from __future__ import annotations
 
 import argparse
+import os
 import time
 from collections.abc import Callable
 from pathlib import Path
-
-import numpy as np
 
 from bench.machine import describe
 from replay import KinematicModel, iter_amc, read_amc, read_asf
@@ -34,13 +33,14 @@ def best_of(repeat: int, run: Callable[[], object]) -> float:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("--repeat", type=int, default=3)
     parser.add_argument("--data", type=Path, default=DATA)
     args = parser.parse_args()
-    os_affinity = getattr(__import__("os"), "sched_setaffinity", None)
-    if os_affinity is not None:
-        os_affinity(0, {min(__import__("os").sched_getaffinity(0))})
+    if hasattr(os, "sched_setaffinity"):
+        os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})
 
     pairs = recordings(args.data, {"14": "13"})
     skeletons = {asf: read_asf(asf) for asf in {a for a, _ in pairs}}
@@ -99,9 +99,9 @@ def main() -> None:
     for name, rate, ratio in rows:
         print(f"{name:38s} {rate:12,.0f} {ratio:>10s}")
     fk_ratio = (frames / t_fk) / (sample_frames / t_fk_frame)
-    print(f"batch FK is {fk_ratio:.0f}x per-frame FK; 2005 system: 1.29 M frames in 71 s = {1.29e6 / 71:,.0f} frames/s")
+    print(f"batch FK is {fk_ratio:.0f}x per-frame FK")
+    print(f"2005 system: 1.29 M frames in 71 s = {1.29e6 / 71:,.0f} frames/s")
     print(f"(per-frame FK: {1e6 * t_fk_frame / sample_frames:.0f} us/frame; a 120 Hz frame lasts 8333 us)")
-    np.seterr(all="ignore")
 
 
 if __name__ == "__main__":

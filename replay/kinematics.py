@@ -7,13 +7,15 @@ dofs, composed in the order the ASF lists them, first applied first)::
     P_k = P_parent(k) + G_k @ (direction_k * length_k)
 
 with ``G_root = O @ M_root`` (``O`` from the root ``orientation``, ``M_root`` from the root rotation
-channels in ``order``) and ``P_root = root translation + root position``. This is
-``C M C^-1`` for column vectors, the same as DESIGN.md's ``L = C^-1 M C`` written for row vectors.
-``P_k`` is the position of node ``k``: the end point of bone ``k``.
+channels in ``order``) and ``P_root = root translation + root position``. This is ``C M C^-1`` for
+column vectors, the same as DESIGN.md's ``L = C^-1 M C`` written for row vectors. ``P_k`` is the
+position of node ``k``: the end point of bone ``k``.
 
-Everything is vectorised over frames; bones are processed level by level down the hierarchy.
-3x3 products are written out element by element, so one frame computed alone gives bit-for-bit
-the values it gets inside a batch.
+Rotations are unit quaternions ``(w, x, y, z)``: ``C R(e_a, t) C.T = R(C e_a, t)``, so a bone's local
+rotation is a product of elementary quaternions about its rotated dof axes and needs no products with
+``C``. Arrays are component-major (``(4, nodes, N)``) and bones are processed level by level down the
+hierarchy, vectorised over frames. Every operation is elementwise, so one frame computed alone gives
+bit-for-bit the values it gets inside a batch.
 """
 
 from __future__ import annotations
@@ -32,42 +34,50 @@ Unit = Literal["asf", "cm"]
 _AXIS = {"X": 0, "Y": 1, "Z": 2}
 
 
-def matmul3(a: FloatArray, b: FloatArray) -> FloatArray:
-    """``a @ b`` for stacks of 3x3 matrices, shapes ``(..., 3, 3)``, with a fixed summation order."""
-    return (a[..., :, 0, None] * b[..., None, 0, :] + a[..., :, 1, None] * b[..., None, 1, :]) + a[
-        ..., :, 2, None
-    ] * b[..., None, 2, :]
+def quaternion_multiply(a: FloatArray, b: FloatArray) -> FloatArray:
+    """Hamilton product ``a ⊗ b`` of quaternions stored component-first: shapes ``(4, ...)``."""
+    aw, ax, ay, az = a
+    bw, bx, by, bz = b
+    return np.stack(
+        [
+            ((aw * bw - ax * bx) - ay * by) - az * bz,
+            ((aw * bx + ax * bw) + ay * bz) - az * by,
+            ((aw * by - ax * bz) + ay * bw) + az * bx,
+            ((aw * bz + ax * by) - ay * bx) + az * bw,
+        ]
+    )
 
 
-def matvec3(a: FloatArray, v: FloatArray) -> FloatArray:
-    """``a @ v`` for stacks: ``a`` shape ``(..., 3, 3)``, ``v`` shape ``(..., 3)``."""
-    return (a[..., :, 0] * v[..., None, 0] + a[..., :, 1] * v[..., None, 1]) + a[..., :, 2] * v[..., None, 2]
+def quaternion_rotate(q: FloatArray, v: FloatArray) -> FloatArray:
+    """Rotate vectors ``v`` shape ``(3, ...)`` by unit quaternions ``q`` shape ``(4, ...)``:
+    ``v + w t + cross(u, t)`` with ``t = 2 cross(u, v)``."""
+    w, x, y, z = q
+    vx, vy, vz = v
+    tx = 2.0 * (y * vz - z * vy)
+    ty = 2.0 * (z * vx - x * vz)
+    tz = 2.0 * (x * vy - y * vx)
+    return np.stack(
+        [vx + w * tx + (y * tz - z * ty), vy + w * ty + (z * tx - x * tz), vz + w * tz + (x * ty - y * tx)]
+    )
 
 
-def axis_rotations(axes: npt.NDArray[np.intp], angles: FloatArray) -> FloatArray:
-    """Elementary rotations: ``angles`` shape ``(..., B)`` in radians about the axes ``axes`` shape
-    ``(B,)`` (0 = x, 1 = y, 2 = z); returns shape ``(..., B, 3, 3)``."""
-    c, s = np.cos(angles), np.sin(angles)
-    out = np.zeros((*angles.shape, 3, 3), dtype=np.float64)
-    b = np.arange(axes.shape[0])
-    i, j, k = axes, (axes + 1) % 3, (axes + 2) % 3
-    out[..., b, i, i] = 1.0
-    out[..., b, j, j] = c
-    out[..., b, k, k] = c
-    out[..., b, j, k] = -s
-    out[..., b, k, j] = s
-    return out
+def quaternion_matrix(q: FloatArray) -> FloatArray:
+    """Rotation matrices of unit quaternions: ``q`` shape ``(4, ...)`` gives shape ``(..., 3, 3)``."""
+    eye = np.eye(3).reshape(3, 3, *([1] * (q.ndim - 1)))
+    columns = quaternion_rotate(q[:, None], eye)  # (3 components, 3 columns, ...)
+    return np.moveaxis(columns, (0, 1), (-2, -1))
 
 
-def euler_matrix(angles: Sequence[float], order: str) -> FloatArray:
-    """Rotation for Euler ``angles`` (radians) about the axes of ``order`` in application order:
-    ``order="XYZ"`` gives ``Rz @ Ry @ Rx``. Returns shape ``(3, 3)``."""
-    axes = np.array([_AXIS[a] for a in order], dtype=np.intp)
-    elementary = axis_rotations(axes, np.asarray(angles, dtype=np.float64)[: len(order)])
-    result = np.eye(3)
-    for r in elementary:
-        result = matmul3(r, result)
-    return result
+def euler_quaternion(angles: Sequence[float], order: str) -> FloatArray:
+    """Quaternion of Euler ``angles`` (radians) about the axes of ``order`` in application order:
+    ``order="XYZ"`` is ``Rz @ Ry @ Rx``. Returns shape ``(4,)``."""
+    q = np.array([1.0, 0.0, 0.0, 0.0])
+    for axis, angle in zip(order, angles, strict=False):
+        e = np.zeros(4)
+        e[0] = np.cos(0.5 * angle)
+        e[1 + _AXIS[axis]] = np.sin(0.5 * angle)
+        q = quaternion_multiply(e, q)
+    return q
 
 
 class KinematicModel:
@@ -76,10 +86,6 @@ class KinematicModel:
     Channel vectors are in the layout of :attr:`Skeleton.channel_names` (angles in radians), as the
     AMC readers return them. Positions come out in ASF units, or in centimetres with ``unit="cm"``
     (ASF length / ``:units length`` x 2.54, as the toolbox does).
-
-    A bone's local rotation ``C M C.T`` with ``M = R(e_a3, t3) R(e_a2, t2) R(e_a1, t1)`` is computed as
-    ``R(C e_a3, t3) R(C e_a2, t2) R(C e_a1, t1)`` (Rodrigues' formula about the rotated axes), which
-    needs no products with ``C``.
     """
 
     def __init__(self, skeleton: Skeleton) -> None:
@@ -87,44 +93,38 @@ class KinematicModel:
         n_nodes = len(skeleton.bones) + 1
         self.n_nodes = n_nodes
         index = {n: i for i, n in enumerate(skeleton.channel_names)}
-        self._orientation = euler_matrix(skeleton.root.orientation, skeleton.root.axis_order)
-        frames = [np.eye(3)] + [euler_matrix(b.axis, b.axis_order) for b in skeleton.bones]
+        self._orientation = euler_quaternion(skeleton.root.orientation, skeleton.root.axis_order)
+        # Columns of C_k are the bone's local axes in the global frame; the root's dofs are not conjugated.
+        frames = [np.eye(3)] + [
+            quaternion_matrix(euler_quaternion(b.axis, b.axis_order)) for b in skeleton.bones
+        ]
         dofs = [skeleton.root.order] + [b.dofs for b in skeleton.bones]
         node_names = skeleton.node_names
 
-        # slot s holds every node's s-th rotation dof: (nodes, channel index, K, I - u u^T, u u^T)
-        self._slots: list[
-            tuple[npt.NDArray[np.intp], npt.NDArray[np.intp], FloatArray, FloatArray, FloatArray]
-        ] = []
+        # slot s: every node's s-th rotation dof, as (nodes, channel index, rotated unit axis (3, n, 1))
+        self._slots: list[tuple[npt.NDArray[np.intp], npt.NDArray[np.intp], FloatArray]] = []
         for slot in range(3):
-            nodes, chans, ks, uus = [], [], [], []
+            nodes, chans, axes = [], [], []
             for k in range(n_nodes):
                 rot = [d for d in dofs[k] if d in ROTATION_DOFS]
-                if len(rot) <= slot:
-                    continue
-                u = frames[k][:, ROTATION_DOFS.index(rot[slot])]
-                nodes.append(k)
-                chans.append(index[f"{node_names[k]}.{rot[slot]}"])
-                ks.append(np.array([[0.0, -u[2], u[1]], [u[2], 0.0, -u[0]], [-u[1], u[0], 0.0]]))
-                uus.append(np.outer(u, u))
+                if len(rot) > slot:
+                    nodes.append(k)
+                    chans.append(index[f"{node_names[k]}.{rot[slot]}"])
+                    axes.append(frames[k][:, ROTATION_DOFS.index(rot[slot])])
             if nodes:
-                uu = np.array(uus)[:, None]
                 self._slots.append(
                     (
                         np.array(nodes, dtype=np.intp),
                         np.array(chans, dtype=np.intp),
-                        np.array(ks)[:, None],
-                        np.eye(3) - uu,
-                        uu,
+                        np.array(axes).T[:, :, None],
                     )
                 )
         self._translation = [
             (axis, index[f"root.{t}"]) for axis, t in enumerate(TRANSLATION_DOFS) if f"root.{t}" in index
         ]
         self._root_position = np.array(skeleton.root.position, dtype=np.float64)
-        self._offsets = np.array(
-            [[0.0, 0.0, 0.0]] + [np.array(b.direction) * b.length for b in skeleton.bones]
-        )
+        offsets = np.array([[0.0, 0.0, 0.0]] + [np.array(b.direction) * b.length for b in skeleton.bones])
+        self._offsets = offsets.T[:, :, None]  # (3, nodes, 1)
 
         depth = [0] * n_nodes
         for k in range(1, n_nodes):
@@ -145,38 +145,49 @@ class KinematicModel:
             else None
         )
 
-    def _local_rotations(self, channels: FloatArray) -> FloatArray:
-        """``O @ M_root`` for node 0 and ``C_k @ M_k @ C_k.T`` for bone nodes, node-major: ``channels``
-        shape ``(N, C)`` gives shape ``(nodes, N, 3, 3)``."""
-        n = channels.shape[0]
-        local = np.zeros((self.n_nodes, n, 3, 3))
-        local[..., [0, 1, 2], [0, 1, 2]] = 1.0
-        for slot, (nodes, chans, k, eye_minus_uu, uu) in enumerate(self._slots):
-            theta = channels.T[chans][..., None, None]
-            # Rodrigues: R(u, t) = u u^T + cos t (I - u u^T) + sin t [u]x
-            r = (uu + np.cos(theta) * eye_minus_uu) + np.sin(theta) * k
-            local[nodes] = r if slot == 0 else np.matmul(r, local[nodes])
-        local[0] = np.matmul(self._orientation, local[0])
-        return local
-
-    def positions(self, channels: FloatArray, unit: Unit = "asf") -> FloatArray:
-        """Positions of all nodes: ``channels`` shape ``(N, C)`` gives shape ``(N, nodes, 3)``."""
+    def _check(self, channels: FloatArray) -> FloatArray:
         channels = np.asarray(channels, dtype=np.float64)
         if channels.ndim != 2 or channels.shape[1] != len(self.skeleton.channel_names):
             raise ValueError(
                 f"channels must have shape (N, {len(self.skeleton.channel_names)}), got {channels.shape}"
             )
-        rot = self._local_rotations(channels)
-        pos = np.empty((self.n_nodes, channels.shape[0], 3))
-        pos[0] = self._root_position
+        return channels
+
+    def _local(self, channels: FloatArray) -> FloatArray:
+        """Local rotations ``O M_root`` (node 0) and ``C_k M_k C_k.T``: shape ``(4, nodes, N)``."""
+        local = np.zeros((4, self.n_nodes, channels.shape[0]))
+        local[0] = 1.0
+        angles = channels.T
+        for slot, (nodes, chans, axes) in enumerate(self._slots):
+            half = 0.5 * angles[chans]
+            elementary = np.concatenate([np.cos(half)[None], np.sin(half)[None] * axes])
+            local[:, nodes] = elementary if slot == 0 else quaternion_multiply(elementary, local[:, nodes])
+        local[:, 0] = quaternion_multiply(self._orientation[:, None], local[:, 0])
+        return local
+
+    def _forward(self, channels: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """Global rotations ``(4, nodes, N)`` and positions ``(3, nodes, N)`` in ASF units."""
+        rot = self._local(channels)
+        pos = np.empty((3, self.n_nodes, channels.shape[0]))
+        pos[:, 0] = self._root_position[:, None]
         for axis, chan in self._translation:
-            pos[0, :, axis] += channels[:, chan]
+            pos[axis, 0] += channels[:, chan]
         for nodes, parents in self._levels:
-            rot[nodes] = np.matmul(rot[parents], rot[nodes])
-            pos[nodes] = pos[parents] + np.matmul(rot[nodes], self._offsets[nodes][:, None, :, None])[..., 0]
+            rot[:, nodes] = quaternion_multiply(rot[:, parents], rot[:, nodes])
+            pos[:, nodes] = pos[:, parents] + quaternion_rotate(rot[:, nodes], self._offsets[:, nodes])
+        return rot, pos
+
+    def positions(self, channels: FloatArray, unit: Unit = "asf") -> FloatArray:
+        """Positions of all nodes: ``channels`` shape ``(N, C)`` gives shape ``(N, nodes, 3)``."""
+        _, pos = self._forward(self._check(channels))
         if unit == "cm":
             pos *= 2.54 / self.skeleton.length_unit
-        return np.ascontiguousarray(pos.transpose(1, 0, 2))
+        return np.ascontiguousarray(pos.transpose(2, 1, 0))
+
+    def rotations(self, channels: FloatArray) -> FloatArray:
+        """Global rotation matrices of all nodes: ``channels`` shape ``(N, C)`` gives ``(N, nodes, 3, 3)``."""
+        rot, _ = self._forward(self._check(channels))
+        return np.ascontiguousarray(quaternion_matrix(rot.transpose(0, 2, 1)))
 
     def positions_frame(self, channels: FloatArray, unit: Unit = "asf") -> FloatArray:
         """Positions of all nodes for one frame: ``channels`` shape ``(C,)`` gives shape ``(nodes, 3)``."""

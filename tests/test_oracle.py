@@ -14,7 +14,10 @@ CLIPS = {
     "02_01": ("cmu/02/02.asf", "cmu/02/02_01.amc.gz"),
     "02_05": ("cmu/02/02.asf", "cmu/02/02_05.amc.gz"),
     "13_29": ("cmu/13/13.asf", "cmu/13/13_29.amc.gz"),
-    "HDM_bd_squat1Reps_001_120": ("hdm05/asf/HDM_bd.asf", "hdm05/cut/squat1Reps/HDM_bd_squat1Reps_001_120.amc.gz"),
+    "HDM_bd_squat1Reps_001_120": (
+        "hdm05/asf/HDM_bd.asf",
+        "hdm05/cut/squat1Reps/HDM_bd_squat1Reps_001_120.amc.gz",
+    ),
 }
 
 
