@@ -21,7 +21,7 @@ bit-for-bit the values it gets inside a batch.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 import numpy.typing as npt
@@ -34,31 +34,37 @@ Unit = Literal["asf", "cm"]
 _AXIS = {"X": 0, "Y": 1, "Z": 2}
 
 
-def quaternion_multiply(a: FloatArray, b: FloatArray) -> FloatArray:
-    """Hamilton product ``a ⊗ b`` of quaternions stored component-first: shapes ``(4, ...)``."""
+def _qmul(a: Sequence[Any], b: Sequence[Any]) -> tuple[Any, Any, Any, Any]:
+    """Hamilton product of quaternions given as 4 components (floats or arrays alike)."""
     aw, ax, ay, az = a
     bw, bx, by, bz = b
-    return np.stack(
-        [
-            ((aw * bw - ax * bx) - ay * by) - az * bz,
-            ((aw * bx + ax * bw) + ay * bz) - az * by,
-            ((aw * by - ax * bz) + ay * bw) + az * bx,
-            ((aw * bz + ax * by) - ay * bx) + az * bw,
-        ]
+    return (
+        ((aw * bw - ax * bx) - ay * by) - az * bz,
+        ((aw * bx + ax * bw) + ay * bz) - az * by,
+        ((aw * by - ax * bz) + ay * bw) + az * bx,
+        ((aw * bz + ax * by) - ay * bx) + az * bw,
     )
 
 
-def quaternion_rotate(q: FloatArray, v: FloatArray) -> FloatArray:
-    """Rotate vectors ``v`` shape ``(3, ...)`` by unit quaternions ``q`` shape ``(4, ...)``:
-    ``v + w t + cross(u, t)`` with ``t = 2 cross(u, v)``."""
+def _qrot(q: Sequence[Any], v: Sequence[Any]) -> tuple[Any, Any, Any]:
+    """Rotate the vector ``v`` (3 components) by the unit quaternion ``q``: ``v + w t + cross(u, t)``
+    with ``t = 2 cross(u, v)``."""
     w, x, y, z = q
     vx, vy, vz = v
     tx = 2.0 * (y * vz - z * vy)
     ty = 2.0 * (z * vx - x * vz)
     tz = 2.0 * (x * vy - y * vx)
-    return np.stack(
-        [vx + w * tx + (y * tz - z * ty), vy + w * ty + (z * tx - x * tz), vz + w * tz + (x * ty - y * tx)]
-    )
+    return (vx + w * tx + (y * tz - z * ty), vy + w * ty + (z * tx - x * tz), vz + w * tz + (x * ty - y * tx))
+
+
+def quaternion_multiply(a: FloatArray, b: FloatArray) -> FloatArray:
+    """Hamilton product ``a ⊗ b`` of quaternions stored component-first: shapes ``(4, ...)``."""
+    return np.stack(np.broadcast_arrays(*_qmul(a, b)))
+
+
+def quaternion_rotate(q: FloatArray, v: FloatArray) -> FloatArray:
+    """Rotate vectors ``v`` shape ``(3, ...)`` by unit quaternions ``q`` shape ``(4, ...)``."""
+    return np.stack(np.broadcast_arrays(*_qrot(q, v)))
 
 
 def quaternion_matrix(q: FloatArray) -> FloatArray:
@@ -126,6 +132,17 @@ class KinematicModel:
         offsets = np.array([[0.0, 0.0, 0.0]] + [np.array(b.direction) * b.length for b in skeleton.bones])
         self._offsets = offsets.T[:, :, None]  # (3, nodes, 1)
 
+        # The same tables as plain floats, for one frame at a time (positions_frame).
+        self._slot_lists = [
+            [
+                (int(k), int(c), tuple(axes[:, i, 0].tolist()))
+                for i, (k, c) in enumerate(zip(nodes, chans, strict=True))
+            ]
+            for nodes, chans, axes in self._slots
+        ]
+        self._offset_lists = [tuple(o) for o in offsets.tolist()]
+        self._orientation_list = tuple(self._orientation.tolist())
+
         depth = [0] * n_nodes
         for k in range(1, n_nodes):
             node, d = k, 0
@@ -136,6 +153,9 @@ class KinematicModel:
             (np.array(nodes, dtype=np.intp), np.array([skeleton.parents[k] for k in nodes], dtype=np.intp))
             for level in range(1, max(depth, default=0) + 1)
             if (nodes := [k for k in range(1, n_nodes) if depth[k] == level])
+        ]
+        self._pairs = [
+            (int(k), int(p)) for nodes, parents in self._levels for k, p in zip(nodes, parents, strict=True)
         ]
         missing = sorted({b for b in JOINT_BONE_END.values() if b != "root" and b not in node_names})
         self.missing_joint_bones: tuple[str, ...] = tuple(missing)
@@ -190,9 +210,38 @@ class KinematicModel:
         return np.ascontiguousarray(quaternion_matrix(rot.transpose(0, 2, 1)))
 
     def positions_frame(self, channels: FloatArray, unit: Unit = "asf") -> FloatArray:
-        """Positions of all nodes for one frame: ``channels`` shape ``(C,)`` gives shape ``(nodes, 3)``."""
-        one: FloatArray = self.positions(np.asarray(channels, dtype=np.float64)[None, :], unit)[0]
-        return one
+        """Positions of all nodes for one frame: ``channels`` shape ``(C,)`` gives shape ``(nodes, 3)``.
+
+        The same operations as :meth:`positions` in the same order, on Python floats (no per-call numpy
+        overhead), so the values are bit-for-bit those of the batch."""
+        row = np.asarray(channels, dtype=np.float64)
+        if row.shape != (len(self.skeleton.channel_names),):
+            raise ValueError(
+                f"channels must have shape ({len(self.skeleton.channel_names)},), got {row.shape}"
+            )
+        half = 0.5 * row
+        cos, sin = np.cos(half).tolist(), np.sin(half).tolist()
+        rot: list[tuple[Any, Any, Any, Any]] = [(1.0, 0.0, 0.0, 0.0)] * self.n_nodes
+        for slot, entries in enumerate(self._slot_lists):
+            for k, c, (ux, uy, uz) in entries:
+                s = sin[c]
+                elementary = (cos[c], s * ux, s * uy, s * uz)
+                rot[k] = elementary if slot == 0 else _qmul(elementary, rot[k])
+        rot[0] = _qmul(self._orientation_list, rot[0])
+        root = self._root_position.tolist()
+        for axis, chan in self._translation:
+            root[axis] += float(row[chan])
+        pos: list[tuple[Any, Any, Any]] = [(0.0, 0.0, 0.0)] * self.n_nodes
+        pos[0] = (root[0], root[1], root[2])
+        for k, p in self._pairs:
+            rot[k] = _qmul(rot[p], rot[k])
+            dx, dy, dz = _qrot(rot[k], self._offset_lists[k])
+            px, py, pz = pos[p]
+            pos[k] = (px + dx, py + dy, pz + dz)
+        out = np.array(pos, dtype=np.float64)
+        if unit == "cm":
+            out *= 2.54 / self.skeleton.length_unit
+        return out
 
     def joints(self, node_positions: FloatArray) -> FloatArray:
         """Select the standard joints (:data:`replay.joints.JOINT_NAMES`): shape ``(..., nodes, 3)``
