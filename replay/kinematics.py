@@ -34,7 +34,7 @@ Unit = Literal["asf", "cm"]
 _AXIS = {"X": 0, "Y": 1, "Z": 2}
 
 
-def _qmul(a: Sequence[Any], b: Sequence[Any]) -> tuple[Any, Any, Any, Any]:
+def _qmul(a: Any, b: Any) -> tuple[Any, Any, Any, Any]:
     """Hamilton product of quaternions given as 4 components (floats or arrays alike)."""
     aw, ax, ay, az = a
     bw, bx, by, bz = b
@@ -46,7 +46,7 @@ def _qmul(a: Sequence[Any], b: Sequence[Any]) -> tuple[Any, Any, Any, Any]:
     )
 
 
-def _qrot(q: Sequence[Any], v: Sequence[Any]) -> tuple[Any, Any, Any]:
+def _qrot(q: Any, v: Any) -> tuple[Any, Any, Any]:
     """Rotate the vector ``v`` (3 components) by the unit quaternion ``q``: ``v + w t + cross(u, t)``
     with ``t = 2 cross(u, v)``."""
     w, x, y, z = q
