@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
+import os
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -17,6 +19,16 @@ import numpy as np
 
 from daemon.config import Config, ConfigError, Units, load_config
 from replay import JOINT_NAMES, KinematicModel, MocapFormatError, Motion, read_amc, read_asf
+
+
+def _positive_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"must be a positive number, got '{text}'")
+    return value
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -32,7 +44,10 @@ def _parser() -> argparse.ArgumentParser:
     info.add_argument("--asf", type=Path, required=True)
     info.add_argument("--amc", type=Path, required=True, help="AMC file, plain or gzip")
     info.add_argument(
-        "--fps", type=float, default=None, help="frame rate if the AMC states none (default: config, 120)"
+        "--fps",
+        type=_positive_float,
+        default=None,
+        help="frame rate if the AMC states none (default: config, 120)",
     )
     info.add_argument("--json", action="store_true", help="print one JSON object instead of text")
 
@@ -55,6 +70,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     except (MocapFormatError, ConfigError) as exc:
         print(f"mocapd: {exc}", file=sys.stderr)
         return 2
+    except BrokenPipeError:
+        # The reader of our stdout went away (``| head``): nothing is wrong, nothing more to say.
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 0
     except OSError as exc:
         print(f"mocapd: {exc.filename}: {exc.strerror}", file=sys.stderr)
         return 2

@@ -43,7 +43,10 @@ def load_config(path: str | Path | None) -> Config:
     try:
         data = yaml.safe_load(text)
     except yaml.YAMLError as exc:
-        raise ConfigError(f"{source}: not valid YAML ({exc})") from None
+        mark = getattr(exc, "problem_mark", None)
+        where = f" at line {mark.line + 1}" if mark is not None else ""
+        problem = getattr(exc, "problem", None) or type(exc).__name__
+        raise ConfigError(f"{source}: not valid YAML{where}: {problem}") from None
     return parse_config({} if data is None else data, source)
 
 
@@ -51,16 +54,25 @@ def parse_config(data: object, source: str = "<config>") -> Config:
     """Build a :class:`Config` from parsed YAML; unknown or ill-typed fields are errors."""
     root = _mapping(data, source, "")
     _known(root, {"replay"}, source, "")
-    replay = _mapping(root.get("replay", {}), source, "replay")
+    replay = _mapping(root.get("replay") or {}, source, "replay")
     _known(replay, {"frame_rate_hz", "units"}, source, "replay")
     defaults = ReplayConfig()
     rate = replay.get("frame_rate_hz", defaults.frame_rate_hz)
-    if isinstance(rate, bool) or not isinstance(rate, int | float) or not math.isfinite(rate) or rate <= 0:
+    if not _positive_number(rate):
         raise ConfigError(f"{source}: replay.frame_rate_hz must be a positive number, got {rate!r}")
     units = replay.get("units", defaults.units)
     if units not in ("asf", "cm"):
         raise ConfigError(f"{source}: replay.units must be 'asf' or 'cm', got {units!r}")
     return Config(replay=ReplayConfig(frame_rate_hz=float(rate), units=cast(Units, units)))
+
+
+def _positive_number(value: object) -> bool:
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        return False
+    try:
+        return math.isfinite(value) and value > 0
+    except OverflowError:  # an int too large for a float
+        return False
 
 
 def _mapping(value: object, source: str, where: str) -> Mapping[str, Any]:

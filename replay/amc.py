@@ -188,6 +188,9 @@ class AmcStream:
         start, words = self._pending
         self._pending = None
         while words is not None:
+            if words[0] in layout.dofless and len(words) == 1:
+                words = self._next_words()
+                continue
             if not _is_frame_number(words):
                 text = b" ".join(words).decode("latin-1")
                 if words[0] in layout.slots or words[0] in layout.dofless:
@@ -232,7 +235,8 @@ class AmcStream:
                     )
                 for k in range(count):
                     try:
-                        value = float(words[k + 1])
+                        # float() takes "1_0"; a motion file does not
+                        value = float(words[k + 1]) if b"_" not in words[k + 1] else math.nan
                     except ValueError:
                         value = math.nan
                     if not math.isfinite(value):

@@ -144,7 +144,7 @@ def parse_asf(lines: Sequence[str], source: str = "<asf>") -> Skeleton:
             raise MocapFormatError(source, number, f"'{words[0]}' before the first ':' section")
         current.append(_Line(number, words))
 
-    for required in ("root", "bonedata", "hierarchy"):
+    for required in ("root", "bonedata"):
         if required not in headers:
             raise MocapFormatError(source, None, f"no ':{required}' section")
 
@@ -152,6 +152,8 @@ def parse_asf(lines: Sequence[str], source: str = "<asf>") -> Skeleton:
     to_rad = math.pi / 180.0 if angle_unit == "deg" else 1.0
     root = _parse_root(sections["root"], headers["root"].number, to_rad, source)
     bones = _parse_bonedata(sections["bonedata"], to_rad, source)
+    if "hierarchy" not in headers:
+        raise MocapFormatError(source, None, "no ':hierarchy' section")
     parents = _parse_hierarchy(sections["hierarchy"], headers["hierarchy"].number, bones, source)
     name_words = headers["name"].words if "name" in headers else []
     return Skeleton(
@@ -412,15 +414,21 @@ def _parse_hierarchy(lines: list[_Line], header_line: int, bones: list[Bone], so
     for k, b in enumerate(bones, 1):
         if parents[k] == -2:
             raise MocapFormatError(source, header_line, f"bone '{b.name}' has no parent in ':hierarchy'")
-    # Every bone has exactly one parent, so a bone is either reachable from the root or on a cycle.
+    # Every bone has one parent, so a bone the root does not reach leads up, parent by parent, into a
+    # cycle. Report the cycle's edge that comes last in the file: the one that closes it.
+    reached = {0}
     for k in range(1, len(parents)):
-        seen = {k}
-        node = parents[k]
-        while node > 0:
-            if node in seen:
-                raise MocapFormatError(
-                    source, where[k], f"hierarchy has a cycle through bone '{bones[k - 1].name}'"
-                )
-            seen.add(node)
+        chain = []
+        node = k
+        while node not in reached and node not in chain:
+            chain.append(node)
             node = parents[node]
+        if node in reached:
+            reached.update(chain)
+            continue
+        cycle = chain[chain.index(node) :]
+        closing = max(cycle, key=lambda c: where[c])
+        raise MocapFormatError(
+            source, where[closing], f"hierarchy has a cycle through bone '{bones[closing - 1].name}'"
+        )
     return tuple(parents)

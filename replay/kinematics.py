@@ -27,6 +27,7 @@ import numpy as np
 import numpy.typing as npt
 
 from replay.asf import ROTATION_DOFS, TRANSLATION_DOFS, Skeleton
+from replay.errors import MocapFormatError
 from replay.joints import JOINT_BONE_END, JOINT_NAMES
 
 FloatArray = npt.NDArray[np.float64]
@@ -247,9 +248,11 @@ class KinematicModel:
         """Select the standard joints (:data:`replay.joints.JOINT_NAMES`): shape ``(..., nodes, 3)``
         gives shape ``(..., 26, 3)``."""
         if self._joint_nodes is None:
-            raise ValueError(
-                f"{self.skeleton.source}: skeleton has no bone(s) {', '.join(self.missing_joint_bones)} "
-                "needed for the standard joint set"
+            missing = ", ".join(self.missing_joint_bones)
+            raise MocapFormatError(
+                self.skeleton.source,
+                None,
+                f"skeleton has no bone(s) {missing} needed for the standard joint set",
             )
         joints: FloatArray = node_positions[..., self._joint_nodes, :]
         return joints

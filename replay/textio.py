@@ -1,10 +1,12 @@
 """Opening recordings: plain or gzip (told by the magic bytes, not the name), CRLF or LF.
 
-gzip goes through ISA-L (``isal``), which inflates about 2.5x faster than zlib on these files.
+Whole files are inflated by ISA-L (``isal``), about 2.5x faster than zlib on these files.
 """
 
 from __future__ import annotations
 
+import gzip
+import zlib
 from pathlib import Path
 from typing import BinaryIO, cast
 
@@ -13,7 +15,12 @@ from isal import igzip, isal_zlib
 from replay.errors import MocapFormatError
 
 GZIP_MAGIC = b"\x1f\x8b"
-GZIP_ERRORS: tuple[type[BaseException], ...] = (EOFError, OSError, cast(type[BaseException], isal_zlib.error))
+GZIP_ERRORS: tuple[type[BaseException], ...] = (
+    EOFError,
+    OSError,
+    zlib.error,
+    cast(type[BaseException], isal_zlib.error),
+)
 
 
 def is_gzip(path: str | Path) -> bool:
@@ -22,9 +29,12 @@ def is_gzip(path: str | Path) -> bool:
 
 
 def open_binary(path: str | Path) -> BinaryIO:
-    """Open ``path`` for reading bytes, decompressing transparently if it is gzip."""
+    """Open ``path`` for reading bytes, decompressing transparently if it is gzip.
+
+    The stream uses the standard library's gzip: on a truncated stream it hands out everything that
+    was recoverable before raising, where ISA-L's reader stops several blocks early."""
     if is_gzip(path):
-        return cast(BinaryIO, igzip.open(path, "rb"))  # type: ignore[no-untyped-call]
+        return cast(BinaryIO, gzip.open(path, "rb"))
     return open(path, "rb")
 
 

@@ -1,0 +1,339 @@
+"""The ``mocapd`` command, run for real in a subprocess (``python -m daemon`` and the console script)."""
+
+from __future__ import annotations
+
+import csv
+import gzip
+import json
+import re
+import subprocess
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import numpy.typing as npt
+import pytest
+
+from replay import JOINT_NAMES, KinematicModel, MocapFormatError, Motion, read_amc, read_asf
+from tests.conftest import DATA, REPO
+
+CMU_ASF = DATA / "cmu" / "02" / "02.asf"
+CMU_AMC = DATA / "cmu" / "02" / "02_01.amc.gz"
+HDM_ASF = DATA / "hdm05" / "asf" / "HDM_bd.asf"
+HDM_AMC = DATA / "hdm05" / "cut" / "squat1Reps" / "HDM_bd_squat1Reps_001_120.amc.gz"
+SOURCES = {"cmu": (CMU_ASF, CMU_AMC), "hdm05": (HDM_ASF, HDM_AMC)}
+MOCAPD_SCRIPT = Path(sys.executable).parent / "mocapd"
+CM_PER_ASF_UNIT = 2.54 / 0.45
+SIX_DECIMALS = re.compile(r"-?\d+\.\d{6}")
+
+
+def mocapd(*args: str | Path, script: bool = False) -> subprocess.CompletedProcess[str]:
+    """Run ``python -m daemon ARGS`` (or the ``mocapd`` console script) and capture its output."""
+    command = [str(MOCAPD_SCRIPT)] if script else [sys.executable, "-m", "daemon"]
+    return subprocess.run(
+        [*command, *map(str, args)], cwd=REPO, capture_output=True, text=True, timeout=60, check=False
+    )
+
+
+def assert_ok(result: subprocess.CompletedProcess[str]) -> None:
+    assert (result.returncode, result.stderr) == (0, ""), result.stderr
+
+
+def assert_one_error_line(result: subprocess.CompletedProcess[str]) -> str:
+    """Exit status 2 and exactly one line on stderr, no traceback; returns that line."""
+    assert result.returncode == 2, (result.returncode, result.stderr)
+    assert "Traceback" not in result.stderr, result.stderr
+    assert result.stderr.endswith("\n") and result.stderr.count("\n") == 1, result.stderr
+    assert result.stdout == ""
+    return result.stderr.rstrip("\n")
+
+
+def info_fields(stdout: str) -> dict[str, str]:
+    """``key: value`` lines of ``mocapd info``'s text output."""
+    fields = {}
+    for line in stdout.splitlines():
+        key, value = line.split(":", 1)
+        fields[key] = value.strip()
+    return fields
+
+
+# --------------------------------------------------------------------------------------------------
+# info
+
+
+@pytest.mark.parametrize("script", [False, True], ids=["python-m-daemon", "mocapd-script"])
+def test_info_text(script: bool) -> None:
+    assert MOCAPD_SCRIPT.is_file()
+    result = mocapd("info", "--asf", CMU_ASF, "--amc", CMU_AMC, script=script)
+    assert_ok(result)
+    fields = info_fields(result.stdout)
+    skeleton = read_asf(CMU_ASF)
+    assert fields["frames"] == "343 (AMC frames 1-343)"
+    assert fields["duration"] == "2.858 s at 120 Hz (assumed)"
+    assert fields["bones"] == "30: " + " ".join(b.name for b in skeleton.bones)
+    assert fields["channels"] == "62"
+    assert fields["joints"] == "26: " + " ".join(JOINT_NAMES)
+    assert fields["asf"].startswith(f"{CMU_ASF} (VICON;")
+    assert fields["amc"] == f"{CMU_AMC} (angles in deg)"
+
+
+def info_json(*extra: str) -> dict[str, object]:
+    result = mocapd("info", "--asf", CMU_ASF, "--amc", CMU_AMC, "--json", *extra)
+    assert_ok(result)
+    assert result.stdout.count("\n") == 1
+    summary = json.loads(result.stdout)
+    assert isinstance(summary, dict)
+    return summary
+
+
+def test_info_json() -> None:
+    summary = info_json()
+    skeleton = read_asf(CMU_ASF)
+    assert summary["frames"] == 343
+    assert (summary["first_frame"], summary["last_frame"]) == (1, 343)
+    assert summary["frame_rate_hz"] == 120.0
+    assert summary["frame_rate_source"] == "assumed"
+    assert summary["duration_s"] == pytest.approx(343 / 120)
+    assert round(float(summary["duration_s"]), 3) == 2.858  # type: ignore[arg-type]
+    assert summary["bones"] == [b.name for b in skeleton.bones]
+    assert len(skeleton.bones) == 30
+    assert summary["joints"] == list(JOINT_NAMES)
+    assert len(JOINT_NAMES) == 26
+    assert summary["missing_joint_bones"] == []
+    assert summary["channels"] == 62
+    assert (summary["asf"], summary["amc"]) == (str(CMU_ASF), str(CMU_AMC))
+    assert (summary["angle_unit"], summary["length_unit"], summary["skeleton"]) == ("deg", 0.45, "VICON")
+
+
+def test_info_fps_60_doubles_the_duration() -> None:
+    at_120, at_60 = info_json(), info_json("--fps", "60")
+    assert at_60["frame_rate_hz"] == 60.0
+    assert at_60["frame_rate_source"] == "given"
+    assert at_60["frames"] == at_120["frames"] == 343
+    assert at_60["duration_s"] == pytest.approx(2 * float(at_120["duration_s"]))  # type: ignore[arg-type]
+
+    result = mocapd("info", "--asf", CMU_ASF, "--amc", CMU_AMC, "--fps", "60")
+    assert_ok(result)
+    assert info_fields(result.stdout)["duration"] == "5.717 s at 60 Hz (given)"
+
+
+def test_info_hdm05() -> None:
+    result = mocapd("info", "--asf", HDM_ASF, "--amc", HDM_AMC, "--json")
+    assert_ok(result)
+    summary = json.loads(result.stdout)
+    assert summary["frames"] == len(read_amc(HDM_AMC, read_asf(HDM_ASF))) == 140
+    assert summary["duration_s"] == pytest.approx(140 / 120)
+    assert summary["joints"] == list(JOINT_NAMES)
+
+
+# --------------------------------------------------------------------------------------------------
+# positions
+
+
+@dataclass(frozen=True)
+class Csv:
+    header: list[str]
+    frames: npt.NDArray[np.int64]
+    joints: list[str]
+    xyz: npt.NDArray[np.float64]
+    text: str
+
+
+def read_positions_csv(text: str) -> Csv:
+    rows = list(csv.reader(text.splitlines()))
+    body = rows[1:]
+    assert all(len(r) == 5 for r in body)
+    assert all(SIX_DECIMALS.fullmatch(v) for r in body for v in r[2:])
+    return Csv(
+        header=rows[0],
+        frames=np.array([int(r[0]) for r in body], dtype=np.int64),
+        joints=[r[1] for r in body],
+        xyz=np.array([[float(v) for v in r[2:]] for r in body], dtype=np.float64),
+        text=text,
+    )
+
+
+def expected_joints(motion: Motion, unit: str) -> npt.NDArray[np.float64]:
+    """Joint positions from the library: shape (frames x joints, 3), rows in CSV order."""
+    model = KinematicModel(motion.skeleton)
+    joints = model.joints(model.positions(motion.channels, "cm" if unit == "cm" else "asf"))
+    return joints.reshape(-1, 3)
+
+
+def run_positions(tmp: Path, asf: Path, amc: Path, *extra: str) -> Csv:
+    out = tmp / "positions.csv"
+    result = mocapd("positions", "--asf", asf, "--amc", amc, "--csv", out, *extra)
+    assert_ok(result)
+    assert result.stdout == ""
+    return read_positions_csv(out.read_text(encoding="utf-8"))
+
+
+@pytest.fixture(scope="module")
+def cmu_motion() -> Motion:
+    return read_amc(CMU_AMC, read_asf(CMU_ASF))
+
+
+@pytest.fixture(scope="module")
+def cmu_csv(tmp_path_factory: pytest.TempPathFactory) -> Csv:
+    return run_positions(tmp_path_factory.mktemp("asf"), CMU_ASF, CMU_AMC)
+
+
+@pytest.fixture(scope="module")
+def cmu_csv_cm(tmp_path_factory: pytest.TempPathFactory) -> Csv:
+    return run_positions(tmp_path_factory.mktemp("cm"), CMU_ASF, CMU_AMC, "--cm")
+
+
+def check_positions(table: Csv, motion: Motion, unit: str) -> None:
+    n = len(motion)
+    assert table.header == ["frame", "joint", "x", "y", "z"]
+    assert len(table.joints) == n * 26
+    np.testing.assert_array_equal(table.frames, np.repeat(motion.frames, 26))
+    assert table.joints == list(JOINT_NAMES) * n
+    assert np.max(np.abs(table.xyz - expected_joints(motion, unit))) <= 1e-6
+
+
+def test_positions_csv(cmu_csv: Csv, cmu_motion: Motion) -> None:
+    assert len(cmu_motion) == 343
+    check_positions(cmu_csv, cmu_motion, "asf")
+
+
+def test_positions_csv_hdm05(tmp_path: Path) -> None:
+    motion = read_amc(HDM_AMC, read_asf(HDM_ASF))
+    check_positions(run_positions(tmp_path, HDM_ASF, HDM_AMC), motion, "asf")
+
+
+def test_positions_cm(cmu_csv: Csv, cmu_csv_cm: Csv, cmu_motion: Motion) -> None:
+    check_positions(cmu_csv_cm, cmu_motion, "cm")
+    np.testing.assert_array_equal(cmu_csv_cm.frames, cmu_csv.frames)
+    # both CSVs are rounded to 6 decimals: 0.5e-6 each, the ASF one scaled by 2.54 / 0.45
+    assert (
+        np.max(np.abs(cmu_csv_cm.xyz - cmu_csv.xyz * CM_PER_ASF_UNIT))
+        <= 0.5e-6 * (1 + CM_PER_ASF_UNIT) + 1e-9
+    )
+    assert np.max(np.abs(cmu_csv.xyz)) > 1.0  # not a degenerate comparison
+
+
+def test_positions_to_stdout(cmu_csv: Csv) -> None:
+    """``--csv -`` writes the same text to stdout (run through the console script)."""
+    result = mocapd("positions", "--asf", CMU_ASF, "--amc", CMU_AMC, "--csv", "-", script=True)
+    assert_ok(result)
+    assert result.stdout == cmu_csv.text
+
+
+def test_positions_stdout_closed_early() -> None:
+    """``mocapd positions --csv - | head``: the reader goes away after one line. Whatever mocapd does
+    then, it must not print a traceback or an error that names no file ("None: Broken pipe")."""
+    command = [sys.executable, "-m", "daemon", "positions", "--asf", str(CMU_ASF), "--amc", str(CMU_AMC)]
+    with subprocess.Popen(
+        [*command, "--csv", "-"], cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+    ) as proc:
+        assert proc.stdout is not None and proc.stderr is not None
+        assert proc.stdout.readline() == "frame,joint,x,y,z\n"
+        proc.stdout.close()  # far more than a pipe buffer of CSV is still to come
+        stderr = proc.stderr.read()
+        proc.wait(timeout=60)
+    assert "Traceback" not in stderr, stderr
+    assert "None" not in stderr, stderr
+
+
+# --------------------------------------------------------------------------------------------------
+# bad input: exit status 2, one line on stderr naming the file (and the line)
+
+
+@pytest.mark.parametrize("command", ["info", "positions"])
+@pytest.mark.parametrize("missing", ["asf", "amc"])
+def test_missing_file(tmp_path: Path, command: str, missing: str) -> None:
+    gone = tmp_path / f"nope.{missing}"
+    asf, amc = (gone, CMU_AMC) if missing == "asf" else (CMU_ASF, gone)
+    extra = ["--csv", str(tmp_path / "out.csv")] if command == "positions" else []
+    line = assert_one_error_line(mocapd(command, "--asf", asf, "--amc", amc, *extra))
+    assert line == f"mocapd: {gone}: No such file or directory"
+    assert not (tmp_path / "out.csv").exists()
+
+
+def malformed_amc(tmp_path: Path) -> tuple[Path, int]:
+    """02_01 with a non-numeric value in frame 5's lowerback line; returns the file and that line."""
+    lines = gzip.decompress(CMU_AMC.read_bytes()).decode("latin-1").split("\n")
+    (at,) = [n for n, line in enumerate(lines, 1) if line.startswith("lowerback ")][4:5]
+    words = lines[at - 1].split()
+    lines[at - 1] = " ".join([words[0], words[1], "abc", words[3]]) + "\r"
+    path = tmp_path / "bad.amc"
+    path.write_bytes("\n".join(lines).encode("latin-1"))
+    return path, at
+
+
+@pytest.mark.parametrize("command", ["info", "positions"])
+def test_malformed_amc(tmp_path: Path, command: str) -> None:
+    path, at = malformed_amc(tmp_path)
+    with pytest.raises(MocapFormatError) as caught:
+        read_amc(path, read_asf(CMU_ASF))
+    assert caught.value.line == at
+    extra = ["--csv", str(tmp_path / "out.csv")] if command == "positions" else []
+    line = assert_one_error_line(mocapd(command, "--asf", CMU_ASF, "--amc", path, *extra))
+    assert line == f"mocapd: {path}:{at}: {caught.value.reason}"
+    assert "'abc'" in line and "lowerback" in line
+
+
+def test_malformed_gzip_amc(tmp_path: Path) -> None:
+    data = CMU_AMC.read_bytes()
+    path = tmp_path / "cut.amc.gz"
+    path.write_bytes(data[: len(data) // 2])
+    line = assert_one_error_line(mocapd("info", "--asf", CMU_ASF, "--amc", path))
+    assert re.fullmatch(rf"mocapd: {re.escape(str(path))}:\d+: damaged or truncated gzip data .*", line), line
+
+
+def test_malformed_asf(tmp_path: Path) -> None:
+    lines = CMU_ASF.read_text(encoding="latin-1").split("\n")
+    (at,) = [n for n, line in enumerate(lines, 1) if line.split() == ["dof", "rx", "ry", "rz"]][:1]
+    lines[at - 1] = "    dof rx ry rq"
+    path = tmp_path / "bad.asf"
+    path.write_text("\n".join(lines), encoding="latin-1")
+    line = assert_one_error_line(mocapd("info", "--asf", path, "--amc", CMU_AMC))
+    assert line == f"mocapd: {path}:{at}: unknown dof 'rq'"
+
+
+@pytest.mark.parametrize("fps", ["0", "-60", "nan"])
+def test_info_bad_fps(fps: str) -> None:
+    """A frame rate that is not a positive number is a bad option: exit 2, no traceback, no nonsense
+    duration (``--fps 0`` divides by zero; ``-60`` and ``nan`` give a negative / nan duration)."""
+    result = mocapd("info", "--asf", CMU_ASF, "--amc", CMU_AMC, "--fps", fps)
+    assert "Traceback" not in result.stderr, result.stderr
+    assert result.returncode == 2, (result.returncode, result.stdout, result.stderr)
+    assert "fps" in result.stderr
+
+
+def skeleton_without_lthumb(tmp_path: Path) -> tuple[Path, Path]:
+    """02.asf without its lthumb bone, and 02_01 without the lthumb lines: a valid pair whose skeleton
+    lacks a bone of the standard joint set."""
+    asf = CMU_ASF.read_text(encoding="latin-1").split("\n")
+    name = asf.index(next(line for line in asf if line.split() == ["name", "lthumb"]))
+    begin = max(i for i in range(name) if asf[i].split() == ["begin"])
+    end = min(i for i in range(name, len(asf)) if asf[i].split() == ["end"])
+    del asf[begin : end + 1]
+    asf = [line.replace("lwrist lhand lthumb", "lwrist lhand") for line in asf]
+    asf_path = tmp_path / "nothumb.asf"
+    asf_path.write_text("\n".join(asf), encoding="latin-1")
+    amc = gzip.decompress(CMU_AMC.read_bytes()).decode("latin-1").split("\n")
+    amc_path = tmp_path / "nothumb.amc"
+    amc_path.write_text("\n".join(line for line in amc if not line.startswith("lthumb ")), encoding="latin-1")
+    skeleton = read_asf(asf_path)
+    assert "lthumb" not in skeleton.node_names and len(skeleton.bones) == 29
+    assert len(read_amc(amc_path, skeleton)) == 343
+    return asf_path, amc_path
+
+
+def test_info_on_a_skeleton_without_a_joint_bone(tmp_path: Path) -> None:
+    asf, amc = skeleton_without_lthumb(tmp_path)
+    result = mocapd("info", "--asf", asf, "--amc", amc)
+    assert_ok(result)
+    assert info_fields(result.stdout)["joints"] == "none (skeleton lacks lthumb)"
+
+
+def test_positions_on_a_skeleton_without_a_joint_bone(tmp_path: Path) -> None:
+    """``positions`` needs the standard joint set; a skeleton that lacks one of its bones is bad input
+    for it: exit 2 and one line naming the ASF and the missing bone, not a traceback."""
+    asf, amc = skeleton_without_lthumb(tmp_path)
+    result = mocapd("positions", "--asf", asf, "--amc", amc, "--csv", tmp_path / "out.csv")
+    line = assert_one_error_line(result)
+    assert str(asf) in line and "lthumb" in line

@@ -1,0 +1,208 @@
+"""``daemon.config``: the shipped config.yaml, bad configurations, and the CLI's ``--config``."""
+
+from __future__ import annotations
+
+import csv
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from daemon.config import Config, ConfigError, ReplayConfig, load_config, parse_config
+from replay import KinematicModel, read_amc, read_asf
+from tests.conftest import DATA, REPO
+
+SHIPPED = REPO / "config.yaml"
+CMU_ASF = DATA / "cmu" / "02" / "02.asf"
+CMU_AMC = DATA / "cmu" / "02" / "02_01.amc.gz"
+
+
+def mocapd(*args: str | Path) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "daemon", *map(str, args)],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
+    )
+
+
+def write(tmp_path: Path, text: str, name: str = "config.yaml") -> Path:
+    path = tmp_path / name
+    path.write_text(text, encoding="utf-8")
+    return path
+
+
+# --------------------------------------------------------------------------------------------------
+# good configurations
+
+
+def test_shipped_config_is_the_defaults() -> None:
+    assert load_config(SHIPPED) == Config()
+    assert Config() == Config(replay=ReplayConfig(frame_rate_hz=120.0, units="asf"))
+    assert load_config(None) == Config()
+
+
+@pytest.mark.parametrize("text", ["", "# nothing\n", "---\n...\n", "replay: {}\n"])
+def test_empty_config_is_the_defaults(tmp_path: Path, text: str) -> None:
+    assert load_config(write(tmp_path, text)) == Config()
+
+
+@pytest.mark.parametrize(
+    ("text", "expected"),
+    [
+        ("replay:\n  units: cm\n", ReplayConfig(units="cm")),
+        ("replay:\n  frame_rate_hz: 60\n", ReplayConfig(frame_rate_hz=60.0)),
+        ("replay:\n  frame_rate_hz: 29.97\n  units: asf\n", ReplayConfig(frame_rate_hz=29.97)),
+        ("replay: {frame_rate_hz: 240.0, units: cm}\n", ReplayConfig(frame_rate_hz=240.0, units="cm")),
+    ],
+)
+def test_good_config(tmp_path: Path, text: str, expected: ReplayConfig) -> None:
+    config = load_config(write(tmp_path, text))
+    assert config == Config(replay=expected)
+    assert isinstance(config.replay.frame_rate_hz, float)
+
+
+# --------------------------------------------------------------------------------------------------
+# bad configurations: ConfigError naming the file and the field
+
+
+BAD = [
+    # unknown fields
+    ("unknown-top", "replay: {}\nextra: 1\n", "unknown field 'extra'"),
+    ("unknown-replay", "replay:\n  fps: 60\n", "unknown field 'replay.fps'"),
+    ("misspelt", "replay:\n  frame_rate: 60\n", "unknown field 'replay.frame_rate'"),
+    # wrong types and non-positive frame rates
+    ("rate-string", "replay:\n  frame_rate_hz: '120'\n", "replay.frame_rate_hz"),
+    ("rate-bool", "replay:\n  frame_rate_hz: true\n", "replay.frame_rate_hz"),
+    ("rate-list", "replay:\n  frame_rate_hz: [120]\n", "replay.frame_rate_hz"),
+    ("rate-null", "replay:\n  frame_rate_hz:\n", "replay.frame_rate_hz"),
+    ("rate-zero", "replay:\n  frame_rate_hz: 0\n", "replay.frame_rate_hz"),
+    ("rate-zero-float", "replay:\n  frame_rate_hz: 0.0\n", "replay.frame_rate_hz"),
+    ("rate-negative", "replay:\n  frame_rate_hz: -120\n", "replay.frame_rate_hz"),
+    ("rate-nan", "replay:\n  frame_rate_hz: .nan\n", "replay.frame_rate_hz"),
+    ("rate-inf", "replay:\n  frame_rate_hz: .inf\n", "replay.frame_rate_hz"),
+    # bad units
+    ("units-upper", "replay:\n  units: CM\n", "replay.units"),
+    ("units-other", "replay:\n  units: metres\n", "replay.units"),
+    ("units-number", "replay:\n  units: 1\n", "replay.units"),
+    ("units-list", "replay:\n  units: [cm]\n", "replay.units"),
+    # non-mapping sections
+    ("replay-number", "replay: 3\n", "replay must be a mapping"),
+    ("replay-list", "replay:\n  - frame_rate_hz: 60\n", "replay must be a mapping"),
+    ("replay-string", "replay: cm\n", "replay must be a mapping"),
+    ("top-list", "- replay\n", "the top level must be a mapping"),
+    ("top-string", "replay\n", "the top level must be a mapping"),
+]
+
+
+@pytest.mark.parametrize(("text", "field"), [(t, f) for _, t, f in BAD], ids=[i for i, _, _ in BAD])
+def test_bad_config(tmp_path: Path, text: str, field: str) -> None:
+    path = write(tmp_path, text)
+    with pytest.raises(ConfigError) as caught:
+        load_config(path)
+    message = str(caught.value)
+    assert message.startswith(f"{path}: "), message
+    assert field in message, message
+    assert "\n" not in message
+
+
+def test_bad_field_reports_the_value(tmp_path: Path) -> None:
+    path = write(tmp_path, "replay:\n  frame_rate_hz: -120\n  units: asf\n")
+    with pytest.raises(ConfigError, match=r"replay\.frame_rate_hz must be a positive number, got -120$"):
+        load_config(path)
+    with pytest.raises(ConfigError, match=r"replay\.units must be 'asf' or 'cm', got 'inch'$"):
+        load_config(write(tmp_path, "replay:\n  units: inch\n"))
+
+
+def test_huge_integer_frame_rate(tmp_path: Path) -> None:
+    """An integer too large for a float (YAML has no size limit on ints) is a bad value like any other:
+    ConfigError naming the field, not an OverflowError from ``math.isfinite``."""
+    path = write(tmp_path, "replay:\n  frame_rate_hz: 1" + "0" * 400 + "\n")
+    with pytest.raises(ConfigError) as caught:
+        load_config(path)
+    assert str(caught.value).startswith(f"{path}: replay.frame_rate_hz")
+
+
+def test_invalid_yaml(tmp_path: Path) -> None:
+    path = write(tmp_path, "replay:\n  frame_rate_hz: [120\n  units: cm\n")
+    with pytest.raises(ConfigError) as caught:
+        load_config(path)
+    message = str(caught.value)
+    assert message.startswith(f"{path}: not valid YAML")
+    assert "line 2" in message or "line 3" in message, message
+
+
+def test_missing_config_file(tmp_path: Path) -> None:
+    path = tmp_path / "absent.yaml"
+    with pytest.raises(ConfigError, match="cannot read") as caught:
+        load_config(path)
+    assert str(caught.value).startswith(f"{path}: ")
+
+
+def test_parse_config_names_its_source() -> None:
+    with pytest.raises(ConfigError, match=r"^settings: unknown field 'replay\.speed'"):
+        parse_config({"replay": {"speed": 1}}, "settings")
+    assert parse_config({}, "settings") == Config()
+
+
+# --------------------------------------------------------------------------------------------------
+# the CLI's --config
+
+
+def test_cli_bad_config_exits_2_naming_the_field(tmp_path: Path) -> None:
+    path = write(tmp_path, "replay:\n  frame_rate_hz: 0\n", "bad.yaml")
+    result = mocapd("--config", path, "info", "--asf", CMU_ASF, "--amc", CMU_AMC)
+    assert result.returncode == 2
+    assert result.stdout == ""
+    assert result.stderr == f"mocapd: {path}: replay.frame_rate_hz must be a positive number, got 0\n"
+
+
+def test_cli_unknown_field_exits_2(tmp_path: Path) -> None:
+    path = write(tmp_path, "replay:\n  unit: cm\n", "bad.yaml")
+    result = mocapd("--config", path, "info", "--asf", CMU_ASF, "--amc", CMU_AMC)
+    assert result.returncode == 2
+    assert result.stderr.startswith(f"mocapd: {path}: unknown field 'replay.unit'")
+    assert result.stderr.count("\n") == 1
+
+
+def test_cli_invalid_yaml_exits_2_with_one_line(tmp_path: Path) -> None:
+    """README: bad input exits with status 2 and *one* line naming the file and line."""
+    path = write(tmp_path, "replay:\n  frame_rate_hz: [120\n  units: cm\n", "bad.yaml")
+    result = mocapd("--config", path, "info", "--asf", CMU_ASF, "--amc", CMU_AMC)
+    assert result.returncode == 2
+    assert "Traceback" not in result.stderr
+    assert result.stderr.startswith(f"mocapd: {path}: not valid YAML")
+    assert result.stderr.count("\n") == 1, result.stderr
+
+
+def test_cli_config_frame_rate(tmp_path: Path) -> None:
+    path = write(tmp_path, "replay:\n  frame_rate_hz: 60\n")
+    result = mocapd("--config", path, "info", "--asf", CMU_ASF, "--amc", CMU_AMC)
+    assert (result.returncode, result.stderr) == (0, "")
+    assert "duration:   5.717 s at 60 Hz (assumed)" in result.stdout.splitlines()
+
+
+def test_cli_config_units_cm(tmp_path: Path) -> None:
+    """``units: cm`` in the config makes ``positions`` write centimetres, as ``--cm`` does."""
+    config = write(tmp_path, "replay:\n  units: cm\n")
+    from_config, from_flag = tmp_path / "config.csv", tmp_path / "flag.csv"
+    for extra, out in (([], from_config), (["--cm"], from_flag)):
+        result = mocapd(
+            "--config", config, "positions", "--asf", CMU_ASF, "--amc", CMU_AMC, "--csv", out, *extra
+        )
+        assert (result.returncode, result.stderr) == (0, "")
+    text = from_config.read_text(encoding="utf-8")
+    assert text == from_flag.read_text(encoding="utf-8")
+
+    rows = list(csv.reader(text.splitlines()))[1:]
+    got = np.array([[float(v) for v in r[2:]] for r in rows])
+    motion = read_amc(CMU_AMC, read_asf(CMU_ASF))
+    model = KinematicModel(motion.skeleton)
+    cm = model.joints(model.positions(motion.channels, "cm")).reshape(-1, 3)
+    asf = model.joints(model.positions(motion.channels, "asf")).reshape(-1, 3)
+    assert np.max(np.abs(got - cm)) <= 1e-6
+    assert np.max(np.abs(got - asf)) > 1.0  # really not ASF units
