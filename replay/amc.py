@@ -31,6 +31,7 @@ from replay.errors import MocapFormatError
 from replay.textio import GZIP_ERRORS, open_binary, read_bytes
 
 DEG = math.pi / 180.0
+_MAX_FRAME = 2**63 - 1
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
 
@@ -199,6 +200,8 @@ class AmcStream:
                     )
                 raise self._error(f"expected a frame number, got '{text}'")
             number = int(words[0])
+            if number > _MAX_FRAME:
+                raise self._error(f"frame number {number} is too large (at most {_MAX_FRAME})")
             if expected is not None and number != expected:
                 raise self._error(f"frame number {number} out of sequence (expected {expected})")
             start = self._line
@@ -325,9 +328,9 @@ def _parse_regular(body: bytes, skeleton: Skeleton) -> tuple[IntArray, FloatArra
         body += b"\n"
     frames_out: list[IntArray] = []
     values_out: list[FloatArray] = []
-    pos, end = 0, len(body)
+    pos, end, size = 0, len(body), _CHUNK_BYTES
     while pos < end:
-        stop = min(end, pos + _CHUNK_BYTES)
+        stop = min(end, pos + size)
         newlines = np.flatnonzero(np.frombuffer(body, dtype=np.uint8, count=stop - pos, offset=pos) == 10)
         whole = (newlines.size // lines_per_frame) * lines_per_frame
         if whole == 0:
@@ -335,8 +338,9 @@ def _parse_regular(body: bytes, skeleton: Skeleton) -> tuple[IntArray, FloatArra
                 if body[pos:].strip():
                     return None
                 break
-            stop = min(end, pos + 4 * (stop - pos))
+            size *= 4  # a frame larger than the chunk
             continue
+        size = _CHUNK_BYTES
         cut = pos + int(newlines[whole - 1]) + 1
         tokens = body[pos:cut].replace(b"\n", b" ; ").split()
         n = whole // lines_per_frame
