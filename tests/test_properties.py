@@ -362,10 +362,15 @@ def test_truncated_amc_yields_the_complete_frames_then_a_located_error(
 ) -> None:
     asf, amc = case
     text, frames = amc.text, amc.frames
-    where = data.draw(st.sampled_from(["anywhere", "near a frame end", "inside a last number"]))
+    where = data.draw(
+        st.sampled_from(["anywhere", "at a line end", "near a frame end", "inside a last number"])
+    )
     j = data.draw(st.integers(0, len(frames) - 1))
     if where == "anywhere":
         cut = data.draw(st.integers(0, len(text)))
+    elif where == "at a line end":  # the usual truncation: whole lines, the frame in progress cut short
+        ends = [i + 1 for i, byte in enumerate(text) if byte == 0x0A]
+        cut = data.draw(st.sampled_from(ends)) if ends else len(text)
     elif where == "near a frame end":
         cut = min(len(text), max(0, frames[j].last_token[1] + data.draw(st.integers(-3, 3))))
     else:
