@@ -17,7 +17,7 @@ from pathlib import Path
 
 from bench.machine import describe
 from replay import KinematicModel, iter_amc, read_amc, read_asf
-from replay.catalog import recordings
+from replay.catalog import CMU_SUBSTITUTES, recordings
 from replay.textio import read_bytes
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "mocap"
@@ -42,7 +42,7 @@ def main() -> None:
     if hasattr(os, "sched_setaffinity"):
         os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})
 
-    pairs = recordings(args.data, {"14": "13"})
+    pairs = recordings(args.data, CMU_SUBSTITUTES)
     skeletons = {asf: read_asf(asf) for asf in {a for a, _ in pairs}}
     models = {asf: KinematicModel(s) for asf, s in skeletons.items()}
     motions = [read_amc(amc, skeletons[asf]) for asf, amc in pairs]

@@ -271,11 +271,12 @@ def read_amc(path: str | Path, skeleton: Skeleton) -> Motion:
         return _collect(source, skeleton, None)  # the stream reports the line where the data breaks off
     with AmcStream(source, skeleton, _data=data) as stream:
         header = stream.header
-        parsed = _parse_regular(data[stream.body_offset :], skeleton)
+        layout = stream._layout
+        parsed = _parse_regular(data[stream.body_offset :], layout)
     if parsed is None:
         return _collect(source, skeleton, data)
     frames, channels = parsed
-    _Layout(skeleton).scale_angles(channels, header)
+    layout.scale_angles(channels, header)
     return Motion(source=source, skeleton=skeleton, header=header, frames=frames, channels=channels)
 
 
@@ -293,7 +294,7 @@ def _collect(source: str, skeleton: Skeleton, data: bytes | None) -> Motion:
 _CHUNK_BYTES = 1 << 22
 
 
-def _parse_regular(body: bytes, skeleton: Skeleton) -> tuple[IntArray, FloatArray] | None:
+def _parse_regular(body: bytes, layout: _Layout) -> tuple[IntArray, FloatArray] | None:
     """Parse a body whose frames all have the first frame's exact line layout, without a Python loop
     over lines or values (list slicing, and fastnumbers' correctly rounded conversion, which equals
     ``float()``).
@@ -301,7 +302,6 @@ def _parse_regular(body: bytes, skeleton: Skeleton) -> tuple[IntArray, FloatArra
     Returns ``None`` (and the caller falls back to :class:`AmcStream`) on anything irregular, so this
     never accepts input the streaming reader would reject. Angles are returned as written.
     """
-    layout = _Layout(skeleton)
     head = body.split(b"\n", len(layout.slots) + 1)
     if len(head) < len(layout.slots) + 1:
         return None

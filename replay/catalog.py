@@ -6,6 +6,10 @@ import re
 from collections.abc import Mapping
 from pathlib import Path
 
+CMU_SUBSTITUTES = {"14": "13"}
+"""CMU subject 14 has no ASF here; subject 13's has the same topology (joint angles exact, bone
+lengths subject 13's)."""
+
 _HDM05 = re.compile(r"HDM_([A-Za-z]+)_")
 
 

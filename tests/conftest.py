@@ -6,13 +6,12 @@ from pathlib import Path
 
 import pytest
 
-from replay.catalog import find_skeleton, recordings
+from replay.catalog import CMU_SUBSTITUTES, find_skeleton, recordings
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / "shared"
 DATA = SHARED / "data" / "mocap"
 ORACLE = SHARED / "reference" / "oracle"
-CMU_SUBSTITUTES = {"14": "13"}
 
 
 def skeleton_for(amc: Path) -> Path:

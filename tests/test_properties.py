@@ -16,6 +16,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from types import FrameType
+from typing import Any
 from unittest.mock import patch
 
 import numpy as np
@@ -246,8 +247,8 @@ def test_amc_readers_agree_bitwise_and_return_the_written_values(case: tuple[Asf
     fast_path: list[bool] = []
     real_parse_regular = amc_module._parse_regular
 
-    def spy(body: bytes, skeleton: Skeleton) -> tuple[npt.NDArray[np.int64], FloatArray] | None:
-        result = real_parse_regular(body, skeleton)
+    def spy(body: bytes, layout: Any) -> tuple[npt.NDArray[np.int64], FloatArray] | None:
+        result = real_parse_regular(body, layout)
         fast_path.append(result is not None)
         return result
 
