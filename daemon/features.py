@@ -13,8 +13,10 @@ sections a and 0.
 from __future__ import annotations
 
 import math
+from collections import deque
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 import numpy.typing as npt
@@ -401,30 +403,73 @@ FEATURE_NAMES: tuple[str, ...] = tuple(f.name for f in CATALOG)
 SET_SLICES: dict[FeatureSet, slice] = {"lower": slice(0, 12), "upper": slice(12, 26), "mix": slice(26, 39)}
 
 
-# -------------------------------------------------------------------------------------- primitives
+# ------------------------------------------------------------------------------ generic arithmetic
+# Every signal is written once, on 3-vectors given as component triples whose entries are Python
+# floats (one frame: the incremental path) or float64 arrays (all frames: the batch path). Only +, -,
+# *, / and sqrt occur, each correctly rounded, in one fixed order, so both paths give the same bits.
+# Angles are compared through their cosines (arccos is decreasing), which keeps transcendental
+# functions, whose last bit can depend on the vector code path, out of the features.
+
+Num = Any
+Vec = Sequence[Num] | FloatArray
 
 
-def _unit(v: FloatArray) -> FloatArray:
-    norm = np.linalg.norm(v, axis=-1, keepdims=True)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        out: FloatArray = v / norm
-    return out
+def _sub(a: Vec, b: Vec) -> Vec:
+    return (a[0] - b[0], a[1] - b[1], a[2] - b[2])
 
 
-def _dot(a: FloatArray, b: FloatArray) -> FloatArray:
-    out: FloatArray = np.einsum("...i,...i->...", a, b)
-    return out
+def _dot(a: Vec, b: Vec) -> Num:
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 
 
-def _angle(u: FloatArray, v: FloatArray) -> FloatArray:
-    cos = _dot(u, v) / (np.linalg.norm(u, axis=-1) * np.linalg.norm(v, axis=-1))
-    out: FloatArray = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
-    return out
+def _cross(a: Vec, b: Vec) -> Vec:
+    return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
+
+
+@dataclass(frozen=True)
+class _Ops:
+    sqrt: Callable[[Num], Num]
+    minimum: Callable[[list[Num]], Num]
+    maximum: Callable[[list[Num]], Num]
+
+
+_FLOAT_OPS = _Ops(math.sqrt, min, max)
+_ARRAY_OPS = _Ops(np.sqrt, np.minimum.reduce, np.maximum.reduce)
+
+Poses = Sequence[Vec]
+"""Joint positions: ``P[j]`` is the component triple of joint ``j``."""
+SignalFn = Callable[[Poses, Sequence[Vec], _Ops], Num]
 
 
 def window_frames(window_ms: float, frame_rate: float) -> int:
     """Velocity window length L in frames: ``ceil(W / 1000 * fs)``, at least 1 (reference facts, 0)."""
     return max(1, math.ceil(window_ms / 1000.0 * frame_rate))
+
+
+@dataclass(frozen=True)
+class _Trajectory:
+    """``P(q) - P(c)`` (or ``P(q)`` when ``c`` is None) smoothed over a window of ``big_l`` frames
+    ending ``big_l - h`` frames after the current one."""
+
+    q: int
+    c: int | None
+    big_l: int
+
+    @property
+    def h(self) -> int:
+        return math.ceil(self.big_l / 2)
+
+    @property
+    def lead(self) -> int:
+        """Frames after ``t`` whose positions the smoothed velocity at ``t`` needs."""
+        return self.big_l - self.h + 1
+
+    def point(self, poses: Poses) -> Vec:
+        p = poses[self.q]
+        return p if self.c is None else _sub(p, poses[self.c])
+
+
+# ---------------------------------------------------------------------------------- velocities
 
 
 def _mirror(j: npt.NDArray[np.intp], m: int) -> npt.NDArray[np.intp]:
@@ -435,89 +480,283 @@ def _mirror(j: npt.NDArray[np.intp], m: int) -> npt.NDArray[np.intp]:
     return out
 
 
-def smoothed_velocity(x: FloatArray, window_ms: float, frame_rate: float) -> FloatArray:
-    """Velocity of the trajectory ``x`` shape ``(N, 3)`` in units per second, box-averaged over a
-    centred window: forward differences ``v(t) = x(t+1) - x(t)`` (``v(N) = v(N-1)``), then the mean of
-    ``v(t+1-h .. t+L-h)`` with ``h = ceil(L/2)``, indices mirrored at both ends (Matlab's
-    ``padarray(..., 'symmetric')``). Returns shape ``(N, 3)``."""
-    n = x.shape[0]
-    big_l = window_frames(window_ms, frame_rate)
-    if n == 1:
-        return np.zeros_like(x)
-    v = np.empty_like(x)
-    v[:-1] = x[1:] - x[:-1]
-    v[-1] = v[-2]
-    if big_l == 1:
-        return v * frame_rate
-    h = math.ceil(big_l / 2)
-    before, after = h - 1, big_l - h
-    if n < big_l:
-        v = v[_mirror(np.arange(big_l), n)]
-    padded = v[_mirror(np.arange(-before, v.shape[0] + after), v.shape[0])]
-    csum = np.concatenate([np.zeros((1, 3)), np.cumsum(padded, axis=0)])
-    out: FloatArray = (csum[big_l : big_l + n] - csum[:n]) / big_l * frame_rate
+def _is_interior(t: int, n: int, big_l: int, h: int) -> bool:
+    return h - 1 <= t <= n - big_l + h - 2
+
+
+def _edge_indices(t: npt.NDArray[np.intp], n: int, big_l: int, h: int) -> npt.NDArray[np.intp]:
+    """For frames ``t`` shape ``(E,)`` of an ``n``-frame trajectory (``n >= 2``), the indices ``m``
+    shape ``(E, L)`` of the forward differences ``x(m+1) - x(m)`` in their smoothing windows, mirrored
+    as the toolbox does (reference facts, section 0, step 3): ``v(n-1) = v(n-2)``, ``padarray``
+    'symmetric' at both ends, and for ``n < L`` a first symmetric padding of ``v`` up to length L."""
+    j = t[:, None] + np.arange(big_l)[None, :] - (h - 1)
+    m = _mirror(_mirror(j, big_l), n) if n < big_l else _mirror(j, n)
+    out: npt.NDArray[np.intp] = np.minimum(m, n - 2)
     return out
 
 
-class _Context:
-    def __init__(self, positions: FloatArray, joint_names: tuple[str, ...], frame_rate: float) -> None:
-        self.p = positions
-        self.index = {n: i for i, n in enumerate(joint_names)}
+def _smooth(x: FloatArray, big_l: int, frame_rate: float) -> FloatArray:
+    """Smoothed velocity of ``x`` shape ``(3, N)``, shape ``(3, N)`` (reference facts, section 0).
+
+    Away from the ends the window sum of forward differences telescopes to ``x(t+L-h+1) - x(t-h+1)``;
+    near the ends the mirrored differences are summed one after another. :class:`FeatureStream` does
+    the same per frame."""
+    n = x.shape[1]
+    out = np.zeros_like(x)
+    if n < 2:
+        return out
+    h = math.ceil(big_l / 2)
+    if n > big_l:
+        out[:, h - 1 : n - big_l + h - 1] = (x[:, big_l:] - x[:, : n - big_l]) / big_l * frame_rate
+    t = np.arange(n)
+    edge = t[(t < h - 1) | (t > n - big_l + h - 2)]
+    if edge.size:
+        m = _edge_indices(edge, n, big_l, h)
+        d = x[:, 1:] - x[:, :-1]
+        acc = d[:, m[:, 0]]
+        for k in range(1, big_l):
+            acc = acc + d[:, m[:, k]]
+        out[:, edge] = acc / big_l * frame_rate
+    return out
+
+
+def smoothed_velocity(x: FloatArray, window_ms: float, frame_rate: float) -> FloatArray:
+    """Velocity of the trajectory ``x`` shape ``(N, 3)`` in units per second, box-averaged over a
+    centred window of ``L = window_frames(window_ms)`` frames: forward differences
+    ``v(t) = x(t+1) - x(t)`` (``v(N) = v(N-1)``), then the mean of ``v(t+1-h .. t+L-h)`` with
+    ``h = ceil(L/2)``, indices mirrored at both ends (Matlab's ``padarray(..., 'symmetric')``).
+    Returns shape ``(N, 3)``."""
+    x = np.ascontiguousarray(np.asarray(x, dtype=np.float64).T)
+    return _smooth(x, window_frames(window_ms, frame_rate), frame_rate).T
+
+
+# ---------------------------------------------------------------------------------- compilation
+
+
+@dataclass(frozen=True)
+class _CompiledTest:
+    feature: int
+    value: SignalFn
+    op: Op
+    t1: float | tuple[float, float]
+    t2: float | tuple[float, float]
+    reference: Reference
+
+
+_COS_OP: dict[Op, Op] = {"<=": ">=", "<": ">", ">=": "<=", ">": "<", "within": "within"}
+
+
+def _cos_threshold(t: float | tuple[float, float]) -> float | tuple[float, float]:
+    if isinstance(t, tuple):
+        return (math.cos(math.radians(t[1])), math.cos(math.radians(t[0])))
+    return math.cos(math.radians(t))
+
+
+class _Program:
+    """The catalog bound to a joint order and a frame rate: one closure per distinct signal, the
+    velocity trajectories they need, and the tests."""
+
+    def __init__(self, joint_names: tuple[str, ...], frame_rate: float) -> None:
+        if not (math.isfinite(frame_rate) and frame_rate > 0):
+            raise ValueError(f"frame rate must be a positive number, got {frame_rate}")
+        index = {name: i for i, name in enumerate(joint_names)}
+        missing = sorted({j for j in _catalog_joints() if j not in index})
+        if missing:
+            raise ValueError(f"joint positions lack the joints {', '.join(missing)}")
+        self.joint_names = joint_names
         self.frame_rate = frame_rate
-        self._map = np.array([self.index[n] for n in TOOLBOX_JOINTS], dtype=np.intp)
+        self.index = index
+        self.name_map = [index[n] for n in TOOLBOX_JOINTS]
+        self.trajectories: list[_Trajectory] = []
+        cache: dict[Signal, tuple[SignalFn, bool]] = {}
+        tests: list[_CompiledTest] = []
+        for k, feature in enumerate(CATALOG):
+            for test in feature.tests:
+                if test.signal not in cache:
+                    cache[test.signal] = self._compile(test.signal)
+                fn, cosine = cache[test.signal]
+                op, t1, t2 = test.op, test.t1, test.t2
+                if cosine:
+                    op, t1, t2 = _COS_OP[op], _cos_threshold(t1), _cos_threshold(t2)
+                tests.append(_CompiledTest(k, fn, op, t1, t2, test.reference))
+        self.tests = tuple(tests)
+        self.lead = max((tr.lead for tr in self.trajectories), default=0)
 
-    def __call__(self, name: str) -> FloatArray:
-        out: FloatArray = self.p[:, self.index[name]]
+    def _trajectory(self, q: str, c: str | None, window_ms: float) -> int:
+        fixture = None if c is None else self.index[c]
+        tr = _Trajectory(self.index[q], fixture, window_frames(window_ms, self.frame_rate))
+        if tr not in self.trajectories:
+            self.trajectories.append(tr)
+        return self.trajectories.index(tr)
+
+    def _compile(self, signal: Signal) -> tuple[SignalFn, bool]:
+        """The signal as a closure ``(P, S, ops) -> value``, and whether the value is a cosine."""
+        ix = self.index
+        match signal:
+            case Plane(a, b, c, q) | PlaneVelocity(a, b, c, q):
+                ia, ib, ic, iq = ix[a], ix[b], ix[c], ix[q]
+                if isinstance(signal, PlaneVelocity):
+                    k = self._trajectory(q, c, signal.window_ms)
+
+                    def plane_velocity(p: Poses, s: Sequence[Vec], ops: _Ops) -> Num:
+                        n = _cross(_sub(p[ia], p[ic]), _sub(p[ib], p[ic]))
+                        return _dot(n, s[k]) / ops.sqrt(_dot(n, n))
+
+                    return plane_velocity, False
+
+                def plane(p: Poses, s: Sequence[Vec], ops: _Ops) -> Num:
+                    n = _cross(_sub(p[ia], p[ic]), _sub(p[ib], p[ic]))
+                    return _dot(n, _sub(p[iq], p[ic])) / ops.sqrt(_dot(n, n))
+
+                return plane, False
+            case NormalPlane(a, b, c, q):
+                ia, ib, ic, iq = ix[a], ix[b], ix[c], ix[q]
+
+                def normal_plane(p: Poses, s: Sequence[Vec], ops: _Ops) -> Num:
+                    n = _sub(p[ib], p[ia])
+                    return _dot(n, _sub(p[iq], p[ic])) / ops.sqrt(_dot(n, n))
+
+                return normal_plane, False
+            case NormalPlaneVelocity(a, b, c, q, w):
+                ia, ib = ix[a], ix[b]
+                k = self._trajectory(q, c, w)
+
+                def normal_plane_velocity(p: Poses, s: Sequence[Vec], ops: _Ops) -> Num:
+                    n = _sub(p[ib], p[ia])
+                    return _dot(n, s[k]) / ops.sqrt(_dot(n, n))
+
+                return normal_plane_velocity, False
+            case Speed(q, w):
+                k = self._trajectory(q, None, w)
+
+                def speed(p: Poses, s: Sequence[Vec], ops: _Ops) -> Num:
+                    return ops.sqrt(_dot(s[k], s[k]))
+
+                return speed, False
+            case JointAngle(a, b, c) | SegmentAngle(a, b, c, _):
+                if isinstance(signal, JointAngle):
+                    i1, i2, i3, i4 = ix[a], ix[b], ix[c], ix[b]
+                else:
+                    i1, i2, i3, i4 = ix[signal.p1], ix[signal.p2], ix[signal.p3], ix[signal.p4]
+
+                def cos_angle(p: Poses, s: Sequence[Vec], ops: _Ops) -> Num:
+                    u, v = _sub(p[i1], p[i2]), _sub(p[i3], p[i4])
+                    return _dot(u, v) / ops.sqrt(_dot(u, u) * _dot(v, v))
+
+                return cos_angle, True
+            case AngleToVertical(a, b):
+                ia, ib = ix[a], ix[b]
+
+                def cos_to_vertical(p: Poses, s: Sequence[Vec], ops: _Ops) -> Num:
+                    u = _sub(p[ib], p[ia])
+                    return u[1] / ops.sqrt(_dot(u, u))
+
+                return cos_to_vertical, True
+            case HeightAboveLowest(q, exclude):
+                iq = ix[q]
+                keep = [i for n, i in zip(TOOLBOX_JOINTS, self.name_map, strict=True) if n not in exclude]
+
+                def height(p: Poses, s: Sequence[Vec], ops: _Ops) -> Num:
+                    return p[iq][1] - ops.minimum([p[i][1] for i in keep])
+
+                return height, False
+            case VerticalExtent():
+                everyone = self.name_map
+
+                def extent(p: Poses, s: Sequence[Vec], ops: _Ops) -> Num:
+                    ys = [p[i][1] for i in everyone]
+                    return ops.maximum(ys) - ops.minimum(ys)
+
+                return extent, False
+            case HorizontalExtent(joints):
+                idx = [ix[j] for j in joints]
+                pairs = [(a, b) for n, a in enumerate(idx) for b in idx[n + 1 :]]
+
+                def spread(p: Poses, s: Sequence[Vec], ops: _Ops) -> Num:
+                    d2 = []
+                    for a, b in pairs:
+                        dx, dz = p[a][0] - p[b][0], p[a][2] - p[b][2]
+                        d2.append(dx * dx + dz * dz)
+                    return ops.sqrt(ops.maximum(d2))
+
+                return spread, False
+            case Difference(first, second):
+                (f, cf), (g, cg) = self._compile(first), self._compile(second)
+                if cf or cg:
+                    raise ValueError("differences of angles are not supported")
+
+                def difference(p: Poses, s: Sequence[Vec], ops: _Ops) -> Num:
+                    return f(p, s, ops) - g(p, s, ops)
+
+                return difference, False
+            case Absolute(inner):
+                f, cosine = self._compile(inner)
+                if cosine:
+                    raise ValueError("absolute values of angles are not supported")
+
+                def absolute(p: Poses, s: Sequence[Vec], ops: _Ops) -> Num:
+                    return abs(f(p, s, ops))
+
+                return absolute, False
+        raise TypeError(f"unknown signal {signal!r}")
+
+    def thresholds(self, lengths: BodyLengths) -> list[tuple[Num, Num]]:
+        """``(T1, T2)`` of every test in absolute units."""
+        out: list[tuple[Num, Num]] = []
+        for test in self.tests:
+            scale = lengths.get(test.reference)
+            if test.op == "within":
+                out.append((test.t1, test.t2))
+            else:
+                assert not isinstance(test.t1, tuple) and not isinstance(test.t2, tuple)
+                out.append((test.t1 * scale, test.t2 * scale))
         return out
 
-    def name_map_y(self, exclude: tuple[str, ...] = ()) -> FloatArray:
-        keep = [i for n, i in zip(TOOLBOX_JOINTS, self._map, strict=True) if n not in exclude]
-        out: FloatArray = self.p[:, keep, 1]
-        return out
+
+def _catalog_joints() -> set[str]:
+    names: set[str] = set(TOOLBOX_JOINTS)
+    for feature in CATALOG:
+        for test in feature.tests:
+            stack: list[Any] = [test.signal]
+            while stack:
+                s = stack.pop()
+                for value in vars(s).values():
+                    if isinstance(value, str):
+                        names.add(value)
+                    elif isinstance(value, tuple):
+                        names.update(v for v in value if isinstance(v, str))
+                    elif not isinstance(value, int | float):
+                        stack.append(value)
+    return names
 
 
-def evaluate_signal(signal: Signal, ctx: _Context) -> FloatArray:
-    """The signal's value per frame, shape ``(N,)``."""
-    p = ctx
-    match signal:
-        case Plane(a, b, c, q):
-            n = _unit(np.cross(p(a) - p(c), p(b) - p(c)))
-            return _dot(n, p(q) - p(c))
-        case NormalPlane(a, b, c, q):
-            return _dot(_unit(p(b) - p(a)), p(q) - p(c))
-        case PlaneVelocity(a, b, c, q, w):
-            n = _unit(np.cross(p(a) - p(c), p(b) - p(c)))
-            return _dot(n, smoothed_velocity(p(q) - p(c), w, p.frame_rate))
-        case NormalPlaneVelocity(a, b, c, q, w):
-            return _dot(_unit(p(b) - p(a)), smoothed_velocity(p(q) - p(c), w, p.frame_rate))
-        case Speed(q, w):
-            out: FloatArray = np.linalg.norm(smoothed_velocity(p(q), w, p.frame_rate), axis=-1)
-            return out
-        case JointAngle(a, b, c):
-            return _angle(p(a) - p(b), p(c) - p(b))
-        case SegmentAngle(p1, p2, p3, p4):
-            return _angle(p(p1) - p(p2), p(p3) - p(p4))
-        case AngleToVertical(a, b):
-            return _angle(p(b) - p(a), np.array([0.0, 1.0, 0.0]))
-        case HeightAboveLowest(q, exclude):
-            out = p(q)[:, 1] - p.name_map_y(exclude).min(axis=1)
-            return out
-        case VerticalExtent():
-            y = p.name_map_y()
-            out = y.max(axis=1) - y.min(axis=1)
-            return out
-        case HorizontalExtent(joints):
-            xz = np.stack([p(j)[:, [0, 2]] for j in joints], axis=1)
-            d = np.linalg.norm(xz[:, :, None] - xz[:, None, :], axis=-1)
-            out = d.reshape(d.shape[0], -1).max(axis=1)
-            return out
-        case Difference(first, second):
-            out = evaluate_signal(first, ctx) - evaluate_signal(second, ctx)
-            return out
-        case Absolute(inner):
-            out = np.abs(evaluate_signal(inner, ctx))
-            return out
-    raise TypeError(f"unknown signal {signal!r}")
+_PROGRAMS: dict[tuple[tuple[str, ...], float], _Program] = {}
+
+
+def _program(joint_names: Sequence[str], frame_rate: float) -> _Program:
+    key = (tuple(joint_names), float(frame_rate))
+    if key not in _PROGRAMS:
+        _PROGRAMS[key] = _Program(*key)
+    return _PROGRAMS[key]
+
+
+def latency_frames(frame_rate: float) -> int:
+    """How many frames after frame ``t`` arrives :class:`FeatureStream` can emit its vector: the
+    longest velocity window's look-ahead ``L - ceil(L/2) + 1`` (16 at 120 Hz, 5 at 30 Hz)."""
+    return max(_Trajectory(0, None, window_frames(w, frame_rate)).lead for w in _windows())
+
+
+def _windows() -> set[float]:
+    out: set[float] = set()
+    for feature in CATALOG:
+        for test in feature.tests:
+            stack: list[Any] = [test.signal]
+            while stack:
+                s = stack.pop()
+                if hasattr(s, "window_ms"):
+                    out.add(s.window_ms)
+                stack.extend(v for v in vars(s).values() if not isinstance(v, str | int | float | tuple))
+    return out
 
 
 # ---------------------------------------------------------------------------------- references
@@ -538,47 +777,58 @@ class BodyLengths:
         return 1.0 if reference == "one" else float(getattr(self, reference))
 
 
-def body_lengths(frame: FloatArray, joint_names: tuple[str, ...]) -> BodyLengths:
+_BODY_CHAIN = (
+    ("rankle", "rknee"),
+    ("rknee", "rhip"),
+    ("root", "belly"),
+    ("belly", "chest"),
+    ("chest", "neck"),
+    ("neck", "head"),
+    ("head", "headtop"),
+)
+
+
+def body_lengths(frame: FloatArray, joint_names: Sequence[str]) -> BodyLengths:
     """Body lengths of one pose ``frame`` shape ``(J, 3)``."""
     idx = {n: i for i, n in enumerate(joint_names)}
+    pose = np.asarray(frame, dtype=np.float64).tolist()
 
     def d(a: str, b: str) -> float:
-        return float(np.linalg.norm(frame[idx[a]] - frame[idx[b]]))
+        u = _sub(pose[idx[a]], pose[idx[b]])
+        return math.sqrt(_dot(u, u))
 
-    chain = [("rankle", "rknee"), ("rknee", "rhip"), ("root", "belly"), ("belly", "chest"), ("chest", "neck")]
-    chain += [("neck", "head"), ("head", "headtop")]
+    body = 0.0
+    for a, b in _BODY_CHAIN:
+        body = body + d(a, b)
     return BodyLengths(
         h_R=d("relbow", "rshoulder"),
         h_L=d("lshoulder", "lelbow"),
         shoulder_width=d("rshoulder", "lshoulder"),
         hip_width=d("rhip", "lhip"),
         chest=d("chest", "neck"),
-        body=sum(d(a, b) for a, b in chain),
+        body=body,
     )
 
 
 # ---------------------------------------------------------------------------------- thresholds
 
 
-def _compare(values: FloatArray, op: Op, threshold: float | tuple[float, float], scale: float) -> BoolArray:
+def _compare(values: Num, op: Op, threshold: Num) -> Num:
     if op == "within":
-        assert isinstance(threshold, tuple)
         lo, hi = threshold
-        out: BoolArray = (values >= lo) & (values <= hi)
-        return out
-    assert not isinstance(threshold, tuple)
-    t = threshold * scale
+        return (values >= lo) & (values <= hi)
     if op == ">=":
-        return values >= t
+        return values >= threshold
     if op == ">":
-        return values > t
+        return values > threshold
     if op == "<=":
-        return values <= t
-    return values < t
+        return values <= threshold
+    return values < threshold
 
 
 def hysteresis(f1: BoolArray, f2: BoolArray) -> BoolArray:
-    """``out(t) = f2(t) or (out(t-1) and f1(t))`` along axis 0, ``out(-1) = 0`` (nested tracks, f2 => f1).
+    """``out(t) = f2(t) or (out(t-1) and f1(t))`` along axis 0, ``out(-1) = 0`` (nested tracks, f2 => f1;
+    reference facts, section b).
 
     Vectorised: a frame is on iff the last frame at or before it where f2 holds is reachable through
     an unbroken run of f1."""
@@ -590,29 +840,139 @@ def hysteresis(f1: BoolArray, f2: BoolArray) -> BoolArray:
     return on
 
 
+def _check_positions(positions: FloatArray, n_joints: int) -> FloatArray:
+    p = np.asarray(positions, dtype=np.float64)
+    if p.ndim != 3 or p.shape[1:] != (n_joints, 3):
+        raise ValueError(f"positions must have shape (N, {n_joints}, 3), got {p.shape}")
+    if not np.isfinite(p).all():
+        bad = int(np.argwhere(~np.isfinite(p))[0][0])
+        raise ValueError(f"positions are not finite at frame index {bad}")
+    return p
+
+
 def feature_tracks(
-    positions: FloatArray, joint_names: tuple[str, ...], frame_rate: float, lengths: BodyLengths | None = None
+    positions: FloatArray, joint_names: Sequence[str], frame_rate: float, lengths: BodyLengths | None = None
 ) -> tuple[BoolArray, BoolArray]:
-    """The loose and strict tracks ``(f1, f2)``, each shape ``(N, 39)``."""
-    ctx = _Context(positions, joint_names, frame_rate)
-    lengths = lengths or body_lengths(positions[0], joint_names)
-    n = positions.shape[0]
+    """The loose and strict tracks ``(f1, f2)`` of ``positions`` shape ``(N, J, 3)``, each ``(N, 39)``."""
+    program = _program(joint_names, frame_rate)
+    p = _check_positions(positions, len(program.joint_names))
+    n = p.shape[0]
     f1 = np.ones((n, len(CATALOG)), dtype=bool)
     f2 = np.ones((n, len(CATALOG)), dtype=bool)
-    cache: dict[Signal, FloatArray] = {}
-    for k, feature in enumerate(CATALOG):
-        for test in feature.tests:
-            if test.signal not in cache:
-                cache[test.signal] = evaluate_signal(test.signal, ctx)
-            values = cache[test.signal]
-            scale = lengths.get(test.reference)
-            f1[:, k] &= _compare(values, test.op, test.t1, scale)
-            f2[:, k] &= _compare(values, test.op, test.t2, scale)
+    if n == 0:
+        return f1, f2
+    comp = np.ascontiguousarray(p.transpose(1, 2, 0))  # (J, 3, N): each component a contiguous row
+    poses: Poses = list(comp)
+    velocities = [_smooth(np.asarray(tr.point(poses)), tr.big_l, frame_rate) for tr in program.trajectories]
+    thresholds = program.thresholds(lengths or body_lengths(p[0], program.joint_names))
+    values: dict[SignalFn, Num] = {}
+    with np.errstate(invalid="ignore", divide="ignore"):
+        for test, (t1, t2) in zip(program.tests, thresholds, strict=True):
+            if test.value not in values:
+                values[test.value] = test.value(poses, velocities, _ARRAY_OPS)
+            v = values[test.value]
+            f1[:, test.feature] &= _compare(v, test.op, t1)
+            f2[:, test.feature] &= _compare(v, test.op, t2)
     return f1, f2
 
 
-def features(positions: FloatArray, joint_names: tuple[str, ...], frame_rate: float = 120.0) -> BoolArray:
+def features(positions: FloatArray, joint_names: Sequence[str], frame_rate: float = 120.0) -> BoolArray:
     """The 39 features of a whole motion: ``positions`` shape ``(N, J, 3)`` (joints named by
     ``joint_names``) gives a boolean matrix shape ``(N, 39)`` in :data:`FEATURE_NAMES` order."""
     f1, f2 = feature_tracks(positions, joint_names, frame_rate)
     return hysteresis(f1, f2)
+
+
+# ---------------------------------------------------------------------------------- streaming
+
+
+class FeatureStream:
+    """The 39 features of a stream, one pose at a time: the incremental twin of :func:`features`.
+
+    ``push(pose)`` with ``pose`` shape ``(J, 3)`` returns the vectors that became final, each a bool
+    array shape ``(39,)``: the vector of frame ``t`` comes out when frame ``t + latency`` arrives
+    (``latency`` = :func:`latency_frames`, 16 frames = 133 ms at 120 Hz, because the 250 ms velocity
+    windows are centred), and :meth:`flush` returns the last ``latency`` vectors when the stream ends
+    (the windows are then mirrored at the end, exactly as in the batch) and makes the object ready
+    for a new stream. Body lengths are measured on the first pose. Memory is bounded: the last
+    ``latency + L`` poses. The output equals :func:`features` on the same frames bit for bit: both run
+    the same arithmetic in the same order, on Python floats here and on arrays there."""
+
+    def __init__(self, joint_names: Sequence[str], frame_rate: float = 120.0) -> None:
+        self._program = _program(joint_names, frame_rate)
+        self.latency = self._program.lead
+        self._keep = self.latency + max((tr.h for tr in self._program.trajectories), default=1) + 1
+        self._reset()
+
+    def _reset(self) -> None:
+        self._history: deque[tuple[list[list[float]], list[Vec]]] = deque(maxlen=self._keep)
+        self._n = 0
+        self._emitted = 0
+        self._thresholds: list[tuple[Num, Num]] = []
+        self._previous = [False] * len(CATALOG)
+
+    def push(self, pose: FloatArray) -> list[BoolArray]:
+        """Add the next pose; return the vectors that became final (at most one)."""
+        program = self._program
+        p = np.asarray(pose, dtype=np.float64)
+        if p.shape != (len(program.joint_names), 3):
+            raise ValueError(f"pose must have shape ({len(program.joint_names)}, 3), got {p.shape}")
+        if not np.isfinite(p).all():
+            raise ValueError(f"pose {self._n} is not finite")
+        rows: list[list[float]] = p.tolist()
+        if self._n == 0:
+            self._thresholds = program.thresholds(body_lengths(p, program.joint_names))
+        self._history.append((rows, [tr.point(rows) for tr in program.trajectories]))
+        self._n += 1
+        t = self._n - 1 - self.latency
+        return [] if t < 0 else [self._emit(t, self._n)]
+
+    def flush(self) -> list[BoolArray]:
+        """End the stream: the vectors of its last frames, then a fresh state."""
+        n = self._n
+        out = [self._emit(t, n) for t in range(self._emitted, n)]
+        self._reset()
+        return out
+
+    def _velocity(self, k: int, tr: _Trajectory, t: int, n: int) -> Vec:
+        """Smoothed velocity of trajectory ``k`` at frame ``t`` of ``n`` frames (as :func:`_smooth`)."""
+        base = n - len(self._history)
+        big_l, h, fs = tr.big_l, tr.h, self._program.frame_rate
+        if _is_interior(t, n, big_l, h):
+            a, b = self._history[t + big_l - h + 1 - base][1][k], self._history[t - h + 1 - base][1][k]
+            return ((a[0] - b[0]) / big_l * fs, (a[1] - b[1]) / big_l * fs, (a[2] - b[2]) / big_l * fs)
+        if n < 2:
+            return (0.0, 0.0, 0.0)
+        acc: Vec = (0.0, 0.0, 0.0)
+        for j, m in enumerate(_edge_indices(np.array([t]), n, big_l, h)[0].tolist()):
+            d = _sub(self._history[m + 1 - base][1][k], self._history[m - base][1][k])
+            acc = d if j == 0 else (acc[0] + d[0], acc[1] + d[1], acc[2] + d[2])
+        return (acc[0] / big_l * fs, acc[1] / big_l * fs, acc[2] / big_l * fs)
+
+    def _emit(self, t: int, n: int) -> BoolArray:
+        program = self._program
+        rows = self._history[t - (n - len(self._history))][0]
+        velocities = [self._velocity(k, tr, t, n) for k, tr in enumerate(program.trajectories)]
+        try:
+            values: list[Num] = self._values(rows, velocities, _FLOAT_OPS)
+        except ZeroDivisionError:  # a degenerate pose: evaluate as the batch does, to nan
+            with np.errstate(invalid="ignore", divide="ignore"):
+                columns = [np.array(r)[:, None] for r in rows]
+                values = self._values(columns, [np.array(v)[:, None] for v in velocities], _ARRAY_OPS)
+        f1 = [True] * len(CATALOG)
+        f2 = [True] * len(CATALOG)
+        for test, v, (t1, t2) in zip(program.tests, values, self._thresholds, strict=True):
+            f1[test.feature] = f1[test.feature] and bool(_compare(v, test.op, t1))
+            f2[test.feature] = f2[test.feature] and bool(_compare(v, test.op, t2))
+        self._previous = [b2 or (prev and b1) for b1, b2, prev in zip(f1, f2, self._previous, strict=True)]
+        self._emitted = t + 1
+        return np.array(self._previous, dtype=bool)
+
+    def _values(self, rows: Poses, velocities: Sequence[Vec], ops: _Ops) -> list[Num]:
+        cache: dict[SignalFn, Num] = {}
+        out = []
+        for test in self._program.tests:
+            if test.value not in cache:
+                cache[test.value] = test.value(rows, velocities, ops)
+            out.append(cache[test.value])
+        return out
