@@ -14,14 +14,14 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from typing import Any, Literal
 
 import numpy as np
 import numpy.typing as npt
 
-from replay.joints import TOOLBOX_JOINTS
+from replay.joints import JOINT_NAMES, TOOLBOX_JOINTS
 
 FloatArray = npt.NDArray[np.float64]
 BoolArray = npt.NDArray[np.bool_]
@@ -403,42 +403,22 @@ FEATURE_NAMES: tuple[str, ...] = tuple(f.name for f in CATALOG)
 SET_SLICES: dict[FeatureSet, slice] = {"lower": slice(0, 12), "upper": slice(12, 26), "mix": slice(26, 39)}
 
 
-# ------------------------------------------------------------------------------ generic arithmetic
-# Every signal is written once, on 3-vectors given as component triples whose entries are Python
-# floats (one frame: the incremental path) or float64 arrays (all frames: the batch path). Only +, -,
-# *, / and sqrt occur, each correctly rounded, in one fixed order, so both paths give the same bits.
-# Angles are compared through their cosines (arccos is decreasing), which keeps transcendental
-# functions, whose last bit can depend on the vector code path, out of the features.
+# ------------------------------------------------------------------------------------ arithmetic
+# The catalog is compiled (class _Program) into one straight-line Python function that reads joint
+# components ``P[3j + c]`` as Python floats (one frame: the stream) or as float64 arrays (all frames:
+# the batch). Only +, -, *, / and sqrt occur, each correctly rounded, in one fixed order, so both paths
+# give the same bits. Angles are compared through their cosines (arccos is decreasing), which keeps
+# transcendental functions, whose last bit can depend on the vector code path, out of the features.
 
 Num = Any
-Vec = Sequence[Num] | FloatArray
+Poses = Sequence[Num]
+"""Joint positions, flat: ``P[3j + c]`` is component ``c`` of joint ``j`` (a float, or an array over
+frames)."""
 
 
-def _sub(a: Vec, b: Vec) -> Vec:
-    return (a[0] - b[0], a[1] - b[1], a[2] - b[2])
-
-
-def _dot(a: Vec, b: Vec) -> Num:
-    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-
-
-def _cross(a: Vec, b: Vec) -> Vec:
-    return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
-
-
-@dataclass(frozen=True)
-class _Ops:
-    sqrt: Callable[[Num], Num]
-    minimum: Callable[[list[Num]], Num]
-    maximum: Callable[[list[Num]], Num]
-
-
-_FLOAT_OPS = _Ops(math.sqrt, min, max)
-_ARRAY_OPS = _Ops(np.sqrt, np.minimum.reduce, np.maximum.reduce)
-
-Poses = Sequence[Vec]
-"""Joint positions: ``P[j]`` is the component triple of joint ``j``."""
-SignalFn = Callable[[Poses, Sequence[Vec], _Ops], Num]
+def _distance(a: Sequence[float], b: Sequence[float]) -> float:
+    dx, dy, dz = a[0] - b[0], a[1] - b[1], a[2] - b[2]
+    return math.sqrt(dx * dx + dy * dy + dz * dz)
 
 
 def window_frames(window_ms: float, frame_rate: float) -> int:
@@ -464,10 +444,6 @@ class _Trajectory:
         """Frames after ``t`` whose positions the smoothed velocity at ``t`` needs."""
         return self.big_l - self.h + 1
 
-    def point(self, poses: Poses) -> Vec:
-        p = poses[self.q]
-        return p if self.c is None else _sub(p, poses[self.c])
-
 
 # ---------------------------------------------------------------------------------- velocities
 
@@ -478,10 +454,6 @@ def _mirror(j: npt.NDArray[np.intp], m: int) -> npt.NDArray[np.intp]:
     r = np.mod(j, 2 * m)
     out: npt.NDArray[np.intp] = np.where(r < m, r, 2 * m - 1 - r)
     return out
-
-
-def _is_interior(t: int, n: int, big_l: int, h: int) -> bool:
-    return h - 1 <= t <= n - big_l + h - 2
 
 
 def _edge_indices(t: npt.NDArray[np.intp], n: int, big_l: int, h: int) -> npt.NDArray[np.intp]:
@@ -507,7 +479,7 @@ def _smooth(x: FloatArray, big_l: int, frame_rate: float) -> FloatArray:
         return out
     h = math.ceil(big_l / 2)
     if n > big_l:
-        out[:, h - 1 : n - big_l + h - 1] = (x[:, big_l:] - x[:, : n - big_l]) / big_l * frame_rate
+        out[:, h - 1 : n - big_l + h - 1] = (x[:, big_l:] - x[:, : n - big_l]) * (frame_rate / big_l)
     t = np.arange(n)
     edge = t[(t < h - 1) | (t > n - big_l + h - 2)]
     if edge.size:
@@ -516,7 +488,7 @@ def _smooth(x: FloatArray, big_l: int, frame_rate: float) -> FloatArray:
         acc = d[:, m[:, 0]]
         for k in range(1, big_l):
             acc = acc + d[:, m[:, k]]
-        out[:, edge] = acc / big_l * frame_rate
+        out[:, edge] = acc * (frame_rate / big_l)
     return out
 
 
@@ -533,17 +505,8 @@ def smoothed_velocity(x: FloatArray, window_ms: float, frame_rate: float) -> Flo
 # ---------------------------------------------------------------------------------- compilation
 
 
-@dataclass(frozen=True)
-class _CompiledTest:
-    feature: int
-    value: SignalFn
-    op: Op
-    t1: float | tuple[float, float]
-    t2: float | tuple[float, float]
-    reference: Reference
-
-
 _COS_OP: dict[Op, Op] = {"<=": ">=", "<": ">", ">=": "<=", ">": "<", "within": "within"}
+_PY_OP: dict[Op, str] = {"<=": "<=", "<": "<", ">=": ">=", ">": ">"}
 
 
 def _cos_threshold(t: float | tuple[float, float]) -> float | tuple[float, float]:
@@ -552,182 +515,240 @@ def _cos_threshold(t: float | tuple[float, float]) -> float | tuple[float, float
     return math.cos(math.radians(t))
 
 
+class _Emitter:
+    """Writes straight-line Python for a set of signals, one assignment per operation, each
+    operation written once (common subexpressions such as a plane normal shared by two features are
+    computed once). The code reads joints as ``P[3j + c]`` and smoothed velocities as ``S[3k + c]``."""
+
+    def __init__(self) -> None:
+        self.lines: list[str] = []
+        self._names: dict[tuple[Any, ...], str] = {}
+
+    def var(self, key: tuple[Any, ...], expr: str) -> str:
+        if key not in self._names:
+            self._names[key] = f"v{len(self._names)}"
+            self.lines.append(f"{self._names[key]} = {expr}")
+        return self._names[key]
+
+    def component(self, j: int, c: int) -> str:
+        return self.var(("P", j, c), f"P[{3 * j + c}]")
+
+    def joint(self, j: int) -> tuple[str, str, str]:
+        x, y, z = (self.component(j, c) for c in range(3))
+        return x, y, z
+
+    def velocity(self, k: int) -> tuple[str, str, str]:
+        x, y, z = (self.var(("S", k, c), f"S[{3 * k + c}]") for c in range(3))
+        return x, y, z
+
+    def sub(self, a: Sequence[str], b: Sequence[str]) -> tuple[str, str, str]:
+        x, y, z = (self.var(("-", a[c], b[c]), f"{a[c]} - {b[c]}") for c in range(3))
+        return x, y, z
+
+    def dot(self, a: Sequence[str], b: Sequence[str]) -> str:
+        return self.var(("dot", *a, *b), f"{a[0]} * {b[0]} + {a[1]} * {b[1]} + {a[2]} * {b[2]}")
+
+    def cross(self, a: Sequence[str], b: Sequence[str]) -> tuple[str, str, str]:
+        x, y, z = (
+            self.var(("x", a[i], b[j], a[j], b[i]), f"{a[i]} * {b[j]} - {a[j]} * {b[i]}")
+            for i, j in ((1, 2), (2, 0), (0, 1))
+        )
+        return x, y, z
+
+
+class _LazyJoints:
+    def __init__(self, emitter: _Emitter, index: dict[str, int]) -> None:
+        self._emitter, self._index = emitter, index
+
+    def __getitem__(self, name: str) -> tuple[str, str, str]:
+        return self._emitter.joint(self._index[name])
+
+
+def _compile_error(what: str) -> ValueError:
+    return ValueError(f"the catalog uses {what}, which the feature compiler does not support")
+
+
 class _Program:
-    """The catalog bound to a joint order and a frame rate: one closure per distinct signal, the
-    velocity trajectories they need, and the tests."""
+    """The catalog bound to a joint order and a frame rate, compiled to Python.
+
+    ``frame(P, S, T, sqrt, minimum, maximum) -> (f1, f2)`` evaluates every test on joint positions
+    ``P`` and smoothed velocities ``S`` against the thresholds ``T`` (T1 then T2 of each test), on
+    floats or on arrays alike; bit k of ``f1``/``f2`` is feature k's loose/strict track.
+    ``points(P)`` gives the velocity trajectories' points (flat, ``3k + c``); ``interior(R)`` the
+    smoothed velocities of a frame whose windows lie inside the motion (see :func:`_smooth`)."""
 
     def __init__(self, joint_names: tuple[str, ...], frame_rate: float) -> None:
         if not (math.isfinite(frame_rate) and frame_rate > 0):
             raise ValueError(f"frame rate must be a positive number, got {frame_rate}")
         index = {name: i for i, name in enumerate(joint_names)}
-        missing = sorted({j for j in _catalog_joints() if j not in index})
+        missing = sorted(j for j in _catalog_joints() if j not in index)
         if missing:
             raise ValueError(f"joint positions lack the joints {', '.join(missing)}")
         self.joint_names = joint_names
         self.frame_rate = frame_rate
         self.index = index
-        self.name_map = [index[n] for n in TOOLBOX_JOINTS]
-        self.trajectories: list[_Trajectory] = []
-        cache: dict[Signal, tuple[SignalFn, bool]] = {}
-        tests: list[_CompiledTest] = []
-        for k, feature in enumerate(CATALOG):
+        # Velocity trajectories sorted by window, so that each window's components are one slice of S.
+        self.trajectories = sorted(
+            {self._trajectory_of(v) for v in _velocity_signals()}, key=lambda tr: (tr.big_l, tr.q, tr.c or -1)
+        )
+        self.references: list[tuple[Reference, float | tuple[float, float]]] = []
+        self._out = _Emitter()
+        f1, f2 = [], []
+        for feature in CATALOG:
+            loose, strict = [], []
             for test in feature.tests:
-                if test.signal not in cache:
-                    cache[test.signal] = self._compile(test.signal)
-                fn, cosine = cache[test.signal]
+                value, cosine = self._signal(test.signal)
                 op, t1, t2 = test.op, test.t1, test.t2
                 if cosine:
                     op, t1, t2 = _COS_OP[op], _cos_threshold(t1), _cos_threshold(t2)
-                tests.append(_CompiledTest(k, fn, op, t1, t2, test.reference))
-        self.tests = tuple(tests)
+                loose.append(self._test(value, op, test.reference, t1))
+                strict.append(self._test(value, op, test.reference, t2))
+            f1.append(f"({' & '.join(loose)}) << {len(f1)}")
+            f2.append(f"({' & '.join(strict)}) << {len(f2)}")
+        body = [*self._out.lines, f"return {' | '.join(f1)}, {' | '.join(f2)}"]
+        self.source = "def frame(P, S, T, sqrt, minimum, maximum):\n" + "".join(f"    {s}\n" for s in body)
+        point_exprs = [
+            f"P[{3 * tr.q + c}]" if tr.c is None else f"P[{3 * tr.q + c}] - P[{3 * tr.c + c}]"
+            for tr in self.trajectories
+            for c in range(3)
+        ]
+        self.source += f"def points(P):\n    return [{', '.join(point_exprs)}]\n"
+        # The windows: (L, h, first, end) with S[first:end] the components smoothed over L frames.
+        by_window: dict[int, list[int]] = {}
+        for k, tr in enumerate(self.trajectories):
+            by_window.setdefault(tr.big_l, []).append(k)
+        self.windows = [
+            (big_l, (big_l + 1) // 2, 3 * ks[0], 3 * ks[-1] + 3) for big_l, ks in by_window.items()
+        ]
+        # interior(R): all of S for a frame away from the ends, R = [top, bottom] point rows per window.
+        rows = ", ".join(f"A{w}, B{w}" for w in range(len(self.windows)))
+        sums = ", ".join(
+            f"(A{w}[{i}] - B{w}[{i}]) * {frame_rate / big_l!r}"
+            for w, (big_l, _, first, end) in enumerate(self.windows)
+            for i in range(first, end)
+        )
+        self.source += f"def interior(R):\n    {rows}, = R\n    return [{sums}]\n"
+        namespace: dict[str, Any] = {}
+        exec(compile(self.source, f"<features at {frame_rate:g} Hz>", "exec"), namespace)
+        self.frame: Callable[..., tuple[Num, Num]] = namespace["frame"]
+        self.points: Callable[[Poses], list[float]] = namespace["points"]
+        self.interior: Callable[[list[list[float]]], list[float]] = namespace["interior"]
         self.lead = max((tr.lead for tr in self.trajectories), default=0)
 
-    def _trajectory(self, q: str, c: str | None, window_ms: float) -> int:
-        fixture = None if c is None else self.index[c]
-        tr = _Trajectory(self.index[q], fixture, window_frames(window_ms, self.frame_rate))
-        if tr not in self.trajectories:
-            self.trajectories.append(tr)
-        return self.trajectories.index(tr)
+    def _test(self, value: str, op: Op, reference: Reference, threshold: float | tuple[float, float]) -> str:
+        k = len(self.references)
+        self.references.append((reference, threshold))
+        if op == "within":
+            return f"(({value} >= T[{k}][0]) & ({value} <= T[{k}][1]))"
+        return f"({value} {_PY_OP[op]} T[{k}])"
 
-    def _compile(self, signal: Signal) -> tuple[SignalFn, bool]:
-        """The signal as a closure ``(P, S, ops) -> value``, and whether the value is a cosine."""
-        ix = self.index
+    def _trajectory_of(self, signal: PlaneVelocity | NormalPlaneVelocity | Speed) -> _Trajectory:
+        fixture = None if isinstance(signal, Speed) else self.index[signal.c]
+        return _Trajectory(self.index[signal.q], fixture, window_frames(signal.window_ms, self.frame_rate))
+
+    def _velocity(self, signal: PlaneVelocity | NormalPlaneVelocity | Speed) -> tuple[str, str, str]:
+        return self._out.velocity(self.trajectories.index(self._trajectory_of(signal)))
+
+    def _signal(self, signal: Signal) -> tuple[str, bool]:
+        """Emit the code of ``signal``; return its variable and whether the value is a cosine."""
+        e, ix = self._out, self.index
+        p = _LazyJoints(e, ix)
         match signal:
-            case Plane(a, b, c, q) | PlaneVelocity(a, b, c, q):
-                ia, ib, ic, iq = ix[a], ix[b], ix[c], ix[q]
-                if isinstance(signal, PlaneVelocity):
-                    k = self._trajectory(q, c, signal.window_ms)
-
-                    def plane_velocity(p: Poses, s: Sequence[Vec], ops: _Ops) -> Num:
-                        n = _cross(_sub(p[ia], p[ic]), _sub(p[ib], p[ic]))
-                        return _dot(n, s[k]) / ops.sqrt(_dot(n, n))
-
-                    return plane_velocity, False
-
-                def plane(p: Poses, s: Sequence[Vec], ops: _Ops) -> Num:
-                    n = _cross(_sub(p[ia], p[ic]), _sub(p[ib], p[ic]))
-                    return _dot(n, _sub(p[iq], p[ic])) / ops.sqrt(_dot(n, n))
-
-                return plane, False
+            case Plane(a, b, c, q):
+                n = e.cross(e.sub(p[a], p[c]), e.sub(p[b], p[c]))
+                return e.var(("/", signal), f"{e.dot(n, e.sub(p[q], p[c]))} / sqrt({e.dot(n, n)})"), False
+            case PlaneVelocity(a, b, c, _):
+                n = e.cross(e.sub(p[a], p[c]), e.sub(p[b], p[c]))
+                s = self._velocity(signal)
+                return e.var(("/", signal), f"{e.dot(n, s)} / sqrt({e.dot(n, n)})"), False
             case NormalPlane(a, b, c, q):
-                ia, ib, ic, iq = ix[a], ix[b], ix[c], ix[q]
-
-                def normal_plane(p: Poses, s: Sequence[Vec], ops: _Ops) -> Num:
-                    n = _sub(p[ib], p[ia])
-                    return _dot(n, _sub(p[iq], p[ic])) / ops.sqrt(_dot(n, n))
-
-                return normal_plane, False
-            case NormalPlaneVelocity(a, b, c, q, w):
-                ia, ib = ix[a], ix[b]
-                k = self._trajectory(q, c, w)
-
-                def normal_plane_velocity(p: Poses, s: Sequence[Vec], ops: _Ops) -> Num:
-                    n = _sub(p[ib], p[ia])
-                    return _dot(n, s[k]) / ops.sqrt(_dot(n, n))
-
-                return normal_plane_velocity, False
-            case Speed(q, w):
-                k = self._trajectory(q, None, w)
-
-                def speed(p: Poses, s: Sequence[Vec], ops: _Ops) -> Num:
-                    return ops.sqrt(_dot(s[k], s[k]))
-
-                return speed, False
-            case JointAngle(a, b, c) | SegmentAngle(a, b, c, _):
-                if isinstance(signal, JointAngle):
-                    i1, i2, i3, i4 = ix[a], ix[b], ix[c], ix[b]
-                else:
-                    i1, i2, i3, i4 = ix[signal.p1], ix[signal.p2], ix[signal.p3], ix[signal.p4]
-
-                def cos_angle(p: Poses, s: Sequence[Vec], ops: _Ops) -> Num:
-                    u, v = _sub(p[i1], p[i2]), _sub(p[i3], p[i4])
-                    return _dot(u, v) / ops.sqrt(_dot(u, u) * _dot(v, v))
-
-                return cos_angle, True
+                n = e.sub(p[b], p[a])
+                return e.var(("/", signal), f"{e.dot(n, e.sub(p[q], p[c]))} / sqrt({e.dot(n, n)})"), False
+            case NormalPlaneVelocity(a, b, _, _):
+                n = e.sub(p[b], p[a])
+                s = self._velocity(signal)
+                return e.var(("/", signal), f"{e.dot(n, s)} / sqrt({e.dot(n, n)})"), False
+            case Speed():
+                s = self._velocity(signal)
+                return e.var(("|", signal), f"sqrt({e.dot(s, s)})"), False
+            case JointAngle(a, b, c):
+                u, v = e.sub(p[a], p[b]), e.sub(p[c], p[b])
+                return e.var(("cos", signal), f"{e.dot(u, v)} / sqrt({e.dot(u, u)} * {e.dot(v, v)})"), True
+            case SegmentAngle(p1, p2, p3, p4):
+                u, v = e.sub(p[p1], p[p2]), e.sub(p[p3], p[p4])
+                return e.var(("cos", signal), f"{e.dot(u, v)} / sqrt({e.dot(u, u)} * {e.dot(v, v)})"), True
             case AngleToVertical(a, b):
-                ia, ib = ix[a], ix[b]
-
-                def cos_to_vertical(p: Poses, s: Sequence[Vec], ops: _Ops) -> Num:
-                    u = _sub(p[ib], p[ia])
-                    return u[1] / ops.sqrt(_dot(u, u))
-
-                return cos_to_vertical, True
+                u = e.sub(p[b], p[a])
+                return e.var(("cos", signal), f"{u[1]} / sqrt({e.dot(u, u)})"), True
             case HeightAboveLowest(q, exclude):
-                iq = ix[q]
-                keep = [i for n, i in zip(TOOLBOX_JOINTS, self.name_map, strict=True) if n not in exclude]
-
-                def height(p: Poses, s: Sequence[Vec], ops: _Ops) -> Num:
-                    return p[iq][1] - ops.minimum([p[i][1] for i in keep])
-
-                return height, False
+                ys = ", ".join(e.component(ix[n], 1) for n in TOOLBOX_JOINTS if n not in exclude)
+                low = e.var(("min", exclude), f"minimum([{ys}])")
+                y = e.component(ix[q], 1)
+                return e.var(("-", y, low), f"{y} - {low}"), False
             case VerticalExtent():
-                everyone = self.name_map
-
-                def extent(p: Poses, s: Sequence[Vec], ops: _Ops) -> Num:
-                    ys = [p[i][1] for i in everyone]
-                    return ops.maximum(ys) - ops.minimum(ys)
-
-                return extent, False
+                ys = ", ".join(e.component(ix[n], 1) for n in TOOLBOX_JOINTS)
+                low, high = e.var(("min", ()), f"minimum([{ys}])"), e.var(("max", ()), f"maximum([{ys}])")
+                return e.var(("-", high, low), f"{high} - {low}"), False
             case HorizontalExtent(joints):
-                idx = [ix[j] for j in joints]
-                pairs = [(a, b) for n, a in enumerate(idx) for b in idx[n + 1 :]]
-
-                def spread(p: Poses, s: Sequence[Vec], ops: _Ops) -> Num:
-                    d2 = []
-                    for a, b in pairs:
-                        dx, dz = p[a][0] - p[b][0], p[a][2] - p[b][2]
-                        d2.append(dx * dx + dz * dz)
-                    return ops.sqrt(ops.maximum(d2))
-
-                return spread, False
+                squares = []
+                for i, a in enumerate(joints):
+                    for b in joints[i + 1 :]:
+                        dx, dz = e.sub(p[a], p[b])[0::2]
+                        squares.append(e.var(("xz", dx, dz), f"{dx} * {dx} + {dz} * {dz}"))
+                return e.var(("|xz", signal), f"sqrt(maximum([{', '.join(squares)}]))"), False
             case Difference(first, second):
-                (f, cf), (g, cg) = self._compile(first), self._compile(second)
+                (f, cf), (g, cg) = self._signal(first), self._signal(second)
                 if cf or cg:
-                    raise ValueError("differences of angles are not supported")
-
-                def difference(p: Poses, s: Sequence[Vec], ops: _Ops) -> Num:
-                    return f(p, s, ops) - g(p, s, ops)
-
-                return difference, False
+                    raise _compile_error("a difference of angles")
+                return e.var(("-", f, g), f"{f} - {g}"), False
             case Absolute(inner):
-                f, cosine = self._compile(inner)
+                f, cosine = self._signal(inner)
                 if cosine:
-                    raise ValueError("absolute values of angles are not supported")
-
-                def absolute(p: Poses, s: Sequence[Vec], ops: _Ops) -> Num:
-                    return abs(f(p, s, ops))
-
-                return absolute, False
+                    raise _compile_error("the absolute value of an angle")
+                return e.var(("abs", f), f"abs({f})"), False
         raise TypeError(f"unknown signal {signal!r}")
 
-    def thresholds(self, lengths: BodyLengths) -> list[tuple[Num, Num]]:
-        """``(T1, T2)`` of every test in absolute units."""
-        out: list[tuple[Num, Num]] = []
-        for test in self.tests:
-            scale = lengths.get(test.reference)
-            if test.op == "within":
-                out.append((test.t1, test.t2))
+    def thresholds(self, lengths: BodyLengths) -> list[Num]:
+        """Every comparison's threshold in absolute units, in the order of ``T``."""
+        out: list[Num] = []
+        for reference, threshold in self.references:
+            if isinstance(threshold, tuple):
+                out.append(threshold)
             else:
-                assert not isinstance(test.t1, tuple) and not isinstance(test.t2, tuple)
-                out.append((test.t1 * scale, test.t2 * scale))
+                out.append(threshold * lengths.get(reference))
         return out
 
 
-def _catalog_joints() -> set[str]:
-    names: set[str] = set(TOOLBOX_JOINTS)
-    for feature in CATALOG:
-        for test in feature.tests:
-            stack: list[Any] = [test.signal]
-            while stack:
-                s = stack.pop()
-                for value in vars(s).values():
-                    if isinstance(value, str):
-                        names.add(value)
-                    elif isinstance(value, tuple):
-                        names.update(v for v in value if isinstance(v, str))
-                    elif not isinstance(value, int | float):
-                        stack.append(value)
+def _subsignals(signal: Any) -> Iterator[Any]:
+    yield signal
+    for value in vars(signal).values():
+        if not isinstance(value, str | int | float | tuple):
+            yield from _subsignals(value)
+
+
+def _velocity_signals() -> set[PlaneVelocity | NormalPlaneVelocity | Speed]:
+    return {
+        s
+        for f in CATALOG
+        for t in f.tests
+        for s in _subsignals(t.signal)
+        if isinstance(s, PlaneVelocity | NormalPlaneVelocity | Speed)
+    }
+
+
+def _signal_joints(signal: Any) -> set[str]:
+    names: set[str] = set()
+    for s in _subsignals(signal):
+        for value in vars(s).values():
+            if isinstance(value, str):
+                names.add(value)
+            elif isinstance(value, tuple):
+                names.update(v for v in value if isinstance(v, str))
     return names
+
+
+def _catalog_joints() -> set[str]:
+    return set(TOOLBOX_JOINTS).union(*(_signal_joints(t.signal) for f in CATALOG for t in f.tests))
 
 
 _PROGRAMS: dict[tuple[tuple[str, ...], float], _Program] = {}
@@ -743,20 +764,7 @@ def _program(joint_names: Sequence[str], frame_rate: float) -> _Program:
 def latency_frames(frame_rate: float) -> int:
     """How many frames after frame ``t`` arrives :class:`FeatureStream` can emit its vector: the
     longest velocity window's look-ahead ``L - ceil(L/2) + 1`` (16 at 120 Hz, 5 at 30 Hz)."""
-    return max(_Trajectory(0, None, window_frames(w, frame_rate)).lead for w in _windows())
-
-
-def _windows() -> set[float]:
-    out: set[float] = set()
-    for feature in CATALOG:
-        for test in feature.tests:
-            stack: list[Any] = [test.signal]
-            while stack:
-                s = stack.pop()
-                if hasattr(s, "window_ms"):
-                    out.add(s.window_ms)
-                stack.extend(v for v in vars(s).values() if not isinstance(v, str | int | float | tuple))
-    return out
+    return _program(JOINT_NAMES, frame_rate).lead
 
 
 # ---------------------------------------------------------------------------------- references
@@ -794,8 +802,7 @@ def body_lengths(frame: FloatArray, joint_names: Sequence[str]) -> BodyLengths:
     pose = np.asarray(frame, dtype=np.float64).tolist()
 
     def d(a: str, b: str) -> float:
-        u = _sub(pose[idx[a]], pose[idx[b]])
-        return math.sqrt(_dot(u, u))
+        return _distance(pose[idx[a]], pose[idx[b]])
 
     body = 0.0
     for a, b in _BODY_CHAIN:
@@ -811,19 +818,6 @@ def body_lengths(frame: FloatArray, joint_names: Sequence[str]) -> BodyLengths:
 
 
 # ---------------------------------------------------------------------------------- thresholds
-
-
-def _compare(values: Num, op: Op, threshold: Num) -> Num:
-    if op == "within":
-        lo, hi = threshold
-        return (values >= lo) & (values <= hi)
-    if op == ">=":
-        return values >= threshold
-    if op == ">":
-        return values > threshold
-    if op == "<=":
-        return values <= threshold
-    return values < threshold
 
 
 def hysteresis(f1: BoolArray, f2: BoolArray) -> BoolArray:
@@ -850,6 +844,16 @@ def _check_positions(positions: FloatArray, n_joints: int) -> FloatArray:
     return p
 
 
+_BITS = np.left_shift(1, np.arange(len(CATALOG), dtype=np.int64))
+
+
+def _unpack(codes: Num) -> BoolArray:
+    """Bit ``k`` of ``codes`` (an int, or int64 array shape ``(N,)``) as feature ``k``: shape
+    ``(39,)`` or ``(N, 39)``."""
+    out: BoolArray = (np.asarray(codes, dtype=np.int64)[..., None] & _BITS) != 0
+    return out
+
+
 def feature_tracks(
     positions: FloatArray, joint_names: Sequence[str], frame_rate: float, lengths: BodyLengths | None = None
 ) -> tuple[BoolArray, BoolArray]:
@@ -857,23 +861,19 @@ def feature_tracks(
     program = _program(joint_names, frame_rate)
     p = _check_positions(positions, len(program.joint_names))
     n = p.shape[0]
-    f1 = np.ones((n, len(CATALOG)), dtype=bool)
-    f2 = np.ones((n, len(CATALOG)), dtype=bool)
     if n == 0:
-        return f1, f2
-    comp = np.ascontiguousarray(p.transpose(1, 2, 0))  # (J, 3, N): each component a contiguous row
-    poses: Poses = list(comp)
-    velocities = [_smooth(np.asarray(tr.point(poses)), tr.big_l, frame_rate) for tr in program.trajectories]
+        return np.ones((0, len(CATALOG)), dtype=bool), np.ones((0, len(CATALOG)), dtype=bool)
+    poses = np.ascontiguousarray(p.reshape(n, -1).T)  # (3J, N): each component a contiguous row
+    points = np.array(program.points(list(poses))).reshape(-1, 3, n)
+    velocities = [
+        row for k, tr in enumerate(program.trajectories) for row in _smooth(points[k], tr.big_l, frame_rate)
+    ]
     thresholds = program.thresholds(lengths or body_lengths(p[0], program.joint_names))
-    values: dict[SignalFn, Num] = {}
     with np.errstate(invalid="ignore", divide="ignore"):
-        for test, (t1, t2) in zip(program.tests, thresholds, strict=True):
-            if test.value not in values:
-                values[test.value] = test.value(poses, velocities, _ARRAY_OPS)
-            v = values[test.value]
-            f1[:, test.feature] &= _compare(v, test.op, t1)
-            f2[:, test.feature] &= _compare(v, test.op, t2)
-    return f1, f2
+        f1, f2 = program.frame(
+            list(poses), velocities, thresholds, np.sqrt, np.minimum.reduce, np.maximum.reduce
+        )
+    return _unpack(f1), _unpack(f2)
 
 
 def features(positions: FloatArray, joint_names: Sequence[str], frame_rate: float = 120.0) -> BoolArray:
@@ -895,8 +895,8 @@ class FeatureStream:
     windows are centred), and :meth:`flush` returns the last ``latency`` vectors when the stream ends
     (the windows are then mirrored at the end, exactly as in the batch) and makes the object ready
     for a new stream. Body lengths are measured on the first pose. Memory is bounded: the last
-    ``latency + L`` poses. The output equals :func:`features` on the same frames bit for bit: both run
-    the same arithmetic in the same order, on Python floats here and on arrays there."""
+    ``latency + L/2 + 1`` poses. The output equals :func:`features` on the same frames bit for bit:
+    both run the same compiled arithmetic, on Python floats here and on arrays there."""
 
     def __init__(self, joint_names: Sequence[str], frame_rate: float = 120.0) -> None:
         self._program = _program(joint_names, frame_rate)
@@ -905,11 +905,11 @@ class FeatureStream:
         self._reset()
 
     def _reset(self) -> None:
-        self._history: deque[tuple[list[list[float]], list[Vec]]] = deque(maxlen=self._keep)
+        self._history: deque[tuple[list[float], list[float]]] = deque(maxlen=self._keep)
         self._n = 0
         self._emitted = 0
-        self._thresholds: list[tuple[Num, Num]] = []
-        self._previous = [False] * len(CATALOG)
+        self._thresholds: list[Num] = []
+        self._previous = 0
 
     def push(self, pose: FloatArray) -> list[BoolArray]:
         """Add the next pose; return the vectors that became final (at most one)."""
@@ -917,12 +917,12 @@ class FeatureStream:
         p = np.asarray(pose, dtype=np.float64)
         if p.shape != (len(program.joint_names), 3):
             raise ValueError(f"pose must have shape ({len(program.joint_names)}, 3), got {p.shape}")
-        if not np.isfinite(p).all():
+        rows: list[float] = p.ravel().tolist()
+        if not math.isfinite(sum(rows)) and not all(map(math.isfinite, rows)):
             raise ValueError(f"pose {self._n} is not finite")
-        rows: list[list[float]] = p.tolist()
         if self._n == 0:
             self._thresholds = program.thresholds(body_lengths(p, program.joint_names))
-        self._history.append((rows, [tr.point(rows) for tr in program.trajectories]))
+        self._history.append((rows, program.points(rows)))
         self._n += 1
         t = self._n - 1 - self.latency
         return [] if t < 0 else [self._emit(t, self._n)]
@@ -934,45 +934,44 @@ class FeatureStream:
         self._reset()
         return out
 
-    def _velocity(self, k: int, tr: _Trajectory, t: int, n: int) -> Vec:
-        """Smoothed velocity of trajectory ``k`` at frame ``t`` of ``n`` frames (as :func:`_smooth`)."""
-        base = n - len(self._history)
-        big_l, h, fs = tr.big_l, tr.h, self._program.frame_rate
-        if _is_interior(t, n, big_l, h):
-            a, b = self._history[t + big_l - h + 1 - base][1][k], self._history[t - h + 1 - base][1][k]
-            return ((a[0] - b[0]) / big_l * fs, (a[1] - b[1]) / big_l * fs, (a[2] - b[2]) / big_l * fs)
-        if n < 2:
-            return (0.0, 0.0, 0.0)
-        acc: Vec = (0.0, 0.0, 0.0)
-        for j, m in enumerate(_edge_indices(np.array([t]), n, big_l, h)[0].tolist()):
-            d = _sub(self._history[m + 1 - base][1][k], self._history[m - base][1][k])
-            acc = d if j == 0 else (acc[0] + d[0], acc[1] + d[1], acc[2] + d[2])
-        return (acc[0] / big_l * fs, acc[1] / big_l * fs, acc[2] / big_l * fs)
+    def _velocities(self, t: int, n: int) -> list[float]:
+        """Smoothed velocities at frame ``t`` of ``n`` frames, flat (``3k + c``), as :func:`_smooth`."""
+        history, base, windows = self._history, n - len(self._history), self._program.windows
+        if all(h - 1 <= t <= n - big_l + h - 2 for big_l, h, _, _ in windows):  # window sums telescope
+            rows = []
+            for big_l, h, _, _ in windows:
+                rows += [history[t + big_l - h + 1 - base][1], history[t - h + 1 - base][1]]
+            return self._program.interior(rows)
+        out: list[float] = []
+        fs = self._program.frame_rate
+        for big_l, h, first, end in windows:
+            if h - 1 <= t <= n - big_l + h - 2:
+                top, bottom = history[t + big_l - h + 1 - base][1], history[t - h + 1 - base][1]
+                out += [(top[i] - bottom[i]) * (fs / big_l) for i in range(first, end)]
+            elif n < 2:
+                out += [0.0] * (end - first)
+            else:
+                ms = _edge_indices(np.array([t]), n, big_l, h)[0].tolist()
+                for i in range(first, end):
+                    acc = history[ms[0] + 1 - base][1][i] - history[ms[0] - base][1][i]
+                    for m in ms[1:]:
+                        acc = acc + (history[m + 1 - base][1][i] - history[m - base][1][i])
+                    out.append(acc * (fs / big_l))
+        return out
 
     def _emit(self, t: int, n: int) -> BoolArray:
         program = self._program
         rows = self._history[t - (n - len(self._history))][0]
-        velocities = [self._velocity(k, tr, t, n) for k, tr in enumerate(program.trajectories)]
+        velocities = self._velocities(t, n)
         try:
-            values: list[Num] = self._values(rows, velocities, _FLOAT_OPS)
+            f1, f2 = program.frame(rows, velocities, self._thresholds, math.sqrt, min, max)
         except ZeroDivisionError:  # a degenerate pose: evaluate as the batch does, to nan
             with np.errstate(invalid="ignore", divide="ignore"):
-                columns = [np.array(r)[:, None] for r in rows]
-                values = self._values(columns, [np.array(v)[:, None] for v in velocities], _ARRAY_OPS)
-        f1 = [True] * len(CATALOG)
-        f2 = [True] * len(CATALOG)
-        for test, v, (t1, t2) in zip(program.tests, values, self._thresholds, strict=True):
-            f1[test.feature] = f1[test.feature] and bool(_compare(v, test.op, t1))
-            f2[test.feature] = f2[test.feature] and bool(_compare(v, test.op, t2))
-        self._previous = [b2 or (prev and b1) for b1, b2, prev in zip(f1, f2, self._previous, strict=True)]
+                columns, smoothed = list(np.array(rows)[:, None]), list(np.array(velocities)[:, None])
+                a1, a2 = program.frame(
+                    columns, smoothed, self._thresholds, np.sqrt, np.minimum.reduce, np.maximum.reduce
+                )
+            f1, f2 = int(a1[0]), int(a2[0])
+        self._previous = f2 | (self._previous & f1)  # the hysteresis, all features at once
         self._emitted = t + 1
-        return np.array(self._previous, dtype=bool)
-
-    def _values(self, rows: Poses, velocities: Sequence[Vec], ops: _Ops) -> list[Num]:
-        cache: dict[SignalFn, Num] = {}
-        out = []
-        for test in self._program.tests:
-            if test.value not in cache:
-                cache[test.value] = test.value(rows, velocities, ops)
-            out.append(cache[test.value])
-        return out
+        return _unpack(self._previous)
