@@ -593,7 +593,8 @@ class _Program:
         )
         self.references: list[tuple[Reference, float | tuple[float, float]]] = []
         self._out = _Emitter()
-        f1, f2 = [], []
+        f1: list[str] = []
+        f2: list[str] = []
         for feature in CATALOG:
             loose, strict = [], []
             for test in feature.tests:
