@@ -18,6 +18,8 @@ from typing import TextIO
 import numpy as np
 
 from daemon.config import Config, ConfigError, Units, load_config
+from daemon.features import FEATURE_NAMES, decimate, decimation_factor, features
+from daemon.plots import PlotUnavailable, feature_matrix_png
 from replay import JOINT_NAMES, KinematicModel, MocapFormatError, Motion, read_amc, read_asf
 
 
@@ -56,6 +58,18 @@ def _parser() -> argparse.ArgumentParser:
     pos.add_argument("--amc", type=Path, required=True, help="AMC file, plain or gzip")
     pos.add_argument("--csv", type=Path, required=True, help="output CSV ('-' for stdout)")
     pos.add_argument("--cm", action="store_true", help="centimetres (ASF length / :units length x 2.54)")
+
+    feat = sub.add_parser("features", help="write the 39 relational features as CSV: frame,<names>")
+    feat.add_argument("--asf", type=Path, required=True)
+    feat.add_argument("--amc", type=Path, required=True, help="AMC file, plain or gzip")
+    feat.add_argument("--csv", type=Path, required=True, help="output CSV ('-' for stdout)")
+    feat.add_argument(
+        "--fps",
+        type=_positive_float,
+        default=None,
+        help="output rate: every k-th frame of the native rate, which it must divide (e.g. 30)",
+    )
+    feat.add_argument("--png", type=Path, default=None, help="also draw the feature matrix as a PNG")
     return parser
 
 
@@ -67,7 +81,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             return _info(args, config)
         if args.command == "positions":
             return _positions(args, config)
-    except (MocapFormatError, ConfigError) as exc:
+        if args.command == "features":
+            return _features(args, config)
+    except (MocapFormatError, ConfigError, UsageError, PlotUnavailable) as exc:
         print(f"mocapd: {exc}", file=sys.stderr)
         return 2
     except BrokenPipeError:
@@ -78,6 +94,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"mocapd: {exc.filename}: {exc.strerror}", file=sys.stderr)
         return 2
     raise AssertionError(args.command)
+
+
+class UsageError(ValueError):
+    """Options that do not fit the input."""
 
 
 def _load(asf: Path, amc: Path) -> Motion:
@@ -154,3 +174,32 @@ def _write_positions(out: TextIO, frames: np.ndarray, joints: np.ndarray) -> Non
             np.repeat(f, block).tolist(), np.tile(names, len(f)).tolist(), *xyz.T.tolist(), strict=True
         )
         out.writelines(f"{fr},{j},{x:.6f},{y:.6f},{z:.6f}\n" for fr, j, x, y, z in rows)
+
+
+def _features(args: argparse.Namespace, config: Config) -> int:
+    motion = _load(args.asf, args.amc)
+    native = motion.header.frame_rate or config.replay.frame_rate_hz
+    try:
+        factor = 1 if args.fps is None else decimation_factor(native, args.fps)
+    except ValueError as exc:
+        raise UsageError(f"--fps: {exc}") from None
+    model = KinematicModel(motion.skeleton)
+    joints = model.joints(model.positions(motion.channels, "cm"))
+    matrix = decimate(features(joints, JOINT_NAMES, native), factor)
+    frames = motion.frames[::factor]
+    if str(args.csv) == "-":
+        _write_features(sys.stdout, frames, matrix)
+    else:
+        with open(args.csv, "w", encoding="utf-8", newline="") as out:
+            _write_features(out, frames, matrix)
+    if args.png is not None:
+        title = f"{args.amc.name}: {len(frames)} frames at {native / factor:g} Hz"
+        feature_matrix_png(matrix, frames, args.png, title, native / factor)
+    return 0
+
+
+def _write_features(out: TextIO, frames: np.ndarray, matrix: np.ndarray) -> None:
+    """``frames`` shape ``(N,)``, ``matrix`` shape ``(N, 39)``: CSV ``frame,<39 names>`` of 0/1."""
+    out.write(",".join(("frame", *FEATURE_NAMES)) + "\n")
+    digits = np.where(matrix, "1", "0")
+    out.writelines(f"{f},{','.join(row)}\n" for f, row in zip(frames.tolist(), digits.tolist(), strict=True))

@@ -976,3 +976,39 @@ class FeatureStream:
         self._previous = f2 | (self._previous & f1)  # the hysteresis, all features at once
         self._emitted = t + 1
         return _unpack(self._previous)
+
+
+# ---------------------------------------------------------------------------------- frame rates
+
+
+def decimation_factor(native_hz: float, target_hz: float) -> int:
+    """How many native frames make one frame at ``target_hz`` (4 for 120 -> 30 Hz); the target must
+    divide the native rate."""
+    if not (math.isfinite(target_hz) and target_hz > 0):
+        raise ValueError(f"target frame rate must be a positive number, got {target_hz}")
+    factor = round(native_hz / target_hz)
+    if factor < 1 or not math.isclose(native_hz / factor, target_hz, rel_tol=1e-9):
+        raise ValueError(f"{target_hz:g} Hz is not the native {native_hz:g} Hz divided by a whole number")
+    return factor
+
+
+def decimate(matrix: BoolArray, factor: int) -> BoolArray:
+    """Every ``factor``-th row of ``matrix``, starting with the first (the toolbox's ``1:4:end``, no
+    filtering; reference facts, section 0). Batch twin of :class:`Decimator`."""
+    out: BoolArray = matrix[::factor]
+    return out
+
+
+class Decimator:
+    """``push(vector)`` passes on every ``factor``-th vector, starting with the first, else ``None``."""
+
+    def __init__(self, factor: int) -> None:
+        if factor < 1:
+            raise ValueError(f"decimation factor must be at least 1, got {factor}")
+        self.factor = factor
+        self._n = 0
+
+    def push(self, vector: BoolArray) -> BoolArray | None:
+        keep = self._n % self.factor == 0
+        self._n += 1
+        return vector if keep else None
