@@ -468,7 +468,8 @@ def _edge_indices(t: npt.NDArray[np.intp], n: int, big_l: int, h: int) -> npt.ND
 
 
 def _smooth(x: FloatArray, big_l: int, frame_rate: float) -> FloatArray:
-    """Smoothed velocity of ``x`` shape ``(3, N)``, shape ``(3, N)`` (reference facts, section 0).
+    """Smoothed velocity of ``x`` shape ``(k, N)`` (k components of point trajectories), shape ``(k, N)``
+    (reference facts, section 0).
 
     Away from the ends the window sum of forward differences telescopes to ``x(t+L-h+1) - x(t-h+1)``;
     near the ends the mirrored differences are summed one after another. :class:`FeatureStream` does
@@ -865,10 +866,10 @@ def feature_tracks(
     if n == 0:
         return np.ones((0, len(CATALOG)), dtype=bool), np.ones((0, len(CATALOG)), dtype=bool)
     poses = np.ascontiguousarray(p.reshape(n, -1).T)  # (3J, N): each component a contiguous row
-    points = np.array(program.points(list(poses))).reshape(-1, 3, n)
-    velocities = [
-        row for k, tr in enumerate(program.trajectories) for row in _smooth(points[k], tr.big_l, frame_rate)
-    ]
+    points = np.array(program.points(list(poses)))  # (3K, N)
+    velocities = np.empty_like(points)
+    for big_l, _, first, end in program.windows:
+        velocities[first:end] = _smooth(points[first:end], big_l, frame_rate)
     thresholds = program.thresholds(lengths or body_lengths(p[0], program.joint_names))
     with np.errstate(invalid="ignore", divide="ignore"):
         f1, f2 = program.frame(

@@ -1,0 +1,109 @@
+"""The 39 relational features and F-segments over every AMC file in ../shared/data/mocap, one core.
+
+    python -m bench.bench_features [--repeat 3]
+
+Joint positions are computed first (not timed). Prints frames/s for: per-frame forward kinematics
+(the baseline, measured in the same run, because this machine's speed drifts by up to 2x between
+runs), batch features, incremental features (one pose per ``push``), batch and incremental
+segmentation, and the segments per frame of each feature set at 120 and 30 Hz.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+from pathlib import Path
+
+import numpy as np
+
+from bench.bench_io import DATA, best_of
+from bench.machine import describe
+from daemon.features import SET_SLICES, FeatureStream, decimate, features, latency_frames
+from daemon.segments import Segmenter, segment
+from replay import JOINT_NAMES, KinematicModel, read_amc, read_asf
+from replay.catalog import CMU_SUBSTITUTES, recordings
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--repeat", type=int, default=3)
+    parser.add_argument("--data", type=Path, default=DATA)
+    args = parser.parse_args()
+    if hasattr(os, "sched_setaffinity"):
+        os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})
+
+    pairs = recordings(args.data, CMU_SUBSTITUTES)
+    skeletons = {asf: read_asf(asf) for asf in {a for a, _ in pairs}}
+    models = {asf: KinematicModel(s) for asf, s in skeletons.items()}
+    motions = [(models[asf], read_amc(amc, skeletons[asf])) for asf, amc in pairs]
+    clips = [model.joints(model.positions(m.channels, "cm")) for model, m in motions]
+    frames = sum(len(c) for c in clips)
+    print(describe())
+    print(f"data: {len(pairs)} AMC files, {frames} frames, pinned to one core, best of {args.repeat}")
+
+    sample = [(model, m.channels[::20]) for model, m in motions]
+    sample_frames = sum(len(c) for _, c in sample)
+
+    def fk_frame() -> None:
+        for model, channels in sample:
+            for row in channels:
+                model.positions_frame(row)
+
+    matrices: list[np.ndarray] = []
+
+    def batch() -> None:
+        matrices[:] = [features(c, JOINT_NAMES, 120.0) for c in clips]
+
+    def stream() -> None:
+        for c in clips:
+            s = FeatureStream(JOINT_NAMES, 120.0)
+            for pose in c:
+                s.push(pose)
+            s.flush()
+
+    def segments_batch() -> None:
+        for m in matrices:
+            for name in SET_SLICES:
+                segment(m, name)
+
+    def segments_stream() -> None:
+        for m in matrices:
+            segmenters = [Segmenter(name) for name in SET_SLICES]
+            for row in m:
+                for seg in segmenters:
+                    seg.push(row)
+            for seg in segmenters:
+                seg.flush()
+
+    t_fk = best_of(args.repeat, fk_frame)
+    t_batch = best_of(args.repeat, batch)
+    t_stream = best_of(args.repeat, stream)
+    t_seg = best_of(args.repeat, segments_batch)
+    t_seg_stream = best_of(args.repeat, segments_stream)
+    base = sample_frames / t_fk
+    rows = [
+        ("forward kinematics, per frame (baseline)", base),
+        ("features, batch", frames / t_batch),
+        ("features, incremental (push per pose)", frames / t_stream),
+        ("segmentation, batch (3 sets)", frames / t_seg),
+        ("segmentation, incremental (3 sets)", frames / t_seg_stream),
+    ]
+    print(f"{'stage':44s} {'frames/s':>12s} {'vs baseline':>12s}")
+    for name, rate in rows:
+        print(f"{name:44s} {rate:12,.0f} {rate / base:11.2f}x")
+    per_frame = t_stream / frames
+    print(
+        f"incremental: {1e6 * per_frame:.0f} us/pose, latency {latency_frames(120.0)} frames at 120 Hz; "
+        f"one core keeps up with {1 / 120 / per_frame:.0f} streams at 120 Hz"
+    )
+    print(f"{'segments per frame':44s} {'120 Hz':>12s} {'30 Hz':>12s}")
+    for name in SET_SLICES:
+        at120 = sum(len(segment(m, name)) for m in matrices) / frames
+        at30 = sum(len(segment(decimate(m, 4), name)) for m in matrices) / sum(len(m[::4]) for m in matrices)
+        print(f"{name:44s} {at120:12.4f} {at30:12.4f}")
+
+
+if __name__ == "__main__":
+    main()
