@@ -866,12 +866,13 @@ def feature_tracks(
     if n == 0:
         return np.ones((0, len(CATALOG)), dtype=bool), np.ones((0, len(CATALOG)), dtype=bool)
     poses = np.ascontiguousarray(p.reshape(n, -1).T)  # (3J, N): each component a contiguous row
-    points = np.array(program.points(list(poses)))  # (3K, N)
-    velocities = np.empty_like(points)
-    for big_l, _, first, end in program.windows:
-        velocities[first:end] = _smooth(points[first:end], big_l, frame_rate)
     thresholds = program.thresholds(lengths or body_lengths(p[0], program.joint_names))
-    with np.errstate(invalid="ignore", divide="ignore"):
+    # Degenerate or huge poses give nan/inf signals (features off), as Python floats do in the stream.
+    with np.errstate(all="ignore"):
+        points = np.array(program.points(list(poses)))  # (3K, N)
+        velocities = np.empty_like(points)
+        for big_l, _, first, end in program.windows:
+            velocities[first:end] = _smooth(points[first:end], big_l, frame_rate)
         f1, f2 = program.frame(
             list(poses), velocities, thresholds, np.sqrt, np.minimum.reduce, np.maximum.reduce
         )
