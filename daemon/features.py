@@ -605,9 +605,11 @@ class _Program:
                     op, t1, t2 = _COS_OP[op], _cos_threshold(t1), _cos_threshold(t2)
                 loose.append(self._test(value, op, test.reference, t1))
                 strict.append(self._test(value, op, test.reference, t2))
-            f1.append(f"({' & '.join(loose)}) << {len(f1)}")
-            f2.append(f"({' & '.join(strict)}) << {len(f2)}")
-        body = [*self._out.lines, f"return {' | '.join(f1)}, {' | '.join(f2)}"]
+            shift = f" << {len(f1)}" if f1 else ""
+            f1.append(f"({' & '.join(loose)}){shift}")
+            f2.append(f"({' & '.join(strict)}){shift}")
+        unpack = ", ".join(f"t{k}" for k in range(len(self.references)))
+        body = [f"{unpack}, = T", *self._out.lines, f"return {' | '.join(f1)}, {' | '.join(f2)}"]
         self.source = "def frame(P, S, T, sqrt, minimum, maximum):\n" + "".join(f"    {s}\n" for s in body)
         point_exprs = [
             f"P[{3 * tr.q + c}]" if tr.c is None else f"P[{3 * tr.q + c}] - P[{3 * tr.c + c}]"
@@ -641,8 +643,8 @@ class _Program:
         k = len(self.references)
         self.references.append((reference, threshold))
         if op == "within":
-            return f"(({value} >= T[{k}][0]) & ({value} <= T[{k}][1]))"
-        return f"({value} {_PY_OP[op]} T[{k}])"
+            return f"(({value} >= t{k}[0]) & ({value} <= t{k}[1]))"
+        return f"({value} {_PY_OP[op]} t{k})"
 
     def _trajectory_of(self, signal: PlaneVelocity | NormalPlaneVelocity | Speed) -> _Trajectory:
         fixture = None if isinstance(signal, Speed) else self.index[signal.c]
@@ -695,7 +697,8 @@ class _Program:
                 squares = []
                 for i, a in enumerate(joints):
                     for b in joints[i + 1 :]:
-                        dx, dz = e.sub(p[a], p[b])[0::2]
+                        (ax, _, az), (bx, _, bz) = p[a], p[b]
+                        dx, dz = e.var(("-", ax, bx), f"{ax} - {bx}"), e.var(("-", az, bz), f"{az} - {bz}")
                         squares.append(e.var(("xz", dx, dz), f"{dx} * {dx} + {dz} * {dz}"))
                 return e.var(("|xz", signal), f"sqrt(maximum([{', '.join(squares)}]))"), False
             case Difference(first, second):
@@ -852,7 +855,10 @@ _BITS = np.left_shift(1, np.arange(len(CATALOG), dtype=np.int64))
 def _unpack(codes: Num) -> BoolArray:
     """Bit ``k`` of ``codes`` (an int, or int64 array shape ``(N,)``) as feature ``k``: shape
     ``(39,)`` or ``(N, 39)``."""
-    out: BoolArray = (np.asarray(codes, dtype=np.int64)[..., None] & _BITS) != 0
+    if isinstance(codes, int):
+        bits: BoolArray = (_BITS & codes) != 0
+        return bits
+    out: BoolArray = (np.asarray(codes, dtype=np.int64)[:, None] & _BITS) != 0
     return out
 
 
@@ -905,6 +911,8 @@ class FeatureStream:
         self._program = _program(joint_names, frame_rate)
         self.latency = self._program.lead
         self._keep = self.latency + max((tr.h for tr in self._program.trajectories), default=1) + 1
+        self._first_interior = max((h - 1 for _, h, _, _ in self._program.windows), default=0)
+        self._offsets = [d for big_l, h, _, _ in self._program.windows for d in (big_l - h + 1, 1 - h)]
         self._reset()
 
     def _reset(self) -> None:
@@ -940,11 +948,8 @@ class FeatureStream:
     def _velocities(self, t: int, n: int) -> list[float]:
         """Smoothed velocities at frame ``t`` of ``n`` frames, flat (``3k + c``), as :func:`_smooth`."""
         history, base, windows = self._history, n - len(self._history), self._program.windows
-        if all(h - 1 <= t <= n - big_l + h - 2 for big_l, h, _, _ in windows):  # window sums telescope
-            rows = []
-            for big_l, h, _, _ in windows:
-                rows += [history[t + big_l - h + 1 - base][1], history[t - h + 1 - base][1]]
-            return self._program.interior(rows)
+        if t >= self._first_interior and n - t > self.latency:  # every window sum telescopes
+            return self._program.interior([history[i - base][1] for i in self._interior_rows(t)])
         out: list[float] = []
         fs = self._program.frame_rate
         for big_l, h, first, end in windows:
@@ -961,6 +966,10 @@ class FeatureStream:
                         acc = acc + (history[m + 1 - base][1][i] - history[m - base][1][i])
                     out.append(acc * (fs / big_l))
         return out
+
+    def _interior_rows(self, t: int) -> list[int]:
+        """Frames whose points give the telescoped window sums at ``t``: [top, bottom] per window."""
+        return [t + d for d in self._offsets]
 
     def _emit(self, t: int, n: int) -> BoolArray:
         program = self._program
