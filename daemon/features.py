@@ -1,5 +1,6 @@
-"""The 39 boolean relational features (thesis Table 5.1; MRC05 section 3), as data, and their batch
-evaluation.
+"""The 39 boolean relational features (thesis Table 5.1; MRC05 section 3) as data, compiled once into
+Python that evaluates them on a whole motion (:func:`features`) or one pose at a time
+(:class:`FeatureStream`) with bit-identical results.
 
 Every feature is a *signal* (a real-valued function of the joint positions per frame, built from a
 few geometric primitives) compared with two thresholds: a loose ``T1`` giving the track ``f1`` and a
@@ -622,7 +623,7 @@ class _Program:
         for k, tr in enumerate(self.trajectories):
             by_window.setdefault(tr.big_l, []).append(k)
         self.windows = [
-            (big_l, (big_l + 1) // 2, 3 * ks[0], 3 * ks[-1] + 3) for big_l, ks in by_window.items()
+            (big_l, self.trajectories[ks[0]].h, 3 * ks[0], 3 * ks[-1] + 3) for big_l, ks in by_window.items()
         ]
         # interior(R): all of S for a frame away from the ends, R = [top, bottom] point rows per window.
         rows = ", ".join(f"A{w}, B{w}" for w in range(len(self.windows)))
@@ -657,30 +658,32 @@ class _Program:
         """Emit the code of ``signal``; return its variable and whether the value is a cosine."""
         e, ix = self._out, self.index
         p = _LazyJoints(e, ix)
+
+        def plane_normal(a: str, b: str, c: str) -> tuple[str, str, str]:
+            return e.cross(e.sub(p[a], p[c]), e.sub(p[b], p[c]))
+
+        def along(n: Sequence[str], w: Sequence[str]) -> str:
+            return e.var(("/", signal), f"{e.dot(n, w)} / sqrt({e.dot(n, n)})")
+
+        def cosine(u: Sequence[str], v: Sequence[str]) -> str:
+            return e.var(("cos", signal), f"{e.dot(u, v)} / sqrt({e.dot(u, u)} * {e.dot(v, v)})")
+
         match signal:
             case Plane(a, b, c, q):
-                n = e.cross(e.sub(p[a], p[c]), e.sub(p[b], p[c]))
-                return e.var(("/", signal), f"{e.dot(n, e.sub(p[q], p[c]))} / sqrt({e.dot(n, n)})"), False
+                return along(plane_normal(a, b, c), e.sub(p[q], p[c])), False
             case PlaneVelocity(a, b, c, _):
-                n = e.cross(e.sub(p[a], p[c]), e.sub(p[b], p[c]))
-                s = self._velocity(signal)
-                return e.var(("/", signal), f"{e.dot(n, s)} / sqrt({e.dot(n, n)})"), False
+                return along(plane_normal(a, b, c), self._velocity(signal)), False
             case NormalPlane(a, b, c, q):
-                n = e.sub(p[b], p[a])
-                return e.var(("/", signal), f"{e.dot(n, e.sub(p[q], p[c]))} / sqrt({e.dot(n, n)})"), False
+                return along(e.sub(p[b], p[a]), e.sub(p[q], p[c])), False
             case NormalPlaneVelocity(a, b, _, _):
-                n = e.sub(p[b], p[a])
-                s = self._velocity(signal)
-                return e.var(("/", signal), f"{e.dot(n, s)} / sqrt({e.dot(n, n)})"), False
+                return along(e.sub(p[b], p[a]), self._velocity(signal)), False
             case Speed():
                 s = self._velocity(signal)
                 return e.var(("|", signal), f"sqrt({e.dot(s, s)})"), False
             case JointAngle(a, b, c):
-                u, v = e.sub(p[a], p[b]), e.sub(p[c], p[b])
-                return e.var(("cos", signal), f"{e.dot(u, v)} / sqrt({e.dot(u, u)} * {e.dot(v, v)})"), True
+                return cosine(e.sub(p[a], p[b]), e.sub(p[c], p[b])), True
             case SegmentAngle(p1, p2, p3, p4):
-                u, v = e.sub(p[p1], p[p2]), e.sub(p[p3], p[p4])
-                return e.var(("cos", signal), f"{e.dot(u, v)} / sqrt({e.dot(u, u)} * {e.dot(v, v)})"), True
+                return cosine(e.sub(p[p1], p[p2]), e.sub(p[p3], p[p4])), True
             case AngleToVertical(a, b):
                 u = e.sub(p[b], p[a])
                 return e.var(("cos", signal), f"{u[1]} / sqrt({e.dot(u, u)})"), True
@@ -707,8 +710,8 @@ class _Program:
                     raise _compile_error("a difference of angles")
                 return e.var(("-", f, g), f"{f} - {g}"), False
             case Absolute(inner):
-                f, cosine = self._signal(inner)
-                if cosine:
+                f, is_cosine = self._signal(inner)
+                if is_cosine:
                     raise _compile_error("the absolute value of an angle")
                 return e.var(("abs", f), f"abs({f})"), False
         raise TypeError(f"unknown signal {signal!r}")
