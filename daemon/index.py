@@ -1,0 +1,223 @@
+"""Inverted-list index over F-segments and the queries of MRC05 section 5: exact, fuzzy, adaptive fuzzy
+and m-mismatch, answered by shifted intersections and unions of sorted lists.
+
+One index per feature set (lower, upper, mix; reference facts, section f). Segments of all documents
+are numbered globally, document after document, so that "segment k followed by segment k+1" is an
+integer shift; a hit must not cross a document boundary. The inverted list of a code is the sorted
+array of the global numbers of the segments with that code (a CSR layout: ``offsets`` into one array),
+so the index is linear in the number of segments.
+
+Pure: numpy in, frozen dataclasses out; storing an index is :mod:`daemon.index_store`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+
+from daemon.features import SET_SLICES, BoolArray, FeatureSet
+from daemon.segments import segment_codes, set_codes
+
+IntArray = npt.NDArray[np.int64]
+
+
+@dataclass(frozen=True)
+class SetIndex:
+    """The segments of every document for one feature set, and their inverted lists.
+
+    ``doc``, ``start``, ``length``, ``code``: shape ``(S,)``, segment ``s`` covers index-rate frames
+    ``start[s] .. start[s] + length[s] - 1`` of document ``doc[s]``; ``offsets`` shape ``(2^f + 1,)``:
+    the list of code ``v`` is ``postings[offsets[v]:offsets[v+1]]`` (ascending segment numbers)."""
+
+    feature_set: FeatureSet
+    bits: int
+    doc: IntArray
+    start: IntArray
+    length: IntArray
+    code: IntArray
+    offsets: IntArray
+    postings: IntArray
+
+    @property
+    def n_segments(self) -> int:
+        return int(self.code.shape[0])
+
+    def inverted_list(self, code: int) -> IntArray:
+        """L(v): the segments with code ``v``, ascending."""
+        if not 0 <= code < 1 << self.bits:
+            raise ValueError(f"code {code} is outside the {self.bits}-bit {self.feature_set} set")
+        out: IntArray = self.postings[self.offsets[code] : self.offsets[code + 1]]
+        return out
+
+    def union(self, codes: Sequence[int]) -> IntArray:
+        """L(V): the union of the lists of ``codes``, ascending."""
+        parts = [self.inverted_list(c) for c in sorted(set(codes))]
+        if not parts:
+            return np.zeros(0, dtype=np.int64)
+        out: IntArray = np.sort(np.concatenate(parts))
+        return out
+
+
+def build_set_index(matrices: Sequence[BoolArray], feature_set: FeatureSet) -> SetIndex:
+    """The ``feature_set`` index of documents given as feature matrices, each shape ``(N_d, 39)`` at the
+    index rate."""
+    bits = SET_SLICES[feature_set].stop - SET_SLICES[feature_set].start
+    return index_from_codes([set_codes(m, feature_set) for m in matrices], bits, feature_set)
+
+
+def index_from_codes(documents: Sequence[IntArray], bits: int, feature_set: FeatureSet) -> SetIndex:
+    """The index of documents given as per-frame codes, each shape ``(N_d,)`` with values below
+    ``2^bits``."""
+    segs = [segment_codes(np.asarray(c, dtype=np.int64)) for c in documents]
+    for d, s in enumerate(segs):
+        if len(s) and (s.code.min() < 0 or s.code.max() >= 1 << bits):
+            raise ValueError(f"document {d} has codes outside 0..{(1 << bits) - 1}")
+
+    def cat(parts: list[IntArray]) -> IntArray:
+        return np.concatenate(parts).astype(np.int64) if parts else np.zeros(0, dtype=np.int64)
+
+    doc = cat([np.full(len(s), d, dtype=np.int64) for d, s in enumerate(segs)])
+    code = cat([s.code for s in segs])
+    postings = np.argsort(code, kind="stable").astype(np.int64)
+    offsets = np.zeros((1 << bits) + 1, dtype=np.int64)
+    np.cumsum(np.bincount(code, minlength=1 << bits), out=offsets[1:])
+    start = cat([s.start for s in segs])
+    length = cat([s.end - s.start + 1 for s in segs])
+    return SetIndex(feature_set, bits, doc, start, length, code, offsets, postings)
+
+
+# ------------------------------------------------------------------------------------------ hits
+
+
+@dataclass(frozen=True)
+class Hits:
+    """Query hits: ``doc``, ``first`` and ``last`` segment (global numbers), ``start`` and ``end``
+    (inclusive) index-rate frames within the document, each shape ``(H,)``; ``lengths`` shape
+    ``(H, K)``: the frames of the database stretch matched to each query position (for the temporal
+    ranking of MRC05 section 6.2). Ordered by segment."""
+
+    doc: IntArray
+    first: IntArray
+    last: IntArray
+    start: IntArray
+    end: IntArray
+    lengths: IntArray
+
+    def __len__(self) -> int:
+        return int(self.doc.shape[0])
+
+
+def _hits(index: SetIndex, bounds: IntArray) -> Hits:
+    """Hits from ``bounds`` shape ``(H, K + 1)``: query position i matched segments
+    ``bounds[:, i] .. bounds[:, i + 1] - 1``."""
+    cumulative = np.concatenate([[0], np.cumsum(index.length)]).astype(np.int64)
+    lengths: IntArray = np.diff(cumulative[bounds], axis=1)
+    first = bounds[:, 0]
+    start = index.start[first] if len(first) else np.zeros(0, dtype=np.int64)
+    end = start + lengths.sum(axis=1) - 1
+    return Hits(index.doc[first], first, bounds[:, -1] - 1, start, end, lengths)
+
+
+def _same_document(index: SetIndex, first: IntArray, last: IntArray) -> npt.NDArray[np.bool_]:
+    ok = last < index.n_segments
+    out = np.zeros(first.shape, dtype=bool)
+    out[ok] = index.doc[first[ok]] == index.doc[last[ok]]
+    return out
+
+
+def fuzzy_query(index: SetIndex, query: Sequence[Sequence[int]]) -> Hits:
+    """Fuzzy hits (MRC05 eq. 4 with sets): segments ``k`` with ``code[k + i] in V_i`` for every query
+    position ``i`` (0-based), inside one document. ``query``: the sets ``V_i`` as codes. Time: linear
+    in the lists touched (one sorted intersection per position)."""
+    if not query:
+        raise ValueError("a query needs at least one position")
+    candidates = index.union(query[0])
+    for i, codes in enumerate(query[1:], start=1):
+        candidates = np.intersect1d(candidates, index.union(codes) - i, assume_unique=True)
+    k = len(query)
+    candidates = candidates[_same_document(index, candidates, candidates + k - 1)]
+    bounds = candidates[:, None] + np.arange(k + 1)[None, :]
+    return _hits(index, bounds)
+
+
+def exact_query(index: SetIndex, codes: Sequence[int]) -> Hits:
+    """Exact hits: the query's F-feature sequence ``codes`` occurs at segment ``k`` (MRC05 eq. 4)."""
+    return fuzzy_query(index, [[c] for c in codes])
+
+
+def mismatch_query(index: SetIndex, query: Sequence[Sequence[int]], mismatches: int) -> Hits:
+    """m-mismatch hits (MRC05 section 5.3): segments ``k`` where at most ``mismatches`` query
+    positions ``i`` have ``code[k + i]`` outside ``V_i``, the ``K`` segments inside one document
+    (``mismatches < K``)."""
+    k = len(query)
+    if not 0 <= mismatches < k:
+        raise ValueError(f"mismatches must be in 0..{k - 1} for a {k}-position query, got {mismatches}")
+    shifted = np.concatenate([index.union(codes) - i for i, codes in enumerate(query)])
+    shifted = shifted[shifted >= 0]
+    starts, agree = np.unique(shifted, return_counts=True)
+    candidates = starts[agree >= k - mismatches]
+    candidates = candidates[_same_document(index, candidates, candidates + k - 1)]
+    return _hits(index, candidates[:, None] + np.arange(k + 1)[None, :])
+
+
+def adaptive_fuzzy_query(index: SetIndex, query: Sequence[Sequence[int]]) -> Hits:
+    """Adaptive fuzzy hits (MRC05 section 5.2): the database segmentation coarsened to the query's
+    sets. A hit starts at a segment ``k1`` in ``V_1`` whose predecessor (in the same document) is not
+    in ``V_1``; position ``i`` takes the maximal run of following segments in ``V_i``, the segment
+    after that run must be in ``V_{i+1}``; the last position also takes a maximal run."""
+    if not query:
+        raise ValueError("a query needs at least one position")
+    lists = [index.union(codes) for codes in query]
+    first = lists[0]
+    before = first - 1
+    continues = np.isin(before, first) & (before >= 0)
+    continues[continues] = index.doc[before[continues]] == index.doc[first[continues]]
+    first = first[~continues]
+    alive = np.ones(first.shape, dtype=bool)
+    bounds, current = [first], first
+    for i, members in enumerate(lists):
+        if not len(members):
+            alive[:] = False
+            bounds.append(current)
+            continue
+        pos = np.minimum(np.searchsorted(members, current), len(members) - 1)
+        alive &= members[pos] == current
+        if i:  # position i starts where position i - 1 ended: still in the hit's document?
+            inside = current < index.n_segments
+            inside[inside] = index.doc[current[inside]] == index.doc[first[inside]]
+            alive &= inside
+        current = _run_ends(index, members)[pos] + 1
+        bounds.append(current)
+    b = np.stack(bounds, axis=1)[alive]
+    return _hits(index, b.astype(np.int64))
+
+
+def _run_ends(index: SetIndex, members: IntArray) -> IntArray:
+    """For each element of the sorted ``members``, the last segment of the run of consecutive members
+    (in one document) that contains it."""
+    if not len(members):
+        return members
+    breaks = np.ones(members.shape, dtype=bool)  # breaks[j]: members[j] ends a run
+    breaks[:-1] = (members[1:] != members[:-1] + 1) | (index.doc[members[1:]] != index.doc[members[:-1]])
+    end_pos = np.flatnonzero(breaks)
+    which = np.searchsorted(end_pos, np.arange(len(members)))
+    out: IntArray = members[end_pos[which]]
+    return out
+
+
+def matching_codes(bits: int, code: int, mask: int) -> list[int]:
+    """Every ``bits``-bit code that equals ``code`` on the bits of ``mask`` (feature selection as a
+    fuzzy set)."""
+    free = [b for b in range(bits) if not mask >> b & 1]
+    base = code & mask
+    out = []
+    for n in range(1 << len(free)):
+        v = base
+        for j, b in enumerate(free):
+            if n >> j & 1:
+                v |= 1 << b
+        out.append(v)
+    return out
