@@ -417,6 +417,11 @@ Poses = Sequence[Num]
 frames)."""
 
 
+# (sqrt, minimum of a list, maximum of a list) for the compiled frame function.
+_FLOAT_OPS = (math.sqrt, min, max)
+_ARRAY_OPS = (np.sqrt, np.minimum.reduce, np.maximum.reduce)
+
+
 def _distance(a: Sequence[float], b: Sequence[float]) -> float:
     dx, dy, dz = a[0] - b[0], a[1] - b[1], a[2] - b[2]
     return math.sqrt(dx * dx + dy * dy + dz * dz)
@@ -457,6 +462,12 @@ def _mirror(j: npt.NDArray[np.intp], m: int) -> npt.NDArray[np.intp]:
     return out
 
 
+def _interior(n: int, big_l: int, h: int) -> range:
+    """The frames of an ``n``-frame trajectory whose whole window lies inside it, so that the window
+    sum telescopes to ``x(t+L-h+1) - x(t-h+1)``; the others are edge frames."""
+    return range(h - 1, n - big_l + h - 1)
+
+
 def _edge_indices(t: npt.NDArray[np.intp], n: int, big_l: int, h: int) -> npt.NDArray[np.intp]:
     """For frames ``t`` shape ``(E,)`` of an ``n``-frame trajectory (``n >= 2``), the indices ``m``
     shape ``(E, L)`` of the forward differences ``x(m+1) - x(m)`` in their smoothing windows, mirrored
@@ -480,10 +491,11 @@ def _smooth(x: FloatArray, big_l: int, frame_rate: float) -> FloatArray:
     if n < 2:
         return out
     h = math.ceil(big_l / 2)
-    if n > big_l:
-        out[:, h - 1 : n - big_l + h - 1] = (x[:, big_l:] - x[:, : n - big_l]) * (frame_rate / big_l)
+    inner = _interior(n, big_l, h)
+    if len(inner):
+        out[:, inner.start : inner.stop] = (x[:, big_l:] - x[:, : n - big_l]) * (frame_rate / big_l)
     t = np.arange(n)
-    edge = t[(t < h - 1) | (t > n - big_l + h - 2)]
+    edge = t[(t < inner.start) | (t >= inner.stop)]
     if edge.size:
         m = _edge_indices(edge, n, big_l, h)
         d = x[:, 1:] - x[:, :-1]
@@ -882,9 +894,7 @@ def feature_tracks(
         velocities = np.empty_like(points)
         for big_l, _, first, end in program.windows:
             velocities[first:end] = _smooth(points[first:end], big_l, frame_rate)
-        f1, f2 = program.frame(
-            list(poses), velocities, thresholds, np.sqrt, np.minimum.reduce, np.maximum.reduce
-        )
+        f1, f2 = program.frame(list(poses), velocities, thresholds, *_ARRAY_OPS)
     return _unpack(f1), _unpack(f2)
 
 
@@ -915,6 +925,7 @@ class FeatureStream:
         self.latency = self._program.lead
         self._keep = self.latency + max((tr.h for tr in self._program.trajectories), default=1) + 1
         self._first_interior = max((h - 1 for _, h, _, _ in self._program.windows), default=0)
+        # Per window, the frames (relative to t) whose points give its telescoped sum: top, bottom.
         self._offsets = [d for big_l, h, _, _ in self._program.windows for d in (big_l - h + 1, 1 - h)]
         self._reset()
 
@@ -952,11 +963,11 @@ class FeatureStream:
         """Smoothed velocities at frame ``t`` of ``n`` frames, flat (``3k + c``), as :func:`_smooth`."""
         history, base, windows = self._history, n - len(self._history), self._program.windows
         if t >= self._first_interior and n - t > self.latency:  # every window sum telescopes
-            return self._program.interior([history[i - base][1] for i in self._interior_rows(t)])
+            return self._program.interior([history[t + d - base][1] for d in self._offsets])
         out: list[float] = []
         fs = self._program.frame_rate
         for big_l, h, first, end in windows:
-            if h - 1 <= t <= n - big_l + h - 2:
+            if t in _interior(n, big_l, h):
                 top, bottom = history[t + big_l - h + 1 - base][1], history[t - h + 1 - base][1]
                 out += [(top[i] - bottom[i]) * (fs / big_l) for i in range(first, end)]
             elif n < 2:
@@ -970,22 +981,16 @@ class FeatureStream:
                     out.append(acc * (fs / big_l))
         return out
 
-    def _interior_rows(self, t: int) -> list[int]:
-        """Frames whose points give the telescoped window sums at ``t``: [top, bottom] per window."""
-        return [t + d for d in self._offsets]
-
     def _emit(self, t: int, n: int) -> BoolArray:
         program = self._program
         rows = self._history[t - (n - len(self._history))][0]
         velocities = self._velocities(t, n)
         try:
-            f1, f2 = program.frame(rows, velocities, self._thresholds, math.sqrt, min, max)
+            f1, f2 = program.frame(rows, velocities, self._thresholds, *_FLOAT_OPS)
         except ZeroDivisionError:  # a degenerate pose: evaluate as the batch does, to nan
-            with np.errstate(invalid="ignore", divide="ignore"):
+            with np.errstate(all="ignore"):
                 columns, smoothed = list(np.array(rows)[:, None]), list(np.array(velocities)[:, None])
-                a1, a2 = program.frame(
-                    columns, smoothed, self._thresholds, np.sqrt, np.minimum.reduce, np.maximum.reduce
-                )
+                a1, a2 = program.frame(columns, smoothed, self._thresholds, *_ARRAY_OPS)
             f1, f2 = int(a1[0]), int(a2[0])
         self._previous = f2 | (self._previous & f1)  # the hysteresis, all features at once
         self._emitted = t + 1
