@@ -4,8 +4,11 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
+import numpy.typing as npt
 import pytest
 
+from replay import KinematicModel, read_amc, read_asf
 from replay.catalog import CMU_SUBSTITUTES, find_skeleton, recordings
 
 REPO = Path(__file__).resolve().parents[1]
@@ -27,6 +30,13 @@ def all_pairs() -> list[tuple[Path, Path]]:
 
 
 PAIRS = all_pairs()
+
+
+def joints_cm(asf: Path, amc: Path) -> npt.NDArray[np.float64]:
+    """The 26 standard joint positions of a recording in centimetres, shape ``(N, 26, 3)``."""
+    skeleton = read_asf(asf)
+    model = KinematicModel(skeleton)
+    return model.joints(model.positions(read_amc(amc, skeleton).channels, "cm"))
 
 
 def pair_id(pair: tuple[Path, Path]) -> str:

@@ -12,17 +12,14 @@ from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
 from daemon.features import FEATURE_NAMES, SET_SLICES, features, hysteresis, smoothed_velocity, window_frames
-from replay import JOINT_NAMES, KinematicModel, read_amc, read_asf
-from tests.conftest import DATA, ORACLE
+from replay import JOINT_NAMES
+from tests.conftest import DATA, ORACLE, joints_cm
 from tests.test_oracle import CLIPS
 
 
 def clip_features(clip: str) -> np.ndarray:
     asf, amc = CLIPS[clip]
-    skeleton = read_asf(DATA / asf)
-    model = KinematicModel(skeleton)
-    joints = model.joints(model.positions(read_amc(DATA / amc, skeleton).channels, "cm"))
-    return features(joints, JOINT_NAMES, 120.0)
+    return features(joints_cm(DATA / asf, DATA / amc), JOINT_NAMES, 120.0)
 
 
 @pytest.mark.parametrize("clip", sorted(CLIPS))

@@ -21,8 +21,8 @@ import numpy.typing as npt
 import pytest
 
 from daemon.features import FEATURE_NAMES, SET_SLICES, FeatureSet, features
-from replay import JOINT_NAMES, KinematicModel, read_amc, read_asf
-from tests.conftest import PAIRS, pair_id
+from replay import JOINT_NAMES
+from tests.conftest import PAIRS, joints_cm, pair_id
 
 FloatArray = npt.NDArray[np.float64]
 BoolArray = npt.NDArray[np.bool_]
@@ -72,10 +72,7 @@ class Clip:
 
 @cache
 def clip(asf: Path, amc: Path) -> Clip:
-    skeleton = read_asf(asf)
-    motion = read_amc(amc, skeleton)
-    model = KinematicModel(skeleton)
-    joints = model.joints(model.positions(motion.channels, "cm"))
+    joints = joints_cm(asf, amc)
     return Clip(pair_id((asf, amc)), joints, features(joints, JOINT_NAMES, FPS))
 
 

@@ -44,8 +44,8 @@ from daemon.features import (
     latency_frames,
 )
 from daemon.segments import Segment, Segmenter, segment, segment_codes, set_codes, vector_code
-from replay import JOINT_NAMES, KinematicModel, read_amc, read_asf
-from tests.conftest import PAIRS, pair_id
+from replay import JOINT_NAMES
+from tests.conftest import PAIRS, joints_cm, pair_id
 from tests.test_features import slow_hysteresis, slow_velocity
 
 FloatArray = npt.NDArray[np.float64]
@@ -63,19 +63,12 @@ BASE = settings(deadline=None, suppress_health_check=[HealthCheck.too_slow, Heal
 # ------------------------------------------------------------------------------------ helpers
 
 
-def joints_of(asf: Path, amc: Path) -> FloatArray:
-    """The 26 joint positions (cm) of a recording, shape ``(N, 26, 3)``."""
-    skeleton = read_asf(asf)
-    model = KinematicModel(skeleton)
-    return model.joints(model.positions(read_amc(amc, skeleton).channels, "cm"))
-
-
 @functools.cache
 def clip(name: str) -> FloatArray:
     """Joint positions of the recording ``name`` (its :func:`pair_id`), computed once per run."""
     matches = [pair for pair in PAIRS if pair_id(pair) == name]
     assert len(matches) == 1, f"no single recording named {name}"
-    out = joints_of(*matches[0])
+    out = joints_cm(*matches[0])
     out.setflags(write=False)
     return out
 
@@ -148,7 +141,7 @@ def test_latency() -> None:
 
 @pytest.mark.parametrize("pair", PAIRS, ids=pair_id)
 def test_recording_stream_equals_batch(pair: tuple[Path, Path]) -> None:
-    positions = joints_of(*pair)
+    positions = joints_cm(*pair)
     stream = FeatureStream(JOINT_NAMES, 120.0)
     batch = features(positions, JOINT_NAMES, 120.0)
     streamed, counts, flushed = run_stream(stream, positions)
