@@ -10,46 +10,23 @@ segmentation, and the segments per frame of each feature set at 120 and 30 Hz.
 
 from __future__ import annotations
 
-import argparse
-import os
-from pathlib import Path
-
 import numpy as np
 
-from bench.bench_io import DATA, best_of
+from bench.common import arguments, best_of, load
 from bench.machine import describe
 from daemon.features import SET_SLICES, FeatureStream, decimate, features, latency_frames
 from daemon.segments import Segmenter, segment
-from replay import JOINT_NAMES, KinematicModel, read_amc, read_asf
-from replay.catalog import CMU_SUBSTITUTES, recordings
+from replay import JOINT_NAMES
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
-    parser.add_argument("--repeat", type=int, default=3)
-    parser.add_argument("--data", type=Path, default=DATA)
-    args = parser.parse_args()
-    if hasattr(os, "sched_setaffinity"):
-        os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})
-
-    pairs = recordings(args.data, CMU_SUBSTITUTES)
-    skeletons = {asf: read_asf(asf) for asf in {a for a, _ in pairs}}
-    models = {asf: KinematicModel(s) for asf, s in skeletons.items()}
-    motions = [(models[asf], read_amc(amc, skeletons[asf])) for asf, amc in pairs]
-    clips = [model.joints(model.positions(m.channels, "cm")) for model, m in motions]
-    frames = sum(len(c) for c in clips)
+    args = arguments(__doc__)
+    data = load(args.data)
+    clips = [model.joints(model.positions(m.channels, "cm")) for model, m in data.with_models()]
+    frames = data.frames
     print(describe())
-    print(f"data: {len(pairs)} AMC files, {frames} frames, pinned to one core, best of {args.repeat}")
-
-    sample = [(model, m.channels[::20]) for model, m in motions]
-    sample_frames = sum(len(c) for _, c in sample)
-
-    def fk_frame() -> None:
-        for model, channels in sample:
-            for row in channels:
-                model.positions_frame(row)
+    print(f"data: {len(data.pairs)} AMC files, {frames} frames, pinned to one core, best of {args.repeat}")
+    sample_frames, fk_frame = data.fk_per_frame()
 
     matrices: list[np.ndarray] = []
 

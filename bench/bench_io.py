@@ -9,44 +9,16 @@ reading + batch forward kinematics together. Each figure is the best of ``--repe
 
 from __future__ import annotations
 
-import argparse
-import os
-import time
-from collections.abc import Callable
-from pathlib import Path
-
+from bench.common import arguments, best_of, load
 from bench.machine import describe
-from replay import KinematicModel, iter_amc, read_amc, read_asf
-from replay.catalog import CMU_SUBSTITUTES, recordings
+from replay import iter_amc, read_amc
 from replay.textio import read_bytes
-
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "mocap"
-
-
-def best_of(repeat: int, run: Callable[[], object]) -> float:
-    times = []
-    for _ in range(repeat):
-        start = time.perf_counter()
-        run()
-        times.append(time.perf_counter() - start)
-    return min(times)
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
-    parser.add_argument("--repeat", type=int, default=3)
-    parser.add_argument("--data", type=Path, default=DATA)
-    args = parser.parse_args()
-    if hasattr(os, "sched_setaffinity"):
-        os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})
-
-    pairs = recordings(args.data, CMU_SUBSTITUTES)
-    skeletons = {asf: read_asf(asf) for asf in {a for a, _ in pairs}}
-    models = {asf: KinematicModel(s) for asf, s in skeletons.items()}
-    motions = [read_amc(amc, skeletons[asf]) for asf, amc in pairs]
-    frames = sum(len(m) for m in motions)
+    args = arguments(__doc__)
+    data = load(args.data)
+    pairs, skeletons, models, frames = data.pairs, data.skeletons, data.models, data.frames
     print(describe())
     print(f"data: {len(pairs)} AMC files, {frames} frames, pinned to one core, best of {args.repeat}")
 
@@ -64,16 +36,10 @@ def main() -> None:
             read_amc(amc, skeletons[asf])
 
     def fk() -> None:
-        for (asf, _), m in zip(pairs, motions, strict=True):
-            models[asf].positions(m.channels)
+        for model, m in data.with_models():
+            model.positions(m.channels)
 
-    sample = [(models[asf], m.channels[::20]) for (asf, _), m in zip(pairs, motions, strict=True)]
-    sample_frames = sum(len(c) for _, c in sample)
-
-    def fk_frame() -> None:
-        for model, channels in sample:
-            for row in channels:
-                model.positions_frame(row)
+    sample_frames, fk_frame = data.fk_per_frame()
 
     def whole_and_fk() -> None:
         for asf, amc in pairs:
