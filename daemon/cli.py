@@ -33,6 +33,11 @@ def _positive_float(text: str) -> float:
     return value
 
 
+def _recording_options(command: argparse.ArgumentParser) -> None:
+    command.add_argument("--asf", type=Path, required=True)
+    command.add_argument("--amc", type=Path, required=True, help="AMC file, plain or gzip")
+
+
 def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="mocapd", description="Streaming motion recognition over ASF/AMC motion capture."
@@ -43,8 +48,7 @@ def _parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True)
 
     info = sub.add_parser("info", help="describe a recording: frames, duration, bones, joints")
-    info.add_argument("--asf", type=Path, required=True)
-    info.add_argument("--amc", type=Path, required=True, help="AMC file, plain or gzip")
+    _recording_options(info)
     info.add_argument(
         "--fps",
         type=_positive_float,
@@ -54,14 +58,12 @@ def _parser() -> argparse.ArgumentParser:
     info.add_argument("--json", action="store_true", help="print one JSON object instead of text")
 
     pos = sub.add_parser("positions", help="write joint positions as CSV: frame,joint,x,y,z")
-    pos.add_argument("--asf", type=Path, required=True)
-    pos.add_argument("--amc", type=Path, required=True, help="AMC file, plain or gzip")
+    _recording_options(pos)
     pos.add_argument("--csv", type=Path, required=True, help="output CSV ('-' for stdout)")
     pos.add_argument("--cm", action="store_true", help="centimetres (ASF length / :units length x 2.54)")
 
     feat = sub.add_parser("features", help="write the 39 relational features as CSV: frame,<names>")
-    feat.add_argument("--asf", type=Path, required=True)
-    feat.add_argument("--amc", type=Path, required=True, help="AMC file, plain or gzip")
+    _recording_options(feat)
     feat.add_argument("--csv", type=Path, required=True, help="output CSV ('-' for stdout)")
     feat.add_argument(
         "--fps",
