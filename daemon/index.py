@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from daemon.features import SET_SLICES, BoolArray, FeatureSet
+from daemon.features import FEATURE_NAMES, SET_SLICES, BoolArray, FeatureSet
 from daemon.segments import segment_codes, set_codes
 
 IntArray = npt.NDArray[np.int64]
@@ -222,3 +222,70 @@ def matching_codes(bits: int, code: int, mask: int) -> IntArray:
     codes = np.arange(1 << bits, dtype=np.int64)
     out: IntArray = codes[(codes & mask) == (code & mask)]
     return out
+
+
+# ------------------------------------------------------------------------------ queries by example
+
+
+def feature_selection(names: Sequence[str]) -> tuple[FeatureSet, int]:
+    """The feature set and bit mask of the features ``names`` (all from one set: each set has its own
+    index)."""
+    if not names:
+        raise ValueError("select at least one feature")
+    chosen: dict[FeatureSet, int] = {}
+    for name in names:
+        if name not in FEATURE_NAMES:
+            raise ValueError(f"unknown feature '{name}' (known: {', '.join(FEATURE_NAMES)})")
+        i = FEATURE_NAMES.index(name)
+        fs = next(s for s, sl in SET_SLICES.items() if sl.start <= i < sl.stop)
+        chosen[fs] = chosen.get(fs, 0) | 1 << (i - SET_SLICES[fs].start)
+    if len(chosen) > 1:
+        sets = ", ".join(f"{m.bit_count()} from {fs}" for fs, m in chosen.items())
+        raise ValueError(f"the features come from several sets ({sets}); a query uses one set's index")
+    ((fs, mask),) = chosen.items()
+    return fs, mask
+
+
+@dataclass(frozen=True)
+class ExampleQuery:
+    """A query induced by an example: the example's frames segmented by the selected features only
+    (bits ``mask`` of ``feature_set``): ``codes`` shape ``(K,)`` (unselected bits 0) and ``lengths``
+    shape ``(K,)`` in frames."""
+
+    feature_set: FeatureSet
+    mask: int
+    codes: IntArray
+    lengths: IntArray
+
+    def fuzzy_sets(self, radius: int = 0) -> list[IntArray]:
+        """V_i: every code that differs from position i's in at most ``radius`` selected features
+        (unselected features free)."""
+        bits = SET_SLICES[self.feature_set].stop - SET_SLICES[self.feature_set].start
+        every = np.arange(1 << bits, dtype=np.int64)
+        masked = every & self.mask
+        distance = np.zeros((len(self.codes), len(every)), dtype=np.int64)
+        for b in range(bits):
+            if self.mask >> b & 1:
+                distance += ((masked[None, :] ^ self.codes[:, None]) >> b) & 1
+        return [every[row <= radius] for row in distance]
+
+
+def example_query(matrix: BoolArray, feature_set: FeatureSet, mask: int) -> ExampleQuery:
+    """The query of an example ``matrix`` shape ``(N, 39)`` at the index rate (MRC05 section 6.2:
+    the selected features induce the example's segmentation)."""
+    segs = segment_codes(set_codes(matrix, feature_set) & mask)
+    return ExampleQuery(feature_set, mask, segs.code, segs.end - segs.start + 1)
+
+
+def temporal_cost(hits: Hits, query_lengths: IntArray) -> IntArray:
+    """MRC05 section 6.2's ranking heuristic: the sum over query positions of the difference between
+    the frames of the query segment and of the database stretch matched to it, shape ``(H,)``."""
+    out: IntArray = np.abs(hits.lengths - np.asarray(query_lengths)[None, :]).sum(axis=1)
+    return out
+
+
+def ranked(hits: Hits, query_lengths: IntArray) -> tuple[IntArray, IntArray]:
+    """The hits' order by :func:`temporal_cost` (ties: database order) and the costs in that order."""
+    cost = temporal_cost(hits, query_lengths)
+    order: IntArray = np.argsort(cost, kind="stable")
+    return order, cost[order]

@@ -7,16 +7,22 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from daemon.features import FEATURE_NAMES
 from daemon.index import (
+    ExampleQuery,
     Hits,
     SetIndex,
     adaptive_fuzzy_query,
     build_set_index,
     exact_query,
+    example_query,
+    feature_selection,
     fuzzy_query,
     index_from_codes,
     matching_codes,
     mismatch_query,
+    ranked,
+    temporal_cost,
 )
 from daemon.segments import segment_codes, set_codes
 
@@ -186,3 +192,69 @@ def test_bad_queries() -> None:
         mismatch_query(index, [[1], [2]], 2)
     with pytest.raises(ValueError, match="outside"):
         index.inverted_list(4)
+
+
+@settings(max_examples=200, deadline=None)
+@given(documents, st.data())
+def test_union_equals_concatenated_lists(docs: list[np.ndarray], data: st.DataObject) -> None:
+    index = index_from_codes(docs, BITS, "lower")
+    codes = data.draw(st.lists(st.integers(0, (1 << BITS) - 1), max_size=6))
+    expected = sorted(s for c in set(codes) for s in index.inverted_list(c).tolist())
+    assert index.union(codes).tolist() == expected
+    mask, value = data.draw(st.integers(0, (1 << BITS) - 1)), data.draw(st.integers(0, (1 << BITS) - 1))
+    fixed = [s for s, c in enumerate(index.code.tolist()) if c & mask == value & mask]
+    assert index.union_fixed(mask, value).tolist() == fixed
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    st.lists(st.integers(0, (1 << 5) - 1), min_size=1, max_size=4),
+    st.integers(1, (1 << 5) - 1),
+    st.integers(0, 5),
+)
+def test_fuzzy_sets_are_hamming_balls_on_the_selected_features(
+    codes: list[int], mask: int, radius: int
+) -> None:
+    query = ExampleQuery(
+        "lower", mask, np.array([c & mask for c in codes]), np.ones(len(codes), dtype=np.int64)
+    )
+    for c, members in zip(codes, query.fuzzy_sets(radius), strict=True):
+        expected = [v for v in range(1 << 12) if ((v ^ c) & mask).bit_count() <= radius]
+        assert members.tolist() == expected
+
+
+def test_feature_selection_names_one_set() -> None:
+    assert feature_selection(["kneeRightBent", "kneeLeftBent"]) == ("lower", 0b1100000)
+    assert feature_selection(["rootHighVel"]) == ("mix", 1 << 12)
+    assert feature_selection(["handRightToFrontRelTorso"]) == ("upper", 1)
+    with pytest.raises(ValueError, match="several sets"):
+        feature_selection(["kneeRightBent", "elbowRightBent"])
+    with pytest.raises(ValueError, match="unknown feature 'kneeBent'"):
+        feature_selection(["kneeBent"])
+    with pytest.raises(ValueError, match="at least one"):
+        feature_selection([])
+    assert len(FEATURE_NAMES) == 39
+
+
+def test_example_query_segments_by_the_selected_features() -> None:
+    matrix = np.zeros((9, 39), dtype=bool)
+    matrix[2:6, 5] = True  # kneeRightBent: selected
+    matrix[4:9, 0] = True  # footRightBackRelLegLeft: not selected, so no new segment
+    query = example_query(matrix, "lower", 1 << 5)
+    assert query.codes.tolist() == [0, 1 << 5, 0]
+    assert query.lengths.tolist() == [2, 4, 3]
+
+
+def test_temporal_ranking_orders_by_length_differences() -> None:
+    hits = Hits(
+        doc=np.array([0, 0, 1]),
+        first=np.array([0, 5, 9]),
+        last=np.array([2, 7, 11]),
+        start=np.array([0, 30, 2]),
+        end=np.array([9, 40, 20]),
+        lengths=np.array([[3, 4, 3], [2, 6, 3], [3, 5, 3]]),
+    )
+    query_lengths = np.array([3, 5, 3])
+    assert temporal_cost(hits, query_lengths).tolist() == [1, 2, 0]
+    order, cost = ranked(hits, query_lengths)
+    assert order.tolist() == [2, 0, 1] and cost.tolist() == [0, 1, 2]
