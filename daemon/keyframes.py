@@ -397,19 +397,24 @@ def keyframe_search(
     query: KeyframeQuery,
     rate: float,
     extend: tuple[int, int] = (0, 0),
+    prune: bool = True,
 ) -> KeyframeHits:
     """Run ``query`` on a database indexed at ``rate`` Hz whose document d has ``doc_frames[d]``
     frames: the Ω^Z components in every document, each optionally extended by ``extend`` = (left,
     right) frames and merged again where the extensions overlap.
 
     The documents are laid out one after another with a one-frame gap, so that Alg. 4.1 runs once
-    over all of them; its lists are first pruned to the entries that take part in some hit."""
+    over all of them; its lists are first pruned to the entries that take part in some hit (``prune``;
+    off, the algorithm runs on the whole lists as published: same result, slower)."""
     bounds = [gap_bounds(d, s) for d, s in query.gaps(rate)]
     lists = keyframe_lists(sets, query)
     frames = np.asarray(doc_frames, dtype=np.int64)
     base = _cumulative_before(frames + 1)
     global_lists = [(base[d] + s, base[d] + e, base[d], base[d] + frames[d] - 1) for s, e, d in lists]
-    keep = _prune(global_lists, bounds) if len(lists) > 1 else [np.arange(len(lists[0][0]))]
+    if prune and len(lists) > 1:
+        keep = _prune(global_lists, bounds)
+    else:
+        keep = [np.arange(len(s)) for s, _, _ in lists]
     pruned = [tuple(a[k] for a in g) for g, k in zip(global_lists, keep, strict=True)]
     found = search(
         [(s.tolist(), e.tolist()) for s, e, _, _ in pruned], bounds, [t.tolist() for *_, t in pruned]

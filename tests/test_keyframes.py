@@ -260,9 +260,13 @@ def set_indexes(docs: dict[FeatureSet, list[list[int]]]) -> dict[FeatureSet, Set
 def test_keyframe_search_equals_brute_force(
     docs: dict[FeatureSet, list[list[int]]], query: KeyframeQuery, extend: tuple[int, int]
 ) -> None:
-    found = keyframe_search(set_indexes(docs), [len(c) for c in docs["lower"]], query, 30.0, extend)
-    got = list(zip(found.doc.tolist(), found.start.tolist(), found.end.tolist(), strict=True))
-    assert got == brute_force(docs, query, extend)
+    expected = brute_force(docs, query, extend)
+    for prune in (True, False):
+        found = keyframe_search(
+            set_indexes(docs), [len(c) for c in docs["lower"]], query, 30.0, extend, prune
+        )
+        got = list(zip(found.doc.tolist(), found.start.tolist(), found.end.tolist(), strict=True))
+        assert got == expected
 
 
 @settings(max_examples=200, deadline=None)
