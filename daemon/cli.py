@@ -11,6 +11,7 @@ import json
 import math
 import os
 import sys
+import time
 from collections.abc import Sequence
 from pathlib import Path
 from typing import TextIO
@@ -18,7 +19,23 @@ from typing import TextIO
 import numpy as np
 
 from daemon.config import Config, ConfigError, Units, load_config
-from daemon.features import FEATURE_NAMES, decimate, decimation_factor, features
+from daemon.features import FEATURE_NAMES, BoolArray, decimate, decimation_factor, features
+from daemon.index_store import (
+    ARRAYS,
+    FEATURE_SETS,
+    Document,
+    IndexBuildError,
+    IndexFormatError,
+    ManifestError,
+    array_file,
+    check_index_target,
+    index_files,
+    index_from_matrices,
+    load_index,
+    read_document,
+    read_manifest,
+    save_index,
+)
 from daemon.plots import PlotUnavailable, feature_matrix_png
 from replay import JOINT_NAMES, KinematicModel, MocapFormatError, Motion, read_amc, read_asf
 
@@ -72,6 +89,21 @@ def _parser() -> argparse.ArgumentParser:
         help="output rate: every k-th frame of the native rate, which it must divide (e.g. 30)",
     )
     feat.add_argument("--png", type=Path, default=None, help="also draw the feature matrix as a PNG")
+
+    index = sub.add_parser("index", help="build or describe a motion index (inverted lists of F-segments)")
+    index_sub = index.add_subparsers(dest="index_command", required=True)
+    build = index_sub.add_parser("build", help="index the recordings of a manifest CSV (columns asf, amc)")
+    build.add_argument("--manifest", type=Path, required=True, help="CSV with columns asf and amc")
+    build.add_argument("--out", type=Path, required=True, help="index directory to write (replaced)")
+    build.add_argument(
+        "--fps",
+        type=_positive_float,
+        default=30.0,
+        help="index rate: every k-th frame of the native rate, which it must divide (default 30)",
+    )
+    index_info = index_sub.add_parser("info", help="describe an index: documents, frames, segments, size")
+    index_info.add_argument("index", type=Path, help="index directory")
+    index_info.add_argument("--json", action="store_true", help="print one JSON object instead of text")
     return parser
 
 
@@ -85,7 +117,19 @@ def main(argv: Sequence[str] | None = None) -> int:
             return _positions(args, config)
         if args.command == "features":
             return _features(args, config)
-    except (MocapFormatError, ConfigError, UsageError, PlotUnavailable) as exc:
+        if args.command == "index" and args.index_command == "build":
+            return _index_build(args, config)
+        if args.command == "index" and args.index_command == "info":
+            return _index_info(args)
+    except (
+        MocapFormatError,
+        ConfigError,
+        UsageError,
+        PlotUnavailable,
+        ManifestError,
+        IndexFormatError,
+        IndexBuildError,
+    ) as exc:
         print(f"mocapd: {exc}", file=sys.stderr)
         return 2
     except BrokenPipeError:
@@ -205,3 +249,72 @@ def _write_features(out: TextIO, frames: np.ndarray, matrix: np.ndarray) -> None
     out.write(",".join(("frame", *FEATURE_NAMES)) + "\n")
     digits = np.where(matrix, "1", "0")
     out.writelines(f"{f},{','.join(row)}\n" for f, row in zip(frames.tolist(), digits.tolist(), strict=True))
+
+
+def _index_build(args: argparse.Namespace, config: Config) -> int:
+    began = time.perf_counter()
+    rows = read_manifest(args.manifest)
+    check_index_target(args.out)  # before the long part
+    documents: list[Document] = []
+    matrices: list[BoolArray] = []
+    # build_index's loop, written out so that each progress line can give the document's frames
+    for i, row in enumerate(rows, start=1):
+        document, matrix = read_document(row, args.fps, config.replay.frame_rate_hz)
+        documents.append(document)
+        matrices.append(matrix)
+        print(f"[{i}/{len(rows)}] {row.amc_text} ({document.frames} frames)", file=sys.stderr, flush=True)
+    index = index_from_matrices(matrices, documents, args.fps)
+    save_index(index, args.out)
+    seconds = time.perf_counter() - began
+    size = sum((args.out / name).stat().st_size for name in index_files())
+    print(f"index:      {args.out}")
+    print(f"documents:  {len(index.documents)}")
+    print(f"frames:     {index.n_frames} at {index.rate:g} Hz")
+    for s in FEATURE_SETS:
+        print(f"{s + ':':<11} {index.sets[s].n_segments} segments")
+    print(f"build time: {seconds:.2f} s")
+    print(f"size:       {size} bytes")
+    return 0
+
+
+def _index_info(args: argparse.Namespace) -> int:
+    index = load_index(args.index)
+    sets = {}
+    for s in FEATURE_SETS:
+        entry = index.sets[s]
+        size = sum((args.index / array_file(s, a)).stat().st_size for a in ARRAYS)
+        segments = entry.n_segments
+        sets[s] = {
+            "bits": entry.bits,
+            "segments": segments,
+            "nonempty_lists": int(np.count_nonzero(np.diff(entry.offsets))),
+            "bytes": size,
+            "bytes_per_segment": size / segments if segments else None,
+        }
+    summary = {
+        "index": str(args.index),
+        "rate_hz": index.rate,
+        "documents": len(index.documents),
+        "frames": index.n_frames,
+        "duration_s": sum(
+            (d.last_amc_frame - d.first_amc_frame + 1) / d.native_rate for d in index.documents
+        ),
+        "bytes": sum((args.index / name).stat().st_size for name in index_files()),
+        "sets": sets,
+    }
+    if args.json:
+        print(json.dumps(summary))
+        return 0
+    print(f"index:      {args.index}")
+    print(f"rate:       {index.rate:g} Hz")
+    print(f"documents:  {len(index.documents)}")
+    print(f"frames:     {index.n_frames}")
+    print(f"duration:   {summary['duration_s']:.3f} s")
+    print(f"size:       {summary['bytes']} bytes")
+    for s, e in sets.items():
+        per = "-" if e["bytes_per_segment"] is None else f"{e['bytes_per_segment']:.1f}"
+        print(
+            f"{s + ':':<11} {e['bits']} bits, {e['segments']} segments, "
+            f"{e['nonempty_lists']} non-empty lists, {e['bytes']} bytes ({per} bytes/segment)"
+        )
+    return 0
