@@ -25,11 +25,14 @@ def best_of(repeat: int, run: Callable[[], object]) -> float:
     return min(times)
 
 
-def arguments(doc: str | None) -> argparse.Namespace:
-    """``--repeat`` and ``--data``; pins the process to one core."""
+def arguments(doc: str | None, **counts: int) -> argparse.Namespace:
+    """``--repeat``, ``--data`` and an integer option per keyword (its default); pins the process to
+    one core."""
     parser = argparse.ArgumentParser(description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--repeat", type=int, default=3)
     parser.add_argument("--data", type=Path, default=DATA)
+    for name, default in counts.items():
+        parser.add_argument(f"--{name}", type=int, default=default)
     args = parser.parse_args()
     if hasattr(os, "sched_setaffinity"):
         os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})
