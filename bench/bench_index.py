@@ -19,6 +19,7 @@ import math
 import tempfile
 import time
 from collections.abc import Callable
+from functools import partial
 from pathlib import Path
 from typing import TypeVar
 
@@ -128,21 +129,21 @@ def main() -> None:
         adaptive_h: list[int] = []
         for s in starts:
             codes = upper.code[s : s + k]
-            t, hits = timed(lambda codes=codes: exact_query(upper, codes.tolist()), args.repeat)
+            t, hits = timed(partial(exact_query, upper, codes.tolist()), args.repeat)
             assert s in hits.first.tolist()
             exact_t.append(t)
             exact_h.append(len(hits))
-            t, found = timed(lambda codes=codes: scan_exact(upper, codes), args.repeat)
+            t, found = timed(partial(scan_exact, upper, codes), args.repeat)
             assert np.array_equal(found, hits.first)
             scan_t.append(t)
             masks = [sum(1 << int(b) for b in rng.choice(upper.bits, 8, replace=False)) for _ in range(k)]
             sets = [matching_codes(upper.bits, int(c), m) for c, m in zip(codes.tolist(), masks, strict=True)]
-            t, hits = timed(lambda sets=sets: fuzzy_query(upper, sets), args.repeat)
+            t, hits = timed(partial(fuzzy_query, upper, sets), args.repeat)
             assert s in hits.first.tolist()
             fuzzy_t.append(t)
             fuzzy_h.append(len(hits))
             for _ in range(50):  # a fuzzy query built from a stretch need not be an adaptive hit there
-                t, hits = timed(lambda sets=sets: adaptive_fuzzy_query(upper, sets), args.repeat)
+                t, hits = timed(partial(adaptive_fuzzy_query, upper, sets), args.repeat)
                 if len(hits):
                     adaptive_t.append(t)
                     adaptive_h.append(len(hits))
@@ -167,10 +168,12 @@ def main() -> None:
     frames30 = [d.frames for d in documents]
     rows = []
     for name, q in queries.items():
-        t, hits = timed(lambda q=q: keyframe_search(index.sets, frames30, q, 30.0), args.repeat)
-        t_plain, plain = timed(lambda q=q: keyframe_search(index.sets, frames30, q, 30.0, prune=False), 1)
-        assert np.array_equal(plain.start, hits.start) and np.array_equal(plain.end, hits.end)
-        rows.append((name, len(q.keyframes), sum(hits.list_lengths), t, t_plain, hits.frames, len(hits)))
+        t, found_k = timed(partial(keyframe_search, index.sets, frames30, q, 30.0), args.repeat)
+        t_plain, plain = timed(partial(keyframe_search, index.sets, frames30, q, 30.0, prune=False), 1)
+        assert np.array_equal(plain.start, found_k.start) and np.array_equal(plain.end, found_k.end)
+        rows.append(
+            (name, len(q.keyframes), sum(found_k.list_lengths), t, t_plain, found_k.frames, len(found_k))
+        )
     ts = [r[3] for r in rows]
     med, p95 = percentiles(ts)
     plain_med = percentiles([r[4] for r in rows])[0]
