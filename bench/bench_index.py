@@ -51,6 +51,9 @@ def scan_exact(index: SetIndex, codes: np.ndarray) -> np.ndarray:
 
 
 def percentiles(times: list[float]) -> tuple[float, float]:
+    """Median and 95th percentile in ms (nan if nothing was timed)."""
+    if not times:
+        return math.nan, math.nan
     a = 1e3 * np.asarray(times)
     return float(np.median(a)), float(np.percentile(a, 95))
 

@@ -23,6 +23,7 @@ from daemon.features import FEATURE_NAMES, SET_SLICES, BoolArray, FeatureSet
 from daemon.segments import segment_codes, set_codes
 
 IntArray = npt.NDArray[np.int64]
+CodeSet = Sequence[int] | IntArray  # the codes of a fuzzy set V
 
 
 @dataclass(frozen=True)
@@ -60,7 +61,7 @@ class SetIndex:
         out: IntArray = self.postings[self.offsets[code] : self.offsets[code + 1]]
         return out
 
-    def codes(self, codes: Sequence[int] | IntArray) -> IntArray:
+    def codes(self, codes: CodeSet) -> IntArray:
         """``codes`` as a sorted array without repeats, checked to be codes of this set."""
         c = np.unique(np.asarray(codes, dtype=np.int64))
         if len(c) and (c[0] < 0 or c[-1] >= 1 << self.bits):
@@ -68,7 +69,7 @@ class SetIndex:
         out: IntArray = c
         return out
 
-    def union(self, codes: Sequence[int] | IntArray) -> IntArray:
+    def union(self, codes: CodeSet) -> IntArray:
         """L(V): the union of the lists of ``codes``, ascending (one gather and one sort, no loop over
         the codes)."""
         c = self.codes(codes)
@@ -149,7 +150,7 @@ def _same_document(index: SetIndex, first: IntArray, last: IntArray) -> npt.NDAr
     return out
 
 
-def fuzzy_query(index: SetIndex, query: Sequence[Sequence[int]]) -> Hits:
+def fuzzy_query(index: SetIndex, query: Sequence[CodeSet]) -> Hits:
     """Fuzzy hits (MRC05 eq. 4 with sets): segments ``k`` with ``code[k + i] in V_i`` for every query
     position ``i`` (0-based), inside one document. ``query``: the sets ``V_i`` as codes.
 
@@ -180,7 +181,7 @@ def exact_query(index: SetIndex, codes: Sequence[int]) -> Hits:
     return fuzzy_query(index, [[c] for c in codes])
 
 
-def mismatch_query(index: SetIndex, query: Sequence[Sequence[int]], mismatches: int) -> Hits:
+def mismatch_query(index: SetIndex, query: Sequence[CodeSet], mismatches: int) -> Hits:
     """m-mismatch hits (MRC05 section 5.3): segments ``k`` where at most ``mismatches`` query
     positions ``i`` have ``code[k + i]`` outside ``V_i``, the ``K`` segments inside one document
     (``mismatches < K``)."""
@@ -195,7 +196,7 @@ def mismatch_query(index: SetIndex, query: Sequence[Sequence[int]], mismatches: 
     return _hits(index, candidates[:, None] + np.arange(k + 1)[None, :])
 
 
-def adaptive_fuzzy_query(index: SetIndex, query: Sequence[Sequence[int]]) -> Hits:
+def adaptive_fuzzy_query(index: SetIndex, query: Sequence[CodeSet]) -> Hits:
     """Adaptive fuzzy hits (MRC05 section 5.2): the database segmentation coarsened to the query's
     sets. A hit starts at a segment ``k1`` in ``V_1`` whose predecessor (in the same document) is not
     in ``V_1``; position ``i`` takes the maximal run of following segments in ``V_i``, the segment
