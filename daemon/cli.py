@@ -19,7 +19,8 @@ from typing import TextIO
 import numpy as np
 
 from daemon.config import Config, ConfigError, Units, load_config
-from daemon.features import FEATURE_NAMES, BoolArray, decimate, decimation_factor, features
+from daemon.features import FEATURE_NAMES, decimate, decimation_factor, features
+from daemon.index import Hits, adaptive_fuzzy_query, example_query, feature_selection, mismatch_query, ranked
 from daemon.index_store import (
     ARRAYS,
     FEATURE_SETS,
@@ -27,15 +28,16 @@ from daemon.index_store import (
     IndexBuildError,
     IndexFormatError,
     ManifestError,
+    MotionIndex,
     array_file,
+    build_index,
     check_index_target,
     index_files,
-    index_from_matrices,
     load_index,
-    read_document,
     read_manifest,
     save_index,
 )
+from daemon.keyframes import KeyframeError, keyframe_search, parse_keyframe_queries
 from daemon.plots import PlotUnavailable, feature_matrix_png
 from replay import JOINT_NAMES, KinematicModel, MocapFormatError, Motion, read_amc, read_asf
 
@@ -104,6 +106,36 @@ def _parser() -> argparse.ArgumentParser:
     index_info = index_sub.add_parser("info", help="describe an index: documents, frames, segments, size")
     index_info.add_argument("index", type=Path, help="index directory")
     index_info.add_argument("--json", action="store_true", help="print one JSON object instead of text")
+
+    search = sub.add_parser(
+        "search", help="find motions in an index: by keyframes (thesis ch. 4) or by example (MRC05)"
+    )
+    search.add_argument("--index", type=Path, required=True, help="index directory (mocapd index build)")
+    mode = search.add_mutually_exclusive_group(required=True)
+    mode.add_argument("--keyframes", type=Path, help="keyframe queries, JSON as manual-keyframes.json")
+    mode.add_argument(
+        "--example",
+        nargs=4,
+        metavar=("ASF", "AMC", "START", "END"),
+        help="query by example: a recording and its AMC frames START..END",
+    )
+    search.add_argument("--class", dest="class_name", help="with --keyframes: the class to search")
+    search.add_argument(
+        "--extend", default="0,0", metavar="LEFT,RIGHT", help="with --keyframes: widen hits by index frames"
+    )
+    search.add_argument("--features", help="with --example: comma-separated feature names, all from one set")
+    search.add_argument(
+        "--fuzzy",
+        type=int,
+        default=0,
+        metavar="N",
+        help="with --example: also accept vectors differing in up to N selected features (default 0)",
+    )
+    search.add_argument(
+        "--mismatch", type=int, default=None, metavar="M", help="with --example: m-mismatch search"
+    )
+    search.add_argument("--limit", type=int, default=None, help="print at most this many hits")
+    search.add_argument("--json", action="store_true", help="one JSON object per hit and line")
     return parser
 
 
@@ -121,6 +153,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             return _index_build(args, config)
         if args.command == "index" and args.index_command == "info":
             return _index_info(args)
+        if args.command == "search":
+            return _search(args, config)
     except (
         MocapFormatError,
         ConfigError,
@@ -129,6 +163,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         ManifestError,
         IndexFormatError,
         IndexBuildError,
+        KeyframeError,
     ) as exc:
         print(f"mocapd: {exc}", file=sys.stderr)
         return 2
@@ -255,15 +290,11 @@ def _index_build(args: argparse.Namespace, config: Config) -> int:
     began = time.perf_counter()
     rows = read_manifest(args.manifest)
     check_index_target(args.out)  # before the long part
-    documents: list[Document] = []
-    matrices: list[BoolArray] = []
-    # build_index's loop, written out so that each progress line can give the document's frames
-    for i, row in enumerate(rows, start=1):
-        document, matrix = read_document(row, args.fps, config.replay.frame_rate_hz)
-        documents.append(document)
-        matrices.append(matrix)
-        print(f"[{i}/{len(rows)}] {row.amc_text} ({document.frames} frames)", file=sys.stderr, flush=True)
-    index = index_from_matrices(matrices, documents, args.fps)
+
+    def progress(done: int, total: int, document: Document) -> None:
+        print(f"[{done}/{total}] {document.amc} ({document.frames} frames)", file=sys.stderr, flush=True)
+
+    index = build_index(rows, args.fps, progress, config.replay.frame_rate_hz)
     save_index(index, args.out)
     seconds = time.perf_counter() - began
     size = sum((args.out / name).stat().st_size for name in index_files())
@@ -318,3 +349,134 @@ def _index_info(args: argparse.Namespace) -> int:
             f"{e['nonempty_lists']} non-empty lists, {e['bytes']} bytes ({per} bytes/segment)"
         )
     return 0
+
+
+def _search(args: argparse.Namespace, config: Config) -> int:
+    keyframe_only = {"--class": args.class_name is not None, "--extend": args.extend != "0,0"}
+    example_only = {
+        "--features": args.features is not None,
+        "--fuzzy": args.fuzzy != 0,
+        "--mismatch": args.mismatch is not None,
+    }
+    wrong = [k for k, v in (example_only if args.keyframes else keyframe_only).items() if v]
+    if wrong:
+        mode = "--keyframes" if args.keyframes else "--example"
+        raise UsageError(f"{', '.join(wrong)} cannot be used with {mode}")
+    if args.limit is not None and args.limit < 0:
+        raise UsageError(f"--limit must not be negative, got {args.limit}")
+    index = load_index(args.index)
+    began = time.perf_counter()
+    if args.keyframes is not None:
+        rows, summary = _search_keyframes(args, index)
+    else:
+        rows, summary = _search_example(args, config, index)
+    elapsed = 1e3 * (time.perf_counter() - began)
+    shown = rows if args.limit is None else rows[: args.limit]
+    if args.json:
+        for row in shown:
+            print(json.dumps(row))
+        return 0
+    print(f"{summary}: {len(rows)} hits in {elapsed:.1f} ms")
+    for rank, row in enumerate(shown, start=1):
+        cost = f" cost {row['cost']}" if "cost" in row else ""
+        print(f"{rank:5d}. {row['document']} frames {row['start_frame']}-{row['end_frame']}{cost}")
+    return 0
+
+
+def _search_keyframes(args: argparse.Namespace, index: MotionIndex) -> tuple[list[dict[str, object]], str]:
+    if args.class_name is None:
+        raise UsageError("--keyframes needs --class NAME")
+    try:
+        extend = tuple(int(x) for x in args.extend.split(","))
+    except ValueError:
+        extend = ()
+    if len(extend) != 2 or min(extend) < 0:
+        raise UsageError(f"--extend must be LEFT,RIGHT (two whole numbers >= 0), got '{args.extend}'")
+    try:
+        obj = json.loads(args.keyframes.read_text(encoding="utf-8"))
+    except json.JSONDecodeError as exc:
+        raise UsageError(f"{args.keyframes}:{exc.lineno}: not JSON: {exc.msg}") from None
+    queries = parse_keyframe_queries(obj, str(args.keyframes))
+    if args.class_name not in queries:
+        raise UsageError(
+            f"{args.keyframes}: no class '{args.class_name}' (has: {', '.join(sorted(queries))})"
+        )
+    query = queries[args.class_name]
+    frames = [d.frames for d in index.documents]
+    try:
+        hits = keyframe_search(index.sets, frames, query, index.rate, (extend[0], extend[1]))
+    except ValueError as exc:
+        raise UsageError(f"{args.keyframes}: class {args.class_name}: {exc}") from None
+    rows = [
+        _hit_row(index, d, s, e)
+        for d, s, e in zip(hits.doc.tolist(), hits.start.tolist(), hits.end.tolist(), strict=True)
+    ]
+    share = 100 * hits.frames / max(index.n_frames, 1)
+    summary = (
+        f"keyframes of {args.class_name} ({len(query.keyframes)} keyframes, lists of "
+        f"{sum(hits.list_lengths)} segments), {share:.2f} % of the database kept"
+    )
+    return rows, summary
+
+
+def _search_example(
+    args: argparse.Namespace, config: Config, index: MotionIndex
+) -> tuple[list[dict[str, object]], str]:
+    asf, amc, start_text, end_text = args.example
+    if args.features is None:
+        raise UsageError("--example needs --features NAME,NAME,...")
+    try:
+        feature_set, mask = feature_selection([n.strip() for n in args.features.split(",") if n.strip()])
+    except ValueError as exc:
+        raise UsageError(f"--features: {exc}") from None
+    try:
+        first, last = int(start_text), int(end_text)
+    except ValueError:
+        raise UsageError(
+            f"--example START END must be AMC frame numbers, got '{start_text} {end_text}'"
+        ) from None
+    motion = _load(Path(asf), Path(amc))
+    native = motion.header.frame_rate or config.replay.frame_rate_hz
+    try:
+        step = decimation_factor(native, index.rate)
+    except ValueError as exc:
+        raise UsageError(f"{amc}: the index rate {exc}") from None
+    sampled = motion.frames[::step]
+    inside = (sampled >= first) & (sampled <= last)
+    if first > last or not inside.any():
+        raise UsageError(
+            f"{amc}: frames {first}..{last} hold no frame at {index.rate:g} Hz "
+            f"(the recording has AMC frames {motion.frames[0]}..{motion.frames[-1]})"
+        )
+    model = KinematicModel(motion.skeleton)
+    matrix = decimate(
+        features(model.joints(model.positions(motion.channels, "cm")), JOINT_NAMES, native), step
+    )
+    query = example_query(matrix[inside], feature_set, mask)
+    if args.fuzzy < 0:
+        raise UsageError(f"--fuzzy must not be negative, got {args.fuzzy}")
+    sets = query.fuzzy_sets(args.fuzzy)
+    set_index = index.sets[feature_set]
+    hits: Hits
+    if args.mismatch is None:
+        hits, kind = adaptive_fuzzy_query(set_index, sets), "adaptive fuzzy"
+    else:
+        try:
+            hits, kind = mismatch_query(set_index, sets, args.mismatch), f"{args.mismatch}-mismatch"
+        except ValueError as exc:
+            raise UsageError(f"--mismatch: {exc}") from None
+    order, cost = ranked(hits, query.lengths)
+    rows = [
+        {**_hit_row(index, int(hits.doc[i]), int(hits.start[i]), int(hits.end[i])), "cost": int(c)}
+        for i, c in zip(order.tolist(), cost.tolist(), strict=True)
+    ]
+    summary = (
+        f"{kind} query of {len(query.codes)} segments ({feature_set}: {args.features}; "
+        f"fuzzy {args.fuzzy}), ranked by segment length difference"
+    )
+    return rows, summary
+
+
+def _hit_row(index: MotionIndex, doc: int, start: int, end: int) -> dict[str, object]:
+    first, last = index.amc_frames(doc, start, end)
+    return {"document": index.documents[doc].amc, "start_frame": first, "end_frame": last}

@@ -42,7 +42,7 @@ FEATURE_SETS: tuple[FeatureSet, ...] = get_args(FeatureSet)
 ARRAYS = ("doc", "start", "length", "code", "offsets", "postings")
 DEFAULT_NATIVE_RATE = 120.0
 
-Progress = Callable[[int, int, str], object]
+Progress = Callable[[int, int, "Document"], object]
 
 
 # ------------------------------------------------------------------------------------------ errors
@@ -233,7 +233,7 @@ def build_index(
     progress: Progress | None = None,
     default_native_rate: float = DEFAULT_NATIVE_RATE,
 ) -> MotionIndex:
-    """The index of the manifest's recordings at ``rate`` Hz; ``progress(done, total, amc_text)`` is
+    """The index of the manifest's recordings at ``rate`` Hz; ``progress(done, total, document)`` is
     called after each recording. Raises :class:`MocapFormatError` (unreadable file) or
     :class:`IndexBuildError` (``rate`` does not divide a recording's rate)."""
     documents: list[Document] = []
@@ -243,7 +243,7 @@ def build_index(
         documents.append(document)
         matrices.append(matrix)
         if progress is not None:
-            progress(i, len(rows), row.amc_text)
+            progress(i, len(rows), document)
     return index_from_matrices(matrices, documents, rate)
 
 

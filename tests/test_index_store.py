@@ -77,7 +77,7 @@ def built(tmp_path_factory: pytest.TempPathFactory) -> Built:
     manifest = write_manifest(tmp_path_factory.mktemp("manifest") / "m.csv", PATHS)
     rows = read_manifest(manifest)
     calls: list[tuple[int, int, str]] = []
-    index = build_index(rows, progress=lambda i, n, amc: calls.append((i, n, amc)))
+    index = build_index(rows, progress=lambda i, n, doc: calls.append((i, n, doc.amc)))
     matrices = [decimate(features(joints_cm(asf, amc), JOINT_NAMES, 120.0), 4) for asf, amc in PATHS]
     return Built(manifest, rows, index, calls, matrices)
 
