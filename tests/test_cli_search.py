@@ -1,0 +1,185 @@
+"""``mocapd search`` run for real in a subprocess on an index of real HDM05 clips: keyframe queries
+equal the library's Ω^Z components in AMC frame numbers; a query by example finds its own clip first
+at cost 0; bad options exit 2 with one line."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from daemon.index_store import MotionIndex, build_index, load_index, read_manifest, save_index
+from daemon.keyframes import keyframe_search, parse_keyframe_queries
+from tests.conftest import DATA, SHARED
+from tests.test_cli import assert_ok, assert_one_error_line, mocapd
+from tests.test_index_store import write_manifest
+
+KEYFRAMES = SHARED / "reference" / "manual-keyframes.json"
+CLIPS = [
+    ("bd", "squat1Reps", 1),
+    ("bk", "squat1Reps", 24),
+    ("dg", "squat1Reps", 36),
+    ("bd", "kickLFront1Reps", 1),
+    ("bk", "kickLFront1Reps", 7),
+    ("bd", "hopBothLegs1hops", 1),
+    ("dg", "depositFloorR", 13),
+]
+
+
+def clip(actor: str, motion_class: str, take: int) -> tuple[Path, Path]:
+    amc = DATA / "hdm05" / "cut" / motion_class / f"HDM_{actor}_{motion_class}_{take:03d}_120.amc.gz"
+    return DATA / "hdm05" / "asf" / f"HDM_{actor}.asf", amc
+
+
+@pytest.fixture(scope="module")
+def index_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    where = tmp_path_factory.mktemp("search")
+    manifest = write_manifest(where / "m.csv", [clip(*c) for c in CLIPS], extra=False)
+    out = where / "idx"
+    save_index(build_index(read_manifest(manifest)), out)
+    return out
+
+
+def hits_json(result_stdout: str) -> list[dict[str, object]]:
+    return [json.loads(line) for line in result_stdout.splitlines()]
+
+
+def expected_keyframe_rows(index: MotionIndex, name: str, extend: tuple[int, int]) -> list[dict[str, object]]:
+    query = parse_keyframe_queries(json.loads(KEYFRAMES.read_text()), "k")[name]
+    hits = keyframe_search(index.sets, [d.frames for d in index.documents], query, index.rate, extend)
+    rows = []
+    for d, s, e in zip(hits.doc.tolist(), hits.start.tolist(), hits.end.tolist(), strict=True):
+        first, last = index.amc_frames(d, s, e)
+        rows.append({"document": index.documents[d].amc, "start_frame": first, "end_frame": last})
+    return rows
+
+
+@pytest.mark.parametrize("name", ["squat1Reps", "kickLFront1Reps", "hopBothLegs1hops"])
+def test_keyframe_search_json(index_dir: Path, name: str) -> None:
+    result = mocapd("search", "--index", index_dir, "--keyframes", KEYFRAMES, "--class", name, "--json")
+    assert_ok(result)
+    rows = hits_json(result.stdout)
+    index = load_index(index_dir)
+    assert rows == expected_keyframe_rows(index, name, (0, 0))
+    relevant = {str(clip(*c)[1]) for c in CLIPS if c[1] == name}
+    assert {str(r["document"]) for r in rows} >= relevant  # every clip of the class is found
+    for r in rows:
+        doc = next(d for d in index.documents if d.amc == r["document"])
+        assert isinstance(r["start_frame"], int) and isinstance(r["end_frame"], int)
+        assert doc.first_amc_frame <= r["start_frame"] <= r["end_frame"] <= doc.last_amc_frame
+
+
+def test_keyframe_search_extend_and_text(index_dir: Path) -> None:
+    args: list[str | Path] = [
+        "search",
+        "--index",
+        index_dir,
+        "--keyframes",
+        KEYFRAMES,
+        "--class",
+        "squat1Reps",
+    ]
+    wide = mocapd(*args, "--extend", "10,5", "--json")
+    assert_ok(wide)
+    index = load_index(index_dir)
+    assert hits_json(wide.stdout) == expected_keyframe_rows(index, "squat1Reps", (10, 5))
+    text = mocapd(*args, "--limit", "2")
+    assert_ok(text)
+    lines = text.stdout.splitlines()
+    assert lines[0].startswith("keyframes of squat1Reps (4 keyframes") and "hits in" in lines[0]
+    assert len(lines) == 3 and lines[1].startswith("    1. ") and " frames " in lines[1]
+
+
+def test_query_by_example_finds_itself_first(index_dir: Path) -> None:
+    asf, amc = clip("bd", "squat1Reps", 1)
+    features = "kneeRightBent,kneeLeftBent,feetApartRelHips"
+    result = mocapd(
+        "search", "--index", index_dir, "--example", asf, amc, "1", "140", "--features", features, "--json"
+    )
+    assert_ok(result)
+    rows = hits_json(result.stdout)
+    assert rows[0] == {"document": str(amc), "start_frame": 1, "end_frame": 140, "cost": 0}
+    costs = [int(str(r["cost"])) for r in rows]
+    assert costs == sorted(costs)
+    assert sum("squat1Reps" in str(r["document"]) for r in rows) >= 2  # another actor's squat too
+
+
+def test_query_by_example_fuzzy_and_mismatch(index_dir: Path) -> None:
+    asf, amc = clip("bd", "kickLFront1Reps", 1)
+    base: list[str | Path] = ["search", "--index", index_dir, "--example", asf, amc, "20", "120", "--json"]
+    exact = mocapd(*base, "--features", "footLeftRaisedRelYBodyMin,kneeLeftBent")
+    fuzzy = mocapd(*base, "--features", "footLeftRaisedRelYBodyMin,kneeLeftBent", "--fuzzy", "1")
+    assert_ok(exact)
+    assert_ok(fuzzy)
+    assert str(amc) in {r["document"] for r in hits_json(exact.stdout)}  # the example's own stretch
+    for result in (exact, fuzzy):
+        costs = [int(str(r["cost"])) for r in hits_json(result.stdout)]
+        assert costs == sorted(costs)
+    mism = mocapd(*base, "--features", "footLeftRaisedRelYBodyMin,kneeLeftBent", "--mismatch", "1")
+    assert_ok(mism)
+    assert all("cost" in r for r in hits_json(mism.stdout))
+
+
+@pytest.mark.parametrize(
+    ("extra", "message"),
+    [
+        (["--keyframes", KEYFRAMES, "--class", "noSuchClass"], "no class 'noSuchClass'"),
+        (["--keyframes", KEYFRAMES], "--keyframes needs --class"),
+        (["--keyframes", KEYFRAMES, "--class", "squat1Reps", "--fuzzy", "1"], "--fuzzy cannot be used"),
+        (["--keyframes", KEYFRAMES, "--class", "squat1Reps", "--extend", "3"], "--extend must be LEFT,RIGHT"),
+        (
+            [
+                "--example",
+                *map(str, clip("bd", "squat1Reps", 1)),
+                "1",
+                "140",
+                "--features",
+                "kneeRightBent,elbowRightBent",
+            ],
+            "several sets",
+        ),
+        (["--example", *map(str, clip("bd", "squat1Reps", 1)), "1", "140"], "--example needs --features"),
+        (
+            [
+                "--example",
+                *map(str, clip("bd", "squat1Reps", 1)),
+                "500",
+                "600",
+                "--features",
+                "kneeRightBent",
+            ],
+            "hold no frame at 30 Hz",
+        ),
+        (
+            [
+                "--example",
+                *map(str, clip("bd", "squat1Reps", 1)),
+                "1",
+                "140",
+                "--features",
+                "kneeRightBent",
+                "--mismatch",
+                "9",
+            ],
+            "--mismatch",
+        ),
+        (
+            ["--example", *map(str, clip("bd", "squat1Reps", 1)), "1", "140", "--features", "kneeBent"],
+            "unknown feature",
+        ),
+    ],
+)
+def test_bad_search_options(index_dir: Path, extra: list[str | Path], message: str) -> None:
+    line = assert_one_error_line(mocapd("search", "--index", index_dir, *extra))
+    assert message in line
+
+
+def test_bad_keyframe_file_names_the_file(index_dir: Path, tmp_path: Path) -> None:
+    bad = tmp_path / "q.json"
+    bad.write_text('{"classes": {"a": [\n  {"set": "lower", "values": [0, 1]}\n]}}\n', encoding="utf-8")
+    line = assert_one_error_line(mocapd("search", "--index", index_dir, "--keyframes", bad, "--class", "a"))
+    assert f"{bad}: classes.a[0].values" in line
+    bad.write_text("{\n  oops\n}\n", encoding="utf-8")
+    line = assert_one_error_line(mocapd("search", "--index", index_dir, "--keyframes", bad, "--class", "a"))
+    assert f"{bad}:2: not JSON" in line
