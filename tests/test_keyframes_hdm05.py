@@ -1,0 +1,53 @@
+"""The published manual keyframes on every HDM05 clip in ../shared/data/mocap indexed as one database
+(thesis Table 5.2's setting): each class keeps at least 90 % of its clips, and the hits are well-formed
+Ω^Z components."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from bench.eval_keyframes import ClassResult, evaluate, hdm05_rows
+from daemon.index_store import MotionIndex, build_index
+from daemon.keyframes import keyframe_search, parse_keyframe_queries
+from tests.conftest import DATA, SHARED
+
+
+@pytest.fixture(scope="module")
+def database() -> tuple[MotionIndex, list[str]]:
+    rows = hdm05_rows(DATA)
+    return build_index(rows), [r.amc.parent.name for r in rows]
+
+
+@pytest.fixture(scope="module")
+def results(database: tuple[MotionIndex, list[str]]) -> list[ClassResult]:
+    return evaluate(*database)
+
+
+def test_every_class_present_is_evaluated(
+    results: list[ClassResult], database: tuple[MotionIndex, list[str]]
+) -> None:
+    assert {r.name for r in results} == set(database[1])
+    assert len(results) == 11
+
+
+def test_keyframes_keep_the_relevant_clips(results: list[ClassResult]) -> None:
+    for r in results:
+        assert r.false_negatives <= 0.1 * r.relevant, r
+        assert r.true_positives + r.false_positives == r.hits
+        assert r.true_positives >= r.relevant - r.false_negatives
+        assert 0 < r.kept < 0.25, r
+
+
+def test_hits_are_disjoint_components_inside_documents(database: tuple[MotionIndex, list[str]]) -> None:
+    index, _ = database
+    path = SHARED / "reference" / "manual-keyframes.json"
+    queries = parse_keyframe_queries(json.loads(path.read_text()), str(path))
+    frames = [d.frames for d in index.documents]
+    for name, query in queries.items():
+        hits = keyframe_search(index.sets, frames, query, index.rate)
+        for d, s, e in zip(hits.doc.tolist(), hits.start.tolist(), hits.end.tolist(), strict=True):
+            assert 0 <= s <= e < frames[d], name
+        same = hits.doc[1:] == hits.doc[:-1]
+        assert (hits.start[1:][same] > hits.end[:-1][same]).all(), name
