@@ -422,21 +422,17 @@ def keyframe_search(
     matches = np.asarray(found.matches, dtype=np.int64).reshape(-1, len(lists))
     first, last, ok = match_ranges([p[0] for p in pruned], [p[1] for p in pruned], matches, bounds)
     ranges = list(zip(first[ok].tolist(), last[ok].tolist(), strict=True))
-    components = np.asarray(omega_z(ranges), dtype=np.int64).reshape(-1, 2)
-    doc = np.searchsorted(base, components[:, 0], "right") - 1
-    start, end = components[:, 0] - base[doc], components[:, 1] - base[doc]
+    components = omega_z(ranges)
     left, right = extend
     if left or right:
-        merged = omega_z(
-            list(
-                zip(
-                    (base[doc] + np.maximum(start - left, 0)).tolist(),
-                    (base[doc] + np.minimum(end + right, frames[doc] - 1)).tolist(),
-                    strict=True,
-                )
-            )
+        # extended within the document (its first frame is base[d], its last base[d] + frames[d] - 1)
+        d = np.searchsorted(base, [s for s, _ in components], "right") - 1
+        s_ext = np.maximum(np.asarray([s for s, _ in components], dtype=np.int64) - left, base[d])
+        e_ext = np.minimum(
+            np.asarray([t for _, t in components], dtype=np.int64) + right, base[d] + frames[d] - 1
         )
-        components = np.asarray(merged, dtype=np.int64).reshape(-1, 2)
-        doc = np.searchsorted(base, components[:, 0], "right") - 1
-        start, end = components[:, 0] - base[doc], components[:, 1] - base[doc]
+        components = omega_z(list(zip(s_ext.tolist(), e_ext.tolist(), strict=True)))
+    spans = np.asarray(components, dtype=np.int64).reshape(-1, 2)
+    doc = np.searchsorted(base, spans[:, 0], "right") - 1
+    start, end = spans[:, 0] - base[doc], spans[:, 1] - base[doc]
     return KeyframeHits(doc, start, end, tuple(len(s) for s, _, _ in lists), len(found.matches), found.calls)
