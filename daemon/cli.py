@@ -28,12 +28,14 @@ from daemon.index_store import (
     IndexBuildError,
     IndexFormatError,
     ManifestError,
+    ManifestRow,
     MotionIndex,
     array_file,
     build_index,
     check_index_target,
     index_files,
     load_index,
+    read_document,
     read_manifest,
     save_index,
 )
@@ -435,23 +437,19 @@ def _search_example(
         raise UsageError(
             f"--example START END must be AMC frame numbers, got '{start_text} {end_text}'"
         ) from None
-    motion = _load(Path(asf), Path(amc))
-    native = motion.header.frame_rate or config.replay.frame_rate_hz
     try:
-        step = decimation_factor(native, index.rate)
-    except ValueError as exc:
-        raise UsageError(f"{amc}: the index rate {exc}") from None
-    sampled = motion.frames[::step]
+        document, matrix = read_document(
+            ManifestRow(0, asf, amc, Path(asf), Path(amc)), index.rate, config.replay.frame_rate_hz
+        )
+    except IndexBuildError as exc:
+        raise UsageError(str(exc)) from None
+    sampled = document.first_amc_frame + document.step * np.arange(document.frames)
     inside = (sampled >= first) & (sampled <= last)
     if first > last or not inside.any():
         raise UsageError(
             f"{amc}: frames {first}..{last} hold no frame at {index.rate:g} Hz "
-            f"(the recording has AMC frames {motion.frames[0]}..{motion.frames[-1]})"
+            f"(the recording has AMC frames {document.first_amc_frame}..{document.last_amc_frame})"
         )
-    model = KinematicModel(motion.skeleton)
-    matrix = decimate(
-        features(model.joints(model.positions(motion.channels, "cm")), JOINT_NAMES, native), step
-    )
     query = example_query(matrix[inside], feature_set, mask)
     if args.fuzzy < 0:
         raise UsageError(f"--fuzzy must not be negative, got {args.fuzzy}")
