@@ -51,6 +51,11 @@ class SetIndex:
         return out
 
     @property
+    def nonempty_lists(self) -> int:
+        """Codes that occur."""
+        return int(np.count_nonzero(np.diff(self.offsets)))
+
+    @property
     def n_segments(self) -> int:
         return int(self.code.shape[0])
 
@@ -74,14 +79,19 @@ class SetIndex:
         the codes)."""
         c = self.codes(codes)
         first, sizes = self.offsets[c], self.offsets[c + 1] - self.offsets[c]
-        # positions first[j] .. first[j] + sizes[j] - 1 of every chosen list, concatenated
-        shift = np.repeat(first - np.concatenate([[0], np.cumsum(sizes)[:-1]]), sizes)
-        out: IntArray = np.sort(self.postings[shift + np.arange(shift.shape[0])])
+        out: IntArray = np.sort(self.postings[concatenated_ranges(first, sizes)])
         return out
 
     def union_fixed(self, mask: int, value: int) -> IntArray:
         """L(V) for the fuzzy set of every code equal to ``value`` on the bits of ``mask``."""
         return self.union(matching_codes(self.bits, value, mask))
+
+
+def concatenated_ranges(first: IntArray, sizes: IntArray) -> IntArray:
+    """``first[j] .. first[j] + sizes[j] - 1`` for every j, concatenated: shape ``(sizes.sum(),)``."""
+    before = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int64)
+    out: IntArray = np.repeat(first - before, sizes) + np.arange(int(np.sum(sizes)), dtype=np.int64)
+    return out
 
 
 def build_set_index(matrices: Sequence[BoolArray], feature_set: FeatureSet) -> SetIndex:

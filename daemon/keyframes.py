@@ -25,7 +25,7 @@ import numpy as np
 import numpy.typing as npt
 
 from daemon.features import SET_SLICES, FeatureSet
-from daemon.index import SetIndex
+from daemon.index import SetIndex, concatenated_ranges
 
 IntArray = npt.NDArray[np.int64]
 
@@ -329,11 +329,6 @@ def keyframe_lists(
     return out
 
 
-def _cumulative_before(n: IntArray) -> IntArray:
-    out: IntArray = np.concatenate([[0], np.cumsum(n)[:-1]]).astype(np.int64)
-    return out
-
-
 def _intersect(
     a_start: IntArray, a_end: IntArray, b_start: IntArray, b_end: IntArray
 ) -> tuple[IntArray, IntArray, IntArray]:
@@ -343,7 +338,7 @@ def _intersect(
     hi = np.searchsorted(a_start, b_end, "right")  # a starting at or before b's end
     n = np.maximum(hi - lo, 0)
     jb = np.repeat(np.arange(len(b_start), dtype=np.int64), n)
-    ia = np.repeat(lo - _cumulative_before(n), n) + np.arange(jb.shape[0], dtype=np.int64)
+    ia = concatenated_ranges(lo, n)
     return np.maximum(a_start[ia], b_start[jb]), np.minimum(a_end[ia], b_end[jb]), jb
 
 
@@ -409,7 +404,7 @@ def keyframe_search(
     bounds = [gap_bounds(d, s) for d, s in query.gaps(rate)]
     lists = keyframe_lists(sets, query)
     frames = np.asarray(doc_frames, dtype=np.int64)
-    base = _cumulative_before(frames + 1)
+    base = np.concatenate([[0], np.cumsum(frames + 1)[:-1]]).astype(np.int64)
     global_lists = [(base[d] + s, base[d] + e, base[d], base[d] + frames[d] - 1) for s, e, d in lists]
     if prune and len(lists) > 1:
         keep = _prune(global_lists, bounds)
