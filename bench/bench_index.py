@@ -29,7 +29,7 @@ from bench.common import arguments, best_of, load
 from bench.machine import describe
 from daemon.features import decimate, features
 from daemon.index import SetIndex, adaptive_fuzzy_query, exact_query, fuzzy_query, matching_codes
-from daemon.index_store import Document, index_from_matrices, load_index, save_index
+from daemon.index_store import Document, index_bytes, index_from_matrices, load_index, save_index
 from daemon.keyframes import keyframe_search, parse_keyframe_queries
 from replay import JOINT_NAMES
 
@@ -98,14 +98,14 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "idx"
         save_index(index, path)
-        sizes = {f.name: f.stat().st_size for f in path.iterdir()}
+        sizes = {fs: index_bytes(path, fs) for fs in index.sets}
         t_load = best_of(args.repeat, lambda: load_index(path))
     print(
         f"\n{'index':8s} {'segments':>10s} {'lists':>7s} {'MB':>7s} {'bytes/seg':>10s} {'bytes/frame':>12s}"
     )
     for fs, set_index in index.sets.items():
-        size = sum(v for k, v in sizes.items() if k.startswith(fs + "."))
-        lists = int(np.count_nonzero(np.diff(set_index.offsets)))
+        size = sizes[fs]
+        lists = set_index.nonempty_lists
         per_segment = size / set_index.n_segments
         print(
             f"{fs:8s} {set_index.n_segments:10,d} {lists:7d} {size / 2**20:7.2f} {per_segment:10.1f} "

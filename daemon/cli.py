@@ -22,7 +22,6 @@ from daemon.config import Config, ConfigError, Units, load_config
 from daemon.features import FEATURE_NAMES, decimate, decimation_factor, features
 from daemon.index import Hits, adaptive_fuzzy_query, example_query, feature_selection, mismatch_query, ranked
 from daemon.index_store import (
-    ARRAYS,
     FEATURE_SETS,
     Document,
     IndexBuildError,
@@ -30,10 +29,9 @@ from daemon.index_store import (
     ManifestError,
     ManifestRow,
     MotionIndex,
-    array_file,
     build_index,
     check_index_target,
-    index_files,
+    index_bytes,
     load_index,
     read_document,
     read_manifest,
@@ -299,7 +297,7 @@ def _index_build(args: argparse.Namespace, config: Config) -> int:
     index = build_index(rows, args.fps, progress, config.replay.frame_rate_hz)
     save_index(index, args.out)
     seconds = time.perf_counter() - began
-    size = sum((args.out / name).stat().st_size for name in index_files())
+    size = index_bytes(args.out)
     print(f"index:      {args.out}")
     print(f"documents:  {len(index.documents)}")
     print(f"frames:     {index.n_frames} at {index.rate:g} Hz")
@@ -315,12 +313,12 @@ def _index_info(args: argparse.Namespace) -> int:
     sets = {}
     for s in FEATURE_SETS:
         entry = index.sets[s]
-        size = sum((args.index / array_file(s, a)).stat().st_size for a in ARRAYS)
+        size = index_bytes(args.index, s)
         segments = entry.n_segments
         sets[s] = {
             "bits": entry.bits,
             "segments": segments,
-            "nonempty_lists": int(np.count_nonzero(np.diff(entry.offsets))),
+            "nonempty_lists": entry.nonempty_lists,
             "bytes": size,
             "bytes_per_segment": size / segments if segments else None,
         }
@@ -332,7 +330,7 @@ def _index_info(args: argparse.Namespace) -> int:
         "duration_s": sum(
             (d.last_amc_frame - d.first_amc_frame + 1) / d.native_rate for d in index.documents
         ),
-        "bytes": sum((args.index / name).stat().st_size for name in index_files()),
+        "bytes": index_bytes(args.index),
         "sets": sets,
     }
     if args.json:

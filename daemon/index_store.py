@@ -260,6 +260,12 @@ def index_files() -> list[str]:
     return [INDEX_JSON] + [array_file(s, a) for s in FEATURE_SETS for a in ARRAYS]
 
 
+def index_bytes(path: str | Path, feature_set: FeatureSet | None = None) -> int:
+    """Bytes on disk of the index directory ``path``, or of one feature set's arrays."""
+    names = index_files() if feature_set is None else [array_file(feature_set, a) for a in ARRAYS]
+    return sum((Path(path) / name).stat().st_size for name in names)
+
+
 def save_index(index: MotionIndex, path: str | Path) -> None:
     """Write ``index`` as the directory ``path``: built in a temporary sibling and renamed into place,
     so ``path`` never holds half an index. An existing index (or empty directory) at ``path`` is

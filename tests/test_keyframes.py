@@ -46,10 +46,13 @@ def hits_of_match(
     return [
         h
         for h in product(*ranges)
-        if all(
-            s * d <= b - a and (s == 0 or (b - a) * s <= d) for a, b, d in zip(h, h[1:], deltas, strict=False)
-        )
+        if all(allowed(b - a, d, s) for a, b, d in zip(h, h[1:], deltas, strict=False))
     ]
+
+
+def allowed(gap: int, delta: int, sigma: Fraction) -> bool:
+    """Condition (4.6): σδ <= gap <= δ/σ, no upper bound for σ = 0."""
+    return sigma * delta <= gap and (sigma == 0 or gap * sigma <= delta)
 
 
 # ------------------------------------------------------------------------------- worked examples
@@ -186,10 +189,8 @@ def all_hits(member: list[list[bool]], deltas: list[int], sigmas: list[Fraction]
         for i in range(hit[-1] if hit else 0, len(member[k])):
             if not member[k][i]:
                 continue
-            if hit:
-                gap, s, delta = i - hit[-1], sigmas[k - 1], deltas[k - 1]
-                if not (s * delta <= gap and (s == 0 or gap * s <= delta)):
-                    continue
+            if hit and not allowed(i - hit[-1], deltas[k - 1], sigmas[k - 1]):
+                continue
             yield from grow([*hit, i])
 
     return grow([])
