@@ -16,23 +16,19 @@ it checks everything that can be checked without reading the arrays' contents.
 from __future__ import annotations
 
 import csv
-import errno
 import io
 import json
 import math
-import os
-import secrets
-import shutil
-import tempfile
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, field, fields
 from pathlib import Path
-from typing import IO, Any, NoReturn, get_args
+from typing import Any, get_args
 
 import numpy as np
 
 from daemon.features import SET_SLICES, BoolArray, FeatureSet, decimate, decimation_factor, features
 from daemon.index import IntArray, SetIndex, build_set_index
+from daemon.storage import JsonChecker, check_target, replace_directory, sync, write_json
 from replay import JOINT_NAMES, KinematicModel, MocapFormatError, read_amc, read_asf
 
 FORMAT = "mocapd-index"
@@ -80,11 +76,14 @@ class ManifestRow:
     amc_text: str
     asf: Path
     amc: Path
+    extra: Mapping[str, str] = field(default_factory=dict)
 
 
-def read_manifest(path: str | Path) -> list[ManifestRow]:
-    """The rows of a manifest CSV whose header names the columns ``asf`` and ``amc`` (in any order,
-    among any others, which are ignored). Blank lines are skipped. Raises :class:`ManifestError`."""
+def read_manifest(path: str | Path, required: Sequence[str] = ()) -> list[ManifestRow]:
+    """The rows of a manifest CSV whose header names the columns ``asf`` and ``amc`` and every column
+    of ``required`` (in any order, among any others). ``extra`` holds each row's other cells by
+    lower-case column name (empty cells of optional columns included). Blank lines are skipped.
+    Raises :class:`ManifestError`."""
     path = Path(path)
     source = str(path)
     data = path.read_bytes()
@@ -105,7 +104,7 @@ def read_manifest(path: str | Path) -> list[ManifestRow]:
                 continue
             if header is None:
                 header = [f.lower() for f in cells]
-                for name in ("asf", "amc"):
+                for name in ("asf", "amc", *required):
                     if header.count(name) != 1:
                         how = "lacks" if name not in header else "repeats"
                         raise ManifestError(
@@ -119,11 +118,14 @@ def read_manifest(path: str | Path) -> list[ManifestRow]:
             for name, value in texts.items():
                 if not value:
                     raise ManifestError(source, line, f"the '{name}' field is blank")
-            resolved = {name: path.parent / value for name, value in texts.items()}
+            resolved = {name: path.parent / texts[name] for name in ("asf", "amc")}
             for name, file in resolved.items():
                 if not file.is_file():
                     raise ManifestError(source, line, f"{name} file not found: {file}")
-            rows.append(ManifestRow(line, texts["asf"], texts["amc"], resolved["asf"], resolved["amc"]))
+            others = {name: cells[i] for i, name in enumerate(header) if name not in ("asf", "amc")}
+            rows.append(
+                ManifestRow(line, texts["asf"], texts["amc"], resolved["asf"], resolved["amc"], others)
+            )
     except csv.Error as exc:
         raise ManifestError(source, reader.line_num, f"not valid CSV: {exc}") from None
     if header is None:
@@ -270,56 +272,29 @@ def save_index(index: MotionIndex, path: str | Path) -> None:
     """Write ``index`` as the directory ``path``: built in a temporary sibling and renamed into place,
     so ``path`` never holds half an index. An existing index (or empty directory) at ``path`` is
     replaced; anything else there is left alone and raises :class:`FileExistsError`."""
-    path = Path(path)
-    check_index_target(path)
-    temp = path.parent / f".{path.name}.{os.getpid()}.{secrets.token_hex(4)}.tmp"
-    temp.mkdir()  # unlike mkdtemp's 0o700, the umask's permissions, which the index keeps
-    try:
-        meta: dict[str, Any] = {
-            "format": FORMAT,
-            "version": VERSION,
-            "rate": index.rate,
-            "documents": [{f.name: getattr(d, f.name) for f in fields(Document)} for d in index.documents],
-            "sets": {
-                s: {"bits": index.sets[s].bits, "segments": index.sets[s].n_segments} for s in FEATURE_SETS
-            },
-        }
+    meta: dict[str, Any] = {
+        "format": FORMAT,
+        "version": VERSION,
+        "rate": index.rate,
+        "documents": [{f.name: getattr(d, f.name) for f in fields(Document)} for d in index.documents],
+        "sets": {s: {"bits": index.sets[s].bits, "segments": index.sets[s].n_segments} for s in FEATURE_SETS},
+    }
+
+    def fill(temp: Path) -> None:
         for s in FEATURE_SETS:
             for a in ARRAYS:
                 with open(temp / array_file(s, a), "wb") as out:
                     np.save(out, np.ascontiguousarray(getattr(index.sets[s], a), dtype=np.int64))
-                    _sync(out)
-        # index.json last: a directory with it is complete.
-        with open(temp / INDEX_JSON, "w", encoding="utf-8") as out:
-            json.dump(meta, out, indent=1)
-            out.write("\n")
-            _sync(out)
-        if path.exists():
-            old = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".old", dir=path.parent))
-            os.replace(path, old / path.name)
-            os.replace(temp, path)
-            shutil.rmtree(old)
-        else:
-            os.replace(temp, path)
-    except BaseException:
-        shutil.rmtree(temp, ignore_errors=True)
-        raise
+                    sync(out)
+        write_json(temp / INDEX_JSON, meta)  # last: a directory with it is complete
+
+    replace_directory(Path(path), INDEX_JSON, "a mocapd index", fill)
 
 
 def check_index_target(path: str | Path) -> None:
     """Raise :class:`OSError` (naming the path) unless :func:`save_index` may write ``path``: its
     directory exists and ``path`` is absent, an empty directory or an index."""
-    path = Path(path)
-    parent = path.parent
-    if not parent.is_dir():
-        raise FileNotFoundError(errno.ENOENT, os.strerror(errno.ENOENT), str(parent))
-    if path.exists() and not (path.is_dir() and (not any(path.iterdir()) or (path / INDEX_JSON).is_file())):
-        raise FileExistsError(errno.EEXIST, "exists and is not a mocapd index, not replaced", str(path))
-
-
-def _sync(file: IO[Any]) -> None:
-    file.flush()
-    os.fsync(file.fileno())
+    check_target(Path(path), INDEX_JSON, "a mocapd index")
 
 
 # ----------------------------------------------------------------------------------------- loading
@@ -342,7 +317,7 @@ def load_index(path: str | Path) -> MotionIndex:
         meta = json.loads(text)
     except json.JSONDecodeError as exc:
         raise IndexFormatError(f"{meta_path}: not valid JSON: {exc}") from None
-    check = _Checker(str(meta_path))
+    check = JsonChecker(str(meta_path), IndexFormatError)
     root = check.mapping(meta, "", {"format", "version", "rate", "documents", "sets"})
     if root["format"] != FORMAT:
         check.fail("format", f"expected '{FORMAT}', got {root['format']!r}")
@@ -386,7 +361,7 @@ def _load_array(file: Path, length: int) -> IntArray:
     return out
 
 
-def _documents(check: _Checker, value: object) -> tuple[Document, ...]:
+def _documents(check: JsonChecker, value: object) -> tuple[Document, ...]:
     if not isinstance(value, list) or not value:
         check.fail("documents", "expected a non-empty list")
     out = []
@@ -405,39 +380,3 @@ def _documents(check: _Checker, value: object) -> tuple[Document, ...]:
         native = check.positive_number(d["native_rate"], f"{where}.native_rate")
         out.append(Document(d["amc"], d["asf"], first, last, step, frames, native))
     return tuple(out)
-
-
-class _Checker:
-    """Type checks of parsed JSON that raise :class:`IndexFormatError` naming file and field."""
-
-    def __init__(self, source: str) -> None:
-        self.source = source
-
-    def fail(self, field: str, reason: str) -> NoReturn:
-        raise IndexFormatError(f"{self.source}: {field or 'top level'}: {reason}")
-
-    def mapping(self, value: object, field: str, keys: set[str]) -> dict[str, Any]:
-        if not isinstance(value, dict):
-            self.fail(field, f"expected an object, got {type(value).__name__}")
-        missing, extra = keys - value.keys(), value.keys() - keys
-        if missing:
-            self.fail(field, f"missing {', '.join(sorted(missing))}")
-        if extra:
-            self.fail(field, f"unknown {', '.join(sorted(extra))}")
-        return value
-
-    def integer(self, value: object, field: str, minimum: int | None = 0) -> int:
-        if not isinstance(value, int) or isinstance(value, bool):
-            self.fail(field, f"expected an integer, got {value!r}")
-        if minimum is not None and value < minimum:
-            self.fail(field, f"must be at least {minimum}, got {value}")
-        return value
-
-    def positive_number(self, value: object, field: str) -> float:
-        if (
-            not isinstance(value, int | float)
-            or isinstance(value, bool)
-            or not (math.isfinite(value) and value > 0)
-        ):
-            self.fail(field, f"expected a positive number, got {value!r}")
-        return float(value)
