@@ -19,6 +19,7 @@ from typing import TextIO
 import numpy as np
 
 from daemon.config import Config, ConfigError, Units, load_config
+from daemon.dtw import STEPS
 from daemon.features import FEATURE_NAMES, decimate, decimation_factor, features
 from daemon.index import Hits, adaptive_fuzzy_query, example_query, feature_selection, mismatch_query, ranked
 from daemon.index_store import (
@@ -37,9 +38,22 @@ from daemon.index_store import (
     read_manifest,
     save_index,
 )
-from daemon.keyframes import KeyframeError, keyframe_search, parse_keyframe_queries
-from daemon.plots import PlotUnavailable, feature_matrix_png
+from daemon.keyframes import KeyframeError, KeyframeQuery, keyframe_search, parse_keyframe_queries
+from daemon.library import (
+    Library,
+    LibraryFormatError,
+    TrainingClip,
+    check_library_target,
+    learn_class,
+    load_library,
+    read_examples,
+    save_library,
+)
+from daemon.plots import PlotUnavailable, feature_matrix_png, template_png
+from daemon.retrieval import template_search
 from replay import JOINT_NAMES, KinematicModel, MocapFormatError, Motion, read_amc, read_asf
+
+LIBRARY_KEYFRAMES = Path("<the library's keyframes>")
 
 
 def _positive_float(text: str) -> float:
@@ -107,21 +121,77 @@ def _parser() -> argparse.ArgumentParser:
     index_info.add_argument("index", type=Path, help="index directory")
     index_info.add_argument("--json", action="store_true", help="print one JSON object instead of text")
 
+    learn = sub.add_parser("learn", help="learn motion templates and keyframes from labelled clips")
+    learn.add_argument(
+        "--manifest",
+        type=Path,
+        required=True,
+        help="CSV with columns class, asf, amc and optionally start_frame, end_frame (AMC frames)",
+    )
+    learn.add_argument("--out", type=Path, required=True, help="library directory to write (replaced)")
+    learn.add_argument(
+        "--fps", type=_positive_float, default=30.0, help="learn at this rate (default 30, as the thesis)"
+    )
+    learn.add_argument("--png", type=Path, default=None, help="directory for a PNG of each class's MTs")
+    learn.add_argument(
+        "--tau", type=_positive_float, default=0.1, help="retrieval threshold stored per class (0.1)"
+    )
+    learn.add_argument(
+        "--delta", type=float, default=0.1, help="quantisation threshold δ in [0, 0.5) (default 0.1)"
+    )
+    learn.add_argument(
+        "--keyframes", type=int, default=3, metavar="K", help="keyframes chosen per class (3; 0: none)"
+    )
+    learn.add_argument(
+        "--steps",
+        choices=STEPS,
+        default="toolbox",
+        help="DTW steps for retrieval: toolbox (1,1),(1,2),(2,1) (default) or thesis (1,0),(0,1),(1,1)",
+    )
+
     search = sub.add_parser(
-        "search", help="find motions in an index: by keyframes (thesis ch. 4) or by example (MRC05)"
+        "search",
+        help="find motions in an index: with a class's motion template (thesis ch. 3/5), "
+        "by keyframes (ch. 4) or by example (MRC05)",
     )
     search.add_argument("--index", type=Path, required=True, help="index directory (mocapd index build)")
-    mode = search.add_mutually_exclusive_group(required=True)
-    mode.add_argument("--keyframes", type=Path, help="keyframe queries, JSON as manual-keyframes.json")
+    search.add_argument(
+        "--library", type=Path, help="rank by the motion template of --class from this library"
+    )
+    mode = search.add_mutually_exclusive_group()
+    mode.add_argument(
+        "--keyframes",
+        type=Path,
+        nargs="?",
+        const=LIBRARY_KEYFRAMES,
+        help="keyframe queries, JSON as manual-keyframes.json; with --library: pre-select by keyframes "
+        "before ranking (the library's own when no file is given)",
+    )
     mode.add_argument(
         "--example",
         nargs=4,
         metavar=("ASF", "AMC", "START", "END"),
         help="query by example: a recording and its AMC frames START..END",
     )
-    search.add_argument("--class", dest="class_name", help="with --keyframes: the class to search")
     search.add_argument(
-        "--extend", default="0,0", metavar="LEFT,RIGHT", help="with --keyframes: widen hits by index frames"
+        "--class", dest="class_name", help="with --keyframes or --library: the class to search"
+    )
+    search.add_argument(
+        "--tau", type=_positive_float, default=None, help="with --library: cost threshold (the class's)"
+    )
+    search.add_argument(
+        "--steps",
+        choices=STEPS,
+        default=None,
+        help="with --library: DTW steps, thesis (1,0),(0,1),(1,1) or toolbox (1,1),(1,2),(2,1) "
+        "(default: the class's)",
+    )
+    search.add_argument(
+        "--extend",
+        default=None,
+        metavar="LEFT,RIGHT",
+        help="with --keyframes: widen keyframe ranges by index frames (default 0,0; with --library: the "
+        "template's columns before the first and after the last keyframe, x 1.5)",
     )
     search.add_argument("--features", help="with --example: comma-separated feature names, all from one set")
     search.add_argument(
@@ -153,6 +223,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             return _index_build(args, config)
         if args.command == "index" and args.index_command == "info":
             return _index_info(args)
+        if args.command == "learn":
+            return _learn(args, config)
         if args.command == "search":
             return _search(args, config)
     except (
@@ -164,6 +236,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         IndexFormatError,
         IndexBuildError,
         KeyframeError,
+        LibraryFormatError,
     ) as exc:
         print(f"mocapd: {exc}", file=sys.stderr)
         return 2
@@ -308,6 +381,44 @@ def _index_build(args: argparse.Namespace, config: Config) -> int:
     return 0
 
 
+def _learn(args: argparse.Namespace, config: Config) -> int:
+    if not 0 <= args.delta < 0.5:
+        raise UsageError(f"--delta must lie in [0, 0.5), got {args.delta:g}")
+    if args.keyframes < 0:
+        raise UsageError(f"--keyframes must not be negative, got {args.keyframes}")
+    check_library_target(args.out)  # before the long part
+    if args.png is not None:
+        args.png.mkdir(parents=True, exist_ok=True)
+    began = time.perf_counter()
+
+    def progress(done: int, total: int, clip: TrainingClip) -> None:
+        print(f"[{done}/{total}] {clip.amc} ({clip.frames} frames)", file=sys.stderr, flush=True)
+
+    examples = read_examples(args.manifest, args.fps, progress, config.replay.frame_rate_hz)
+    classes = {}
+    for i, (name, items) in enumerate(examples.items(), start=1):
+        started = time.perf_counter()
+        cls = learn_class(name, items, args.delta, args.tau, args.keyframes, args.steps, args.fps)
+        classes[name] = cls
+        keyframes = 0 if cls.keyframes is None else len(cls.keyframes.keyframes)
+        print(
+            f"[class {i}/{len(examples)}] {name}: {len(items)} examples, soft MT {cls.soft.length} "
+            f"columns after {cls.iterations} iterations, hard MT {cls.hard.length} columns, "
+            f"{keyframes} keyframes ({time.perf_counter() - started:.1f} s)",
+            file=sys.stderr,
+            flush=True,
+        )
+        if args.png is not None:
+            columns = [] if cls.keyframes is None else [k.position for k in cls.keyframes.keyframes]
+            template_png(cls.soft.values, cls.hard.values, columns, args.png / f"{name}.png", name, args.fps)
+    save_library(Library(args.fps, classes), args.out)
+    print(f"library:    {args.out}")
+    print(f"classes:    {len(classes)} ({', '.join(classes)})")
+    print(f"examples:   {sum(len(c.training) for c in classes.values())} at {args.fps:g} Hz")
+    print(f"learn time: {time.perf_counter() - began:.1f} s")
+    return 0
+
+
 def _index_info(args: argparse.Namespace) -> int:
     index = load_index(args.index)
     sets = {}
@@ -352,21 +463,36 @@ def _index_info(args: argparse.Namespace) -> int:
 
 
 def _search(args: argparse.Namespace, config: Config) -> int:
-    keyframe_only = {"--class": args.class_name is not None, "--extend": args.extend != "0,0"}
-    example_only = {
+    mode = "--library" if args.library else "--keyframes" if args.keyframes else "--example"
+    if args.example is None and args.keyframes is None and args.library is None:
+        raise UsageError("give --library, --keyframes or --example")
+    given = {
+        "--class": args.class_name is not None,
+        "--extend": args.extend is not None,
         "--features": args.features is not None,
         "--fuzzy": args.fuzzy != 0,
         "--mismatch": args.mismatch is not None,
+        "--tau": args.tau is not None,
+        "--steps": args.steps is not None,
+        "--example": args.example is not None,
     }
-    wrong = [k for k, v in (example_only if args.keyframes else keyframe_only).items() if v]
+    allowed = {
+        "--library": {"--class", "--extend", "--tau", "--steps"},
+        "--keyframes": {"--class", "--extend"},
+        "--example": {"--features", "--fuzzy", "--mismatch", "--example"},
+    }[mode]
+    wrong = [k for k, v in given.items() if v and k not in allowed]
     if wrong:
-        mode = "--keyframes" if args.keyframes else "--example"
         raise UsageError(f"{', '.join(wrong)} cannot be used with {mode}")
+    if args.keyframes == LIBRARY_KEYFRAMES and args.library is None:
+        raise UsageError("--keyframes needs a keyframe file unless --library is given")
     if args.limit is not None and args.limit < 0:
         raise UsageError(f"--limit must not be negative, got {args.limit}")
     index = load_index(args.index)
     began = time.perf_counter()
-    if args.keyframes is not None:
+    if args.library is not None:
+        rows, summary = _search_library(args, index)
+    elif args.keyframes is not None:
         rows, summary = _search_keyframes(args, index)
     else:
         rows, summary = _search_example(args, config, index)
@@ -383,28 +509,78 @@ def _search(args: argparse.Namespace, config: Config) -> int:
     return 0
 
 
-def _search_keyframes(args: argparse.Namespace, index: MotionIndex) -> tuple[list[dict[str, object]], str]:
-    if args.class_name is None:
-        raise UsageError("--keyframes needs --class NAME")
+def _extension(args: argparse.Namespace) -> tuple[int, int] | None:
+    """--extend as (left, right); None when not given."""
+    if args.extend is None:
+        return None
     try:
         extend = tuple(int(x) for x in args.extend.split(","))
     except ValueError:
         extend = ()
     if len(extend) != 2 or min(extend) < 0:
         raise UsageError(f"--extend must be LEFT,RIGHT (two whole numbers >= 0), got '{args.extend}'")
+    return extend[0], extend[1]
+
+
+def _keyframe_query(path: Path, name: str) -> KeyframeQuery:
     try:
-        obj = json.loads(args.keyframes.read_text(encoding="utf-8"))
+        obj = json.loads(path.read_text(encoding="utf-8"))
     except json.JSONDecodeError as exc:
-        raise UsageError(f"{args.keyframes}:{exc.lineno}: not JSON: {exc.msg}") from None
-    queries = parse_keyframe_queries(obj, str(args.keyframes))
-    if args.class_name not in queries:
+        raise UsageError(f"{path}:{exc.lineno}: not JSON: {exc.msg}") from None
+    queries = parse_keyframe_queries(obj, str(path))
+    if name not in queries:
+        raise UsageError(f"{path}: no class '{name}' (has: {', '.join(sorted(queries))})")
+    return queries[name]
+
+
+def _search_library(args: argparse.Namespace, index: MotionIndex) -> tuple[list[dict[str, object]], str]:
+    if args.class_name is None:
+        raise UsageError("--library needs --class NAME")
+    library = load_library(args.library)
+    try:
+        cls = library.get(args.class_name)
+    except KeyError as exc:
+        raise UsageError(f"{args.library}: {exc.args[0]}") from None
+    if not math.isclose(library.rate, index.rate):
         raise UsageError(
-            f"{args.keyframes}: no class '{args.class_name}' (has: {', '.join(sorted(queries))})"
+            f"{args.library} was learned at {library.rate:g} Hz, {args.index} is indexed at {index.rate:g} Hz"
         )
-    query = queries[args.class_name]
+    query = None
+    if args.keyframes == LIBRARY_KEYFRAMES:
+        if cls.keyframes is None:
+            raise UsageError(f"{args.library}: class {cls.name} has no keyframes")
+        query = cls.keyframes
+    elif args.keyframes is not None:
+        query = _keyframe_query(args.keyframes, cls.name)
+    elif args.extend is not None:
+        raise UsageError("--extend needs --keyframes")
+    tau = cls.tau if args.tau is None else args.tau
+    steps = cls.steps if args.steps is None else args.steps
+    try:
+        hits = template_search(index, cls.quantised, tau, steps, query, _extension(args), args.limit)
+    except ValueError as exc:
+        raise UsageError(f"class {cls.name}: {exc}") from None
+    rows = [
+        {**_hit_row(index, d, s, e), "cost": round(c, 6)}
+        for d, s, e, c in zip(
+            hits.doc.tolist(), hits.start.tolist(), hits.end.tolist(), hits.cost.tolist(), strict=True
+        )
+    ]
+    summary = f"motion template of {cls.name} ({cls.quantised.length} columns, tau {tau:g}, {steps} steps"
+    if hits.keyframes is not None:
+        share = 100 * hits.searched / max(index.n_frames, 1)
+        summary += f"; keyframes kept {len(hits.keyframes)} ranges, {share:.2f} % of the database"
+    return rows, summary + "), ranked by cost"
+
+
+def _search_keyframes(args: argparse.Namespace, index: MotionIndex) -> tuple[list[dict[str, object]], str]:
+    if args.class_name is None:
+        raise UsageError("--keyframes needs --class NAME")
+    extend = _extension(args) or (0, 0)
+    query = _keyframe_query(args.keyframes, args.class_name)
     frames = [d.frames for d in index.documents]
     try:
-        hits = keyframe_search(index.sets, frames, query, index.rate, (extend[0], extend[1]))
+        hits = keyframe_search(index.sets, frames, query, index.rate, extend)
     except ValueError as exc:
         raise UsageError(f"{args.keyframes}: class {args.class_name}: {exc}") from None
     rows = [

@@ -20,6 +20,7 @@ O(M) in the stream.
 from __future__ import annotations
 
 import math
+from collections import deque
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from typing import Literal
@@ -320,8 +321,10 @@ def _subsequence_rows(
 def subsequence_fixed(rows: Iterable[IntArray], steps: Steps = "thesis") -> tuple[IntArray, IntArray]:
     """Δ and starts in fixed point from the template's cost rows (fixed point, each ``(N,)``), one row
     at a time, so the rows may be computed lazily: memory O(N)."""
-    *_, last = _subsequence_rows(rows, check_steps(steps))
-    return last
+    last = deque(_subsequence_rows(rows, check_steps(steps)), maxlen=1)  # earlier rows are dropped
+    if not last:
+        raise ValueError("a template needs at least one column")
+    return last[0]
 
 
 def subsequence_dtw(cost: FloatArray, steps: Steps = "thesis") -> Subsequence:

@@ -3,7 +3,9 @@ extra: ``pip install 'mocapd[plot]'``)."""
 
 from __future__ import annotations
 
+from collections.abc import Mapping, Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -15,12 +17,7 @@ class PlotUnavailable(RuntimeError):
     """matplotlib is not installed."""
 
 
-def feature_matrix_png(
-    matrix: BoolArray, frames: npt.NDArray[np.int64], path: str | Path, title: str, frame_rate: float
-) -> None:
-    """Draw a feature matrix shape ``(N, 39)`` as in the thesis' figures: features top to bottom,
-    time left to right, black = 1, the lower, upper and mix sets in separate panels. ``frames`` shape
-    ``(N,)`` labels the samples (AMC frame numbers); ``frame_rate`` is the samples' rate."""
+def _pyplot() -> Any:
     try:
         import matplotlib
 
@@ -28,6 +25,16 @@ def feature_matrix_png(
         import matplotlib.pyplot as plt
     except ImportError:
         raise PlotUnavailable("writing PNG needs matplotlib: pip install 'mocapd[plot]'") from None
+    return plt
+
+
+def feature_matrix_png(
+    matrix: BoolArray, frames: npt.NDArray[np.int64], path: str | Path, title: str, frame_rate: float
+) -> None:
+    """Draw a feature matrix shape ``(N, 39)`` as in the thesis' figures: features top to bottom,
+    time left to right, black = 1, the lower, upper and mix sets in separate panels. ``frames`` shape
+    ``(N,)`` labels the samples (AMC frame numbers); ``frame_rate`` is the samples' rate."""
+    plt = _pyplot()
     m = np.asarray(matrix, dtype=bool)
     n = m.shape[0]
     heights = [s.stop - s.start for s in SET_SLICES.values()]
@@ -55,6 +62,64 @@ def feature_matrix_png(
         else "time in s"
     )
     axes[0].set_title(title, fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def template_png(
+    soft: npt.NDArray[np.float64],
+    hard: npt.NDArray[np.float64],
+    keyframe_columns: Sequence[int],
+    path: str | Path,
+    title: str,
+    frame_rate: float,
+) -> None:
+    """Draw a class's soft MT ``(39, K)`` (white = 1, black = 0, grey between) above its hard MT
+    ``(39, K')`` (grey = ½), as in thesis Fig. 3.10; ``keyframe_columns`` (hard MT columns) are
+    marked by vertical lines as in Fig. 6.1."""
+    plt = _pyplot()
+    fig, axes = plt.subplots(2, 1, figsize=(max(8.0, soft.shape[1] / 8), 12.0))
+    for ax, (name, values) in zip(axes, (("soft MT", soft), ("hard MT", hard)), strict=True):
+        k = values.shape[1]
+        ax.imshow(
+            values,
+            aspect="auto",
+            interpolation="nearest",
+            cmap="gray",
+            vmin=0,
+            vmax=1,
+            extent=(-0.5, k - 0.5, values.shape[0] - 0.5, -0.5),
+        )
+        for part in list(SET_SLICES.values())[1:]:
+            ax.axhline(part.start - 0.5, color="tab:red", linewidth=0.8)
+        ax.set_yticks(range(values.shape[0]))
+        ax.set_yticklabels([f"{i + 1} {n}" for i, n in enumerate(FEATURE_NAMES)], fontsize=5)
+        ax.set_xlabel(f"column ({k} at {frame_rate:g} Hz)")
+        ax.set_title(f"{title}: {name}", fontsize=9)
+    for c in keyframe_columns:
+        axes[1].axvline(c, color="tab:green", linewidth=1.5)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def precision_recall_png(
+    curves: Mapping[str, Sequence[tuple[float, float]]], taus: Sequence[float], path: str | Path
+) -> None:
+    """Precision (y) against recall (x) per class, one point per threshold τ of ``taus``
+    (``curves[class]`` = [(precision, recall), ...] in the order of ``taus``)."""
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(8.0, 6.0))
+    for name, points in curves.items():
+        precision = [p for p, _ in points]
+        recall = [r for _, r in points]
+        ax.plot(recall, precision, marker="o", label=name)
+    ax.set_xlabel(f"recall (τ = {', '.join(f'{t:g}' for t in taus)})")
+    ax.set_ylabel("precision")
+    ax.set_xlim(0, 1.02)
+    ax.set_ylim(0, 1.02)
+    ax.legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)

@@ -1,0 +1,301 @@
+"""Template libraries and ranked retrieval on real HDM05 clips: the training manifest (errors name file
+and line), frame ranges cut from whole-clip features, the library format round trip and its errors
+(naming file and field), and template search equal to a per-document subsequence DTW read off the
+cost matrix, with and without keyframe pre-selection."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import numpy.typing as npt
+import pytest
+
+from daemon.dtw import local_minima, pack, retrieval_cost, subsequence_dtw, suppress
+from daemon.index_store import ManifestError, ManifestRow, MotionIndex, index_from_matrices, read_document
+from daemon.keyframes import KeyframeQuery, parse_keyframe_queries
+from daemon.library import (
+    ClassTemplate,
+    Library,
+    LibraryFormatError,
+    learn_class,
+    load_library,
+    read_examples,
+    read_training_manifest,
+    save_library,
+)
+from daemon.retrieval import TemplateHits, frame_codes, template_search
+from daemon.templates import expand
+from tests.conftest import DATA, SHARED
+
+ASF = DATA / "hdm05" / "asf"
+KEYFRAMES = SHARED / "reference" / "manual-keyframes.json"
+CUT = DATA / "hdm05" / "cut"
+TRAIN = [("hopBothLegs1hops", "bd", t) for t in (1, 2, 3)] + [("squat1Reps", "bd", t) for t in (1, 2)]
+DATABASE = [
+    ("hopBothLegs1hops", "dg", 22),
+    ("squat1Reps", "dg", 25),
+    ("squat1Reps", "dg", 26),
+    ("kickLFront1Reps", "dg", 13),
+    ("depositFloorR", "dg", 13),
+]
+
+
+def amc(motion_class: str, actor: str, take: int) -> Path:
+    return CUT / motion_class / f"HDM_{actor}_{motion_class}_{take:03d}_120.amc.gz"
+
+
+def write_training(path: Path, rows: list[str], header: str = "class,asf,amc,start_frame,end_frame") -> Path:
+    path.write_text("\n".join([header, *rows]) + "\n", encoding="utf-8")
+    return path
+
+
+def training_rows(items: list[tuple[str, str, int]]) -> list[str]:
+    return [f"{c},{ASF / f'HDM_{a}.asf'},{amc(c, a, t)},," for c, a, t in items]
+
+
+@pytest.fixture(scope="module")
+def library(tmp_path_factory: pytest.TempPathFactory) -> Library:
+    where = tmp_path_factory.mktemp("lib")
+    examples = read_examples(write_training(where / "clips.csv", training_rows(TRAIN)))
+    classes = {name: learn_class(name, items) for name, items in examples.items()}
+    return Library(30.0, classes)
+
+
+@pytest.fixture(scope="module")
+def database() -> tuple[MotionIndex, list[npt.NDArray[np.bool_]]]:
+    docs, matrices = [], []
+    for c, a, t in DATABASE:
+        row = ManifestRow(0, "asf", str(amc(c, a, t)), ASF / f"HDM_{a}.asf", amc(c, a, t))
+        document, matrix = read_document(row)
+        docs.append(document)
+        matrices.append(matrix)
+    return index_from_matrices(matrices, docs, 30.0), matrices
+
+
+# ----------------------------------------------------------------------------------- training data
+
+
+def test_manifest_classes_and_ranges(tmp_path: Path) -> None:
+    hop = amc("hopBothLegs1hops", "bd", 1)
+    rows = [f"hop,{ASF / 'HDM_bd.asf'},{hop},,", f"hop.part,{ASF / 'HDM_bd.asf'},{hop},5,40"]
+    items = read_training_manifest(write_training(tmp_path / "m.csv", rows))
+    assert [(i.name, i.start_frame, i.end_frame) for i in items] == [("hop", None, None), ("hop.part", 5, 40)]
+    examples = read_examples(tmp_path / "m.csv")
+    (whole_clip, whole), (part_clip, part) = examples["hop"][0], examples["hop.part"][0]
+    # features over the whole recording, then the samples (AMC frames 1, 5, 9, ...) inside 5..40
+    assert (part_clip.start_frame, part_clip.end_frame) == (5, 40)
+    assert part_clip.frames == len(range(5, 41, 4)) == part.shape[0]
+    np.testing.assert_array_equal(part, whole[1:10])
+    assert whole_clip.frames == whole.shape[0]
+
+
+@pytest.mark.parametrize(
+    ("row", "message"),
+    [
+        ("bad/name,{asf},{amc},,", "class 'bad/name'"),
+        ("hop,{asf},{amc},5,", "give both start_frame and end_frame"),
+        ("hop,{asf},{amc},x,9", "start_frame 'x' is not an integer"),
+        ("hop,{asf},{amc},9,5", "start_frame 9 is after end_frame 5"),
+        ("hop,{asf},{amc},1,100000", "outside the recording's"),
+        ("hop,{asf},{amc},2,4", "hold no sample at 30 Hz"),
+    ],
+)
+def test_manifest_errors_name_file_and_line(tmp_path: Path, row: str, message: str) -> None:
+    hop = amc("hopBothLegs1hops", "bd", 1)
+    good = f"hop,{ASF / 'HDM_bd.asf'},{hop},,"
+    path = write_training(tmp_path / "m.csv", [good, row.format(asf=ASF / "HDM_bd.asf", amc=hop)])
+    with pytest.raises(ManifestError) as err:
+        read_examples(path)
+    assert str(err.value).startswith(f"{path}:3: ") and message in str(err.value)
+
+
+def test_manifest_needs_a_class_column(tmp_path: Path) -> None:
+    path = write_training(
+        tmp_path / "m.csv", [f"{ASF / 'HDM_bd.asf'},{amc('squat1Reps', 'bd', 1)}"], "asf,amc"
+    )
+    with pytest.raises(ManifestError, match=r":1: header lacks the column 'class'"):
+        read_training_manifest(path)
+
+
+# ------------------------------------------------------------------------------------------ format
+
+
+def assert_same_class(a: ClassTemplate, b: ClassTemplate) -> None:
+    for kind in ("soft", "quantised", "hard"):
+        np.testing.assert_array_equal(getattr(a, kind).values, getattr(b, kind).values)
+        np.testing.assert_array_equal(getattr(a, kind).weights, getattr(b, kind).weights)
+    assert (a.name, a.tau, a.delta, a.steps, a.iterations, a.training) == (
+        b.name,
+        b.tau,
+        b.delta,
+        b.steps,
+        b.iterations,
+        b.training,
+    )
+    assert a.keyframes == b.keyframes
+
+
+def test_library_round_trip(library: Library, tmp_path: Path) -> None:
+    save_library(library, tmp_path / "lib")
+    loaded = load_library(tmp_path / "lib")
+    assert loaded.rate == library.rate and list(loaded.classes) == list(library.classes)
+    for name in library.classes:
+        assert_same_class(library.classes[name], loaded.classes[name])
+    save_library(loaded, tmp_path / "lib")  # an existing library is replaced
+    assert sorted(p.name for p in (tmp_path / "lib").iterdir()) == [
+        "hopBothLegs1hops.npz",
+        "library.json",
+        "squat1Reps.npz",
+    ]
+    with pytest.raises(KeyError, match=r"no class 'walk' .* \(it has hopBothLegs1hops, squat1Reps\)"):
+        loaded.get("walk")
+
+
+def test_library_keeps_keyframes_and_provenance(library: Library) -> None:
+    hop = library.classes["hopBothLegs1hops"]
+    assert isinstance(hop.keyframes, KeyframeQuery) and len(hop.keyframes.keyframes) == 3
+    assert [c.amc for c in hop.training] == [str(amc("hopBothLegs1hops", "bd", t)) for t in (1, 2, 3)]
+    assert hop.quantised.length == hop.soft.length
+    assert set(np.unique(hop.quantised.values)) <= {0.0, 0.5, 1.0}
+
+
+def test_library_not_written_over_other_files(library: Library, tmp_path: Path) -> None:
+    (tmp_path / "lib").mkdir()
+    (tmp_path / "lib" / "notes.txt").write_text("mine")
+    with pytest.raises(FileExistsError):
+        save_library(library, tmp_path / "lib")
+    assert (tmp_path / "lib" / "notes.txt").read_text() == "mine"
+
+
+def edit_json(lib: Path, change: dict[str, object]) -> None:
+    meta = json.loads((lib / "library.json").read_text())
+    for path, value in change.items():
+        *parents, key = path.split("/")
+        node = meta
+        for p in parents:
+            node = node[p]
+        node[key] = value
+    (lib / "library.json").write_text(json.dumps(meta))
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        ({"version": 2}, "library.json: version: this mocapd reads version 1, got 2"),
+        ({"format": "x"}, "library.json: format: expected 'mocapd-templates'"),
+        ({"features": ["a"]}, "library.json: features: not the 39 features"),
+        ({"classes/squat1Reps/tau": -1}, "classes.squat1Reps.tau: expected a positive number"),
+        ({"classes/squat1Reps/steps": "x"}, "classes.squat1Reps.steps: expected one of thesis, toolbox"),
+        ({"classes/squat1Reps/file": "x.npz"}, "classes.squat1Reps.file: expected 'squat1Reps.npz'"),
+        ({"classes/squat1Reps/training": [{"asf": "a"}]}, "classes.squat1Reps.training[0]: missing"),
+        (
+            {"classes/squat1Reps/keyframes": [{"set": "arms"}]},
+            "classes.squat1Reps.keyframes: classes.squat1Reps[0].set: must be one of lower",
+        ),
+    ],
+)
+def test_library_json_errors_name_field(
+    library: Library, tmp_path: Path, change: dict[str, object], message: str
+) -> None:
+    save_library(library, tmp_path / "lib")
+    edit_json(tmp_path / "lib", change)
+    with pytest.raises(LibraryFormatError) as err:
+        load_library(tmp_path / "lib")
+    assert str(err.value).startswith(str(tmp_path / "lib" / "library.json")) and message in str(err.value)
+
+
+def test_library_array_errors_name_file(library: Library, tmp_path: Path) -> None:
+    lib = tmp_path / "lib"
+    save_library(library, lib)
+    shutil.copy(lib / "squat1Reps.npz", tmp_path / "good.npz")
+    with np.load(tmp_path / "good.npz") as npz:
+        arrays = dict(npz)
+    np.savez(lib / "squat1Reps.npz", **{**arrays, "hard": arrays["hard"] * 0.3})
+    with pytest.raises(LibraryFormatError, match=r"squat1Reps\.npz: hard: values must be 0, 0\.5 or 1"):
+        load_library(lib)
+    np.savez(lib / "squat1Reps.npz", **{k: v for k, v in arrays.items() if k != "soft_weights"})
+    with pytest.raises(LibraryFormatError, match=r"squat1Reps\.npz: missing arrays soft_weights"):
+        load_library(lib)
+    (lib / "squat1Reps.npz").unlink()
+    with pytest.raises(LibraryFormatError, match=r"squat1Reps\.npz: missing"):
+        load_library(lib)
+    with pytest.raises(LibraryFormatError, match="not a mocapd template library"):
+        load_library(tmp_path)
+
+
+# --------------------------------------------------------------------------------------- retrieval
+
+
+def test_frame_codes_are_the_packed_features(
+    database: tuple[MotionIndex, list[npt.NDArray[np.bool_]]],
+) -> None:
+    index, matrices = database
+    np.testing.assert_array_equal(frame_codes(index), pack(np.concatenate(matrices)))
+
+
+def brute_force(
+    cls: ClassTemplate, matrices: list[npt.NDArray[np.bool_]], tau: float, ranges: list[tuple[int, int, int]]
+) -> list[tuple[float, int, int, int]]:
+    """Each range searched on its own from the float cost matrix, hits suppressed per range."""
+    t = expand(cls.quantised)
+    out = []
+    for d, s, e in ranges:
+        frames = matrices[d][s : e + 1].T.astype(np.float64)
+        sub = subsequence_dtw(retrieval_cost(t.values, t.weights, frames))
+        for m in suppress(local_minima(sub.delta, sub.start, tau)):
+            out.append((m.cost, d, s + m.start, s + m.end))
+    return sorted(out)
+
+
+def rows(hits: TemplateHits) -> list[tuple[float, int, int, int]]:
+    return list(
+        zip(hits.cost.tolist(), hits.doc.tolist(), hits.start.tolist(), hits.end.tolist(), strict=True)
+    )
+
+
+@pytest.mark.parametrize("name", ["hopBothLegs1hops", "squat1Reps"])
+def test_template_search_equals_per_document_dtw(
+    library: Library, database: tuple[MotionIndex, list[npt.NDArray[np.bool_]]], name: str
+) -> None:
+    index, matrices = database
+    cls = library.classes[name]
+    hits = template_search(index, cls.quantised, 0.3)
+    got = list(
+        zip(hits.cost.tolist(), hits.doc.tolist(), hits.start.tolist(), hits.end.tolist(), strict=True)
+    )
+    whole = [(d, 0, m.shape[0] - 1) for d, m in enumerate(matrices)]
+    assert got == brute_force(cls, matrices, 0.3, whole)
+    assert hits.searched == index.n_frames and hits.keyframes is None
+    limited = template_search(index, cls.quantised, 0.3, limit=2)
+    assert len(limited) == min(2, len(hits)) and limited.cost.tolist() == hits.cost[:2].tolist()
+    # the class's own clips are found at the thesis' threshold
+    relevant = {d for d, (c, _, _) in enumerate(DATABASE) if c == name}
+    assert relevant <= set(hits.doc[hits.cost <= 0.1].tolist())
+
+
+def test_template_search_inside_keyframe_ranges(
+    library: Library, database: tuple[MotionIndex, list[npt.NDArray[np.bool_]]]
+) -> None:
+    index, matrices = database
+    cls = library.classes["squat1Reps"]
+    published = parse_keyframe_queries(json.loads(KEYFRAMES.read_text()), "k")["squat1Reps"]
+    hits = template_search(index, cls.quantised, 0.3, keyframes=published, extend=(3, 5))
+    assert hits.keyframes is not None and len(hits.keyframes) > 0
+    ranges = list(
+        zip(
+            hits.keyframes.doc.tolist(),
+            hits.keyframes.start.tolist(),
+            hits.keyframes.end.tolist(),
+            strict=True,
+        )
+    )
+    got = list(
+        zip(hits.cost.tolist(), hits.doc.tolist(), hits.start.tolist(), hits.end.tolist(), strict=True)
+    )
+    assert got == brute_force(cls, matrices, 0.3, ranges)
+    assert hits.searched == sum(e - s + 1 for _, s, e in ranges) < index.n_frames
+    for _, d, s, e in got:
+        assert any(d == rd and rs <= s <= e <= re for rd, rs, re in ranges)
