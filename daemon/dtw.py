@@ -43,9 +43,31 @@ def fixed(cost: npt.ArrayLike) -> IntArray:
     """Costs (any shape) in fixed point: ``round(c * 2^24)``; ``inf``/NaN become :data:`INF`."""
     c = np.asarray(cost, dtype=np.float64)
     finite = np.isfinite(c)
-    if np.any(c[finite] < 0) or np.any(c[finite] > MAX_COST):
+    if np.any(c[~np.isnan(c)] < 0) or np.any(c[finite] > MAX_COST):
         raise ValueError(f"DTW cell costs must lie in [0, {MAX_COST:g}] (or be inf to block a cell)")
     return np.where(finite, np.rint(np.where(finite, c, 0.0) * SCALE), INF).astype(np.int64)
+
+
+def threshold(tau: float) -> int:
+    """A cost threshold (any τ >= 0, inf included) in fixed point; never admits an unreachable cell."""
+    if not tau >= 0:
+        raise ValueError(f"a cost threshold must be >= 0, got {tau!r}")
+    return INF - 1 if tau * SCALE >= INF else round(tau * SCALE)
+
+
+def _scan(f: IntArray, step: IntArray) -> IntArray:
+    """``D(j) = min(f(j), D(j-1) + step(j))`` (clamped at :data:`INF`) as a min-plus prefix scan,
+    ``D(j) = cum(j) + min_{k<=j} (f(k) - cum(k))``: exact in integers. A run holding too many
+    blocked steps for int64 is split at a blocked step, where every chain breaks anyway."""
+    blocked = np.flatnonzero(step >= INF)
+    if len(blocked) < 1 << 15:
+        cum = np.cumsum(step)
+        return np.minimum(cum + np.minimum.accumulate(f - cum), INF)
+    cut = int(blocked[len(blocked) // 2])
+    head = _scan(f[:cut], step[:cut])
+    tail_f = f[cut:].copy()
+    tail_f[0] = min(int(tail_f[0]), INF)  # the chain from the head ends at the blocked step
+    return np.concatenate([head, _scan(tail_f, np.concatenate([[0], step[cut + 1 :]]))])
 
 
 def to_cost(d: IntArray | int) -> FloatArray:
@@ -157,7 +179,9 @@ def accumulated(cost: IntArray) -> IntArray:
     (0,1), (1,1), D(0,0) = C(0,0), first row and column accumulated."""
     m, n = cost.shape
     out = np.empty((m, n), dtype=np.int64)
-    out[0] = np.minimum(np.cumsum(cost[0]), INF)
+    first = np.full(n, INF, dtype=np.int64)
+    first[0] = cost[0, 0]
+    out[0] = _scan(first, np.concatenate([[0], cost[0, 1:]]))
     for i in range(1, m):
         out[i] = _thesis_row(out[i - 1], np.zeros(n, dtype=np.int64), cost[i], seeds=0)[0]
     return out
@@ -214,8 +238,7 @@ def _thesis_row(
     if seeds:
         f[:seeds] = c[:seeds]
         step[:seeds] = 0
-    cum = np.cumsum(step)
-    row = np.minimum(cum + np.minimum.accumulate(f - cum), INF)
+    row = _scan(f, step)
     left = np.full(n, INF, dtype=np.int64)
     left[1:] = np.minimum(row[:-1] + c[1:], INF)
     from_diag = e_diag == row
@@ -412,7 +435,7 @@ class SubsequenceStream:
             raise ValueError("a template needs at least one column")
         self.m = m
         self.steps = check_steps(steps)
-        self.tau = int(fixed(tau))
+        self.tau = threshold(tau)
         self._t = 0
         self._cols: list[tuple[IntArray, IntArray]] = []
         self._cand: tuple[int, int, int] | None = None
@@ -422,7 +445,8 @@ class SubsequenceStream:
         if c.shape != (self.m,):
             raise ValueError(f"expected {self.m} template costs, got shape {c.shape}")
         d, s = self._column(c)
-        self._cols = [*self._cols[-1:], (d, s)]
+        # the live columns: paths continue from the last one (thesis) or the last two (toolbox)
+        self._cols = [*(self._cols[-1:] if self.steps == "toolbox" else []), (d, s)]
         out = None
         if self._cand is not None:
             dmin, ts, te = self._cand
@@ -459,8 +483,7 @@ class SubsequenceStream:
             f[0] = c[0]
             step = c.copy()
             step[0] = 0
-            cum = np.cumsum(step)
-            d = np.minimum(cum + np.minimum.accumulate(f - cum), INF)
+            d = _scan(f, step)
             from_diag = e_diag == d
             from_left = ~from_diag & (e_left == d)
             src = np.where(from_diag, np.concatenate([[_NO_START], p1s[:-1]]), p1s)
@@ -490,7 +513,7 @@ def disjoint_matches(cost: FloatArray, tau: float, steps: Steps = "thesis") -> l
     c = fixed(cost)
     steps = check_steps(steps)
     width = 1 if steps == "thesis" else 2
-    tau_f = int(fixed(tau))
+    tau_f = threshold(tau)
     n = c.shape[1]
 
     def matrices(first: int, seed: tuple[IntArray, IntArray] | None) -> tuple[IntArray, IntArray]:

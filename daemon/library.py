@@ -35,7 +35,7 @@ from daemon.features import FEATURE_NAMES, BoolArray
 from daemon.index_store import DEFAULT_NATIVE_RATE, ManifestError, ManifestRow, read_document, read_manifest
 from daemon.keyframes import KeyframeError, KeyframeQuery, parse_keyframe_queries
 from daemon.storage import JsonChecker, check_target, replace_directory, write_json
-from daemon.templates import MotionTemplate, automatic_keyframes, learn_hard, learn_soft, quantise
+from daemon.templates import MotionTemplate, learn
 
 FORMAT = "mocapd-templates"
 VERSION = 1
@@ -187,20 +187,17 @@ def learn_class(
     toolbox's (1,1), (1,2), (2,1) by default, whose slopes between ½ and 2 keep a template from
     matching a much shorter or longer stretch (README: on HDM05 they raise precision at τ = 0.1 from
     0.09-0.6 to 0.3-1 on the weakest classes at the same recall)."""
-    matrices = [m for _, m in examples]
-    soft = learn_soft(matrices)
-    hard = learn_hard(matrices)
-    query = automatic_keyframes(hard.template, matrices, keyframes, name, rate) if keyframes else None
+    learned = learn([m for _, m in examples], delta, keyframes, name, rate)
     return ClassTemplate(
         name,
-        soft.template,
-        quantise(soft.template, delta),
-        hard.template,
-        query,
+        learned.soft.template,
+        learned.quantised,
+        learned.hard.template,
+        learned.keyframes,
         tau,
         delta,
         steps,
-        soft.iterations,
+        learned.soft.iterations,
         tuple(clip for clip, _ in examples),
     )
 

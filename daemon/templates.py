@@ -499,12 +499,12 @@ def _check_feature_count(t: MotionTemplate) -> None:
 @dataclass(frozen=True)
 class LearnedClass:
     """Everything learned for one motion class: the soft MT, its quantisation (``quantised``), the
-    hard MT and the automatic keyframe query."""
+    hard MT and the automatic keyframe query (None when none were asked for)."""
 
     soft: LearnedTemplate
     quantised: MotionTemplate
     hard: LearnedTemplate
-    keyframes: KeyframeQuery
+    keyframes: KeyframeQuery | None
 
 
 def learn(
@@ -518,9 +518,9 @@ def learn(
     hard_iterations: int = 20,
 ) -> LearnedClass:
     """Soft MT (:func:`learn_soft`), its :func:`quantise` by ``delta``, hard MT (:func:`learn_hard`)
-    and :func:`automatic_keyframes` (``keyframes`` of them) from ``(N, 39)`` boolean matrices at
-    ``rate`` Hz."""
+    and :func:`automatic_keyframes` (``keyframes`` of them; 0 = none) from ``(N, 39)`` boolean
+    matrices at ``rate`` Hz."""
     soft = learn_soft(examples, soft_iterations, tolerance)
     hard = learn_hard(examples, hard_iterations)
-    query = automatic_keyframes(hard.template, examples, keyframes, name, rate)
+    query = automatic_keyframes(hard.template, examples, keyframes, name, rate) if keyframes else None
     return LearnedClass(soft, quantise(soft.template, delta), hard, query)

@@ -174,6 +174,7 @@ def test_soft_mts_of_real_classes(learned: dict[str, LearnedClass]) -> None:
         last = soft.max_costs[-1]
         assert last <= 0.005 or (soft.iterations > 1 and last == soft.max_costs[-2])
         assert soft.max_costs[0] > 0.005  # the clips differ
+        assert c.keyframes is not None
         assert c.keyframes.name == name and c.keyframes.template_length == c.hard.template.length
         q = c.quantised
         assert set(np.unique(q.values).tolist()) <= {0.0, 0.5, 1.0}

@@ -1,0 +1,695 @@
+"""daemon/dtw.py against slow, cell-by-cell readings of its docstrings in fixed point: full DTW and its
+warping path (thesis Alg. 3.1/3.2, Def. 3.1), subsequence DTW with starts for both step kinds, local
+minima, the toolbox's non-maximum suppression, SPRING's disjoint matches (stream and batch twin) and
+the cost functions of thesis eq. (3.2)/(3.3).
+
+The references work on the integer matrix ``dtw.fixed(C)`` with plain Python loops and clamp every sum
+at ``INF`` (unreachable), so they must agree with the vectorised module bit for bit, ties included."""
+
+from __future__ import annotations
+
+from itertools import pairwise
+
+import numpy as np
+import numpy.typing as npt
+import pytest
+from hypothesis import Phase, given, settings
+from hypothesis import strategies as st
+
+from daemon import dtw
+from daemon.dtw import INF, SCALE, Match, Steps
+
+FloatArray = npt.NDArray[np.float64]
+Grid = list[list[int]]
+Column = tuple[list[int], list[int]]  # (D, start) of one database column, template rows 0..M-1
+Path = list[tuple[int, int]]
+Order = tuple[int, int, int]
+TIE_ORDER: Order = (0, 1, 2)  # diagonal, database, template step; toolbox: (1,1), (1,2), (2,1)
+
+SETTINGS = settings(max_examples=300, deadline=None)
+
+# ---------------------------------------------------------------------------------- references
+
+
+def grid(cost: FloatArray) -> Grid:
+    """The fixed-point cost matrix as plain Python ints."""
+    return [[int(v) for v in row] for row in dtw.fixed(cost)]
+
+
+def as_cost(d: int) -> float:
+    """A fixed-point accumulated cost as the module reports it."""
+    return float("inf") if d >= INF else d / SCALE
+
+
+def pick(options: list[tuple[int, int, int]], c: int) -> tuple[int, int]:
+    """(D, start) of a cell of fixed cost ``c`` from its predecessors ``(D, start, weight)`` listed in tie
+    order: the first smallest D wins, then its weight multiplies ``c``. No predecessor, or only
+    unreachable ones: unreachable (INF, start -1)."""
+    best: tuple[int, int, int] | None = None
+    for option in options:
+        if best is None or option[0] < best[0]:
+            best = option
+    if best is None or best[0] >= INF:
+        return INF, -1
+    d = min(best[0] + best[2] * c, INF)
+    return d, (best[1] if d < INF else -1)
+
+
+def ref_full(c: Grid) -> tuple[Grid, Path]:
+    """Alg. 3.1 (D(0,0) = C(0,0), first row and column accumulated) and Alg. 3.2's backtracking."""
+    m, n = len(c), len(c[0])
+    d = [[0] * n for _ in range(m)]
+    for i in range(m):
+        for j in range(n):
+            if i == 0 and j == 0:
+                d[i][j] = c[0][0]
+            elif i == 0:
+                d[i][j] = min(d[i][j - 1] + c[i][j], INF)
+            elif j == 0:
+                d[i][j] = min(d[i - 1][j] + c[i][j], INF)
+            else:
+                d[i][j] = min(c[i][j] + min(d[i - 1][j - 1], d[i][j - 1], d[i - 1][j]), INF)
+    i, j = m - 1, n - 1
+    path = [(i, j)]
+    while (i, j) != (0, 0):
+        if i == 0:
+            j -= 1
+        elif j == 0:
+            i -= 1
+        else:
+            best = (i - 1, j - 1)  # diagonal, then database step (i, j-1), then template step (i-1, j)
+            for a, b in ((i, j - 1), (i - 1, j)):
+                if d[a][b] < d[best[0]][best[1]]:
+                    best = (a, b)
+            i, j = best
+        path.append((i, j))
+    return d, path[::-1]
+
+
+def predecessors(steps: str, i: int, j: int, order: Order = TIE_ORDER) -> list[tuple[int, int, int]]:
+    """Predecessor cells (row, column, weight) of cell (i, j) in tie order (``order`` permutes it, to
+    show that the tests see a wrong one)."""
+    if steps == "thesis":
+        cells = [(i - 1, j - 1, 1), (i, j - 1, 1), (i - 1, j, 1)]
+    else:
+        cells = [(i - 1, j - 1, 1), (i - 1, j - 2, 1), (i - 2, j - 1, 2)]
+    return [cells[k] for k in order]
+
+
+def ref_subsequence(c: Grid, steps: str, order: Order = TIE_ORDER) -> tuple[Grid, Grid]:
+    """Subsequence DTW: D(0, j) = C(0, j) starting at j (free start), rows i >= 1 by the recursion, the
+    start carried from the chosen predecessor; predecessors outside the matrix are skipped."""
+    m, n = len(c), len(c[0])
+    d = [[INF] * n for _ in range(m)]
+    s = [[-1] * n for _ in range(m)]
+    for j in range(n):
+        d[0][j], s[0][j] = c[0][j], (j if c[0][j] < INF else -1)
+    for i in range(1, m):
+        for j in range(n):
+            inside = [(a, b, w) for a, b, w in predecessors(steps, i, j, order) if a >= 0 and b >= 0]
+            options = [(d[a][b], s[a][b], w) for a, b, w in inside]
+            d[i][j], s[i][j] = pick(options, c[i][j])
+    return d, s
+
+
+def ref_column(c: list[int], t: int, kept: list[Column], steps: str, order: Order = TIE_ORDER) -> Column:
+    """Column ``t`` of the subsequence recursion from the kept columns (``kept[-1]`` is column t-1,
+    ``kept[-2]`` column t-2); a missing column is skipped like a cell outside the matrix."""
+    m = len(c)
+    d, s = [INF] * m, [-1] * m
+    d[0], s[0] = c[0], (t if c[0] < INF else -1)
+    by_offset = {1: kept[-1] if kept else None, 2: kept[-2] if len(kept) > 1 else None}
+    for i in range(1, m):
+        options = []
+        for a, b, w in predecessors(steps, i, t, order):
+            if a < 0:
+                continue
+            if b == t:  # the template step inside this column
+                options.append((d[a], s[a], w))
+            elif (col := by_offset[t - b]) is not None:
+                options.append((col[0][a], col[1][a], w))
+        d[i], s[i] = pick(options, c[i])
+    return d, s
+
+
+def ref_spring(cost: FloatArray, tau: float, steps: str, order: Order = TIE_ORDER) -> list[Match]:
+    """SPRING's disjoint-match rule, frame by frame: after column t, report the candidate once every
+    live cell (kept columns) costs at least as much or starts after it ends, and drop the live paths
+    starting at or before its end; then column t's last cell becomes the candidate if it is at or below
+    tau and better than the pending one. A candidate pending at the end is reported."""
+    c = grid(cost)
+    m, n = len(c), len(c[0])
+    width = 1 if steps == "thesis" else 2
+    tau_fixed = int(dtw.fixed(tau))
+    kept: list[Column] = []
+    cand: tuple[int, int, int] | None = None  # (D, start, end)
+    out: list[Match] = []
+    for t in range(n):
+        column = ref_column([c[i][t] for i in range(m)], t, kept, steps, order)
+        kept = [*kept, column][-width:]
+        if cand is not None:
+            dmin, ts, te = cand
+            if all(dd >= dmin or ss > te for d, s in kept for dd, ss in zip(d, s, strict=True)):
+                out.append(Match(ts, te, as_cost(dmin)))
+                cand = None
+                kept = [
+                    (
+                        [INF if ss <= te else dd for dd, ss in zip(d, s, strict=True)],
+                        [-1 if ss <= te else ss for ss in s],
+                    )
+                    for d, s in kept
+                ]
+        last_d, last_s = kept[-1][0][-1], kept[-1][1][-1]
+        if last_d <= tau_fixed and (cand is None or last_d < cand[0]):
+            cand = (last_d, last_s, t)
+    if cand is not None:
+        out.append(Match(cand[1], cand[2], as_cost(cand[0])))
+    return out
+
+
+def ref_local_minima(delta: FloatArray, start: npt.NDArray[np.int64], tau: float) -> list[Match]:
+    n = len(delta)
+    out = []
+    for b in range(n):
+        if (
+            delta[b] <= tau
+            and (b == 0 or delta[b] < delta[b - 1])
+            and (b == n - 1 or delta[b] <= delta[b + 1])
+        ):
+            out.append(Match(int(start[b]), b, float(delta[b])))
+    return out
+
+
+def ceil_div(a: int, b: int) -> int:
+    return -(-a // b)
+
+
+def ref_suppress(candidates: list[Match], limit: int | None) -> list[Match]:
+    """Candidates by increasing (cost, end); drop one whose end is masked; one whose start lies in the
+    start-exclusion zone of a kept hit is dropped and masks ends with that hit's length L; a kept hit
+    masks starts [s - ⌈L/10⌉, s + ⌈L/2⌉]; both mask ends [e - ⌈L/2⌉, e + ⌈L/10⌉]."""
+    kept: list[Match] = []
+    zone_length: dict[int, int] = {}  # start column -> length of the first kept hit whose zone holds it
+    masked_ends: set[int] = set()
+    for m in sorted(candidates, key=lambda m: (m.cost, m.end)):
+        if limit is not None and len(kept) == limit:
+            break
+        if m.end in masked_ends:
+            continue
+        if m.start in zone_length:
+            length = zone_length[m.start]
+        else:
+            length = m.end - m.start + 1
+            kept.append(m)
+            for x in range(m.start - ceil_div(length, 10), m.start + ceil_div(length, 2) + 1):
+                zone_length.setdefault(x, length)
+        masked_ends.update(range(m.end - ceil_div(length, 2), m.end + ceil_div(length, 10) + 1))
+    return kept
+
+
+def is_warping_path(path: Path, m: int, n: int) -> bool:
+    """Def. 3.1 (0-based): from (0, 0) to (m-1, n-1) with steps (1,0), (0,1), (1,1)."""
+    steps = {(a2 - a1, b2 - b1) for (a1, b1), (a2, b2) in pairwise(path)}
+    return path[0] == (0, 0) and path[-1] == (m - 1, n - 1) and steps <= {(1, 0), (0, 1), (1, 1)}
+
+
+def run_stream(stream: dtw.SubsequenceStream, cost: FloatArray) -> list[Match]:
+    """Push every column of ``cost``, then flush: all the matches reported."""
+    out = [match for t in range(cost.shape[1]) if (match := stream.push(cost[:, t])) is not None]
+    last = stream.flush()
+    return out if last is None else [*out, last]
+
+
+# ---------------------------------------------------------------------------------- strategies
+
+
+@st.composite
+def cost_matrices(
+    draw: st.DrawFn, min_m: int = 1, max_m: int = 6, min_n: int = 1, max_n: int = 25
+) -> FloatArray:
+    """(M, N) costs: small integers or halves (many ties) or floats, with a few whole inf columns
+    (separators between documents) and single inf/NaN cells."""
+    m, n = draw(st.integers(min_m, max_m)), draw(st.integers(min_n, max_n))
+    values = draw(
+        st.sampled_from(
+            [
+                st.integers(0, 3).map(float),
+                st.sampled_from([0.0, 0.5, 1.0]),
+                st.floats(0, 4),
+                st.floats(0, 64),
+            ]
+        )
+    )
+    c = np.array(draw(st.lists(values, min_size=m * n, max_size=m * n)), dtype=np.float64).reshape(m, n)
+    c[:, draw(st.lists(st.integers(0, n - 1), max_size=3))] = np.inf
+    for i, j in draw(st.lists(st.tuples(st.integers(0, m - 1), st.integers(0, n - 1)), max_size=3)):
+        c[i, j] = draw(st.sampled_from([np.inf, np.nan]))
+    return c
+
+
+taus = st.one_of(st.integers(0, 12).map(float), st.floats(0, 12))
+steps_kinds = st.sampled_from(dtw.STEPS)
+
+
+def ternary(f: int, n: int) -> st.SearchStrategy[FloatArray]:
+    """(f, n) arrays over {0, ½, 1}."""
+    return st.lists(st.sampled_from([0.0, 0.5, 1.0]), min_size=f * n, max_size=f * n).map(
+        lambda v: np.array(v, dtype=np.float64).reshape(f, n)
+    )
+
+
+# ---------------------------------------------------------------------------------- fixed point, errors
+
+
+def test_fixed_point() -> None:
+    assert dtw.fixed([0.0, 1.0, 0.5, 64.0]).tolist() == [0, SCALE, SCALE // 2, 64 * SCALE]
+    assert dtw.fixed([np.inf, np.nan]).tolist() == [INF, INF]
+    assert dtw.fixed(3 * 2.0**-26).tolist() == 1  # round(0.75) = 1
+    assert dtw.to_cost(np.array([SCALE, INF, INF + 1])).tolist() == [1.0, np.inf, np.inf]
+
+
+@pytest.mark.parametrize("bad", [-1.0, -1e-12, 64.000001, 100.0])
+def test_fixed_rejects_out_of_range(bad: float) -> None:
+    with pytest.raises(ValueError, match=r"\[0, 64\]"):
+        dtw.fixed(np.array([[0.0, bad]]))
+
+
+def test_errors() -> None:
+    with pytest.raises(ValueError, match=r"thesis, toolbox, got 'foo'"):
+        dtw.check_steps("foo")
+    with pytest.raises(ValueError, match="thesis, toolbox"):
+        dtw.subsequence_dtw(np.zeros((2, 2)), "foo")  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="thesis, toolbox"):
+        dtw.SubsequenceStream(2, 1.0, "foo")  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="at least one"):
+        dtw.SubsequenceStream(0, 1.0)
+    stream = dtw.SubsequenceStream(3, 1.0)
+    for wrong in (np.zeros(2), np.zeros(4), np.zeros((3, 1))):
+        with pytest.raises(ValueError, match="expected 3 template costs"):
+            stream.push(wrong)
+    for empty in (np.zeros((0, 3)), np.zeros((3, 0)), np.zeros(3)):
+        with pytest.raises(ValueError, match="non-empty"):
+            dtw.full_dtw(empty)
+
+
+# ---------------------------------------------------------------------------------- full DTW
+
+
+def test_thesis_definition_3_1_example() -> None:
+    """Def. 3.1's example path for N = 7, M = 5 (1-based pairs (n, m)) is a warping path."""
+    p = [(1, 1), (2, 2), (3, 3), (4, 3), (5, 4), (6, 4), (7, 5)]
+    assert is_warping_path([(a - 1, b - 1) for a, b in p], 7, 5)
+    # The checker does reject what Def. 3.1 forbids: a jump, a step back, a wrong end, a wrong start.
+    assert not is_warping_path([(0, 0), (2, 2), (3, 3), (4, 4)], 5, 5)
+    assert not is_warping_path([(0, 0), (1, 1), (1, 0), (2, 1)], 3, 2)
+    assert not is_warping_path([(0, 0), (1, 1)], 3, 2)
+    assert not is_warping_path([(0, 1), (1, 1)], 2, 2)
+
+
+def test_full_dtw_hand_examples() -> None:
+    # D = [[0, 1], [1, 0]]: the diagonal, cost 0.
+    a = dtw.full_dtw(np.array([[0.0, 1.0], [1.0, 0.0]]))
+    assert a.cost == 0.0 and a.path.tolist() == [[0, 0], [1, 1]]
+    # All zeros, 2 x 3: D = 0 everywhere. From (1, 2) the three predecessors tie: the diagonal wins
+    # -> (0, 1), then row 0 goes left. Preferring the database step would give (0,0), (1,1), (1,2).
+    a = dtw.full_dtw(np.zeros((2, 3)))
+    assert a.cost == 0.0 and a.path.tolist() == [[0, 0], [0, 1], [1, 2]]
+    # C = [[0, 0], [1, 2], [0, 0]]: D = [[0, 0], [1, 2], [1, 1]]. From (2, 1): diagonal D(1,0) = 1 and
+    # database step D(2,0) = 1 tie -> diagonal; from (1, 0) up. Cost 1.
+    a = dtw.full_dtw(np.array([[0.0, 0.0], [1.0, 2.0], [0.0, 0.0]]))
+    assert a.cost == 1.0 and a.path.tolist() == [[0, 0], [1, 0], [2, 1]]
+    # Blocked cells: every path crosses an inf column, so the cost is inf, and the path is still one.
+    a = dtw.full_dtw(np.array([[0.0, np.inf, 0.0], [0.0, np.inf, 0.0]]))
+    assert a.cost == np.inf and is_warping_path([(i, j) for i, j in a.path.tolist()], 2, 3)
+
+
+@settings(SETTINGS, max_examples=200)
+@given(cost_matrices())
+def test_full_dtw_equals_reference(cost: FloatArray) -> None:
+    c = grid(cost)
+    d, path = ref_full(c)
+    got = dtw.full_dtw(cost)
+    assert got.cost == as_cost(d[-1][-1])
+    assert got.path.dtype == np.int64 and got.path.shape == (len(path), 2)
+    assert [(int(i), int(j)) for i, j in got.path] == path
+    assert dtw.accumulated(dtw.fixed(cost)).tolist() == d
+    assert is_warping_path(path, len(c), len(c[0]))
+    assert min(sum(c[i][j] for i, j in path), INF) == d[-1][-1]
+
+
+# ---------------------------------------------------------------------------------- subsequence DTW
+
+
+def test_subsequence_tie_order_thesis() -> None:
+    # C = [[0, 5, 0], [0, 0, 0]]: D row 0 = [0, 5, 0], starts [0, 1, 2]; D(1,0) = 0 (start 0),
+    # D(1,1) = 0 + min(D(0,0)=0, D(1,0)=0, D(0,1)=5) = 0 (start 0), D(1,2) = 0 + min(D(0,1)=5,
+    # D(1,1)=0, D(0,2)=0): the database step beats the template step -> start 0 (wrong order: 2).
+    sub = dtw.subsequence_dtw(np.array([[0.0, 5.0, 0.0], [0.0, 0.0, 0.0]]))
+    assert sub.delta.tolist() == [0.0, 0.0, 0.0] and sub.start.tolist() == [0, 0, 0]
+    # C = [[0, 1, 9], [1, 1, 0]]: row 0 = [0, 1, 9]; D(1,0) = 1 (start 0); D(1,1) = 1 + min(0, 1, 1)
+    # = 1 from the diagonal (start 0); D(1,2) = 0 + min(D(0,1)=1 start 1, D(1,1)=1 start 0, 9): the
+    # diagonal beats the database step -> start 1 (wrong order: 0).
+    sub = dtw.subsequence_dtw(np.array([[0.0, 1.0, 9.0], [1.0, 1.0, 0.0]]))
+    assert sub.delta.tolist() == [1.0, 1.0, 1.0] and sub.start.tolist() == [0, 0, 1]
+    ref = ref_subsequence(grid(np.array([[0.0, 1.0, 9.0], [1.0, 1.0, 0.0]])), "thesis")
+    assert ref[1][-1] == [0, 0, 1]  # the reference agrees with the hand computation
+
+
+def test_subsequence_tie_order_and_weights_toolbox() -> None:
+    # C = [[0, 0, 5], [9, 9, 1]]: D(1,0) has no predecessor -> inf; D(1,1) = 9 + D(0,0) (start 0);
+    # D(1,2) = 1 + min(D(0,1)=0 start 1, D(0,0)=0 start 0): step (1,1) beats (1,2) -> start 1.
+    sub = dtw.subsequence_dtw(np.array([[0.0, 0.0, 5.0], [9.0, 9.0, 1.0]]), "toolbox")
+    assert sub.delta.tolist() == [np.inf, 9.0, 1.0] and sub.start.tolist() == [-1, 0, 1]
+    # C = [[3, 0, 9], [9, 1, 9], [9, 9, 5]]: D(1,1) = 1 + 3 = 4 (start 0). D(2,2): predecessors
+    # D(1,1)=4 (w 1), D(1,0)=inf, D(0,1)=0 (w 2): the smallest is D(0,1), then the weight: 0 + 2*5 = 10,
+    # start 1 (weighting before choosing would pick 4 + 5 = 9, start 0). D(2,1) = D(0,0) + 2*9 = 21.
+    sub = dtw.subsequence_dtw(np.array([[3.0, 0.0, 9.0], [9.0, 1.0, 9.0], [9.0, 9.0, 5.0]]), "toolbox")
+    assert sub.delta.tolist() == [np.inf, 21.0, 10.0] and sub.start.tolist() == [-1, 0, 1]
+
+
+@SETTINGS
+@given(cost_matrices(), steps_kinds)
+def test_subsequence_equals_reference(cost: FloatArray, steps: Steps) -> None:
+    c = grid(cost)
+    d, s = ref_subsequence(c, steps)
+    got = dtw.subsequence_dtw(cost, steps)
+    assert got.delta.tolist() == [as_cost(v) for v in d[-1]]
+    assert got.start.tolist() == s[-1]
+    delta, start = dtw.subsequence_fixed(iter(dtw.fixed(cost)), steps)
+    assert delta.tolist() == d[-1] and start.tolist() == s[-1]
+
+
+@settings(SETTINGS, max_examples=80)
+@given(cost_matrices(max_n=10))
+def test_subsequence_thesis_is_best_full_dtw_of_a_slice(cost: FloatArray) -> None:
+    """With the thesis steps, Δ(b) is the smallest full DTW of C[:, a:b+1] over a, and the start found
+    is such an a."""
+    sub = dtw.subsequence_dtw(cost)
+    for b in range(cost.shape[1]):
+        full = [dtw.full_dtw(cost[:, a : b + 1]).cost for a in range(b + 1)]
+        assert sub.delta[b] == min(full)
+        if sub.delta[b] < np.inf:
+            assert full[sub.start[b]] == sub.delta[b]
+        else:
+            assert sub.start[b] == -1
+
+
+# ---------------------------------------------------------------------------------- local minima, suppression
+
+
+@settings(SETTINGS, max_examples=200)
+@given(
+    st.lists(st.one_of(st.integers(0, 3).map(float), st.just(np.inf), st.floats(0, 4)), max_size=25),
+    taus,
+)
+def test_local_minima_equal_brute_force(values: list[float], tau: float) -> None:
+    delta = np.array(values, dtype=np.float64)
+    start = np.arange(len(values), dtype=np.int64) * 7 - 3
+    assert dtw.local_minima(delta, start, tau) == ref_local_minima(delta, start, tau)
+
+
+def test_local_minima_plateau() -> None:
+    delta = np.array([2.0, 1.0, 1.0, 3.0, 0.0, 0.0, np.inf, 1.0])
+    got = dtw.local_minima(delta, np.arange(8, dtype=np.int64), 1.0)
+    assert got == [Match(1, 1, 1.0), Match(4, 4, 0.0), Match(7, 7, 1.0)]
+    # An unreachable column is no minimum, even for tau = inf (the column before the first counts as
+    # inf, and inf < inf is false).
+    got = dtw.local_minima(np.array([np.inf, np.inf, 2.0]), np.array([-1, -1, 2]), np.inf)
+    assert got == [Match(2, 2, 2.0)]
+
+
+def test_suppress_hand_example() -> None:
+    # First kept (L = 10): starts masked in [-1, 5], ends in [4, 10]. (2, 12): start in that zone ->
+    # dropped, masks ends [12 - 5, 12 + 1] = [7, 13] with L = 10. (11, 13): end masked. (20, 29) kept.
+    a, b, c, d = Match(0, 9, 1.0), Match(2, 12, 2.0), Match(11, 13, 2.5), Match(20, 29, 3.0)
+    assert dtw.suppress([d, c, b, a]) == [a, d]
+    assert dtw.suppress([d, c, b, a], limit=1) == [a]
+    assert dtw.suppress([]) == []
+    # Equal costs: the earlier end goes first.
+    assert dtw.suppress([Match(3, 6, 1.0), Match(0, 5, 1.0)]) == [Match(0, 5, 1.0)]
+
+
+matches = st.builds(
+    lambda s, length, cost: Match(s, s + length - 1, float(cost)),
+    st.integers(0, 80),
+    st.integers(1, 45),
+    st.integers(0, 5),
+)
+
+
+@SETTINGS
+@given(st.lists(matches, max_size=30), st.one_of(st.none(), st.integers(0, 6)))
+def test_suppress_equals_brute_force(candidates: list[Match], limit: int | None) -> None:
+    kept = dtw.suppress(candidates, limit)
+    assert kept == ref_suppress(candidates, limit)
+    assert kept == dtw.suppress(candidates)[:limit]
+    assert limit is None or len(kept) <= limit
+    assert all(a.cost <= b.cost for a, b in pairwise(kept))
+    for k, later in enumerate(kept):
+        for earlier in kept[:k]:
+            length = earlier.end - earlier.start + 1
+            zone = range(earlier.start - ceil_div(length, 10), earlier.start + ceil_div(length, 2) + 1)
+            assert later.start not in zone
+            assert later.end not in range(
+                earlier.end - ceil_div(length, 2), earlier.end + ceil_div(length, 10) + 1
+            )
+
+
+@settings(SETTINGS, max_examples=150)
+@given(cost_matrices(), steps_kinds, taus)
+def test_subsequence_matches_pipeline(cost: FloatArray, steps: Steps, tau: float) -> None:
+    sub = dtw.subsequence_dtw(cost, steps)
+    expected = ref_suppress(ref_local_minima(sub.delta, sub.start, tau), 3)
+    assert dtw.subsequence_matches(cost, tau, steps, limit=3) == expected
+
+
+# ---------------------------------------------------------------------------------- SPRING
+
+
+def test_spring_tie_order_thesis() -> None:
+    # C = [[0, 5, 0], [1, 0, 0]], tau 0. t=0: D(1,0) = 1 > tau. t=1: D(1,1) = 0 (diagonal, start 0):
+    # candidate (0, start 0, end 1). t=2: D(0,2) = 0 (start 2), D(1,2) = 0 + min(5, D(1,1)=0 start 0,
+    # D(0,2)=0 start 2) -> database step, start 0. Every live D >= 0: report (0, 1); then the path
+    # starting at 0 dies and nothing is pending. Preferring the template step would give D(1,2) start
+    # 2, survive the kill and add a match (2, 2).
+    cost = np.array([[0.0, 5.0, 0.0], [1.0, 0.0, 0.0]])
+    expected = [Match(0, 1, 0.0)]
+    assert ref_spring(cost, 0.0, "thesis") == expected
+    assert run_stream(dtw.SubsequenceStream(2, 0.0), cost) == expected
+    assert dtw.disjoint_matches(cost, 0.0) == expected
+
+
+def test_spring_tie_order_toolbox() -> None:
+    # C = [[0, 0, 5], [9, 9, 1]] (see test_subsequence_tie_order_and_weights_toolbox), tau 1: only
+    # D(1,2) = 1 qualifies, with start 1 from the (1,1) step (the (1,2) step ties with start 0).
+    cost = np.array([[0.0, 0.0, 5.0], [9.0, 9.0, 1.0]])
+    expected = [Match(1, 2, 1.0)]
+    assert ref_spring(cost, 1.0, "toolbox") == expected
+    assert run_stream(dtw.SubsequenceStream(2, 1.0, "toolbox"), cost) == expected
+    assert dtw.disjoint_matches(cost, 1.0, "toolbox") == expected
+
+
+def test_references_see_a_wrong_tie_order() -> None:
+    """Mutation check: the references with the database and template steps (thesis) or the (1,1) and
+    (1,2) steps (toolbox) swapped disagree with the module on the hand examples above, so a module
+    with that wrong tie order would fail the comparisons."""
+    thesis = np.array([[0.0, 5.0, 0.0], [0.0, 0.0, 0.0]])
+    assert ref_subsequence(grid(thesis), "thesis")[1][-1] == dtw.subsequence_dtw(thesis).start.tolist()
+    assert ref_subsequence(grid(thesis), "thesis", (0, 2, 1))[1][-1] == [0, 0, 2]
+    thesis = np.array([[0.0, 5.0, 0.0], [1.0, 0.0, 0.0]])
+    assert ref_spring(thesis, 0.0, "thesis", (0, 2, 1)) == [Match(0, 1, 0.0), Match(2, 2, 0.0)]
+    diagonal = np.array([[0.0, 1.0, 9.0], [1.0, 1.0, 0.0]])
+    assert ref_subsequence(grid(diagonal), "thesis", (1, 0, 2))[1][-1] == [0, 0, 0]
+    toolbox = np.array([[0.0, 0.0, 5.0], [9.0, 9.0, 1.0]])
+    assert ref_subsequence(grid(toolbox), "toolbox", (1, 0, 2))[1][-1] == [-1, 0, 0]
+    assert ref_spring(toolbox, 1.0, "toolbox", (1, 0, 2)) == [Match(0, 2, 1.0)]
+
+
+def test_spring_waits_for_live_paths() -> None:
+    # M = 1, tau 2: D(0, t) = C(0, t) with start t. t=0: candidate (2, 0..0). t=1: the live cell costs
+    # 1 < 2 but starts at 1 > 0: report (0, 0), then (1, 1..1) is the candidate. t=2: likewise report
+    # (1, 1), candidate (0, 2..2). t=3: 3 >= 0: report (2, 2); 3 > tau.
+    cost = np.array([[2.0, 1.0, 0.0, 3.0]])
+    expected = [Match(0, 0, 2.0), Match(1, 1, 1.0), Match(2, 2, 0.0)]
+    assert ref_spring(cost, 2.0, "thesis") == expected
+    assert run_stream(dtw.SubsequenceStream(1, 2.0), cost) == expected
+    assert dtw.disjoint_matches(cost, 2.0) == expected
+    # M = 2, tau 1, C = [[0, 0, 9], [1, 0, 9]]. t=0: D = (0, 1), starts (0, 0): candidate (1, 0..0).
+    # t=1: D(0,1) = 0 (start 1), D(1,1) = 0 + min(D(0,0)=0, ...) = 0 (start 0): a live path cheaper than
+    # the candidate starts inside it, so no report; it becomes the candidate (0, 0..1). t=2: D = (9, 9),
+    # both >= 0: report (0, 1) only, and the path from start 1 dies (1 <= end 1).
+    cost = np.array([[0.0, 0.0, 9.0], [1.0, 0.0, 9.0]])
+    expected = [Match(0, 1, 0.0)]
+    assert ref_spring(cost, 1.0, "thesis") == expected
+    assert run_stream(dtw.SubsequenceStream(2, 1.0), cost) == expected
+    assert dtw.disjoint_matches(cost, 1.0) == expected
+
+
+def check_matches(matches: list[Match], n: int, tau: float) -> None:
+    """Reported matches lie in the database, cost at most tau (both rounded to fixed point: the match
+    may exceed tau by less than 2^-25) and are disjoint, in time order."""
+    for match in matches:
+        assert 0 <= match.start <= match.end < n and match.cost <= as_cost(int(dtw.fixed(tau)))
+    assert all(b.start > a.end for a, b in pairwise(matches))
+
+
+@SETTINGS
+@given(cost_matrices(), steps_kinds, taus)
+def test_spring_batch_equals_reference(cost: FloatArray, steps: Steps, tau: float) -> None:
+    expected = ref_spring(cost, tau, steps)
+    assert dtw.disjoint_matches(cost, tau, steps) == expected
+    check_matches(expected, cost.shape[1], tau)
+
+
+@pytest.mark.parametrize("steps", dtw.STEPS)
+@settings(SETTINGS, max_examples=150, phases=[Phase.explicit, Phase.reuse, Phase.generate])
+@given(cost=cost_matrices(), tau=taus)  # no shrinking: test_spring_stream_thesis_one_live_column is minimal
+def test_spring_stream_equals_reference(cost: FloatArray, tau: float, steps: Steps) -> None:
+    expected = ref_spring(cost, tau, steps)
+    stream = dtw.SubsequenceStream(cost.shape[0], tau, steps)
+    assert run_stream(stream, cost) == expected
+    assert run_stream(stream, cost) == expected  # flush starts over
+
+
+# ---------------------------------------------------------------------------------- cost functions
+
+
+def test_and_cost_thesis_examples() -> None:
+    x, y = np.array([[1.0], [0.0], [1.0], [1.0]]), np.array([[1.0], [1.0], [0.0], [0.0]])
+    assert dtw.and_cost(x, y).tolist() == [[3.0]]
+    x, y = np.array([[0.5], [0.0], [1.0], [0.5]]), np.array([[1.0], [1.0], [0.5], [0.5]])
+    assert dtw.and_cost(x, y).tolist() == [[1.0]]
+
+
+def brute_and(t: FloatArray, s: FloatArray) -> list[list[float]]:
+    f = t.shape[0]
+    return [
+        [
+            sum(0.0 if 0.5 in (t[k, a], s[k, b]) else abs(t[k, a] - s[k, b]) for k in range(f))
+            for b in range(s.shape[1])
+        ]
+        for a in range(t.shape[1])
+    ]
+
+
+@settings(SETTINGS, max_examples=120)
+@given(st.integers(1, 6), st.integers(1, 6), st.integers(1, 8), st.data())
+def test_and_and_l1_costs_equal_brute_force(f: int, m: int, n: int, data: st.DataObject) -> None:
+    t, s = data.draw(ternary(f, m)), data.draw(ternary(f, n))
+    assert dtw.and_cost(t, s).tolist() == brute_and(t, s)
+    soft = data.draw(st.lists(st.floats(0, 1), min_size=f * n, max_size=f * n))
+    u = np.array(soft, dtype=np.float64).reshape(f, n)
+    l1 = [[sum(abs(t[k, a] - u[k, b]) for k in range(f)) / f for b in range(n)] for a in range(m)]
+    np.testing.assert_allclose(dtw.l1_cost(t, u), l1, rtol=1e-12, atol=1e-15)
+
+
+def check_retrieval(
+    t: FloatArray, w: FloatArray, frames: npt.NDArray[np.bool_], blocked: npt.NDArray[np.bool_]
+) -> None:
+    """retrieval_cost against the brute force, retrieval_rows against fixed(retrieval_cost) row by row."""
+    f, m = t.shape
+    cost = dtw.retrieval_cost(t, w, frames.astype(np.float64))
+    counts = brute_and(t, frames.astype(np.float64))
+    for a in range(m):
+        fixed_entries = sum(t[k, a] != 0.5 for k in range(f))
+        expected = [x / (m * max(1, fixed_entries)) * (w[a] + 1) / 2 for x in counts[a]]
+        np.testing.assert_allclose(cost[a], expected, rtol=1e-12, atol=0)
+    codes = dtw.pack(frames.T)
+    rows = list(dtw.retrieval_rows(t, w, codes, blocked))
+    assert len(rows) == m
+    for row, want in zip(rows, dtw.fixed(cost), strict=True):
+        assert row.tolist() == np.where(blocked, INF, want).tolist()
+    assert [r.tolist() for r in dtw.retrieval_rows(t, w, codes)] == dtw.fixed(cost).tolist()
+
+
+@settings(SETTINGS, max_examples=120)
+@given(st.integers(1, 8), st.integers(1, 6), st.integers(1, 10), st.data())
+def test_retrieval_costs_equal_brute_force(f: int, m: int, n: int, data: st.DataObject) -> None:
+    t = data.draw(ternary(f, m))
+    w = np.array(data.draw(st.lists(st.floats(0, 4), min_size=m, max_size=m)), dtype=np.float64)
+    frames = np.array(data.draw(st.lists(st.booleans(), min_size=f * n, max_size=f * n)), dtype=bool)
+    blocked = np.array(data.draw(st.lists(st.booleans(), min_size=n, max_size=n)), dtype=bool)
+    check_retrieval(t, w, frames.reshape(f, n), blocked)
+
+
+@pytest.mark.parametrize("f", [39, 63, 64])
+def test_retrieval_costs_wide_frames(f: int) -> None:
+    rng = np.random.default_rng(f)
+    for m, n in ((1, 1), (5, 20), (13, 40)):
+        t = rng.choice([0.0, 0.5, 1.0], size=(f, m), p=[0.3, 0.4, 0.3])
+        frames = rng.random((f, n)) < 0.5
+        check_retrieval(t, rng.random(m) * 3, frames, rng.random(n) < 0.2)
+
+
+@settings(SETTINGS, max_examples=100)
+@given(st.integers(0, 64), st.integers(0, 4), st.data())
+def test_pack_bit_order(f: int, n: int, data: st.DataObject) -> None:
+    bits = data.draw(st.lists(st.lists(st.booleans(), min_size=f, max_size=f), min_size=n, max_size=n))
+    codes = dtw.pack(np.array(bits, dtype=bool).reshape(n, f))
+    assert codes.dtype == np.uint64
+    assert [int(v) for v in codes] == [sum(1 << i for i, b in enumerate(frame) if b) for frame in bits]
+
+
+def test_pack_examples_and_errors() -> None:
+    assert dtw.pack(np.array([[True, False, True], [False, True, False]])).tolist() == [5, 2]
+    assert dtw.pack(np.eye(64, dtype=bool)).tolist() == [1 << i for i in range(64)]
+    for bad in (np.zeros((2, 65), dtype=bool), np.zeros(3, dtype=bool)):
+        with pytest.raises(ValueError, match="boolean frames"):
+            dtw.pack(bad)
+
+
+# ---------------------------------------------------------------------------------- known defects
+# These fail against daemon/dtw.py as committed (51f6846); see each docstring.
+
+
+def test_spring_stream_thesis_one_live_column() -> None:
+    """With the thesis steps only column t feeds column t+1, so only it is live (the batch twin uses
+    width 1). C = [[1, 0], [1, 0]], tau 2: t=0: D = (1, 2), starts (0, 0): candidate (0..0, 2).
+    t=1: D(0,1) = 0 (start 1), D(1,1) = 0 + min(D(0,0)=1, D(1,0)=2, D(0,1)=0) = 0 (start 1): both
+    live cells start after 0, so report (0..0, 2), then (1..1, 0) is the candidate, reported by flush.
+    The stream also checks the dead column 0 (D(0,0) = 1 < 2, start 0), holds the report, and the
+    cheaper (1..1, 0) replaces the candidate: the match (0..0, 2) is lost."""
+    cost = np.array([[1.0, 0.0], [1.0, 0.0]])
+    expected = [Match(0, 0, 2.0), Match(1, 1, 0.0)]
+    assert ref_spring(cost, 2.0, "thesis") == expected
+    assert dtw.disjoint_matches(cost, 2.0) == expected
+    assert run_stream(dtw.SubsequenceStream(2, 2.0), cost) == expected
+
+
+LONG = (1 << 17) + 2  # more than 2^63 / INF = 2^17 blocked cells in one row
+
+
+def test_long_blocked_row_subsequence() -> None:
+    """Row 1 blocked except its last cell: D(1, n-1) = 0 + min(D(0, n-2)=0, D(1, n-2)=inf, D(0, n-1)=0)
+    = 0 from the diagonal, start n-2. The row scan's unclamped cumsum over 2^17 + 1 INF cells
+    overflows int64 and loses the path."""
+    cost = np.zeros((2, LONG))
+    cost[1, :-1] = np.inf
+    sub = dtw.subsequence_dtw(cost)
+    assert (float(sub.delta[-1]), int(sub.start[-1])) == (0.0, LONG - 2)
+    assert dtw.disjoint_matches(cost, 0.0) == [Match(LONG - 2, LONG - 1, 0.0)]
+
+
+def test_long_blocked_row_full_dtw() -> None:
+    """A 1 x n all-inf matrix has no finite path: DTW = inf, not a negative number (int64 overflow of
+    the first row's cumsum before the clamp)."""
+    assert dtw.full_dtw(np.full((1, LONG), np.inf)).cost == np.inf
+
+
+def test_infinite_tau_reports_no_unreachable_match() -> None:
+    """tau = inf means "no threshold", but fixed(inf) = INF makes unreachable ends (D = INF, start -1)
+    candidates: [[inf, 0]] gives Match(-1, 0, inf) before the real Match(1, 1, 0.0)."""
+    cost = np.array([[np.inf, 0.0]])
+    assert dtw.subsequence_matches(cost, np.inf) == [Match(1, 1, 0.0)]
+    assert run_stream(dtw.SubsequenceStream(1, np.inf), cost) == [Match(1, 1, 0.0)]
+    assert dtw.disjoint_matches(cost, np.inf) == [Match(1, 1, 0.0)]
+
+
+def test_tau_above_cell_cost_range() -> None:
+    """tau bounds an accumulated cost, which may exceed the cell range [0, 64] (2 cells of 64 cost
+    128); subsequence_matches accepts tau = 200, but the stream and its batch twin reject it through
+    fixed()'s cell-range check."""
+    cost = np.full((2, 1), 64.0)
+    assert dtw.subsequence_matches(cost, 200.0) == [Match(0, 0, 128.0)]
+    assert dtw.disjoint_matches(cost, 200.0) == [Match(0, 0, 128.0)]
+    assert run_stream(dtw.SubsequenceStream(2, 200.0), cost) == [Match(0, 0, 128.0)]
