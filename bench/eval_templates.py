@@ -1,7 +1,7 @@
 """Thesis Tables 3.1 and 5.2 on the HDM05 clips in ../shared/data/mocap: every class learned from the
 cut clips of actors bd and bk, searched in a database of all actor-dg clips (30 Hz).
 
-    python -m bench.eval_templates [--data DIR] [--steps thesis|toolbox] [--png FILE]
+    python -m bench.eval_templates [--data DIR] [--steps toolbox|thesis] [--png FILE]
 
 Table 3.1: per class, for each τ, the hits with cost <= τ and the relevant ones among them (hits in
 a dg clip of the class), ranking the whole database with the quantised soft MT (δ = 0.1, at most
@@ -60,7 +60,7 @@ def main() -> None:
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     parser.add_argument("--data", type=Path, default=DATA)
-    parser.add_argument("--steps", choices=("thesis", "toolbox"), default="thesis")
+    parser.add_argument("--steps", choices=("thesis", "toolbox"), default="toolbox")
     parser.add_argument("--png", type=Path, default=None, help="precision/recall over τ per class")
     args = parser.parse_args()
     steps: Steps = args.steps
