@@ -25,7 +25,7 @@ from typing import TypeVar
 
 import numpy as np
 
-from bench.common import arguments, best_of, load
+from bench.common import Recordings, arguments, best_of, load
 from bench.machine import describe
 from daemon.features import decimate, features
 from daemon.index import SetIndex, adaptive_fuzzy_query, exact_query, fuzzy_query, matching_codes
@@ -68,19 +68,27 @@ def timed(run: Callable[[], T], repeat: int) -> tuple[float, T]:
     return best, out
 
 
-def main() -> None:
-    args = arguments(__doc__, queries=200)
-    data = load(args.data)
-    print(describe())
-    clips = [model.joints(model.positions(m.channels, "cm")) for model, m in data.with_models()]
-    t_features = best_of(1, lambda: [features(c, JOINT_NAMES, 120.0) for c in clips])
+def repeated_documents(
+    data: Recordings, clips: list[np.ndarray]
+) -> tuple[list[np.ndarray], list[Document], int]:
+    """The 30 Hz features (every 4th frame) of every recording and its :class:`Document`, all repeated
+    to at least TARGET_FRAMES frames at 120 Hz; (matrices, documents, copies)."""
     matrices30 = [decimate(features(c, JOINT_NAMES, 120.0), 4) for c in clips]
     copies = math.ceil(TARGET_FRAMES / data.frames)
     docs = [
         Document(str(amc), str(asf), int(m.frames[0]), int(m.frames[-1]), 4, len(x), 120.0)
         for (asf, amc), m, x in zip(data.pairs, data.motions, matrices30, strict=True)
     ]
-    matrices, documents = matrices30 * copies, docs * copies
+    return matrices30 * copies, docs * copies, copies
+
+
+def main() -> None:
+    args = arguments(__doc__, queries=200)
+    data = load(args.data)
+    print(describe())
+    clips = [model.joints(model.positions(m.channels, "cm")) for model, m in data.with_models()]
+    t_features = best_of(1, lambda: [features(c, JOINT_NAMES, 120.0) for c in clips])
+    matrices, documents, copies = repeated_documents(data, clips)
     frames120 = data.frames * copies
     print(
         f"database: {len(data.pairs)} AMC files x {copies} = {len(documents)} documents, "

@@ -20,17 +20,15 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.bench_index import KEYFRAMES, TARGET_FRAMES, timed
+from bench.bench_index import KEYFRAMES, repeated_documents, timed
 from bench.common import arguments, load
 from bench.eval_keyframes import hdm05_rows
 from bench.machine import describe
-from daemon.features import decimate, features
-from daemon.index_store import Document, MotionIndex, index_from_matrices, read_document
+from daemon.index_store import MotionIndex, index_from_matrices, read_document
 from daemon.keyframes import KeyframeQuery, parse_keyframe_queries
 from daemon.library import ClassTemplate, TrainingClip, learn_class
 from daemon.retrieval import frame_codes, template_search
 from daemon.templates import expand
-from replay import JOINT_NAMES
 
 TAU = 0.1
 LIMIT = 500
@@ -41,17 +39,8 @@ def database(data: Path) -> tuple[MotionIndex, int, int]:
     >= 1 M frames at 120 Hz); (index, AMC files, frames at 120 Hz)."""
     recs = load(data)
     clips = [model.joints(model.positions(m.channels, "cm")) for model, m in recs.with_models()]
-    matrices30 = [decimate(features(c, JOINT_NAMES, 120.0), 4) for c in clips]
-    copies = math.ceil(TARGET_FRAMES / recs.frames)
-    docs = [
-        Document(str(amc), str(asf), int(m.frames[0]), int(m.frames[-1]), 4, len(x), 120.0)
-        for (asf, amc), m, x in zip(recs.pairs, recs.motions, matrices30, strict=True)
-    ]
-    return (
-        index_from_matrices(matrices30 * copies, docs * copies, 30.0),
-        len(recs.pairs),
-        recs.frames * copies,
-    )
+    matrices, documents, copies = repeated_documents(recs, clips)
+    return index_from_matrices(matrices, documents, 30.0), len(recs.pairs), recs.frames * copies
 
 
 def training(data: Path) -> dict[str, list[tuple[TrainingClip, np.ndarray]]]:
