@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import csv
 import io
-import json
 import math
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, fields
@@ -28,7 +27,7 @@ import numpy as np
 
 from daemon.features import SET_SLICES, BoolArray, FeatureSet, decimate, decimation_factor, features
 from daemon.index import IntArray, SetIndex, build_set_index
-from daemon.storage import JsonChecker, check_target, replace_directory, sync, write_json
+from daemon.storage import JsonChecker, check_target, read_meta, replace_directory, sync, write_json
 from replay import JOINT_NAMES, KinematicModel, MocapFormatError, read_amc, read_asf
 
 FORMAT = "mocapd-index"
@@ -304,26 +303,8 @@ def load_index(path: str | Path) -> MotionIndex:
     """The index in directory ``path``, its arrays memory-mapped read-only (numpy memmaps). Raises
     :class:`IndexFormatError` naming the file (and field) if anything is missing or inconsistent."""
     path = Path(path)
-    meta_path = path / INDEX_JSON
-    if not path.is_dir():
-        raise IndexFormatError(f"{path}: not a mocapd index (not a directory)")
-    try:
-        text = meta_path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise IndexFormatError(f"{path}: not a mocapd index (no {INDEX_JSON})") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise IndexFormatError(f"{meta_path}: cannot read: {exc}") from None
-    try:
-        meta = json.loads(text)
-    except json.JSONDecodeError as exc:
-        raise IndexFormatError(f"{meta_path}: not valid JSON: {exc}") from None
-    check = JsonChecker(str(meta_path), IndexFormatError)
-    root = check.mapping(meta, "", {"format", "version", "rate", "documents", "sets"})
-    if root["format"] != FORMAT:
-        check.fail("format", f"expected '{FORMAT}', got {root['format']!r}")
-    if root["version"] != VERSION or isinstance(root["version"], bool):
-        check.fail("version", f"this mocapd reads version {VERSION}, got {root['version']!r}")
-    rate = check.positive_number(root["rate"], "rate")
+    check, meta = read_meta(path, INDEX_JSON, "a mocapd index", IndexFormatError)
+    root, rate = check.header(meta, {"format", "version", "rate", "documents", "sets"}, FORMAT, VERSION)
     documents = _documents(check, root["documents"])
     sets_meta = check.mapping(root["sets"], "sets", set(FEATURE_SETS))
     sets: dict[FeatureSet, SetIndex] = {}

@@ -21,7 +21,6 @@ and ``steps`` the DTW steps retrieval uses.
 
 from __future__ import annotations
 
-import json
 import re
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
@@ -34,7 +33,7 @@ from daemon.dtw import STEPS, Steps
 from daemon.features import FEATURE_NAMES, BoolArray
 from daemon.index_store import DEFAULT_NATIVE_RATE, ManifestError, ManifestRow, read_document, read_manifest
 from daemon.keyframes import KeyframeError, KeyframeQuery, parse_keyframe_queries
-from daemon.storage import JsonChecker, check_target, replace_directory, write_json
+from daemon.storage import JsonChecker, check_target, read_meta, replace_directory, write_json
 from daemon.templates import MotionTemplate, learn
 
 FORMAT = "mocapd-templates"
@@ -267,20 +266,8 @@ def load_library(path: str | Path) -> Library:
     """The library in directory ``path``. Raises :class:`LibraryFormatError` naming the file and the
     field if anything is missing or inconsistent."""
     path = Path(path)
-    meta_path = path / LIBRARY_JSON
-    if not meta_path.is_file():
-        raise LibraryFormatError(f"{path}: not a mocapd template library (no {LIBRARY_JSON})")
-    try:
-        meta = json.loads(meta_path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise LibraryFormatError(f"{meta_path}: cannot read: {exc}") from None
-    check = JsonChecker(str(meta_path), LibraryFormatError)
-    root = check.mapping(meta, "", {"format", "version", "rate", "features", "classes"})
-    if root["format"] != FORMAT:
-        check.fail("format", f"expected '{FORMAT}', got {root['format']!r}")
-    if root["version"] != VERSION or isinstance(root["version"], bool):
-        check.fail("version", f"this mocapd reads version {VERSION}, got {root['version']!r}")
-    rate = check.positive_number(root["rate"], "rate")
+    check, meta = read_meta(path, LIBRARY_JSON, "a mocapd template library", LibraryFormatError)
+    root, rate = check.header(meta, {"format", "version", "rate", "features", "classes"}, FORMAT, VERSION)
     if root["features"] != list(FEATURE_NAMES):
         check.fail("features", "not the 39 features of this mocapd in its order")
     if not isinstance(root["classes"], dict) or not root["classes"]:
@@ -311,7 +298,7 @@ def load_library(path: str | Path) -> Library:
                 "template_length": {name: hard.values.shape[1]},
             }
             try:
-                keyframes = parse_keyframe_queries(obj, f"{meta_path}: {where}.keyframes")[name]
+                keyframes = parse_keyframe_queries(obj, f"{check.source}: {where}.keyframes")[name]
             except KeyframeError as exc:
                 raise LibraryFormatError(str(exc)) from None
         classes[name] = ClassTemplate(

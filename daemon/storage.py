@@ -58,6 +58,25 @@ def replace_directory(path: Path, marker: str, what: str, fill: Callable[[Path],
         raise
 
 
+def read_meta(path: Path, marker: str, what: str, error: type[Exception]) -> tuple[JsonChecker, Any]:
+    """The parsed JSON file ``marker`` of the directory ``path`` (``what``, e.g. "a mocapd index")
+    and a checker naming it; ``error`` names the path if it cannot be read."""
+    meta_path = path / marker
+    if not path.is_dir():
+        raise error(f"{path}: not {what} (not a directory)")
+    try:
+        text = meta_path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise error(f"{path}: not {what} (no {marker})") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise error(f"{meta_path}: cannot read: {exc}") from None
+    try:
+        meta = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise error(f"{meta_path}: not valid JSON: {exc}") from None
+    return JsonChecker(str(meta_path), error), meta
+
+
 class JsonChecker:
     """Type checks of parsed JSON that raise ``error`` naming file and field."""
 
@@ -67,6 +86,16 @@ class JsonChecker:
 
     def fail(self, field: str, reason: str) -> NoReturn:
         raise self.error(f"{self.source}: {field or 'top level'}: {reason}")
+
+    def header(self, value: object, keys: set[str], fmt: str, version: int) -> tuple[dict[str, Any], float]:
+        """The top-level object with exactly ``keys``, its ``format`` and ``version`` checked; and its
+        positive ``rate``."""
+        root = self.mapping(value, "", keys)
+        if root["format"] != fmt:
+            self.fail("format", f"expected '{fmt}', got {root['format']!r}")
+        if root["version"] != version or isinstance(root["version"], bool):
+            self.fail("version", f"this mocapd reads version {version}, got {root['version']!r}")
+        return root, self.positive_number(root["rate"], "rate")
 
     def mapping(self, value: object, field: str, keys: set[str]) -> dict[str, Any]:
         if not isinstance(value, dict):
