@@ -22,11 +22,11 @@ import numpy as np
 
 from bench.bench_index import KEYFRAMES, repeated_documents, timed
 from bench.common import arguments, load
-from bench.eval_keyframes import hdm05_rows
+from bench.eval_templates import hdm05_clips, training_sets
 from bench.machine import describe
-from daemon.index_store import MotionIndex, index_from_matrices, read_document
+from daemon.index_store import MotionIndex, index_from_matrices
 from daemon.keyframes import KeyframeQuery, parse_keyframe_queries
-from daemon.library import ClassTemplate, TrainingClip, learn_class
+from daemon.library import ClassTemplate, learn_class
 from daemon.retrieval import frame_codes, template_search
 from daemon.templates import expand
 
@@ -43,25 +43,11 @@ def database(data: Path) -> tuple[MotionIndex, int, int]:
     return index_from_matrices(matrices, documents, 30.0), len(recs.pairs), recs.frames * copies
 
 
-def training(data: Path) -> dict[str, list[tuple[TrainingClip, np.ndarray]]]:
-    """The cut HDM05 clips of actors bd and bk, by class."""
-    out: dict[str, list[tuple[TrainingClip, np.ndarray]]] = {}
-    for row in hdm05_rows(data):
-        if row.amc.name.split("_")[1] not in ("bd", "bk"):
-            continue
-        document, matrix = read_document(row)
-        clip = TrainingClip(
-            row.asf_text, row.amc_text, document.first_amc_frame, document.last_amc_frame, document.frames
-        )
-        out.setdefault(row.amc.parent.name, []).append((clip, matrix))
-    return out
-
-
 def main() -> None:
     args = arguments(__doc__)
     print(describe())
 
-    clips = training(args.data)
+    clips = training_sets(hdm05_clips(args.data, ("bd", "bk")))
     print(f"\nlearning (toolbox steps), {sum(map(len, clips.values()))} bd/bk training clips, one run each")
     print(f"{'class':30s} {'train':>5s} {'soft K':>6s} {'iter':>4s} {'hard K':>6s} {'s':>7s}")
     learned: dict[str, ClassTemplate] = {}

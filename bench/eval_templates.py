@@ -16,15 +16,16 @@ from __future__ import annotations
 import argparse
 import json
 import time
+from collections.abc import Collection, Iterable
+from dataclasses import dataclass
 from pathlib import Path
-
-import numpy as np
 
 from bench.common import DATA
 from bench.eval_keyframes import KEYFRAMES, hdm05_rows
 from bench.machine import describe
 from daemon.dtw import Steps
-from daemon.index_store import index_from_matrices, read_document
+from daemon.features import BoolArray
+from daemon.index_store import Document, index_from_matrices, read_document
 from daemon.keyframes import KeyframeQuery, parse_keyframe_queries
 from daemon.library import ClassTemplate, TrainingClip, learn_class
 from daemon.retrieval import TemplateHits, frame_codes, template_search
@@ -47,6 +48,37 @@ THESIS = {
 }
 
 
+@dataclass(frozen=True)
+class Clip:
+    """An HDM05 cut clip: its class, actor, provenance, document and 30 Hz features ``(frames, 39)``."""
+
+    name: str
+    actor: str
+    clip: TrainingClip
+    document: Document
+    matrix: BoolArray
+
+
+def hdm05_clips(data: Path, actors: Collection[str]) -> list[Clip]:
+    """Every HDM05 cut clip of ``actors``, features at 30 Hz."""
+    out = []
+    for row in hdm05_rows(data):
+        actor = row.amc.name.split("_")[1]
+        if actor in actors:
+            d, matrix = read_document(row)
+            clip = TrainingClip(row.asf_text, row.amc_text, d.first_amc_frame, d.last_amc_frame, d.frames)
+            out.append(Clip(row.amc.parent.name, actor, clip, d, matrix))
+    return out
+
+
+def training_sets(clips: Iterable[Clip]) -> dict[str, list[tuple[TrainingClip, BoolArray]]]:
+    """The clips' (provenance, features) by class, as learn_class takes them."""
+    out: dict[str, list[tuple[TrainingClip, BoolArray]]] = {}
+    for c in clips:
+        out.setdefault(c.name, []).append((c.clip, c.matrix))
+    return out
+
+
 def counts(hits: TemplateHits, relevant: set[int], tau: float) -> tuple[int, int, int]:
     """Hits with cost <= tau, those in relevant documents, and the relevant documents found."""
     inside = hits.cost <= tau
@@ -65,26 +97,16 @@ def main() -> None:
     args = parser.parse_args()
     steps: Steps = args.steps
     print(describe())
-    rows = hdm05_rows(args.data)
     began = time.perf_counter()
-    training: dict[str, list[tuple[TrainingClip, np.ndarray]]] = {}
-    database, documents, classes = [], [], []
-    for row in rows:
-        document, matrix = read_document(row)
-        name, actor = row.amc.parent.name, row.amc.name.split("_")[1]
-        if actor in ("bd", "bk"):
-            clip = TrainingClip(
-                row.asf_text, row.amc_text, document.first_amc_frame, document.last_amc_frame, document.frames
-            )
-            training.setdefault(name, []).append((clip, matrix))
-        elif actor == "dg":
-            database.append(matrix)
-            documents.append(document)
-            classes.append(name)
+    clips = hdm05_clips(args.data, ("bd", "bk", "dg"))
+    training = training_sets(c for c in clips if c.actor in ("bd", "bk"))
+    test = [c for c in clips if c.actor == "dg"]
+    database, documents = [c.matrix for c in test], [c.document for c in test]
+    classes = [c.name for c in test]
     index = index_from_matrices(database, documents, 30.0)
     codes = frame_codes(index)
     print(
-        f"features of {len(rows)} clips in {time.perf_counter() - began:.1f} s; training: "
+        f"features of {len(clips)} clips in {time.perf_counter() - began:.1f} s; training: "
         f"{sum(map(len, training.values()))} bd/bk clips; database: {len(documents)} dg clips, "
         f"{index.n_frames} frames at 30 Hz; DTW steps: {steps}"
     )
