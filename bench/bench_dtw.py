@@ -50,8 +50,6 @@ from daemon.dtw import (
     subsequence_fixed,
     to_cost,
 )
-from daemon.features import decimate, features
-from replay import JOINT_NAMES
 
 BoolArray = npt.NDArray[np.bool_]
 FloatArray = npt.NDArray[np.float64]
@@ -72,9 +70,7 @@ class Database:
 
 def real_documents(root: Path) -> list[BoolArray]:
     """The 30 Hz feature matrices of every recording under ``root`` (empty if there is none)."""
-    data = load(root)
-    clips = [model.joints(model.positions(m.channels, "cm")) for model, m in data.with_models()]
-    return [decimate(features(c, JOINT_NAMES, 120.0), 4) for c in clips]
+    return load(root).features_at(30.0)
 
 
 def database(documents: list[BoolArray], n: int) -> Database:

@@ -22,7 +22,7 @@ from replay import JOINT_NAMES
 def main() -> None:
     args = arguments(__doc__)
     data = load(args.data)
-    clips = [model.joints(model.positions(m.channels, "cm")) for model, m in data.with_models()]
+    clips = data.joints_cm()
     frames = data.frames
     print(describe())
     print(f"data: {len(data.pairs)} AMC files, {frames} frames, pinned to one core, best of {args.repeat}")

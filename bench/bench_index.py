@@ -27,7 +27,7 @@ import numpy as np
 
 from bench.common import Recordings, arguments, best_of, load
 from bench.machine import describe
-from daemon.features import decimate, features
+from daemon.features import features
 from daemon.index import SetIndex, adaptive_fuzzy_query, exact_query, fuzzy_query, matching_codes
 from daemon.index_store import Document, index_bytes, index_from_matrices, load_index, save_index
 from daemon.keyframes import keyframe_search, parse_keyframe_queries
@@ -68,12 +68,10 @@ def timed(run: Callable[[], T], repeat: int) -> tuple[float, T]:
     return best, out
 
 
-def repeated_documents(
-    data: Recordings, clips: list[np.ndarray]
-) -> tuple[list[np.ndarray], list[Document], int]:
+def repeated_documents(data: Recordings) -> tuple[list[np.ndarray], list[Document], int]:
     """The 30 Hz features (every 4th frame) of every recording and its :class:`Document`, all repeated
     to at least TARGET_FRAMES frames at 120 Hz; (matrices, documents, copies)."""
-    matrices30 = [decimate(features(c, JOINT_NAMES, 120.0), 4) for c in clips]
+    matrices30 = data.features_at(30.0)
     copies = math.ceil(TARGET_FRAMES / data.frames)
     docs = [
         Document(str(amc), str(asf), int(m.frames[0]), int(m.frames[-1]), 4, len(x), 120.0)
@@ -86,9 +84,9 @@ def main() -> None:
     args = arguments(__doc__, queries=200)
     data = load(args.data)
     print(describe())
-    clips = [model.joints(model.positions(m.channels, "cm")) for model, m in data.with_models()]
+    clips = data.joints_cm()
     t_features = best_of(1, lambda: [features(c, JOINT_NAMES, 120.0) for c in clips])
-    matrices, documents, copies = repeated_documents(data, clips)
+    matrices, documents, copies = repeated_documents(data)
     frames120 = data.frames * copies
     print(
         f"database: {len(data.pairs)} AMC files x {copies} = {len(documents)} documents, "

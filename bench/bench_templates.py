@@ -38,8 +38,7 @@ def database(data: Path) -> tuple[MotionIndex, int, int]:
     """The index of bench.bench_index's database (30 Hz features of every AMC file, repeated to
     >= 1 M frames at 120 Hz); (index, AMC files, frames at 120 Hz)."""
     recs = load(data)
-    clips = [model.joints(model.positions(m.channels, "cm")) for model, m in recs.with_models()]
-    matrices, documents, copies = repeated_documents(recs, clips)
+    matrices, documents, copies = repeated_documents(recs)
     return index_from_matrices(matrices, documents, 30.0), len(recs.pairs), recs.frames * copies
 
 
@@ -85,7 +84,9 @@ def main() -> None:
     for name, cls in learned.items():
         expanded = expand(cls.quantised).length
         t_whole, hits = timed(
-            partial(template_search, index, cls.quantised, TAU, cls.steps, limit=LIMIT, codes=codes),
+            partial(
+                template_search, index, cls.quantised, tau=TAU, steps=cls.steps, limit=LIMIT, codes=codes
+            ),
             args.repeat,
         )
         rate = expanded * hits.searched / t_whole
@@ -105,8 +106,8 @@ def main() -> None:
                     template_search,
                     index,
                     cls.quantised,
-                    TAU,
-                    cls.steps,
+                    tau=TAU,
+                    steps=cls.steps,
                     keyframes=query,
                     limit=LIMIT,
                     codes=codes,

@@ -10,6 +10,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
+from daemon.recordings import joint_positions, motion_features
+from daemon.types import BoolArray, FloatArray
 from replay import KinematicModel, Motion, Skeleton, read_amc, read_asf
 from replay.catalog import CMU_SUBSTITUTES, recordings
 
@@ -49,6 +51,14 @@ class Recordings:
     @property
     def frames(self) -> int:
         return sum(len(m) for m in self.motions)
+
+    def joints_cm(self) -> list[FloatArray]:
+        """Every motion's standard joints in centimetres, each ``(N, 26, 3)``."""
+        return [joint_positions(m) for m in self.motions]
+
+    def features_at(self, rate: float) -> list[BoolArray]:
+        """Every motion's features at ``rate`` Hz (computed at 120 Hz, then decimated), ``(N, 39)``."""
+        return [motion_features(m, rate).matrix for m in self.motions]
 
     def with_models(self) -> list[tuple[KinematicModel, Motion]]:
         """Each motion with the kinematic model of its skeleton."""

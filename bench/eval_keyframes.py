@@ -18,8 +18,9 @@ from pathlib import Path
 
 from bench.common import DATA
 from bench.machine import describe
-from daemon.index_store import ManifestRow, MotionIndex, build_index
+from daemon.index_store import MotionIndex, build_index
 from daemon.keyframes import keyframe_search, parse_keyframe_queries
+from daemon.recordings import ManifestRow
 
 KEYFRAMES = Path(__file__).resolve().parents[1].parent / "shared" / "reference" / "manual-keyframes.json"
 

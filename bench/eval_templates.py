@@ -24,11 +24,12 @@ from bench.common import DATA
 from bench.eval_keyframes import KEYFRAMES, hdm05_rows
 from bench.machine import describe
 from daemon.dtw import Steps
-from daemon.features import BoolArray
 from daemon.index_store import Document, index_from_matrices, read_document
 from daemon.keyframes import KeyframeQuery, parse_keyframe_queries
-from daemon.library import ClassTemplate, TrainingClip, learn_class
+from daemon.library import ClassTemplate, learn_class
+from daemon.recordings import TrainingClip
 from daemon.retrieval import TemplateHits, frame_codes, template_search
+from daemon.types import BoolArray
 
 TAUS = (0.02, 0.04, 0.06, 0.08, 0.1)
 LIMIT = 500
@@ -118,7 +119,7 @@ def main() -> None:
     )
     for name in sorted(training):
         t0 = time.perf_counter()
-        cls = learn_class(name, training[name], 0.1, 0.1, 3, steps)
+        cls = learn_class(name, training[name], steps=steps)
         learned[name] = cls
         assert cls.keyframes is not None
         kf = " ".join(f"{k.feature_set}@{k.position}" for k in cls.keyframes.keyframes)
@@ -134,7 +135,7 @@ def main() -> None:
     for name, cls in learned.items():
         relevant = {d for d, c in enumerate(classes) if c == name}
         t0 = time.perf_counter()
-        hits = template_search(index, cls.quantised, max(TAUS), steps, limit=LIMIT, codes=codes)
+        hits = template_search(index, cls.quantised, tau=max(TAUS), steps=steps, limit=LIMIT, codes=codes)
         ms = 1e3 * (time.perf_counter() - t0)
         table = [counts(hits, relevant, t) for t in TAUS]
         curves[name] = [(good / max(n, 1), found / len(relevant)) for n, good, found in table]
@@ -161,7 +162,9 @@ def main() -> None:
                 cells.append(f"{'-':>24s}")
                 continue
             t0 = time.perf_counter()
-            hits = template_search(index, cls.quantised, 0.1, steps, query, limit=LIMIT, codes=codes)
+            hits = template_search(
+                index, cls.quantised, tau=0.1, steps=steps, keyframes=query, limit=LIMIT, codes=codes
+            )
             ms = 1e3 * (time.perf_counter() - t0)
             n, good, found = counts(hits, relevant, 0.1)
             share = 100 * hits.searched / index.n_frames

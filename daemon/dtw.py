@@ -28,8 +28,8 @@ from typing import Literal
 import numpy as np
 import numpy.typing as npt
 
-FloatArray = npt.NDArray[np.float64]
-IntArray = npt.NDArray[np.int64]
+from daemon.types import FloatArray, IntArray
+
 Steps = Literal["thesis", "toolbox"]
 STEPS: tuple[Steps, ...] = ("thesis", "toolbox")
 
@@ -422,13 +422,13 @@ def _kill(d: IntArray, s: IntArray, end: int) -> tuple[IntArray, IntArray]:
 class SubsequenceStream:
     """Streaming subsequence DTW with SPRING's disjoint-match rule (Sakurai et al., ICDE 2007).
 
-    ``push(column)`` takes the template's ``(M,)`` costs against the next database frame and updates
-    one column of D and of the start columns in O(M) time and memory (two columns for the toolbox
-    steps). The best path ending at or below ``tau`` is held as a candidate; it is reported once every
-    path still alive either costs at least as much or starts after the candidate ends, so no later
-    frame can improve on it or overlap it; then paths overlapping it are dropped. :meth:`flush` reports
-    a pending candidate at the end of the stream and starts over. :func:`disjoint_matches` is the
-    batch twin."""
+    ``push(column)`` takes the template's ``(M,)`` costs against the next database frame, updates one
+    column of D and of the start columns in O(M) time and memory (two columns for the toolbox steps)
+    and returns the matches it reports (a list of at most one). The best path ending at or below
+    ``tau`` is held as a candidate; it is reported once every path still alive either costs at least
+    as much or starts after the candidate ends, so no later frame can improve on it or overlap it;
+    then paths overlapping it are dropped. :meth:`flush` reports a pending candidate at the end of the
+    stream (in a list) and starts over. :func:`disjoint_matches` is the batch twin."""
 
     def __init__(self, m: int, tau: float, steps: Steps = "thesis") -> None:
         if m < 1:
@@ -440,18 +440,18 @@ class SubsequenceStream:
         self._cols: list[tuple[IntArray, IntArray]] = []
         self._cand: tuple[int, int, int] | None = None
 
-    def push(self, column: FloatArray) -> Match | None:
+    def push(self, column: FloatArray) -> list[Match]:
         c = fixed(column)
         if c.shape != (self.m,):
             raise ValueError(f"expected {self.m} template costs, got shape {c.shape}")
         d, s = self._column(c)
         # the live columns: paths continue from the last one (thesis) or the last two (toolbox)
         self._cols = [*(self._cols[-1:] if self.steps == "toolbox" else []), (d, s)]
-        out = None
+        out = []
         if self._cand is not None:
             dmin, ts, te = self._cand
             if all(bool(np.all((dd >= dmin) | (ss > te))) for dd, ss in self._cols):
-                out = Match(ts, te, float(to_cost(dmin)))
+                out.append(Match(ts, te, float(to_cost(dmin))))
                 self._cand = None
                 self._cols = [
                     (np.where(ss <= te, INF, dd), np.where(ss <= te, _NO_START, ss)) for dd, ss in self._cols
@@ -462,9 +462,9 @@ class SubsequenceStream:
         self._t += 1
         return out
 
-    def flush(self) -> Match | None:
+    def flush(self) -> list[Match]:
         out = (
-            None if self._cand is None else Match(self._cand[1], self._cand[2], float(to_cost(self._cand[0])))
+            [] if self._cand is None else [Match(self._cand[1], self._cand[2], float(to_cost(self._cand[0])))]
         )
         self._t, self._cols, self._cand = 0, [], None
         return out

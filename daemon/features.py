@@ -22,11 +22,9 @@ from typing import Any, Literal
 import numpy as np
 import numpy.typing as npt
 
+from daemon.types import N_FEATURES, BoolArray, FeatureSet, FloatArray
 from replay.joints import JOINT_NAMES, TOOLBOX_JOINTS
 
-FloatArray = npt.NDArray[np.float64]
-BoolArray = npt.NDArray[np.bool_]
-FeatureSet = Literal["lower", "upper", "mix"]
 Reference = Literal["h_R", "h_L", "shoulder_width", "hip_width", "chest", "body", "one"]
 Op = Literal[">=", ">", "<=", "<", "within"]
 
@@ -402,6 +400,7 @@ CATALOG: tuple[Feature, ...] = (
 
 FEATURE_NAMES: tuple[str, ...] = tuple(f.name for f in CATALOG)
 SET_SLICES: dict[FeatureSet, slice] = {"lower": slice(0, 12), "upper": slice(12, 26), "mix": slice(26, 39)}
+assert len(FEATURE_NAMES) == N_FEATURES == SET_SLICES["mix"].stop
 
 
 # ------------------------------------------------------------------------------------ arithmetic
@@ -864,7 +863,7 @@ def _check_positions(positions: FloatArray, n_joints: int) -> FloatArray:
     return p
 
 
-_BITS = np.left_shift(1, np.arange(len(CATALOG), dtype=np.int64))
+_BITS = np.left_shift(1, np.arange(N_FEATURES, dtype=np.int64))
 
 
 def _unpack(codes: Num) -> BoolArray:
@@ -885,7 +884,7 @@ def feature_tracks(
     p = _check_positions(positions, len(program.joint_names))
     n = p.shape[0]
     if n == 0:
-        return np.ones((0, len(CATALOG)), dtype=bool), np.ones((0, len(CATALOG)), dtype=bool)
+        return np.ones((0, N_FEATURES), dtype=bool), np.ones((0, N_FEATURES), dtype=bool)
     poses = np.ascontiguousarray(p.reshape(n, -1).T)  # (3J, N): each component a contiguous row
     thresholds = program.thresholds(lengths or body_lengths(p[0], program.joint_names))
     # Degenerate or huge poses give nan/inf signals (features off), as Python floats do in the stream.
@@ -1019,7 +1018,9 @@ def decimate(matrix: BoolArray, factor: int) -> BoolArray:
 
 
 class Decimator:
-    """``push(vector)`` passes on every ``factor``-th vector, starting with the first, else ``None``."""
+    """``push(vector)`` passes on every ``factor``-th vector, starting with the first (a list of it, or
+    an empty list); :meth:`flush` has nothing pending and starts a new stream. The streaming twin of
+    :func:`decimate`. State: a frame counter."""
 
     def __init__(self, factor: int) -> None:
         if factor < 1:
@@ -1027,7 +1028,11 @@ class Decimator:
         self.factor = factor
         self._n = 0
 
-    def push(self, vector: BoolArray) -> BoolArray | None:
+    def push(self, vector: BoolArray) -> list[BoolArray]:
         keep = self._n % self.factor == 0
         self._n += 1
-        return vector if keep else None
+        return [vector] if keep else []
+
+    def flush(self) -> list[BoolArray]:
+        self._n = 0
+        return []

@@ -19,10 +19,10 @@ from functools import cached_property
 import numpy as np
 import numpy.typing as npt
 
-from daemon.features import FEATURE_NAMES, SET_SLICES, BoolArray, FeatureSet
+from daemon.features import FEATURE_NAMES, SET_SLICES
 from daemon.segments import segment_codes, set_codes
+from daemon.types import BoolArray, FeatureSet, IntArray
 
-IntArray = npt.NDArray[np.int64]
 CodeSet = Sequence[int] | IntArray  # the codes of a fuzzy set V
 
 

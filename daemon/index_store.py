@@ -1,137 +1,58 @@
-"""The motion index on disk: manifests of recordings in, index directories out, and back.
+"""The motion index on disk: an I/O adapter around :mod:`daemon.index` (the pure inverted lists).
 
-An I/O adapter around :mod:`daemon.index` (the pure inverted lists). A *manifest* is a CSV listing
-recordings (columns ``asf`` and ``amc``); :func:`build_index` reads each, computes its 39 features at
-the native rate and keeps every k-th frame (the index rate, 30 Hz by default), then indexes the
-lower, upper and mix sets. :func:`save_index` writes a directory::
+:func:`build_index` turns the recordings of a manifest into an index (each recording's features at
+the index rate from :func:`daemon.recordings.read_features`); :func:`save_index` writes a directory::
 
-    index.json            format, version, rate, documents, per set its bits and segment count
+    index.json            format, version 2, rate, base (the directory relative document paths are
+                          relative to), documents, per set its bits, segment count and the SHA-256 of
+                          each array
     <set>.<array>.npy     for set in lower, upper, mix and array in doc, start, length, code,
                           offsets, postings (int64, one dimension)
 
-:func:`load_index` maps the arrays (``mmap_mode="r"``), so loading costs milliseconds at any size;
-it checks everything that can be checked without reading the arrays' contents.
+:func:`load_index` maps the arrays (``mmap_mode="r"``), checks each against its SHA-256 and checks
+that they form an index of the documents (segments tile each document, codes fit the set, every
+list holds exactly the segments of its code), so an index whose arrays were damaged, swapped or
+edited is refused rather than answering wrongly.
 """
 
 from __future__ import annotations
 
-import csv
-import io
 import math
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, fields
 from pathlib import Path
-from typing import Any, get_args
+from typing import Any
 
 import numpy as np
 
-from daemon.features import SET_SLICES, BoolArray, FeatureSet, decimate, decimation_factor, features
-from daemon.index import IntArray, SetIndex, build_set_index
-from daemon.storage import JsonChecker, check_target, read_meta, replace_directory, sync, write_json
-from replay import JOINT_NAMES, KinematicModel, MocapFormatError, read_amc, read_asf
+from daemon.checks import Checker
+from daemon.errors import MocapdError
+from daemon.features import SET_SLICES
+from daemon.index import SetIndex, build_set_index
+from daemon.recordings import ManifestRow, display_path, read_features
+from daemon.storage import check_target, checksum, read_meta, replace_directory, sync, write_json
+from daemon.types import (
+    DEFAULT_INDEX_RATE,
+    DEFAULT_NATIVE_RATE,
+    FEATURE_SETS,
+    N_FEATURES,
+    BoolArray,
+    FeatureSet,
+    IntArray,
+)
 
 FORMAT = "mocapd-index"
-VERSION = 1
+VERSION = 2
 INDEX_JSON = "index.json"
-FEATURE_SETS: tuple[FeatureSet, ...] = get_args(FeatureSet)
+WHAT = "a mocapd index"
 ARRAYS = ("doc", "start", "length", "code", "offsets", "postings")
-DEFAULT_NATIVE_RATE = 120.0
+NPY_MAGIC = b"\x93NUMPY"
 
 Progress = Callable[[int, int, "Document"], object]
 
 
-# ------------------------------------------------------------------------------------------ errors
-
-
-class ManifestError(ValueError):
-    """A manifest that cannot be used; ``str``: ``path:line: reason``."""
-
-    def __init__(self, path: str, line: int, reason: str) -> None:
-        self.path = path
-        self.line = line
-        self.reason = reason
-        super().__init__(f"{path}:{line}: {reason}")
-
-
-class IndexFormatError(ValueError):
+class IndexFormatError(MocapdError, ValueError):
     """An index directory that cannot be loaded; the message names the offending file (and field)."""
-
-
-class IndexBuildError(ValueError):
-    """A recording that reads but cannot be indexed (e.g. the index rate does not divide its rate);
-    the message names the file. Unreadable files raise the reader's :class:`MocapFormatError`."""
-
-
-# ---------------------------------------------------------------------------------------- manifest
-
-
-@dataclass(frozen=True)
-class ManifestRow:
-    """One recording of a manifest: ``asf_text``/``amc_text`` as written, ``asf``/``amc`` resolved
-    against the manifest's directory; ``line`` is the row's (last) line in the manifest."""
-
-    line: int
-    asf_text: str
-    amc_text: str
-    asf: Path
-    amc: Path
-    extra: Mapping[str, str] = field(default_factory=dict)
-
-
-def read_manifest(path: str | Path, required: Sequence[str] = ()) -> list[ManifestRow]:
-    """The rows of a manifest CSV whose header names the columns ``asf`` and ``amc`` and every column
-    of ``required`` (in any order, among any others). ``extra`` holds each row's other cells by
-    lower-case column name (empty cells of optional columns included). Blank lines are skipped.
-    Raises :class:`ManifestError`."""
-    path = Path(path)
-    source = str(path)
-    data = path.read_bytes()
-    try:
-        text = data.decode("utf-8-sig")
-    except UnicodeDecodeError as exc:
-        line = data[: exc.start].count(b"\n") + 1
-        raise ManifestError(source, line, "not UTF-8 text") from None
-    reader = csv.reader(io.StringIO(text, newline=""))
-    header: list[str] | None = None
-    columns: dict[str, int] = {}
-    rows: list[ManifestRow] = []
-    try:
-        for record in reader:
-            line = reader.line_num
-            cells = [f.strip() for f in record]
-            if not any(cells):
-                continue
-            if header is None:
-                header = [f.lower() for f in cells]
-                for name in ("asf", "amc", *required):
-                    if header.count(name) != 1:
-                        how = "lacks" if name not in header else "repeats"
-                        raise ManifestError(
-                            source, line, f"header {how} the column '{name}': {','.join(record)}"
-                        )
-                    columns[name] = header.index(name)
-                continue
-            if len(cells) != len(header):
-                raise ManifestError(source, line, f"{len(cells)} fields, the header has {len(header)}")
-            texts = {name: cells[i] for name, i in columns.items()}
-            for name, value in texts.items():
-                if not value:
-                    raise ManifestError(source, line, f"the '{name}' field is blank")
-            resolved = {name: path.parent / texts[name] for name in ("asf", "amc")}
-            for name, file in resolved.items():
-                if not file.is_file():
-                    raise ManifestError(source, line, f"{name} file not found: {file}")
-            others = {name: cells[i] for i, name in enumerate(header) if name not in ("asf", "amc")}
-            rows.append(
-                ManifestRow(line, texts["asf"], texts["amc"], resolved["asf"], resolved["amc"], others)
-            )
-    except csv.Error as exc:
-        raise ManifestError(source, reader.line_num, f"not valid CSV: {exc}") from None
-    if header is None:
-        raise ManifestError(source, 1, "empty manifest: no header line (it needs the columns asf, amc)")
-    if not rows:
-        raise ManifestError(source, max(reader.line_num, 1), "empty manifest: no recordings after the header")
-    return rows
 
 
 # ------------------------------------------------------------------------------------------- index
@@ -155,11 +76,13 @@ class Document:
 @dataclass(frozen=True)
 class MotionIndex:
     """Documents and the index of each feature set (``lower``, ``upper``, ``mix``) at ``rate`` Hz;
-    segments' ``start``/``length`` count index-rate frames of their document."""
+    segments' ``start``/``length`` count index-rate frames of their document. ``base``: the directory
+    relative document paths are relative to (the manifest's; "" if unknown)."""
 
     rate: float
     documents: tuple[Document, ...]
     sets: Mapping[FeatureSet, SetIndex]
+    base: str = ""
 
     @property
     def n_frames(self) -> int:
@@ -176,82 +99,77 @@ class MotionIndex:
         last = min(d.first_amc_frame + d.step * end + d.step - 1, d.last_amc_frame)
         return first, last
 
+    def document_path(self, doc: int) -> str:
+        """Where document ``doc``'s AMC file is, for a reader in the working directory
+        (:func:`~daemon.recordings.display_path`)."""
+        return display_path(self.base, self.documents[doc].amc)
+
 
 def index_from_matrices(
-    matrices: Sequence[BoolArray], documents: Sequence[Document], rate: float
+    matrices: Sequence[BoolArray], documents: Sequence[Document], rate: float, base: str = ""
 ) -> MotionIndex:
     """The index of documents given as feature matrices at the index rate, each shape
     ``(documents[d].frames, 39)``."""
     if len(matrices) != len(documents):
         raise ValueError(f"{len(matrices)} feature matrices for {len(documents)} documents")
     for d, (m, doc) in enumerate(zip(matrices, documents, strict=True)):
-        if m.shape != (doc.frames, 39):
-            raise ValueError(f"document {d} ({doc.amc}): matrix shape {m.shape}, expected ({doc.frames}, 39)")
+        if m.shape != (doc.frames, N_FEATURES):
+            raise ValueError(
+                f"document {d} ({doc.amc}): matrix shape {m.shape}, expected ({doc.frames}, {N_FEATURES})"
+            )
         if not math.isclose(doc.native_rate / doc.step, rate, rel_tol=1e-9):
             raise ValueError(
                 f"document {d} ({doc.amc}): {doc.native_rate:g} Hz / {doc.step} is not {rate:g} Hz"
             )
     sets = {s: build_set_index(matrices, s) for s in FEATURE_SETS}
-    return MotionIndex(float(rate), tuple(documents), sets)
+    return MotionIndex(float(rate), tuple(documents), sets, base)
 
 
 def read_document(
-    row: ManifestRow, rate: float = 30.0, default_native_rate: float = DEFAULT_NATIVE_RATE
+    row: ManifestRow, *, rate: float = DEFAULT_INDEX_RATE, default_native_rate: float = DEFAULT_NATIVE_RATE
 ) -> tuple[Document, BoolArray]:
-    """One recording's :class:`Document` and its features at ``rate``, shape ``(frames, 39)``: computed
-    at the native rate (the AMC's, else ``default_native_rate``), then every k-th frame from the first
-    (as ``mocapd features --fps``)."""
-    motion = read_amc(row.amc, read_asf(row.asf))
-    native = motion.header.frame_rate or default_native_rate
-    try:
-        step = decimation_factor(native, rate)
-    except ValueError as exc:
-        raise IndexBuildError(f"{row.amc}: index rate {exc}") from None
-    model = KinematicModel(motion.skeleton)
-    joints = model.joints(model.positions(motion.channels, "cm"))
-    try:
-        matrix = decimate(features(joints, JOINT_NAMES, native), step)
-    except MocapFormatError:
-        raise
-    except ValueError as exc:
-        raise IndexBuildError(f"{row.amc}: {exc}") from exc
-    frames = motion.frames
+    """One recording's :class:`Document` and its features at ``rate``, shape ``(frames, 39)``
+    (:func:`daemon.recordings.read_features`)."""
+    got = read_features(row.asf, row.amc, rate, default_native_rate)
     document = Document(
         amc=row.amc_text,
         asf=row.asf_text,
-        first_amc_frame=int(frames[0]),
-        last_amc_frame=int(frames[-1]),
-        step=step,
-        frames=int(matrix.shape[0]),
-        native_rate=float(native),
+        first_amc_frame=got.first_amc_frame,
+        last_amc_frame=got.last_amc_frame,
+        step=got.step,
+        frames=int(got.matrix.shape[0]),
+        native_rate=got.native_rate,
     )
-    return document, matrix
+    return document, got.matrix
 
 
 def build_index(
     rows: Sequence[ManifestRow],
-    rate: float = 30.0,
+    *,
+    rate: float = DEFAULT_INDEX_RATE,
     progress: Progress | None = None,
     default_native_rate: float = DEFAULT_NATIVE_RATE,
+    base: str | Path = "",
 ) -> MotionIndex:
     """The index of the manifest's recordings at ``rate`` Hz; ``progress(done, total, document)`` is
-    called after each recording. Raises :class:`MocapFormatError` (unreadable file) or
-    :class:`IndexBuildError` (``rate`` does not divide a recording's rate)."""
+    called after each recording; ``base``: the manifest's directory. Raises
+    :class:`~replay.MocapFormatError` (unreadable file) or :class:`~daemon.recordings.RecordingError`
+    (e.g. ``rate`` does not divide a recording's rate)."""
     documents: list[Document] = []
     matrices: list[BoolArray] = []
     for i, row in enumerate(rows, start=1):
-        document, matrix = read_document(row, rate, default_native_rate)
+        document, matrix = read_document(row, rate=rate, default_native_rate=default_native_rate)
         documents.append(document)
         matrices.append(matrix)
         if progress is not None:
             progress(i, len(rows), document)
-    return index_from_matrices(matrices, documents, rate)
+    return index_from_matrices(matrices, documents, rate, str(Path(base).resolve()) if str(base) else "")
 
 
 # ------------------------------------------------------------------------------------------ saving
 
 
-def array_file(feature_set: FeatureSet, array: str) -> str:
+def array_file(feature_set: str, array: str) -> str:
     """The file name of one array of one set, e.g. ``lower.postings.npy``."""
     return f"{feature_set}.{array}.npy"
 
@@ -261,7 +179,7 @@ def index_files() -> list[str]:
     return [INDEX_JSON] + [array_file(s, a) for s in FEATURE_SETS for a in ARRAYS]
 
 
-def index_bytes(path: str | Path, feature_set: FeatureSet | None = None) -> int:
+def index_bytes(path: str | Path, feature_set: str | None = None) -> int:
     """Bytes on disk of the index directory ``path``, or of one feature set's arrays."""
     names = index_files() if feature_set is None else [array_file(feature_set, a) for a in ARRAYS]
     return sum((Path(path) / name).stat().st_size for name in names)
@@ -270,30 +188,44 @@ def index_bytes(path: str | Path, feature_set: FeatureSet | None = None) -> int:
 def save_index(index: MotionIndex, path: str | Path) -> None:
     """Write ``index`` as the directory ``path``: built in a temporary sibling and renamed into place,
     so ``path`` never holds half an index. An existing index (or empty directory) at ``path`` is
-    replaced; anything else there is left alone and raises :class:`FileExistsError`."""
+    replaced; anything else there is left alone and raises
+    :class:`~daemon.errors.FileAccessError`."""
+    arrays = {
+        s: {a: np.ascontiguousarray(getattr(index.sets[s], a), dtype=np.int64) for a in ARRAYS}
+        for s in FEATURE_SETS
+    }
     meta: dict[str, Any] = {
         "format": FORMAT,
         "version": VERSION,
         "rate": index.rate,
+        "base": index.base,
         "documents": [{f.name: getattr(d, f.name) for f in fields(Document)} for d in index.documents],
-        "sets": {s: {"bits": index.sets[s].bits, "segments": index.sets[s].n_segments} for s in FEATURE_SETS},
+        "sets": {
+            s: {
+                "bits": index.sets[s].bits,
+                "segments": index.sets[s].n_segments,
+                "sha256": {a: checksum(v) for a, v in arrays[s].items()},
+            }
+            for s in FEATURE_SETS
+        },
     }
 
     def fill(temp: Path) -> None:
         for s in FEATURE_SETS:
-            for a in ARRAYS:
+            for a, values in arrays[s].items():
                 with open(temp / array_file(s, a), "wb") as out:
-                    np.save(out, np.ascontiguousarray(getattr(index.sets[s], a), dtype=np.int64))
+                    np.save(out, values)
                     sync(out)
         write_json(temp / INDEX_JSON, meta)  # last: a directory with it is complete
 
-    replace_directory(Path(path), INDEX_JSON, "a mocapd index", fill)
+    replace_directory(path, INDEX_JSON, WHAT, fill)
 
 
 def check_index_target(path: str | Path) -> None:
-    """Raise :class:`OSError` (naming the path) unless :func:`save_index` may write ``path``: its
-    directory exists and ``path`` is absent, an empty directory or an index."""
-    check_target(Path(path), INDEX_JSON, "a mocapd index")
+    """Raise :class:`~daemon.errors.FileAccessError` (naming the path) unless :func:`save_index` may
+    write ``path``: its directory exists and can be written, and ``path`` is absent, an empty
+    directory or an index."""
+    check_target(path, INDEX_JSON, WHAT)
 
 
 # ----------------------------------------------------------------------------------------- loading
@@ -301,57 +233,111 @@ def check_index_target(path: str | Path) -> None:
 
 def load_index(path: str | Path) -> MotionIndex:
     """The index in directory ``path``, its arrays memory-mapped read-only (numpy memmaps). Raises
-    :class:`IndexFormatError` naming the file (and field) if anything is missing or inconsistent."""
+    :class:`IndexFormatError` naming the file (and field) if anything is missing, damaged or
+    inconsistent."""
     path = Path(path)
-    check, meta = read_meta(path, INDEX_JSON, "a mocapd index", IndexFormatError)
-    root, rate = check.header(meta, {"format", "version", "rate", "documents", "sets"}, FORMAT, VERSION)
+    check, meta = read_meta(path, INDEX_JSON, WHAT, IndexFormatError)
+    keys = {"format", "version", "rate", "base", "documents", "sets"}
+    root = check.header(meta, keys, FORMAT, (VERSION,), "rebuild it with mocapd index build")
+    rate = check.positive_number(root["rate"], "rate")
+    if not isinstance(root["base"], str):
+        check.fail("base", f"must be a directory path, got {root['base']!r:.60}")
     documents = _documents(check, root["documents"])
-    sets_meta = check.mapping(root["sets"], "sets", set(FEATURE_SETS))
+    sets_meta = check.mapping(root["sets"], "sets", FEATURE_SETS)
     sets: dict[FeatureSet, SetIndex] = {}
     for s in FEATURE_SETS:
-        entry = check.mapping(sets_meta[s], f"sets.{s}", {"bits", "segments"})
+        entry = check.mapping(sets_meta[s], f"sets.{s}", ("bits", "segments", "sha256"))
         bits = check.integer(entry["bits"], f"sets.{s}.bits")
         expected_bits = SET_SLICES[s].stop - SET_SLICES[s].start
         if bits != expected_bits:
             check.fail(f"sets.{s}.bits", f"the {s} set has {expected_bits} bits, got {bits}")
         segments = check.integer(entry["segments"], f"sets.{s}.segments")
-        lengths = {"doc": segments, "start": segments, "length": segments, "code": segments}
-        lengths |= {"offsets": (1 << bits) + 1, "postings": segments}
-        arrays = {a: _load_array(path / array_file(s, a), lengths[a]) for a in ARRAYS}
-        if int(arrays["offsets"][-1]) != segments or int(arrays["offsets"][0]) != 0:
-            raise IndexFormatError(
-                f"{path / array_file(s, 'offsets')}: must run from 0 to the {segments} segments, "
-                f"runs from {int(arrays['offsets'][0])} to {int(arrays['offsets'][-1])}"
-            )
+        sums = check.mapping(entry["sha256"], f"sets.{s}.sha256", ARRAYS)
+        lengths = dict.fromkeys(("doc", "start", "length", "code", "postings"), segments)
+        lengths["offsets"] = (1 << bits) + 1
+        arrays = {}
+        for a in ARRAYS:
+            file = path / array_file(s, a)
+            arrays[a] = _load_array(file, lengths[a])
+            if checksum(arrays[a]) != sums[a]:
+                raise IndexFormatError(f"SHA-256 differs from index.json's sets.{s}.sha256.{a}", path=file)
+        _check_set(path, s, bits, arrays, documents)
         sets[s] = SetIndex(s, bits, **arrays)
-    return MotionIndex(rate, documents, sets)
+    return MotionIndex(rate, documents, sets, root["base"])
 
 
 def _load_array(file: Path, length: int) -> IntArray:
     if not file.is_file():
-        raise IndexFormatError(f"{file}: missing")
+        raise IndexFormatError("missing", path=file)
+    try:
+        with open(file, "rb") as f:
+            magic = f.read(len(NPY_MAGIC))
+    except OSError as exc:
+        raise IndexFormatError(f"cannot read: {exc.strerror}", path=file) from None
+    if magic != NPY_MAGIC:
+        raise IndexFormatError("not a .npy array file", path=file)
     try:
         array = np.load(file, mmap_mode="r", allow_pickle=False)
     except (OSError, ValueError, EOFError) as exc:
-        raise IndexFormatError(f"{file}: not a readable .npy array: {exc}") from None
-    if not isinstance(array, np.ndarray) or array.dtype != np.int64 or array.ndim != 1:
-        raise IndexFormatError(f"{file}: expected a one-dimensional int64 array, got {array!r:.80}")
+        reason = "an array of Python objects" if "allow_pickle" in str(exc) else f"{exc}".split("\n")[0]
+        raise IndexFormatError(f"not a readable .npy array: {reason}", path=file) from None
+    if array.dtype != np.int64 or array.ndim != 1:
+        raise IndexFormatError(
+            f"expected a one-dimensional int64 array, got {array.dtype} of shape {array.shape}", path=file
+        )
     if array.shape[0] != length:
-        raise IndexFormatError(f"{file}: {array.shape[0]} entries, index.json implies {length}")
+        raise IndexFormatError(f"{array.shape[0]} entries, index.json implies {length}", path=file)
     out: IntArray = array
     return out
 
 
-def _documents(check: JsonChecker, value: object) -> tuple[Document, ...]:
-    if not isinstance(value, list) or not value:
-        check.fail("documents", "expected a non-empty list")
+def _check_set(
+    path: Path, feature_set: str, bits: int, arrays: Mapping[str, IntArray], documents: Sequence[Document]
+) -> None:
+    """Raise :class:`IndexFormatError` naming the array file unless the arrays are an index of the
+    documents: segments in document order tile each document, codes fit the set, offsets run from 0
+    to the segment count, and list v holds exactly the segments of code v, ascending."""
+    doc, start, length, code = (np.asarray(arrays[a]) for a in ("doc", "start", "length", "code"))
+    offsets, postings = np.asarray(arrays["offsets"]), np.asarray(arrays["postings"])
+
+    def fail(array: str, reason: str) -> None:
+        raise IndexFormatError(reason, path=path / array_file(feature_set, array))
+
+    n_docs = len(documents)
+    if len(doc) and (doc.min() < 0 or doc.max() >= n_docs or np.any(np.diff(doc) < 0)):
+        fail("doc", f"documents must rise from 0 to {n_docs - 1}, the documents of index.json")
+    frames = np.asarray([d.frames for d in documents], dtype=np.int64)
+    if np.any(length < 1):
+        fail("length", "a segment must have at least one frame")
+    ends = start + length
+    first = np.ones(len(doc), dtype=bool)
+    first[1:] = doc[1:] != doc[:-1]
+    last = np.ones(len(doc), dtype=bool)
+    last[:-1] = doc[1:] != doc[:-1]
+    if (
+        np.any(start[first] != 0)
+        or np.any(start[1:][~first[1:]] != ends[:-1][~first[1:]])
+        or np.any(ends[last] != frames[doc[last]])
+        or len(np.unique(doc)) != n_docs
+    ):
+        fail("start", "the segments do not tile the documents of index.json")
+    if len(code) and (code.min() < 0 or code.max() >= 1 << bits):
+        fail("code", f"codes must lie in 0..{(1 << bits) - 1}")
+    if offsets[0] != 0 or offsets[-1] != len(code) or np.any(np.diff(offsets) < 0):
+        fail("offsets", f"must rise from 0 to the {len(code)} segments")
+    listed = np.repeat(np.arange(1 << bits, dtype=np.int64), np.diff(offsets))
+    if len(postings) and (postings.min() < 0 or postings.max() >= len(code)):
+        fail("postings", f"segment numbers must lie in 0..{len(code) - 1}")
+    if np.any(code[postings] != listed) or np.any(np.diff(postings)[np.diff(listed) == 0] <= 0):
+        fail("postings", "the lists do not hold exactly the segments of their codes, ascending")
+
+
+def _documents(check: Checker, value: object) -> tuple[Document, ...]:
     out = []
-    for i, item in enumerate(value):
+    for i, item in enumerate(check.listing(value, "documents", nonempty=True)):
         where = f"documents[{i}]"
-        d = check.mapping(item, where, {f.name for f in fields(Document)})
-        for key in ("amc", "asf"):
-            if not isinstance(d[key], str) or not d[key]:
-                check.fail(f"{where}.{key}", f"expected a path, got {d[key]!r}")
+        d = check.mapping(item, where, [f.name for f in fields(Document)])
+        amc, asf = check.string(d["amc"], f"{where}.amc"), check.string(d["asf"], f"{where}.asf")
         first = check.integer(d["first_amc_frame"], f"{where}.first_amc_frame", minimum=None)
         last = check.integer(d["last_amc_frame"], f"{where}.last_amc_frame", minimum=first)
         step = check.integer(d["step"], f"{where}.step", minimum=1)
@@ -359,5 +345,5 @@ def _documents(check: JsonChecker, value: object) -> tuple[Document, ...]:
         if frames != -(-(last - first + 1) // step):
             check.fail(f"{where}.frames", f"{frames} does not fit AMC frames {first}..{last} every {step}")
         native = check.positive_number(d["native_rate"], f"{where}.native_rate")
-        out.append(Document(d["amc"], d["asf"], first, last, step, frames, native))
+        out.append(Document(amc, asf, first, last, step, frames, native))
     return tuple(out)

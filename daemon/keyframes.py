@@ -19,20 +19,20 @@ import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from fractions import Fraction
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
-from daemon.features import SET_SLICES, FeatureSet
+from daemon.checks import Checker
+from daemon.errors import MocapdError
+from daemon.features import SET_SLICES
 from daemon.index import SetIndex, concatenated_ranges
-
-IntArray = npt.NDArray[np.int64]
-
-SETS: tuple[FeatureSet, ...] = ("lower", "upper", "mix")
+from daemon.types import FEATURE_SETS, FeatureSet, IntArray
 
 
-class KeyframeError(ValueError):
+class KeyframeError(MocapdError, ValueError):
     """A keyframe query that cannot be run; the message names the source and the field."""
 
 
@@ -90,69 +90,56 @@ def gap_bounds(delta: int, stiffness: float) -> tuple[int, int | None]:
 # ------------------------------------------------------------------------------- parsing the JSON
 
 
-def parse_keyframe_queries(obj: Any, source: str) -> dict[str, KeyframeQuery]:
+def parse_keyframe_queries(obj: Any, source: str | Path) -> dict[str, KeyframeQuery]:
     """The classes of a keyframe file in the schema of ``manual-keyframes.json`` (reference facts,
     section e): ``{"frame_rate_hz": 30, "classes": {name: [{"set", "values", "position",
-    "stiffness_to_next"}, ...]}, "template_length": {name: int}}``. Errors name ``source`` and the
-    field."""
-
-    def fail(where: str, what: str) -> KeyframeError:
-        return KeyframeError(f"{source}: {where}: {what}")
-
-    if not isinstance(obj, dict):
-        raise fail("top level", "must be a JSON object")
-    rate = obj.get("frame_rate_hz", 30)
-    if isinstance(rate, bool) or not isinstance(rate, int | float) or not rate > 0:
-        raise fail("frame_rate_hz", f"must be a positive number, got {rate!r}")
-    classes = obj.get("classes")
-    if not isinstance(classes, dict) or not classes:
-        raise fail("classes", "must be a non-empty object of class name -> keyframe list")
-    lengths = obj.get("template_length", {})
-    if not isinstance(lengths, dict):
-        raise fail("template_length", "must be an object of class name -> int")
+    "stiffness_to_next"}, ...]}, "template_length": {name: int}}`` (other top-level fields are
+    ignored). Errors (:class:`KeyframeError`) name ``source`` and the field."""
+    check = Checker(source, KeyframeError)
+    root = check.mapping(obj, "", ("classes",), others=True)
+    rate = check.positive_number(root.get("frame_rate_hz", 30), "frame_rate_hz")
+    classes = check.mapping(root["classes"], "classes", others=True)
+    if not classes:
+        check.fail("classes", "must name at least one class")
+    lengths = check.mapping(root.get("template_length", {}), "template_length", others=True)
     out = {}
     for name, items in classes.items():
-        where = f"classes.{name}"
-        if not isinstance(items, list) or not items:
-            raise fail(where, "must be a non-empty list of keyframes")
-        keyframes: list[Keyframe] = []
-        for k, item in enumerate(items):
-            here = f"{where}[{k}]"
-            if not isinstance(item, dict):
-                raise fail(here, "must be an object")
-            fs = item.get("set")
-            if fs not in SETS:
-                raise fail(f"{here}.set", f"must be one of lower, upper, mix, got {fs!r}")
-            n = SET_SLICES[fs].stop - SET_SLICES[fs].start
-            values = item.get("values")
-            if not isinstance(values, list) or len(values) != n:
-                raise fail(f"{here}.values", f"must be a list of {n} entries for the {fs} set")
-            for i, v in enumerate(values):
-                if isinstance(v, bool) or v not in (0, 1, 0.5):
-                    raise fail(f"{here}.values[{i}]", f"must be 0, 1 or 0.5, got {v!r}")
-            position = item.get("position")
-            if isinstance(position, bool) or not isinstance(position, int):
-                raise fail(f"{here}.position", f"must be an integer, got {position!r}")
-            if keyframes and position < keyframes[-1].position:
-                raise fail(f"{here}.position", f"{position} is before the previous keyframe's")
-            stiffness = item.get("stiffness_to_next")
-            last = k == len(items) - 1
-            if not last and (
-                isinstance(stiffness, bool)
-                or not isinstance(stiffness, int | float)
-                or not 0 <= stiffness <= 1
-            ):
-                raise fail(f"{here}.stiffness_to_next", f"must be a number in [0, 1], got {stiffness!r}")
-            keyframes.append(
-                Keyframe(
-                    fs, tuple(float(v) for v in values), position, None if last else float(stiffness or 0)
-                )
-            )
         length = lengths.get(name)
-        out[name] = KeyframeQuery(
-            name, tuple(keyframes), float(rate), length if isinstance(length, int) else None
-        )
+        if length is not None:
+            length = check.integer(length, f"template_length.{name}", minimum=1)
+        out[name] = parse_keyframes(items, check, f"classes.{name}", name, rate, length)
     return out
+
+
+def parse_keyframes(
+    items: object, check: Checker, field: str, name: str, rate: float, template_length: int | None = None
+) -> KeyframeQuery:
+    """One class's list of keyframe entries (``field`` of the file ``check`` reads) as a query."""
+    keyframes: list[Keyframe] = []
+    entries = check.listing(items, field, nonempty=True)
+    for k, item in enumerate(entries):
+        here = f"{field}[{k}]"
+        last = k == len(entries) - 1
+        entry = check.mapping(item, here, ("set", "values", "position"), ("stiffness_to_next",))
+        fs: FeatureSet = check.choice(entry["set"], f"{here}.set", FEATURE_SETS)  # type: ignore[assignment]
+        n = SET_SLICES[fs].stop - SET_SLICES[fs].start
+        values = check.listing(entry["values"], f"{here}.values")
+        if len(values) != n:
+            check.fail(f"{here}.values", f"must be a list of {n} entries for the {fs} set, got {len(values)}")
+        for i, v in enumerate(values):
+            if isinstance(v, bool) or v not in (0, 1, 0.5):
+                check.fail(f"{here}.values[{i}]", f"must be 0, 1 or 0.5, got {v!r:.60}")
+        position = check.integer(entry["position"], f"{here}.position", minimum=None)
+        if keyframes and position < keyframes[-1].position:
+            check.fail(f"{here}.position", f"{position} is before the previous keyframe's")
+        stiffness = entry.get("stiffness_to_next")
+        if last:
+            if stiffness is not None:
+                check.fail(f"{here}.stiffness_to_next", f"the last keyframe has none, got {stiffness!r:.60}")
+        else:
+            stiffness = check.number(stiffness, f"{here}.stiffness_to_next", low=0, high=1)
+        keyframes.append(Keyframe(fs, tuple(float(v) for v in values), position, stiffness))
+    return KeyframeQuery(name, tuple(keyframes), float(rate), template_length)
 
 
 # ------------------------------------------------------------------------------- the algorithm

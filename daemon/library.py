@@ -3,10 +3,11 @@ readable without them.
 
 A library is a directory::
 
-    LIB/library.json      {"format": "mocapd-templates", "version": 1, "rate": 30.0,
+    LIB/library.json      {"format": "mocapd-templates", "version": 2, "rate": 30.0,
                            "features": [39 names, the row order of every template],
-                           "classes": {name: {"file": "<name>.npz", "tau", "delta", "steps",
-                                              "iterations", "training": [clip, ...],
+                           "classes": {name: {"file": "<name>.npz", "sha256": {array: hex},
+                                              "tau", "delta", "steps", "iterations",
+                                              "training": [clip, ...],
                                               "keyframes": [keyframe, ...]}}}
     LIB/<name>.npz        soft, soft_weights, quantised, quantised_weights, hard, hard_weights
 
@@ -16,47 +17,44 @@ hard MTs in {0, ½, 1}. A training clip is ``{"asf", "amc", "start_frame", "end_
 (AMC frame numbers, inclusive; ``frames`` at ``rate``). Keyframes use the entries of
 ``manual-keyframes.json`` (``set``, ``values``, ``position``, ``stiffness_to_next``), positions in
 template columns. ``tau`` is the class's retrieval threshold, ``delta`` the quantisation threshold
-and ``steps`` the DTW steps retrieval uses.
+and ``steps`` the DTW steps retrieval uses. ``sha256`` holds the SHA-256 of each array, checked on
+loading, so arrays damaged, swapped or edited are refused. A class's arrays are read only when the
+class is loaded, so a damaged class file does not keep the others from being used.
 """
 
 from __future__ import annotations
 
-import re
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Collection, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from daemon.checks import Checker
 from daemon.dtw import STEPS, Steps
-from daemon.features import FEATURE_NAMES, BoolArray
-from daemon.index_store import DEFAULT_NATIVE_RATE, ManifestError, ManifestRow, read_document, read_manifest
-from daemon.keyframes import KeyframeError, KeyframeQuery, parse_keyframe_queries
-from daemon.storage import JsonChecker, check_target, read_meta, replace_directory, write_json
+from daemon.errors import MocapdError
+from daemon.features import FEATURE_NAMES
+from daemon.keyframes import KeyframeQuery, parse_keyframes
+from daemon.recordings import CLASS_NAME, TrainingClip
+from daemon.storage import check_target, checksum, read_meta, replace_directory, write_json
 from daemon.templates import MotionTemplate, learn
+from daemon.types import DEFAULT_INDEX_RATE, N_FEATURES, BoolArray
 
 FORMAT = "mocapd-templates"
-VERSION = 1
+VERSION = 2
 LIBRARY_JSON = "library.json"
+WHAT = "a mocapd template library"
 ARRAYS = ("soft", "soft_weights", "quantised", "quantised_weights", "hard", "hard_weights")
-CLASS_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]*")
+CLASS_KEYS = ("file", "sha256", "tau", "delta", "steps", "iterations", "training", "keyframes")
 
 
-class LibraryFormatError(ValueError):
+class LibraryFormatError(MocapdError, ValueError):
     """A library that cannot be loaded; the message names the file and the field."""
 
 
-@dataclass(frozen=True)
-class TrainingClip:
-    """Where a training example came from: AMC frames ``start_frame .. end_frame`` of ``amc``
-    (paths as the manifest wrote them), ``frames`` of them at the library's rate."""
-
-    asf: str
-    amc: str
-    start_frame: int
-    end_frame: int
-    frames: int
+class UnknownClassError(MocapdError, KeyError):
+    """A class the library does not have; the message lists the ones it has."""
 
 
 @dataclass(frozen=True)
@@ -83,102 +81,28 @@ class Library:
     classes: Mapping[str, ClassTemplate]
 
     def get(self, name: str) -> ClassTemplate:
-        """The class ``name``; :class:`KeyError` listing the known classes otherwise."""
+        """The class ``name``; :class:`UnknownClassError` listing the known classes otherwise."""
         try:
             return self.classes[name]
         except KeyError:
-            raise KeyError(
-                f"no class {name!r} in the library (it has {', '.join(sorted(self.classes))})"
-            ) from None
+            raise _unknown(name, self.classes) from None
 
 
-# ----------------------------------------------------------------------------------- training data
-
-
-@dataclass(frozen=True)
-class TrainingRow:
-    """One row of a training manifest: the class and the AMC frame range (None = whole clip)."""
-
-    name: str
-    row: ManifestRow
-    start_frame: int | None
-    end_frame: int | None
-
-
-def read_training_manifest(path: str | Path) -> list[TrainingRow]:
-    """The rows of a CSV with columns ``class, asf, amc`` and optionally ``start_frame, end_frame``
-    (AMC frame numbers, inclusive; both or neither, per row). Raises :class:`ManifestError` naming
-    the file and line."""
-    rows = read_manifest(path, required=("class",))
-    out = []
-    for row in rows:
-        name = row.extra["class"]
-        if not CLASS_NAME.fullmatch(name):
-            raise ManifestError(
-                str(path), row.line, f"class {name!r}: use letters, digits, '_', '.', '-' (it names a file)"
-            )
-        bounds = []
-        for column in ("start_frame", "end_frame"):
-            text = row.extra.get(column, "")
-            try:
-                bounds.append(int(text) if text else None)
-            except ValueError:
-                raise ManifestError(str(path), row.line, f"{column} {text!r} is not an integer") from None
-        start, end = bounds
-        if (start is None) != (end is None):
-            raise ManifestError(str(path), row.line, "give both start_frame and end_frame, or neither")
-        if start is not None and end is not None and start > end:
-            raise ManifestError(str(path), row.line, f"start_frame {start} is after end_frame {end}")
-        out.append(TrainingRow(name, row, start, end))
-    return out
-
-
-def read_example(
-    item: TrainingRow, rate: float = 30.0, default_native_rate: float = DEFAULT_NATIVE_RATE, source: str = ""
-) -> tuple[TrainingClip, BoolArray]:
-    """The features of one training example at ``rate``, shape ``(frames, 39)``: computed over the
-    whole recording (so velocities at the range's edges see their neighbours), then cut to the
-    samples inside the frame range."""
-    document, matrix = read_document(item.row, rate, default_native_rate)
-    first, last, step = document.first_amc_frame, document.last_amc_frame, document.step
-    start = first if item.start_frame is None else item.start_frame
-    end = last if item.end_frame is None else item.end_frame
-    if start < first or end > last:
-        raise ManifestError(
-            source, item.row.line, f"frames {start}..{end} are outside the recording's {first}..{last}"
-        )
-    j0, j1 = -(-(start - first) // step), (end - first) // step
-    if j1 < j0:
-        raise ManifestError(source, item.row.line, f"frames {start}..{end} hold no sample at {rate:g} Hz")
-    clip = TrainingClip(item.row.asf_text, item.row.amc_text, start, end, j1 - j0 + 1)
-    return clip, matrix[j0 : j1 + 1]
-
-
-def read_examples(
-    path: str | Path,
-    rate: float = 30.0,
-    progress: Callable[[int, int, TrainingClip], None] | None = None,
-    default_native_rate: float = DEFAULT_NATIVE_RATE,
-) -> dict[str, list[tuple[TrainingClip, BoolArray]]]:
-    """Every class's training examples from a training manifest, in manifest order."""
-    rows = read_training_manifest(path)
-    out: dict[str, list[tuple[TrainingClip, BoolArray]]] = {}
-    for i, item in enumerate(rows, start=1):
-        clip, matrix = read_example(item, rate, default_native_rate, str(path))
-        out.setdefault(item.name, []).append((clip, matrix))
-        if progress is not None:
-            progress(i, len(rows), clip)
-    return out
+def _unknown(name: str, known: Collection[str], path: Path | None = None) -> UnknownClassError:
+    return UnknownClassError(
+        f"no class {name!r} in the library (it has {', '.join(sorted(known))})", path=path
+    )
 
 
 def learn_class(
     name: str,
     examples: Sequence[tuple[TrainingClip, BoolArray]],
+    *,
     delta: float = 0.1,
     tau: float = 0.1,
     keyframes: int = 3,
     steps: Steps = "toolbox",
-    rate: float = 30.0,
+    rate: float = DEFAULT_INDEX_RATE,
 ) -> ClassTemplate:
     """A class learned from its examples' ``(frames, 39)`` matrices at ``rate`` Hz: soft MT (toolbox
     strategy 5) and its quantisation by ``delta``, hard MT (thesis §3.3.1) and ``keyframes`` automatic
@@ -186,7 +110,7 @@ def learn_class(
     toolbox's (1,1), (1,2), (2,1) by default, whose slopes between ½ and 2 keep a template from
     matching a much shorter or longer stretch (README: on HDM05 they raise precision at τ = 0.1 from
     0.09-0.6 to 0.3-1 on the weakest classes at the same recall)."""
-    learned = learn([m for _, m in examples], delta, keyframes, name, rate)
+    learned = learn([m for _, m in examples], delta=delta, keyframes=keyframes, name=name, rate=rate)
     return ClassTemplate(
         name,
         learned.soft.template,
@@ -217,9 +141,22 @@ def keyframe_entries(query: KeyframeQuery) -> list[dict[str, Any]]:
     ]
 
 
+def _arrays(c: ClassTemplate) -> dict[str, np.ndarray]:
+    arrays = {
+        "soft": c.soft.values,
+        "soft_weights": c.soft.weights,
+        "quantised": c.quantised.values,
+        "quantised_weights": c.quantised.weights,
+        "hard": c.hard.values,
+        "hard_weights": c.hard.weights,
+    }
+    return {k: np.ascontiguousarray(v, dtype=np.float64) for k, v in arrays.items()}
+
+
 def save_library(library: Library, path: str | Path) -> None:
     """Write ``library`` as the directory ``path`` (replacing an earlier library or an empty
-    directory; anything else raises :class:`FileExistsError`), never half written."""
+    directory; anything else raises :class:`~daemon.errors.FileAccessError`), never half written."""
+    arrays = {name: _arrays(c) for name, c in library.classes.items()}
     meta: dict[str, Any] = {
         "format": FORMAT,
         "version": VERSION,
@@ -230,6 +167,7 @@ def save_library(library: Library, path: str | Path) -> None:
     for name, c in library.classes.items():
         meta["classes"][name] = {
             "file": f"{name}.npz",
+            "sha256": {k: checksum(v) for k, v in arrays[name].items()},
             "tau": c.tau,
             "delta": c.delta,
             "steps": c.steps,
@@ -239,123 +177,139 @@ def save_library(library: Library, path: str | Path) -> None:
         }
 
     def fill(temp: Path) -> None:
-        for name, c in library.classes.items():
-            arrays = {
-                "soft": c.soft.values,
-                "soft_weights": c.soft.weights,
-                "quantised": c.quantised.values,
-                "quantised_weights": c.quantised.weights,
-                "hard": c.hard.values,
-                "hard_weights": c.hard.weights,
-            }
+        for name, values in arrays.items():
             with open(temp / f"{name}.npz", "wb") as out:
-                np.savez(
-                    out, allow_pickle=False, **{k: np.asarray(v, dtype=np.float64) for k, v in arrays.items()}
-                )
+                np.savez(out, allow_pickle=False, **values)
         write_json(temp / LIBRARY_JSON, meta)
 
-    replace_directory(Path(path), LIBRARY_JSON, "a mocapd template library", fill)
+    replace_directory(path, LIBRARY_JSON, WHAT, fill)
 
 
 def check_library_target(path: str | Path) -> None:
-    """Raise :class:`OSError` unless :func:`save_library` may write ``path``."""
-    check_target(Path(path), LIBRARY_JSON, "a mocapd template library")
+    """Raise :class:`~daemon.errors.FileAccessError` unless :func:`save_library` may write ``path``."""
+    check_target(path, LIBRARY_JSON, WHAT)
 
 
-def load_library(path: str | Path) -> Library:
-    """The library in directory ``path``. Raises :class:`LibraryFormatError` naming the file and the
-    field if anything is missing or inconsistent."""
+def library_classes(path: str | Path) -> list[str]:
+    """The names of the classes of the library in ``path`` (its metadata checked, no arrays read)."""
+    return list(_read(Path(path))[2])
+
+
+def load_library(path: str | Path, names: Collection[str] | None = None) -> Library:
+    """The library in directory ``path``: every class, or only those of ``names`` (whose arrays
+    alone are then read; a name the library lacks raises :class:`UnknownClassError`). Raises
+    :class:`LibraryFormatError` naming the file and the field if anything is missing, damaged or
+    inconsistent."""
     path = Path(path)
-    check, meta = read_meta(path, LIBRARY_JSON, "a mocapd template library", LibraryFormatError)
-    root, rate = check.header(meta, {"format", "version", "rate", "features", "classes"}, FORMAT, VERSION)
-    if root["features"] != list(FEATURE_NAMES):
-        check.fail("features", "not the 39 features of this mocapd in its order")
-    if not isinstance(root["classes"], dict) or not root["classes"]:
-        check.fail("classes", "expected a non-empty object of class name -> class")
+    check, rate, entries = _read(path)
+    wanted = list(entries) if names is None else list(names)
+    for name in wanted:
+        if name not in entries:
+            raise _unknown(name, entries, path)
     classes = {}
-    for name, entry in root["classes"].items():
+    for name in wanted:
         where = f"classes.{name}"
-        if not CLASS_NAME.fullmatch(name):
-            check.fail(where, "a class name uses letters, digits, '_', '.', '-'")
-        keys = {"file", "tau", "delta", "steps", "iterations", "training", "keyframes"}
-        e = check.mapping(entry, where, keys)
-        if e["file"] != f"{name}.npz":
-            check.fail(f"{where}.file", f"expected '{name}.npz', got {e['file']!r}")
-        tau = check.positive_number(e["tau"], f"{where}.tau")
-        delta = _number(check, e["delta"], f"{where}.delta", 0.0, 0.5)
-        if e["steps"] not in STEPS:
-            check.fail(f"{where}.steps", f"expected one of {', '.join(STEPS)}, got {e['steps']!r}")
-        iterations = check.integer(e["iterations"], f"{where}.iterations")
-        training = _training(check, e["training"], f"{where}.training")
-        soft, quantised, hard = _templates(path / e["file"])
+        e = entries[name]
+        soft, quantised, hard = _templates(path / e["file"], e["sha256"])
         keyframes = None
-        if not isinstance(e["keyframes"], list):
-            check.fail(f"{where}.keyframes", "expected a list (empty: no keyframes)")
         if e["keyframes"]:
-            obj = {
-                "frame_rate_hz": rate,
-                "classes": {name: e["keyframes"]},
-                "template_length": {name: hard.values.shape[1]},
-            }
-            try:
-                keyframes = parse_keyframe_queries(obj, f"{check.source}: {where}.keyframes")[name]
-            except KeyframeError as exc:
-                raise LibraryFormatError(str(exc)) from None
+            keyframes = parse_keyframes(e["keyframes"], check, f"{where}.keyframes", name, rate, hard.length)
         classes[name] = ClassTemplate(
-            name, soft, quantised, hard, keyframes, tau, delta, e["steps"], iterations, training
+            name,
+            soft,
+            quantised,
+            hard,
+            keyframes,
+            e["tau"],
+            e["delta"],
+            e["steps"],
+            e["iterations"],
+            e["training"],
         )
     return Library(rate, classes)
 
 
-def _number(check: JsonChecker, value: object, field: str, low: float, high: float) -> float:
-    if not isinstance(value, int | float) or isinstance(value, bool) or not low <= value < high:
-        check.fail(field, f"expected a number in [{low:g}, {high:g}), got {value!r}")
-    return float(value)
+def _read(path: Path) -> tuple[Checker, float, dict[str, dict[str, Any]]]:
+    """library.json checked: its checker, the rate, and each class's entry (numbers as floats,
+    training clips as :class:`TrainingClip`)."""
+    check, meta = read_meta(path, LIBRARY_JSON, WHAT, LibraryFormatError)
+    keys = ("format", "version", "rate", "features", "classes")
+    root = check.header(meta, keys, FORMAT, (VERSION,), "learn it again with mocapd learn")
+    rate = check.positive_number(root["rate"], "rate")
+    if root["features"] != list(FEATURE_NAMES):
+        check.fail("features", f"not the {N_FEATURES} features of this mocapd in its order")
+    classes = check.mapping(root["classes"], "classes", others=True)
+    if not classes:
+        check.fail("classes", "must name at least one class")
+    entries = {}
+    for name, entry in classes.items():
+        where = f"classes.{name}"
+        if not CLASS_NAME.fullmatch(name):
+            check.fail(where, "a class name uses letters, digits, '_', '.', '-'")
+        e = dict(check.mapping(entry, where, CLASS_KEYS))
+        if e["file"] != f"{name}.npz":
+            check.fail(f"{where}.file", f"must be '{name}.npz', got {e['file']!r:.60}")
+        sums = check.mapping(e["sha256"], f"{where}.sha256", ARRAYS)
+        for a in ARRAYS:
+            check.string(sums[a], f"{where}.sha256.{a}")
+        e["tau"] = check.positive_number(e["tau"], f"{where}.tau")
+        e["delta"] = check.number(e["delta"], f"{where}.delta", low=0, high=0.5, high_open=True)
+        check.choice(e["steps"], f"{where}.steps", STEPS)
+        e["iterations"] = check.integer(e["iterations"], f"{where}.iterations")
+        e["training"] = _training(check, e["training"], f"{where}.training")
+        check.listing(e["keyframes"], f"{where}.keyframes")
+        entries[name] = e
+    return check, rate, entries
 
 
-def _training(check: JsonChecker, value: object, where: str) -> tuple[TrainingClip, ...]:
-    if not isinstance(value, list):
-        check.fail(where, "expected a list of training clips")
+def _training(check: Checker, value: object, where: str) -> tuple[TrainingClip, ...]:
     out = []
-    for i, item in enumerate(value):
+    for i, item in enumerate(check.listing(value, where)):
         here = f"{where}[{i}]"
-        t = check.mapping(item, here, {"asf", "amc", "start_frame", "end_frame", "frames"})
-        for key in ("asf", "amc"):
-            if not isinstance(t[key], str) or not t[key]:
-                check.fail(f"{here}.{key}", f"expected a path, got {t[key]!r}")
+        t = check.mapping(item, here, ("asf", "amc", "start_frame", "end_frame", "frames"))
+        asf, amc = check.string(t["asf"], f"{here}.asf"), check.string(t["amc"], f"{here}.amc")
         start = check.integer(t["start_frame"], f"{here}.start_frame", minimum=None)
         end = check.integer(t["end_frame"], f"{here}.end_frame", minimum=start)
         frames = check.integer(t["frames"], f"{here}.frames", minimum=1)
-        out.append(TrainingClip(t["asf"], t["amc"], start, end, frames))
+        out.append(TrainingClip(asf, amc, start, end, frames))
     return tuple(out)
 
 
-def _templates(file: Path) -> tuple[MotionTemplate, MotionTemplate, MotionTemplate]:
+def _templates(file: Path, sums: Mapping[str, str]) -> tuple[MotionTemplate, MotionTemplate, MotionTemplate]:
     if not file.is_file():
-        raise LibraryFormatError(f"{file}: missing")
+        raise LibraryFormatError("missing", path=file)
     try:
         with np.load(file, allow_pickle=False) as npz:
             arrays = {k: np.asarray(npz[k]) for k in npz.files}
-    except (OSError, ValueError, EOFError) as exc:
-        raise LibraryFormatError(f"{file}: not a readable .npz: {exc}") from None
-    missing = set(ARRAYS) - arrays.keys()
+    except Exception as exc:  # any failure to decode an untrusted file means the file is damaged
+        reason = str(exc).split("\n")[0] or type(exc).__name__
+        raise LibraryFormatError(f"not a readable .npz: {reason}", path=file) from None
+    missing = [a for a in ARRAYS if a not in arrays]
     if missing:
-        raise LibraryFormatError(f"{file}: missing arrays {', '.join(sorted(missing))}")
+        raise LibraryFormatError(f"missing arrays {', '.join(missing)}", path=file)
+    for a in ARRAYS:
+        if checksum(arrays[a]) != sums[a]:
+            raise LibraryFormatError(f"{a}: SHA-256 differs from library.json's", path=file)
     out = []
     for kind in ("soft", "quantised", "hard"):
         values, weights = arrays[kind], arrays[f"{kind}_weights"]
-        if values.dtype != np.float64 or values.ndim != 2 or values.shape[0] != len(FEATURE_NAMES):
-            raise LibraryFormatError(f"{file}: {kind}: expected a float64 (39, K) array, got {values.shape}")
+        if values.dtype != np.float64 or values.ndim != 2 or values.shape[0] != N_FEATURES:
+            raise LibraryFormatError(
+                f"{kind}: expected a float64 ({N_FEATURES}, K) array, got {values.dtype} {values.shape}",
+                path=file,
+            )
         if values.shape[1] < 1 or weights.shape != (values.shape[1],) or weights.dtype != np.float64:
             raise LibraryFormatError(
-                f"{file}: {kind}_weights: expected {values.shape[1]} float64 weights, got {weights.shape}"
+                f"{kind}_weights: expected {values.shape[1]} float64 weights, "
+                f"got {weights.dtype} {weights.shape}",
+                path=file,
             )
         if not np.all(np.isfinite(weights) & (weights > 0)):
-            raise LibraryFormatError(f"{file}: {kind}_weights: weights must be positive and finite")
+            raise LibraryFormatError(f"{kind}_weights: weights must be positive and finite", path=file)
         if kind == "soft":
             if not np.all((values >= 0) & (values <= 1)):
-                raise LibraryFormatError(f"{file}: soft: values must lie in [0, 1]")
+                raise LibraryFormatError("soft: values must lie in [0, 1]", path=file)
         elif not np.all(np.isin(values, (0.0, 0.5, 1.0))):
-            raise LibraryFormatError(f"{file}: {kind}: values must be 0, 0.5 or 1")
+            raise LibraryFormatError(f"{kind}: values must be 0, 0.5 or 1", path=file)
         out.append(MotionTemplate(values, weights))
     return out[0], out[1], out[2]

@@ -5,15 +5,20 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Any
+from typing import IO, Any
 
 import numpy as np
 import numpy.typing as npt
 
-from daemon.features import FEATURE_NAMES, SET_SLICES, BoolArray
+from daemon.errors import MocapdError
+from daemon.features import FEATURE_NAMES, SET_SLICES
+from daemon.types import BoolArray
+
+Target = str | Path | IO[bytes]
+"""Where a picture goes: a path, or a binary file open for writing (always PNG)."""
 
 
-class PlotUnavailable(RuntimeError):
+class PlotUnavailable(MocapdError, RuntimeError):
     """matplotlib is not installed."""
 
 
@@ -28,8 +33,17 @@ def _pyplot() -> Any:
     return plt
 
 
+def check_plotting() -> None:
+    """Raise :class:`PlotUnavailable` unless PNGs can be drawn (before the work that would draw one)."""
+    _pyplot()
+
+
+def _save(fig: Any, target: Target) -> None:
+    fig.savefig(target, dpi=110, format="png")
+
+
 def feature_matrix_png(
-    matrix: BoolArray, frames: npt.NDArray[np.int64], path: str | Path, title: str, frame_rate: float
+    matrix: BoolArray, frames: npt.NDArray[np.int64], path: Target, title: str, frame_rate: float
 ) -> None:
     """Draw a feature matrix shape ``(N, 39)`` as in the thesis' figures: features top to bottom,
     time left to right, black = 1, the lower, upper and mix sets in separate panels. ``frames`` shape
@@ -63,7 +77,7 @@ def feature_matrix_png(
     )
     axes[0].set_title(title, fontsize=9)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    _save(fig, path)
     plt.close(fig)
 
 
@@ -71,7 +85,7 @@ def template_png(
     soft: npt.NDArray[np.float64],
     hard: npt.NDArray[np.float64],
     keyframe_columns: Sequence[int],
-    path: str | Path,
+    path: Target,
     title: str,
     frame_rate: float,
 ) -> None:
@@ -100,12 +114,12 @@ def template_png(
     for c in keyframe_columns:
         axes[1].axvline(c, color="tab:green", linewidth=1.5)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    _save(fig, path)
     plt.close(fig)
 
 
 def precision_recall_png(
-    curves: Mapping[str, Sequence[tuple[float, float]]], taus: Sequence[float], path: str | Path
+    curves: Mapping[str, Sequence[tuple[float, float]]], taus: Sequence[float], path: Target
 ) -> None:
     """Precision (y) against recall (x) per class, one point per threshold τ of ``taus``
     (``curves[class]`` = [(precision, recall), ...] in the order of ``taus``)."""
@@ -121,5 +135,5 @@ def precision_recall_png(
     ax.set_ylim(0, 1.02)
     ax.legend(fontsize=7)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    _save(fig, path)
     plt.close(fig)

@@ -16,17 +16,14 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-import numpy.typing as npt
 
 from daemon.dtw import Match, Steps, local_minima, retrieval_rows, subsequence_fixed, suppress, to_cost
 from daemon.features import SET_SLICES
-from daemon.index import IntArray, concatenated_ranges
-from daemon.index_store import FEATURE_SETS, MotionIndex
+from daemon.index import concatenated_ranges
+from daemon.index_store import MotionIndex
 from daemon.keyframes import KeyframeHits, KeyframeQuery, keyframe_search
 from daemon.templates import MotionTemplate, expand
-
-FloatArray = npt.NDArray[np.float64]
-CodeArray = npt.NDArray[np.uint64]
+from daemon.types import FEATURE_SETS, CodeArray, FloatArray, IntArray
 
 SEPARATOR = 2
 PIECES_PER_PASS = 1 << 14  # keeps the fixed-point row sums far from int64 overflow (dtw.INF)
@@ -74,6 +71,7 @@ def keyframe_extension(query: KeyframeQuery, template_length: int, rate: float) 
 def template_search(
     index: MotionIndex,
     template: MotionTemplate,
+    *,
     tau: float,
     steps: Steps = "thesis",
     keyframes: KeyframeQuery | None = None,

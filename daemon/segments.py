@@ -12,18 +12,16 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 
 import numpy as np
-import numpy.typing as npt
 
-from daemon.features import SET_SLICES, BoolArray, FeatureSet
-
-IntArray = npt.NDArray[np.int64]
+from daemon.features import SET_SLICES
+from daemon.types import N_FEATURES, BoolArray, FeatureSet, IntArray
 
 
 def set_codes(matrix: BoolArray, feature_set: FeatureSet) -> IntArray:
     """Codes of the ``feature_set`` part of ``matrix`` shape ``(N, 39)``: shape ``(N,)``."""
     m = np.asarray(matrix, dtype=bool)
-    if m.ndim != 2 or m.shape[1] != 39:
-        raise ValueError(f"feature matrix must have shape (N, 39), got {m.shape}")
+    if m.ndim != 2 or m.shape[1] != N_FEATURES:
+        raise ValueError(f"feature matrix must have shape (N, {N_FEATURES}), got {m.shape}")
     part = m[:, SET_SLICES[feature_set]]
     weights = np.left_shift(1, np.arange(part.shape[1], dtype=np.int64))
     out: IntArray = part.astype(np.int64) @ weights
@@ -33,8 +31,8 @@ def set_codes(matrix: BoolArray, feature_set: FeatureSet) -> IntArray:
 def vector_code(vector: BoolArray, feature_set: FeatureSet) -> int:
     """Code of the ``feature_set`` part of one vector shape ``(39,)``."""
     v = np.asarray(vector, dtype=bool)
-    if v.shape != (39,):
-        raise ValueError(f"feature vector must have shape (39,), got {v.shape}")
+    if v.shape != (N_FEATURES,):
+        raise ValueError(f"feature vector must have shape ({N_FEATURES},), got {v.shape}")
     code = 0
     for i, bit in enumerate(v[SET_SLICES[feature_set]].tolist()):
         code |= bit << i
@@ -88,8 +86,8 @@ def segment(matrix: BoolArray, feature_set: FeatureSet) -> Segments:
 
 class Segmenter:
     """F-segments of a stream of feature vectors: ``push(vector)`` returns the segment that the
-    vector closed (its code differs from the running one), else ``None``; :meth:`flush` closes the
-    last segment and starts over. State: the running segment only."""
+    vector closed (its code differs from the running one) in a list, else an empty list;
+    :meth:`flush` closes the last segment and starts over. State: the running segment only."""
 
     def __init__(self, feature_set: FeatureSet) -> None:
         self.feature_set = feature_set
@@ -97,17 +95,17 @@ class Segmenter:
         self._start = 0
         self._code = -1
 
-    def push(self, vector: BoolArray) -> Segment | None:
+    def push(self, vector: BoolArray) -> list[Segment]:
         code = vector_code(vector, self.feature_set)
-        closed = None
+        closed = []
         if self._n and code != self._code:
-            closed = Segment(self._start, self._n - 1, self._code)
+            closed.append(Segment(self._start, self._n - 1, self._code))
             self._start = self._n
         self._code = code
         self._n += 1
         return closed
 
-    def flush(self) -> Segment | None:
-        closed = Segment(self._start, self._n - 1, self._code) if self._n else None
+    def flush(self) -> list[Segment]:
+        closed = [Segment(self._start, self._n - 1, self._code)] if self._n else []
         self._n, self._start, self._code = 0, 0, -1
         return closed

@@ -1,19 +1,163 @@
-"""Writing and checking the directories mocapd stores (indexes, template libraries): a directory is
-built in a temporary sibling and renamed into place, and its JSON is checked field by field with
-errors that name the file and the field."""
+"""Writing what mocapd stores (indexes, template libraries, CSV and PNG outputs) so that a target is
+never half written: every output is written beside its target and renamed into place, and SIGINT or
+SIGTERM during the swap or the clean-up takes effect only after it, so the previous file is intact or
+the new one complete and nothing temporary is left behind. Targets are checked before the work (by
+creating and removing a probe beside them) and errors name the target, not a temporary file."""
 
 from __future__ import annotations
 
 import errno
+import hashlib
 import json
-import math
 import os
 import secrets
 import shutil
-import tempfile
-from collections.abc import Callable
+import signal
+import stat
+import threading
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
-from typing import IO, Any, NoReturn
+from types import FrameType
+from typing import IO, Any, Literal
+
+import numpy as np
+import numpy.typing as npt
+
+from daemon.checks import Checker, read_structured
+from daemon.errors import FileAccessError, MocapdError
+
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+
+@contextmanager
+def uninterrupted() -> Iterator[None]:
+    """Run the block to its end even if SIGINT or SIGTERM arrive meanwhile; the first of them is then
+    handled as it would have been (e.g. ``KeyboardInterrupt`` raised) once the block is done. Outside
+    the main thread, where Python handles no signals, the block simply runs."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    caught: list[tuple[int, FrameType | None]] = []
+
+    def record(number: int, frame: FrameType | None) -> None:
+        caught.append((number, frame))
+
+    previous = {s: signal.signal(s, record) for s in STOP_SIGNALS}
+    try:
+        yield
+    finally:
+        for s, handler in previous.items():
+            signal.signal(s, handler)
+        if caught:
+            number, frame = caught[0]
+            handler = previous[signal.Signals(number)]
+            if callable(handler):
+                handler(number, frame)
+            elif handler == signal.SIG_DFL:
+                os.kill(os.getpid(), number)
+
+
+def _beside(target: Path, kind: str) -> Path:
+    """A fresh hidden name in the directory of ``target`` (so a rename into place is atomic)."""
+    return target.parent / f".{target.name}.{os.getpid()}.{secrets.token_hex(4)}.{kind}"
+
+
+def _named(exc: OSError, target: Path) -> FileAccessError:
+    error = FileAccessError(exc.strerror or str(exc), path=target)
+    error.errno = exc.errno
+    return error
+
+
+def _probe(directory: Path, named: Path) -> None:
+    """Create and remove a directory in ``directory``: the real test that it can be written there
+    (permission bits alone say nothing to root or on a read-only file system). Errors name
+    ``named``, the output the user asked for."""
+    probe = _beside(directory / "mocapd", "probe")
+    with uninterrupted():
+        try:
+            probe.mkdir()
+        except OSError as exc:
+            raise _named(exc, named) from None
+        probe.rmdir()
+
+
+# ------------------------------------------------------------------------------------------ files
+
+
+def _direct(target: Path) -> bool:
+    """Whether ``target`` is written in place: an existing device, pipe or socket (``/dev/stdout``,
+    a FIFO) cannot be replaced, and must not be."""
+    try:
+        mode = target.stat().st_mode
+    except OSError:
+        return False
+    return not stat.S_ISREG(mode) and not stat.S_ISDIR(mode)
+
+
+def check_output_file(path: str | Path) -> None:
+    """Raise :class:`FileAccessError` naming ``path`` unless :func:`output_file` can write it."""
+    target = Path(path)
+    if target.is_dir():
+        raise FileAccessError("is a directory", path=target)
+    if _direct(target):
+        if not os.access(target, os.W_OK):
+            raise FileAccessError(os.strerror(errno.EACCES), path=target)
+        return
+    real = Path(os.path.realpath(target))
+    if not real.parent.is_dir():
+        raise FileAccessError(os.strerror(errno.ENOENT), path=target)
+    _probe(real.parent, target)
+
+
+def check_directory(path: str | Path) -> None:
+    """Raise :class:`FileAccessError` naming ``path`` unless files can be created in the directory
+    ``path``."""
+    _probe(Path(path), Path(path))
+
+
+@contextmanager
+def output_file(path: str | Path, mode: Literal["w", "wb"] = "w") -> Iterator[IO[Any]]:
+    """A file to write ``path`` through: text (UTF-8, ``\\n`` line ends) or binary. On a clean exit it
+    is synced and renamed onto ``path`` (a symbolic link is followed; an existing file keeps its
+    permissions); on any exception, signals included, it is removed and ``path`` is untouched.
+    Devices and pipes are written in place. :class:`OSError` from writing becomes
+    :class:`FileAccessError` naming ``path``."""
+    target = Path(path)
+    check_output_file(target)
+    text: dict[str, Any] = {"encoding": "utf-8", "newline": ""} if mode == "w" else {}
+    if _direct(target):
+        try:
+            with open(target, mode, **text) as out:
+                yield out
+        except OSError as exc:
+            raise _named(exc, target) from None
+        return
+    real = Path(os.path.realpath(target))
+    with uninterrupted():
+        temp = _beside(real, "tmp")
+        try:
+            fd = os.open(temp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
+        except OSError as exc:
+            raise _named(exc, target) from None
+    try:
+        with os.fdopen(fd, mode, **text) as out:
+            yield out
+            out.flush()
+            os.fsync(out.fileno())
+        if real.exists():
+            os.chmod(temp, stat.S_IMODE(real.stat().st_mode))
+        with uninterrupted():
+            os.replace(temp, real)
+    except BaseException as exc:
+        with uninterrupted():
+            temp.unlink(missing_ok=True)
+        if isinstance(exc, OSError):
+            raise _named(exc, target) from None
+        raise
+
+
+# ------------------------------------------------------------------------------------ directories
 
 
 def sync(file: IO[Any]) -> None:
@@ -28,97 +172,60 @@ def write_json(path: Path, value: object) -> None:
         sync(out)
 
 
-def check_target(path: Path, marker: str, what: str) -> None:
-    """Raise :class:`OSError` (naming the path) unless ``path`` may be written: its directory exists
-    and ``path`` is absent, an empty directory or a directory holding ``marker`` (``what``)."""
-    parent = path.parent
-    if not parent.is_dir():
-        raise FileNotFoundError(errno.ENOENT, os.strerror(errno.ENOENT), str(parent))
-    if path.exists() and not (path.is_dir() and (not any(path.iterdir()) or (path / marker).is_file())):
-        raise FileExistsError(errno.EEXIST, f"exists and is not {what}, not replaced", str(path))
+def check_target(path: str | Path, marker: str, what: str) -> None:
+    """Raise :class:`FileAccessError` (naming ``path``) unless :func:`replace_directory` may write
+    ``path``: its directory exists and can be written, and ``path`` is absent, an empty directory or
+    a directory holding ``marker`` (``what``)."""
+    target = Path(path)
+    if not target.parent.is_dir():
+        raise FileAccessError(os.strerror(errno.ENOENT), path=target)
+    if target.exists() and not (
+        target.is_dir() and (not any(target.iterdir()) or (target / marker).is_file())
+    ):
+        raise FileAccessError(f"exists and is not {what}, not replaced", path=target)
+    _probe(target.parent, target)
 
 
-def replace_directory(path: Path, marker: str, what: str, fill: Callable[[Path], None]) -> None:
+def replace_directory(path: str | Path, marker: str, what: str, fill: Callable[[Path], None]) -> None:
     """Write the directory ``path`` with ``fill(temp)`` in a temporary sibling, then rename it into
     place (replacing an earlier one, see :func:`check_target`), so ``path`` is never half written."""
-    check_target(path, marker, what)
-    temp = path.parent / f".{path.name}.{os.getpid()}.{secrets.token_hex(4)}.tmp"
-    temp.mkdir()  # unlike mkdtemp's 0o700, the umask's permissions, which the directory keeps
+    target = Path(path)
+    check_target(target, marker, what)
+    with uninterrupted():
+        temp = _beside(target, "tmp")
+        try:
+            temp.mkdir()  # unlike mkdtemp's 0o700, the umask's permissions, which the directory keeps
+        except OSError as exc:
+            raise _named(exc, target) from None
     try:
         fill(temp)
-        if path.exists():
-            old = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".old", dir=path.parent))
-            os.replace(path, old / path.name)
-            os.replace(temp, path)
-            shutil.rmtree(old)
-        else:
-            os.replace(temp, path)
-    except BaseException:
-        shutil.rmtree(temp, ignore_errors=True)
+        with uninterrupted():
+            if target.exists():
+                old = _beside(target, "old")
+                os.replace(target, old)
+                os.replace(temp, target)
+                shutil.rmtree(old)
+            else:
+                os.replace(temp, target)
+    except BaseException as exc:
+        with uninterrupted():
+            shutil.rmtree(temp, ignore_errors=True)
+        if isinstance(exc, OSError):
+            raise _named(exc, target) from None
         raise
 
 
-def read_meta(path: Path, marker: str, what: str, error: type[Exception]) -> tuple[JsonChecker, Any]:
+def read_meta(path: Path, marker: str, what: str, error: type[MocapdError]) -> tuple[Checker, Any]:
     """The parsed JSON file ``marker`` of the directory ``path`` (``what``, e.g. "a mocapd index")
-    and a checker naming it; ``error`` names the path if it cannot be read."""
-    meta_path = path / marker
+    and a checker naming it."""
     if not path.is_dir():
-        raise error(f"{path}: not {what} (not a directory)")
-    try:
-        text = meta_path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise error(f"{path}: not {what} (no {marker})") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise error(f"{meta_path}: cannot read: {exc}") from None
-    try:
-        meta = json.loads(text)
-    except json.JSONDecodeError as exc:
-        raise error(f"{meta_path}: not valid JSON: {exc}") from None
-    return JsonChecker(str(meta_path), error), meta
+        raise error(f"not {what} (not a directory)", path=path)
+    if not (path / marker).is_file():
+        raise error(f"not {what} (no {marker})", path=path)
+    return Checker(path / marker, error), read_structured(path / marker, "json", error)
 
 
-class JsonChecker:
-    """Type checks of parsed JSON that raise ``error`` naming file and field."""
-
-    def __init__(self, source: str, error: type[Exception]) -> None:
-        self.source = source
-        self.error = error
-
-    def fail(self, field: str, reason: str) -> NoReturn:
-        raise self.error(f"{self.source}: {field or 'top level'}: {reason}")
-
-    def header(self, value: object, keys: set[str], fmt: str, version: int) -> tuple[dict[str, Any], float]:
-        """The top-level object with exactly ``keys``, its ``format`` and ``version`` checked; and its
-        positive ``rate``."""
-        root = self.mapping(value, "", keys)
-        if root["format"] != fmt:
-            self.fail("format", f"expected '{fmt}', got {root['format']!r}")
-        if root["version"] != version or isinstance(root["version"], bool):
-            self.fail("version", f"this mocapd reads version {version}, got {root['version']!r}")
-        return root, self.positive_number(root["rate"], "rate")
-
-    def mapping(self, value: object, field: str, keys: set[str]) -> dict[str, Any]:
-        if not isinstance(value, dict):
-            self.fail(field, f"expected an object, got {type(value).__name__}")
-        missing, extra = keys - value.keys(), value.keys() - keys
-        if missing:
-            self.fail(field, f"missing {', '.join(sorted(missing))}")
-        if extra:
-            self.fail(field, f"unknown {', '.join(sorted(extra))}")
-        return value
-
-    def integer(self, value: object, field: str, minimum: int | None = 0) -> int:
-        if not isinstance(value, int) or isinstance(value, bool):
-            self.fail(field, f"expected an integer, got {value!r}")
-        if minimum is not None and value < minimum:
-            self.fail(field, f"must be at least {minimum}, got {value}")
-        return value
-
-    def positive_number(self, value: object, field: str) -> float:
-        if (
-            not isinstance(value, int | float)
-            or isinstance(value, bool)
-            or not (math.isfinite(value) and value > 0)
-        ):
-            self.fail(field, f"expected a positive number, got {value!r}")
-        return float(value)
+def checksum(array: npt.NDArray[Any]) -> str:
+    """SHA-256 (hex) of an array's values in C order, the check that a stored array is the one
+    written."""
+    return hashlib.sha256(np.ascontiguousarray(array).data).hexdigest()

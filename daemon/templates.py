@@ -28,9 +28,10 @@ from typing import Literal
 import numpy as np
 import numpy.typing as npt
 
-from daemon.dtw import FloatArray, IntArray, and_cost, full_dtw, l1_cost, weighted
-from daemon.features import FEATURE_NAMES, SET_SLICES, FeatureSet
-from daemon.keyframes import SETS, Keyframe, KeyframeQuery, gap_bounds
+from daemon.dtw import and_cost, full_dtw, l1_cost, weighted
+from daemon.features import SET_SLICES
+from daemon.keyframes import Keyframe, KeyframeQuery, gap_bounds
+from daemon.types import DEFAULT_INDEX_RATE, FEATURE_SETS, N_FEATURES, FeatureSet, FloatArray, IntArray
 
 Combine = Literal["mean", "oplus"]
 """How columns are merged: the weight-weighted mean (soft MTs) or ⊕ (hard MTs, Def. 3.4)."""
@@ -387,7 +388,7 @@ def keyframe_scores(hard: MotionTemplate) -> FloatArray:
     _check_feature_count(hard)
     zero, one = KEYFRAME_SCORES
     points = np.where(hard.values == 1, one, np.where(hard.values == 0, zero, 0))
-    return np.stack([points[SET_SLICES[s]].sum(axis=0) for s in SETS]).astype(np.float64)
+    return np.stack([points[SET_SLICES[s]].sum(axis=0) for s in FEATURE_SETS]).astype(np.float64)
 
 
 def keyframe_columns(hard: MotionTemplate, count: int = 3) -> list[tuple[int, FeatureSet]]:
@@ -410,9 +411,9 @@ def keyframe_columns(hard: MotionTemplate, count: int = 3) -> list[tuple[int, Fe
         if len(chosen) == count:
             break
         if all(abs(column - c) >= separation for c, _ in chosen):
-            chosen.append((column, SETS[s]))
+            chosen.append((column, FEATURE_SETS[s]))
     if not chosen:
-        chosen.append((0, SETS[0]))
+        chosen.append((0, FEATURE_SETS[0]))
     return sorted(chosen)
 
 
@@ -459,7 +460,11 @@ def gap_parameters(shortest: int, longest: int) -> tuple[int, float]:
 
 
 def automatic_keyframes(
-    hard: MotionTemplate, examples: Sequence[Example], count: int = 3, name: str = "", rate: float = 30.0
+    hard: MotionTemplate,
+    examples: Sequence[Example],
+    count: int = 3,
+    name: str = "",
+    rate: float = DEFAULT_INDEX_RATE,
 ) -> KeyframeQuery:
     """Keyframes from a 39-row hard MT (thesis ch. 6): the columns and sets of
     :func:`keyframe_columns`, each keyframe the hard MT's entries of its set at its column. Each
@@ -489,8 +494,8 @@ def automatic_keyframes(
 
 
 def _check_feature_count(t: MotionTemplate) -> None:
-    if t.features != len(FEATURE_NAMES):
-        raise ValueError(f"keyframes need a {len(FEATURE_NAMES)}-feature template, got {t.features} features")
+    if t.features != N_FEATURES:
+        raise ValueError(f"keyframes need a {N_FEATURES}-feature template, got {t.features} features")
 
 
 # ----------------------------------------------------------------------------------- everything
@@ -509,10 +514,11 @@ class LearnedClass:
 
 def learn(
     examples: Sequence[npt.NDArray[np.generic]],
+    *,
     delta: float = 0.1,
     keyframes: int = 3,
     name: str = "",
-    rate: float = 30.0,
+    rate: float = DEFAULT_INDEX_RATE,
     soft_iterations: int = 10,
     tolerance: float = 0.005,
     hard_iterations: int = 20,

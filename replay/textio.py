@@ -12,6 +12,7 @@ from typing import BinaryIO, cast
 
 from isal import igzip, isal_zlib
 
+from daemon.errors import FileAccessError
 from replay.errors import MocapFormatError
 
 GZIP_MAGIC = b"\x1f\x8b"
@@ -24,8 +25,11 @@ GZIP_ERRORS: tuple[type[BaseException], ...] = (
 
 
 def is_gzip(path: str | Path) -> bool:
-    with open(path, "rb") as probe:
-        return probe.read(2) == GZIP_MAGIC
+    try:
+        with open(path, "rb") as probe:
+            return probe.read(2) == GZIP_MAGIC
+    except OSError as exc:
+        raise FileAccessError.from_os_error(exc, path) from None
 
 
 def open_binary(path: str | Path) -> BinaryIO:
@@ -33,15 +37,20 @@ def open_binary(path: str | Path) -> BinaryIO:
 
     The stream uses the standard library's gzip: on a truncated stream it hands out everything that
     was recoverable before raising, where ISA-L's reader stops several blocks early."""
-    if is_gzip(path):
-        return cast(BinaryIO, gzip.open(path, "rb"))
-    return open(path, "rb")
+    gzipped = is_gzip(path)
+    try:
+        return cast(BinaryIO, gzip.open(path, "rb")) if gzipped else open(path, "rb")
+    except OSError as exc:
+        raise FileAccessError.from_os_error(exc, path) from None
 
 
 def read_bytes(path: str | Path) -> bytes:
     """The whole (decompressed) content of ``path``; a damaged gzip stream is a format error."""
-    with open(path, "rb") as f:
-        raw = f.read()
+    try:
+        with open(path, "rb") as f:
+            raw = f.read()
+    except OSError as exc:
+        raise FileAccessError.from_os_error(exc, path) from None
     if raw[:2] != GZIP_MAGIC:
         return raw
     try:

@@ -16,37 +16,20 @@ import numpy.typing as npt
 import pytest
 
 from replay import JOINT_NAMES, KinematicModel, MocapFormatError, Motion, read_amc, read_asf
-from tests.conftest import DATA, REPO
+from tests.helpers import (
+    CMU_AMC,
+    CMU_ASF,
+    HDM_AMC,
+    HDM_ASF,
+    MOCAPD_SCRIPT,
+    REPO,
+    assert_ok,
+    assert_one_error_line,
+    mocapd,
+)
 
-CMU_ASF = DATA / "cmu" / "02" / "02.asf"
-CMU_AMC = DATA / "cmu" / "02" / "02_01.amc.gz"
-HDM_ASF = DATA / "hdm05" / "asf" / "HDM_bd.asf"
-HDM_AMC = DATA / "hdm05" / "cut" / "squat1Reps" / "HDM_bd_squat1Reps_001_120.amc.gz"
-SOURCES = {"cmu": (CMU_ASF, CMU_AMC), "hdm05": (HDM_ASF, HDM_AMC)}
-MOCAPD_SCRIPT = Path(sys.executable).parent / "mocapd"
 CM_PER_ASF_UNIT = 2.54 / 0.45
 SIX_DECIMALS = re.compile(r"-?\d+\.\d{6}")
-
-
-def mocapd(*args: str | Path, script: bool = False) -> subprocess.CompletedProcess[str]:
-    """Run ``python -m daemon ARGS`` (or the ``mocapd`` console script) and capture its output."""
-    command = [str(MOCAPD_SCRIPT)] if script else [sys.executable, "-m", "daemon"]
-    return subprocess.run(
-        [*command, *map(str, args)], cwd=REPO, capture_output=True, text=True, timeout=60, check=False
-    )
-
-
-def assert_ok(result: subprocess.CompletedProcess[str]) -> None:
-    assert (result.returncode, result.stderr) == (0, ""), result.stderr
-
-
-def assert_one_error_line(result: subprocess.CompletedProcess[str]) -> str:
-    """Exit status 2 and exactly one line on stderr, no traceback; returns that line."""
-    assert result.returncode == 2, (result.returncode, result.stderr)
-    assert "Traceback" not in result.stderr, result.stderr
-    assert result.stderr.endswith("\n") and result.stderr.count("\n") == 1, result.stderr
-    assert result.stdout == ""
-    return result.stderr.rstrip("\n")
 
 
 def info_fields(stdout: str) -> dict[str, str]:
@@ -107,13 +90,13 @@ def test_info_json() -> None:
 
 
 def test_info_fps_60_doubles_the_duration() -> None:
-    at_120, at_60 = info_json(), info_json("--fps", "60")
+    at_120, at_60 = info_json(), info_json("--native-fps", "60")
     assert at_60["frame_rate_hz"] == 60.0
     assert at_60["frame_rate_source"] == "given"
     assert at_60["frames"] == at_120["frames"] == 343
     assert at_60["duration_s"] == pytest.approx(2 * float(at_120["duration_s"]))  # type: ignore[arg-type]
 
-    result = mocapd("info", "--asf", CMU_ASF, "--amc", CMU_AMC, "--fps", "60")
+    result = mocapd("info", "--asf", CMU_ASF, "--amc", CMU_AMC, "--native-fps", "60")
     assert_ok(result)
     assert info_fields(result.stdout)["duration"] == "5.717 s at 60 Hz (given)"
 
@@ -297,7 +280,7 @@ def test_malformed_asf(tmp_path: Path) -> None:
 def test_info_bad_fps(fps: str) -> None:
     """A frame rate that is not a positive number is a bad option: exit 2, no traceback, no nonsense
     duration (``--fps 0`` divides by zero; ``-60`` and ``nan`` give a negative / nan duration)."""
-    result = mocapd("info", "--asf", CMU_ASF, "--amc", CMU_AMC, "--fps", fps)
+    result = mocapd("info", "--asf", CMU_ASF, "--amc", CMU_AMC, "--native-fps", fps)
     assert "Traceback" not in result.stderr, result.stderr
     assert result.returncode == 2, (result.returncode, result.stdout, result.stderr)
     assert "fps" in result.stderr

@@ -13,11 +13,11 @@ import numpy as np
 import numpy.typing as npt
 import pytest
 
-from daemon.features import FEATURE_NAMES, features
-from replay import JOINT_NAMES, KinematicModel, MocapFormatError, Motion, read_amc, read_asf
-from tests.conftest import DATA, ORACLE, REPO
-from tests.test_cli import SOURCES, assert_ok, assert_one_error_line, mocapd
-from tests.test_oracle import CLIPS
+from daemon.features import FEATURE_NAMES
+from daemon.recordings import read_recording
+from replay import MocapFormatError, Motion, read_amc, read_asf
+from tests.helpers import DATA, ORACLE, ORACLE_CLIPS, REPO, SOURCES, assert_ok, assert_one_error_line, mocapd
+from tests.naive import naive_features
 
 CMU_ASF, CMU_AMC = SOURCES["cmu"]
 HEADER = ["frame", *FEATURE_NAMES]
@@ -56,25 +56,14 @@ def run_features(out: Path, asf: Path, amc: Path, *extra: str | Path) -> Feature
     return parse_features_csv(out.read_text(encoding="utf-8"))
 
 
-def load(asf: Path, amc: Path) -> Motion:
-    return read_amc(amc, read_asf(asf))
-
-
-def batch_features(motion: Motion) -> npt.NDArray[np.bool_]:
-    """The library's features at the native 120 Hz, computed in this process."""
-    model = KinematicModel(motion.skeleton)
-    joints = model.joints(model.positions(motion.channels, "cm"))
-    return features(joints, JOINT_NAMES, 120.0)
-
-
 @pytest.fixture(scope="module")
 def cmu_motion() -> Motion:
-    return load(CMU_ASF, CMU_AMC)
+    return read_recording(CMU_ASF, CMU_AMC)
 
 
 @pytest.fixture(scope="module")
-def cmu_batch(cmu_motion: Motion) -> npt.NDArray[np.bool_]:
-    return batch_features(cmu_motion)
+def cmu_batch() -> npt.NDArray[np.bool_]:
+    return naive_features(CMU_ASF, CMU_AMC)
 
 
 @pytest.fixture(scope="module")
@@ -101,8 +90,8 @@ def test_one_row_per_amc_frame_equal_to_the_library(
     else:
         asf, amc = SOURCES[source]
         table = run_features(tmp_path / "out.csv", asf, amc)
-        motion = load(asf, amc)
-        batch = batch_features(motion)
+        motion = read_recording(asf, amc)
+        batch = naive_features(asf, amc)
     assert table.header == HEADER
     assert len(table.frames) == len(motion) == len(batch)
     np.testing.assert_array_equal(table.frames, motion.frames)
@@ -113,10 +102,10 @@ def test_one_row_per_amc_frame_equal_to_the_library(
     assert table.matrix.any(axis=0).sum() >= 10
 
 
-@pytest.mark.parametrize("clip", sorted(CLIPS))
+@pytest.mark.parametrize("clip", sorted(ORACLE_CLIPS))
 def test_matches_the_toolbox_oracle(clip: str, tmp_path: Path) -> None:
     """Same header, frame numbers and 0/1 values as the original toolbox (120 Hz) on its 4 clips."""
-    asf, amc = CLIPS[clip]
+    asf, amc = ORACLE_CLIPS[clip]
     ours = run_features(tmp_path / "out.csv", DATA / asf, DATA / amc)
     oracle = parse_features_csv((ORACLE / f"{clip}.features.csv").read_text(encoding="utf-8"))
     assert ours.header == oracle.header == HEADER

@@ -11,11 +11,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from daemon.index_store import ARRAYS, FEATURE_SETS, index_files, load_index
-from tests.test_cli import assert_ok, assert_one_error_line, mocapd
-from tests.test_index_store import PATHS, write_manifest
+from daemon.index_store import ARRAYS, index_files, load_index
+from daemon.types import FEATURE_SETS
+from tests.helpers import INDEX_PATHS as PATHS
+from tests.helpers import REPO, assert_ok, assert_one_error_line, mocapd, write_manifest
 
-PROGRESS = re.compile(r"\[(\d+)/(\d+)\] (.+) \((\d+) frames\)")
+PROGRESS = re.compile(r"\[(\d+)/(\d+)\] (.+) \((\d+) frames at 30 Hz\)")
 
 
 @pytest.fixture(scope="module")
@@ -45,7 +46,11 @@ def test_build(built: tuple[Path, str, str], manifest: Path) -> None:
     for i, (line, doc) in enumerate(zip(lines, index.documents, strict=True), start=1):
         match = PROGRESS.fullmatch(line)
         assert match, line
-        assert match.groups() == (str(i), str(len(PATHS)), doc.amc, str(doc.frames))
+        # the recording as the reader in the working directory (the repository) finds it: outside it,
+        # so an absolute path, not the manifest's relative one
+        shown = os.path.normpath(manifest.parent / doc.amc)
+        assert not shown.startswith(str(REPO)) and not doc.amc.startswith("/")
+        assert match.groups() == (str(i), str(len(PATHS)), shown, str(doc.frames))
     assert index.rate == 30.0 and all(d.step == 4 for d in index.documents)
     assert f"documents:  {len(PATHS)}\n" in stdout
     assert f"frames:     {index.n_frames} at 30 Hz\n" in stdout
@@ -139,7 +144,7 @@ def test_fps_that_does_not_divide_the_native_rate(manifest: Path, tmp_path: Path
     result = mocapd("index", "build", "--manifest", manifest, "--out", out, "--fps", "25")
     first = manifest.parent / os.path.relpath(PATHS[0][1], manifest.parent)  # as resolved, unnormalised
     line = assert_one_error_line(result)
-    assert line == f"mocapd: {first}: index rate 25 Hz is not the native 120 Hz divided by a whole number"
+    assert line == f"mocapd: {first}: 25 Hz is not the native 120 Hz divided by a whole number"
     assert not out.exists()
 
 

@@ -11,17 +11,26 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from daemon.index_store import build_index, load_index, read_manifest, save_index
+from daemon.index_store import build_index, load_index, save_index
 from daemon.keyframes import parse_keyframe_queries
-from daemon.library import Library, learn_class, load_library, read_examples, save_library
+from daemon.library import Library, learn_class, load_library, save_library
+from daemon.recordings import read_examples, read_manifest
 from daemon.retrieval import template_search
-from tests.conftest import SHARED
-from tests.test_cli import assert_ok, assert_one_error_line, mocapd
-from tests.test_cli_search import clip
-from tests.test_index_store import write_manifest
-from tests.test_library import ASF, TRAIN, amc, write_training
+from tests.helpers import (
+    HDM_AMC,
+    HDM_ASF,
+    KEYFRAMES,
+    TRAINING,
+    assert_ok,
+    assert_one_error_line,
+    hdm05_clip,
+    hits_json,
+    mocapd,
+    training_rows,
+    write_manifest,
+    write_training,
+)
 
-KEYFRAMES = SHARED / "reference" / "manual-keyframes.json"
 DATABASE = [
     ("dg", "squat1Reps", 25),
     ("dg", "squat1Reps", 26),
@@ -37,11 +46,10 @@ Learned = tuple[Path, Path, str, str]  # training manifest, directory, learn's s
 @pytest.fixture(scope="module")
 def learned(tmp_path_factory: pytest.TempPathFactory) -> Learned:
     where = tmp_path_factory.mktemp("learn")
-    rows = [f"{c},{ASF / f'HDM_{a}.asf'},{amc(c, a, t)},," for c, a, t in TRAIN]
-    manifest = write_training(where / "clips.csv", rows)
+    manifest = write_training(where / "clips.csv", training_rows(TRAINING))
     result = mocapd("learn", "--manifest", manifest, "--out", where / "lib", "--png", where / "png")
     assert result.returncode == 0, result.stderr
-    index_manifest = write_manifest(where / "db.csv", [clip(*c) for c in DATABASE], extra=False)
+    index_manifest = write_manifest(where / "db.csv", [hdm05_clip(*c) for c in DATABASE], extra=False)
     save_index(build_index(read_manifest(index_manifest)), where / "idx")
     return manifest, where, result.stdout, result.stderr
 
@@ -65,10 +73,6 @@ def test_learn_writes_the_library_the_code_learns(learned: Learned) -> None:
     assert "classes:    2 (hopBothLegs1hops, squat1Reps)" in stdout
 
 
-def hits_json(stdout: str) -> list[dict[str, object]]:
-    return [json.loads(line) for line in stdout.splitlines()]
-
-
 @pytest.mark.parametrize("keyframes", [None, KEYFRAMES])
 def test_search_library_prints_the_ranking(learned: Learned, keyframes: Path | None) -> None:
     _, where, _, _ = learned
@@ -81,14 +85,14 @@ def test_search_library_prints_the_ranking(learned: Learned, keyframes: Path | N
     query = None
     if keyframes is not None:
         query = parse_keyframe_queries(json.loads(keyframes.read_text()), "k")["squat1Reps"]
-    hits = template_search(index, cls.quantised, 0.2, cls.steps, query)
+    hits = template_search(index, cls.quantised, tau=0.2, steps=cls.steps, keyframes=query)
     expected = []
     for d, s, e, c in zip(*(a.tolist() for a in (hits.doc, hits.start, hits.end, hits.cost)), strict=True):
         first, last = index.amc_frames(d, s, e)
         row = {"document": index.documents[d].amc, "start_frame": first, "end_frame": last}
         expected.append({**row, "cost": round(c, 6)})
     assert hits_json(result.stdout) == expected
-    assert {h["document"] for h in expected[:2]} == {str(clip(*c)[1]) for c in DATABASE[:2]}
+    assert {h["document"] for h in expected[:2]} == {str(hdm05_clip(*c)[1]) for c in DATABASE[:2]}
 
 
 def test_search_library_text_and_own_keyframes(learned: Learned) -> None:
@@ -149,7 +153,7 @@ def test_search_library_rate_mismatch(learned: Learned, tmp_path: Path) -> None:
     ],
 )
 def test_learn_errors(tmp_path: Path, rows: list[str], options: list[str], message: str) -> None:
-    filled = [r.format(asf=ASF / "HDM_bd.asf", amc=amc("squat1Reps", "bd", 1)) for r in rows]
+    filled = [r.format(asf=HDM_ASF, amc=HDM_AMC) for r in rows]
     manifest = write_training(tmp_path / "clips.csv", filled)
     line = assert_one_error_line(mocapd("learn", "--manifest", manifest, "--out", tmp_path / "lib", *options))
     assert message in line, line
@@ -159,8 +163,6 @@ def test_learn_errors(tmp_path: Path, rows: list[str], options: list[str], messa
 def test_learn_refuses_to_overwrite_other_files(tmp_path: Path) -> None:
     (tmp_path / "lib").mkdir()
     (tmp_path / "lib" / "notes.txt").write_text("mine")
-    manifest = write_training(
-        tmp_path / "clips.csv", [f"squat1Reps,{ASF / 'HDM_bd.asf'},{amc('squat1Reps', 'bd', 1)},,"]
-    )
+    manifest = write_training(tmp_path / "clips.csv", [f"squat1Reps,{HDM_ASF},{HDM_AMC},,"])
     line = assert_one_error_line(mocapd("learn", "--manifest", manifest, "--out", tmp_path / "lib"))
     assert "exists and is not a mocapd template library" in line

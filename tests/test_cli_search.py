@@ -9,13 +9,19 @@ from pathlib import Path
 
 import pytest
 
-from daemon.index_store import MotionIndex, build_index, load_index, read_manifest, save_index
+from daemon.index_store import MotionIndex, build_index, load_index, save_index
 from daemon.keyframes import keyframe_search, parse_keyframe_queries
-from tests.conftest import DATA, SHARED
-from tests.test_cli import assert_ok, assert_one_error_line, mocapd
-from tests.test_index_store import write_manifest
+from daemon.recordings import read_manifest
+from tests.helpers import (
+    KEYFRAMES,
+    assert_ok,
+    assert_one_error_line,
+    hdm05_clip,
+    hits_json,
+    mocapd,
+    write_manifest,
+)
 
-KEYFRAMES = SHARED / "reference" / "manual-keyframes.json"
 CLIPS = [
     ("bd", "squat1Reps", 1),
     ("bk", "squat1Reps", 24),
@@ -27,22 +33,13 @@ CLIPS = [
 ]
 
 
-def clip(actor: str, motion_class: str, take: int) -> tuple[Path, Path]:
-    amc = DATA / "hdm05" / "cut" / motion_class / f"HDM_{actor}_{motion_class}_{take:03d}_120.amc.gz"
-    return DATA / "hdm05" / "asf" / f"HDM_{actor}.asf", amc
-
-
 @pytest.fixture(scope="module")
 def index_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
     where = tmp_path_factory.mktemp("search")
-    manifest = write_manifest(where / "m.csv", [clip(*c) for c in CLIPS], extra=False)
+    manifest = write_manifest(where / "m.csv", [hdm05_clip(*c) for c in CLIPS], extra=False)
     out = where / "idx"
     save_index(build_index(read_manifest(manifest)), out)
     return out
-
-
-def hits_json(result_stdout: str) -> list[dict[str, object]]:
-    return [json.loads(line) for line in result_stdout.splitlines()]
 
 
 def expected_keyframe_rows(index: MotionIndex, name: str, extend: tuple[int, int]) -> list[dict[str, object]]:
@@ -62,7 +59,7 @@ def test_keyframe_search_json(index_dir: Path, name: str) -> None:
     rows = hits_json(result.stdout)
     index = load_index(index_dir)
     assert rows == expected_keyframe_rows(index, name, (0, 0))
-    relevant = {str(clip(*c)[1]) for c in CLIPS if c[1] == name}
+    relevant = {str(hdm05_clip(*c)[1]) for c in CLIPS if c[1] == name}
     assert {str(r["document"]) for r in rows} >= relevant  # every clip of the class is found
     for r in rows:
         doc = next(d for d in index.documents if d.amc == r["document"])
@@ -92,7 +89,7 @@ def test_keyframe_search_extend_and_text(index_dir: Path) -> None:
 
 
 def test_query_by_example_finds_itself_first(index_dir: Path) -> None:
-    asf, amc = clip("bd", "squat1Reps", 1)
+    asf, amc = hdm05_clip("bd", "squat1Reps", 1)
     features = "kneeRightBent,kneeLeftBent,feetApartRelHips"
     result = mocapd(
         "search", "--index", index_dir, "--example", asf, amc, "1", "140", "--features", features, "--json"
@@ -106,7 +103,7 @@ def test_query_by_example_finds_itself_first(index_dir: Path) -> None:
 
 
 def test_query_by_example_fuzzy_and_mismatch(index_dir: Path) -> None:
-    asf, amc = clip("bd", "kickLFront1Reps", 1)
+    asf, amc = hdm05_clip("bd", "kickLFront1Reps", 1)
     base: list[str | Path] = ["search", "--index", index_dir, "--example", asf, amc, "20", "120", "--json"]
     exact = mocapd(*base, "--features", "footLeftRaisedRelYBodyMin,kneeLeftBent")
     fuzzy = mocapd(*base, "--features", "footLeftRaisedRelYBodyMin,kneeLeftBent", "--fuzzy", "1")
@@ -131,7 +128,7 @@ def test_query_by_example_fuzzy_and_mismatch(index_dir: Path) -> None:
         (
             [
                 "--example",
-                *map(str, clip("bd", "squat1Reps", 1)),
+                *map(str, hdm05_clip("bd", "squat1Reps", 1)),
                 "1",
                 "140",
                 "--features",
@@ -139,22 +136,47 @@ def test_query_by_example_fuzzy_and_mismatch(index_dir: Path) -> None:
             ],
             "several sets",
         ),
-        (["--example", *map(str, clip("bd", "squat1Reps", 1)), "1", "140"], "--example needs --features"),
+        (
+            ["--example", *map(str, hdm05_clip("bd", "squat1Reps", 1)), "1", "140"],
+            "--example needs --features",
+        ),
         (
             [
                 "--example",
-                *map(str, clip("bd", "squat1Reps", 1)),
+                *map(str, hdm05_clip("bd", "squat1Reps", 1)),
                 "500",
                 "600",
                 "--features",
                 "kneeRightBent",
             ],
-            "hold no frame at 30 Hz",
+            "--example frames 500..600 are outside the recording's AMC frames 1..140",
         ),
         (
             [
                 "--example",
-                *map(str, clip("bd", "squat1Reps", 1)),
+                *map(str, hdm05_clip("bd", "squat1Reps", 1)),
+                "2",
+                "4",
+                "--features",
+                "kneeRightBent",
+            ],
+            "frames 2..4 hold no frame at 30 Hz",
+        ),
+        (
+            [
+                "--example",
+                *map(str, hdm05_clip("bd", "squat1Reps", 1)),
+                "-5",
+                "40",
+                "--features",
+                "kneeRightBent",
+            ],
+            "--example frames -5..40 are outside the recording's AMC frames 1..140",
+        ),
+        (
+            [
+                "--example",
+                *map(str, hdm05_clip("bd", "squat1Reps", 1)),
                 "1",
                 "140",
                 "--features",
@@ -165,7 +187,7 @@ def test_query_by_example_fuzzy_and_mismatch(index_dir: Path) -> None:
             "--mismatch",
         ),
         (
-            ["--example", *map(str, clip("bd", "squat1Reps", 1)), "1", "140", "--features", "kneeBent"],
+            ["--example", *map(str, hdm05_clip("bd", "squat1Reps", 1)), "1", "140", "--features", "kneeBent"],
             "unknown feature",
         ),
     ],
@@ -177,9 +199,11 @@ def test_bad_search_options(index_dir: Path, extra: list[str | Path], message: s
 
 def test_bad_keyframe_file_names_the_file(index_dir: Path, tmp_path: Path) -> None:
     bad = tmp_path / "q.json"
-    bad.write_text('{"classes": {"a": [\n  {"set": "lower", "values": [0, 1]}\n]}}\n', encoding="utf-8")
+    bad.write_text(
+        '{"classes": {"a": [\n  {"set": "lower", "values": [0, 1], "position": 0}\n]}}\n', encoding="utf-8"
+    )
     line = assert_one_error_line(mocapd("search", "--index", index_dir, "--keyframes", bad, "--class", "a"))
     assert f"{bad}: classes.a[0].values" in line
     bad.write_text("{\n  oops\n}\n", encoding="utf-8")
     line = assert_one_error_line(mocapd("search", "--index", index_dir, "--keyframes", bad, "--class", "a"))
-    assert f"{bad}:2: not JSON" in line
+    assert f"{bad}:2: not valid JSON" in line

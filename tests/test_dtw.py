@@ -18,206 +18,37 @@ from hypothesis import strategies as st
 
 from daemon import dtw
 from daemon.dtw import INF, SCALE, Match, Steps
+from tests.naive import (
+    WarpPath,
+    as_cost,
+    brute_and,
+    ceil_div,
+    grid,
+    ref_full,
+    ref_local_minima,
+    ref_spring,
+    ref_subsequence,
+    ref_suppress,
+)
 
 FloatArray = npt.NDArray[np.float64]
-Grid = list[list[int]]
-Column = tuple[list[int], list[int]]  # (D, start) of one database column, template rows 0..M-1
-Path = list[tuple[int, int]]
-Order = tuple[int, int, int]
-TIE_ORDER: Order = (0, 1, 2)  # diagonal, database, template step; toolbox: (1,1), (1,2), (2,1)
 
 SETTINGS = settings(max_examples=300, deadline=None)
 
 # ---------------------------------------------------------------------------------- references
 
 
-def grid(cost: FloatArray) -> Grid:
-    """The fixed-point cost matrix as plain Python ints."""
-    return [[int(v) for v in row] for row in dtw.fixed(cost)]
-
-
-def as_cost(d: int) -> float:
-    """A fixed-point accumulated cost as the module reports it."""
-    return float("inf") if d >= INF else d / SCALE
-
-
-def pick(options: list[tuple[int, int, int]], c: int) -> tuple[int, int]:
-    """(D, start) of a cell of fixed cost ``c`` from its predecessors ``(D, start, weight)`` listed in tie
-    order: the first smallest D wins, then its weight multiplies ``c``. No predecessor, or only
-    unreachable ones: unreachable (INF, start -1)."""
-    best: tuple[int, int, int] | None = None
-    for option in options:
-        if best is None or option[0] < best[0]:
-            best = option
-    if best is None or best[0] >= INF:
-        return INF, -1
-    d = min(best[0] + best[2] * c, INF)
-    return d, (best[1] if d < INF else -1)
-
-
-def ref_full(c: Grid) -> tuple[Grid, Path]:
-    """Alg. 3.1 (D(0,0) = C(0,0), first row and column accumulated) and Alg. 3.2's backtracking."""
-    m, n = len(c), len(c[0])
-    d = [[0] * n for _ in range(m)]
-    for i in range(m):
-        for j in range(n):
-            if i == 0 and j == 0:
-                d[i][j] = c[0][0]
-            elif i == 0:
-                d[i][j] = min(d[i][j - 1] + c[i][j], INF)
-            elif j == 0:
-                d[i][j] = min(d[i - 1][j] + c[i][j], INF)
-            else:
-                d[i][j] = min(c[i][j] + min(d[i - 1][j - 1], d[i][j - 1], d[i - 1][j]), INF)
-    i, j = m - 1, n - 1
-    path = [(i, j)]
-    while (i, j) != (0, 0):
-        if i == 0:
-            j -= 1
-        elif j == 0:
-            i -= 1
-        else:
-            best = (i - 1, j - 1)  # diagonal, then database step (i, j-1), then template step (i-1, j)
-            for a, b in ((i, j - 1), (i - 1, j)):
-                if d[a][b] < d[best[0]][best[1]]:
-                    best = (a, b)
-            i, j = best
-        path.append((i, j))
-    return d, path[::-1]
-
-
-def predecessors(steps: str, i: int, j: int, order: Order = TIE_ORDER) -> list[tuple[int, int, int]]:
-    """Predecessor cells (row, column, weight) of cell (i, j) in tie order (``order`` permutes it, to
-    show that the tests see a wrong one)."""
-    if steps == "thesis":
-        cells = [(i - 1, j - 1, 1), (i, j - 1, 1), (i - 1, j, 1)]
-    else:
-        cells = [(i - 1, j - 1, 1), (i - 1, j - 2, 1), (i - 2, j - 1, 2)]
-    return [cells[k] for k in order]
-
-
-def ref_subsequence(c: Grid, steps: str, order: Order = TIE_ORDER) -> tuple[Grid, Grid]:
-    """Subsequence DTW: D(0, j) = C(0, j) starting at j (free start), rows i >= 1 by the recursion, the
-    start carried from the chosen predecessor; predecessors outside the matrix are skipped."""
-    m, n = len(c), len(c[0])
-    d = [[INF] * n for _ in range(m)]
-    s = [[-1] * n for _ in range(m)]
-    for j in range(n):
-        d[0][j], s[0][j] = c[0][j], (j if c[0][j] < INF else -1)
-    for i in range(1, m):
-        for j in range(n):
-            inside = [(a, b, w) for a, b, w in predecessors(steps, i, j, order) if a >= 0 and b >= 0]
-            options = [(d[a][b], s[a][b], w) for a, b, w in inside]
-            d[i][j], s[i][j] = pick(options, c[i][j])
-    return d, s
-
-
-def ref_column(c: list[int], t: int, kept: list[Column], steps: str, order: Order = TIE_ORDER) -> Column:
-    """Column ``t`` of the subsequence recursion from the kept columns (``kept[-1]`` is column t-1,
-    ``kept[-2]`` column t-2); a missing column is skipped like a cell outside the matrix."""
-    m = len(c)
-    d, s = [INF] * m, [-1] * m
-    d[0], s[0] = c[0], (t if c[0] < INF else -1)
-    by_offset = {1: kept[-1] if kept else None, 2: kept[-2] if len(kept) > 1 else None}
-    for i in range(1, m):
-        options = []
-        for a, b, w in predecessors(steps, i, t, order):
-            if a < 0:
-                continue
-            if b == t:  # the template step inside this column
-                options.append((d[a], s[a], w))
-            elif (col := by_offset[t - b]) is not None:
-                options.append((col[0][a], col[1][a], w))
-        d[i], s[i] = pick(options, c[i])
-    return d, s
-
-
-def ref_spring(cost: FloatArray, tau: float, steps: str, order: Order = TIE_ORDER) -> list[Match]:
-    """SPRING's disjoint-match rule, frame by frame: after column t, report the candidate once every
-    live cell (kept columns) costs at least as much or starts after it ends, and drop the live paths
-    starting at or before its end; then column t's last cell becomes the candidate if it is at or below
-    tau and better than the pending one. A candidate pending at the end is reported."""
-    c = grid(cost)
-    m, n = len(c), len(c[0])
-    width = 1 if steps == "thesis" else 2
-    tau_fixed = int(dtw.fixed(tau))
-    kept: list[Column] = []
-    cand: tuple[int, int, int] | None = None  # (D, start, end)
-    out: list[Match] = []
-    for t in range(n):
-        column = ref_column([c[i][t] for i in range(m)], t, kept, steps, order)
-        kept = [*kept, column][-width:]
-        if cand is not None:
-            dmin, ts, te = cand
-            if all(dd >= dmin or ss > te for d, s in kept for dd, ss in zip(d, s, strict=True)):
-                out.append(Match(ts, te, as_cost(dmin)))
-                cand = None
-                kept = [
-                    (
-                        [INF if ss <= te else dd for dd, ss in zip(d, s, strict=True)],
-                        [-1 if ss <= te else ss for ss in s],
-                    )
-                    for d, s in kept
-                ]
-        last_d, last_s = kept[-1][0][-1], kept[-1][1][-1]
-        if last_d <= tau_fixed and (cand is None or last_d < cand[0]):
-            cand = (last_d, last_s, t)
-    if cand is not None:
-        out.append(Match(cand[1], cand[2], as_cost(cand[0])))
-    return out
-
-
-def ref_local_minima(delta: FloatArray, start: npt.NDArray[np.int64], tau: float) -> list[Match]:
-    n = len(delta)
-    out = []
-    for b in range(n):
-        if (
-            delta[b] <= tau
-            and (b == 0 or delta[b] < delta[b - 1])
-            and (b == n - 1 or delta[b] <= delta[b + 1])
-        ):
-            out.append(Match(int(start[b]), b, float(delta[b])))
-    return out
-
-
-def ceil_div(a: int, b: int) -> int:
-    return -(-a // b)
-
-
-def ref_suppress(candidates: list[Match], limit: int | None) -> list[Match]:
-    """Candidates by increasing (cost, end); drop one whose end is masked; one whose start lies in the
-    start-exclusion zone of a kept hit is dropped and masks ends with that hit's length L; a kept hit
-    masks starts [s - ⌈L/10⌉, s + ⌈L/2⌉]; both mask ends [e - ⌈L/2⌉, e + ⌈L/10⌉]."""
-    kept: list[Match] = []
-    zone_length: dict[int, int] = {}  # start column -> length of the first kept hit whose zone holds it
-    masked_ends: set[int] = set()
-    for m in sorted(candidates, key=lambda m: (m.cost, m.end)):
-        if limit is not None and len(kept) == limit:
-            break
-        if m.end in masked_ends:
-            continue
-        if m.start in zone_length:
-            length = zone_length[m.start]
-        else:
-            length = m.end - m.start + 1
-            kept.append(m)
-            for x in range(m.start - ceil_div(length, 10), m.start + ceil_div(length, 2) + 1):
-                zone_length.setdefault(x, length)
-        masked_ends.update(range(m.end - ceil_div(length, 2), m.end + ceil_div(length, 10) + 1))
-    return kept
-
-
-def is_warping_path(path: Path, m: int, n: int) -> bool:
+def is_warping_path(path: WarpPath, m: int, n: int) -> bool:
     """Def. 3.1 (0-based): from (0, 0) to (m-1, n-1) with steps (1,0), (0,1), (1,1)."""
     steps = {(a2 - a1, b2 - b1) for (a1, b1), (a2, b2) in pairwise(path)}
     return path[0] == (0, 0) and path[-1] == (m - 1, n - 1) and steps <= {(1, 0), (0, 1), (1, 1)}
 
 
 def run_stream(stream: dtw.SubsequenceStream, cost: FloatArray) -> list[Match]:
-    """Push every column of ``cost``, then flush: all the matches reported."""
-    out = [match for t in range(cost.shape[1]) if (match := stream.push(cost[:, t])) is not None]
-    last = stream.flush()
-    return out if last is None else [*out, last]
+    """Push every column of ``cost``, then flush: all the matches reported (at most one a call)."""
+    reported = [stream.push(cost[:, t]) for t in range(cost.shape[1])] + [stream.flush()]
+    assert all(len(r) <= 1 for r in reported)
+    return [m for r in reported for m in r]
 
 
 # ---------------------------------------------------------------------------------- strategies
@@ -559,17 +390,6 @@ def test_and_cost_thesis_examples() -> None:
     assert dtw.and_cost(x, y).tolist() == [[3.0]]
     x, y = np.array([[0.5], [0.0], [1.0], [0.5]]), np.array([[1.0], [1.0], [0.5], [0.5]])
     assert dtw.and_cost(x, y).tolist() == [[1.0]]
-
-
-def brute_and(t: FloatArray, s: FloatArray) -> list[list[float]]:
-    f = t.shape[0]
-    return [
-        [
-            sum(0.0 if 0.5 in (t[k, a], s[k, b]) else abs(t[k, a] - s[k, b]) for k in range(f))
-            for b in range(s.shape[1])
-        ]
-        for a in range(t.shape[1])
-    ]
 
 
 @settings(SETTINGS, max_examples=120)

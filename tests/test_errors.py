@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 from replay import AmcFrame, MocapFormatError, Motion, Skeleton, iter_amc, read_amc, read_asf
-from tests.conftest import DATA
+from tests.helpers import DATA
 
 SOURCES = {
     "cmu": (DATA / "cmu" / "02" / "02.asf", DATA / "cmu" / "02" / "02_01.amc.gz"),

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import csv
-import math
 
 import numpy as np
 import pytest
@@ -11,18 +10,18 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from daemon.features import FEATURE_NAMES, SET_SLICES, features, hysteresis, smoothed_velocity, window_frames
+from daemon.features import FEATURE_NAMES, SET_SLICES, features, hysteresis, smoothed_velocity
 from replay import JOINT_NAMES
-from tests.conftest import DATA, ORACLE, joints_cm
-from tests.test_oracle import CLIPS
+from tests.helpers import DATA, ORACLE, ORACLE_CLIPS, joints_cm
+from tests.naive import slow_hysteresis, slow_velocity
 
 
 def clip_features(clip: str) -> np.ndarray:
-    asf, amc = CLIPS[clip]
+    asf, amc = ORACLE_CLIPS[clip]
     return features(joints_cm(DATA / asf, DATA / amc), JOINT_NAMES, 120.0)
 
 
-@pytest.mark.parametrize("clip", sorted(CLIPS))
+@pytest.mark.parametrize("clip", sorted(ORACLE_CLIPS))
 def test_features_match_toolbox(clip: str) -> None:
     with open(ORACLE / f"{clip}.features.csv", newline="") as f:
         rows = csv.reader(f)
@@ -41,14 +40,6 @@ def test_catalog_sets() -> None:
     assert [s.stop - s.start for s in SET_SLICES.values()] == [12, 14, 13]
 
 
-def slow_hysteresis(f1: list[bool], f2: list[bool]) -> list[bool]:
-    out, on = [], False
-    for a, b in zip(f1, f2, strict=True):
-        on = b or (on and a)
-        out.append(on)
-    return out
-
-
 @settings(max_examples=300, deadline=None)
 @given(st.lists(st.tuples(st.booleans(), st.booleans()), min_size=1, max_size=60))
 def test_hysteresis_equals_the_recurrence(pairs: list[tuple[bool, bool]]) -> None:
@@ -56,23 +47,6 @@ def test_hysteresis_equals_the_recurrence(pairs: list[tuple[bool, bool]]) -> Non
     f1 = [a or b for a, b in pairs]  # nested tracks: f2 implies f1
     got = hysteresis(np.array(f1)[:, None], np.array(f2)[:, None])[:, 0]
     assert got.tolist() == slow_hysteresis(f1, f2)
-
-
-def reflect(j: int, m: int) -> int:
-    """Index ``j`` mirrored into ``0..m-1``, edge repeated: ..., 1, 0 | 0, 1, ..., m-1 | m-1, m-2, ..."""
-    while j < 0 or j >= m:
-        j = -j - 1 if j < 0 else 2 * m - j - 1
-    return j
-
-
-def slow_velocity(x: np.ndarray, window_ms: float, fs: float) -> np.ndarray:
-    n, big_l = len(x), window_frames(window_ms, fs)
-    v = [x[t + 1] - x[t] for t in range(n - 1)] + ([x[n - 1] - x[n - 2]] if n > 1 else [np.zeros(3)])
-    if n < big_l:
-        v = [v[reflect(j, n)] for j in range(big_l)]
-    h = math.ceil(big_l / 2)
-    rows = [sum(v[reflect(t + k - h + 1, len(v))] for k in range(big_l)) / big_l * fs for t in range(n)]
-    return np.array(rows, dtype=np.float64)
 
 
 @settings(max_examples=200, deadline=None)

@@ -25,50 +25,11 @@ from daemon.index import (
     temporal_cost,
 )
 from daemon.segments import segment_codes, set_codes
+from tests.naive import brute_adaptive, brute_fuzzy
 
 BITS = 3
 
 # ---------------------------------------------------------------------------------- brute force
-
-
-def doc_segments(index: SetIndex) -> list[list[int]]:
-    """Per document, the global numbers of its segments."""
-    out: list[list[int]] = [[] for _ in range(int(index.doc.max()) + 1 if index.n_segments else 0)]
-    for s, d in enumerate(index.doc.tolist()):
-        out[d].append(s)
-    return out
-
-
-def brute_fuzzy(index: SetIndex, query: list[set[int]], mismatches: int = 0) -> list[list[int]]:
-    """Bounds [k, k+1, ..., k+K] of every hit: positions agree except at most ``mismatches``."""
-    hits = []
-    code = index.code.tolist()
-    for segs in doc_segments(index):
-        for p in range(len(segs) - len(query) + 1):
-            agree = sum(code[segs[p + i]] in v for i, v in enumerate(query))
-            if agree >= len(query) - mismatches:
-                hits.append([segs[p] + i for i in range(len(query) + 1)])
-    return sorted(hits)
-
-
-def brute_adaptive(index: SetIndex, query: list[set[int]]) -> list[list[int]]:
-    hits = []
-    code = index.code.tolist()
-    for segs in doc_segments(index):
-        w = [code[s] for s in segs]
-        for k1 in range(len(w)):
-            if w[k1] not in query[0] or (k1 > 0 and w[k1 - 1] in query[0]):
-                continue
-            bounds, k = [k1], k1
-            for v in query:
-                if k >= len(w) or w[k] not in v:
-                    break
-                while k < len(w) and w[k] in v:
-                    k += 1
-                bounds.append(k)
-            else:
-                hits.append([segs[0] + b for b in bounds])
-    return sorted(hits)
 
 
 def check_hits(index: SetIndex, hits: Hits, expected: list[list[int]]) -> None:

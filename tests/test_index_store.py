@@ -3,10 +3,10 @@ index against an independent segmentation of each clip, the directory format and
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import shutil
-from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -14,53 +14,26 @@ import numpy as np
 import numpy.typing as npt
 import pytest
 
-from daemon.features import FeatureSet, decimate, features
+from daemon.errors import FileAccessError
 from daemon.index_store import (
     ARRAYS,
-    FEATURE_SETS,
     Document,
-    IndexBuildError,
     IndexFormatError,
-    ManifestError,
-    ManifestRow,
     MotionIndex,
     build_index,
     index_files,
     index_from_matrices,
     load_index,
-    read_manifest,
     save_index,
 )
+from daemon.recordings import ManifestError, ManifestRow, RateError, read_manifest
 from daemon.segments import segment
-from replay import JOINT_NAMES, MocapFormatError, read_amc, read_asf
-from tests.conftest import DATA, joints_cm
+from daemon.types import FEATURE_SETS, FeatureSet
+from replay import MocapFormatError, read_amc, read_asf
+from tests.helpers import INDEX_CLIPS, INDEX_PATHS, write_manifest
+from tests.naive import naive_features
 
-HDM = DATA / "hdm05"
-# (actor, class, take, AMC frames): frame counts 140, 56, 86 and 161, so the last index frame of the
-# last two covers fewer than 4 AMC frames
-CLIPS = [
-    ("bd", "squat1Reps", 1, 140),
-    ("bk", "hopBothLegs1hops", 20, 56),
-    ("dg", "rotateArmsBothBackward1Reps", 10, 86),
-    ("bd", "kickLFront1Reps", 1, 161),
-]
-
-
-def clip_paths(actor: str, motion_class: str, take: int) -> tuple[Path, Path]:
-    amc = HDM / "cut" / motion_class / f"HDM_{actor}_{motion_class}_{take:03d}_120.amc.gz"
-    return HDM / "asf" / f"HDM_{actor}.asf", amc
-
-
-PATHS = [clip_paths(a, c, t) for a, c, t, _ in CLIPS]
-
-
-def write_manifest(path: Path, rows: Sequence[tuple[str | Path, str | Path]], extra: bool = True) -> Path:
-    """A manifest ``class,amc,start_frame,asf`` (the required columns among others, out of order)."""
-    lines = ["class,amc,start_frame,asf"] if extra else ["asf,amc"]
-    for asf, amc in rows:
-        lines.append(f"x,{amc},1,{asf}" if extra else f"{asf},{amc}")
-    path.write_text("\n".join(lines) + "\n", encoding="utf-8")
-    return path
+CLIPS, PATHS = INDEX_CLIPS, INDEX_PATHS
 
 
 @dataclass(frozen=True)
@@ -77,8 +50,8 @@ def built(tmp_path_factory: pytest.TempPathFactory) -> Built:
     manifest = write_manifest(tmp_path_factory.mktemp("manifest") / "m.csv", PATHS)
     rows = read_manifest(manifest)
     calls: list[tuple[int, int, str]] = []
-    index = build_index(rows, progress=lambda i, n, doc: calls.append((i, n, doc.amc)))
-    matrices = [decimate(features(joints_cm(asf, amc), JOINT_NAMES, 120.0), 4) for asf, amc in PATHS]
+    index = build_index(rows, progress=lambda i, n, doc: calls.append((i, n, doc.amc)), base=manifest.parent)
+    matrices = [naive_features(asf, amc, 4) for asf, amc in PATHS]
     return Built(manifest, rows, index, calls, matrices)
 
 
@@ -164,7 +137,7 @@ def test_other_rate() -> None:
 
 def test_rate_that_does_not_divide_the_native_rate() -> None:
     asf, amc = PATHS[0]
-    with pytest.raises(IndexBuildError, match="25 Hz is not the native 120 Hz") as caught:
+    with pytest.raises(RateError, match="25 Hz is not the native 120 Hz") as caught:
         build_index([ManifestRow(2, str(asf), str(amc), asf, amc)], rate=25.0)
     assert str(caught.value).startswith(f"{amc}: ")
 
@@ -210,7 +183,8 @@ def test_amc_frames_of_real_clips(built: Built) -> None:
 def test_save_and_load_round_trip(built: Built, saved: Path) -> None:
     assert sorted(os.listdir(saved)) == sorted(index_files())
     meta = json.loads((saved / "index.json").read_text(encoding="utf-8"))
-    assert (meta["format"], meta["version"], meta["rate"]) == ("mocapd-index", 1, 30.0)
+    assert (meta["format"], meta["version"], meta["rate"]) == ("mocapd-index", 2, 30.0)
+    assert meta["base"] == str(built.manifest.parent.resolve())
     assert meta["documents"][0] == {
         "amc": str(PATHS[0][1]),
         "asf": str(PATHS[0][0]),
@@ -227,7 +201,10 @@ def test_save_and_load_round_trip(built: Built, saved: Path) -> None:
     for s in FEATURE_SETS:
         mine, theirs = loaded.sets[s], built.index.sets[s]
         assert (mine.feature_set, mine.bits) == (theirs.feature_set, theirs.bits)
-        assert meta["sets"][s] == {"bits": theirs.bits, "segments": theirs.n_segments}
+        sums = {
+            a: hashlib.sha256(np.ascontiguousarray(getattr(theirs, a)).tobytes()).hexdigest() for a in ARRAYS
+        }
+        assert meta["sets"][s] == {"bits": theirs.bits, "segments": theirs.n_segments, "sha256": sums}
         for a in ARRAYS:
             array = getattr(mine, a)
             assert isinstance(array, np.memmap), a
@@ -253,12 +230,12 @@ def test_save_refuses_to_replace_something_else(built: Built, tmp_path: Path) ->
     (tmp_path / "dir").mkdir()
     (tmp_path / "dir" / "notes.txt").write_text("keep me", encoding="utf-8")
     for target in ("file", "dir"):
-        with pytest.raises(FileExistsError) as caught:
+        with pytest.raises(FileAccessError, match=r"is not a mocapd index, not replaced$") as caught:
             save_index(built.index, tmp_path / target)
-        assert caught.value.filename == str(tmp_path / target)
+        assert caught.value.path == str(tmp_path / target)
     assert (tmp_path / "file").read_text(encoding="utf-8") == "keep me"
     assert os.listdir(tmp_path / "dir") == ["notes.txt"]
-    with pytest.raises(FileNotFoundError):
+    with pytest.raises(FileAccessError, match=r"/no/idx: No such file or directory$"):
         save_index(built.index, tmp_path / "no" / "idx")
     assert sorted(os.listdir(tmp_path)) == ["dir", "file"]
 
@@ -325,13 +302,14 @@ def test_load_bad_json(saved: Path, tmp_path: Path) -> None:
     (path / "index.json").write_text('{"format": "mocapd-index",', encoding="utf-8")
     with pytest.raises(IndexFormatError, match="not valid JSON") as caught:
         load_index(path)
-    assert str(caught.value).startswith(f"{path / 'index.json'}: ")
+    assert str(caught.value).startswith(f"{path / 'index.json'}:1: ")
 
 
 @pytest.mark.parametrize(
     ("change", "field"),
     [
-        ({"version": 2}, "version"),
+        ({"version": 1}, "version"),
+        ({"version": 3}, "version"),
         ({"version": True}, "version"),
         ({"format": "something"}, "format"),
         ({"rate": 0}, "rate"),

@@ -5,8 +5,6 @@ from __future__ import annotations
 
 import json
 import re
-from collections.abc import Iterator
-from fractions import Fraction
 from itertools import product
 
 import numpy as np
@@ -14,7 +12,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from daemon.features import SET_SLICES, FeatureSet
+from daemon.features import SET_SLICES
 from daemon.index import SetIndex, index_from_codes
 from daemon.keyframes import (
     Keyframe,
@@ -28,31 +26,13 @@ from daemon.keyframes import (
     parse_keyframe_queries,
     search_document,
 )
-from tests.conftest import SHARED
-
-Lists = list[tuple[list[int], list[int]]]
+from daemon.types import FeatureSet
+from tests.helpers import SHARED
+from tests.naive import Lists, hits_of_match, keyframe_brute_force
 
 
 def one_based(matches: list[tuple[int, ...]]) -> list[tuple[int, ...]]:
     return [tuple(i + 1 for i in m) for m in matches]
-
-
-def hits_of_match(
-    lists: Lists, match: tuple[int, ...], deltas: list[int], sigma: float
-) -> list[tuple[int, ...]]:
-    """Every hit (Def. 4.4) with frame k inside segment match[k] of list k, by enumeration."""
-    s = Fraction(repr(sigma))
-    ranges = [range(lists[k][0][i], lists[k][1][i] + 1) for k, i in enumerate(match)]
-    return [
-        h
-        for h in product(*ranges)
-        if all(allowed(b - a, d, s) for a, b, d in zip(h, h[1:], deltas, strict=False))
-    ]
-
-
-def allowed(gap: int, delta: int, sigma: Fraction) -> bool:
-    """Condition (4.6): σδ <= gap <= δ/σ, no upper bound for σ = 0."""
-    return sigma * delta <= gap and (sigma == 0 or gap * sigma <= delta)
 
 
 # ------------------------------------------------------------------------------- worked examples
@@ -136,85 +116,6 @@ SET_CHOICES: tuple[FeatureSet, ...] = ("lower", "upper")
 LOW_BITS = 3  # random codes use the low bits only, so keyframes hit often
 
 
-def brute_force(
-    docs: dict[FeatureSet, list[list[int]]],
-    query: KeyframeQuery,
-    extend: tuple[int, int],
-) -> list[tuple[int, int, int]]:
-    """Ω^Z of all matches by Def. 4.4-4.8 read directly: per document, a keyframe's list is the
-    maximal runs of frames whose code lies in V_k; every hit is enumerated frame by frame; a match is
-    the runs its frames lie in; R(M) = (min i_1, max i_K) over the match's hits; components are the
-    connected sets of ranges that share frames (pairwise, by a graph search)."""
-    deltas = [b.position - a.position for a, b in zip(query.keyframes, query.keyframes[1:], strict=False)]
-    sigmas = [Fraction(repr(kf.stiffness_to_next)) for kf in query.keyframes[:-1]]
-    out = []
-    n_docs = len(docs["lower"])
-    for d in range(n_docs):
-        n = len(docs["lower"][d])
-        member = []
-        run_id = []
-        for kf in query.keyframes:
-            codes = docs[kf.feature_set][d]
-            m = [(c & kf.mask) == kf.value for c in codes]
-            ids, current = [], -1
-            for i in range(n):
-                if m[i] and (i == 0 or not m[i - 1]):
-                    current += 1
-                ids.append(current)
-            member.append(m)
-            run_id.append(ids)
-        ranges: dict[tuple[int, ...], list[int]] = {}
-        for hit in all_hits(member, deltas, sigmas):
-            key = tuple(run_id[j][i] for j, i in enumerate(hit))
-            r = ranges.setdefault(key, [hit[0], hit[-1]])
-            r[0], r[1] = min(r[0], hit[0]), max(r[1], hit[-1])
-        spans = sorted((r[0], r[1]) for r in ranges.values())
-        components = connected(spans)
-        if extend != (0, 0):
-            components = connected(
-                [(max(0, s - extend[0]), min(n - 1, t + extend[1])) for s, t in components]
-            )
-        out += [(d, s, t) for s, t in components]
-    return out
-
-
-def all_hits(member: list[list[bool]], deltas: list[int], sigmas: list[Fraction]) -> Iterator[list[int]]:
-    """Every frame tuple i_1 <= ... <= i_K with member[k][i_k] and the distance condition (4.6)."""
-
-    def grow(hit: list[int]) -> Iterator[list[int]]:
-        k = len(hit)
-        if k == len(member):
-            yield hit
-            return
-        for i in range(hit[-1] if hit else 0, len(member[k])):
-            if not member[k][i]:
-                continue
-            if hit and not allowed(i - hit[-1], deltas[k - 1], sigmas[k - 1]):
-                continue
-            yield from grow([*hit, i])
-
-    return grow([])
-
-
-def connected(spans: list[tuple[int, int]]) -> list[tuple[int, int]]:
-    seen: set[int] = set()
-    out = []
-    for i in range(len(spans)):
-        if i in seen:
-            continue
-        todo, group = [i], []
-        seen.add(i)
-        while todo:
-            j = todo.pop()
-            group.append(spans[j])
-            for k, other in enumerate(spans):
-                if k not in seen and other[0] <= spans[j][1] and spans[j][0] <= other[1]:
-                    seen.add(k)
-                    todo.append(k)
-        out.append((min(s for s, _ in group), max(t for _, t in group)))
-    return sorted(out)
-
-
 @st.composite
 def databases(draw: st.DrawFn) -> dict[FeatureSet, list[list[int]]]:
     n_docs = draw(st.integers(1, 3))
@@ -261,7 +162,7 @@ def set_indexes(docs: dict[FeatureSet, list[list[int]]]) -> dict[FeatureSet, Set
 def test_keyframe_search_equals_brute_force(
     docs: dict[FeatureSet, list[list[int]]], query: KeyframeQuery, extend: tuple[int, int]
 ) -> None:
-    expected = brute_force(docs, query, extend)
+    expected = keyframe_brute_force(docs, query, extend)
     for prune in (True, False):
         found = keyframe_search(
             set_indexes(docs), [len(c) for c in docs["lower"]], query, 30.0, extend, prune
@@ -289,7 +190,7 @@ def test_unpruned_search_per_document(docs: dict[FeatureSet, list[list[int]]], q
             assert r is not None
             ranges.append(r)
         got += [(d, s, t) for s, t in omega_z(ranges)]
-    assert got == brute_force(docs, query, (0, 0))
+    assert got == keyframe_brute_force(docs, query, (0, 0))
 
 
 def test_equal_positions_and_full_stiffness() -> None:
@@ -305,9 +206,9 @@ def test_equal_positions_and_full_stiffness() -> None:
     )
     found = keyframe_search(set_indexes(docs), [8], query, 30.0)
     assert list(zip(found.start.tolist(), found.end.tolist(), strict=True)) == [(0, 1), (3, 3), (5, 5)]
-    assert [(0, s, t) for s, t in zip(found.start.tolist(), found.end.tolist(), strict=True)] == brute_force(
-        docs, query, (0, 0)
-    )
+    assert [
+        (0, s, t) for s, t in zip(found.start.tolist(), found.end.tolist(), strict=True)
+    ] == keyframe_brute_force(docs, query, (0, 0))
 
 
 # ------------------------------------------------------------------------------- the JSON schema

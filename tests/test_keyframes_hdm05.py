@@ -11,7 +11,7 @@ import pytest
 from bench.eval_keyframes import ClassResult, evaluate, hdm05_rows
 from daemon.index_store import MotionIndex, build_index
 from daemon.keyframes import keyframe_search, parse_keyframe_queries
-from tests.conftest import DATA, SHARED
+from tests.helpers import DATA, SHARED
 
 
 @pytest.fixture(scope="module")

@@ -5,6 +5,7 @@ cost matrix, with and without keyframe pre-selection."""
 
 from __future__ import annotations
 
+import hashlib
 import json
 import shutil
 from pathlib import Path
@@ -13,8 +14,9 @@ import numpy as np
 import numpy.typing as npt
 import pytest
 
-from daemon.dtw import local_minima, pack, retrieval_cost, subsequence_dtw, suppress
-from daemon.index_store import ManifestError, ManifestRow, MotionIndex, index_from_matrices, read_document
+from daemon.dtw import pack
+from daemon.errors import FileAccessError
+from daemon.index_store import MotionIndex, index_from_matrices, read_document
 from daemon.keyframes import KeyframeQuery, parse_keyframe_queries
 from daemon.library import (
     ClassTemplate,
@@ -22,18 +24,13 @@ from daemon.library import (
     LibraryFormatError,
     learn_class,
     load_library,
-    read_examples,
-    read_training_manifest,
     save_library,
 )
+from daemon.recordings import ManifestError, ManifestRow, read_examples, read_training_manifest
 from daemon.retrieval import TemplateHits, frame_codes, template_search
-from daemon.templates import expand
-from tests.conftest import DATA, SHARED
+from tests.helpers import HDM_AMC, HDM_ASF, KEYFRAMES, TRAINING, hdm05_clip, training_rows, write_training
+from tests.naive import template_brute_force
 
-ASF = DATA / "hdm05" / "asf"
-KEYFRAMES = SHARED / "reference" / "manual-keyframes.json"
-CUT = DATA / "hdm05" / "cut"
-TRAIN = [("hopBothLegs1hops", "bd", t) for t in (1, 2, 3)] + [("squat1Reps", "bd", t) for t in (1, 2)]
 DATABASE = [
     ("hopBothLegs1hops", "dg", 22),
     ("squat1Reps", "dg", 25),
@@ -43,23 +40,10 @@ DATABASE = [
 ]
 
 
-def amc(motion_class: str, actor: str, take: int) -> Path:
-    return CUT / motion_class / f"HDM_{actor}_{motion_class}_{take:03d}_120.amc.gz"
-
-
-def write_training(path: Path, rows: list[str], header: str = "class,asf,amc,start_frame,end_frame") -> Path:
-    path.write_text("\n".join([header, *rows]) + "\n", encoding="utf-8")
-    return path
-
-
-def training_rows(items: list[tuple[str, str, int]]) -> list[str]:
-    return [f"{c},{ASF / f'HDM_{a}.asf'},{amc(c, a, t)},," for c, a, t in items]
-
-
 @pytest.fixture(scope="module")
 def library(tmp_path_factory: pytest.TempPathFactory) -> Library:
     where = tmp_path_factory.mktemp("lib")
-    examples = read_examples(write_training(where / "clips.csv", training_rows(TRAIN)))
+    examples = read_examples(write_training(where / "clips.csv", training_rows(TRAINING)))
     classes = {name: learn_class(name, items) for name, items in examples.items()}
     return Library(30.0, classes)
 
@@ -68,7 +52,8 @@ def library(tmp_path_factory: pytest.TempPathFactory) -> Library:
 def database() -> tuple[MotionIndex, list[npt.NDArray[np.bool_]]]:
     docs, matrices = [], []
     for c, a, t in DATABASE:
-        row = ManifestRow(0, "asf", str(amc(c, a, t)), ASF / f"HDM_{a}.asf", amc(c, a, t))
+        asf, amc = hdm05_clip(a, c, t)
+        row = ManifestRow(0, "asf", str(amc), asf, amc)
         document, matrix = read_document(row)
         docs.append(document)
         matrices.append(matrix)
@@ -79,8 +64,8 @@ def database() -> tuple[MotionIndex, list[npt.NDArray[np.bool_]]]:
 
 
 def test_manifest_classes_and_ranges(tmp_path: Path) -> None:
-    hop = amc("hopBothLegs1hops", "bd", 1)
-    rows = [f"hop,{ASF / 'HDM_bd.asf'},{hop},,", f"hop.part,{ASF / 'HDM_bd.asf'},{hop},5,40"]
+    hop = hdm05_clip("bd", "hopBothLegs1hops", 1)[1]
+    rows = [f"hop,{HDM_ASF},{hop},,", f"hop.part,{HDM_ASF},{hop},5,40"]
     items = read_training_manifest(write_training(tmp_path / "m.csv", rows))
     assert [(i.name, i.start_frame, i.end_frame) for i in items] == [("hop", None, None), ("hop.part", 5, 40)]
     examples = read_examples(tmp_path / "m.csv")
@@ -104,18 +89,16 @@ def test_manifest_classes_and_ranges(tmp_path: Path) -> None:
     ],
 )
 def test_manifest_errors_name_file_and_line(tmp_path: Path, row: str, message: str) -> None:
-    hop = amc("hopBothLegs1hops", "bd", 1)
-    good = f"hop,{ASF / 'HDM_bd.asf'},{hop},,"
-    path = write_training(tmp_path / "m.csv", [good, row.format(asf=ASF / "HDM_bd.asf", amc=hop)])
+    hop = hdm05_clip("bd", "hopBothLegs1hops", 1)[1]
+    good = f"hop,{HDM_ASF},{hop},,"
+    path = write_training(tmp_path / "m.csv", [good, row.format(asf=HDM_ASF, amc=hop)])
     with pytest.raises(ManifestError) as err:
         read_examples(path)
     assert str(err.value).startswith(f"{path}:3: ") and message in str(err.value)
 
 
 def test_manifest_needs_a_class_column(tmp_path: Path) -> None:
-    path = write_training(
-        tmp_path / "m.csv", [f"{ASF / 'HDM_bd.asf'},{amc('squat1Reps', 'bd', 1)}"], "asf,amc"
-    )
+    path = write_training(tmp_path / "m.csv", [f"{HDM_ASF},{HDM_AMC}"], "asf,amc")
     with pytest.raises(ManifestError, match=r":1: header lacks the column 'class'"):
         read_training_manifest(path)
 
@@ -157,7 +140,9 @@ def test_library_round_trip(library: Library, tmp_path: Path) -> None:
 def test_library_keeps_keyframes_and_provenance(library: Library) -> None:
     hop = library.classes["hopBothLegs1hops"]
     assert isinstance(hop.keyframes, KeyframeQuery) and len(hop.keyframes.keyframes) == 3
-    assert [c.amc for c in hop.training] == [str(amc("hopBothLegs1hops", "bd", t)) for t in (1, 2, 3)]
+    assert [c.amc for c in hop.training] == [
+        str(hdm05_clip("bd", "hopBothLegs1hops", t)[1]) for t in (1, 2, 3)
+    ]
     assert hop.quantised.length == hop.soft.length
     assert set(np.unique(hop.quantised.values)) <= {0.0, 0.5, 1.0}
 
@@ -165,7 +150,7 @@ def test_library_keeps_keyframes_and_provenance(library: Library) -> None:
 def test_library_not_written_over_other_files(library: Library, tmp_path: Path) -> None:
     (tmp_path / "lib").mkdir()
     (tmp_path / "lib" / "notes.txt").write_text("mine")
-    with pytest.raises(FileExistsError):
+    with pytest.raises(FileAccessError, match=r"is not a mocapd template library, not replaced$"):
         save_library(library, tmp_path / "lib")
     assert (tmp_path / "lib" / "notes.txt").read_text() == "mine"
 
@@ -184,16 +169,23 @@ def edit_json(lib: Path, change: dict[str, object]) -> None:
 @pytest.mark.parametrize(
     ("change", "message"),
     [
-        ({"version": 2}, "library.json: version: this mocapd reads version 1, got 2"),
-        ({"format": "x"}, "library.json: format: expected 'mocapd-templates'"),
+        ({"version": 1}, "library.json: version: this mocapd reads version 2, got 1; learn it again"),
+        ({"format": "x"}, "library.json: format: must be 'mocapd-templates', got 'x'"),
         ({"features": ["a"]}, "library.json: features: not the 39 features"),
-        ({"classes/squat1Reps/tau": -1}, "classes.squat1Reps.tau: expected a positive number"),
-        ({"classes/squat1Reps/steps": "x"}, "classes.squat1Reps.steps: expected one of thesis, toolbox"),
-        ({"classes/squat1Reps/file": "x.npz"}, "classes.squat1Reps.file: expected 'squat1Reps.npz'"),
+        ({"classes/squat1Reps/tau": -1}, "classes.squat1Reps.tau: must be a positive number, got -1"),
+        (
+            {"classes/squat1Reps/steps": "x"},
+            "classes.squat1Reps.steps: must be one of thesis, toolbox, got 'x'",
+        ),
+        (
+            {"classes/squat1Reps/file": "x.npz"},
+            "classes.squat1Reps.file: must be 'squat1Reps.npz', got 'x.npz'",
+        ),
+        ({"classes/squat1Reps/sha256/hard": 3}, "classes.squat1Reps.sha256.hard: must be a non-empty string"),
         ({"classes/squat1Reps/training": [{"asf": "a"}]}, "classes.squat1Reps.training[0]: missing"),
         (
-            {"classes/squat1Reps/keyframes": [{"set": "arms"}]},
-            "classes.squat1Reps.keyframes: classes.squat1Reps[0].set: must be one of lower",
+            {"classes/squat1Reps/keyframes": [{"set": "arms", "values": [0], "position": 0}]},
+            "classes.squat1Reps.keyframes[0].set: must be one of lower, upper, mix, got 'arms'",
         ),
     ],
 )
@@ -213,7 +205,16 @@ def test_library_array_errors_name_file(library: Library, tmp_path: Path) -> Non
     shutil.copy(lib / "squat1Reps.npz", tmp_path / "good.npz")
     with np.load(tmp_path / "good.npz") as npz:
         arrays = dict(npz)
-    np.savez(lib / "squat1Reps.npz", **{**arrays, "hard": arrays["hard"] * 0.3})
+    # another array of the same shape in its place: refused by its checksum ...
+    np.savez(lib / "squat1Reps.npz", **{**arrays, "hard": arrays["quantised"]})
+    with pytest.raises(
+        LibraryFormatError, match=r"squat1Reps\.npz: hard: SHA-256 differs from library\.json's$"
+    ):
+        load_library(lib)
+    # ... and values that cannot be a hard MT, with a matching checksum: refused by the values check
+    bad = arrays["hard"] * 0.3
+    np.savez(lib / "squat1Reps.npz", **{**arrays, "hard": bad})
+    edit_json(lib, {"classes/squat1Reps/sha256/hard": hashlib.sha256(bad.tobytes()).hexdigest()})
     with pytest.raises(LibraryFormatError, match=r"squat1Reps\.npz: hard: values must be 0, 0\.5 or 1"):
         load_library(lib)
     np.savez(lib / "squat1Reps.npz", **{k: v for k, v in arrays.items() if k != "soft_weights"})
@@ -236,20 +237,6 @@ def test_frame_codes_are_the_packed_features(
     np.testing.assert_array_equal(frame_codes(index), pack(np.concatenate(matrices)))
 
 
-def brute_force(
-    cls: ClassTemplate, matrices: list[npt.NDArray[np.bool_]], tau: float, ranges: list[tuple[int, int, int]]
-) -> list[tuple[float, int, int, int]]:
-    """Each range searched on its own from the float cost matrix, hits suppressed per range."""
-    t = expand(cls.quantised)
-    out = []
-    for d, s, e in ranges:
-        frames = matrices[d][s : e + 1].T.astype(np.float64)
-        sub = subsequence_dtw(retrieval_cost(t.values, t.weights, frames))
-        for m in suppress(local_minima(sub.delta, sub.start, tau)):
-            out.append((m.cost, d, s + m.start, s + m.end))
-    return sorted(out)
-
-
 def rows(hits: TemplateHits) -> list[tuple[float, int, int, int]]:
     return list(
         zip(hits.cost.tolist(), hits.doc.tolist(), hits.start.tolist(), hits.end.tolist(), strict=True)
@@ -262,14 +249,14 @@ def test_template_search_equals_per_document_dtw(
 ) -> None:
     index, matrices = database
     cls = library.classes[name]
-    hits = template_search(index, cls.quantised, 0.3)
+    hits = template_search(index, cls.quantised, tau=0.3)
     got = list(
         zip(hits.cost.tolist(), hits.doc.tolist(), hits.start.tolist(), hits.end.tolist(), strict=True)
     )
     whole = [(d, 0, m.shape[0] - 1) for d, m in enumerate(matrices)]
-    assert got == brute_force(cls, matrices, 0.3, whole)
+    assert got == template_brute_force(cls, matrices, 0.3, whole)
     assert hits.searched == index.n_frames and hits.keyframes is None
-    limited = template_search(index, cls.quantised, 0.3, limit=2)
+    limited = template_search(index, cls.quantised, tau=0.3, limit=2)
     assert len(limited) == min(2, len(hits)) and limited.cost.tolist() == hits.cost[:2].tolist()
     # the class's own clips are found at the thesis' threshold
     relevant = {d for d, (c, _, _) in enumerate(DATABASE) if c == name}
@@ -282,7 +269,7 @@ def test_template_search_inside_keyframe_ranges(
     index, matrices = database
     cls = library.classes["squat1Reps"]
     published = parse_keyframe_queries(json.loads(KEYFRAMES.read_text()), "k")["squat1Reps"]
-    hits = template_search(index, cls.quantised, 0.3, keyframes=published, extend=(3, 5))
+    hits = template_search(index, cls.quantised, tau=0.3, keyframes=published, extend=(3, 5))
     assert hits.keyframes is not None and len(hits.keyframes) > 0
     ranges = list(
         zip(
@@ -295,7 +282,7 @@ def test_template_search_inside_keyframe_ranges(
     got = list(
         zip(hits.cost.tolist(), hits.doc.tolist(), hits.start.tolist(), hits.end.tolist(), strict=True)
     )
-    assert got == brute_force(cls, matrices, 0.3, ranges)
+    assert got == template_brute_force(cls, matrices, 0.3, ranges)
     assert hits.searched == sum(e - s + 1 for _, s, e in ranges) < index.n_frames
     for _, d, s, e in got:
         assert any(d == rd and rs <= s <= e <= re for rd, rs, re in ranges)

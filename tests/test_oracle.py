@@ -8,22 +8,12 @@ import numpy as np
 import pytest
 
 from replay import JOINT_NAMES, KinematicModel, read_amc, read_asf
-from tests.conftest import DATA, ORACLE
-
-CLIPS = {
-    "02_01": ("cmu/02/02.asf", "cmu/02/02_01.amc.gz"),
-    "02_05": ("cmu/02/02.asf", "cmu/02/02_05.amc.gz"),
-    "13_29": ("cmu/13/13.asf", "cmu/13/13_29.amc.gz"),
-    "HDM_bd_squat1Reps_001_120": (
-        "hdm05/asf/HDM_bd.asf",
-        "hdm05/cut/squat1Reps/HDM_bd_squat1Reps_001_120.amc.gz",
-    ),
-}
+from tests.helpers import DATA, ORACLE, ORACLE_CLIPS
 
 
-@pytest.mark.parametrize("clip", sorted(CLIPS))
+@pytest.mark.parametrize("clip", sorted(ORACLE_CLIPS))
 def test_positions_match_toolbox(clip: str) -> None:
-    asf, amc = CLIPS[clip]
+    asf, amc = ORACLE_CLIPS[clip]
     skeleton = read_asf(DATA / asf)
     motion = read_amc(DATA / amc, skeleton)
     model = KinematicModel(skeleton)

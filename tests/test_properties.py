@@ -30,7 +30,8 @@ from replay.amc import AmcFrame, AmcStream, iter_amc, read_amc
 from replay.asf import Skeleton, read_asf
 from replay.errors import MocapFormatError
 from replay.kinematics import KinematicModel
-from tests.synth import ROT, AmcFile, AsfFile, SkeletonSpec, cases, seeds, skeletons
+from tests.naive import apply, elementary, euler, mul, reference_pose
+from tests.synth import AmcFile, AsfFile, cases, seeds, skeletons
 
 FloatArray = npt.NDArray[np.float64]
 Mat = list[list[float]]
@@ -95,89 +96,6 @@ def stream_all(path: Path, skel: Skeleton) -> tuple[list[AmcFrame], MocapFormatE
 
 
 # ------------------------------------------------------------------ reference forward kinematics
-
-IDENTITY: Mat = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]
-
-
-def elementary(axis: str, t: float) -> Mat:
-    """Rotation by ``t`` radians about the x, y or z axis (column vectors, right-handed)."""
-    c, s = math.cos(t), math.sin(t)
-    if axis == "X":
-        return [[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]]
-    if axis == "Y":
-        return [[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]]
-    assert axis == "Z"
-    return [[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]
-
-
-def mul(a: Mat, b: Mat) -> Mat:
-    return [[a[i][0] * b[0][j] + a[i][1] * b[1][j] + a[i][2] * b[2][j] for j in range(3)] for i in range(3)]
-
-
-def transpose(a: Mat) -> Mat:
-    return [[a[j][i] for j in range(3)] for i in range(3)]
-
-
-def apply(a: Mat, v: Vec) -> Vec:
-    return [a[i][0] * v[0] + a[i][1] * v[1] + a[i][2] * v[2] for i in range(3)]
-
-
-def euler(angles: tuple[float, float, float], order: str) -> Mat:
-    """Euler rotation: the i-th angle about the axis named by the i-th letter of ``order``, the first
-    letter applied first (``"XYZ"`` gives ``Rz @ Ry @ Rx``)."""
-    r = IDENTITY
-    for angle, letter in zip(angles, order, strict=True):
-        r = mul(elementary(letter, angle), r)
-    return r
-
-
-def dof_rotation(dofs: tuple[str, ...], values: list[float]) -> Mat:
-    """Product of the dof rotations, the first listed dof applied first."""
-    r = IDENTITY
-    for dof, value in zip(dofs, values, strict=True):
-        r = mul(elementary(dof[1].upper(), value), r)
-    return r
-
-
-def reference_pose(spec: SkeletonSpec, row: list[float]) -> tuple[list[Mat], list[Vec]]:
-    """Global rotations and node positions (ASF units) of one frame, straight from the generated
-    specification (not from the parsed skeleton)."""
-    value = dict(zip(spec.channel_names, row, strict=True))
-    to_rad = spec.to_rad
-    root_rot = [c for c in spec.root_order if c in ROT]
-    translation = [value.get(f"root.t{a}", 0.0) for a in "xyz"]
-    orientation = euler(
-        (
-            spec.root_orientation[0] * to_rad,
-            spec.root_orientation[1] * to_rad,
-            spec.root_orientation[2] * to_rad,
-        ),
-        spec.root_axis,
-    )
-    n = len(spec.bones) + 1
-    rotation: list[Mat | None] = [None] * n
-    position: list[Vec | None] = [None] * n
-    rotation[0] = mul(orientation, dof_rotation(tuple(root_rot), [value[f"root.{c}"] for c in root_rot]))
-    position[0] = [translation[i] + spec.root_position[i] for i in range(3)]
-
-    def solve(k: int) -> tuple[Mat, Vec]:
-        g, p = rotation[k], position[k]
-        if g is not None and p is not None:
-            return g, p
-        bone = spec.bones[k - 1]
-        g_parent, p_parent = solve(bone.parent)
-        c = euler((bone.axis[0] * to_rad, bone.axis[1] * to_rad, bone.axis[2] * to_rad), bone.axis_order)
-        m = dof_rotation(bone.dofs, [value[f"{bone.name}.{d}"] for d in bone.dofs])
-        g = mul(g_parent, mul(mul(c, m), transpose(c)))
-        norm = math.sqrt(sum(x * x for x in bone.direction))
-        unit = [x / norm for x in bone.direction] if norm > 0 else [0.0, 0.0, 0.0]
-        step = apply(g, [u * bone.length for u in unit])
-        p = [p_parent[i] + step[i] for i in range(3)]
-        rotation[k], position[k] = g, p
-        return g, p
-
-    pose = [solve(k) for k in range(n)]
-    return [g for g, _ in pose], [p for _, p in pose]
 
 
 def test_reference_kinematics_sanity() -> None:

@@ -8,19 +8,19 @@ import numpy as np
 import pytest
 
 from replay import KinematicModel, iter_amc, read_amc, read_asf
-from tests.conftest import PAIRS, pair_id
+from tests.helpers import pair_id, recording_pairs
 
 
 def test_every_subject_and_actor_is_covered() -> None:
-    names = [amc.name for _, amc in PAIRS]
-    assert len(PAIRS) >= 200
+    names = [amc.name for _, amc in recording_pairs()]
+    assert len(recording_pairs()) >= 200
     assert any(n.startswith("14_") for n in names)
     for actor in ("bd", "bk", "dg"):
         assert any(n.startswith(f"HDM_{actor}_") for n in names)
-    assert all(asf.is_file() for asf, _ in PAIRS)
+    assert all(asf.is_file() for asf, _ in recording_pairs())
 
 
-@pytest.mark.parametrize("pair", PAIRS, ids=pair_id)
+@pytest.mark.parametrize("pair", recording_pairs(), ids=pair_id)
 def test_recording(pair: tuple[Path, Path]) -> None:
     asf, amc = pair
     skeleton = read_asf(asf)

@@ -20,9 +20,10 @@ import numpy as np
 import numpy.typing as npt
 import pytest
 
-from daemon.features import FEATURE_NAMES, SET_SLICES, FeatureSet, features
+from daemon.features import FEATURE_NAMES, SET_SLICES, features
+from daemon.types import FeatureSet
 from replay import JOINT_NAMES
-from tests.conftest import PAIRS, joints_cm, pair_id
+from tests.helpers import joints_cm, pair_id, recording_pairs
 
 FloatArray = npt.NDArray[np.float64]
 BoolArray = npt.NDArray[np.bool_]
@@ -82,11 +83,11 @@ def load(pair: Pair) -> Clip:
 
 def hdm05_class(name: str) -> list[Pair]:
     """Every HDM05 cut clip of one motion class present in the data (the folder is the class label)."""
-    return [p for p in PAIRS if p[1].parent.name == name and p[1].parent.parent.name == "cut"]
+    return [p for p in recording_pairs() if p[1].parent.name == name and p[1].parent.parent.name == "cut"]
 
 
 def cmu(trial: str) -> Pair:
-    (pair,) = [p for p in PAIRS if pair_id(p) == trial]
+    (pair,) = [p for p in recording_pairs() if pair_id(p) == trial]
     return pair
 
 

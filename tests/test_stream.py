@@ -35,7 +35,6 @@ from daemon.features import (
     FEATURE_NAMES,
     SET_SLICES,
     Decimator,
-    FeatureSet,
     FeatureStream,
     decimate,
     decimation_factor,
@@ -44,9 +43,11 @@ from daemon.features import (
     latency_frames,
 )
 from daemon.segments import Segment, Segmenter, segment, segment_codes, set_codes, vector_code
+from daemon.stages import run
+from daemon.types import FeatureSet
 from replay import JOINT_NAMES
-from tests.conftest import PAIRS, joints_cm, pair_id
-from tests.test_features import slow_hysteresis, slow_velocity
+from tests.helpers import joints_cm, pair_id, recording_pairs
+from tests.naive import slow_hysteresis, slow_runs, slow_velocity_checks
 
 FloatArray = npt.NDArray[np.float64]
 BoolArray = npt.NDArray[np.bool_]
@@ -66,7 +67,7 @@ BASE = settings(deadline=None, suppress_health_check=[HealthCheck.too_slow, Heal
 @functools.cache
 def clip(name: str) -> FloatArray:
     """Joint positions of the recording ``name`` (its :func:`pair_id`), computed once per run."""
-    matches = [pair for pair in PAIRS if pair_id(pair) == name]
+    matches = [pair for pair in recording_pairs() if pair_id(pair) == name]
     assert len(matches) == 1, f"no single recording named {name}"
     out = joints_cm(*matches[0])
     out.setflags(write=False)
@@ -106,23 +107,11 @@ def assert_stream_equals_batch(positions: FloatArray, frame_rate: float) -> Bool
 
 
 def run_segmenter(segmenter: Segmenter, vectors: Iterable[BoolArray]) -> list[Segment]:
-    """Every segment the segmenter closes on ``vectors``, then the one its flush closes."""
-    out = [closed for v in vectors if (closed := segmenter.push(v)) is not None]
-    last = segmenter.flush()
-    if last is not None:
-        out.append(last)
-    return out
-
-
-def slow_runs(codes: Sequence[int]) -> list[Segment]:
-    """Maximal runs of equal codes, by a plain loop."""
-    runs: list[Segment] = []
-    for i, code in enumerate(codes):
-        if runs and runs[-1].code == code:
-            runs[-1] = Segment(runs[-1].start, i, code)
-        else:
-            runs.append(Segment(i, i, code))
-    return runs
+    """Every segment the segmenter closes on ``vectors`` (at most one a push), then the one its flush
+    closes."""
+    closed = [segmenter.push(v) for v in vectors] + [segmenter.flush()]
+    assert all(len(c) <= 1 for c in closed)
+    return [s for c in closed for s in c]
 
 
 def rotation_y(angle: float) -> FloatArray:
@@ -139,7 +128,7 @@ def test_latency() -> None:
     assert latency_frames(30.0) == FeatureStream(JOINT_NAMES, 30.0).latency == 5
 
 
-@pytest.mark.parametrize("pair", PAIRS, ids=pair_id)
+@pytest.mark.parametrize("pair", recording_pairs(), ids=pair_id)
 def test_recording_stream_equals_batch(pair: tuple[Path, Path]) -> None:
     positions = joints_cm(*pair)
     stream = FeatureStream(JOINT_NAMES, 120.0)
@@ -152,8 +141,7 @@ def test_recording_stream_equals_batch(pair: tuple[Path, Path]) -> None:
 
     # F-segments of every set, incremental vs batch, at 120 Hz and after decimation to 30 Hz.
     factor = decimation_factor(120.0, 30.0)
-    decimator = Decimator(factor)
-    kept = [v for vector in streamed if (v := decimator.push(vector)) is not None]
+    kept = run(Decimator(factor), streamed)
     assert np.array_equal(np.array(kept).reshape(-1, 39), decimate(batch, factor))
     for feature_set in SETS:
         assert run_segmenter(Segmenter(feature_set), streamed) == list(segment(batch, feature_set))
@@ -293,80 +281,6 @@ def test_extreme_magnitudes(positions: FloatArray, frame_rate: float) -> None:
         assert_stream_equals_batch(positions, frame_rate)
 
 
-# The slow reference of the 14 velocity features: each test as (signal (N,), op, T1, T2, reference),
-# a feature is on in a track where all of its tests hold. Definitions: thesis Table 5.1 / features.py.
-Check = tuple[FloatArray, str, float, float, str]
-
-
-def slow_velocity_checks(p: FloatArray, frame_rate: float) -> dict[str, list[Check]]:
-    j = {name: p[:, i] for i, name in enumerate(JOINT_NAMES)}
-
-    def ratio(a: float, b: float) -> float:
-        """``a / b``, nan for a degenerate normal (the feature is then off; not compared)."""
-        return a / b if b else math.nan
-
-    def vel(q: str, fixture: str | None, window_ms: float) -> FloatArray:
-        x = j[q] - j[fixture] if fixture else j[q]
-        out: FloatArray = slow_velocity(x, window_ms, frame_rate)
-        return out
-
-    def along(a: str, b: str, v: FloatArray) -> FloatArray:
-        """Component of ``v`` along ``unit(j[b] - j[a])``, frame by frame."""
-        n = j[b] - j[a]
-        return np.array(
-            [ratio(float(np.dot(n[t], v[t])), math.sqrt(float(np.dot(n[t], n[t])))) for t in range(len(v))]
-        )
-
-    def plane_normal_along(a: str, b: str, c: str, v: FloatArray) -> FloatArray:
-        """Component of ``v`` along ``unit((a - c) x (b - c))``."""
-        n = np.cross(j[a] - j[c], j[b] - j[c])
-        return np.array(
-            [ratio(float(np.dot(n[t], v[t])), math.sqrt(float(np.dot(n[t], n[t])))) for t in range(len(v))]
-        )
-
-    def speed(q: str, window_ms: float) -> FloatArray:
-        return np.array([math.sqrt(float(np.dot(row, row))) for row in vel(q, None, window_ms)])
-
-    hips = ("lhip", "rhip")
-    feet_together = along(*hips, vel("lankle", "rhip", 100.0)) - along(*hips, vel("rankle", "rhip", 100.0))
-    return {
-        "feetMoveTogetherRelHips": [(feet_together, ">=", 1.3, 1.5, "h_R")],
-        "feetMoveApartRelHips": [(-feet_together, ">=", 1.3, 1.5, "h_R")],
-        "footRightHighVel": [
-            (speed("rtoes", 100.0), ">=", 2.0, 2.5, "h_R"),
-            (speed("rankle", 100.0), ">=", 2.0, 2.5, "h_R"),
-        ],
-        "footLeftHighVel": [
-            (speed("ltoes", 100.0), ">=", 2.0, 2.5, "h_R"),
-            (speed("lankle", 100.0), ">=", 2.0, 2.5, "h_R"),
-        ],
-        "handRightToFrontRelTorso": [
-            (plane_normal_along("neck", "rhip", "lhip", vel("rwrist", "lhip", 250.0)), ">", 1.3, 1.8, "h_L")
-        ],
-        "handLeftToFrontRelTorso": [
-            (plane_normal_along("neck", "rhip", "lhip", vel("lwrist", "lhip", 250.0)), ">", 1.3, 1.8, "h_L")
-        ],
-        "handRightToTopRelSpine": [
-            (along("chest", "neck", vel("rwrist", "neck", 250.0)), ">", 1.3, 1.8, "h_L")
-        ],
-        "handLeftToTopRelSpine": [
-            (along("chest", "neck", vel("lwrist", "neck", 250.0)), ">", 1.3, 1.8, "h_L")
-        ],
-        "handsMoveTogether": [
-            (along("lwrist", "rwrist", vel("lwrist", "rwrist", 100.0)), ">=", 1.2, 1.4, "h_R")
-        ],
-        "handRightMoveApartRelRoot": [
-            (along("rwrist", "root", vel("root", "rwrist", 0.0)), ">=", 1.2, 1.4, "h_R")
-        ],
-        "handLeftMoveApartRelRoot": [
-            (along("lwrist", "root", vel("root", "lwrist", 0.0)), ">=", 1.2, 1.4, "h_R")
-        ],
-        "handRightHighVel": [(speed("rfingers", 100.0), ">=", 2.0, 2.5, "h_R")],
-        "handLeftHighVel": [(speed("lfingers", 100.0), ">=", 2.0, 2.5, "h_R")],
-        "rootHighVel": [(speed("root", 0.0), ">=", 2.0, 2.3, "h_R")],
-    }
-
-
 COMPARE: dict[str, Callable[[FloatArray, float], npt.NDArray[np.bool_]]] = {
     ">=": lambda a, b: a >= b,
     ">": lambda a, b: a > b,
@@ -468,7 +382,7 @@ def test_segmenter_equals_slow_runs(first: BoolArray, second: BoolArray, feature
         assert got == slow_runs(codes)
         assert got == list(segment(matrix, feature_set))
         assert_tiles(got, codes)
-    assert segmenter.flush() is None
+    assert segmenter.flush() == []
 
 
 @settings(max_examples=200, deadline=None)
@@ -499,12 +413,15 @@ def test_set_codes_lsb_is_the_first_feature_of_the_set() -> None:
 @settings(max_examples=100, deadline=None)
 @given(hnp.arrays(np.bool_, st.tuples(st.integers(0, 40), st.just(39))), st.integers(1, 6))
 def test_decimator_equals_decimate(matrix: BoolArray, factor: int) -> None:
-    """Every ``factor``-th vector, the first included; ``None`` for the others."""
+    """Every ``factor``-th vector, the first included, nothing for the others; the flush has nothing
+    left and starts a new stream (the second pass is the first again)."""
     decimator = Decimator(factor)
-    passed = [decimator.push(v) for v in matrix]
-    assert [i for i, v in enumerate(passed) if v is not None] == list(range(0, len(matrix), factor))
-    kept = [v for v in passed if v is not None]
-    assert np.array_equal(np.array(kept).reshape(-1, 39), decimate(matrix, factor))
+    for _ in range(2):
+        passed = [decimator.push(v) for v in matrix]
+        assert [i for i, v in enumerate(passed) if v] == list(range(0, len(matrix), factor))
+        kept = [v for vs in passed for v in vs]
+        assert np.array_equal(np.array(kept).reshape(-1, 39), decimate(matrix, factor))
+        assert decimator.flush() == []
 
 
 # -------------------------------------------------------------------- 4. invariance, real motion

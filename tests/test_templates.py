@@ -11,9 +11,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from daemon.dtw import and_cost, full_dtw, retrieval_cost, subsequence_dtw
-from daemon.features import SET_SLICES, BoolArray
-from daemon.index_store import Document, ManifestRow, index_from_matrices, read_document
+from daemon.features import SET_SLICES
+from daemon.index_store import Document, index_from_matrices, read_document
 from daemon.keyframes import gap_bounds, keyframe_search
+from daemon.recordings import ManifestRow
 from daemon.templates import (
     LearnedClass,
     LearnedTemplate,
@@ -34,7 +35,8 @@ from daemon.templates import (
     quantise,
     warp,
 )
-from tests.conftest import DATA
+from daemon.types import BoolArray
+from tests.helpers import DATA
 
 CLASSES = ("squat1Reps", "hopBothLegs1hops", "elbowToKnee1RepsLelbowStart")
 SOFT_CLASSES = ("squat1Reps", "elbowToKnee1RepsLelbowStart")
@@ -61,7 +63,7 @@ def clips() -> Clips:
         for actor in ACTORS:
             asf = DATA / "hdm05" / "asf" / f"HDM_{actor}.asf"
             for amc in sorted((DATA / "hdm05" / "cut" / name).glob(f"HDM_{actor}_{name}_*_120.amc.gz")):
-                rows.append(read_document(ManifestRow(0, str(asf), str(amc), asf, amc), RATE))
+                rows.append(read_document(ManifestRow(0, str(asf), str(amc), asf, amc), rate=RATE))
         assert len(rows) >= 10, name
         out[name] = rows
     return out

@@ -1,0 +1,125 @@
+"""The ``mocapd`` command line (also ``python -m daemon``).
+
+One module per command group registers its subcommands next to their handlers (:data:`COMMANDS`);
+this module is the one place that turns what goes wrong into an exit status and one line on stderr:
+
+* 0: done; 2: bad input (a :class:`~daemon.errors.MocapdError`: unreadable or malformed files, bad
+  options), one line naming the file, line, field or option;
+* 130 on SIGINT (Ctrl-C), 143 on SIGTERM: "interrupted" / "terminated"; every file being written is
+  left as it was (outputs are written beside their target and renamed into place);
+* 70 on anything else: one line saying it is a bug in mocapd and how to report it; the traceback
+  only with ``--debug``.
+
+The command modules are imported inside :func:`main`, after the signal handlers are in place, so an
+interrupt during start-up is handled like any other.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import importlib
+import os
+import signal
+import sys
+import traceback
+from collections.abc import Sequence
+from importlib.metadata import PackageNotFoundError, version
+from pathlib import Path
+from types import FrameType
+from typing import NoReturn
+
+COMMANDS = ("daemon.cli.recordings", "daemon.cli.search", "daemon.cli.learn")
+"""The command groups, in the order ``--help`` lists them; each has ``register(subparsers)``."""
+
+EXIT_USAGE = 2
+EXIT_BUG = 70
+BUG_REPORT = (
+    "this is a bug in mocapd; please report it to the mocapd developers (README, 'Reporting bugs') "
+    "with the command line and the output of the same command with --debug"
+)
+
+
+class Terminated(BaseException):
+    """SIGTERM arrived; like :class:`KeyboardInterrupt`, it unwinds the stack so outputs are cleaned."""
+
+
+def _terminate(signum: int, frame: FrameType | None) -> NoReturn:
+    raise Terminated
+
+
+class Parser(argparse.ArgumentParser):
+    """An argument parser whose errors are :class:`~daemon.errors.UsageError` (one line, exit 2)."""
+
+    def error(self, message: str) -> NoReturn:
+        from daemon.errors import UsageError
+
+        raise UsageError(f"{message} (see {self.prog} --help)")
+
+
+def package_version() -> str:
+    try:
+        return version("mocapd")
+    except PackageNotFoundError:
+        return "unknown (not installed)"
+
+
+def parser() -> Parser:
+    """The whole command line, every command group registered."""
+    top = Parser(prog="mocapd", description="Streaming motion recognition over ASF/AMC motion capture.")
+    top.add_argument("--version", action="version", version=f"mocapd {package_version()}")
+    top.add_argument(
+        "--config", type=Path, default=None, help="config.yaml to read (default: built-in defaults)"
+    )
+    top.add_argument("--debug", action="store_true", help="print the traceback of an internal error")
+    sub = top.add_subparsers(required=True, metavar="COMMAND", parser_class=Parser)
+    for name in COMMANDS:
+        importlib.import_module(name).register(sub)
+    return top
+
+
+def _say(message: str) -> None:
+    from daemon.errors import printable
+
+    with contextlib.suppress(OSError):  # stderr closed: there is no one left to tell
+        print(f"mocapd: {printable(message)}", file=sys.stderr, flush=True)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run the command line ``argv`` (default: ``sys.argv[1:]``); returns the exit status."""
+    arguments = list(sys.argv[1:] if argv is None else argv)
+    debug = "--debug" in arguments
+    previous = signal.signal(signal.SIGTERM, _terminate)
+    try:
+        from daemon.config import load_config
+        from daemon.errors import FileAccessError, MocapdError
+
+        try:
+            args = parser().parse_args(arguments)
+            debug = args.debug
+            status: int = args.func(args, load_config(args.config))
+            sys.stdout.flush()
+            return status
+        except MocapdError as exc:
+            _say(str(exc))
+            return EXIT_USAGE
+        except BrokenPipeError:
+            # The reader of our stdout went away (``| head``): nothing is wrong, nothing more to say.
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+            return 0
+        except OSError as exc:
+            _say(str(FileAccessError.from_os_error(exc)))
+            return EXIT_USAGE
+    except KeyboardInterrupt:
+        _say("interrupted")
+        return 128 + signal.SIGINT
+    except Terminated:
+        _say("terminated")
+        return 128 + signal.SIGTERM
+    except Exception as exc:
+        if debug:
+            traceback.print_exc()
+        _say(f"internal error: {type(exc).__name__}: {exc} ({BUG_REPORT})".replace("\n", " "))
+        return EXIT_BUG
+    finally:
+        signal.signal(signal.SIGTERM, previous)

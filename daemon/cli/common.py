@@ -1,0 +1,97 @@
+"""What several commands share: option types, the recording and rate options, and outputs that are
+checked before the work and written beside their target."""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+from collections.abc import Callable
+from pathlib import Path
+from typing import IO, Any
+
+from daemon.checks import number_reason
+from daemon.config import Config
+from daemon.errors import FileAccessError, UsageError
+from daemon.plots import check_plotting
+from daemon.storage import check_directory, check_output_file, output_file
+
+STDOUT = "-"
+
+
+def positive_float(text: str) -> float:
+    """An option value that must be a positive number."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if number_reason(value, low=0, low_open=True) is not None:
+        raise argparse.ArgumentTypeError(f"must be a positive number, got '{text}'")
+    return value
+
+
+def recording_options(command: argparse.ArgumentParser) -> None:
+    command.add_argument("--asf", type=Path, required=True, help="ASF skeleton file")
+    command.add_argument("--amc", type=Path, required=True, help="AMC motion file, plain or gzip")
+    native_rate_option(command)
+
+
+def native_rate_option(command: argparse.ArgumentParser) -> None:
+    command.add_argument(
+        "--native-fps",
+        type=positive_float,
+        default=None,
+        metavar="HZ",
+        help="the rate recordings were captured at when their AMC file states none "
+        "(default: config replay.frame_rate_hz, 120)",
+    )
+
+
+def default_native_rate(args: argparse.Namespace, config: Config) -> float:
+    """The rate assumed for recordings whose AMC states none: ``--native-fps``, else the config's."""
+    given: float | None = args.native_fps
+    return config.replay.frame_rate_hz if given is None else given
+
+
+# ------------------------------------------------------------------------------------------ outputs
+
+
+def check_csv_output(path: Path) -> None:
+    """Before the work: ``path`` can be written (``-`` is stdout)."""
+    if str(path) != STDOUT:
+        check_output_file(path)
+
+
+def write_csv(path: Path, write: Callable[[IO[str]], None]) -> None:
+    """``write`` the CSV to stdout (``-``) or into ``path``, which is replaced only when complete."""
+    if str(path) == STDOUT:
+        write(sys.stdout)
+        return
+    with output_file(path) as out:
+        write(out)
+
+
+def check_png_output(path: Path, *, directory: bool = False) -> None:
+    """Before the work: PNGs can be drawn (matplotlib is there) and ``path`` is a ``.png`` file that
+    can be written, or with ``directory`` a directory (created if missing) PNGs can be written in."""
+    if directory:
+        if path.exists() and not path.is_dir():
+            raise FileAccessError("not a directory", path=path)
+        try:
+            path.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise FileAccessError.from_os_error(exc, path) from None
+        check_directory(path)
+    else:
+        if path.is_dir():
+            raise FileAccessError("is a directory; --png names the PNG file to write", path=path)
+        if path.suffix.lower() != ".png":
+            raise UsageError(f"'{path}' does not end in .png (only PNG is written)", field="--png")
+        check_output_file(path)
+    check_plotting()
+
+
+def write_png(path: Path, draw: Callable[[IO[bytes]], Any]) -> None:
+    """``draw`` a PNG into ``path``, which is replaced only when complete."""
+    with output_file(path, "wb") as out:
+        draw(out)

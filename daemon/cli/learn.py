@@ -1,0 +1,116 @@
+"""``mocapd learn``: motion templates and keyframes from labelled clips."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+from daemon.cli.common import (
+    check_png_output,
+    default_native_rate,
+    native_rate_option,
+    positive_float,
+    write_png,
+)
+from daemon.config import Config
+from daemon.dtw import STEPS
+from daemon.errors import UsageError
+from daemon.library import ClassTemplate, Library, check_library_target, learn_class, save_library
+from daemon.plots import template_png
+from daemon.recordings import TrainingClip, read_examples
+from daemon.types import DEFAULT_INDEX_RATE
+
+
+def register(sub: Any) -> None:
+    learn = sub.add_parser("learn", help="learn motion templates and keyframes from labelled clips")
+    learn.add_argument(
+        "--manifest",
+        type=Path,
+        required=True,
+        help="CSV with columns class, asf, amc and optionally start_frame, end_frame (AMC frames)",
+    )
+    learn.add_argument("--out", type=Path, required=True, help="library directory to write (replaced)")
+    learn.add_argument(
+        "--fps",
+        type=positive_float,
+        default=DEFAULT_INDEX_RATE,
+        help="learn at this rate (default 30, as the thesis)",
+    )
+    learn.add_argument("--png", type=Path, default=None, help="directory for a PNG of each class's MTs")
+    learn.add_argument(
+        "--tau", type=positive_float, default=0.1, help="retrieval threshold stored per class (0.1)"
+    )
+    learn.add_argument(
+        "--delta", type=float, default=0.1, help="quantisation threshold δ in [0, 0.5) (default 0.1)"
+    )
+    learn.add_argument(
+        "--keyframes", type=int, default=3, metavar="K", help="keyframes chosen per class (3; 0: none)"
+    )
+    learn.add_argument(
+        "--steps",
+        choices=STEPS,
+        default="toolbox",
+        help="DTW steps for retrieval: toolbox (1,1),(1,2),(2,1) (default) or thesis (1,0),(0,1),(1,1)",
+    )
+    native_rate_option(learn)
+    learn.set_defaults(func=_learn)
+
+
+def _learn(args: argparse.Namespace, config: Config) -> int:
+    if not 0 <= args.delta < 0.5:
+        raise UsageError(f"--delta must lie in [0, 0.5), got {args.delta:g}")
+    if args.keyframes < 0:
+        raise UsageError(f"--keyframes must not be negative, got {args.keyframes}")
+    check_library_target(args.out)  # before the long part
+    if args.png is not None:
+        check_png_output(args.png, directory=True)
+    began = time.perf_counter()
+
+    def progress(done: int, total: int, clip: TrainingClip) -> None:
+        print(
+            f"[{done}/{total}] {clip.amc} ({clip.frames} frames at {args.fps:g} Hz)",
+            file=sys.stderr,
+            flush=True,
+        )
+
+    examples = read_examples(
+        args.manifest, rate=args.fps, progress=progress, default_native_rate=default_native_rate(args, config)
+    )
+    classes: dict[str, ClassTemplate] = {}
+    for i, (name, items) in enumerate(examples.items(), start=1):
+        started = time.perf_counter()
+        cls = learn_class(
+            name,
+            items,
+            delta=args.delta,
+            tau=args.tau,
+            keyframes=args.keyframes,
+            steps=args.steps,
+            rate=args.fps,
+        )
+        classes[name] = cls
+        keyframes = 0 if cls.keyframes is None else len(cls.keyframes.keyframes)
+        print(
+            f"[class {i}/{len(examples)}] {name}: {len(items)} examples, soft MT {cls.soft.length} "
+            f"columns after {cls.iterations} iterations, hard MT {cls.hard.length} columns, "
+            f"{keyframes} keyframes ({time.perf_counter() - started:.1f} s)",
+            file=sys.stderr,
+            flush=True,
+        )
+        if args.png is not None:
+            _draw(cls, args.png / f"{name}.png", args.fps)
+    save_library(Library(args.fps, classes), args.out)
+    print(f"library:    {args.out}")
+    print(f"classes:    {len(classes)} ({', '.join(classes)})")
+    print(f"examples:   {sum(len(c.training) for c in classes.values())} at {args.fps:g} Hz")
+    print(f"learn time: {time.perf_counter() - began:.1f} s")
+    return 0
+
+
+def _draw(cls: ClassTemplate, path: Path, rate: float) -> None:
+    """The class's soft and hard MT with its keyframe columns, as ``path``."""
+    columns = [] if cls.keyframes is None else [k.position for k in cls.keyframes.keyframes]
+    write_png(path, lambda out: template_png(cls.soft.values, cls.hard.values, columns, out, cls.name, rate))

@@ -1,0 +1,325 @@
+"""Recordings in, features out: the one path from an ASF/AMC pair to its 39 features, and the
+manifests that list recordings.
+
+The pipeline (:func:`read_features`): read the recording, take its native rate (:func:`native_rate`:
+the AMC's ``:SAMPLES-PER-SECOND``, else the configured default, 120 Hz), compute the joint positions in
+centimetres, the 39 features at the native rate (the velocity windows are in milliseconds), then keep
+every k-th frame from the first for a lower rate (the toolbox's ``1:4:end`` for 30 Hz). Everything
+that turns recordings into features (``mocapd features``, the index, template learning, the tests and
+the benchmarks) calls it.
+
+A *manifest* is a CSV listing recordings: columns ``asf`` and ``amc`` (paths relative to the
+manifest), a *training manifest* also ``class`` and optionally ``start_frame``, ``end_frame``.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import os
+import re
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from daemon.errors import FileAccessError, MocapdError
+from daemon.features import decimate, decimation_factor, features
+from daemon.types import DEFAULT_INDEX_RATE, DEFAULT_NATIVE_RATE, BoolArray, FloatArray, IntArray
+from replay import JOINT_NAMES, KinematicModel, Motion, read_amc, read_asf
+
+CLASS_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]*")
+"""A class name: it names a file of a template library."""
+
+
+class ManifestError(MocapdError, ValueError):
+    """A manifest that cannot be used; ``str``: ``path:line: reason``."""
+
+    def __init__(self, path: str | os.PathLike[str], line: int, reason: str) -> None:
+        super().__init__(reason, path=path, line=line)
+
+
+class RecordingError(MocapdError, ValueError):
+    """A recording that reads but cannot be turned into features (non-finite positions); the message
+    names the file."""
+
+
+class RateError(RecordingError):
+    """A rate that does not divide a recording's native rate; the message names the file."""
+
+
+# ------------------------------------------------------------------------------------ the pipeline
+
+
+def read_recording(asf: str | Path, amc: str | Path) -> Motion:
+    """The whole AMC file ``amc`` read with the skeleton of ``asf``."""
+    return read_amc(amc, read_asf(asf))
+
+
+def native_rate(motion: Motion, default: float = DEFAULT_NATIVE_RATE) -> float:
+    """The rate a recording was captured at: its AMC's ``:SAMPLES-PER-SECOND``, else ``default``
+    (``config.yaml``'s ``replay.frame_rate_hz``)."""
+    return motion.header.frame_rate or default
+
+
+def joint_positions(motion: Motion, unit: str = "cm") -> FloatArray:
+    """The standard joints (:data:`replay.JOINT_NAMES`) of every frame, shape ``(N, 26, 3)``, in
+    centimetres or (``"asf"``) the skeleton's own units."""
+    model = KinematicModel(motion.skeleton)
+    return model.joints(model.positions(motion.channels, "cm" if unit == "cm" else "asf"))
+
+
+@dataclass(frozen=True)
+class RecordingFeatures:
+    """A recording's features at ``native_rate / step`` Hz: ``matrix`` shape ``(N, 39)`` and the AMC
+    frame number of each row, ``frames`` shape ``(N,)`` (every ``step``-th frame from the first); the
+    recording has AMC frames ``first_amc_frame .. last_amc_frame``."""
+
+    matrix: BoolArray
+    frames: IntArray
+    native_rate: float
+    step: int
+    first_amc_frame: int
+    last_amc_frame: int
+
+    @property
+    def rate(self) -> float:
+        return self.native_rate / self.step
+
+
+def sampling_step(
+    motion: Motion, rate: float | None, default_native_rate: float = DEFAULT_NATIVE_RATE
+) -> int:
+    """How many native frames of ``motion`` make one frame at ``rate`` (None: 1). Raises
+    :class:`RateError` naming the file if ``rate`` does not divide the native rate."""
+    if rate is None:
+        return 1
+    try:
+        return decimation_factor(native_rate(motion, default_native_rate), rate)
+    except ValueError as exc:
+        raise RateError(str(exc), path=motion.source) from None
+
+
+def motion_features(
+    motion: Motion, rate: float | None = None, default_native_rate: float = DEFAULT_NATIVE_RATE
+) -> RecordingFeatures:
+    """The features of ``motion`` at ``rate`` Hz (None: the native rate): computed at the native rate
+    from the joints in centimetres, then every k-th frame from the first."""
+    step = sampling_step(motion, rate, default_native_rate)
+    native = native_rate(motion, default_native_rate)
+    try:
+        matrix = decimate(features(joint_positions(motion), JOINT_NAMES, native), step)
+    except ValueError as exc:
+        raise RecordingError(str(exc), path=motion.source) from None
+    return RecordingFeatures(
+        matrix, motion.frames[::step], native, step, int(motion.frames[0]), int(motion.frames[-1])
+    )
+
+
+def read_features(
+    asf: str | Path,
+    amc: str | Path,
+    rate: float | None = None,
+    default_native_rate: float = DEFAULT_NATIVE_RATE,
+) -> RecordingFeatures:
+    """:func:`motion_features` of the recording ``asf``/``amc``."""
+    return motion_features(read_recording(asf, amc), rate, default_native_rate)
+
+
+# --------------------------------------------------------------------------------------- manifests
+
+
+def display_path(base: str | Path, written: str) -> str:
+    """A path a manifest in the directory ``base`` wrote as ``written``, for a reader in the working
+    directory: absolute as written; relative, resolved against ``base`` and then written relative to
+    the working directory if it lies below it, else absolute. ``base`` "" leaves it as written."""
+    path = Path(written)
+    if path.is_absolute() or not str(base):
+        return written
+    full = Path(os.path.normpath(Path(base).absolute() / path))
+    try:
+        return str(full.relative_to(Path.cwd()))
+    except ValueError:
+        return str(full)
+
+
+@dataclass(frozen=True)
+class ManifestRow:
+    """One recording of a manifest: ``asf_text``/``amc_text`` as written, ``asf``/``amc`` resolved
+    against the manifest's directory; ``line`` is the row's (last) line in the manifest; ``extra``
+    the row's other cells by lower-case column name."""
+
+    line: int
+    asf_text: str
+    amc_text: str
+    asf: Path
+    amc: Path
+    extra: Mapping[str, str] = field(default_factory=dict)
+
+
+def read_manifest(
+    path: str | Path, required: Sequence[str] = (), optional: Sequence[str] = ()
+) -> list[ManifestRow]:
+    """The rows of a manifest CSV whose header names the columns ``asf`` and ``amc`` and every column
+    of ``required`` (in any order, among any others; ``optional`` only names the columns an error
+    message mentions). ``extra`` holds each row's other cells by lower-case column name (empty cells
+    of optional columns included). Blank lines are skipped. Raises :class:`ManifestError`."""
+    path = Path(path)
+    columns_wanted = ("asf", "amc", *required)
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        raise FileAccessError.from_os_error(exc, path) from None
+    try:
+        text = data.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        line = data[: exc.start].count(b"\n") + 1
+        raise ManifestError(path, line, "not UTF-8 text") from None
+    reader = csv.reader(io.StringIO(text, newline=""))
+    header: list[str] | None = None
+    columns: dict[str, int] = {}
+    rows: list[ManifestRow] = []
+    try:
+        for record in reader:
+            line = reader.line_num
+            cells = [f.strip() for f in record]
+            if not any(cells):
+                continue
+            if header is None:
+                header = [f.lower() for f in cells]
+                for name in columns_wanted:
+                    if header.count(name) != 1:
+                        how = "lacks" if name not in header else "repeats"
+                        raise ManifestError(
+                            path, line, f"header {how} the column '{name}': {','.join(record)}"
+                        )
+                    columns[name] = header.index(name)
+                continue
+            if len(cells) != len(header):
+                raise ManifestError(path, line, f"{len(cells)} fields, the header has {len(header)}")
+            texts = {name: cells[i] for name, i in columns.items()}
+            for name, value in texts.items():
+                if not value:
+                    raise ManifestError(path, line, f"the '{name}' field is blank")
+            resolved = {name: path.parent / texts[name] for name in ("asf", "amc")}
+            for name, file in resolved.items():
+                if not file.is_file():
+                    raise ManifestError(path, line, f"{name} file not found: {file}")
+            others = {name: cells[i] for i, name in enumerate(header) if name not in ("asf", "amc")}
+            rows.append(
+                ManifestRow(line, texts["asf"], texts["amc"], resolved["asf"], resolved["amc"], others)
+            )
+    except csv.Error as exc:
+        raise ManifestError(path, reader.line_num, f"not valid CSV: {exc}") from None
+    needs = ", ".join([*columns_wanted, *(f"[{c}]" for c in optional)])
+    if header is None:
+        raise ManifestError(path, 1, f"empty manifest: no header line (it needs the columns {needs})")
+    if not rows:
+        raise ManifestError(path, max(reader.line_num, 1), "empty manifest: no recordings after the header")
+    return rows
+
+
+@dataclass(frozen=True)
+class TrainingRow:
+    """One row of a training manifest: the class and the AMC frame range (None = whole clip)."""
+
+    name: str
+    row: ManifestRow
+    start_frame: int | None
+    end_frame: int | None
+
+
+def read_training_manifest(path: str | Path) -> list[TrainingRow]:
+    """The rows of a CSV with columns ``class, asf, amc`` and optionally ``start_frame, end_frame``
+    (AMC frame numbers, inclusive; both or neither, per row). Raises :class:`ManifestError` naming
+    the file and line."""
+    rows = read_manifest(path, required=("class",), optional=("start_frame", "end_frame"))
+    out = []
+    for row in rows:
+        name = row.extra["class"]
+        if not CLASS_NAME.fullmatch(name):
+            raise ManifestError(
+                path, row.line, f"class {name!r}: use letters, digits, '_', '.', '-' (it names a file)"
+            )
+        bounds = []
+        for column in ("start_frame", "end_frame"):
+            text = row.extra.get(column, "")
+            try:
+                bounds.append(int(text) if text else None)
+            except ValueError:
+                raise ManifestError(path, row.line, f"{column} {text!r} is not an integer") from None
+        start, end = bounds
+        if (start is None) != (end is None):
+            raise ManifestError(path, row.line, "give both start_frame and end_frame, or neither")
+        if start is not None and end is not None and start > end:
+            raise ManifestError(path, row.line, f"start_frame {start} is after end_frame {end}")
+        out.append(TrainingRow(name, row, start, end))
+    return out
+
+
+# ---------------------------------------------------------------------------------------- examples
+
+
+@dataclass(frozen=True)
+class TrainingClip:
+    """Where a training example came from: AMC frames ``start_frame .. end_frame`` of ``amc``
+    (paths as the manifest wrote them), ``frames`` of them at the library's rate."""
+
+    asf: str
+    amc: str
+    start_frame: int
+    end_frame: int
+    frames: int
+
+
+def read_example(
+    item: TrainingRow,
+    source: str | Path,
+    *,
+    rate: float,
+    default_native_rate: float = DEFAULT_NATIVE_RATE,
+) -> tuple[TrainingClip, BoolArray]:
+    """The features of one training example at ``rate``, shape ``(frames, 39)``: computed over the
+    whole recording (so velocities at the range's edges see their neighbours), then cut to the
+    samples inside the frame range. ``source``: the manifest, for errors."""
+    got = read_features(item.row.asf, item.row.amc, rate, default_native_rate)
+    first, last, step = got.first_amc_frame, got.last_amc_frame, got.step
+    start = first if item.start_frame is None else item.start_frame
+    end = last if item.end_frame is None else item.end_frame
+    if start < first or end > last:
+        raise ManifestError(
+            source, item.row.line, f"frames {start}..{end} are outside the recording's {first}..{last}"
+        )
+    j0, j1 = -(-(start - first) // step), (end - first) // step
+    if j1 < j0:
+        raise ManifestError(source, item.row.line, f"frames {start}..{end} hold no sample at {rate:g} Hz")
+    clip = TrainingClip(item.row.asf_text, item.row.amc_text, start, end, j1 - j0 + 1)
+    return clip, got.matrix[j0 : j1 + 1]
+
+
+Examples = dict[str, list[tuple[TrainingClip, BoolArray]]]
+
+
+def read_examples(
+    path: str | Path,
+    *,
+    rate: float = DEFAULT_INDEX_RATE,
+    progress: Callable[[int, int, TrainingClip], object] | None = None,
+    default_native_rate: float = DEFAULT_NATIVE_RATE,
+) -> Examples:
+    """Every class's training examples from a training manifest, in manifest order, each the clip's
+    provenance and its features at ``rate`` Hz; ``progress(done, total, clip)`` after each."""
+    rows = read_training_manifest(path)
+    out: Examples = {}
+    for i, item in enumerate(rows, start=1):
+        clip, matrix = read_example(item, path, rate=rate, default_native_rate=default_native_rate)
+        out.setdefault(item.name, []).append((clip, matrix))
+        if progress is not None:
+            progress(i, len(rows), clip)
+    return out
+
+
+def sample_index(frames: IntArray, first: int, last: int) -> IntArray:
+    """The rows of ``frames`` (AMC frame numbers of the samples) inside ``first .. last``."""
+    return np.flatnonzero((frames >= first) & (frames <= last))

@@ -1,0 +1,27 @@
+"""Names and shapes shared by every module: array aliases, the feature sets, the frame rates."""
+
+from __future__ import annotations
+
+from typing import Literal, get_args
+
+import numpy as np
+import numpy.typing as npt
+
+FloatArray = npt.NDArray[np.float64]
+BoolArray = npt.NDArray[np.bool_]
+IntArray = npt.NDArray[np.int64]
+CodeArray = npt.NDArray[np.uint64]
+"""A frame's 39 features as one code: bit i = feature i (:data:`daemon.features.FEATURE_NAMES` order)."""
+
+FeatureSet = Literal["lower", "upper", "mix"]
+FEATURE_SETS: tuple[FeatureSet, ...] = get_args(FeatureSet)
+"""The three feature sets of thesis Table 5.1, segmented and indexed separately, in feature order."""
+
+N_FEATURES = 39
+"""Features per frame (thesis Table 5.1: 12 lower, 14 upper, 13 mix)."""
+
+DEFAULT_NATIVE_RATE = 120.0
+"""Hz assumed for a recording that states no rate (CMU and HDM05 record at 120 Hz)."""
+
+DEFAULT_INDEX_RATE = 30.0
+"""Hz at which indexes, templates and keyframes work (the toolbox's every 4th frame of 120 Hz)."""

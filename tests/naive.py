@@ -1,0 +1,614 @@
+"""Slow, obviously-correct references the tests check the fast code against: plain loops over
+plain Python values, read straight off the definitions they cite. Nothing here is fast and
+nothing here is shared with the code under test."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterator, Sequence
+from fractions import Fraction
+from itertools import product
+from pathlib import Path
+
+import numpy as np
+import numpy.typing as npt
+
+from daemon import dtw
+from daemon.dtw import INF, SCALE, Match, local_minima, retrieval_cost, subsequence_dtw, suppress
+from daemon.features import features, window_frames
+from daemon.index import SetIndex
+from daemon.keyframes import KeyframeQuery
+from daemon.library import ClassTemplate
+from daemon.segments import Segment
+from daemon.templates import expand
+from daemon.types import BoolArray, FeatureSet, FloatArray
+from replay import JOINT_NAMES, KinematicModel, read_amc, read_asf
+from tests.synth import ROT, SkeletonSpec
+
+Mat = list[list[float]]
+Vec = list[float]
+
+
+# -------------------------------------------------------- features: hysteresis, smoothed velocities
+
+
+def slow_hysteresis(f1: list[bool], f2: list[bool]) -> list[bool]:
+    out, on = [], False
+    for a, b in zip(f1, f2, strict=True):
+        on = b or (on and a)
+        out.append(on)
+    return out
+
+
+def reflect(j: int, m: int) -> int:
+    """Index ``j`` mirrored into ``0..m-1``, edge repeated: ..., 1, 0 | 0, 1, ..., m-1 | m-1, m-2, ..."""
+    while j < 0 or j >= m:
+        j = -j - 1 if j < 0 else 2 * m - j - 1
+    return j
+
+
+def slow_velocity(x: np.ndarray, window_ms: float, fs: float) -> np.ndarray:
+    n, big_l = len(x), window_frames(window_ms, fs)
+    v = [x[t + 1] - x[t] for t in range(n - 1)] + ([x[n - 1] - x[n - 2]] if n > 1 else [np.zeros(3)])
+    if n < big_l:
+        v = [v[reflect(j, n)] for j in range(big_l)]
+    h = math.ceil(big_l / 2)
+    rows = [sum(v[reflect(t + k - h + 1, len(v))] for k in range(big_l)) / big_l * fs for t in range(n)]
+    return np.array(rows, dtype=np.float64)
+
+
+# --------------------------------------------------------------- segments and the velocity features
+
+
+def slow_runs(codes: Sequence[int]) -> list[Segment]:
+    """Maximal runs of equal codes, by a plain loop."""
+    runs: list[Segment] = []
+    for i, code in enumerate(codes):
+        if runs and runs[-1].code == code:
+            runs[-1] = Segment(runs[-1].start, i, code)
+        else:
+            runs.append(Segment(i, i, code))
+    return runs
+
+
+# The slow reference of the 14 velocity features: each test as (signal (N,), op, T1, T2, reference),
+# a feature is on in a track where all of its tests hold. Definitions: thesis Table 5.1 / features.py.
+Check = tuple[FloatArray, str, float, float, str]
+
+
+def slow_velocity_checks(p: FloatArray, frame_rate: float) -> dict[str, list[Check]]:
+    j = {name: p[:, i] for i, name in enumerate(JOINT_NAMES)}
+
+    def ratio(a: float, b: float) -> float:
+        """``a / b``, nan for a degenerate normal (the feature is then off; not compared)."""
+        return a / b if b else math.nan
+
+    def vel(q: str, fixture: str | None, window_ms: float) -> FloatArray:
+        x = j[q] - j[fixture] if fixture else j[q]
+        out: FloatArray = slow_velocity(x, window_ms, frame_rate)
+        return out
+
+    def along(a: str, b: str, v: FloatArray) -> FloatArray:
+        """Component of ``v`` along ``unit(j[b] - j[a])``, frame by frame."""
+        n = j[b] - j[a]
+        return np.array(
+            [ratio(float(np.dot(n[t], v[t])), math.sqrt(float(np.dot(n[t], n[t])))) for t in range(len(v))]
+        )
+
+    def plane_normal_along(a: str, b: str, c: str, v: FloatArray) -> FloatArray:
+        """Component of ``v`` along ``unit((a - c) x (b - c))``."""
+        n = np.cross(j[a] - j[c], j[b] - j[c])
+        return np.array(
+            [ratio(float(np.dot(n[t], v[t])), math.sqrt(float(np.dot(n[t], n[t])))) for t in range(len(v))]
+        )
+
+    def speed(q: str, window_ms: float) -> FloatArray:
+        return np.array([math.sqrt(float(np.dot(row, row))) for row in vel(q, None, window_ms)])
+
+    hips = ("lhip", "rhip")
+    feet_together = along(*hips, vel("lankle", "rhip", 100.0)) - along(*hips, vel("rankle", "rhip", 100.0))
+    return {
+        "feetMoveTogetherRelHips": [(feet_together, ">=", 1.3, 1.5, "h_R")],
+        "feetMoveApartRelHips": [(-feet_together, ">=", 1.3, 1.5, "h_R")],
+        "footRightHighVel": [
+            (speed("rtoes", 100.0), ">=", 2.0, 2.5, "h_R"),
+            (speed("rankle", 100.0), ">=", 2.0, 2.5, "h_R"),
+        ],
+        "footLeftHighVel": [
+            (speed("ltoes", 100.0), ">=", 2.0, 2.5, "h_R"),
+            (speed("lankle", 100.0), ">=", 2.0, 2.5, "h_R"),
+        ],
+        "handRightToFrontRelTorso": [
+            (plane_normal_along("neck", "rhip", "lhip", vel("rwrist", "lhip", 250.0)), ">", 1.3, 1.8, "h_L")
+        ],
+        "handLeftToFrontRelTorso": [
+            (plane_normal_along("neck", "rhip", "lhip", vel("lwrist", "lhip", 250.0)), ">", 1.3, 1.8, "h_L")
+        ],
+        "handRightToTopRelSpine": [
+            (along("chest", "neck", vel("rwrist", "neck", 250.0)), ">", 1.3, 1.8, "h_L")
+        ],
+        "handLeftToTopRelSpine": [
+            (along("chest", "neck", vel("lwrist", "neck", 250.0)), ">", 1.3, 1.8, "h_L")
+        ],
+        "handsMoveTogether": [
+            (along("lwrist", "rwrist", vel("lwrist", "rwrist", 100.0)), ">=", 1.2, 1.4, "h_R")
+        ],
+        "handRightMoveApartRelRoot": [
+            (along("rwrist", "root", vel("root", "rwrist", 0.0)), ">=", 1.2, 1.4, "h_R")
+        ],
+        "handLeftMoveApartRelRoot": [
+            (along("lwrist", "root", vel("root", "lwrist", 0.0)), ">=", 1.2, 1.4, "h_R")
+        ],
+        "handRightHighVel": [(speed("rfingers", 100.0), ">=", 2.0, 2.5, "h_R")],
+        "handLeftHighVel": [(speed("lfingers", 100.0), ">=", 2.0, 2.5, "h_R")],
+        "rootHighVel": [(speed("root", 0.0), ">=", 2.0, 2.3, "h_R")],
+    }
+
+
+# ---------------------------------------------- forward kinematics, with plain floats and 3x3 lists
+
+
+IDENTITY: Mat = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]
+
+
+def elementary(axis: str, t: float) -> Mat:
+    """Rotation by ``t`` radians about the x, y or z axis (column vectors, right-handed)."""
+    c, s = math.cos(t), math.sin(t)
+    if axis == "X":
+        return [[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]]
+    if axis == "Y":
+        return [[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]]
+    assert axis == "Z"
+    return [[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]
+
+
+def mul(a: Mat, b: Mat) -> Mat:
+    return [[a[i][0] * b[0][j] + a[i][1] * b[1][j] + a[i][2] * b[2][j] for j in range(3)] for i in range(3)]
+
+
+def transpose(a: Mat) -> Mat:
+    return [[a[j][i] for j in range(3)] for i in range(3)]
+
+
+def apply(a: Mat, v: Vec) -> Vec:
+    return [a[i][0] * v[0] + a[i][1] * v[1] + a[i][2] * v[2] for i in range(3)]
+
+
+def euler(angles: tuple[float, float, float], order: str) -> Mat:
+    """Euler rotation: the i-th angle about the axis named by the i-th letter of ``order``, the first
+    letter applied first (``"XYZ"`` gives ``Rz @ Ry @ Rx``)."""
+    r = IDENTITY
+    for angle, letter in zip(angles, order, strict=True):
+        r = mul(elementary(letter, angle), r)
+    return r
+
+
+def dof_rotation(dofs: tuple[str, ...], values: list[float]) -> Mat:
+    """Product of the dof rotations, the first listed dof applied first."""
+    r = IDENTITY
+    for dof, value in zip(dofs, values, strict=True):
+        r = mul(elementary(dof[1].upper(), value), r)
+    return r
+
+
+def reference_pose(spec: SkeletonSpec, row: list[float]) -> tuple[list[Mat], list[Vec]]:
+    """Global rotations and node positions (ASF units) of one frame, straight from the generated
+    specification (not from the parsed skeleton)."""
+    value = dict(zip(spec.channel_names, row, strict=True))
+    to_rad = spec.to_rad
+    root_rot = [c for c in spec.root_order if c in ROT]
+    translation = [value.get(f"root.t{a}", 0.0) for a in "xyz"]
+    orientation = euler(
+        (
+            spec.root_orientation[0] * to_rad,
+            spec.root_orientation[1] * to_rad,
+            spec.root_orientation[2] * to_rad,
+        ),
+        spec.root_axis,
+    )
+    n = len(spec.bones) + 1
+    rotation: list[Mat | None] = [None] * n
+    position: list[Vec | None] = [None] * n
+    rotation[0] = mul(orientation, dof_rotation(tuple(root_rot), [value[f"root.{c}"] for c in root_rot]))
+    position[0] = [translation[i] + spec.root_position[i] for i in range(3)]
+
+    def solve(k: int) -> tuple[Mat, Vec]:
+        g, p = rotation[k], position[k]
+        if g is not None and p is not None:
+            return g, p
+        bone = spec.bones[k - 1]
+        g_parent, p_parent = solve(bone.parent)
+        c = euler((bone.axis[0] * to_rad, bone.axis[1] * to_rad, bone.axis[2] * to_rad), bone.axis_order)
+        m = dof_rotation(bone.dofs, [value[f"{bone.name}.{d}"] for d in bone.dofs])
+        g = mul(g_parent, mul(mul(c, m), transpose(c)))
+        norm = math.sqrt(sum(x * x for x in bone.direction))
+        unit = [x / norm for x in bone.direction] if norm > 0 else [0.0, 0.0, 0.0]
+        step = apply(g, [u * bone.length for u in unit])
+        p = [p_parent[i] + step[i] for i in range(3)]
+        rotation[k], position[k] = g, p
+        return g, p
+
+    pose = [solve(k) for k in range(n)]
+    return [g for g, _ in pose], [p for _, p in pose]
+
+
+# ------------------------------------------------------------------ index queries (MRC05 section 5)
+
+
+def doc_segments(index: SetIndex) -> list[list[int]]:
+    """Per document, the global numbers of its segments."""
+    out: list[list[int]] = [[] for _ in range(int(index.doc.max()) + 1 if index.n_segments else 0)]
+    for s, d in enumerate(index.doc.tolist()):
+        out[d].append(s)
+    return out
+
+
+def brute_fuzzy(index: SetIndex, query: list[set[int]], mismatches: int = 0) -> list[list[int]]:
+    """Bounds [k, k+1, ..., k+K] of every hit: positions agree except at most ``mismatches``."""
+    hits = []
+    code = index.code.tolist()
+    for segs in doc_segments(index):
+        for p in range(len(segs) - len(query) + 1):
+            agree = sum(code[segs[p + i]] in v for i, v in enumerate(query))
+            if agree >= len(query) - mismatches:
+                hits.append([segs[p] + i for i in range(len(query) + 1)])
+    return sorted(hits)
+
+
+def brute_adaptive(index: SetIndex, query: list[set[int]]) -> list[list[int]]:
+    hits = []
+    code = index.code.tolist()
+    for segs in doc_segments(index):
+        w = [code[s] for s in segs]
+        for k1 in range(len(w)):
+            if w[k1] not in query[0] or (k1 > 0 and w[k1 - 1] in query[0]):
+                continue
+            bounds, k = [k1], k1
+            for v in query:
+                if k >= len(w) or w[k] not in v:
+                    break
+                while k < len(w) and w[k] in v:
+                    k += 1
+                bounds.append(k)
+            else:
+                hits.append([segs[0] + b for b in bounds])
+    return sorted(hits)
+
+
+# ------------------------------------------------------------ keyframe search (thesis Def. 4.4-4.8)
+
+
+Lists = list[tuple[list[int], list[int]]]
+
+
+def hits_of_match(
+    lists: Lists, match: tuple[int, ...], deltas: list[int], sigma: float
+) -> list[tuple[int, ...]]:
+    """Every hit (Def. 4.4) with frame k inside segment match[k] of list k, by enumeration."""
+    s = Fraction(repr(sigma))
+    ranges = [range(lists[k][0][i], lists[k][1][i] + 1) for k, i in enumerate(match)]
+    return [
+        h
+        for h in product(*ranges)
+        if all(allowed(b - a, d, s) for a, b, d in zip(h, h[1:], deltas, strict=False))
+    ]
+
+
+def allowed(gap: int, delta: int, sigma: Fraction) -> bool:
+    """Condition (4.6): σδ <= gap <= δ/σ, no upper bound for σ = 0."""
+    return sigma * delta <= gap and (sigma == 0 or gap * sigma <= delta)
+
+
+def keyframe_brute_force(
+    docs: dict[FeatureSet, list[list[int]]],
+    query: KeyframeQuery,
+    extend: tuple[int, int],
+) -> list[tuple[int, int, int]]:
+    """Ω^Z of all matches by Def. 4.4-4.8 read directly: per document, a keyframe's list is the
+    maximal runs of frames whose code lies in V_k; every hit is enumerated frame by frame; a match is
+    the runs its frames lie in; R(M) = (min i_1, max i_K) over the match's hits; components are the
+    connected sets of ranges that share frames (pairwise, by a graph search)."""
+    deltas = [b.position - a.position for a, b in zip(query.keyframes, query.keyframes[1:], strict=False)]
+    sigmas = [Fraction(repr(kf.stiffness_to_next)) for kf in query.keyframes[:-1]]
+    out = []
+    n_docs = len(docs["lower"])
+    for d in range(n_docs):
+        n = len(docs["lower"][d])
+        member = []
+        run_id = []
+        for kf in query.keyframes:
+            codes = docs[kf.feature_set][d]
+            m = [(c & kf.mask) == kf.value for c in codes]
+            ids, current = [], -1
+            for i in range(n):
+                if m[i] and (i == 0 or not m[i - 1]):
+                    current += 1
+                ids.append(current)
+            member.append(m)
+            run_id.append(ids)
+        ranges: dict[tuple[int, ...], list[int]] = {}
+        for hit in all_hits(member, deltas, sigmas):
+            key = tuple(run_id[j][i] for j, i in enumerate(hit))
+            r = ranges.setdefault(key, [hit[0], hit[-1]])
+            r[0], r[1] = min(r[0], hit[0]), max(r[1], hit[-1])
+        spans = sorted((r[0], r[1]) for r in ranges.values())
+        components = connected(spans)
+        if extend != (0, 0):
+            components = connected(
+                [(max(0, s - extend[0]), min(n - 1, t + extend[1])) for s, t in components]
+            )
+        out += [(d, s, t) for s, t in components]
+    return out
+
+
+def all_hits(member: list[list[bool]], deltas: list[int], sigmas: list[Fraction]) -> Iterator[list[int]]:
+    """Every frame tuple i_1 <= ... <= i_K with member[k][i_k] and the distance condition (4.6)."""
+
+    def grow(hit: list[int]) -> Iterator[list[int]]:
+        k = len(hit)
+        if k == len(member):
+            yield hit
+            return
+        for i in range(hit[-1] if hit else 0, len(member[k])):
+            if not member[k][i]:
+                continue
+            if hit and not allowed(i - hit[-1], deltas[k - 1], sigmas[k - 1]):
+                continue
+            yield from grow([*hit, i])
+
+    return grow([])
+
+
+def connected(spans: list[tuple[int, int]]) -> list[tuple[int, int]]:
+    seen: set[int] = set()
+    out = []
+    for i in range(len(spans)):
+        if i in seen:
+            continue
+        todo, group = [i], []
+        seen.add(i)
+        while todo:
+            j = todo.pop()
+            group.append(spans[j])
+            for k, other in enumerate(spans):
+                if k not in seen and other[0] <= spans[j][1] and spans[j][0] <= other[1]:
+                    seen.add(k)
+                    todo.append(k)
+        out.append((min(s for s, _ in group), max(t for _, t in group)))
+    return sorted(out)
+
+
+# ------------------------------------------- DTW cell by cell, in fixed point (thesis Alg. 3.1/3.2)
+
+
+Grid = list[list[int]]
+
+
+Column = tuple[list[int], list[int]]  # (D, start) of one database column, template rows 0..M-1
+
+
+WarpPath = list[tuple[int, int]]
+
+
+Order = tuple[int, int, int]
+
+
+TIE_ORDER: Order = (0, 1, 2)  # diagonal, database, template step; toolbox: (1,1), (1,2), (2,1)
+
+
+def grid(cost: FloatArray) -> Grid:
+    """The fixed-point cost matrix as plain Python ints."""
+    return [[int(v) for v in row] for row in dtw.fixed(cost)]
+
+
+def as_cost(d: int) -> float:
+    """A fixed-point accumulated cost as the module reports it."""
+    return float("inf") if d >= INF else d / SCALE
+
+
+def pick(options: list[tuple[int, int, int]], c: int) -> tuple[int, int]:
+    """(D, start) of a cell of fixed cost ``c`` from its predecessors ``(D, start, weight)`` listed in tie
+    order: the first smallest D wins, then its weight multiplies ``c``. No predecessor, or only
+    unreachable ones: unreachable (INF, start -1)."""
+    best: tuple[int, int, int] | None = None
+    for option in options:
+        if best is None or option[0] < best[0]:
+            best = option
+    if best is None or best[0] >= INF:
+        return INF, -1
+    d = min(best[0] + best[2] * c, INF)
+    return d, (best[1] if d < INF else -1)
+
+
+def ref_full(c: Grid) -> tuple[Grid, WarpPath]:
+    """Alg. 3.1 (D(0,0) = C(0,0), first row and column accumulated) and Alg. 3.2's backtracking."""
+    m, n = len(c), len(c[0])
+    d = [[0] * n for _ in range(m)]
+    for i in range(m):
+        for j in range(n):
+            if i == 0 and j == 0:
+                d[i][j] = c[0][0]
+            elif i == 0:
+                d[i][j] = min(d[i][j - 1] + c[i][j], INF)
+            elif j == 0:
+                d[i][j] = min(d[i - 1][j] + c[i][j], INF)
+            else:
+                d[i][j] = min(c[i][j] + min(d[i - 1][j - 1], d[i][j - 1], d[i - 1][j]), INF)
+    i, j = m - 1, n - 1
+    path = [(i, j)]
+    while (i, j) != (0, 0):
+        if i == 0:
+            j -= 1
+        elif j == 0:
+            i -= 1
+        else:
+            best = (i - 1, j - 1)  # diagonal, then database step (i, j-1), then template step (i-1, j)
+            for a, b in ((i, j - 1), (i - 1, j)):
+                if d[a][b] < d[best[0]][best[1]]:
+                    best = (a, b)
+            i, j = best
+        path.append((i, j))
+    return d, path[::-1]
+
+
+def predecessors(steps: str, i: int, j: int, order: Order = TIE_ORDER) -> list[tuple[int, int, int]]:
+    """Predecessor cells (row, column, weight) of cell (i, j) in tie order (``order`` permutes it, to
+    show that the tests see a wrong one)."""
+    if steps == "thesis":
+        cells = [(i - 1, j - 1, 1), (i, j - 1, 1), (i - 1, j, 1)]
+    else:
+        cells = [(i - 1, j - 1, 1), (i - 1, j - 2, 1), (i - 2, j - 1, 2)]
+    return [cells[k] for k in order]
+
+
+def ref_subsequence(c: Grid, steps: str, order: Order = TIE_ORDER) -> tuple[Grid, Grid]:
+    """Subsequence DTW: D(0, j) = C(0, j) starting at j (free start), rows i >= 1 by the recursion, the
+    start carried from the chosen predecessor; predecessors outside the matrix are skipped."""
+    m, n = len(c), len(c[0])
+    d = [[INF] * n for _ in range(m)]
+    s = [[-1] * n for _ in range(m)]
+    for j in range(n):
+        d[0][j], s[0][j] = c[0][j], (j if c[0][j] < INF else -1)
+    for i in range(1, m):
+        for j in range(n):
+            inside = [(a, b, w) for a, b, w in predecessors(steps, i, j, order) if a >= 0 and b >= 0]
+            options = [(d[a][b], s[a][b], w) for a, b, w in inside]
+            d[i][j], s[i][j] = pick(options, c[i][j])
+    return d, s
+
+
+def ref_column(c: list[int], t: int, kept: list[Column], steps: str, order: Order = TIE_ORDER) -> Column:
+    """Column ``t`` of the subsequence recursion from the kept columns (``kept[-1]`` is column t-1,
+    ``kept[-2]`` column t-2); a missing column is skipped like a cell outside the matrix."""
+    m = len(c)
+    d, s = [INF] * m, [-1] * m
+    d[0], s[0] = c[0], (t if c[0] < INF else -1)
+    by_offset = {1: kept[-1] if kept else None, 2: kept[-2] if len(kept) > 1 else None}
+    for i in range(1, m):
+        options = []
+        for a, b, w in predecessors(steps, i, t, order):
+            if a < 0:
+                continue
+            if b == t:  # the template step inside this column
+                options.append((d[a], s[a], w))
+            elif (col := by_offset[t - b]) is not None:
+                options.append((col[0][a], col[1][a], w))
+        d[i], s[i] = pick(options, c[i])
+    return d, s
+
+
+def ref_spring(cost: FloatArray, tau: float, steps: str, order: Order = TIE_ORDER) -> list[Match]:
+    """SPRING's disjoint-match rule, frame by frame: after column t, report the candidate once every
+    live cell (kept columns) costs at least as much or starts after it ends, and drop the live paths
+    starting at or before its end; then column t's last cell becomes the candidate if it is at or below
+    tau and better than the pending one. A candidate pending at the end is reported."""
+    c = grid(cost)
+    m, n = len(c), len(c[0])
+    width = 1 if steps == "thesis" else 2
+    tau_fixed = int(dtw.fixed(tau))
+    kept: list[Column] = []
+    cand: tuple[int, int, int] | None = None  # (D, start, end)
+    out: list[Match] = []
+    for t in range(n):
+        column = ref_column([c[i][t] for i in range(m)], t, kept, steps, order)
+        kept = [*kept, column][-width:]
+        if cand is not None:
+            dmin, ts, te = cand
+            if all(dd >= dmin or ss > te for d, s in kept for dd, ss in zip(d, s, strict=True)):
+                out.append(Match(ts, te, as_cost(dmin)))
+                cand = None
+                kept = [
+                    (
+                        [INF if ss <= te else dd for dd, ss in zip(d, s, strict=True)],
+                        [-1 if ss <= te else ss for ss in s],
+                    )
+                    for d, s in kept
+                ]
+        last_d, last_s = kept[-1][0][-1], kept[-1][1][-1]
+        if last_d <= tau_fixed and (cand is None or last_d < cand[0]):
+            cand = (last_d, last_s, t)
+    if cand is not None:
+        out.append(Match(cand[1], cand[2], as_cost(cand[0])))
+    return out
+
+
+def ref_local_minima(delta: FloatArray, start: npt.NDArray[np.int64], tau: float) -> list[Match]:
+    n = len(delta)
+    out = []
+    for b in range(n):
+        if (
+            delta[b] <= tau
+            and (b == 0 or delta[b] < delta[b - 1])
+            and (b == n - 1 or delta[b] <= delta[b + 1])
+        ):
+            out.append(Match(int(start[b]), b, float(delta[b])))
+    return out
+
+
+def ceil_div(a: int, b: int) -> int:
+    return -(-a // b)
+
+
+def ref_suppress(candidates: list[Match], limit: int | None) -> list[Match]:
+    """Candidates by increasing (cost, end); drop one whose end is masked; one whose start lies in the
+    start-exclusion zone of a kept hit is dropped and masks ends with that hit's length L; a kept hit
+    masks starts [s - ⌈L/10⌉, s + ⌈L/2⌉]; both mask ends [e - ⌈L/2⌉, e + ⌈L/10⌉]."""
+    kept: list[Match] = []
+    zone_length: dict[int, int] = {}  # start column -> length of the first kept hit whose zone holds it
+    masked_ends: set[int] = set()
+    for m in sorted(candidates, key=lambda m: (m.cost, m.end)):
+        if limit is not None and len(kept) == limit:
+            break
+        if m.end in masked_ends:
+            continue
+        if m.start in zone_length:
+            length = zone_length[m.start]
+        else:
+            length = m.end - m.start + 1
+            kept.append(m)
+            for x in range(m.start - ceil_div(length, 10), m.start + ceil_div(length, 2) + 1):
+                zone_length.setdefault(x, length)
+        masked_ends.update(range(m.end - ceil_div(length, 2), m.end + ceil_div(length, 10) + 1))
+    return kept
+
+
+def brute_and(t: FloatArray, s: FloatArray) -> list[list[float]]:
+    f = t.shape[0]
+    return [
+        [
+            sum(0.0 if 0.5 in (t[k, a], s[k, b]) else abs(t[k, a] - s[k, b]) for k in range(f))
+            for b in range(s.shape[1])
+        ]
+        for a in range(t.shape[1])
+    ]
+
+
+# --------------------------------------------------------------- template retrieval, range by range
+
+
+def template_brute_force(
+    cls: ClassTemplate, matrices: list[npt.NDArray[np.bool_]], tau: float, ranges: list[tuple[int, int, int]]
+) -> list[tuple[float, int, int, int]]:
+    """Each range searched on its own from the float cost matrix, hits suppressed per range."""
+    t = expand(cls.quantised)
+    out = []
+    for d, s, e in ranges:
+        frames = matrices[d][s : e + 1].T.astype(np.float64)
+        sub = subsequence_dtw(retrieval_cost(t.values, t.weights, frames))
+        for m in suppress(local_minima(sub.delta, sub.start, tau)):
+            out.append((m.cost, d, s + m.start, s + m.end))
+    return sorted(out)
+
+
+# ---------------------------------------------------------------------------- recording to features
+
+
+def naive_features(asf: Path, amc: Path, step: int = 1, native_rate: float = 120.0) -> BoolArray:
+    """A recording's features written out from the parts (reader, forward kinematics in centimetres,
+    the batch features at the native rate, every ``step``-th row from the first), independently of
+    :mod:`daemon.recordings`: shape ``(N, 39)``."""
+    skeleton = read_asf(asf)
+    model = KinematicModel(skeleton)
+    joints = model.joints(model.positions(read_amc(amc, skeleton).channels, "cm"))
+    out: BoolArray = features(joints, JOINT_NAMES, native_rate)[::step]
+    return out
