@@ -32,7 +32,6 @@ from pathlib import Path
 from unittest import mock
 
 import numpy as np
-import numpy.typing as npt
 
 from bench.common import arguments, best_of, load
 from bench.machine import describe
@@ -50,10 +49,7 @@ from daemon.dtw import (
     subsequence_fixed,
     to_cost,
 )
-
-BoolArray = npt.NDArray[np.bool_]
-FloatArray = npt.NDArray[np.float64]
-CodeArray = npt.NDArray[np.uint64]
+from daemon.types import BoolArray, FloatArray
 
 N_FEATURES = 39
 SEPARATOR = 2  # blocked columns after each document, as daemon.retrieval lays out the database

@@ -15,19 +15,24 @@ import yaml
 from daemon.errors import FileAccessError, MocapdError
 
 
-def read_structured(path: str | Path, kind: Literal["json", "yaml"], error: type[MocapdError]) -> Any:
-    """The parsed content of the UTF-8 JSON or YAML file ``path``. Unreadable files raise
-    :class:`FileAccessError`; text that is not UTF-8 or not valid ``kind`` raises ``error`` naming
-    the file and the line."""
+def read_text(path: str | Path, error: type[MocapdError]) -> str:
+    """The text of the UTF-8 file ``path`` (a byte-order mark dropped). Unreadable files raise
+    :class:`FileAccessError`; bytes that are not UTF-8 raise ``error`` naming the file and line."""
     try:
         data = Path(path).read_bytes()
     except OSError as exc:
         raise FileAccessError.from_os_error(exc, path) from None
     try:
-        text = data.decode("utf-8-sig")
+        return data.decode("utf-8-sig")
     except UnicodeDecodeError as exc:
         line = data[: exc.start].count(b"\n") + 1
         raise error(f"not UTF-8 text (byte {exc.start})", path=path, line=line) from None
+
+
+def read_structured(path: str | Path, kind: Literal["json", "yaml"], error: type[MocapdError]) -> Any:
+    """The parsed content of the UTF-8 JSON or YAML file ``path``; errors as :func:`read_text`, and
+    text that is not valid ``kind`` raises ``error`` naming the file and the line."""
+    text = read_text(path, error)
     if kind == "json":
         try:
             return json.loads(text)

@@ -24,7 +24,8 @@ from pathlib import Path
 
 import numpy as np
 
-from daemon.errors import FileAccessError, MocapdError
+from daemon.checks import read_text
+from daemon.errors import MocapdError
 from daemon.features import decimate, decimation_factor, features
 from daemon.types import DEFAULT_INDEX_RATE, DEFAULT_NATIVE_RATE, BoolArray, FloatArray, IntArray
 from replay import JOINT_NAMES, KinematicModel, Motion, read_amc, read_asf
@@ -35,9 +36,6 @@ CLASS_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]*")
 
 class ManifestError(MocapdError, ValueError):
     """A manifest that cannot be used; ``str``: ``path:line: reason``."""
-
-    def __init__(self, path: str | os.PathLike[str], line: int, reason: str) -> None:
-        super().__init__(reason, path=path, line=line)
 
 
 class RecordingError(MocapdError, ValueError):
@@ -167,15 +165,7 @@ def read_manifest(
     of optional columns included). Blank lines are skipped. Raises :class:`ManifestError`."""
     path = Path(path)
     columns_wanted = ("asf", "amc", *required)
-    try:
-        data = path.read_bytes()
-    except OSError as exc:
-        raise FileAccessError.from_os_error(exc, path) from None
-    try:
-        text = data.decode("utf-8-sig")
-    except UnicodeDecodeError as exc:
-        line = data[: exc.start].count(b"\n") + 1
-        raise ManifestError(path, line, "not UTF-8 text") from None
+    text = read_text(path, ManifestError)
     reader = csv.reader(io.StringIO(text, newline=""))
     header: list[str] | None = None
     columns: dict[str, int] = {}
@@ -192,31 +182,37 @@ def read_manifest(
                     if header.count(name) != 1:
                         how = "lacks" if name not in header else "repeats"
                         raise ManifestError(
-                            path, line, f"header {how} the column '{name}': {','.join(record)}"
+                            f"header {how} the column '{name}': {','.join(record)}", path=path, line=line
                         )
                     columns[name] = header.index(name)
                 continue
             if len(cells) != len(header):
-                raise ManifestError(path, line, f"{len(cells)} fields, the header has {len(header)}")
+                raise ManifestError(
+                    f"{len(cells)} fields, the header has {len(header)}", path=path, line=line
+                )
             texts = {name: cells[i] for name, i in columns.items()}
             for name, value in texts.items():
                 if not value:
-                    raise ManifestError(path, line, f"the '{name}' field is blank")
+                    raise ManifestError(f"the '{name}' field is blank", path=path, line=line)
             resolved = {name: path.parent / texts[name] for name in ("asf", "amc")}
             for name, file in resolved.items():
                 if not file.is_file():
-                    raise ManifestError(path, line, f"{name} file not found: {file}")
+                    raise ManifestError(f"{name} file not found: {file}", path=path, line=line)
             others = {name: cells[i] for i, name in enumerate(header) if name not in ("asf", "amc")}
             rows.append(
                 ManifestRow(line, texts["asf"], texts["amc"], resolved["asf"], resolved["amc"], others)
             )
     except csv.Error as exc:
-        raise ManifestError(path, reader.line_num, f"not valid CSV: {exc}") from None
+        raise ManifestError(f"not valid CSV: {exc}", path=path, line=reader.line_num) from None
     needs = ", ".join([*columns_wanted, *(f"[{c}]" for c in optional)])
     if header is None:
-        raise ManifestError(path, 1, f"empty manifest: no header line (it needs the columns {needs})")
+        raise ManifestError(
+            f"empty manifest: no header line (it needs the columns {needs})", path=path, line=1
+        )
     if not rows:
-        raise ManifestError(path, max(reader.line_num, 1), "empty manifest: no recordings after the header")
+        raise ManifestError(
+            "empty manifest: no recordings after the header", path=path, line=max(reader.line_num, 1)
+        )
     return rows
 
 
@@ -240,7 +236,9 @@ def read_training_manifest(path: str | Path) -> list[TrainingRow]:
         name = row.extra["class"]
         if not CLASS_NAME.fullmatch(name):
             raise ManifestError(
-                path, row.line, f"class {name!r}: use letters, digits, '_', '.', '-' (it names a file)"
+                f"class {name!r}: use letters, digits, '_', '.', '-' (it names a file)",
+                path=path,
+                line=row.line,
             )
         bounds = []
         for column in ("start_frame", "end_frame"):
@@ -248,12 +246,14 @@ def read_training_manifest(path: str | Path) -> list[TrainingRow]:
             try:
                 bounds.append(int(text) if text else None)
             except ValueError:
-                raise ManifestError(path, row.line, f"{column} {text!r} is not an integer") from None
+                raise ManifestError(
+                    f"{column} {text!r} is not an integer", path=path, line=row.line
+                ) from None
         start, end = bounds
         if (start is None) != (end is None):
-            raise ManifestError(path, row.line, "give both start_frame and end_frame, or neither")
+            raise ManifestError("give both start_frame and end_frame, or neither", path=path, line=row.line)
         if start is not None and end is not None and start > end:
-            raise ManifestError(path, row.line, f"start_frame {start} is after end_frame {end}")
+            raise ManifestError(f"start_frame {start} is after end_frame {end}", path=path, line=row.line)
         out.append(TrainingRow(name, row, start, end))
     return out
 
@@ -289,11 +289,15 @@ def read_example(
     end = last if item.end_frame is None else item.end_frame
     if start < first or end > last:
         raise ManifestError(
-            source, item.row.line, f"frames {start}..{end} are outside the recording's {first}..{last}"
+            f"frames {start}..{end} are outside the recording's {first}..{last}",
+            path=source,
+            line=item.row.line,
         )
     j0, j1 = -(-(start - first) // step), (end - first) // step
     if j1 < j0:
-        raise ManifestError(source, item.row.line, f"frames {start}..{end} hold no sample at {rate:g} Hz")
+        raise ManifestError(
+            f"frames {start}..{end} hold no sample at {rate:g} Hz", path=source, line=item.row.line
+        )
     clip = TrainingClip(item.row.asf_text, item.row.amc_text, start, end, j1 - j0 + 1)
     return clip, got.matrix[j0 : j1 + 1]
 

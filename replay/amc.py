@@ -24,16 +24,14 @@ from typing import BinaryIO
 
 import fastnumbers
 import numpy as np
-import numpy.typing as npt
 
+from daemon.types import FloatArray, IntArray
 from replay.asf import Skeleton
 from replay.errors import MocapFormatError
 from replay.textio import GZIP_ERRORS, open_binary, read_bytes
 
 DEG = math.pi / 180.0
 _MAX_FRAME = 2**63 - 1
-FloatArray = npt.NDArray[np.float64]
-IntArray = npt.NDArray[np.int64]
 
 
 @dataclass(frozen=True)

@@ -26,11 +26,11 @@ from typing import Any, Literal
 import numpy as np
 import numpy.typing as npt
 
+from daemon.types import FloatArray
 from replay.asf import ROTATION_DOFS, TRANSLATION_DOFS, Skeleton
 from replay.errors import MocapFormatError
 from replay.joints import JOINT_BONE_END, JOINT_NAMES
 
-FloatArray = npt.NDArray[np.float64]
 Unit = Literal["asf", "cm"]
 _AXIS = {"X": 0, "Y": 1, "Z": 2}
 

@@ -134,6 +134,15 @@ def assert_one_error_line(result: subprocess.CompletedProcess[str]) -> str:
     return result.stderr.rstrip("\n")
 
 
+def csv_written(command: str, out: Path, asf: Path, amc: Path, *extra: str | Path) -> str:
+    """Run ``mocapd COMMAND --asf ASF --amc AMC --csv OUT EXTRA``: it succeeds silently; the CSV's
+    text."""
+    result = mocapd(command, "--asf", asf, "--amc", amc, "--csv", out, *extra)
+    assert_ok(result)
+    assert result.stdout == ""
+    return out.read_text(encoding="utf-8")
+
+
 def hits_json(stdout: str) -> list[dict[str, object]]:
     """The hits ``mocapd search --json`` printed, one object per line."""
     return [json.loads(line) for line in stdout.splitlines()]

@@ -25,6 +25,7 @@ from tests.helpers import (
     REPO,
     assert_ok,
     assert_one_error_line,
+    csv_written,
     mocapd,
 )
 
@@ -145,11 +146,7 @@ def expected_joints(motion: Motion, unit: str) -> npt.NDArray[np.float64]:
 
 
 def run_positions(tmp: Path, asf: Path, amc: Path, *extra: str) -> Csv:
-    out = tmp / "positions.csv"
-    result = mocapd("positions", "--asf", asf, "--amc", amc, "--csv", out, *extra)
-    assert_ok(result)
-    assert result.stdout == ""
-    return read_positions_csv(out.read_text(encoding="utf-8"))
+    return read_positions_csv(csv_written("positions", tmp / "positions.csv", asf, amc, *extra))
 
 
 @pytest.fixture(scope="module")

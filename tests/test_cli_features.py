@@ -16,7 +16,17 @@ import pytest
 from daemon.features import FEATURE_NAMES
 from daemon.recordings import read_recording
 from replay import MocapFormatError, Motion, read_amc, read_asf
-from tests.helpers import DATA, ORACLE, ORACLE_CLIPS, REPO, SOURCES, assert_ok, assert_one_error_line, mocapd
+from tests.helpers import (
+    DATA,
+    ORACLE,
+    ORACLE_CLIPS,
+    REPO,
+    SOURCES,
+    assert_ok,
+    assert_one_error_line,
+    csv_written,
+    mocapd,
+)
 from tests.naive import naive_features
 
 CMU_ASF, CMU_AMC = SOURCES["cmu"]
@@ -50,10 +60,7 @@ def parse_features_csv(text: str) -> FeatureCsv:
 
 
 def run_features(out: Path, asf: Path, amc: Path, *extra: str | Path) -> FeatureCsv:
-    result = mocapd("features", "--asf", asf, "--amc", amc, "--csv", out, *extra)
-    assert_ok(result)
-    assert result.stdout == ""
-    return parse_features_csv(out.read_text(encoding="utf-8"))
+    return parse_features_csv(csv_written("features", out, asf, amc, *extra))
 
 
 @pytest.fixture(scope="module")

@@ -18,6 +18,7 @@ from hypothesis import strategies as st
 
 from daemon import dtw
 from daemon.dtw import INF, SCALE, Match, Steps
+from daemon.types import FloatArray
 from tests.naive import (
     WarpPath,
     as_cost,
@@ -30,8 +31,6 @@ from tests.naive import (
     ref_subsequence,
     ref_suppress,
 )
-
-FloatArray = npt.NDArray[np.float64]
 
 SETTINGS = settings(max_examples=300, deadline=None)
 

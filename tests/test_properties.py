@@ -26,6 +26,7 @@ from hypothesis import HealthCheck, Phase, assume, event, given, settings
 from hypothesis import strategies as st
 
 import replay.amc as amc_module
+from daemon.types import FloatArray
 from replay.amc import AmcFrame, AmcStream, iter_amc, read_amc
 from replay.asf import Skeleton, read_asf
 from replay.errors import MocapFormatError
@@ -33,7 +34,6 @@ from replay.kinematics import KinematicModel
 from tests.naive import apply, elementary, euler, mul, reference_pose
 from tests.synth import AmcFile, AsfFile, cases, seeds, skeletons
 
-FloatArray = npt.NDArray[np.float64]
 Mat = list[list[float]]
 Vec = list[float]
 

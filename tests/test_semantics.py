@@ -17,16 +17,13 @@ from itertools import pairwise
 from pathlib import Path
 
 import numpy as np
-import numpy.typing as npt
 import pytest
 
 from daemon.features import FEATURE_NAMES, SET_SLICES, features
-from daemon.types import FeatureSet
+from daemon.types import BoolArray, FeatureSet, FloatArray
 from replay import JOINT_NAMES
 from tests.helpers import joints_cm, pair_id, recording_pairs
 
-FloatArray = npt.NDArray[np.float64]
-BoolArray = npt.NDArray[np.bool_]
 Pair = tuple[Path, Path]
 
 FPS = 120.0

@@ -44,13 +44,10 @@ from daemon.features import (
 )
 from daemon.segments import Segment, Segmenter, segment, segment_codes, set_codes, vector_code
 from daemon.stages import run
-from daemon.types import FeatureSet
+from daemon.types import BoolArray, FeatureSet, FloatArray
 from replay import JOINT_NAMES
 from tests.helpers import joints_cm, pair_id, recording_pairs
 from tests.naive import slow_hysteresis, slow_runs, slow_velocity_checks
-
-FloatArray = npt.NDArray[np.float64]
-BoolArray = npt.NDArray[np.bool_]
 
 SETS: tuple[FeatureSet, ...] = ("lower", "upper", "mix")
 N_JOINTS = len(JOINT_NAMES)

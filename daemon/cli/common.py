@@ -30,6 +30,17 @@ def positive_float(text: str) -> float:
     return value
 
 
+def rate_option(command: argparse.ArgumentParser, default: float | None, purpose: str) -> None:
+    """``--fps HZ``: a rate the command works at, every k-th frame of each recording's native rate."""
+    command.add_argument(
+        "--fps",
+        type=positive_float,
+        default=default,
+        metavar="HZ",
+        help=f"{purpose}: every k-th frame of the native rate, which it must divide",
+    )
+
+
 def recording_options(command: argparse.ArgumentParser) -> None:
     command.add_argument("--asf", type=Path, required=True, help="ASF skeleton file")
     command.add_argument("--amc", type=Path, required=True, help="AMC motion file, plain or gzip")

@@ -8,13 +8,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from daemon.cli.common import (
-    check_png_output,
-    default_native_rate,
-    native_rate_option,
-    positive_float,
-    write_png,
-)
+from daemon.cli import common
 from daemon.config import Config
 from daemon.dtw import STEPS
 from daemon.errors import UsageError
@@ -33,15 +27,10 @@ def register(sub: Any) -> None:
         help="CSV with columns class, asf, amc and optionally start_frame, end_frame (AMC frames)",
     )
     learn.add_argument("--out", type=Path, required=True, help="library directory to write (replaced)")
-    learn.add_argument(
-        "--fps",
-        type=positive_float,
-        default=DEFAULT_INDEX_RATE,
-        help="learn at this rate (default 30, as the thesis)",
-    )
+    common.rate_option(learn, DEFAULT_INDEX_RATE, "learn at this rate (default 30, as the thesis)")
     learn.add_argument("--png", type=Path, default=None, help="directory for a PNG of each class's MTs")
     learn.add_argument(
-        "--tau", type=positive_float, default=0.1, help="retrieval threshold stored per class (0.1)"
+        "--tau", type=common.positive_float, default=0.1, help="retrieval threshold stored per class (0.1)"
     )
     learn.add_argument(
         "--delta", type=float, default=0.1, help="quantisation threshold δ in [0, 0.5) (default 0.1)"
@@ -55,7 +44,7 @@ def register(sub: Any) -> None:
         default="toolbox",
         help="DTW steps for retrieval: toolbox (1,1),(1,2),(2,1) (default) or thesis (1,0),(0,1),(1,1)",
     )
-    native_rate_option(learn)
+    common.native_rate_option(learn)
     learn.set_defaults(func=_learn)
 
 
@@ -66,7 +55,7 @@ def _learn(args: argparse.Namespace, config: Config) -> int:
         raise UsageError(f"--keyframes must not be negative, got {args.keyframes}")
     check_library_target(args.out)  # before the long part
     if args.png is not None:
-        check_png_output(args.png, directory=True)
+        common.check_png_output(args.png, directory=True)
     began = time.perf_counter()
 
     def progress(done: int, total: int, clip: TrainingClip) -> None:
@@ -77,7 +66,10 @@ def _learn(args: argparse.Namespace, config: Config) -> int:
         )
 
     examples = read_examples(
-        args.manifest, rate=args.fps, progress=progress, default_native_rate=default_native_rate(args, config)
+        args.manifest,
+        rate=args.fps,
+        progress=progress,
+        default_native_rate=common.default_native_rate(args, config),
     )
     classes: dict[str, ClassTemplate] = {}
     for i, (name, items) in enumerate(examples.items(), start=1):
@@ -113,4 +105,5 @@ def _learn(args: argparse.Namespace, config: Config) -> int:
 def _draw(cls: ClassTemplate, path: Path, rate: float) -> None:
     """The class's soft and hard MT with its keyframe columns, as ``path``."""
     columns = [] if cls.keyframes is None else [k.position for k in cls.keyframes.keyframes]
-    write_png(path, lambda out: template_png(cls.soft.values, cls.hard.values, columns, out, cls.name, rate))
+    soft, hard = cls.soft.values, cls.hard.values
+    common.write_png(path, lambda out: template_png(soft, hard, columns, out, cls.name, rate))

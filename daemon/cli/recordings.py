@@ -9,15 +9,7 @@ from typing import IO, Any
 
 import numpy as np
 
-from daemon.cli.common import (
-    check_csv_output,
-    check_png_output,
-    default_native_rate,
-    positive_float,
-    recording_options,
-    write_csv,
-    write_png,
-)
+from daemon.cli import common
 from daemon.config import Config
 from daemon.errors import UsageError
 from daemon.features import FEATURE_NAMES
@@ -29,25 +21,21 @@ from replay import JOINT_NAMES, KinematicModel
 
 def register(sub: Any) -> None:
     info = sub.add_parser("info", help="describe a recording: frames, duration, bones, joints")
-    recording_options(info)
+    common.recording_options(info)
     info.add_argument("--json", action="store_true", help="print one JSON object instead of text")
     info.set_defaults(func=_info)
 
     pos = sub.add_parser("positions", help="write joint positions as CSV: frame,joint,x,y,z")
-    recording_options(pos)
+    common.recording_options(pos)
     pos.add_argument("--csv", type=Path, required=True, help="output CSV ('-' for stdout)")
     pos.add_argument("--cm", action="store_true", help="centimetres (ASF length / :units length x 2.54)")
     pos.set_defaults(func=_positions)
 
     feat = sub.add_parser("features", help="write the 39 relational features as CSV: frame,<names>")
-    recording_options(feat)
+    common.recording_options(feat)
     feat.add_argument("--csv", type=Path, required=True, help="output CSV ('-' for stdout)")
-    feat.add_argument(
-        "--fps",
-        type=positive_float,
-        default=None,
-        help="output rate: every k-th frame of the native rate, which it must divide (e.g. 30); "
-        "the features are always computed at the native rate",
+    common.rate_option(
+        feat, None, "output rate (default: the native rate, at which features are always computed)"
     )
     feat.add_argument("--png", type=Path, default=None, help="also draw the feature matrix as this .png file")
     feat.set_defaults(func=_features)
@@ -60,7 +48,7 @@ def _info(args: argparse.Namespace, config: Config) -> int:
         rate_from = "from the AMC file"
     else:
         rate_from = "assumed" if args.native_fps is None else "given"
-    rate = native_rate(motion, default_native_rate(args, config))
+    rate = native_rate(motion, common.default_native_rate(args, config))
     model = KinematicModel(skeleton)
     joints = [] if model.missing_joint_bones else list(JOINT_NAMES)
     summary = {
@@ -98,10 +86,10 @@ def _info(args: argparse.Namespace, config: Config) -> int:
 
 
 def _positions(args: argparse.Namespace, config: Config) -> int:
-    check_csv_output(args.csv)
+    common.check_csv_output(args.csv)
     motion = read_recording(args.asf, args.amc)
     joints = joint_positions(motion, "cm" if args.cm or config.replay.units == "cm" else "asf")
-    write_csv(args.csv, lambda out: _write_positions(out, motion.frames, joints))
+    common.write_csv(args.csv, lambda out: _write_positions(out, motion.frames, joints))
     return 0
 
 
@@ -120,18 +108,20 @@ def _write_positions(out: IO[str], frames: IntArray, joints: FloatArray) -> None
 
 
 def _features(args: argparse.Namespace, config: Config) -> int:
-    check_csv_output(args.csv)
+    common.check_csv_output(args.csv)
     if args.png is not None:
-        check_png_output(args.png)
+        common.check_png_output(args.png)
     motion = read_recording(args.asf, args.amc)
     try:
-        got = motion_features(motion, args.fps, default_native_rate(args, config))
+        got = motion_features(motion, args.fps, common.default_native_rate(args, config))
     except RateError as exc:
         raise UsageError(exc.reason, field="--fps") from None
-    write_csv(args.csv, lambda out: _write_features(out, got.frames, got.matrix))
+    common.write_csv(args.csv, lambda out: _write_features(out, got.frames, got.matrix))
     if args.png is not None:
         title = f"{args.amc.name}: {len(got.frames)} frames at {got.rate:g} Hz"
-        write_png(args.png, lambda out: feature_matrix_png(got.matrix, got.frames, out, title, got.rate))
+        common.write_png(
+            args.png, lambda out: feature_matrix_png(got.matrix, got.frames, out, title, got.rate)
+        )
     return 0
 
 

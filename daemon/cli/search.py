@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import Any
 
 from daemon.checks import read_structured
-from daemon.cli.common import default_native_rate, native_rate_option, positive_float
+from daemon.cli import common
 from daemon.config import Config
 from daemon.dtw import STEPS
 from daemon.errors import UsageError
@@ -57,13 +57,8 @@ def register(sub: Any) -> None:
     build = index_sub.add_parser("build", help="index the recordings of a manifest CSV (columns asf, amc)")
     build.add_argument("--manifest", type=Path, required=True, help="CSV with columns asf and amc")
     build.add_argument("--out", type=Path, required=True, help="index directory to write (replaced)")
-    build.add_argument(
-        "--fps",
-        type=positive_float,
-        default=DEFAULT_INDEX_RATE,
-        help="index rate: every k-th frame of the native rate, which it must divide (default 30)",
-    )
-    native_rate_option(build)
+    common.rate_option(build, DEFAULT_INDEX_RATE, "index rate (default 30)")
+    common.native_rate_option(build)
     build.set_defaults(func=_index_build)
     info = index_sub.add_parser("info", help="describe an index: documents, frames, segments, size")
     info.add_argument("index", type=Path, help="index directory")
@@ -98,7 +93,7 @@ def register(sub: Any) -> None:
         "--class", dest="class_name", help="with --keyframes or --library: the class to search"
     )
     search.add_argument(
-        "--tau", type=positive_float, default=None, help="with --library: cost threshold (the class's)"
+        "--tau", type=common.positive_float, default=None, help="with --library: cost threshold (the class's)"
     )
     search.add_argument(
         "--steps",
@@ -128,7 +123,7 @@ def register(sub: Any) -> None:
     search.add_argument(
         "--mismatch", type=int, default=None, metavar="M", help="with --example: m-mismatch search"
     )
-    native_rate_option(search)
+    common.native_rate_option(search)
     search.add_argument("--limit", type=int, default=None, help="print at most this many hits")
     search.add_argument("--json", action="store_true", help="one JSON object per hit and line")
     search.set_defaults(func=_search)
@@ -154,7 +149,7 @@ def _index_build(args: argparse.Namespace, config: Config) -> int:
         rows,
         rate=args.fps,
         progress=progress,
-        default_native_rate=default_native_rate(args, config),
+        default_native_rate=common.default_native_rate(args, config),
         base=args.manifest.parent,
     )
     save_index(index, args.out)
@@ -365,7 +360,7 @@ def _search_example(args: argparse.Namespace, config: Config, index: MotionIndex
     if args.fuzzy < 0:
         raise UsageError(f"--fuzzy must not be negative, got {args.fuzzy}")
     try:
-        got = read_features(asf, amc, index.rate, default_native_rate(args, config))
+        got = read_features(asf, amc, index.rate, common.default_native_rate(args, config))
     except RateError as exc:
         raise UsageError(f"{exc.reason} (the index rate)", path=amc) from None
     if not got.first_amc_frame <= first <= last <= got.last_amc_frame:
