@@ -11,7 +11,10 @@ def printable(text: str, *, ascii_only: bool = False) -> str:
     """``text`` with control characters (and, with ``ascii_only``, everything outside printable ASCII)
     written as Python escapes, so that bytes from a damaged file cannot garble a terminal or a log
     line."""
-    return "".join(c if c.isprintable() and (not ascii_only or c.isascii()) else repr(c)[1:-1] for c in text)
+    return "".join(
+        c if c.isprintable() and (not ascii_only or c.isascii()) else c.encode("unicode_escape").decode()
+        for c in text
+    )
 
 
 class MocapdError(Exception):

@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from numpy.lib import format as npy_format
 
 from daemon.checks import Checker
 from daemon.errors import MocapdError
@@ -46,7 +47,6 @@ VERSION = 2
 INDEX_JSON = "index.json"
 WHAT = "a mocapd index"
 ARRAYS = ("doc", "start", "length", "code", "offsets", "postings")
-NPY_MAGIC = b"\x93NUMPY"
 
 Progress = Callable[[int, int, "Document"], object]
 
@@ -267,26 +267,29 @@ def load_index(path: str | Path) -> MotionIndex:
 
 
 def _load_array(file: Path, length: int) -> IntArray:
+    """The int64 array of ``length`` entries in ``file``, memory-mapped; its header is read and
+    checked first, so a file that is not such an array gives one plain reason."""
     if not file.is_file():
         raise IndexFormatError("missing", path=file)
     try:
         with open(file, "rb") as f:
-            magic = f.read(len(NPY_MAGIC))
+            major, _ = npy_format.read_magic(f)
+            read_header = npy_format.read_array_header_1_0 if major == 1 else npy_format.read_array_header_2_0
+            shape, _, dtype = read_header(f)
     except OSError as exc:
         raise IndexFormatError(f"cannot read: {exc.strerror}", path=file) from None
-    if magic != NPY_MAGIC:
-        raise IndexFormatError("not a .npy array file", path=file)
+    except Exception:  # whatever a damaged header makes numpy's parser raise, the file is not an array
+        raise IndexFormatError("not a .npy array file", path=file) from None
+    if dtype != np.int64 or len(shape) != 1:
+        raise IndexFormatError(
+            f"expected a one-dimensional int64 array, got {dtype} of shape {shape}", path=file
+        )
+    if shape[0] != length:
+        raise IndexFormatError(f"{shape[0]} entries, index.json implies {length}", path=file)
     try:
         array = np.load(file, mmap_mode="r", allow_pickle=False)
     except (OSError, ValueError, EOFError) as exc:
-        reason = "an array of Python objects" if "allow_pickle" in str(exc) else f"{exc}".split("\n")[0]
-        raise IndexFormatError(f"not a readable .npy array: {reason}", path=file) from None
-    if array.dtype != np.int64 or array.ndim != 1:
-        raise IndexFormatError(
-            f"expected a one-dimensional int64 array, got {array.dtype} of shape {array.shape}", path=file
-        )
-    if array.shape[0] != length:
-        raise IndexFormatError(f"{array.shape[0]} entries, index.json implies {length}", path=file)
+        raise IndexFormatError(f"not a readable .npy array: {str(exc).splitlines()[0]}", path=file) from None
     out: IntArray = array
     return out
 
