@@ -112,8 +112,13 @@ def check_output_file(path: str | Path) -> None:
 
 def check_directory(path: str | Path) -> None:
     """Raise :class:`FileAccessError` naming ``path`` unless files can be created in the directory
-    ``path``."""
-    _probe(Path(path), Path(path))
+    ``path``, or, if it does not exist yet, it can be created (its nearest existing ancestor is a
+    directory that can be written)."""
+    target = Path(path)
+    existing = next(p for p in (target, *target.parents) if p.exists())
+    if not existing.is_dir():
+        raise FileAccessError("not a directory", path=existing)
+    _probe(existing, target)
 
 
 @contextmanager

@@ -428,3 +428,17 @@ def test_internal_error_is_one_line_saying_it_is_a_bug(
     assert status == cli.EXIT_BUG
     assert err.startswith("Traceback (most recent call last):") and "1 // 0" in err
     assert err.splitlines()[-1].startswith("mocapd: internal error: ZeroDivisionError")
+
+
+def test_learn_png_directory_is_checked_first_and_made_only_for_pictures(tmp_path: Path) -> None:
+    bad = write_training(tmp_path / "clips.csv", ["squat1Reps,missing.asf,missing.amc,,"])
+    line = assert_one_error_line(
+        mocapd("learn", "--manifest", bad, "--out", tmp_path / "lib", "--png", tmp_path / "png" / "deep")
+    )
+    assert line.startswith(f"mocapd: {bad}:2: asf file not found")
+    assert sorted(os.listdir(tmp_path)) == ["clips.csv"]  # no picture directory made for nothing
+    (tmp_path / "file").write_text("keep")
+    line = assert_one_error_line(
+        mocapd("learn", "--manifest", bad, "--out", tmp_path / "lib", "--png", tmp_path / "file" / "png")
+    )
+    assert line == f"mocapd: {tmp_path / 'file'}: not a directory"

@@ -84,14 +84,9 @@ def write_csv(path: Path, write: Callable[[IO[str]], None]) -> None:
 
 def check_png_output(path: Path, *, directory: bool = False) -> None:
     """Before the work: PNGs can be drawn (matplotlib is there) and ``path`` is a ``.png`` file that
-    can be written, or with ``directory`` a directory (created if missing) PNGs can be written in."""
+    can be written, or with ``directory`` a directory PNGs can be written in (created when the first
+    is written)."""
     if directory:
-        if path.exists() and not path.is_dir():
-            raise FileAccessError("not a directory", path=path)
-        try:
-            path.mkdir(parents=True, exist_ok=True)
-        except OSError as exc:
-            raise FileAccessError.from_os_error(exc, path) from None
         check_directory(path)
     else:
         if path.is_dir():
@@ -103,6 +98,11 @@ def check_png_output(path: Path, *, directory: bool = False) -> None:
 
 
 def write_png(path: Path, draw: Callable[[IO[bytes]], Any]) -> None:
-    """``draw`` a PNG into ``path``, which is replaced only when complete."""
+    """``draw`` a PNG into ``path`` (its directory created if missing), which is replaced only when
+    complete."""
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise FileAccessError.from_os_error(exc, path.parent) from None
     with output_file(path, "wb") as out:
         draw(out)
