@@ -19,7 +19,7 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from types import FrameType
-from typing import IO, Any, Literal
+from typing import IO, Any, Literal, NamedTuple
 
 import numpy as np
 import numpy.typing as npt
@@ -56,6 +56,58 @@ def uninterrupted() -> Iterator[None]:
                 handler(number, frame)
             elif handler == signal.SIG_DFL:
                 os.kill(os.getpid(), number)
+
+
+class _Pending(NamedTuple):
+    put: Callable[[], None]
+    """Rename the written output into place."""
+    discard: Callable[[], None]
+    """Remove what was written instead."""
+    target: Path
+
+
+_batches: list[list[_Pending]] = []
+"""The outputs waiting for the end of the enclosing :func:`together` block (one at most)."""
+
+
+@contextmanager
+def together() -> Iterator[None]:
+    """Put the outputs written in the block (:func:`output_file`, :func:`replace_directory`) into
+    place together when it ends, their renames in one uninterrupted step, so a command writing several
+    outputs that is stopped before that step leaves every previous one intact, not some replaced. If
+    the block ends by an exception, signals included, none is put into place and what was written is
+    removed. Inside another ``together`` block, the outputs wait for that one."""
+    if _batches:
+        yield
+        return
+    pending: list[_Pending] = []
+    _batches.append(pending)
+    try:
+        yield
+    except BaseException:
+        with uninterrupted():
+            for output in pending:
+                output.discard()
+        raise
+    finally:
+        _batches.pop()
+    with uninterrupted():
+        for i, output in enumerate(pending):
+            try:
+                output.put()
+            except OSError as exc:
+                for rest in pending[i:]:
+                    rest.discard()
+                raise _named(exc, output.target) from None
+
+
+def _put_in_place(put: Callable[[], None], discard: Callable[[], None], target: Path) -> None:
+    """``put()`` an output into place now, uninterrupted, or at the end of a :func:`together` block."""
+    if _batches:
+        _batches[-1].append(_Pending(put, discard, target))
+        return
+    with uninterrupted():
+        put()
 
 
 def _beside(target: Path, kind: str) -> Path:
@@ -125,9 +177,9 @@ def check_directory(path: str | Path) -> None:
 def output_file(path: str | Path, mode: Literal["w", "wb"] = "w") -> Iterator[IO[Any]]:
     """A file to write ``path`` through: text (UTF-8, ``\\n`` line ends) or binary. On a clean exit it
     is synced and renamed onto ``path`` (a symbolic link is followed; an existing file keeps its
-    permissions); on any exception, signals included, it is removed and ``path`` is untouched.
-    Devices and pipes are written in place. :class:`OSError` from writing becomes
-    :class:`FileAccessError` naming ``path``."""
+    permissions), inside a :func:`together` block when that ends; on any exception, signals
+    included, it is removed and ``path`` is untouched. Devices and pipes are written in place.
+    :class:`OSError` from writing becomes :class:`FileAccessError` naming ``path``."""
     target = Path(path)
     check_output_file(target)
     text: dict[str, Any] = {"encoding": "utf-8", "newline": ""} if mode == "w" else {}
@@ -152,8 +204,7 @@ def output_file(path: str | Path, mode: Literal["w", "wb"] = "w") -> Iterator[IO
             os.fsync(out.fileno())
         if real.exists():
             os.chmod(temp, stat.S_IMODE(real.stat().st_mode))
-        with uninterrupted():
-            os.replace(temp, real)
+        _put_in_place(lambda: os.replace(temp, real), lambda: temp.unlink(missing_ok=True), target)
     except BaseException as exc:
         with uninterrupted():
             temp.unlink(missing_ok=True)
@@ -193,7 +244,8 @@ def check_target(path: str | Path, marker: str, what: str) -> None:
 
 def replace_directory(path: str | Path, marker: str, what: str, fill: Callable[[Path], None]) -> None:
     """Write the directory ``path`` with ``fill(temp)`` in a temporary sibling, then rename it into
-    place (replacing an earlier one, see :func:`check_target`), so ``path`` is never half written."""
+    place (replacing an earlier one, see :func:`check_target`; inside a :func:`together` block when
+    that ends), so ``path`` is never half written."""
     target = Path(path)
     check_target(target, marker, what)
     with uninterrupted():
@@ -202,16 +254,19 @@ def replace_directory(path: str | Path, marker: str, what: str, fill: Callable[[
             temp.mkdir()  # unlike mkdtemp's 0o700, the umask's permissions, which the directory keeps
         except OSError as exc:
             raise _named(exc, target) from None
+
+    def swap() -> None:
+        if target.exists():
+            old = _beside(target, "old")
+            os.replace(target, old)
+            os.replace(temp, target)
+            shutil.rmtree(old)
+        else:
+            os.replace(temp, target)
+
     try:
         fill(temp)
-        with uninterrupted():
-            if target.exists():
-                old = _beside(target, "old")
-                os.replace(target, old)
-                os.replace(temp, target)
-                shutil.rmtree(old)
-            else:
-                os.replace(temp, target)
+        _put_in_place(swap, lambda: shutil.rmtree(temp, ignore_errors=True), target)
     except BaseException as exc:
         with uninterrupted():
             shutil.rmtree(temp, ignore_errors=True)

@@ -27,7 +27,7 @@ from collections.abc import Sequence
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 from types import FrameType
-from typing import NoReturn
+from typing import Any, NoReturn
 
 COMMANDS = ("daemon.cli.recordings", "daemon.cli.search", "daemon.cli.learn")
 """The command groups, in the order ``--help`` lists them; each has ``register(subparsers)``."""
@@ -44,8 +44,19 @@ class Terminated(BaseException):
     """SIGTERM arrived; like :class:`KeyboardInterrupt`, it unwinds the stack so outputs are cleaned."""
 
 
+class Interrupted(KeyboardInterrupt):
+    """SIGINT arrived. Not a plain :class:`KeyboardInterrupt`: when one of those leaves code run by
+    ``exec`` or ``eval`` of a string (as the dataclasses and named tuples made while modules are
+    imported are), CPython ends the process by SIGINT after :func:`main` returned 130, even though
+    :func:`main` handled it."""
+
+
 def _terminate(signum: int, frame: FrameType | None) -> NoReturn:
     raise Terminated
+
+
+def _interrupt(signum: int, frame: FrameType | None) -> NoReturn:
+    raise Interrupted
 
 
 class Parser(argparse.ArgumentParser):
@@ -86,11 +97,17 @@ def _say(message: str) -> None:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Run the command line ``argv`` (default: ``sys.argv[1:]``); returns the exit status."""
+    """Run the command line ``argv`` (default: ``sys.argv[1:]``); returns the exit status. Run as the
+    program (no ``argv``), it returns with SIGINT and SIGTERM ignored: the command is over, and one
+    arriving while the interpreter shuts down (a tenth of a second or more) must not end a finished
+    command by that signal instead of its status."""
     arguments = list(sys.argv[1:] if argv is None else argv)
     debug = "--debug" in arguments
-    previous = signal.signal(signal.SIGTERM, _terminate)
+    previous: dict[signal.Signals, Any] = {}
     try:
+        if signal.getsignal(signal.SIGINT) is signal.default_int_handler:  # not ignored (``command &``)
+            previous[signal.SIGINT] = signal.signal(signal.SIGINT, _interrupt)
+        previous[signal.SIGTERM] = signal.signal(signal.SIGTERM, _terminate)
         from daemon.config import load_config
         from daemon.errors import FileAccessError, MocapdError
 
@@ -122,4 +139,5 @@ def main(argv: Sequence[str] | None = None) -> int:
         _say(f"internal error: {type(exc).__name__}: {exc} ({BUG_REPORT})".replace("\n", " "))
         return EXIT_BUG
     finally:
-        signal.signal(signal.SIGTERM, previous)
+        for number, handler in previous.items():
+            signal.signal(number, signal.SIG_IGN if argv is None else handler)

@@ -15,6 +15,7 @@ from daemon.errors import UsageError
 from daemon.library import ClassTemplate, Library, check_library_target, learn_class, save_library
 from daemon.plots import template_png
 from daemon.recordings import TrainingClip, read_examples
+from daemon.storage import together
 from daemon.types import DEFAULT_INDEX_RATE
 
 
@@ -92,9 +93,11 @@ def _learn(args: argparse.Namespace, config: Config) -> int:
             file=sys.stderr,
             flush=True,
         )
+    with together():  # an interrupted run leaves the previous library and pictures, all of them
         if args.png is not None:
-            _draw(cls, args.png / f"{name}.png", args.fps)
-    save_library(Library(args.fps, classes), args.out)
+            for name, cls in classes.items():
+                _draw(cls, args.png / f"{name}.png", args.fps)
+        save_library(Library(args.fps, classes), args.out)
     print(f"library:    {args.out}")
     print(f"classes:    {len(classes)} ({', '.join(classes)})")
     print(f"examples:   {sum(len(c.training) for c in classes.values())} at {args.fps:g} Hz")

@@ -15,6 +15,7 @@ from daemon.errors import UsageError
 from daemon.features import FEATURE_NAMES
 from daemon.plots import feature_matrix_png
 from daemon.recordings import RateError, joint_positions, motion_features, native_rate, read_recording
+from daemon.storage import together
 from daemon.types import BoolArray, FloatArray, IntArray
 from replay import JOINT_NAMES, KinematicModel
 
@@ -116,12 +117,13 @@ def _features(args: argparse.Namespace, config: Config) -> int:
         got = motion_features(motion, args.fps, common.default_native_rate(args, config))
     except RateError as exc:
         raise UsageError(exc.reason, field="--fps") from None
-    common.write_csv(args.csv, lambda out: _write_features(out, got.frames, got.matrix))
-    if args.png is not None:
-        title = f"{args.amc.name}: {len(got.frames)} frames at {got.rate:g} Hz"
-        common.write_png(
-            args.png, lambda out: feature_matrix_png(got.matrix, got.frames, out, title, got.rate)
-        )
+    with together():  # an interrupted run leaves both the previous CSV and PNG
+        common.write_csv(args.csv, lambda out: _write_features(out, got.frames, got.matrix))
+        if args.png is not None:
+            title = f"{args.amc.name}: {len(got.frames)} frames at {got.rate:g} Hz"
+            common.write_png(
+                args.png, lambda out: feature_matrix_png(got.matrix, got.frames, out, title, got.rate)
+            )
     return 0
 
 

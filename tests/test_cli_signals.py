@@ -1,0 +1,363 @@
+"""Real SIGINT and SIGTERM, sent with ``kill`` at random moments to the commands that write files
+(``positions``, ``features`` with its PNG, ``index build``, ``learn`` with its PNG directory), each run
+as its own ``python -m daemon`` process over an earlier output of the same name. Whatever the moment,
+the command either finished first (status 0, every output complete and equal to an uninterrupted
+run's) or stopped (130 "mocapd: interrupted" / 143 "mocapd: terminated", every previous output byte
+for byte as it was); never a traceback, and nothing temporary left beside the outputs or inside the
+PNG directory.
+
+The moments are drawn from a seeded generator, one in each of several equal slices of the command's
+measured run time (and a little beyond it), counted from the moment ``main()`` has installed its
+SIGTERM handler (read from ``/proc/PID/status``), so they land during start-up imports, reading,
+computing, drawing, writing and renaming, and none before Python could handle a signal at all."""
+
+from __future__ import annotations
+
+import os
+import random
+import re
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytest
+
+from tests.helpers import (
+    CMU_AMC,
+    CMU_ASF,
+    DATA,
+    INDEX_PATHS,
+    REPO,
+    TRAINING,
+    training_rows,
+    write_manifest,
+    write_training,
+)
+
+LONG_ASF = DATA / "cmu" / "13" / "13.asf"
+LONG_AMC = DATA / "cmu" / "13" / "13_29.amc.gz"
+"""A long CMU trial (4592 frames): ~120k rows of positions, so writing takes a while."""
+
+SEED = "mocapd-signals-1"
+MOMENTS = {"positions": 5, "features": 5, "index": 5, "learn": 4}
+"""Signals per command and signal kind: one in each slice of the run time (learn's run is longest)."""
+BEYOND = 1.15
+"""The moments span the measured run time times this, so some come after the command has finished."""
+
+STOPS = {
+    signal.SIGINT: (130, "mocapd: interrupted\n"),
+    signal.SIGTERM: (143, "mocapd: terminated\n"),
+}
+PROGRESS = re.compile(r"\[(?:class )?\d+/\d+\] .*\n")
+"""A progress line of ``index build`` or ``learn`` on stderr."""
+TIMING = ("build time:", "learn time:")
+
+Snapshot = dict[str, bytes]
+"""A file (key ".") or a directory's entries by relative name (directories end in "/")."""
+
+
+def snapshot(path: Path) -> Snapshot:
+    """Everything ``path`` holds, hidden entries included."""
+    if path.is_file():
+        return {".": path.read_bytes()}
+    return {
+        p.relative_to(path).as_posix() + ("/" if p.is_dir() else ""): b"" if p.is_dir() else p.read_bytes()
+        for p in sorted(path.rglob("*"))
+    }
+
+
+def place(content: Snapshot, path: Path) -> None:
+    """Write ``content`` (a :func:`snapshot`) as ``path``."""
+    if "." in content:
+        path.write_bytes(content["."])
+        return
+    path.mkdir()
+    for name, data in content.items():
+        if name.endswith("/"):
+            (path / name).mkdir()
+        else:
+            (path / name).write_bytes(data)
+
+
+# ------------------------------------------------------------------------------------------ running
+
+
+def main_started(pid: int) -> bool | None:
+    """Whether the process has installed ``main()``'s SIGTERM handler (None: no /proc to tell)."""
+    try:
+        status = Path(f"/proc/{pid}/status").read_text(encoding="ascii")
+    except OSError:
+        return None
+    caught = next((line.split()[1] for line in status.splitlines() if line.startswith("SigCgt:")), "0")
+    return bool(int(caught, 16) >> (signal.SIGTERM - 1) & 1)
+
+
+@dataclass(frozen=True)
+class Run:
+    status: int
+    stdout: str
+    stderr: str
+    seconds: float
+    """From main() starting to the process ending."""
+
+
+def run(argv: list[str], delay: float | None = None, signum: signal.Signals | None = None) -> Run:
+    """Run ``python -m daemon ARGV``; with ``signum``, send it ``delay`` seconds after ``main()``
+    started (unless the process has ended by then)."""
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "daemon", *argv],
+        cwd=REPO,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        began = time.monotonic()
+        while proc.poll() is None and time.monotonic() - began < 60:
+            started = main_started(proc.pid)
+            if started is None:
+                time.sleep(max(0.0, 0.15 - (time.monotonic() - began)))
+                break
+            if started:
+                break
+            time.sleep(0.001)
+        began = time.monotonic()
+        if signum is not None and delay is not None:
+            time.sleep(delay)
+            proc.send_signal(signum)  # nothing is sent once the process has been waited for
+        stdout, stderr = proc.communicate(timeout=180)
+        return Run(proc.returncode, stdout, stderr, time.monotonic() - began)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+
+
+def moments(seconds: float, count: int, key: str) -> list[float]:
+    """``count`` delays, one drawn in each equal slice of ``seconds`` x :data:`BEYOND`."""
+    rng = random.Random(f"{SEED}-{key}")
+    span = seconds * BEYOND
+    return [span * (i + rng.random()) / count for i in range(count)]
+
+
+# ----------------------------------------------------------------------------------------- commands
+
+
+@dataclass(frozen=True)
+class Command:
+    name: str
+    argv: Callable[[Path], list[str]]
+    """The command line writing its outputs into a directory."""
+    previous: dict[str, Snapshot]
+    """The outputs already there before each run, by name in that directory."""
+    new: dict[str, Snapshot]
+    """What an uninterrupted run writes."""
+    stdout: list[str]
+    """What an uninterrupted run prints (see :func:`printed`)."""
+    seconds: float
+    """How long an uninterrupted run takes from main() starting."""
+    summary: bool
+    """Whether it prints a summary after its outputs are in place."""
+
+
+def printed(stdout: str, out: Path) -> list[str]:
+    """``stdout`` with the output directory named OUT and the timing lines left out."""
+    return [line.replace(str(out), "OUT") for line in stdout.splitlines() if not line.startswith(TIMING)]
+
+
+def written(argv: Callable[[Path], list[str]], directory: Path, names: list[str]) -> dict[str, Snapshot]:
+    """Run the command uninterrupted into ``directory``; its outputs ``names``."""
+    directory.mkdir()
+    result = run(argv(directory))
+    assert result.status == 0, result.stderr
+    return {name: snapshot(directory / name) for name in names}
+
+
+class Commands:
+    """The four commands, each prepared (inputs, previous and expected outputs, run time) once."""
+
+    def __init__(self, root: Path) -> None:
+        self.root = root
+        self.inputs = root / "inputs"
+        self.inputs.mkdir()
+        self.prepared: dict[str, Command] = {}
+
+    def get(self, name: str) -> Command:
+        if name not in self.prepared:
+            self.prepared[name] = getattr(self, f"_{name}")()
+        return self.prepared[name]
+
+    def _measured(
+        self,
+        name: str,
+        argv: Callable[[Path], list[str]],
+        previous: dict[str, Snapshot],
+        summary: bool = False,
+    ) -> Command:
+        reference = self.root / f"{name}-reference"
+        reference.mkdir()
+        result = run(argv(reference))
+        assert result.status == 0, result.stderr
+        new = {out: snapshot(reference / out) for out in previous}
+        assert all(new[out] != previous[out] for out in previous)  # so "intact" and "new" differ
+        return Command(name, argv, previous, new, printed(result.stdout, reference), result.seconds, summary)
+
+    def _positions(self) -> Command:
+        def argv(d: Path) -> list[str]:
+            return ["positions", "--asf", str(LONG_ASF), "--amc", str(LONG_AMC), "--csv", str(d / "out.csv")]
+
+        return self._measured("positions", argv, {"out.csv": {".": b"previous,positions\n1,2\n"}})
+
+    def _features(self) -> Command:
+        def argv(d: Path) -> list[str]:
+            return [
+                "features", "--asf", str(CMU_ASF), "--amc", str(CMU_AMC), "--fps", "30",
+                "--csv", str(d / "out.csv"), "--png", str(d / "out.png"),
+            ]  # fmt: skip
+
+        previous = {"out.csv": {".": b"previous,features\n"}, "out.png": {".": b"\x89PNG\r\n\x1a\nprevious"}}
+        return self._measured("features", argv, previous)
+
+    def _index(self) -> Command:
+        manifest = write_manifest(self.inputs / "index.csv", INDEX_PATHS, extra=False)
+        earlier = write_manifest(self.inputs / "earlier-index.csv", INDEX_PATHS[:2], extra=False)
+
+        def argv(d: Path) -> list[str]:
+            return ["index", "build", "--manifest", str(manifest), "--out", str(d / "idx")]
+
+        def earlier_argv(d: Path) -> list[str]:
+            return ["index", "build", "--manifest", str(earlier), "--out", str(d / "idx")]
+
+        previous = written(earlier_argv, self.root / "index-previous", ["idx"])
+        return self._measured("index", argv, previous, summary=True)
+
+    def _learn(self) -> Command:
+        # Two classes, so two PNGs (drawing them is most of the run); the earlier library from other
+        # takes of the same classes.
+        hop, squat = TRAINING[0], TRAINING[3]
+        clips = write_training(self.inputs / "clips.csv", training_rows([hop, squat]))
+        earlier = write_training(self.inputs / "earlier-clips.csv", training_rows([TRAINING[1], TRAINING[4]]))
+
+        def argv(d: Path) -> list[str]:
+            return ["learn", "--manifest", str(clips), "--out", str(d / "lib"), "--png", str(d / "png")]
+
+        def earlier_argv(d: Path) -> list[str]:
+            return ["learn", "--manifest", str(earlier), "--out", str(d / "lib")]
+
+        previous = written(earlier_argv, self.root / "learn-previous", ["lib"])
+        previous["png"] = {f"{c}.png": f"previous {c}".encode() for c, _, _ in (hop, squat)}
+        return self._measured("learn", argv, previous, summary=True)
+
+
+@pytest.fixture(scope="module")
+def commands(tmp_path_factory: pytest.TempPathFactory) -> Commands:
+    return Commands(tmp_path_factory.mktemp("signals"))
+
+
+# -------------------------------------------------------------------------------------------- checks
+
+
+def check_outcome(command: Command, result: Run, signum: signal.Signals, directory: Path) -> bool:
+    """Assert the run finished (status 0, new outputs) or stopped (130/143 and its one line, the
+    previous outputs intact) and left nothing else in ``directory``; whether it stopped."""
+    context = f"{command.name} {signum.name}: status {result.status}, stderr {result.stderr!r}"
+    assert "Traceback" not in result.stderr + result.stdout, context
+    assert sorted(os.listdir(directory)) == sorted(command.previous), context
+    outputs = {name: snapshot(directory / name) for name in command.previous}
+    progress = "".join(PROGRESS.findall(result.stderr))
+    if result.status == 0:
+        assert result.stderr == progress, context
+        assert printed(result.stdout, directory) == command.stdout, context
+        assert outputs == command.new, context
+        return False
+    status, line = STOPS[signum]
+    assert result.status == status, context
+    assert result.stderr == progress + line, context
+    if outputs == command.previous:
+        assert result.stdout == "", context
+    else:
+        # Only a command that prints a summary once its outputs are in place can be stopped after
+        # that: then every output is the new one and what it printed is the summary's beginning.
+        assert command.summary, context
+        assert outputs == command.new, context
+        lines = printed(result.stdout, directory)
+        assert lines == command.stdout[: len(lines)], context
+    return True
+
+
+# --------------------------------------------------------------------------------------------- tests
+
+COMMANDS = ["positions", "features", "index", "learn"]
+
+
+@pytest.mark.parametrize("signum", list(STOPS), ids=lambda s: s.name)
+@pytest.mark.parametrize("name", COMMANDS)
+def test_a_signal_at_any_moment_leaves_the_previous_output_or_the_new_one(
+    commands: Commands, name: str, signum: signal.Signals, tmp_path: Path
+) -> None:
+    """SIGINT or SIGTERM at random moments of the command's run: status 0 with every output equal
+    to an uninterrupted run's, or 130/143 with exactly "mocapd: interrupted"/"terminated" (after any
+    progress lines) and every previous output byte for byte intact; no traceback; the directory
+    holds exactly the outputs (no .tmp, .old or .probe sibling, nothing extra in the PNG
+    directory). At least one of the runs is stopped."""
+    command = commands.get(name)
+    stopped = []
+    for i, delay in enumerate(moments(command.seconds, MOMENTS[name], f"{name}-{signum.name}")):
+        directory = tmp_path / f"run{i}"
+        directory.mkdir()
+        for out, content in command.previous.items():
+            place(content, directory / out)
+        result = run(command.argv(directory), delay, signum)
+        stopped.append(check_outcome(command, result, signum, directory))
+    assert any(stopped), f"no run of {name} was stopped (run time {command.seconds:.2f} s)"
+
+
+@pytest.mark.parametrize("name", COMMANDS)
+def test_a_run_after_an_interrupted_one_writes_the_whole_output(
+    commands: Commands, name: str, tmp_path: Path
+) -> None:
+    """A run stopped halfway (SIGTERM at 40 % of its run time) leaves the previous output; running
+    the same command again then writes the new one, equal to an uninterrupted run's, and leaves
+    nothing else behind."""
+    command = commands.get(name)
+    for out, content in command.previous.items():
+        place(content, tmp_path / out)
+    stopped = run(command.argv(tmp_path), 0.4 * command.seconds, signal.SIGTERM)
+    assert check_outcome(command, stopped, signal.SIGTERM, tmp_path), "the first run was not stopped"
+    again = run(command.argv(tmp_path))
+    assert not check_outcome(command, again, signal.SIGTERM, tmp_path)
+
+
+@pytest.mark.parametrize("signum", list(STOPS), ids=lambda s: s.name)
+def test_a_signal_while_writing_to_stdout_exits_with_one_line(
+    commands: Commands, signum: signal.Signals
+) -> None:
+    """``positions --csv -`` stopped while it writes the CSV to stdout (its first bytes already read)
+    exits 130/143 with exactly one line on stderr; what reached stdout is the beginning of the CSV."""
+    whole = commands.get("positions").new["out.csv"]["."]
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "daemon", "positions", "--asf", str(LONG_ASF), "--amc", str(LONG_AMC),
+         "--csv", "-"],
+        cwd=REPO,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+    )  # fmt: skip
+    try:
+        assert proc.stdout is not None
+        first = os.read(proc.stdout.fileno(), 4096)  # unbuffered: communicate() reads the rest
+        time.sleep(random.Random(f"{SEED}-stdout-{signum.name}").uniform(0.0, 0.05))
+        proc.send_signal(signum)
+        stdout, stderr = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    status, line = STOPS[signum]
+    assert (proc.returncode, stderr.decode()) == (status, line)
+    assert first.startswith(b"frame,joint,x,y,z\n")
+    assert whole.startswith(first + stdout)
+    assert len(first + stdout) < len(whole)
