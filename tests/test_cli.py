@@ -246,7 +246,10 @@ def malformed_amc(tmp_path: Path) -> tuple[Path, int]:
 @pytest.mark.parametrize("command", ["info", "positions"])
 def test_malformed_amc(tmp_path: Path, command: str) -> None:
     path, at = malformed_amc(tmp_path)
-    with pytest.raises(MocapFormatError) as caught:
+    with pytest.raises(
+        MocapFormatError,
+        match=rf"^{re.escape(str(path))}:{at}: value 'abc' for bone 'lowerback' is not a finite number$",
+    ) as caught:
         read_amc(path, read_asf(CMU_ASF))
     assert caught.value.line == at
     extra = ["--csv", str(tmp_path / "out.csv")] if command == "positions" else []

@@ -9,9 +9,17 @@ from pathlib import Path
 
 import pytest
 
+from daemon.index import (
+    adaptive_fuzzy_query,
+    example_query,
+    feature_selection,
+    fuzzy_query,
+    mismatch_query,
+    ranked,
+)
 from daemon.index_store import MotionIndex, build_index, load_index, save_index
 from daemon.keyframes import keyframe_search, parse_keyframe_queries
-from daemon.recordings import read_manifest
+from daemon.recordings import read_features, read_manifest
 from tests.helpers import (
     KEYFRAMES,
     assert_ok,
@@ -102,20 +110,85 @@ def test_query_by_example_finds_itself_first(index_dir: Path) -> None:
     assert sum("squat1Reps" in str(r["document"]) for r in rows) >= 2  # another actor's squat too
 
 
-def test_query_by_example_fuzzy_and_mismatch(index_dir: Path) -> None:
-    asf, amc = hdm05_clip("bd", "kickLFront1Reps", 1)
-    base: list[str | Path] = ["search", "--index", index_dir, "--example", asf, amc, "20", "120", "--json"]
-    exact = mocapd(*base, "--features", "footLeftRaisedRelYBodyMin,kneeLeftBent")
-    fuzzy = mocapd(*base, "--features", "footLeftRaisedRelYBodyMin,kneeLeftBent", "--fuzzy", "1")
-    assert_ok(exact)
-    assert_ok(fuzzy)
-    assert str(amc) in {r["document"] for r in hits_json(exact.stdout)}  # the example's own stretch
-    for result in (exact, fuzzy):
-        costs = [int(str(r["cost"])) for r in hits_json(result.stdout)]
-        assert costs == sorted(costs)
-    mism = mocapd(*base, "--features", "footLeftRaisedRelYBodyMin,kneeLeftBent", "--mismatch", "1")
-    assert_ok(mism)
-    assert all("cost" in r for r in hits_json(mism.stdout))
+SQUAT_EXAMPLE = (
+    ("bd", "squat1Reps", 1),
+    1,
+    140,
+    "footLeftRaisedRelYBodyMin,feetApartRelHips,kneeLeftBent,footRightHighVel",
+)
+KICK_EXAMPLE = (("bd", "kickLFront1Reps", 1), 20, 120, "footLeftRaisedRelYBodyMin,kneeLeftBent")
+Example = tuple[tuple[str, str, int], int, int, str]
+
+
+def library_example_rows(
+    index: MotionIndex, example: Example, fuzzy: int, plain: bool, mismatch: int | None
+) -> list[dict[str, object]]:
+    """The rows ``search --example ... --json`` should print, computed through the library."""
+    clip, first, last, names = example
+    asf, amc = hdm05_clip(*clip)
+    got = read_features(asf, amc, index.rate)
+    inside = (got.frames >= first) & (got.frames <= last)
+    feature_set, mask = feature_selection(names.split(","))
+    query = example_query(got.matrix[inside], feature_set, mask)
+    sets = query.fuzzy_sets(fuzzy)
+    set_index = index.sets[feature_set]
+    if mismatch is not None:
+        hits = mismatch_query(set_index, sets, mismatch)
+    elif plain:
+        hits = fuzzy_query(set_index, sets)
+    else:
+        hits = adaptive_fuzzy_query(set_index, sets)
+    order, cost = ranked(hits, query.lengths)
+    rows: list[dict[str, object]] = []
+    for i, c in zip(order.tolist(), cost.tolist(), strict=True):
+        d = int(hits.doc[i])
+        start, end = index.amc_frames(d, int(hits.start[i]), int(hits.end[i]))
+        rows.append({"document": index.document_path(d), "start_frame": start, "end_frame": end, "cost": c})
+    return rows
+
+
+@pytest.mark.parametrize(
+    ("example", "fuzzy", "plain", "mismatch"),
+    [
+        # the squat's query has 3 segments: knee straight, bent, straight (with 3 more features)
+        (SQUAT_EXAMPLE, 0, False, None),  # 4 hits: the 3 squats and the hop
+        (SQUAT_EXAMPLE, 1, False, None),  # 2 hits: the hop and the deposit (larger sets merge more)
+        (SQUAT_EXAMPLE, 2, False, None),  # 2 hits: the two kicks
+        (SQUAT_EXAMPLE, 1, True, None),  # 25 hits in all 7 documents
+        (SQUAT_EXAMPLE, 0, False, 1),  # 13 hits in all 7 documents
+        (KICK_EXAMPLE, 1, True, None),  # 6 hits in both kicks
+        (KICK_EXAMPLE, 1, False, 1),  # 23 hits in the kicks, the hop and the deposit
+    ],
+    ids=[
+        "squat-fuzzy0",
+        "squat-fuzzy1",
+        "squat-fuzzy2",
+        "squat-plain1",
+        "squat-mismatch1",
+        "kick-plain1",
+        "kick-mismatch1",
+    ],
+)
+def test_query_by_example_rows_equal_the_library(
+    index_dir: Path, example: Example, fuzzy: int, plain: bool, mismatch: int | None
+) -> None:
+    clip, first, last, names = example
+    asf, amc = hdm05_clip(*clip)
+    args: list[str | Path] = ["search", "--index", index_dir, "--example", asf, amc, str(first), str(last)]
+    args += ["--features", names, "--fuzzy", str(fuzzy), "--json"]
+    if plain:
+        args.append("--plain")
+    if mismatch is not None:
+        args += ["--mismatch", str(mismatch)]
+    result = mocapd(*args)
+    assert_ok(result)
+    rows = hits_json(result.stdout)
+    expected = library_example_rows(load_index(index_dir), example, fuzzy, plain, mismatch)
+    assert rows == expected
+    assert len(rows) >= 2, rows  # the example has hits, and not only in its own document
+    assert any(r["document"] != str(amc) for r in rows), rows
+    costs = [int(str(r["cost"])) for r in rows]
+    assert costs == sorted(costs)
 
 
 @pytest.mark.parametrize(

@@ -9,6 +9,7 @@ raise; ``read_amc`` must raise the same error (same line, same reason).
 from __future__ import annotations
 
 import gzip
+import re
 import zlib
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -100,7 +101,8 @@ def write(path: Path, lines: Sequence[str]) -> Path:
 def check_bad_amc(clip: Clip, path: Path, line: int, good_frames: int, *mentions: str) -> MocapFormatError:
     """Both readers on a damaged file: the good frames, then an error at ``line`` naming ``mentions``."""
     got: list[AmcFrame] = []
-    with pytest.raises(MocapFormatError) as caught:
+    where = rf"^{re.escape(str(path))}:{line}: "
+    with pytest.raises(MocapFormatError, match=where) as caught:
         for frame in iter_amc(path, clip.skeleton):  # consumed the way list(iter_amc(...)) would
             got.append(frame)
     err = caught.value
@@ -113,7 +115,7 @@ def check_bad_amc(clip: Clip, path: Path, line: int, good_frames: int, *mentions
     for word in mentions:
         assert word in err.reason, (word, str(err))
 
-    with pytest.raises(MocapFormatError) as whole:
+    with pytest.raises(MocapFormatError, match=f"^{re.escape(str(err))}$") as whole:
         read_amc(path, clip.skeleton)
     assert (whole.value.path, whole.value.line, whole.value.reason) == (err.path, err.line, err.reason)
     return err
@@ -169,7 +171,7 @@ def test_truncated_gzip(clip: Clip, tmp_path: Path, cut: str) -> None:
     path.write_bytes(data)
 
     got: list[AmcFrame] = []
-    with pytest.raises(MocapFormatError) as caught:
+    with pytest.raises(MocapFormatError, match=rf"^{re.escape(str(path))}:\d+: .*gzip") as caught:
         for frame in iter_amc(path, clip.skeleton):
             got.append(frame)
     err = caught.value
@@ -180,7 +182,7 @@ def test_truncated_gzip(clip: Clip, tmp_path: Path, cut: str) -> None:
     assert [f.frame for f in got] == [clip.frame_number(i) for i in range(len(got))]
     for i, frame in enumerate(got):
         np.testing.assert_array_equal(frame.channels, clip.good.channels[i])
-    with pytest.raises(MocapFormatError) as whole:
+    with pytest.raises(MocapFormatError, match=f"^{re.escape(str(err))}$") as whole:
         read_amc(path, clip.skeleton)
     assert (whole.value.path, whole.value.line, whole.value.reason) == (err.path, err.line, err.reason)
 
@@ -413,7 +415,8 @@ def field_line(lines: Sequence[str], bone: str, field: str) -> int:
 
 
 def check_bad_asf(path: Path, line: int | None, *mentions: str) -> MocapFormatError:
-    with pytest.raises(MocapFormatError) as caught:
+    where = re.escape(f"{path}:{line}: " if line is not None else f"{path}: ")
+    with pytest.raises(MocapFormatError, match=f"^{where}") as caught:
         read_asf(path)
     err = caught.value
     assert err.path == str(path)
@@ -467,8 +470,9 @@ def test_asf_hierarchy_cycle_with_a_bone_hanging_off_it(asf_lines: tuple[str, ..
     set_words(lines, closing, ["upperback", "thorax", "lowerback"])
     thorax = line_of(lines, "thorax", "lowerneck", "lclavicle", "rclavicle")
     set_words(lines, thorax, ["thorax", "lowerneck", "lclavicle", "rclavicle", "lhipjoint"])
-    with pytest.raises(MocapFormatError) as caught:
-        read_asf(write(tmp_path / "cycle.asf", lines))
+    path = tmp_path / "cycle.asf"
+    with pytest.raises(MocapFormatError, match=rf"^{re.escape(str(path))}:\d+: .*cycle") as caught:
+        read_asf(write(path, lines))
     err = caught.value
     assert "cycle" in err.reason
     assert "'lowerback'" in err.reason or "'upperback'" in err.reason, str(err)

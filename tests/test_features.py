@@ -1,4 +1,5 @@
-"""The 39 relational features: against the original toolbox, and primitives against slow references."""
+"""The 39 relational features: equal to the original toolbox's in every frame, and primitives against slow
+references."""
 
 from __future__ import annotations
 
@@ -30,9 +31,16 @@ def test_features_match_toolbox(clip: str) -> None:
     assert tuple(header[1:]) == FEATURE_NAMES
     ours = clip_features(clip)
     assert ours.shape == oracle.shape
-    per_feature = (ours == oracle).mean(axis=0)
-    assert (ours == oracle).mean() >= 0.995
-    assert per_feature.min() >= 0.98, dict(zip(FEATURE_NAMES, per_feature.round(4), strict=True))
+    # every cell: a threshold moved by 2 degrees flips only a few frames of one feature
+    differing = {
+        name: np.flatnonzero(ours[:, f] != oracle[:, f]).tolist()
+        for f, name in enumerate(FEATURE_NAMES)
+        if np.any(ours[:, f] != oracle[:, f])
+    }
+    assert not differing, "features differing from the toolbox (0-based frames): " + "; ".join(
+        f"{name}: {len(frames)} frames {frames[:10]}{' ...' if len(frames) > 10 else ''}"
+        for name, frames in differing.items()
+    )
 
 
 def test_catalog_sets() -> None:

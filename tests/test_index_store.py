@@ -6,6 +6,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import re
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
@@ -146,7 +147,7 @@ def test_unreadable_recording_raises_the_readers_error(tmp_path: Path) -> None:
     asf = PATHS[0][0]
     amc = tmp_path / "bad.amc"
     amc.write_text(":FULLY-SPECIFIED\n:DEGREES\n1\nroot 1 2\n", encoding="utf-8")
-    with pytest.raises(MocapFormatError) as caught:
+    with pytest.raises(MocapFormatError, match=f"^{re.escape(str(amc))}:4: ") as caught:
         build_index([ManifestRow(2, str(asf), str(amc), asf, amc)])
     assert caught.value.path == str(amc)
 
@@ -263,7 +264,9 @@ def test_load_truncated_postings(saved: Path, tmp_path: Path) -> None:
     path = copy_index(saved, tmp_path)
     file = path / "mix.postings.npy"
     file.write_bytes(file.read_bytes()[:-8])
-    with pytest.raises(IndexFormatError) as caught:
+    with pytest.raises(
+        IndexFormatError, match=f"^{re.escape(str(file))}: not a readable \\.npy array: "
+    ) as caught:
         load_index(path)
     assert str(caught.value).startswith(f"{file}: ")
 
@@ -292,7 +295,15 @@ def test_load_offsets_that_do_not_end_at_the_segment_count(saved: Path, tmp_path
     offsets = np.load(file)
     offsets[-1] += 1
     np.save(file, offsets)
-    with pytest.raises(IndexFormatError) as caught:
+    sha = re.escape("SHA-256 differs from index.json's sets.upper.sha256.offsets")
+    with pytest.raises(IndexFormatError, match=f"^{re.escape(str(file))}: {sha}$"):
+        load_index(path)
+    # with a matching checksum the structure check itself finds it
+    edit_json(path, {"sets.upper.sha256.offsets": hashlib.sha256(offsets.tobytes()).hexdigest()})
+    segments = len(np.load(path / "upper.code.npy"))
+    with pytest.raises(
+        IndexFormatError, match=f"^{re.escape(str(file))}: must rise from 0 to the {segments} segments$"
+    ) as caught:
         load_index(path)
     assert str(caught.value).startswith(f"{file}: ")
 
@@ -328,7 +339,8 @@ def test_load_bad_json(saved: Path, tmp_path: Path) -> None:
 def test_load_bad_fields(saved: Path, tmp_path: Path, change: dict[str, object], field: str | None) -> None:
     path = copy_index(saved, tmp_path)
     edit_json(path, change)
-    with pytest.raises(IndexFormatError) as caught:
+    where = f"{path / 'lower.doc.npy'}: " if field is None else f"{path / 'index.json'}: {field}: "
+    with pytest.raises(IndexFormatError, match=f"^{re.escape(where)}") as caught:
         load_index(path)
     message = str(caught.value)
     if field is None:
@@ -411,7 +423,9 @@ def test_manifest_errors_name_file_and_line(tmp_path: Path, case: str) -> None:
     text, line, reason = bad_manifests(tmp_path)[case]
     manifest = tmp_path / "m.csv"
     manifest.write_bytes(text.encode("latin-1" if case == "not utf-8" else "utf-8"))
-    with pytest.raises(ManifestError) as caught:
+    with pytest.raises(
+        ManifestError, match=f"^{re.escape(str(manifest))}:{line}: .*{re.escape(reason)}"
+    ) as caught:
         read_manifest(manifest)
     error = caught.value
     assert (error.path, error.line) == (str(manifest), line), str(error)

@@ -1,6 +1,6 @@
 """The published manual keyframes on every HDM05 clip in ../shared/data/mocap indexed as one database
-(thesis Table 5.2's setting): each class keeps at least 90 % of its clips, and the hits are well-formed
-Ω^Z components."""
+(thesis Table 5.2's setting): each class keeps at least 90 % of its clips with few hits in other
+classes' clips, and the hits are well-formed Ω^Z components."""
 
 from __future__ import annotations
 
@@ -32,12 +32,19 @@ def test_every_class_present_is_evaluated(
     assert len(results) == 11
 
 
-def test_keyframes_keep_the_relevant_clips(results: list[ClassResult]) -> None:
+FALSE_POSITIVES = {"depositFloorR": 9}
+"""The most hits in clips of other classes a class may have; every other class: 1. Measured with
+``python -m bench.eval_keyframes`` (188 clips, 11 classes): depositFloorR 7 (24 hits, 17 in its 18
+clips), every other class 0; 7 in all."""
+ALL_FALSE_POSITIVES = 10
+
+
+def test_keyframes_keep_the_relevant_clips_and_few_others(results: list[ClassResult]) -> None:
     for r in results:
         assert r.false_negatives <= 0.1 * r.relevant, r
-        assert r.true_positives + r.false_positives == r.hits
-        assert r.true_positives >= r.relevant - r.false_negatives
+        assert r.false_positives <= FALSE_POSITIVES.get(r.name, 1), r
         assert 0 < r.kept < 0.25, r
+    assert sum(r.false_positives for r in results) <= ALL_FALSE_POSITIVES, results
 
 
 def test_hits_are_disjoint_components_inside_documents(database: tuple[MotionIndex, list[str]]) -> None:

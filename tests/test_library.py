@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import re
 import shutil
 from pathlib import Path
 
@@ -92,7 +93,7 @@ def test_manifest_errors_name_file_and_line(tmp_path: Path, row: str, message: s
     hop = hdm05_clip("bd", "hopBothLegs1hops", 1)[1]
     good = f"hop,{HDM_ASF},{hop},,"
     path = write_training(tmp_path / "m.csv", [good, row.format(asf=HDM_ASF, amc=hop)])
-    with pytest.raises(ManifestError) as err:
+    with pytest.raises(ManifestError, match=f"^{re.escape(str(path))}:3: .*{re.escape(message)}") as err:
         read_examples(path)
     assert str(err.value).startswith(f"{path}:3: ") and message in str(err.value)
 
@@ -194,7 +195,9 @@ def test_library_json_errors_name_field(
 ) -> None:
     save_library(library, tmp_path / "lib")
     edit_json(tmp_path / "lib", change)
-    with pytest.raises(LibraryFormatError) as err:
+    where = re.escape(str(tmp_path / "lib" / "library.json"))
+    reason = re.escape(message.removeprefix("library.json: "))
+    with pytest.raises(LibraryFormatError, match=f"^{where}: .*{reason}") as err:
         load_library(tmp_path / "lib")
     assert str(err.value).startswith(str(tmp_path / "lib" / "library.json")) and message in str(err.value)
 

@@ -1,9 +1,11 @@
-"""Motion templates (daemon.templates): the thesis' Example 3.1, Claim 3.1 on real HDM05 classes and on
-random inputs, the balancing operators, ⊕, quantisation and automatic keyframes."""
+"""Motion templates (daemon.templates): the thesis' Example 3.1 (hard MT) and a soft MT computed by hand
+(weighted means), the soft MT of a real class against the one stored in tests/data, Claim 3.1 on real
+HDM05 classes and on random inputs, the balancing operators, ⊕, quantisation and automatic keyframes."""
 
 from __future__ import annotations
 
 from fractions import Fraction
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -42,6 +44,7 @@ CLASSES = ("squat1Reps", "hopBothLegs1hops", "elbowToKnee1RepsLelbowStart")
 SOFT_CLASSES = ("squat1Reps", "elbowToKnee1RepsLelbowStart")
 ACTORS = ("bd", "bk")
 RATE = 30.0
+STORED_SOFT_MT = Path(__file__).parent / "data" / "squat1Reps_soft_mt.npz"
 
 Clips = dict[str, list[tuple[Document, BoolArray]]]
 
@@ -140,6 +143,89 @@ def test_example_3_1_learned_hard_mt() -> None:
     assert learned.max_costs[1:] == (0.0,) * (learned.iterations - 1)
 
 
+# ------------------------------------------------------------------------------- soft MTs, by hand
+
+# Two 2-feature examples, frames as rows (weights 1): X has 2 frames, Y has 4.
+SX = np.asarray([[1, 1], [0, 0]], dtype=bool)
+SY = np.asarray([[1, 0], [1, 1], [0, 0], [0, 1]], dtype=bool)
+
+
+def test_soft_warp_takes_the_weighted_mean() -> None:
+    # W's columns (features by columns) with unequal weights 0.5, 1.5, 1.0
+    w = MotionTemplate(np.asarray([[0.0, 1.0, 0.5], [1.0, 0.5, 0.25]]), np.asarray([0.5, 1.5, 1.0]))
+    # reference column 0 <- W columns 0 and 1; reference columns 1 and 2 <- W column 2
+    out = warp(w, np.asarray([[0, 0], [0, 1], [1, 2], [2, 2]]), 3, "mean")
+    # column 0: weight 0.5 + 1.5 = 2; feature 0: (0 * 0.5 + 1 * 1.5) / 2 = 0.75 (plain mean 0.5),
+    #           feature 1: (1 * 0.5 + 0.5 * 1.5) / 2 = 1.25 / 2 = 0.625 (plain mean 0.75)
+    # columns 1, 2: W column 2's values (0.5, 0.25); its weight 1 shared by its 2 matches: 1 / 2 each
+    assert out.values.tolist() == [[0.75, 0.5, 0.5], [0.625, 0.25, 0.25]]
+    assert out.weights.tolist() == [2.0, 0.5, 0.5]
+
+
+def test_soft_average_by_hand() -> None:
+    x, y = MotionTemplate.from_frames(SX), MotionTemplate.from_frames(SY)
+    # learning cost: mean |difference| over the 2 features times (1 + 1) / 2
+    #   X0 = (1,1) against Y0..Y3 = (1,0), (1,1), (0,0), (0,1): 0.5, 0, 1, 0.5
+    #   X1 = (0,0) against Y0..Y3:                                0.5, 1, 0, 0.5
+    # D row 0: 0.5, 0.5, 1.5, 2.0; row 1: 1.0, 1.5, 0.5 (0 + D(0,1)), 1.0 (0.5 + D(1,2))
+    # backtracking from (1, 3): (1, 2), then (0, 1) (0.5 < 1.5, 1.5), then (0, 0)
+    alignment = full_dtw(learning_cost(x, y, "mean"))
+    assert alignment.path.tolist() == [[0, 0], [0, 1], [1, 2], [1, 3]]
+    assert alignment.cost == 1.0
+    y_warped = warp(y, alignment.path, x.length, "mean")
+    # X column 0 <- Y0, Y1: weight 2, values ((1 + 1) / 2, (0 + 1) / 2) = (1, 0.5)
+    # X column 1 <- Y2, Y3: weight 2, values ((0 + 0) / 2, (0 + 1) / 2) = (0, 0.5)
+    assert y_warped.values.tolist() == [[1.0, 0.0], [0.5, 0.5]]
+    assert y_warped.weights.tolist() == [2.0, 2.0]
+    result, costs = average(x, [y], "mean")
+    # Z = (1 * X + 2 * warp) / 3 column by column (a plain mean would give (X + warp) / 2):
+    #   column 0: ((1 + 2 * 1) / 3, (1 + 2 * 0.5) / 3) = (1, 2/3)   (plain: (1, 0.75))
+    #   column 1: ((0 + 2 * 0) / 3, (0 + 2 * 0.5) / 3) = (0, 1/3)   (plain: (0, 0.25))
+    # weights (1 + 2) / 2 = 1.5 each; balance: Ω^E doubles each column (round(1.5) = 2, weight
+    # 0.75 each), Ω^C keeps them (>= 0.75), Ω^E leaves them: 4 columns of weight 0.75, total 3
+    assert result.values == pytest.approx(np.asarray([[1, 1, 0, 0], [2 / 3, 2 / 3, 1 / 3, 1 / 3]]), abs=1e-15)
+    assert result.weights.tolist() == [0.75] * 4
+    assert costs.tolist() == pytest.approx([1 / 3], abs=1e-15)  # D = 1 over the total weight 3
+    # Y as the reference: the same D = 1; Y0, Y1 <- X0 and Y2, Y3 <- X1, each X column matched twice,
+    # so its weight 1 becomes 1/2 in each: Z = (1 * Y + 0.5 * warp) / 1.5
+    #   feature 1: ((0 + 0.5 * 1) / 1.5, (1 + 0.5) / 1.5, (0 + 0) / 1.5, (1 + 0) / 1.5)
+    #            = (1/3, 1, 0, 2/3); feature 0 is (1, 1, 0, 0) either way
+    # weights (1 + 0.5) / 2 = 0.75, which balance leaves as they are
+    other, other_costs = average(y, [x], "mean")
+    assert other.values == pytest.approx(np.asarray([[1, 1, 0, 0], [1 / 3, 1, 0, 2 / 3]]), abs=1e-15)
+    assert other.weights.tolist() == [0.75] * 4
+    assert other_costs.tolist() == pytest.approx([1 / 3], abs=1e-15)
+
+
+def test_learn_soft_by_hand() -> None:
+    # one iteration: the template whose reference was the first example, i.e. average(X, [Y]) of
+    # test_soft_average_by_hand; the largest cost is 1/3 (both directions); 1/3 > 0.005, so the
+    # iteration limit stops it, not convergence
+    one = learn_soft([SX, SY], max_iterations=1)
+    assert one.template.values == pytest.approx(
+        np.asarray([[1, 1, 0, 0], [2 / 3, 2 / 3, 1 / 3, 1 / 3]]), abs=1e-15
+    )
+    assert one.template.weights.tolist() == [0.75] * 4
+    assert one.iterations == 1 and not one.converged
+    assert one.max_costs == pytest.approx((1 / 3,), abs=1e-15)
+    swapped = learn_soft([SY, SX], max_iterations=1)  # Y's reference result
+    assert swapped.template.values == pytest.approx(
+        np.asarray([[1, 1, 0, 0], [1 / 3, 1, 0, 2 / 3]]), abs=1e-15
+    )
+    # iteration 2: the templates A (feature 1: 2/3, 2/3, 1/3, 1/3) and B (1/3, 1, 0, 2/3) agree on
+    # feature 0, so a cell inside the two 2 x 2 blocks where it agrees costs 1/3 / 2 * 0.75 = 1/8, a
+    # cell outside at least 1/2 * 0.75; the diagonal is the only path of 4 cells: D = 4/8 = 1/2, over
+    # the total weight 3: 1/6. Equal weights 0.75: Z = (A + B) / 2 = (1/2, 5/6, 1/6, 1/2) both ways.
+    # Iteration 3: both templates equal, cost 0 <= 0.005: converged.
+    full = learn_soft([SX, SY])
+    assert full.template.values == pytest.approx(
+        np.asarray([[1, 1, 0, 0], [1 / 2, 5 / 6, 1 / 6, 1 / 2]]), abs=1e-15
+    )
+    assert full.template.weights.tolist() == [0.75] * 4
+    assert full.iterations == 3 and full.converged
+    assert full.max_costs == pytest.approx((1 / 3, 1 / 6, 0.0), abs=1e-15)
+
+
 # ------------------------------------------------------------------------------- Claim 3.1, real
 
 
@@ -181,6 +267,17 @@ def test_soft_mts_of_real_classes(learned: dict[str, LearnedClass]) -> None:
         q = c.quantised
         assert set(np.unique(q.values).tolist()) <= {0.0, 0.5, 1.0}
         assert np.array_equal(q.weights, t.weights)
+
+
+def test_soft_mt_of_squat1reps_equals_the_stored_one(clips: Clips, learned: dict[str, LearnedClass]) -> None:
+    # tests/data/README.md: learn_soft (the toolbox's strategy 5 as implemented) on these 24 clips
+    stored = np.load(STORED_SOFT_MT, allow_pickle=False)
+    assert stored["clips"].tolist() == [Path(d.amc).name for d, _ in clips["squat1Reps"]]
+    soft = learned["squat1Reps"].soft
+    assert soft.template.values.shape == stored["values"].shape
+    np.testing.assert_allclose(soft.template.values, stored["values"], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(soft.template.weights, stored["weights"], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(soft.max_costs, stored["max_costs"], rtol=0, atol=1e-12)
 
 
 def test_identical_copies_give_that_matrix(clips: Clips) -> None:
@@ -384,6 +481,10 @@ def test_contract_documented_example_and_border_quirk() -> None:
     hard = contract(MotionTemplate(t.values, t.weights), "oplus")
     assert hard.weights == pytest.approx([1.1])
     assert hard.values.tolist() == [[0.5]]
+    # a merged column is the weight-weighted mean: (0 * 0.25 + 1 * 0.5) / 0.75 = 2/3 (plain mean 0.5)
+    merged = contract(MotionTemplate(np.asarray([[0.0, 1.0, 1.0]]), np.asarray([0.25, 0.5, 1.0])), "mean")
+    assert merged.values[0] == pytest.approx([2 / 3, 1.0], abs=1e-15)
+    assert merged.weights.tolist() == [0.75, 1.0]
 
 
 def test_expand_rounds_halves_up() -> None:
@@ -442,15 +543,15 @@ def test_quantise_toolbox_thresholds() -> None:
 
 
 def test_inputs_are_checked() -> None:
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match=r"^learning a motion template needs at least one example$"):
         learn_soft([])
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match=r"^examples differ in their number of features: \[2, 3\]$"):
         learn_hard([np.zeros((3, 2), dtype=bool), np.zeros((3, 3), dtype=bool)])
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match=r"^expected 3 weights, got shape \(2,\)$"):
         MotionTemplate(np.zeros((2, 3)), np.ones(2))
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match=r"^template weights must be positive and finite$"):
         MotionTemplate(np.zeros((2, 3)), np.asarray([1.0, 0.0, 1.0]))
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match=r"^keyframes need a 39-feature template, got 1 features$"):
         automatic_keyframes(row([1, 0]), [np.zeros((2, 1), dtype=bool)])
     template = MotionTemplate(np.zeros((2, 3)), np.ones(3))
     assert template.length == 3 and template.features == 2
