@@ -46,6 +46,10 @@ def read_structured(path: str | Path, kind: Literal["json", "yaml"], error: type
         mark = getattr(exc, "problem_mark", None)
         problem = getattr(exc, "problem", None) or type(exc).__name__
         where: int | None = None if mark is None else mark.line + 1
+        if isinstance(exc, yaml.reader.ReaderError):  # a character YAML refuses (no mark, no problem)
+            code = exc.character if isinstance(exc.character, int) else ord(exc.character)
+            problem = f"character U+{code:04X}: {exc.reason}"
+            where = text[: exc.position].count("\n") + 1
         raise error(f"not valid YAML: {problem}", path=path, line=where) from None
     except RecursionError:
         raise error("not valid YAML: nested too deeply", path=path) from None

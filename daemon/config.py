@@ -8,7 +8,7 @@ from typing import Literal, cast, get_args
 
 from daemon.checks import Checker, read_structured
 from daemon.errors import MocapdError
-from daemon.types import DEFAULT_NATIVE_RATE
+from daemon.types import DEFAULT_NATIVE_RATE, MAX_NATIVE_RATE
 
 Units = Literal["asf", "cm"]
 
@@ -46,6 +46,12 @@ def parse_config(data: object, source: str = "<config>") -> Config:
     section = root.get("replay")
     replay = check.mapping({} if section is None else section, "replay", optional=("frame_rate_hz", "units"))
     defaults = ReplayConfig()
-    rate = check.positive_number(replay.get("frame_rate_hz", defaults.frame_rate_hz), "replay.frame_rate_hz")
+    rate = check.number(
+        replay.get("frame_rate_hz", defaults.frame_rate_hz),
+        "replay.frame_rate_hz",
+        low=0,
+        low_open=True,
+        high=MAX_NATIVE_RATE,
+    )
     units = check.choice(replay.get("units", defaults.units), "replay.units", get_args(Units))
     return Config(replay=ReplayConfig(frame_rate_hz=rate, units=cast(Units, units)))

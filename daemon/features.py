@@ -22,7 +22,7 @@ from typing import Any, Literal
 import numpy as np
 import numpy.typing as npt
 
-from daemon.types import N_FEATURES, BoolArray, FeatureSet, FloatArray
+from daemon.types import MAX_NATIVE_RATE, N_FEATURES, BoolArray, FeatureSet, FloatArray
 from replay.joints import JOINT_NAMES, TOOLBOX_JOINTS
 
 Reference = Literal["h_R", "h_L", "shoulder_width", "hip_width", "chest", "body", "one"]
@@ -591,8 +591,10 @@ class _Program:
     smoothed velocities of a frame whose windows lie inside the motion (see :func:`_smooth`)."""
 
     def __init__(self, joint_names: tuple[str, ...], frame_rate: float) -> None:
-        if not (math.isfinite(frame_rate) and frame_rate > 0):
-            raise ValueError(f"frame rate must be a positive number, got {frame_rate}")
+        if not (math.isfinite(frame_rate) and 0 < frame_rate <= MAX_NATIVE_RATE):
+            raise ValueError(
+                f"frame rate must be a positive number up to {MAX_NATIVE_RATE:g} Hz, got {frame_rate:g}"
+            )
         index = {name: i for i, name in enumerate(joint_names)}
         missing = sorted(j for j in _catalog_joints() if j not in index)
         if missing:
@@ -1004,7 +1006,8 @@ def decimation_factor(native_hz: float, target_hz: float) -> int:
     divide the native rate."""
     if not (math.isfinite(target_hz) and target_hz > 0):
         raise ValueError(f"target frame rate must be a positive number, got {target_hz}")
-    factor = round(native_hz / target_hz)
+    ratio = native_hz / target_hz
+    factor = round(ratio) if math.isfinite(ratio) else 0  # a subnormal target overflows the ratio
     if factor < 1 or not math.isclose(native_hz / factor, target_hz, rel_tol=1e-9):
         raise ValueError(f"{target_hz:g} Hz is not the native {native_hz:g} Hz divided by a whole number")
     return factor

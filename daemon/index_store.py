@@ -323,7 +323,8 @@ def _check_set(
         or np.any(ends[last] != frames[doc[last]])
         or len(np.unique(doc)) != n_docs
     ):
-        fail("start", "the segments do not tile the documents of index.json")
+        together = ", ".join(array_file(feature_set, a) for a in ("doc", "start", "length"))
+        fail("start", f"the segments ({together}) do not tile the documents of index.json")
     if len(code) and (code.min() < 0 or code.max() >= 1 << bits):
         fail("code", f"codes must lie in 0..{(1 << bits) - 1}")
     if offsets[0] != 0 or offsets[-1] != len(code) or np.any(np.diff(offsets) < 0):
@@ -332,7 +333,11 @@ def _check_set(
     if len(postings) and (postings.min() < 0 or postings.max() >= len(code)):
         fail("postings", f"segment numbers must lie in 0..{len(code) - 1}")
     if np.any(code[postings] != listed) or np.any(np.diff(postings)[np.diff(listed) == 0] <= 0):
-        fail("postings", "the lists do not hold exactly the segments of their codes, ascending")
+        fail(
+            "postings",
+            f"the lists ({array_file(feature_set, 'offsets')}, {array_file(feature_set, 'postings')}) do "
+            f"not hold exactly the segments of their codes ({array_file(feature_set, 'code')}), ascending",
+        )
 
 
 def _documents(check: Checker, value: object) -> tuple[Document, ...]:

@@ -405,7 +405,10 @@ def keyframe_search(
     first, last, ok = match_ranges([p[0] for p in pruned], [p[1] for p in pruned], matches, bounds)
     ranges = list(zip(first[ok].tolist(), last[ok].tolist(), strict=True))
     components = omega_z(ranges)
-    left, right = extend
+    # an extension past the whole layout reaches every document's first or last frame, as the layout's
+    # length does: so cut, it cannot overflow int64
+    layout = int(base[-1] + frames[-1]) if len(frames) else 0
+    left, right = min(extend[0], layout), min(extend[1], layout)
     if left or right:
         # extended within the document (its first frame is base[d], its last base[d] + frames[d] - 1)
         d = np.searchsorted(base, [s for s, _ in components], "right") - 1

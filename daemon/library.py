@@ -46,6 +46,8 @@ VERSION = 2
 LIBRARY_JSON = "library.json"
 WHAT = "a mocapd template library"
 ARRAYS = ("soft", "soft_weights", "quantised", "quantised_weights", "hard", "hard_weights")
+MAX_WEIGHT = 1.5
+"""Every weight of a learned template is below this (:func:`daemon.templates.balance`)."""
 CLASS_KEYS = ("file", "sha256", "tau", "delta", "steps", "iterations", "training", "keyframes")
 
 
@@ -306,6 +308,13 @@ def _templates(file: Path, sums: Mapping[str, str]) -> tuple[MotionTemplate, Mot
             )
         if not np.all(np.isfinite(weights) & (weights > 0)):
             raise LibraryFormatError(f"{kind}_weights: weights must be positive and finite", path=file)
+        if not np.all(weights < MAX_WEIGHT):
+            # retrieval repeats a column round(w) times: a huge weight would exhaust memory and time
+            raise LibraryFormatError(
+                f"{kind}_weights: weights must be below {MAX_WEIGHT:g} (a learned template is balanced, "
+                f"thesis eq. 3.5), got {weights.max():g}",
+                path=file,
+            )
         if kind == "soft":
             if not np.all((values >= 0) & (values <= 1)):
                 raise LibraryFormatError("soft: values must lie in [0, 1]", path=file)

@@ -23,5 +23,9 @@ N_FEATURES = 39
 DEFAULT_NATIVE_RATE = 120.0
 """Hz assumed for a recording that states no rate (CMU and HDM05 record at 120 Hz)."""
 
+MAX_NATIVE_RATE = 10_000.0
+"""The highest rate (Hz) features are computed at: the velocity windows grow with the rate (2500
+frames at 10 kHz), so an absurd rate (a typo, a damaged file) would exhaust memory and time."""
+
 DEFAULT_INDEX_RATE = 30.0
 """Hz at which indexes, templates and keyframes work (the toolbox's every 4th frame of 120 Hz)."""

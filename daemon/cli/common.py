@@ -15,6 +15,7 @@ from daemon.config import Config
 from daemon.errors import FileAccessError, UsageError
 from daemon.plots import check_plotting
 from daemon.storage import check_directory, check_output_file, output_file
+from daemon.types import MAX_NATIVE_RATE
 
 STDOUT = "-"
 
@@ -27,6 +28,15 @@ def positive_float(text: str) -> float:
         value = math.nan
     if number_reason(value, low=0, low_open=True) is not None:
         raise argparse.ArgumentTypeError(f"must be a positive number, got '{text}'")
+    return value
+
+
+def native_rate(text: str) -> float:
+    """An option value that must be a capture rate: a positive number up to the highest rate
+    features are computed at."""
+    value = positive_float(text)
+    if value > MAX_NATIVE_RATE:
+        raise argparse.ArgumentTypeError(f"must be at most {MAX_NATIVE_RATE:g} Hz, got '{text}'")
     return value
 
 
@@ -50,7 +60,7 @@ def recording_options(command: argparse.ArgumentParser) -> None:
 def native_rate_option(command: argparse.ArgumentParser) -> None:
     command.add_argument(
         "--native-fps",
-        type=positive_float,
+        type=native_rate,
         default=None,
         metavar="HZ",
         help="the rate recordings were captured at when their AMC file states none "
