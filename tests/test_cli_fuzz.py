@@ -578,10 +578,17 @@ def test_index_build_with_random_options(
 ) -> None:
     with workspace(valid) as where:
         copy_index(valid, where)
-        outputs(where)
-        options["--out"] = str(where / str(options["--out"]))
-        argv = ["index", "build", "--manifest", index_manifest(where, INDEXED), *arguments(options)]
-        run(capsys, where, argv, option_names(options))
+        argv = ["index", "build", "--manifest", index_manifest(where, INDEXED)]
+        run_with_options(capsys, where, argv, options)
+
+
+def run_with_options(
+    capsys: pytest.CaptureFixture[str], where: Path, argv: list[object], options: dict[str, str | None]
+) -> None:
+    """``argv`` with ``options`` in ``where`` beside earlier outputs, ``--out`` below ``where``."""
+    outputs(where)
+    options["--out"] = str(where / str(options["--out"]))
+    run(capsys, where, [*argv, *arguments(options)], option_names(options))
 
 
 # ------------------------------------------------------------------------- index info and search
@@ -864,10 +871,8 @@ def test_learn_with_random_options(
 ) -> None:
     with workspace(valid) as where:
         copy_library(valid, where)
-        outputs(where)
-        options["--out"] = str(where / str(options["--out"]))
         manifest = write_training(where / "clips.csv", training_rows(TRAINING_CLIPS[:2]))
-        run(capsys, where, ["learn", "--manifest", manifest, *arguments(options)], option_names(options))
+        run_with_options(capsys, where, ["learn", "--manifest", manifest], options)
 
 
 @given(

@@ -99,7 +99,8 @@ def test_bad_config(tmp_path: Path, text: str, field: str) -> None:
 
 def test_bad_field_reports_the_value(tmp_path: Path) -> None:
     path = write(tmp_path, "replay:\n  frame_rate_hz: -120\n  units: asf\n")
-    with pytest.raises(ConfigError, match=r"replay\.frame_rate_hz: must be a number in \(0, 10000\], got -120$"):
+    rate = r"replay\.frame_rate_hz: must be a number in \(0, 10000\], got -120$"
+    with pytest.raises(ConfigError, match=rate):
         load_config(path)
     with pytest.raises(ConfigError, match=r"replay\.units: must be one of asf, cm, got 'inch'$"):
         load_config(write(tmp_path, "replay:\n  units: inch\n"))

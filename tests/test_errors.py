@@ -434,30 +434,23 @@ def test_asf_original_round_trip(clip: Clip, asf_lines: tuple[str, ...], tmp_pat
     assert skeleton.parents == clip.skeleton.parents
 
 
-def test_asf_hierarchy_cycle(asf_lines: tuple[str, ...], tmp_path: Path) -> None:
-    """lowerback and upperback made each other's parent, lowerback taken off the root's line."""
+@pytest.mark.parametrize(
+    ("root_children", "closing", "named"),
+    [
+        # lowerback and upperback made each other's parent, lowerback taken off the root's line
+        (["root", "lhipjoint", "rhipjoint"], ["upperback", "thorax", "lowerback"], "'lowerback'"),
+        # ltoes made the parent of lhipjoint: a cycle through the whole left leg
+        (["root", "rhipjoint", "lowerback"], ["lfoot", "ltoes", "lhipjoint"], "'lhipjoint'"),
+    ],
+)
+def test_asf_hierarchy_cycle(
+    asf_lines: tuple[str, ...], tmp_path: Path, root_children: list[str], closing: list[str], named: str
+) -> None:
     lines = list(asf_lines)
-    set_words(
-        lines,
-        line_of(lines, "root", "lhipjoint", "rhipjoint", "lowerback"),
-        ["root", "lhipjoint", "rhipjoint"],
-    )
-    at = line_of(lines, "upperback", "thorax")
-    set_words(lines, at, ["upperback", "thorax", "lowerback"])
-    check_bad_asf(write(tmp_path / "cycle.asf", lines), at, "cycle", "'lowerback'")
-
-
-def test_asf_hierarchy_cycle_long(asf_lines: tuple[str, ...], tmp_path: Path) -> None:
-    """ltoes made the parent of lhipjoint: a cycle through the whole left leg."""
-    lines = list(asf_lines)
-    set_words(
-        lines,
-        line_of(lines, "root", "lhipjoint", "rhipjoint", "lowerback"),
-        ["root", "rhipjoint", "lowerback"],
-    )
-    at = line_of(lines, "lfoot", "ltoes")
-    set_words(lines, at, ["lfoot", "ltoes", "lhipjoint"])
-    check_bad_asf(write(tmp_path / "cycle.asf", lines), at, "cycle", "'lhipjoint'")
+    set_words(lines, line_of(lines, "root", "lhipjoint", "rhipjoint", "lowerback"), root_children)
+    at = line_of(lines, *closing[:2])
+    set_words(lines, at, closing)
+    check_bad_asf(write(tmp_path / "cycle.asf", lines), at, "cycle", named)
 
 
 def test_asf_hierarchy_cycle_with_a_bone_hanging_off_it(asf_lines: tuple[str, ...], tmp_path: Path) -> None:
