@@ -87,6 +87,18 @@ def gap_bounds(delta: int, stiffness: float) -> tuple[int, int | None]:
     return math.ceil(s * delta), math.floor(delta / s)
 
 
+def query_bounds(
+    query: KeyframeQuery, rate: float, max_gap: int | None = None
+) -> list[tuple[int, int | None]]:
+    """μ's distance bounds (:func:`gap_bounds`) of every gap of ``query`` at ``rate`` Hz; with
+    ``max_gap`` (frames at ``rate``), an unbounded gap (σ = 0) allows at most that many frames, so
+    that a streaming search (:class:`daemon.automaton.KeyframeAutomaton`) holds a bounded state."""
+    if max_gap is not None and max_gap < 0:
+        raise ValueError(f"the maximum gap must not be negative, got {max_gap}")
+    bounds = [gap_bounds(d, s) for d, s in query.gaps(rate)]
+    return [(lo, max_gap if hi is None else hi) for lo, hi in bounds]
+
+
 # ------------------------------------------------------------------------------- parsing the JSON
 
 
@@ -380,6 +392,7 @@ def keyframe_search(
     rate: float,
     extend: tuple[int, int] = (0, 0),
     prune: bool = True,
+    max_gap: int | None = None,
 ) -> KeyframeHits:
     """Run ``query`` on a database indexed at ``rate`` Hz whose document d has ``doc_frames[d]``
     frames: the Ω^Z components in every document, each optionally extended by ``extend`` = (left,
@@ -387,8 +400,9 @@ def keyframe_search(
 
     The documents are laid out one after another with a one-frame gap, so that Alg. 4.1 runs once
     over all of them; its lists are first pruned to the entries that take part in some hit (``prune``;
-    off, the algorithm runs on the whole lists as published: same result, slower)."""
-    bounds = [gap_bounds(d, s) for d, s in query.gaps(rate)]
+    off, the algorithm runs on the whole lists as published: same result, slower). ``max_gap``: see
+    :func:`query_bounds` (None: unbounded gaps stay unbounded, as published)."""
+    bounds = query_bounds(query, rate, max_gap)
     lists = keyframe_lists(sets, query)
     frames = np.asarray(doc_frames, dtype=np.int64)
     base = np.concatenate([[0], np.cumsum(frames + 1)[:-1]]).astype(np.int64)

@@ -294,20 +294,24 @@ def hits_of_match(
     ]
 
 
-def allowed(gap: int, delta: int, sigma: Fraction) -> bool:
-    """Condition (4.6): σδ <= gap <= δ/σ, no upper bound for σ = 0."""
-    return sigma * delta <= gap and (sigma == 0 or gap * sigma <= delta)
+def allowed(gap: int, delta: int, sigma: Fraction, max_gap: int | None = None) -> bool:
+    """Condition (4.6): σδ <= gap <= δ/σ, no upper bound for σ = 0 (or ``max_gap``, if given)."""
+    if sigma == 0:
+        return max_gap is None or gap <= max_gap
+    return sigma * delta <= gap and gap * sigma <= delta
 
 
 def keyframe_brute_force(
     docs: dict[FeatureSet, list[list[int]]],
     query: KeyframeQuery,
     extend: tuple[int, int],
+    max_gap: int | None = None,
 ) -> list[tuple[int, int, int]]:
-    """Ω^Z of all matches by Def. 4.4-4.8 read directly: per document, a keyframe's list is the
-    maximal runs of frames whose code lies in V_k; every hit is enumerated frame by frame; a match is
-    the runs its frames lie in; R(M) = (min i_1, max i_K) over the match's hits; components are the
-    connected sets of ranges that share frames (pairwise, by a graph search)."""
+    """Ω^Z of all matches by Def. 4.4-4.8 read directly (gaps with σ = 0 at most ``max_gap``): per
+    document, a keyframe's list is the maximal runs of frames whose code lies in V_k; every hit is
+    enumerated frame by frame; a match is the runs its frames lie in; R(M) = (min i_1, max i_K) over
+    the match's hits; components are the connected sets of ranges that share frames (pairwise, by a
+    graph search)."""
     deltas = [b.position - a.position for a, b in zip(query.keyframes, query.keyframes[1:], strict=False)]
     sigmas = [Fraction(repr(kf.stiffness_to_next)) for kf in query.keyframes[:-1]]
     out = []
@@ -327,7 +331,7 @@ def keyframe_brute_force(
             member.append(m)
             run_id.append(ids)
         ranges: dict[tuple[int, ...], list[int]] = {}
-        for hit in all_hits(member, deltas, sigmas):
+        for hit in all_hits(member, deltas, sigmas, max_gap):
             key = tuple(run_id[j][i] for j, i in enumerate(hit))
             r = ranges.setdefault(key, [hit[0], hit[-1]])
             r[0], r[1] = min(r[0], hit[0]), max(r[1], hit[-1])
@@ -341,7 +345,9 @@ def keyframe_brute_force(
     return out
 
 
-def all_hits(member: list[list[bool]], deltas: list[int], sigmas: list[Fraction]) -> Iterator[list[int]]:
+def all_hits(
+    member: list[list[bool]], deltas: list[int], sigmas: list[Fraction], max_gap: int | None = None
+) -> Iterator[list[int]]:
     """Every frame tuple i_1 <= ... <= i_K with member[k][i_k] and the distance condition (4.6)."""
 
     def grow(hit: list[int]) -> Iterator[list[int]]:
@@ -352,7 +358,7 @@ def all_hits(member: list[list[bool]], deltas: list[int], sigmas: list[Fraction]
         for i in range(hit[-1] if hit else 0, len(member[k])):
             if not member[k][i]:
                 continue
-            if hit and not allowed(i - hit[-1], deltas[k - 1], sigmas[k - 1]):
+            if hit and not allowed(i - hit[-1], deltas[k - 1], sigmas[k - 1], max_gap):
                 continue
             yield from grow([*hit, i])
 

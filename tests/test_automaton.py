@@ -1,0 +1,190 @@
+"""The streaming keyframe automaton against its batch twin (``keyframe_search`` with the same gap cap)
+and the brute force of Def. 4.4-4.8, on random code streams and on every real recording; its latency
+bound and its bounded state."""
+
+from __future__ import annotations
+
+import json
+import random
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from daemon.automaton import Component, KeyframeAutomaton
+from daemon.features import SET_SLICES
+from daemon.index import index_from_codes
+from daemon.keyframes import Keyframe, KeyframeQuery, keyframe_search, parse_keyframe_queries
+from daemon.recordings import motion_features, read_recording
+from daemon.segments import set_codes
+from daemon.types import FEATURE_SETS, FeatureSet
+from tests.helpers import KEYFRAMES, pair_id, recording_pairs
+from tests.naive import keyframe_brute_force
+
+LOW_BITS = 3
+SHIPPED_HDM05 = (
+    "depositFloorR",
+    "elbowToKnee1RepsLelbowStart",
+    "grabHighR",
+    "hopBothLegs1hops",
+    "jogLeftCircle4StepsRstart",
+    "kickLFront1Reps",
+    "lieDownFloor",
+    "rotateArmsBothBackward1Reps",
+    "sneak2StepsLStart",
+    "squat1Reps",
+    "throwBasketball",
+)
+"""The HDM05 classes of the shipped library (their published keyframes)."""
+
+
+def stream_codes(codes: dict[FeatureSet, list[int]]) -> list[int]:
+    """Per frame, the three sets' codes side by side in one 39-bit code."""
+    n = len(codes["lower"])
+    return [sum(codes[fs][t] << SET_SLICES[fs].start for fs in FEATURE_SETS) for t in range(n)]
+
+
+def run(automaton: KeyframeAutomaton, codes: list[int]) -> list[tuple[Component, int]]:
+    """Every component with the frame after whose push it came out (the last frame for the flush)."""
+    out = [(c, t) for t, code in enumerate(codes) for c in automaton.push(code)]
+    return out + [(c, len(codes) - 1) for c in automaton.flush()]
+
+
+def batch(
+    codes: dict[FeatureSet, list[int]], query: KeyframeQuery, max_gap: int | None
+) -> list[tuple[int, int]]:
+    sets = {
+        fs: index_from_codes(
+            [np.asarray(codes[fs], dtype=np.int64)], SET_SLICES[fs].stop - SET_SLICES[fs].start, fs
+        )
+        for fs in FEATURE_SETS
+    }
+    found = keyframe_search(sets, [len(codes["lower"])], query, query.rate, max_gap=max_gap)
+    return list(zip(found.start.tolist(), found.end.tolist(), strict=True))
+
+
+def check_stream(codes: dict[FeatureSet, list[int]], query: KeyframeQuery, max_gap: int | None) -> None:
+    automaton = KeyframeAutomaton(query, query.rate, max_gap)
+    got = run(automaton, stream_codes(codes))
+    assert [(c.start, c.end) for c, _ in got] == batch(codes, query, max_gap)
+    for component, pushed in got:
+        assert component.emitted_at == pushed
+        assert component.end <= component.emitted_at <= component.end + automaton.latency
+    assert automaton.state_size == 0
+
+
+@st.composite
+def streams(draw: st.DrawFn) -> dict[FeatureSet, list[int]]:
+    n = draw(st.integers(1, 60))
+    out: dict[FeatureSet, list[int]] = {}
+    for fs in FEATURE_SETS:
+        codes: list[int] = []
+        while len(codes) < n:  # runs, so that list entries are longer than one frame
+            codes += [draw(st.integers(0, (1 << LOW_BITS) - 1))] * draw(st.integers(1, 6))
+        out[fs] = codes[:n]
+    return out
+
+
+@st.composite
+def queries(draw: st.DrawFn) -> KeyframeQuery:
+    k = draw(st.integers(1, 4))
+    keyframes = []
+    position = 0
+    for j in range(k):
+        fs = draw(st.sampled_from(FEATURE_SETS))
+        width = SET_SLICES[fs].stop - SET_SLICES[fs].start
+        low = [draw(st.sampled_from([0.0, 1.0, 0.5, 0.5])) for _ in range(LOW_BITS)]
+        high = [draw(st.sampled_from([0.0, 0.5])) for _ in range(width - LOW_BITS)]
+        stiffness = None if j == k - 1 else draw(st.sampled_from([0.0, 0.0, 0.3, 0.5, 0.8, 1.0]))
+        keyframes.append(Keyframe(fs, tuple(low + high), position, stiffness))
+        position += draw(st.sampled_from([0, 0, 1, 2, 4, 7]))  # equal positions: zero gaps
+    return KeyframeQuery("random", tuple(keyframes), 30.0)
+
+
+@settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(streams(), queries(), st.integers(0, 8))
+def test_automaton_emits_the_batch_components(
+    codes: dict[FeatureSet, list[int]], query: KeyframeQuery, max_gap: int
+) -> None:
+    """Components, order and emission frames within the latency bound; batch and brute force agree."""
+    check_stream(codes, query, max_gap)
+    expected = keyframe_brute_force({fs: [c] for fs, c in codes.items()}, query, (0, 0), max_gap)
+    assert batch(codes, query, max_gap) == [(s, e) for _, s, e in expected]
+
+
+def test_latency_bound_is_reached() -> None:
+    """Two keyframes 4 frames apart with σ = 0.5 (gaps 2..8): keyframe 1 holding on frames 0-1 keeps
+    the component of the hit (1, 3) open until frame 1 + 8 = 9, when no later frame of keyframe 2 can
+    be 8 frames or less after a frame of keyframe 1, so the whole (0, 3) is final."""
+    lower = [0b001, 0b001, 0b000, 0b010, 0b000, 0b000, 0b000, 0b000, 0b000, 0b000, 0b000, 0b000]
+    codes: dict[FeatureSet, list[int]] = {"lower": lower, "upper": [0] * len(lower), "mix": [0] * len(lower)}
+    width = SET_SLICES["lower"].stop
+    first = Keyframe("lower", (1.0,) + (0.5,) * (width - 1), 0, 0.5)
+    second = Keyframe("lower", (0.5, 1.0) + (0.5,) * (width - 2), 4, None)
+    query = KeyframeQuery("two", (first, second), 30.0)
+    automaton = KeyframeAutomaton(query, 30.0)
+    assert automaton.latency == 8
+    got = run(automaton, stream_codes(codes))
+    assert got == [(Component(0, 3, 9), 9)]
+    assert batch(codes, query, None) == [(0, 3)]
+
+
+def test_unbounded_gap_needs_a_cap() -> None:
+    width = SET_SLICES["upper"].stop - SET_SLICES["upper"].start
+    values = (1.0,) + (0.5,) * (width - 1)
+    query = KeyframeQuery(
+        "loose", (Keyframe("upper", values, 0, 0.0), Keyframe("upper", values, 3, None)), 30.0
+    )
+    with pytest.raises(ValueError, match=r"^loose: a gap with stiffness 0 needs a maximum gap"):
+        KeyframeAutomaton(query, 30.0)
+    assert KeyframeAutomaton(query, 30.0, max_gap=90).latency == 90
+
+
+def test_state_stays_bounded_over_an_hour() -> None:
+    """One hour at 30 Hz of random runs against a query with an unbounded gap capped at 2 s: the
+    partial matches held never exceed what the query's span allows, in the last minutes as in the
+    first."""
+    rng = random.Random(7)
+    width = SET_SLICES["lower"].stop
+    query = KeyframeQuery(
+        "hour",
+        (
+            Keyframe("lower", (1.0,) + (0.5,) * (width - 1), 0, 0.0),
+            Keyframe("lower", (0.5, 1.0) + (0.5,) * (width - 2), 5, 0.5),
+            Keyframe("lower", (0.0, 0.0) + (0.5,) * (width - 2), 9, None),
+        ),
+        30.0,
+    )
+    automaton = KeyframeAutomaton(query, 30.0, max_gap=60)
+    span = automaton.latency
+    largest = [0, 0]
+    emitted = [0, 0]
+    n = 30 * 3600
+    code = 0
+    for t in range(n):
+        if rng.random() < 0.1:
+            code = rng.randrange(8)
+        emitted[t >= n // 2] += len(automaton.push(code))
+        largest[t >= n // 2] = max(largest[t >= n // 2], automaton.state_size)
+    assert min(emitted) > 50  # components come out all through the hour
+    # one partial per run of keyframe 1 and per pair of runs inside the span; runs last >= 1 frame
+    assert max(largest) <= (span + 1) ** 2
+    assert largest[1] <= 2 * largest[0] + span
+
+
+@pytest.fixture(scope="module")
+def published() -> dict[str, KeyframeQuery]:
+    queries = parse_keyframe_queries(json.loads(KEYFRAMES.read_text(encoding="utf-8")), KEYFRAMES)
+    return {name: queries[name] for name in SHIPPED_HDM05}
+
+
+@pytest.mark.parametrize("pair", recording_pairs(), ids=pair_id)
+def test_automaton_equals_batch_on_real_recordings(
+    pair: tuple[Path, Path], published: dict[str, KeyframeQuery]
+) -> None:
+    got = motion_features(read_recording(*pair), 30.0)
+    codes = {fs: set_codes(got.matrix, fs).tolist() for fs in FEATURE_SETS}
+    for query in published.values():
+        check_stream(codes, query, 60)
