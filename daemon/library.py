@@ -3,23 +3,29 @@ readable without them.
 
 A library is a directory::
 
-    LIB/library.json      {"format": "mocapd-templates", "version": 2, "rate": 30.0,
+    LIB/library.json      {"format": "mocapd-templates", "version": 3, "rate": 30.0,
                            "features": [39 names, the row order of every template],
                            "classes": {name: {"file": "<name>.npz", "sha256": {array: hex},
-                                              "tau", "delta", "steps", "iterations",
-                                              "training": [clip, ...],
+                                              "tau", "calibration", "delta", "steps",
+                                              "iterations", "training": [clip, ...],
                                               "keyframes": [keyframe, ...]}}}
     LIB/<name>.npz        soft, soft_weights, quantised, quantised_weights, hard, hard_weights
 
 Templates are ``(39, K)`` float64 matrices (features in :data:`daemon.features.FEATURE_NAMES` order,
 columns in frames at ``rate``) with weights ``(K,)``; the soft MT lies in [0, 1], the quantised and
-hard MTs in {0, ½, 1}. A training clip is ``{"asf", "amc", "start_frame", "end_frame", "frames"}``
-(AMC frame numbers, inclusive; ``frames`` at ``rate``). Keyframes use the entries of
-``manual-keyframes.json`` (``set``, ``values``, ``position``, ``stiffness_to_next``), positions in
-template columns. ``tau`` is the class's retrieval threshold, ``delta`` the quantisation threshold
-and ``steps`` the DTW steps retrieval uses. ``sha256`` holds the SHA-256 of each array, checked on
-loading, so arrays damaged, swapped or edited are refused. A class's arrays are read only when the
-class is loaded, so a damaged class file does not keep the others from being used.
+hard MTs in {0, ½, 1}. A training clip is ``{"asf", "amc", "start_frame", "end_frame", "frames",
+"actor"}`` (AMC frame numbers, inclusive; ``frames`` at ``rate``; ``actor`` the person). Keyframes
+use the entries of ``manual-keyframes.json`` (``set``, ``values``, ``position``,
+``stiffness_to_next``), positions in template columns. ``tau`` is the class's retrieval threshold
+and ``calibration`` how it was obtained (:class:`daemon.calibration.Calibration` without its τ:
+``{"method", "folds", "positives", "negatives", "recall", "precision"}``; folds 0 and recall and
+precision null for a τ given, not calibrated), ``delta`` the quantisation threshold and ``steps``
+the DTW steps retrieval uses. ``sha256`` holds the SHA-256 of each array, checked on loading, so
+arrays damaged, swapped or edited are refused. A class's arrays are read only when the class is
+loaded, so a damaged class file does not keep the others from being used.
+
+Version 2 (no ``calibration``, no ``actor``) still loads: its τ is marked given, not calibrated, and
+each clip's actor is its ASF path. Version 1 is refused with the advice to learn it again.
 """
 
 from __future__ import annotations
@@ -31,6 +37,7 @@ from typing import Any
 
 import numpy as np
 
+from daemon.calibration import Calibration, given
 from daemon.checks import Checker
 from daemon.dtw import STEPS, Steps
 from daemon.errors import MocapdError
@@ -38,17 +45,22 @@ from daemon.features import FEATURE_NAMES
 from daemon.keyframes import KeyframeQuery, parse_keyframes
 from daemon.recordings import CLASS_NAME, TrainingClip
 from daemon.storage import check_target, checksum, read_meta, replace_directory, write_json
-from daemon.templates import MotionTemplate, learn
+from daemon.templates import THESIS_KEYFRAMES, Generalisation, MotionTemplate, learn
 from daemon.types import DEFAULT_INDEX_RATE, N_FEATURES, BoolArray
 
 FORMAT = "mocapd-templates"
-VERSION = 2
+VERSION = 3
+VERSIONS = (2, 3)
 LIBRARY_JSON = "library.json"
 WHAT = "a mocapd template library"
 ARRAYS = ("soft", "soft_weights", "quantised", "quantised_weights", "hard", "hard_weights")
 MAX_WEIGHT = 1.5
 """Every weight of a learned template is below this (:func:`daemon.templates.balance`)."""
-CLASS_KEYS = ("file", "sha256", "tau", "delta", "steps", "iterations", "training", "keyframes")
+CLASS_KEYS_V2 = ("file", "sha256", "tau", "delta", "steps", "iterations", "training", "keyframes")
+CLASS_KEYS = (*CLASS_KEYS_V2, "calibration")
+CALIBRATION_KEYS = ("method", "folds", "positives", "negatives", "recall", "precision")
+CLIP_KEYS_V2 = ("asf", "amc", "start_frame", "end_frame", "frames")
+V2_TAU = "a version 2 library"
 
 
 class LibraryFormatError(MocapdError, ValueError):
@@ -73,6 +85,13 @@ class ClassTemplate:
     steps: Steps
     iterations: int
     training: tuple[TrainingClip, ...]
+    calibration: Calibration | None = None
+    """How ``tau`` was obtained; None: given, not calibrated (as :func:`daemon.calibration.given`)."""
+
+    @property
+    def provenance(self) -> Calibration:
+        """:attr:`calibration`, a given τ's record when there is none."""
+        return given(self.tau) if self.calibration is None else self.calibration
 
 
 @dataclass(frozen=True)
@@ -105,25 +124,38 @@ def learn_class(
     keyframes: int = 3,
     steps: Steps = "toolbox",
     rate: float = DEFAULT_INDEX_RATE,
+    calibration: Calibration | None = None,
+    generalisation: Generalisation = THESIS_KEYFRAMES,
 ) -> ClassTemplate:
     """A class learned from its examples' ``(frames, 39)`` matrices at ``rate`` Hz: soft MT (toolbox
     strategy 5) and its quantisation by ``delta``, hard MT (thesis §3.3.1) and ``keyframes`` automatic
     keyframes from it (thesis ch. 6; 0 = none). ``steps``: the DTW steps retrieval will use; the
     toolbox's (1,1), (1,2), (2,1) by default, whose slopes between ½ and 2 keep a template from
     matching a much shorter or longer stretch (README: on HDM05 they raise precision at τ = 0.1 from
-    0.09-0.6 to 0.3-1 on the weakest classes at the same recall)."""
-    learned = learn([m for _, m in examples], delta=delta, keyframes=keyframes, name=name, rate=rate)
+    0.09-0.6 to 0.3-1 on the weakest classes at the same recall). ``calibration``: the class's
+    calibrated τ (:func:`daemon.calibration.calibrate_class`), which then replaces ``tau``; without
+    it, ``tau`` is recorded as given. ``generalisation``: how far the keyframes reach beyond the
+    training actors (:class:`daemon.templates.Generalisation`; calibration chooses it)."""
+    learned = learn(
+        [m for _, m in examples],
+        delta=delta,
+        keyframes=keyframes,
+        name=name,
+        rate=rate,
+        generalisation=generalisation,
+    )
     return ClassTemplate(
         name,
         learned.soft.template,
         learned.quantised,
         learned.hard.template,
         learned.keyframes,
-        tau,
+        tau if calibration is None else calibration.tau,
         delta,
         steps,
         learned.soft.iterations,
         tuple(clip for clip, _ in examples),
+        given(tau) if calibration is None else calibration,
     )
 
 
@@ -171,6 +203,7 @@ def save_library(library: Library, path: str | Path) -> None:
             "file": f"{name}.npz",
             "sha256": {k: checksum(v) for k, v in arrays[name].items()},
             "tau": c.tau,
+            "calibration": _calibration_entry(c.provenance),
             "delta": c.delta,
             "steps": c.steps,
             "iterations": c.iterations,
@@ -227,8 +260,35 @@ def load_library(path: str | Path, names: Collection[str] | None = None) -> Libr
             e["steps"],
             e["iterations"],
             e["training"],
+            e["calibration"],
         )
     return Library(rate, classes)
+
+
+def _calibration_entry(c: Calibration) -> dict[str, Any]:
+    return {
+        "method": c.method,
+        "folds": c.folds,
+        "positives": c.positives,
+        "negatives": c.negatives,
+        "recall": c.recall,
+        "precision": c.precision,
+    }
+
+
+def _calibration(check: Checker, value: object, where: str, tau: float) -> Calibration:
+    e = check.mapping(value, where, CALIBRATION_KEYS)
+    method = check.string(e["method"], f"{where}.method")
+    counts = [check.integer(e[k], f"{where}.{k}") for k in ("folds", "positives", "negatives")]
+    rates: list[float | None] = []
+    for k in ("recall", "precision"):
+        if e[k] is None:
+            if counts[0]:
+                check.fail(f"{where}.{k}", "a calibrated tau (folds > 0) needs a number in [0, 1]")
+            rates.append(None)
+        else:
+            rates.append(check.number(e[k], f"{where}.{k}", low=0, high=1))
+    return Calibration(tau, method, counts[0], counts[1], counts[2], rates[0], rates[1])
 
 
 def _read(path: Path) -> tuple[Checker, float, dict[str, dict[str, Any]]]:
@@ -236,7 +296,8 @@ def _read(path: Path) -> tuple[Checker, float, dict[str, dict[str, Any]]]:
     training clips as :class:`TrainingClip`)."""
     check, meta = read_meta(path, LIBRARY_JSON, WHAT, LibraryFormatError)
     keys = ("format", "version", "rate", "features", "classes")
-    root = check.header(meta, keys, FORMAT, (VERSION,), "learn it again with mocapd learn")
+    root = check.header(meta, keys, FORMAT, VERSIONS, "learn it again with mocapd learn")
+    version = root["version"]
     rate = check.positive_number(root["rate"], "rate")
     if root["features"] != list(FEATURE_NAMES):
         check.fail("features", f"not the {N_FEATURES} features of this mocapd in its order")
@@ -248,7 +309,7 @@ def _read(path: Path) -> tuple[Checker, float, dict[str, dict[str, Any]]]:
         where = f"classes.{name}"
         if not CLASS_NAME.fullmatch(name):
             check.fail(where, "a class name uses letters, digits, '_', '.', '-'")
-        e = dict(check.mapping(entry, where, CLASS_KEYS))
+        e = dict(check.mapping(entry, where, CLASS_KEYS if version == VERSION else CLASS_KEYS_V2))
         if e["file"] != f"{name}.npz":
             check.fail(f"{where}.file", f"must be '{name}.npz', got {e['file']!r:.60}")
         sums = check.mapping(e["sha256"], f"{where}.sha256", ARRAYS)
@@ -258,22 +319,28 @@ def _read(path: Path) -> tuple[Checker, float, dict[str, dict[str, Any]]]:
         e["delta"] = check.number(e["delta"], f"{where}.delta", low=0, high=0.5, high_open=True)
         check.choice(e["steps"], f"{where}.steps", STEPS)
         e["iterations"] = check.integer(e["iterations"], f"{where}.iterations")
-        e["training"] = _training(check, e["training"], f"{where}.training")
+        e["training"] = _training(check, e["training"], f"{where}.training", version)
+        if version == VERSION:
+            e["calibration"] = _calibration(check, e["calibration"], f"{where}.calibration", e["tau"])
+        else:
+            e["calibration"] = given(e["tau"], V2_TAU)
         check.listing(e["keyframes"], f"{where}.keyframes")
         entries[name] = e
     return check, rate, entries
 
 
-def _training(check: Checker, value: object, where: str) -> tuple[TrainingClip, ...]:
+def _training(check: Checker, value: object, where: str, version: int) -> tuple[TrainingClip, ...]:
     out = []
+    keys = CLIP_KEYS_V2 if version < VERSION else (*CLIP_KEYS_V2, "actor")
     for i, item in enumerate(check.listing(value, where)):
         here = f"{where}[{i}]"
-        t = check.mapping(item, here, ("asf", "amc", "start_frame", "end_frame", "frames"))
+        t = check.mapping(item, here, keys)
         asf, amc = check.string(t["asf"], f"{here}.asf"), check.string(t["amc"], f"{here}.amc")
         start = check.integer(t["start_frame"], f"{here}.start_frame", minimum=None)
         end = check.integer(t["end_frame"], f"{here}.end_frame", minimum=start)
         frames = check.integer(t["frames"], f"{here}.frames", minimum=1)
-        out.append(TrainingClip(asf, amc, start, end, frames))
+        actor = check.string(t["actor"], f"{here}.actor") if "actor" in t else asf
+        out.append(TrainingClip(asf, amc, start, end, frames, actor))
     return tuple(out)
 
 

@@ -9,7 +9,8 @@ that turns recordings into features (``mocapd features``, the index, template le
 the benchmarks) calls it.
 
 A *manifest* is a CSV listing recordings: columns ``asf`` and ``amc`` (paths relative to the
-manifest), a *training manifest* also ``class`` and optionally ``start_frame``, ``end_frame``.
+manifest), a *training manifest* also ``class`` and optionally ``start_frame``, ``end_frame`` and
+``actor`` (the person performing the clip; without the column, the ASF file stands for the person).
 """
 
 from __future__ import annotations
@@ -32,6 +33,7 @@ from replay import JOINT_NAMES, KinematicModel, Motion, read_amc, read_asf
 
 CLASS_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]*")
 """A class name: it names a file of a template library."""
+MAX_ACTOR = 200
 
 
 class ManifestError(MocapdError, ValueError):
@@ -218,19 +220,24 @@ def read_manifest(
 
 @dataclass(frozen=True)
 class TrainingRow:
-    """One row of a training manifest: the class and the AMC frame range (None = whole clip)."""
+    """One row of a training manifest: the class, the AMC frame range (None = whole clip) and the
+    person performing it (``actor``: the manifest's ``actor`` cell, else the ASF path resolved)."""
 
     name: str
     row: ManifestRow
     start_frame: int | None
     end_frame: int | None
+    actor: str
 
 
 def read_training_manifest(path: str | Path) -> list[TrainingRow]:
     """The rows of a CSV with columns ``class, asf, amc`` and optionally ``start_frame, end_frame``
-    (AMC frame numbers, inclusive; both or neither, per row). Raises :class:`ManifestError` naming
-    the file and line."""
-    rows = read_manifest(path, required=("class",), optional=("start_frame", "end_frame"))
+    (AMC frame numbers, inclusive; both or neither, per row) and ``actor``: the person performing
+    the clip, which calibration keeps apart (leave one actor out). With the column, every row names
+    its actor (a blank cell would silently make the ASF a second person); without it, the actor is
+    the ASF path resolved (one skeleton file per person, as in HDM05 and CMU). Raises
+    :class:`ManifestError` naming the file and line."""
+    rows = read_manifest(path, required=("class",), optional=("start_frame", "end_frame", "actor"))
     out = []
     for row in rows:
         name = row.extra["class"]
@@ -254,8 +261,25 @@ def read_training_manifest(path: str | Path) -> list[TrainingRow]:
             raise ManifestError("give both start_frame and end_frame, or neither", path=path, line=row.line)
         if start is not None and end is not None and start > end:
             raise ManifestError(f"start_frame {start} is after end_frame {end}", path=path, line=row.line)
-        out.append(TrainingRow(name, row, start, end))
+        out.append(TrainingRow(name, row, start, end, _actor(row, path)))
     return out
+
+
+def _actor(row: ManifestRow, path: str | Path) -> str:
+    if "actor" not in row.extra:
+        return str(row.asf.resolve())
+    actor = row.extra["actor"]
+    if not actor:
+        raise ManifestError(
+            "the 'actor' field is blank: name the person of every row, or leave out the column",
+            path=path,
+            line=row.line,
+        )
+    if not actor.isprintable() or len(actor) > MAX_ACTOR:
+        raise ManifestError(
+            f"actor {actor[:60]!r}: at most {MAX_ACTOR} printable characters", path=path, line=row.line
+        )
+    return actor
 
 
 # ---------------------------------------------------------------------------------------- examples
@@ -264,13 +288,19 @@ def read_training_manifest(path: str | Path) -> list[TrainingRow]:
 @dataclass(frozen=True)
 class TrainingClip:
     """Where a training example came from: AMC frames ``start_frame .. end_frame`` of ``amc``
-    (paths as the manifest wrote them), ``frames`` of them at the library's rate."""
+    (paths as the manifest wrote them), ``frames`` of them at the library's rate, performed by
+    ``actor`` ("" when constructed without one: then the ASF path as written stands for the person)."""
 
     asf: str
     amc: str
     start_frame: int
     end_frame: int
     frames: int
+    actor: str = ""
+
+    def __post_init__(self) -> None:
+        if not self.actor:
+            object.__setattr__(self, "actor", self.asf)
 
 
 def read_example(
@@ -298,7 +328,7 @@ def read_example(
         raise ManifestError(
             f"frames {start}..{end} hold no sample at {rate:g} Hz", path=source, line=item.row.line
         )
-    clip = TrainingClip(item.row.asf_text, item.row.amc_text, start, end, j1 - j0 + 1)
+    clip = TrainingClip(item.row.asf_text, item.row.amc_text, start, end, j1 - j0 + 1, item.actor)
     return clip, got.matrix[j0 : j1 + 1]
 
 

@@ -391,12 +391,17 @@ def keyframe_scores(hard: MotionTemplate) -> FloatArray:
     return np.stack([points[SET_SLICES[s]].sum(axis=0) for s in FEATURE_SETS]).astype(np.float64)
 
 
-def keyframe_columns(hard: MotionTemplate, count: int = 3) -> list[tuple[int, FeatureSet]]:
+def keyframe_columns(
+    hard: MotionTemplate, count: int = 3, frames: IntArray | None = None, min_gap: int = 0
+) -> list[tuple[int, FeatureSet]]:
     """The (column, feature set) pairs chosen as keyframes, sorted by column: greedily by score
     (:func:`keyframe_scores`; ties: earlier column, then set order lower, upper, mix), skipping a pair
     whose column is closer than ``max(1, K // (2 * count))`` columns to a chosen one, so the keyframes
-    spread over the template and no column is chosen twice; at most ``count`` pairs. Pairs scoring 0
-    (all ½) are not chosen; if every pair scores 0, the result is [(0, "lower")]."""
+    spread over the template and no column is chosen twice; at most ``count`` pairs. With ``frames``
+    (shape ``(examples, K)``: the frame of each example aligned to each column, :func:`aligned_frames`)
+    a pair is also skipped if in some example it lies fewer than ``min_gap`` frames from a chosen one
+    (columns apart in the template may fall on one frame of a fast performance, leaving a gap of 0).
+    Pairs scoring 0 (all ½) are not chosen; if every pair scores 0, the result is [(0, "lower")]."""
     if count < 1:
         raise ValueError(f"count must be at least 1, got {count}")
     scores = keyframe_scores(hard)
@@ -410,7 +415,10 @@ def keyframe_columns(hard: MotionTemplate, count: int = 3) -> list[tuple[int, Fe
     for column, s in order:
         if len(chosen) == count:
             break
-        if all(abs(column - c) >= separation for c, _ in chosen):
+        if all(abs(column - c) >= separation for c, _ in chosen) and (
+            frames is None
+            or all(np.abs(frames[:, column] - frames[:, c]).min() >= min_gap for c, _ in chosen)
+        ):
             chosen.append((column, FEATURE_SETS[s]))
     if not chosen:
         chosen.append((0, FEATURE_SETS[0]))
@@ -459,12 +467,68 @@ def gap_parameters(shortest: int, longest: int) -> tuple[int, float]:
     return delta, units / scale
 
 
+@dataclass(frozen=True)
+class Generalisation:
+    """How far automatic keyframes reach beyond their training actors: a feature is fixed in a
+    keyframe only if the hard MT fixes it to the same value in every column within ``window``
+    columns of the keyframe's (a new person's timing differs), and at most ``fixed`` of them (None:
+    all), those the hard MT keeps longest around the column (a new person's style differs in some);
+    observed gaps m .. M become ⌊m / (1 + margin)⌋ .. ⌈M (1 + margin)⌉ before δ and σ are derived (a
+    new person's tempo differs); keyframes lie at least ``min_gap`` frames apart in every example.
+    The defaults are the thesis' rule (ch. 6), exact for the training clips."""
+
+    window: int = 0
+    margin: float = 0.0
+    min_gap: int = 0
+    fixed: int | None = None
+
+    def __post_init__(self) -> None:
+        if self.window < 0 or self.min_gap < 0 or not self.margin >= 0:
+            raise ValueError(f"window, margin and min_gap must not be negative, got {self}")
+        if self.fixed is not None and self.fixed < 1:
+            raise ValueError(f"fixed must be at least 1, got {self.fixed}")
+
+
+THESIS_KEYFRAMES = Generalisation()
+
+
+def stable_template(hard: MotionTemplate, window: int) -> MotionTemplate:
+    """``hard`` with every entry that differs from an entry of the same feature within ``window``
+    columns (either side, inside the template) set to ½: shape ``(f, K)`` as ``hard``."""
+    values = hard.values
+    stable = values.copy()
+    k = hard.length
+    for shift in range(1, min(window, k - 1) + 1):
+        stable[:, shift:][values[:, shift:] != values[:, :-shift]] = 0.5
+        stable[:, :-shift][values[:, :-shift] != values[:, shift:]] = 0.5
+    return MotionTemplate(stable, hard.weights)
+
+
+def most_stable(hard: MotionTemplate, column: int, rows: slice, count: int | None) -> FloatArray:
+    """The entries ``rows`` of ``hard``'s ``column``, shape ``(rows,)``, with all but the ``count``
+    0/1 entries that keep their value over the most columns on both sides (the smaller side counts;
+    ties: the earlier feature) set to ½. None: all kept."""
+    values = hard.values[rows]
+    entries = values[:, column].copy()
+    if count is None:
+        return entries
+    same = values == entries[:, None]  # (rows, K)
+    left = np.argmin(np.concatenate([same[:, column::-1], np.zeros((len(entries), 1), bool)], axis=1), axis=1)
+    right = np.argmin(np.concatenate([same[:, column:], np.zeros((len(entries), 1), bool)], axis=1), axis=1)
+    extent = np.minimum(left, right)
+    candidates = [i for i in np.argsort(-extent, kind="stable").tolist() if entries[i] != 0.5]
+    entries[candidates[count:]] = 0.5
+    return entries
+
+
 def automatic_keyframes(
     hard: MotionTemplate,
     examples: Sequence[Example],
     count: int = 3,
     name: str = "",
     rate: float = DEFAULT_INDEX_RATE,
+    generalisation: Generalisation = THESIS_KEYFRAMES,
+    aligned: IntArray | None = None,
 ) -> KeyframeQuery:
     """Keyframes from a 39-row hard MT (thesis ch. 6): the columns and sets of
     :func:`keyframe_columns`, each keyframe the hard MT's entries of its set at its column. Each
@@ -472,20 +536,29 @@ def automatic_keyframes(
     training matrices at ``rate`` Hz); gap k's distances over the examples, m_k .. M_k, give
     (δ_k, σ_k) by :func:`gap_parameters`. The first keyframe sits at its column, each next one δ_k
     later; ``template_length`` is the hard MT's length. Every example then contains a hit of the
-    query (no false negative on the training set)."""
+    query (no false negative on the training set). ``generalisation`` widens this for new people
+    (:class:`Generalisation`: fewer fixed features, wider gaps, a minimum gap); every training
+    example still contains a hit. ``aligned``: :func:`aligned_frames` of every example, shape
+    ``(examples, K)``, if already at hand."""
     if not examples:
         raise ValueError("automatic keyframes need the training examples")
-    chosen = keyframe_columns(hard, count)
+    _check_feature_count(hard)
+    g = generalisation
+    if aligned is None:
+        aligned = np.stack([aligned_frames(hard, e) for e in examples])  # (examples, K)
+    source = stable_template(hard, g.window) if g.window else hard
+    chosen = keyframe_columns(source, count, aligned, g.min_gap)
     columns = np.asarray([c for c, _ in chosen], dtype=np.int64)
-    frames = np.stack([aligned_frames(hard, e)[columns] for e in examples])  # (examples, keyframes)
+    frames = aligned[:, columns]  # (examples, keyframes)
     gaps = np.diff(frames, axis=1)
     params = [
-        gap_parameters(int(lo), int(hi)) for lo, hi in zip(gaps.min(axis=0), gaps.max(axis=0), strict=True)
+        gap_parameters(int(lo / (1 + g.margin)), math.ceil(hi * (1 + g.margin)))
+        for lo, hi in zip(gaps.min(axis=0), gaps.max(axis=0), strict=True)
     ]
     keyframes = []
     position = int(columns[0])
     for k, (column, feature_set) in enumerate(chosen):
-        values = tuple(float(v) for v in hard.values[SET_SLICES[feature_set], column])
+        values = tuple(float(v) for v in most_stable(source, column, SET_SLICES[feature_set], g.fixed))
         stiffness = params[k][1] if k < len(params) else None
         keyframes.append(Keyframe(feature_set, values, position, stiffness))
         if k < len(params):
@@ -522,11 +595,14 @@ def learn(
     soft_iterations: int = 10,
     tolerance: float = 0.005,
     hard_iterations: int = 20,
+    generalisation: Generalisation = THESIS_KEYFRAMES,
 ) -> LearnedClass:
     """Soft MT (:func:`learn_soft`), its :func:`quantise` by ``delta``, hard MT (:func:`learn_hard`)
-    and :func:`automatic_keyframes` (``keyframes`` of them; 0 = none) from ``(N, 39)`` boolean
-    matrices at ``rate`` Hz."""
+    and :func:`automatic_keyframes` (``keyframes`` of them; 0 = none; widened by ``generalisation``)
+    from ``(N, 39)`` boolean matrices at ``rate`` Hz."""
     soft = learn_soft(examples, soft_iterations, tolerance)
     hard = learn_hard(examples, hard_iterations)
-    query = automatic_keyframes(hard.template, examples, keyframes, name, rate) if keyframes else None
+    query = None
+    if keyframes:
+        query = automatic_keyframes(hard.template, examples, keyframes, name, rate, generalisation)
     return LearnedClass(soft, quantise(soft.template, delta), hard, query)

@@ -356,7 +356,7 @@ def test_learn_on_an_empty_manifest_names_learns_columns(tmp_path: Path) -> None
     line = assert_one_error_line(mocapd("learn", "--manifest", empty, "--out", tmp_path / "lib"))
     assert line == (
         f"mocapd: {empty}:1: empty manifest: no header line (it needs the columns asf, amc, class, "
-        "[start_frame], [end_frame])"
+        "[start_frame], [end_frame], [actor])"
     )
 
 

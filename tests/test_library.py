@@ -170,7 +170,7 @@ def edit_json(lib: Path, change: dict[str, object]) -> None:
 @pytest.mark.parametrize(
     ("change", "message"),
     [
-        ({"version": 1}, "library.json: version: this mocapd reads version 2, got 1; learn it again"),
+        ({"version": 1}, "library.json: version: this mocapd reads version 2, 3, got 1; learn it again"),
         ({"format": "x"}, "library.json: format: must be 'mocapd-templates', got 'x'"),
         ({"features": ["a"]}, "library.json: features: not the 39 features"),
         ({"classes/squat1Reps/tau": -1}, "classes.squat1Reps.tau: must be a positive number, got -1"),

@@ -8,6 +8,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from daemon.calibration import Calibration, calibrate_class, given
 from daemon.cli import common
 from daemon.config import Config
 from daemon.dtw import STEPS
@@ -16,6 +17,7 @@ from daemon.library import ClassTemplate, Library, check_library_target, learn_c
 from daemon.plots import template_png
 from daemon.recordings import TrainingClip, read_examples
 from daemon.storage import together
+from daemon.templates import THESIS_KEYFRAMES, Generalisation
 from daemon.types import DEFAULT_INDEX_RATE
 
 
@@ -25,13 +27,24 @@ def register(sub: Any) -> None:
         "--manifest",
         type=Path,
         required=True,
-        help="CSV with columns class, asf, amc and optionally start_frame, end_frame (AMC frames)",
+        help="CSV with columns class, asf, amc and optionally start_frame, end_frame (AMC frames) and "
+        "actor (the person; default: the ASF file)",
     )
     learn.add_argument("--out", type=Path, required=True, help="library directory to write (replaced)")
     common.rate_option(learn, DEFAULT_INDEX_RATE, "learn at this rate (default 30, as the thesis)")
     learn.add_argument("--png", type=Path, default=None, help="directory for a PNG of each class's MTs")
     learn.add_argument(
-        "--tau", type=common.positive_float, default=0.1, help="retrieval threshold stored per class (0.1)"
+        "--tau",
+        type=common.positive_float,
+        default=0.1,
+        help="retrieval threshold stored for a class that is not calibrated (default 0.1)",
+    )
+    learn.add_argument(
+        "--no-calibrate",
+        dest="calibrate",
+        action="store_false",
+        help="store --tau for every class instead of learning each class's threshold by leave-one-actor-"
+        "out (the default when the manifest names at least 2 actors)",
     )
     learn.add_argument(
         "--delta", type=float, default=0.1, help="quantisation threshold δ in [0, 0.5) (default 0.1)"
@@ -72,9 +85,13 @@ def _learn(args: argparse.Namespace, config: Config) -> int:
         progress=progress,
         default_native_rate=common.default_native_rate(args, config),
     )
+    actors = {clip.actor for items in examples.values() for clip, _ in items}
+    calibrating = args.calibrate and len(actors) >= 2
+    labelled = {name: [(clip.actor, m) for clip, m in items] for name, items in examples.items()}
     classes: dict[str, ClassTemplate] = {}
     for i, (name, items) in enumerate(examples.items(), start=1):
         started = time.perf_counter()
+        calibration, generalisation = _calibration(args, labelled, name, calibrating, len(actors))
         cls = learn_class(
             name,
             items,
@@ -83,13 +100,16 @@ def _learn(args: argparse.Namespace, config: Config) -> int:
             keyframes=args.keyframes,
             steps=args.steps,
             rate=args.fps,
+            calibration=calibration,
+            generalisation=generalisation,
         )
         classes[name] = cls
         keyframes = 0 if cls.keyframes is None else len(cls.keyframes.keyframes)
         print(
             f"[class {i}/{len(examples)}] {name}: {len(items)} examples, soft MT {cls.soft.length} "
             f"columns after {cls.iterations} iterations, hard MT {cls.hard.length} columns, "
-            f"{keyframes} keyframes ({time.perf_counter() - started:.1f} s)",
+            f"{keyframes} keyframes{_widened(generalisation) if keyframes else ''}, tau {cls.tau:.4g} "
+            f"({time.perf_counter() - started:.1f} s)",
             file=sys.stderr,
             flush=True,
         )
@@ -101,8 +121,54 @@ def _learn(args: argparse.Namespace, config: Config) -> int:
     print(f"library:    {args.out}")
     print(f"classes:    {len(classes)} ({', '.join(classes)})")
     print(f"examples:   {sum(len(c.training) for c in classes.values())} at {args.fps:g} Hz")
+    print(f"actors:     {len(actors)}")
+    for i, (name, cls) in enumerate(classes.items()):
+        print(f"{'tau:' if i == 0 else '':<11} {name} {_describe(cls.provenance)}")
     print(f"learn time: {time.perf_counter() - began:.1f} s")
     return 0
+
+
+def _calibration(
+    args: argparse.Namespace,
+    labelled: dict[str, list[tuple[str, Any]]],
+    name: str,
+    calibrating: bool,
+    actors: int,
+) -> tuple[Calibration, Generalisation]:
+    """The class's τ and keyframe generalisation, by leave-one-actor-out when ``calibrating``."""
+    if not args.calibrate:
+        return given(args.tau, "--no-calibrate"), THESIS_KEYFRAMES
+    if not calibrating:
+        return given(args.tau, f"{actors} actor in the manifest: no leave-one-actor-out"), THESIS_KEYFRAMES
+    found = calibrate_class(
+        labelled,
+        name,
+        tau=args.tau,
+        delta=args.delta,
+        keyframes=args.keyframes,
+        steps=args.steps,
+        rate=args.fps,
+    )
+    return found.calibration, found.keyframes
+
+
+def _widened(g: Generalisation) -> str:
+    if g == THESIS_KEYFRAMES:
+        return ""
+    fixed = "all" if g.fixed is None else g.fixed
+    return (
+        f" (generalised: window {g.window}, gap margin {g.margin:g}, min gap {g.min_gap}, "
+        f"{fixed} fixed features)"
+    )
+
+
+def _describe(c: Calibration) -> str:
+    if not c.calibrated:
+        return f"{c.tau:.4g} {c.method}"
+    return (
+        f"{c.tau:.4g} calibrated: recall {c.recall:.2f}, precision {c.precision:.2f} on {c.positives} "
+        f"positive and {c.negatives} negative left-out clips ({c.folds} folds)"
+    )
 
 
 def _draw(cls: ClassTemplate, path: Path, rate: float) -> None:

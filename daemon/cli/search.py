@@ -93,7 +93,10 @@ def register(sub: Any) -> None:
         "--class", dest="class_name", help="with --keyframes or --library: the class to search"
     )
     search.add_argument(
-        "--tau", type=common.positive_float, default=None, help="with --library: cost threshold (the class's)"
+        "--tau",
+        type=common.positive_float,
+        default=None,
+        help="with --library: cost threshold (default: the class's, calibrated when it was learned)",
     )
     search.add_argument(
         "--steps",
@@ -300,7 +303,9 @@ def _search_library(args: argparse.Namespace, index: MotionIndex) -> tuple[list[
         query = _keyframe_query(args.keyframes, cls.name)
     elif args.extend is not None:
         raise UsageError("--extend needs --keyframes")
+    # the class's own τ (calibrated by leave-one-actor-out, or given when learned) unless overridden
     tau = cls.tau if args.tau is None else args.tau
+    source = "--tau" if args.tau is not None else "calibrated" if cls.provenance.calibrated else "given"
     steps = cls.steps if args.steps is None else args.steps
     try:
         hits = template_search(
@@ -314,7 +319,9 @@ def _search_library(args: argparse.Namespace, index: MotionIndex) -> tuple[list[
             hits.doc.tolist(), hits.start.tolist(), hits.end.tolist(), hits.cost.tolist(), strict=True
         )
     ]
-    summary = f"motion template of {cls.name} ({cls.quantised.length} columns, tau {tau:g}, {steps} steps"
+    summary = (
+        f"motion template of {cls.name} ({cls.quantised.length} columns, tau {tau:g} {source}, {steps} steps"
+    )
     if hits.keyframes is not None:
         share = 100 * hits.searched / max(index.n_frames, 1)
         summary += f"; keyframes kept {len(hits.keyframes)} ranges, {share:.2f} % of the database"
