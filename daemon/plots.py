@@ -12,7 +12,7 @@ import numpy.typing as npt
 
 from daemon.errors import MocapdError
 from daemon.features import FEATURE_NAMES, SET_SLICES
-from daemon.types import BoolArray
+from daemon.types import N_FEATURES, BoolArray
 
 Target = str | Path | IO[bytes]
 """Where a picture goes: a path, or a binary file open for writing (always PNG)."""
@@ -134,6 +134,79 @@ def precision_recall_png(
     ax.set_xlim(0, 1.02)
     ax.set_ylim(0, 1.02)
     ax.legend(fontsize=7)
+    fig.tight_layout()
+    _save(fig, path)
+    plt.close(fig)
+
+
+def repetitions_png(
+    matrix: BoolArray,
+    frames: npt.NDArray[np.int64],
+    frame_rate: float,
+    curves: Mapping[str, npt.NDArray[np.float64]],
+    runs: Sequence[tuple[int, int, str]],
+    cuts: Sequence[int],
+    path: Target,
+    title: str,
+) -> None:
+    """Draw a trial's repetition cuts: above, the feature matrix shape ``(N, 39)`` (black = 1);
+    below, ``curves`` (name -> shape ``(N,)``, e.g. joint heights), both against time with the
+    labelled ``runs`` (first AMC frame, last AMC frame, label) shaded and named and the ``cuts`` (AMC
+    frames) as vertical lines. ``frames`` shape ``(N,)`` are the samples' AMC frame numbers at
+    ``frame_rate`` Hz; times are seconds from the first."""
+    plt = _pyplot()
+    m = np.asarray(matrix, dtype=bool)
+    f = np.asarray(frames, dtype=np.int64)
+    n = m.shape[0]
+    first = int(f[0]) if n else 0
+    native = frame_rate * (int(f[1] - f[0]) if n > 1 else 1)
+
+    def seconds(frame: float) -> float:
+        return (frame - first) / native
+
+    width = min(40.0, max(10.0, n / frame_rate / 1.5))
+    fig, (top, bottom) = plt.subplots(
+        2, 1, figsize=(width, 8.0), sharex=True, gridspec_kw={"height_ratios": [3, 2]}
+    )
+    end = seconds(float(f[-1])) if n else 0.0
+    top.imshow(
+        m.T,
+        aspect="auto",
+        interpolation="nearest",
+        cmap="gray_r",
+        vmin=0,
+        vmax=1,
+        extent=(0.0, end, N_FEATURES - 0.5, -0.5),
+    )
+    for part in list(SET_SLICES.values())[1:]:
+        top.axhline(part.start - 0.5, color="tab:red", linewidth=0.6)
+    top.set_ylabel("features (lower, upper, mix)")
+    time = np.array([seconds(float(x)) for x in f])
+    for name, values in curves.items():
+        bottom.plot(time, values, linewidth=0.9, label=name)
+    bottom.legend(fontsize=7, loc="upper right")
+    colours = ["tab:blue", "tab:orange", "tab:green", "tab:purple", "tab:brown", "tab:olive", "tab:cyan"]
+    for i, (start, stop, label) in enumerate(runs):
+        for ax in (top, bottom):
+            ax.axvspan(
+                seconds(start), seconds(stop), color=colours[i % len(colours)], alpha=0.15, linewidth=0
+            )
+        bottom.text(
+            seconds((start + stop) / 2),
+            1.0,
+            label,
+            transform=bottom.get_xaxis_transform(),
+            ha="center",
+            va="bottom",
+            fontsize=8,
+        )
+    for c in cuts:
+        for ax in (top, bottom):
+            ax.axvline(seconds(c), color="tab:red", linewidth=0.8)
+    bottom.set_xlabel(
+        f"time in s (AMC frames {first}-{int(f[-1])}; red lines: repetition cuts)" if n else "time in s"
+    )
+    top.set_title(title, fontsize=9)
     fig.tight_layout()
     _save(fig, path)
     plt.close(fig)
