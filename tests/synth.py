@@ -16,6 +16,10 @@ from dataclasses import dataclass
 
 from hypothesis import strategies as st
 
+from daemon.features import SET_SLICES
+from daemon.keyframes import Keyframe, KeyframeQuery
+from daemon.types import FEATURE_SETS, FeatureSet
+
 ROT = ("rx", "ry", "rz")
 ROOT_CHANNELS = ("tx", "ty", "tz", "rx", "ry", "rz")
 NAME_FIRST = string.ascii_letters
@@ -500,3 +504,43 @@ def cases(
         )
     )
     return asf, amc
+
+
+# ------------------------------------------------------------------------ keyframe code streams
+
+LOW_BITS = 3
+"""Random code streams vary only the first bits of each feature set, so that random keyframes match."""
+
+
+def stream_codes(codes: dict[FeatureSet, list[int]]) -> list[int]:
+    """Per frame, the three sets' codes side by side in one 39-bit code."""
+    n = len(codes["lower"])
+    return [sum(codes[fs][t] << SET_SLICES[fs].start for fs in FEATURE_SETS) for t in range(n)]
+
+
+@st.composite
+def streams(draw: st.DrawFn) -> dict[FeatureSet, list[int]]:
+    n = draw(st.integers(1, 60))
+    out: dict[FeatureSet, list[int]] = {}
+    for fs in FEATURE_SETS:
+        codes: list[int] = []
+        while len(codes) < n:  # runs, so that list entries are longer than one frame
+            codes += [draw(st.integers(0, (1 << LOW_BITS) - 1))] * draw(st.integers(1, 6))
+        out[fs] = codes[:n]
+    return out
+
+
+@st.composite
+def queries(draw: st.DrawFn) -> KeyframeQuery:
+    k = draw(st.integers(1, 4))
+    keyframes = []
+    position = 0
+    for j in range(k):
+        fs = draw(st.sampled_from(FEATURE_SETS))
+        width = SET_SLICES[fs].stop - SET_SLICES[fs].start
+        low = [draw(st.sampled_from([0.0, 1.0, 0.5, 0.5])) for _ in range(LOW_BITS)]
+        high = [draw(st.sampled_from([0.0, 0.5])) for _ in range(width - LOW_BITS)]
+        stiffness = None if j == k - 1 else draw(st.sampled_from([0.0, 0.0, 0.3, 0.5, 0.8, 1.0]))
+        keyframes.append(Keyframe(fs, tuple(low + high), position, stiffness))
+        position += draw(st.sampled_from([0, 0, 1, 2, 4, 7]))  # equal positions: zero gaps
+    return KeyframeQuery("random", tuple(keyframes), 30.0)

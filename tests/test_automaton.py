@@ -22,8 +22,8 @@ from daemon.segments import set_codes
 from daemon.types import FEATURE_SETS, FeatureSet
 from tests.helpers import KEYFRAMES, pair_id, recording_pairs
 from tests.naive import keyframe_brute_force
+from tests.synth import queries, stream_codes, streams
 
-LOW_BITS = 3
 SHIPPED_HDM05 = (
     "depositFloorR",
     "elbowToKnee1RepsLelbowStart",
@@ -38,12 +38,6 @@ SHIPPED_HDM05 = (
     "throwBasketball",
 )
 """The HDM05 classes of the shipped library (their published keyframes)."""
-
-
-def stream_codes(codes: dict[FeatureSet, list[int]]) -> list[int]:
-    """Per frame, the three sets' codes side by side in one 39-bit code."""
-    n = len(codes["lower"])
-    return [sum(codes[fs][t] << SET_SLICES[fs].start for fs in FEATURE_SETS) for t in range(n)]
 
 
 def run(automaton: KeyframeAutomaton, codes: list[int]) -> list[tuple[Component, int]]:
@@ -73,34 +67,6 @@ def check_stream(codes: dict[FeatureSet, list[int]], query: KeyframeQuery, max_g
         assert component.emitted_at == pushed
         assert component.end <= component.emitted_at <= component.end + automaton.latency
     assert automaton.state_size == 0
-
-
-@st.composite
-def streams(draw: st.DrawFn) -> dict[FeatureSet, list[int]]:
-    n = draw(st.integers(1, 60))
-    out: dict[FeatureSet, list[int]] = {}
-    for fs in FEATURE_SETS:
-        codes: list[int] = []
-        while len(codes) < n:  # runs, so that list entries are longer than one frame
-            codes += [draw(st.integers(0, (1 << LOW_BITS) - 1))] * draw(st.integers(1, 6))
-        out[fs] = codes[:n]
-    return out
-
-
-@st.composite
-def queries(draw: st.DrawFn) -> KeyframeQuery:
-    k = draw(st.integers(1, 4))
-    keyframes = []
-    position = 0
-    for j in range(k):
-        fs = draw(st.sampled_from(FEATURE_SETS))
-        width = SET_SLICES[fs].stop - SET_SLICES[fs].start
-        low = [draw(st.sampled_from([0.0, 1.0, 0.5, 0.5])) for _ in range(LOW_BITS)]
-        high = [draw(st.sampled_from([0.0, 0.5])) for _ in range(width - LOW_BITS)]
-        stiffness = None if j == k - 1 else draw(st.sampled_from([0.0, 0.0, 0.3, 0.5, 0.8, 1.0]))
-        keyframes.append(Keyframe(fs, tuple(low + high), position, stiffness))
-        position += draw(st.sampled_from([0, 0, 1, 2, 4, 7]))  # equal positions: zero gaps
-    return KeyframeQuery("random", tuple(keyframes), 30.0)
 
 
 @settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.too_slow])

@@ -1,0 +1,514 @@
+"""The live recogniser: poses of one stream in, detections out, one frame at a time.
+
+Per frame (DESIGN.md, the data flow): AMC-style channels go through forward kinematics (or joint
+positions arrive as they are), :class:`~daemon.features.FeatureStream` gives the 39 features,
+every k-th frame is kept for the library's rate (30 Hz from 120 Hz), and the frame's code (bit i =
+feature i) goes to every class's :class:`~daemon.automaton.KeyframeAutomaton`. Each Ω^Z component it
+emits is a *candidate*; its window, the component widened as
+:func:`daemon.retrieval.keyframe_extension` widens keyframe ranges for ranking, is confirmed by
+subsequence DTW of the class's quantised motion template (thesis §3.4, the retrieval cost and steps
+of :func:`daemon.retrieval.template_search`) once the window's last frame has arrived. Every local
+minimum at or below the class's τ, after the toolbox's suppression, is a confirmation; its range is
+the DTW match, not the keyframe range.
+
+One motion, one detection per class: two confirmations of a class that share more than half of the
+shorter one's frames are one motion (:func:`same_motion`). Among those confirmed together the
+cheaper is kept; one that is the same motion as a detection already emitted is dropped (that one
+was published and cannot be taken back). A repetition right after the last is reported, even if
+the two share the frame or two of the pose between them.
+
+Bounded state. The features keep 33 poses at 120 Hz, each automaton the query's span, and the
+stream one ring of its recent codes. A window is at most ``W`` frames (the candidate's last ``W``:
+``window_s`` seconds, at least 4 template lengths plus the widening); it is confirmed when its last
+frame arrives, at most ``latency`` frames after the component's end, so the ring holds
+``W + max(0, latency - right widening)`` frames of the slowest class. A candidate longer than ``W``
+(a long series of repetitions whose keyframe ranges all touch) is confirmed on its last ``W`` frames.
+
+:func:`detect` is the batch twin: features of the whole recording in one vectorised pass, then the
+same candidate and confirmation logic; it equals pushing the frames one by one (tests).
+"""
+
+from __future__ import annotations
+
+import math
+import uuid
+from collections import deque
+from collections.abc import Collection, Sequence
+from dataclasses import dataclass
+from itertools import islice
+from typing import Any, Literal
+
+import numpy as np
+import numpy.typing as npt
+
+from daemon.automaton import KeyframeAutomaton
+from daemon.dtw import Match, Steps, local_minima, pack, retrieval_rows, subsequence_fixed, suppress, to_cost
+from daemon.errors import MocapdError
+from daemon.features import FeatureStream, decimation_factor, features
+from daemon.library import ClassTemplate, Library
+from daemon.retrieval import keyframe_extension
+from daemon.templates import expand
+from daemon.types import MAX_NATIVE_RATE, N_FEATURES, FloatArray, IntArray
+from replay import JOINT_NAMES, KinematicModel, Motion, Skeleton
+
+DEFAULT_MAX_GAP_S = 2.0
+"""Seconds an unbounded keyframe gap (stiffness 0) may span live (config ``recognizer.max_gap_s``)."""
+DEFAULT_WINDOW_S = 20.0
+"""Seconds of a candidate's window confirmed at most (config ``recognizer.window_s``)."""
+
+FrameProblem = Literal["shape", "non_finite", "type", "repeat", "back", "jump"]
+
+
+class FrameError(MocapdError, ValueError):
+    """A frame the recogniser refuses, with ``problem`` (``shape``: wrong joint or channel count;
+    ``non_finite``: NaN or inf, also after forward kinematics; ``type``: a frame number that is not
+    an integer; ``repeat``, ``back``, ``jump``: a frame number equal to, before, or more than one
+    after the previous one). The stream's state is unchanged: the next good frame goes on."""
+
+    def __init__(self, reason: str, problem: FrameProblem, *, stream: str = "") -> None:
+        super().__init__(reason, field=f"stream {stream!r}" if stream else "")
+        self.problem = problem
+
+
+@dataclass(frozen=True)
+class Detection:
+    """A confirmed motion: ``class_name`` performed over the source's frames ``start_frame`` ..
+    ``end_frame`` (its own frame numbers at its native rate), DTW ``cost`` at or below the class's
+    ``tau``, emitted when frame ``emitted_at_frame`` was pushed (the stream's last frame for those a
+    flush emits). ``id`` is unique: a hash of the recogniser's session, the stream, the class and
+    the range."""
+
+    id: str
+    stream: str
+    class_name: str
+    start_frame: int
+    end_frame: int
+    cost: float
+    tau: float
+    emitted_at_frame: int
+
+    def as_json(self) -> dict[str, Any]:
+        """The fields as a JSON object (``class`` for ``class_name``)."""
+        return {
+            "id": self.id,
+            "stream": self.stream,
+            "class": self.class_name,
+            "start_frame": self.start_frame,
+            "end_frame": self.end_frame,
+            "cost": self.cost,
+            "tau": self.tau,
+            "emitted_at_frame": self.emitted_at_frame,
+        }
+
+
+@dataclass(frozen=True)
+class ClassPlan:
+    """What a stream needs of one class, at the library's rate: the expanded quantised template
+    (``values`` shape ``(39, M)``, ``weights`` ``(M,)``), τ, the DTW steps, the keyframe query with
+    its gap cap, the window's widening (``left``, ``right``) and longest extent ``window`` in frames,
+    and the automaton's latency bound."""
+
+    template: ClassTemplate
+    values: FloatArray
+    weights: FloatArray
+    max_gap: int
+    left: int
+    right: int
+    window: int
+    latency: int
+
+    @property
+    def name(self) -> str:
+        return self.template.name
+
+    @property
+    def tau(self) -> float:
+        return self.template.tau
+
+    @property
+    def steps(self) -> Steps:
+        return self.template.steps
+
+    def automaton(self, rate: float) -> KeyframeAutomaton:
+        assert self.template.keyframes is not None
+        return KeyframeAutomaton(self.template.keyframes, rate, self.max_gap)
+
+
+def plans(
+    library: Library,
+    classes: Collection[str] | None = None,
+    *,
+    max_gap_s: float = DEFAULT_MAX_GAP_S,
+    window_s: float = DEFAULT_WINDOW_S,
+) -> tuple[ClassPlan, ...]:
+    """The plans of ``classes`` (None: all, in the library's order); ValueError for a class without
+    keyframes (it could never be a candidate) or settings out of range."""
+    if not (math.isfinite(max_gap_s) and max_gap_s > 0) or not (math.isfinite(window_s) and window_s > 0):
+        raise ValueError(f"max_gap_s and window_s must be positive seconds, got {max_gap_s}, {window_s}")
+    names = list(library.classes) if classes is None else list(classes)
+    rate = library.rate
+    out = []
+    for name in names:
+        cls = library.get(name)
+        if cls.keyframes is None:
+            raise ValueError(f"class {name} has no keyframes: learn it with --keyframes to recognise it live")
+        t = expand(cls.quantised)
+        max_gap = max(1, round(max_gap_s * rate))
+        left, right = keyframe_extension(cls.keyframes, cls.quantised.length, rate)
+        window = max(math.ceil(window_s * rate), 4 * t.length + left + right)
+        latency = KeyframeAutomaton(cls.keyframes, rate, max_gap).latency
+        out.append(ClassPlan(cls, t.values, t.weights, max_gap, left, right, window, latency))
+    return tuple(out)
+
+
+def ring_size(class_plans: Sequence[ClassPlan]) -> int:
+    """Index-rate frames a stream keeps: every window, confirmed as late as its automaton allows."""
+    return max((p.window + max(0, p.latency - p.right) for p in class_plans), default=1)
+
+
+def confirm(plan: ClassPlan, codes: npt.NDArray[np.uint64]) -> list[Match]:
+    """The DTW confirmations of ``plan``'s class in a window of codes shape ``(n,)``: local minima of
+    the subsequence DTW at or below τ, suppressed as the toolbox does (window columns)."""
+    delta, first = subsequence_fixed(retrieval_rows(plan.values, plan.weights, codes), plan.steps)
+    return suppress(local_minima(to_cost(delta), first, plan.tau))
+
+
+def same_motion(a: tuple[int, int], b: tuple[int, int]) -> bool:
+    """Whether two ranges (inclusive) of one class are one motion: they share more than half of the
+    shorter one's frames. DTW matches of consecutive repetitions may share a frame or two of the
+    pose between them (it fits the end of one template and the start of the next)."""
+    shared = min(a[1], b[1]) - max(a[0], b[0]) + 1
+    return 2 * shared > min(a[1] - a[0], b[1] - b[0]) + 1
+
+
+def keep_apart(hits: Sequence[Match], published: Sequence[tuple[int, int]]) -> list[Match]:
+    """``hits`` by increasing cost, each kept unless it is the :func:`same_motion` as one kept or
+    ``published``; sorted by start."""
+    taken = list(published)
+    kept = []
+    for m in sorted(hits, key=lambda m: (m.cost, m.start)):
+        if not any(same_motion((m.start, m.end), r) for r in taken):
+            kept.append(m)
+            taken.append((m.start, m.end))
+    return sorted(kept, key=lambda m: m.start)
+
+
+class _ClassTrack:
+    """One class on one stream: its automaton, the windows waiting for their last frame and the
+    ranges already emitted that a later window could still share frames with."""
+
+    __slots__ = ("automaton", "pending", "plan", "published")
+
+    def __init__(self, plan: ClassPlan, rate: float) -> None:
+        self.plan = plan
+        self.automaton = plan.automaton(rate)
+        self.pending: deque[tuple[int, int]] = deque()
+        self.published: deque[tuple[int, int]] = deque()
+
+
+class CodeRecognizer:
+    """Candidates and confirmations over a stream of index-rate frame codes: ``push(code)`` returns
+    the confirmations it made, as (class plan, match in stream frames); ``flush()`` ends the stream.
+    The part of :class:`Recognizer` after the features, shared with :func:`detect`."""
+
+    def __init__(self, class_plans: Sequence[ClassPlan], rate: float) -> None:
+        self.plans = tuple(class_plans)
+        self.rate = rate
+        self._ring: deque[int] = deque(maxlen=ring_size(self.plans))
+        self._tracks = [_ClassTrack(p, rate) for p in self.plans]
+        self._n = 0
+
+    @property
+    def frames(self) -> int:
+        """Index-rate frames pushed since the stream began."""
+        return self._n
+
+    def push(self, code: int) -> list[tuple[ClassPlan, Match]]:
+        j = self._n
+        self._n += 1
+        self._ring.append(code)
+        out = []
+        for track in self._tracks:
+            self._candidates(track, track.automaton.push(code))
+            out += self._confirm(track, j)
+        return out
+
+    def flush(self) -> list[tuple[ClassPlan, Match]]:
+        last = self._n - 1
+        out = []
+        for track in self._tracks:
+            self._candidates(track, track.automaton.flush())
+            out += self._confirm(track, last, end_of_stream=True)
+            track.pending.clear()
+            track.published.clear()
+        self._ring.clear()
+        self._n = 0
+        return out
+
+    def _candidates(self, track: _ClassTrack, components: Sequence[Any]) -> None:
+        p = track.plan
+        for c in components:
+            end = c.end + p.right
+            track.pending.append((max(0, c.start - p.left, end - p.window + 1), end))
+
+    def _confirm(
+        self, track: _ClassTrack, j: int, end_of_stream: bool = False
+    ) -> list[tuple[ClassPlan, Match]]:
+        out = []
+        base = self._n - len(self._ring)
+        while track.pending and (end_of_stream or track.pending[0][1] <= j):
+            a, b = track.pending.popleft()
+            b = min(b, j)
+            if a < base:  # cannot happen: ring_size covers every window at its latest
+                raise AssertionError(f"window {a}..{b} left the ring (from {base})")
+            while track.published and track.published[0][1] < a:
+                track.published.popleft()
+            codes = np.fromiter(islice(self._ring, a - base, b - base + 1), dtype=np.uint64, count=b - a + 1)
+            hits = [Match(m.start + a, m.end + a, m.cost) for m in confirm(track.plan, codes)]
+            for m in keep_apart(hits, track.published):
+                track.published.append((m.start, m.end))
+                out.append((track.plan, m))
+        return out
+
+
+class _Frames:
+    """Native frame numbers of one stream: the first, the last, the decimation step."""
+
+    def __init__(self, step: int) -> None:
+        self.step = step
+        self.first: int | None = None
+        self.last: int | None = None
+
+
+class Recognizer:
+    """Detections of the library's classes on one stream, one frame at a time.
+
+    Make it with :meth:`for_skeleton` (frames are AMC-style channel vectors, shape ``(C,)`` in the
+    skeleton's channel order, angles in radians as :mod:`replay` reads them) or
+    :meth:`for_positions` (frames are joint positions, shape ``(J, 3)`` in the announced joint order,
+    any length unit: the features are scale-free). ``push(number, frame)`` takes the source's frame
+    number (consecutive) and returns the detections that were emitted; ``flush()`` ends the stream,
+    returns the rest and starts a new stream. Bad frames raise :class:`FrameError` and change
+    nothing."""
+
+    def __init__(
+        self,
+        library: Library,
+        native_rate: float,
+        *,
+        stream: str = "",
+        classes: Collection[str] | None = None,
+        max_gap_s: float = DEFAULT_MAX_GAP_S,
+        window_s: float = DEFAULT_WINDOW_S,
+        session: str | None = None,
+        model: KinematicModel | None = None,
+        joint_names: Sequence[str] | None = None,
+    ) -> None:
+        if not (math.isfinite(native_rate) and 0 < native_rate <= MAX_NATIVE_RATE):
+            raise ValueError(f"native rate must be in (0, {MAX_NATIVE_RATE:g}] Hz, got {native_rate}")
+        self.stream = stream
+        self.library = library
+        self.native_rate = native_rate
+        self.session = uuid.uuid4().hex if session is None else session
+        self._step = decimation_factor(native_rate, library.rate)
+        self._model = model
+        if model is not None:
+            self._width = len(model.skeleton.channel_names)
+            self._joint_order = np.arange(len(JOINT_NAMES), dtype=np.intp)
+        else:
+            if joint_names is None:
+                raise ValueError("give a kinematic model (channels) or the joint names (positions)")
+            missing = [j for j in JOINT_NAMES if j not in joint_names]
+            if missing:
+                raise ValueError(f"the joints must include {', '.join(missing)}")
+            if len(set(joint_names)) != len(joint_names):
+                raise ValueError("a joint is named twice")
+            self._width = len(joint_names)
+            self._joint_order = np.array([list(joint_names).index(j) for j in JOINT_NAMES], dtype=np.intp)
+        self._plans = plans(library, classes, max_gap_s=max_gap_s, window_s=window_s)
+        self._features = FeatureStream(JOINT_NAMES, native_rate)
+        self._codes = CodeRecognizer(self._plans, library.rate)
+        self._frames = _Frames(self._step)
+        self._seen = 0  # feature vectors emitted so far in this stream
+        self._bit = [1 << i for i in range(N_FEATURES)]
+
+    @classmethod
+    def for_skeleton(cls, library: Library, skeleton: Skeleton, native_rate: float, **kw: Any) -> Recognizer:
+        """Frames of AMC-style channels of ``skeleton`` (forward kinematics per frame)."""
+        model = KinematicModel(skeleton)
+        model.joints(np.zeros((len(skeleton.node_names), 3)))  # the standard joints exist, or an error
+        return cls(library, native_rate, model=model, **kw)
+
+    @classmethod
+    def for_positions(
+        cls, library: Library, joint_names: Sequence[str], native_rate: float, **kw: Any
+    ) -> Recognizer:
+        """Frames of joint positions in the order ``joint_names``, which must name every standard
+        joint (:data:`replay.JOINT_NAMES`; others are ignored)."""
+        return cls(library, native_rate, joint_names=joint_names, **kw)
+
+    @property
+    def plans(self) -> tuple[ClassPlan, ...]:
+        return self._plans
+
+    @property
+    def latency_frames(self) -> int:
+        """Native frames from a motion's last frame to its detection, at most (the features' delay,
+        then the slowest class's keyframe latency or right widening, at the library's rate)."""
+        slowest = max((max(p.latency, p.right) for p in self._plans), default=0)
+        return self._features.latency + (slowest + 1) * self._step
+
+    def push(self, number: int, frame: npt.ArrayLike) -> list[Detection]:
+        """Add frame ``number``; the detections it completed."""
+        pose = self._check(number, frame)
+        frames = self._frames
+        if frames.first is None:
+            frames.first = number
+        frames.last = number
+        out: list[Detection] = []
+        for vector in self._features.push(pose):
+            out += self._vector(vector, number)
+        return out
+
+    def flush(self) -> list[Detection]:
+        """End the stream: the remaining detections, then a fresh stream (frame numbers start anew)."""
+        last = self._frames.last
+        vectors = self._features.flush()  # none if no frame came
+        out = [d for v in vectors for d in self._vector(v, last or 0)]
+        found = self._codes.flush()
+        if last is not None:
+            out += self._detections(found, last)
+        self._frames = _Frames(self._step)
+        self._seen = 0
+        return out
+
+    def _vector(self, vector: npt.NDArray[np.bool_], number: int) -> list[Detection]:
+        t = self._seen
+        self._seen += 1
+        if t % self._step:
+            return []
+        code = sum(b for b, on in zip(self._bit, vector.tolist(), strict=True) if on)
+        return self._detections(self._codes.push(code), number)
+
+    def _detections(self, found: Sequence[tuple[ClassPlan, Match]], number: int) -> list[Detection]:
+        first = self._frames.first
+        assert first is not None
+        return [make_detection(self.session, self.stream, p, m, first, self._step, number) for p, m in found]
+
+    def _check(self, number: int, frame: npt.ArrayLike) -> FloatArray:
+        if isinstance(number, bool) or not isinstance(number, int | np.integer):
+            raise FrameError(f"frame number {number!r} is not an integer", "type", stream=self.stream)
+        number = int(number)
+        last = self._frames.last
+        if last is not None and number != last + 1:
+            problem: FrameProblem = "repeat" if number == last else "back" if number < last else "jump"
+            raise FrameError(
+                f"frame {number} after frame {last} ({problem}): frames must be consecutive",
+                problem,
+                stream=self.stream,
+            )
+        try:
+            values = np.asarray(frame, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise FrameError(
+                f"frame {number}: not an array of numbers", "shape", stream=self.stream
+            ) from None
+        if self._model is not None:
+            if values.shape != (self._width,):
+                raise FrameError(
+                    f"frame {number}: {self._width} channels expected, got shape {values.shape}",
+                    "shape",
+                    stream=self.stream,
+                )
+            if not np.isfinite(values).all():
+                raise FrameError(f"frame {number}: a channel is not finite", "non_finite", stream=self.stream)
+            pose = self._model.joints(self._model.positions_frame(values, "cm"))
+        else:
+            if values.shape != (self._width, 3):
+                raise FrameError(
+                    f"frame {number}: ({self._width}, 3) joint positions expected, got shape {values.shape}",
+                    "shape",
+                    stream=self.stream,
+                )
+            pose = values[self._joint_order]
+        if not np.isfinite(pose).all():
+            raise FrameError(
+                f"frame {number}: a joint position is not finite", "non_finite", stream=self.stream
+            )
+        return pose
+
+
+def make_detection(
+    session: str, stream: str, plan: ClassPlan, m: Match, first: int, step: int, number: int
+) -> Detection:
+    """A confirmation ``m`` (index-rate frames) as a :class:`Detection` in the source's frame
+    numbers: index frame j covers native frames ``first + j·step`` .. ``first + (j+1)·step - 1``,
+    the end capped by the frame ``number`` being pushed (the features' delay makes it later than
+    every covered frame but at the stream's end)."""
+    start = first + m.start * step
+    end = min(first + (m.end + 1) * step - 1, number)
+    key = f"{session}/{stream}/{plan.name}/{start}/{end}"
+    return Detection(
+        str(uuid.uuid5(uuid.NAMESPACE_URL, key)), stream, plan.name, start, end, m.cost, plan.tau, number
+    )
+
+
+def detect(
+    motion: Motion,
+    library: Library,
+    native_rate: float,
+    *,
+    stream: str = "",
+    classes: Collection[str] | None = None,
+    max_gap_s: float = DEFAULT_MAX_GAP_S,
+    window_s: float = DEFAULT_WINDOW_S,
+    session: str = "",
+) -> list[Detection]:
+    """The batch twin of :class:`Recognizer`: every detection of ``motion`` (read at ``native_rate``
+    Hz) in the order the recogniser emits them, equal to pushing its frames one by one with the same
+    ``session``. Features come from one vectorised pass over the whole recording."""
+    model = KinematicModel(motion.skeleton)
+    positions = model.joints(model.positions(motion.channels, "cm"))
+    return detect_positions(
+        positions,
+        motion.frames,
+        library,
+        native_rate,
+        stream=stream,
+        classes=classes,
+        max_gap_s=max_gap_s,
+        window_s=window_s,
+        session=session,
+    )
+
+
+def detect_positions(
+    positions: FloatArray,
+    numbers: IntArray,
+    library: Library,
+    native_rate: float,
+    *,
+    stream: str = "",
+    classes: Collection[str] | None = None,
+    max_gap_s: float = DEFAULT_MAX_GAP_S,
+    window_s: float = DEFAULT_WINDOW_S,
+    session: str = "",
+) -> list[Detection]:
+    """:func:`detect` of standard joint positions shape ``(N, 26, 3)`` with frame numbers ``(N,)``
+    (consecutive)."""
+    n = len(positions)
+    if n == 0:
+        return []
+    step = decimation_factor(native_rate, library.rate)
+    matrix = features(positions, JOINT_NAMES, native_rate)[::step]  # (n_index, 39)
+    codes = pack(matrix).tolist()
+    recognizer = CodeRecognizer(plans(library, classes, max_gap_s=max_gap_s, window_s=window_s), library.rate)
+    first, last = int(numbers[0]), int(numbers[-1])
+    delay = FeatureStream(JOINT_NAMES, native_rate).latency
+    out = []
+    for j, code in enumerate(codes):
+        # index frame j's features come out when native frame j·step + delay is pushed
+        number = min(first + j * step + delay, last)
+        out += [make_detection(session, stream, p, m, first, step, number) for p, m in recognizer.push(code)]
+    out += [make_detection(session, stream, p, m, first, step, last) for p, m in recognizer.flush()]
+    return out

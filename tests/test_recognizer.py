@@ -1,0 +1,289 @@
+"""The live recogniser: pushed frame by frame it equals its batch twin ``detect`` on every real
+recording; the candidate/confirmation stage equals a slow reading of its definition on random code
+streams; one motion gives one detection per class while a repetition right after gives another;
+bad frames raise :class:`FrameError` and change nothing."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from functools import cache
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from daemon.calibration import given as given_tau
+from daemon.dtw import Match, retrieval_cost, subsequence_matches
+from daemon.features import SET_SLICES
+from daemon.keyframes import KeyframeQuery, parse_keyframe_queries
+from daemon.library import ClassTemplate, Library, learn_class
+from daemon.recognizer import (
+    CodeRecognizer,
+    Detection,
+    FrameError,
+    Recognizer,
+    detect,
+    detect_positions,
+    keep_apart,
+    plans,
+)
+from daemon.recordings import joint_positions, native_rate, read_examples, read_recording
+from daemon.templates import MotionTemplate
+from daemon.types import FEATURE_SETS, N_FEATURES, FeatureSet
+from replay import JOINT_NAMES, Motion
+from tests.helpers import DATA, KEYFRAMES, hdm05_clip, pair_id, recording_pairs, training_rows, write_training
+from tests.naive import keyframe_brute_force
+from tests.synth import LOW_BITS, queries, stream_codes, streams
+
+SESSION = "test"
+
+
+def takes(motion_class: str, actor: str) -> list[int]:
+    """The take numbers of an actor's HDM05 clips of a class."""
+    folder = DATA / "hdm05" / "cut" / motion_class
+    return sorted(int(p.name.split("_")[3]) for p in folder.glob(f"HDM_{actor}_*"))
+
+
+@pytest.fixture(scope="module")
+def library(tmp_path_factory: pytest.TempPathFactory) -> Library:
+    """squat1Reps and hopBothLegs1hops learned from three clips of bd and of bk, each also with the
+    published keyframes (``<class>.published``)."""
+    items = [
+        (c, a, t) for c in ("squat1Reps", "hopBothLegs1hops") for a in ("bd", "bk") for t in takes(c, a)[:3]
+    ]
+    examples = read_examples(
+        write_training(tmp_path_factory.mktemp("lib") / "clips.csv", training_rows(items))
+    )
+    published = parse_keyframe_queries(json.loads(KEYFRAMES.read_text(encoding="utf-8")), KEYFRAMES)
+    classes: dict[str, ClassTemplate] = {}
+    for name, clips in examples.items():
+        learned = learn_class(name, clips)
+        classes[name] = learned
+        classes[f"{name}.published"] = dataclasses.replace(
+            learned, name=f"{name}.published", keyframes=published[name]
+        )
+    return Library(30.0, classes)
+
+
+@cache
+def motion(asf: Path, amc: Path) -> Motion:
+    return read_recording(asf, amc)
+
+
+def pushed(recognizer: Recognizer, m: Motion) -> list[Detection]:
+    out = [
+        d
+        for number, channels in zip(m.frames.tolist(), m.channels, strict=True)
+        for d in recognizer.push(number, channels)
+    ]
+    return out + recognizer.flush()
+
+
+@pytest.mark.parametrize("pair", recording_pairs(), ids=pair_id)
+def test_push_equals_detect(pair: tuple[Path, Path], library: Library) -> None:
+    m = read_recording(*pair)
+    rate = native_rate(m)
+    recognizer = Recognizer.for_skeleton(library, m.skeleton, rate, stream="s", session=SESSION)
+    got = pushed(recognizer, m)
+    assert got == detect(m, library, rate, stream="s", session=SESSION)
+    for d in got:
+        assert d.start_frame <= d.end_frame <= d.emitted_at_frame
+        assert d.cost <= d.tau
+    assert len({d.id for d in got}) == len(got)
+    assert pushed(recognizer, m) == got  # flush started a fresh stream
+
+
+def test_positions_in_any_joint_order(library: Library) -> None:
+    """Joint positions announced in another order, with a joint the features do not use, give the
+    detections of the channels they came from; the batch twin on positions agrees."""
+    asf, amc = hdm05_clip("dg", "squat1Reps", takes("squat1Reps", "dg")[0])
+    m = motion(asf, amc)
+    rate = native_rate(m)
+    positions = joint_positions(m)  # (N, 26, 3) cm
+    order = np.random.default_rng(3).permutation(len(JOINT_NAMES))
+    names = [JOINT_NAMES[i] for i in order] + ["prop"]
+    frames = np.concatenate([positions[:, order], np.zeros((len(m), 1, 3))], axis=1)
+    recognizer = Recognizer.for_positions(library, names, rate, session=SESSION)
+    got = [
+        d for n, f in zip(m.frames.tolist(), frames, strict=True) for d in recognizer.push(n, f)
+    ] + recognizer.flush()
+    assert got
+    assert got == detect(m, library, rate, session=SESSION)
+    assert got == detect_positions(positions, m.frames, library, rate, session=SESSION)
+
+
+def test_one_motion_one_detection_and_a_repetition_right_after(library: Library) -> None:
+    """A dg squat gives one squat detection per class variant; the same squat twice in a row gives
+    two, the second after the first."""
+    asf, amc = hdm05_clip("dg", "squat1Reps", takes("squat1Reps", "dg")[0])
+    m = motion(asf, amc)
+    rate = native_rate(m)
+    once = [d for d in detect(m, library, rate, session=SESSION) if d.class_name.startswith("squat")]
+    assert sorted(d.class_name for d in once) == ["squat1Reps", "squat1Reps.published"]
+    n = len(m)
+    twice = Motion(
+        m.source, m.skeleton, m.header, np.arange(1, 2 * n + 1), np.concatenate([m.channels, m.channels])
+    )
+    found = [d for d in detect(twice, library, rate, session=SESSION) if d.class_name == "squat1Reps"]
+    assert len(found) == 2
+    for d, (first, last) in zip(found, [(1, n), (n + 1, 2 * n)], strict=True):  # mostly in its copy
+        assert 2 * (min(last, d.end_frame) - max(first, d.start_frame) + 1) > d.end_frame - d.start_frame + 1
+
+
+def test_keep_apart() -> None:
+    a, b, c = Match(0, 10, 0.05), Match(5, 15, 0.02), Match(9, 20, 0.04)
+    assert keep_apart([a, b], []) == [b]  # 6 of 11 frames shared: one motion, the cheaper kept
+    assert keep_apart([a, c], []) == [a, c]  # 2 frames shared: the next repetition
+    assert keep_apart([a, Match(10, 10, 0.01)], []) == [Match(10, 10, 0.01)]  # all of the shorter
+    assert keep_apart([a, c], [(4, 6)]) == [c]  # one already emitted stands
+    assert keep_apart([c, a, Match(30, 40, 0.09)], [(38, 50)]) == [a, c, Match(30, 40, 0.09)]
+
+
+# ------------------------------------------------------------------ candidates and confirmation
+
+
+def random_class(name: str, query: KeyframeQuery, rng: np.random.Generator, tau: float) -> ClassTemplate:
+    m = int(rng.integers(2, 7))
+    values = np.full((N_FEATURES, m), 0.5)
+    for fs in FEATURE_SETS:  # random streams vary the first LOW_BITS features of each set
+        low = SET_SLICES[fs].start
+        values[low : low + LOW_BITS] = rng.choice([0.0, 0.5, 1.0], size=(LOW_BITS, m))
+        values[low + LOW_BITS : SET_SLICES[fs].stop] = rng.choice(
+            [0.0, 0.5], size=(SET_SLICES[fs].stop - low - LOW_BITS, m), p=[0.2, 0.8]
+        )
+    template = MotionTemplate(values, rng.uniform(0.6, 2.2, size=m))
+    return ClassTemplate(
+        name,
+        template,
+        template,
+        template,
+        dataclasses.replace(query, name=name),
+        tau,
+        0.1,
+        "toolbox",
+        1,
+        (),
+        given_tau(tau),
+    )
+
+
+def reference(
+    codes: list[int], cls: ClassTemplate, max_gap: int, window: int
+) -> list[tuple[str, int, int, float]]:
+    """The definition read slowly: Ω^Z components by brute force (Def. 4.4-4.8, gaps capped), each
+    widened to its window and cut to its last ``window`` frames, float DTW over the window, local
+    minima at or below τ suppressed, then greedily by cost those sharing no frame with one kept
+    before (of this or an earlier window)."""
+    assert cls.keyframes is not None
+    per_set: dict[FeatureSet, list[list[int]]] = {
+        fs: [
+            [
+                (c >> SET_SLICES[fs].start) & ((1 << (SET_SLICES[fs].stop - SET_SLICES[fs].start)) - 1)
+                for c in codes
+            ]
+        ]
+        for fs in FEATURE_SETS
+    }
+    plan = plans(Library(30.0, {cls.name: cls}), max_gap_s=max_gap / 30.0, window_s=window / 30.0)[0]
+    frames = np.array(
+        [[(c >> i) & 1 for i in range(N_FEATURES)] for c in codes], dtype=np.float64
+    ).T  # (39, n)
+    kept: list[tuple[int, int]] = []
+    out = []
+    for _, s, e in keyframe_brute_force(per_set, cls.keyframes, (0, 0), max_gap):
+        a = max(0, s - plan.left, e + plan.right - plan.window + 1)
+        b = min(e + plan.right, len(codes) - 1)
+        cost = retrieval_cost(plan.values, plan.weights, frames[:, a : b + 1])
+        confirmed = []
+        for m in sorted(subsequence_matches(cost, cls.tau, "toolbox"), key=lambda m: (m.cost, m.start)):
+            mine = set(range(m.start + a, m.end + a + 1))
+            if all(2 * len(mine & set(range(x, y + 1))) <= min(len(mine), y - x + 1) for x, y in kept):
+                kept.append((m.start + a, m.end + a))
+                confirmed.append((cls.name, m.start + a, m.end + a, m.cost))
+        out += sorted(confirmed, key=lambda c: c[1])
+    return out
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(
+    streams(),
+    queries(),
+    queries(),
+    st.integers(0, 2**32 - 1),
+    st.sampled_from([0.05, 0.2, 0.5]),
+    st.integers(1, 8),
+)
+def test_confirmations_equal_the_definition(
+    codes: dict[FeatureSet, list[int]],
+    q1: KeyframeQuery,
+    q2: KeyframeQuery,
+    seed: int,
+    tau: float,
+    max_gap: int,
+) -> None:
+    rng = np.random.default_rng(seed)
+    classes = {n: random_class(n, q, rng, tau) for n, q in (("a", q1), ("b", q2))}
+    window = int(rng.integers(1, 40))
+    stream = stream_codes(codes)
+    recognizer = CodeRecognizer(
+        plans(Library(30.0, classes), max_gap_s=max_gap / 30.0, window_s=window / 30.0), 30.0
+    )
+    got = [(p.name, m.start, m.end, m.cost, j) for j, c in enumerate(stream) for p, m in recognizer.push(c)]
+    got += [(p.name, m.start, m.end, m.cost, len(stream) - 1) for p, m in recognizer.flush()]
+    for name, cls in classes.items():
+        assert [g[:4] for g in got if g[0] == name] == reference(stream, cls, max_gap, window)
+    for _, _, end, _, emitted in got:
+        assert end <= emitted  # never before its last frame was seen
+
+
+# ------------------------------------------------------------------------------- bad frames
+
+
+BAD = ("short", "long", "nan", "inf", "repeat", "back", "jump", "float", "text")
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.lists(st.tuples(st.integers(0, 178), st.sampled_from(BAD)), max_size=8))
+def test_bad_frames_change_nothing(library: Library, bad: list[tuple[int, str]]) -> None:
+    asf, amc = hdm05_clip("dg", "squat1Reps", takes("squat1Reps", "dg")[0])
+    m = motion(asf, amc)
+    rate = native_rate(m)
+    clean = pushed(Recognizer.for_skeleton(library, m.skeleton, rate, session=SESSION), m)
+    recognizer = Recognizer.for_skeleton(library, m.skeleton, rate, session=SESSION)
+    before = {i: [kind for j, kind in bad if j == i] for i in range(len(m))}
+    got: list[Detection] = []
+    for i, (number, channels) in enumerate(zip(m.frames.tolist(), m.channels, strict=True)):
+        for kind in before[i]:
+            problem, wrong_number, wrong = damaged(kind, i, number, channels)
+            if problem is None:
+                continue
+            with pytest.raises(FrameError, match=r"\bframe\b") as caught:
+                recognizer.push(wrong_number, wrong)  # type: ignore[arg-type]
+            assert caught.value.problem == problem
+        got += recognizer.push(number, channels)
+    assert got + recognizer.flush() == clean
+
+
+def damaged(kind: str, i: int, number: int, channels: np.ndarray) -> tuple[str | None, object, object]:
+    """The frame ``kind`` makes of frame ``i`` (number, channels) and the problem it must raise;
+    None where the kind makes no bad frame there (no previous frame to repeat)."""
+    bad = channels.copy()
+    if kind == "short":
+        return "shape", number, channels[:-1]
+    if kind == "long":
+        return "shape", number, np.append(channels, 0.0)
+    if kind in ("nan", "inf"):
+        bad[i % len(bad)] = np.nan if kind == "nan" else -np.inf
+        return "non_finite", number, bad
+    if kind == "float":
+        return "type", float(number), channels
+    if kind == "text":
+        return "type", str(number), channels
+    if kind == "jump":
+        return "jump", number + 1 + i % 3, channels
+    if i == 0:
+        return None, number, channels
+    return ("repeat", number - 1, channels) if kind == "repeat" else ("back", number - 2 - i % 3, channels)
