@@ -8,7 +8,7 @@ from typing import Literal, cast, get_args
 
 from daemon.checks import Checker, read_structured
 from daemon.errors import MocapdError
-from daemon.types import DEFAULT_NATIVE_RATE, MAX_NATIVE_RATE
+from daemon.types import DEFAULT_MAX_GAP_S, DEFAULT_NATIVE_RATE, DEFAULT_WINDOW_S, MAX_NATIVE_RATE
 
 Units = Literal["asf", "cm"]
 
@@ -27,8 +27,18 @@ class ReplayConfig:
 
 
 @dataclass(frozen=True)
+class RecognizerConfig:
+    """The live recogniser (:mod:`daemon.recognizer`): how far an unbounded keyframe gap (stiffness
+    0) may reach, and the longest stretch of a candidate confirmed by DTW, both in seconds."""
+
+    max_gap_s: float = DEFAULT_MAX_GAP_S
+    window_s: float = DEFAULT_WINDOW_S
+
+
+@dataclass(frozen=True)
 class Config:
     replay: ReplayConfig = field(default_factory=ReplayConfig)
+    recognizer: RecognizerConfig = field(default_factory=RecognizerConfig)
 
 
 def load_config(path: str | Path | None) -> Config:
@@ -42,7 +52,7 @@ def load_config(path: str | Path | None) -> Config:
 def parse_config(data: object, source: str = "<config>") -> Config:
     """Build a :class:`Config` from parsed YAML; unknown or ill-typed fields are errors."""
     check = Checker(source, ConfigError)
-    root = check.mapping(data, "", optional=("replay",))
+    root = check.mapping(data, "", optional=("replay", "recognizer"))
     section = root.get("replay")
     replay = check.mapping({} if section is None else section, "replay", optional=("frame_rate_hz", "units"))
     defaults = ReplayConfig()
@@ -54,4 +64,19 @@ def parse_config(data: object, source: str = "<config>") -> Config:
         high=MAX_NATIVE_RATE,
     )
     units = check.choice(replay.get("units", defaults.units), "replay.units", get_args(Units))
-    return Config(replay=ReplayConfig(frame_rate_hz=rate, units=cast(Units, units)))
+    section = root.get("recognizer")
+    live = check.mapping({} if section is None else section, "recognizer", optional=("max_gap_s", "window_s"))
+    seconds = {
+        key: check.number(
+            live.get(key, getattr(RecognizerConfig, key)),
+            f"recognizer.{key}",
+            low=0,
+            low_open=True,
+            high=3600,
+        )
+        for key in ("max_gap_s", "window_s")
+    }
+    return Config(
+        replay=ReplayConfig(frame_rate_hz=rate, units=cast(Units, units)),
+        recognizer=RecognizerConfig(**seconds),
+    )

@@ -48,13 +48,15 @@ from daemon.features import FeatureStream, decimation_factor, features
 from daemon.library import ClassTemplate, Library
 from daemon.retrieval import keyframe_extension
 from daemon.templates import expand
-from daemon.types import MAX_NATIVE_RATE, N_FEATURES, FloatArray, IntArray
+from daemon.types import (
+    DEFAULT_MAX_GAP_S,
+    DEFAULT_WINDOW_S,
+    MAX_NATIVE_RATE,
+    N_FEATURES,
+    FloatArray,
+    IntArray,
+)
 from replay import JOINT_NAMES, KinematicModel, Motion, Skeleton
-
-DEFAULT_MAX_GAP_S = 2.0
-"""Seconds an unbounded keyframe gap (stiffness 0) may span live (config ``recognizer.max_gap_s``)."""
-DEFAULT_WINDOW_S = 20.0
-"""Seconds of a candidate's window confirmed at most (config ``recognizer.window_s``)."""
 
 FrameProblem = Literal["shape", "non_finite", "type", "repeat", "back", "jump"]
 

@@ -29,3 +29,10 @@ frames at 10 kHz), so an absurd rate (a typo, a damaged file) would exhaust memo
 
 DEFAULT_INDEX_RATE = 30.0
 """Hz at which indexes, templates and keyframes work (the toolbox's every 4th frame of 120 Hz)."""
+
+DEFAULT_MAX_GAP_S = 2.0
+"""Seconds an unbounded keyframe gap (stiffness 0) may span in the live recogniser (config
+``recognizer.max_gap_s``)."""
+
+DEFAULT_WINDOW_S = 20.0
+"""Seconds of a keyframe candidate the live recogniser confirms at most (config ``recognizer.window_s``)."""

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from daemon.config import Config, ConfigError, ReplayConfig, load_config, parse_config
+from daemon.config import Config, ConfigError, RecognizerConfig, ReplayConfig, load_config, parse_config
 from daemon.errors import FileAccessError, MocapdError
 from replay import KinematicModel, read_amc, read_asf
 from tests.helpers import CMU_AMC, CMU_ASF, REPO, mocapd
@@ -53,13 +53,27 @@ def test_good_config(tmp_path: Path, text: str, expected: ReplayConfig) -> None:
     assert isinstance(config.replay.frame_rate_hz, float)
 
 
+def test_recognizer_section(tmp_path: Path) -> None:
+    config = load_config(write(tmp_path, "recognizer:\n  max_gap_s: 1.5\n  window_s: 30\n"))
+    assert config == Config(recognizer=RecognizerConfig(max_gap_s=1.5, window_s=30.0))
+
+
 # --------------------------------------------------------------------------------------------------
 # bad configurations: ConfigError naming the file and the field
 
 
 BAD = [
     # unknown fields
-    ("unknown-top", "replay: {}\nextra: 1\n", "extra: unknown field (allowed: replay)"),
+    ("unknown-top", "replay: {}\nextra: 1\n", "extra: unknown field (allowed: recognizer, replay)"),
+    (
+        "unknown-recognizer",
+        "recognizer:\n  gap: 2\n",
+        "recognizer.gap: unknown field (allowed: max_gap_s, window_s)",
+    ),
+    ("gap-zero", "recognizer:\n  max_gap_s: 0\n", "recognizer.max_gap_s"),
+    ("gap-string", "recognizer:\n  max_gap_s: 2s\n", "recognizer.max_gap_s"),
+    ("window-huge", "recognizer:\n  window_s: 1e9\n", "recognizer.window_s"),
+    ("window-nan", "recognizer:\n  window_s: .nan\n", "recognizer.window_s"),
     ("unknown-replay", "replay:\n  fps: 60\n", "replay.fps: unknown field (allowed: frame_rate_hz, units)"),
     ("misspelt", "replay:\n  frame_rate: 60\n", "replay.frame_rate: unknown field"),
     # wrong types and non-positive frame rates
