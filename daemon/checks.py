@@ -4,9 +4,11 @@ the field, as ``path: field: reason``."""
 
 from __future__ import annotations
 
+import csv
+import io
 import json
 import math
-from collections.abc import Collection
+from collections.abc import Collection, Iterator
 from pathlib import Path
 from typing import Any, Literal, NoReturn
 
@@ -27,6 +29,41 @@ def read_text(path: str | Path, error: type[MocapdError]) -> str:
     except UnicodeDecodeError as exc:
         line = data[: exc.start].count(b"\n") + 1
         raise error(f"not UTF-8 text (byte {exc.start})", path=path, line=line) from None
+
+
+def csv_records(
+    path: str | Path, error: type[MocapdError], required: Collection[str]
+) -> Iterator[tuple[int, dict[str, str]]]:
+    """The records of the UTF-8 CSV file ``path`` as (line, cells by lower-case column name, stripped),
+    blank lines skipped. The header must name every column of ``required`` once; a record with
+    another number of fields, a blank required field or damaged CSV raises ``error`` naming the
+    file and line."""
+    reader = csv.reader(io.StringIO(read_text(path, error), newline=""))
+    header: list[str] | None = None
+    try:
+        for record in reader:
+            cells = [c.strip() for c in record]
+            if not any(cells):
+                continue
+            line = reader.line_num
+            if header is None:
+                header = [c.lower() for c in cells]
+                for name in required:
+                    if header.count(name) != 1:
+                        how = "lacks" if name not in header else "repeats"
+                        raise error(f"header {how} the column '{name}'", path=path, line=line)
+                continue
+            if len(cells) != len(header):
+                raise error(f"{len(cells)} fields, the header has {len(header)}", path=path, line=line)
+            value = dict(zip(header, cells, strict=True))
+            for name in required:
+                if not value[name]:
+                    raise error(f"the '{name}' field is blank", path=path, line=line)
+            yield line, value
+    except csv.Error as exc:
+        raise error(f"not valid CSV: {exc}", path=path, line=reader.line_num) from None
+    if header is None:
+        raise error(f"empty file: no header (it needs the columns {','.join(required)})", path=path, line=1)
 
 
 def read_structured(path: str | Path, kind: Literal["json", "yaml"], error: type[MocapdError]) -> Any:

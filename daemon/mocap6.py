@@ -23,7 +23,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-from daemon.checks import read_text
+from daemon.checks import csv_records
 from daemon.errors import MocapdError
 from daemon.recordings import RecordingFeatures, joint_positions, motion_features, sample_index
 from daemon.repetitions import Cutting, cut_run
@@ -68,61 +68,30 @@ def read_segments(path: str | Path) -> list[Segment]:
     file and line for a missing column, a blank or non-integer field, a run ending before it starts
     and runs of one trial that overlap or are out of order; :class:`daemon.errors.FileAccessError`
     if the file cannot be read."""
-    text = read_text(path, Mocap6Error)
     source = str(path)
-    reader = csv.reader(io.StringIO(text, newline=""))
-    header: list[str] | None = None
     out: list[Segment] = []
     last: dict[str, Segment] = {}
-    try:
-        for record in reader:
-            line = reader.line_num
-            cells = [c.strip() for c in record]
-            if not any(cells):
-                continue
-            if header is None:
-                header = [c.lower() for c in cells]
-                for name in COLUMNS:
-                    if header.count(name) != 1:
-                        how = "lacks" if name not in header else "repeats"
-                        raise Mocap6Error(f"header {how} the column '{name}'", path=path, line=line)
-                continue
-            if len(cells) != len(header):
-                raise Mocap6Error(f"{len(cells)} fields, the header has {len(header)}", path=path, line=line)
-            value = dict(zip(header, cells, strict=True))
-            for name in COLUMNS:
-                if not value[name]:
-                    raise Mocap6Error(f"the '{name}' field is blank", path=path, line=line)
-            numbers = {}
-            for name in ("start_frame", "end_frame", "label_id"):
-                try:
-                    numbers[name] = int(value[name])
-                except ValueError:
-                    raise Mocap6Error(
-                        f"{name} {value[name]!r} is not an integer", path=path, line=line
-                    ) from None
-            start, end = numbers["start_frame"], numbers["end_frame"]
-            if start > end:
-                raise Mocap6Error(f"start_frame {start} is after end_frame {end}", path=path, line=line)
-            segment = Segment(
-                value["trial"], start, end, numbers["label_id"], value["label_name"], source, line
+    for line, value in csv_records(path, Mocap6Error, COLUMNS):
+        numbers = {}
+        for name in ("start_frame", "end_frame", "label_id"):
+            try:
+                numbers[name] = int(value[name])
+            except ValueError:
+                raise Mocap6Error(f"{name} {value[name]!r} is not an integer", path=path, line=line) from None
+        start, end = numbers["start_frame"], numbers["end_frame"]
+        if start > end:
+            raise Mocap6Error(f"start_frame {start} is after end_frame {end}", path=path, line=line)
+        segment = Segment(value["trial"], start, end, numbers["label_id"], value["label_name"], source, line)
+        before = last.get(segment.trial)
+        if before is not None and start <= before.end_frame:
+            raise Mocap6Error(
+                f"trial {segment.trial}: frames {start}..{end} start before the run of line "
+                f"{before.line} ends ({before.end_frame})",
+                path=path,
+                line=line,
             )
-            before = last.get(segment.trial)
-            if before is not None and start <= before.end_frame:
-                raise Mocap6Error(
-                    f"trial {segment.trial}: frames {start}..{end} start before the run of line "
-                    f"{before.line} ends ({before.end_frame})",
-                    path=path,
-                    line=line,
-                )
-            last[segment.trial] = segment
-            out.append(segment)
-    except csv.Error as exc:
-        raise Mocap6Error(f"not valid CSV: {exc}", path=path, line=reader.line_num) from None
-    if header is None:
-        raise Mocap6Error(
-            f"empty file: no header (it needs the columns {','.join(COLUMNS)})", path=path, line=1
-        )
+        last[segment.trial] = segment
+        out.append(segment)
     return out
 
 
