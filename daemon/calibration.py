@@ -337,3 +337,58 @@ def calibrate(
         )
         for name in examples
     }
+
+
+# ------------------------------------------------------------------- learned vs published keyframes
+
+
+@dataclass(frozen=True)
+class HeldOutKeyframes:
+    """Keyframes on one left-out actor's clips: ``kept`` of the ``clips`` of the class hold a hit
+    (a keyframe-search component inside the clip) and ``false`` of the ``others`` clips of other
+    classes do."""
+
+    actor: str
+    kept: int
+    clips: int
+    false: int
+    others: int
+
+
+def held_out_learned(found: ClassCalibration) -> list[HeldOutKeyframes]:
+    """The learned keyframes, generalised as calibration chose (``found.keyframes``), fold by fold:
+    in each fold learned on the other actors and run on the left-out actor's clips."""
+    out = []
+    for f in found.folds:
+        for t in f.trials:
+            if t.generalisation == found.keyframes:
+                kept, n = int(t.positives.sum()), len(t.positives)
+                others = len(f.negative_costs)
+                out.append(HeldOutKeyframes(f.actor, kept, n, t.negatives, others))
+    return out
+
+
+def held_out_query(
+    examples: Labelled,
+    name: str,
+    query: KeyframeQuery,
+    actors: Sequence[str],
+    rate: float = DEFAULT_INDEX_RATE,
+) -> list[HeldOutKeyframes]:
+    """A fixed keyframe ``query`` (e.g. the published one) on the clips :func:`folds` leaves out for
+    each of ``actors``: the actor's clips of class ``name`` and of the other classes."""
+    out = []
+    for actor in actors:
+        positives = [m for a, m in examples[name] if a == actor]
+        negatives = [m for other, items in examples.items() if other != name for a, m in items if a == actor]
+        kept = keyframes_kept(query, clip_sets(positives), rate)
+        false = keyframes_kept(query, clip_sets(negatives), rate)
+        out.append(HeldOutKeyframes(actor, int(kept.sum()), len(positives), int(false.sum()), len(negatives)))
+    return out
+
+
+def prefer_published(learned: Sequence[HeldOutKeyframes], published: Sequence[HeldOutKeyframes]) -> bool:
+    """Whether the published keyframes replace the learned ones: pooled over the same folds, they
+    keep at least as many left-out clips of the class and hit no more clips of other classes."""
+    kept = sum(h.kept for h in published) >= sum(h.kept for h in learned)
+    return kept and sum(h.false for h in published) <= sum(h.false for h in learned)

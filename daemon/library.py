@@ -8,7 +8,8 @@ A library is a directory::
                            "classes": {name: {"file": "<name>.npz", "sha256": {array: hex},
                                               "tau", "calibration", "delta", "steps",
                                               "iterations", "training": [clip, ...],
-                                              "keyframes": [keyframe, ...]}}}
+                                              "keyframes": [keyframe, ...],
+                                              ["keyframe_source": "published"]}}}
     LIB/<name>.npz        soft, soft_weights, quantised, quantised_weights, hard, hard_weights
 
 Templates are ``(39, K)`` float64 matrices (features in :data:`daemon.features.FEATURE_NAMES` order,
@@ -24,6 +25,20 @@ the DTW steps retrieval uses. ``sha256`` holds the SHA-256 of each array, checke
 arrays damaged, swapped or edited are refused. A class's arrays are read only when the class is
 loaded, so a damaged class file does not keep the others from being used.
 
+``keyframe_source`` (optional, version 3) says where the keyframes come from: absent or
+``"learned"``, the automatic keyframes learned with the templates; ``"published"``, the class's
+manual keyframes of the Bonn toolbox (``manual-keyframes.json``, positions in the columns of the
+published template at ``rate``), put in their place because they did better on the training data
+(``python -m bench.shipped_library``). :func:`save_library` writes it only for published keyframes,
+so a library with learned keyframes is exactly what earlier version 3 readers read. A library
+directory may hold other files beside its own (``extra`` of :func:`save_library`), which loading
+ignores.
+
+**The shipped library.** :func:`default_library_path` is the library that ships inside the package
+(:data:`DEFAULT_LIBRARY`): 18 classes learned by ``python -m bench.shipped_library`` from the HDM05
+and CMU clips of ``../shared/data/mocap``, with the training manifest it used (``training.csv``,
+paths relative to the repository root), so recognising needs no training step.
+
 Version 2 (no ``calibration``, no ``actor``) still loads: its τ is marked given, not calibrated, and
 each clip's actor is its ASF path. Version 1 is refused with the advice to learn it again.
 """
@@ -32,6 +47,7 @@ from __future__ import annotations
 
 from collections.abc import Collection, Mapping, Sequence
 from dataclasses import dataclass
+from importlib import resources
 from pathlib import Path
 from typing import Any
 
@@ -44,7 +60,7 @@ from daemon.errors import MocapdError
 from daemon.features import FEATURE_NAMES
 from daemon.keyframes import KeyframeQuery, parse_keyframes
 from daemon.recordings import CLASS_NAME, TrainingClip
-from daemon.storage import check_target, checksum, read_meta, replace_directory, write_json
+from daemon.storage import check_target, checksum, read_meta, replace_directory, sync, write_json
 from daemon.templates import THESIS_KEYFRAMES, Generalisation, MotionTemplate, learn
 from daemon.types import DEFAULT_INDEX_RATE, N_FEATURES, BoolArray
 
@@ -59,8 +75,33 @@ MAX_WEIGHT = 1.5
 CLASS_KEYS_V2 = ("file", "sha256", "tau", "delta", "steps", "iterations", "training", "keyframes")
 CLASS_KEYS = (*CLASS_KEYS_V2, "calibration")
 CALIBRATION_KEYS = ("method", "folds", "positives", "negatives", "recall", "precision")
+CLASS_OPTIONAL = ("keyframe_source",)
+"""Optional fields of a version 3 class entry."""
 CLIP_KEYS_V2 = ("asf", "amc", "start_frame", "end_frame", "frames")
 V2_TAU = "a version 2 library"
+LEARNED = "learned"
+PUBLISHED = "published"
+KEYFRAME_SOURCES = (LEARNED, PUBLISHED)
+"""Where a class's keyframes come from (``keyframe_source``)."""
+DEFAULT_LIBRARY = "data/library"
+"""The shipped library: this directory inside the ``daemon`` package (package data, installed with
+it; :func:`default_library_path`). Rebuilt by ``python -m bench.shipped_library``, which writes
+``library.json``, one ``<class>.npz`` per class and ``training.csv``, the training manifest."""
+
+
+def default_library_path() -> Path:
+    """The directory of the library that ships with mocapd (:data:`DEFAULT_LIBRARY`), found with
+    :mod:`importlib.resources`, so it is the installed package's copy in an installed mocapd and
+    the repository's in an editable install. Raises :class:`LibraryFormatError` if the package was
+    installed without it (or not as plain files)."""
+    path = Path(str(resources.files("daemon").joinpath(*DEFAULT_LIBRARY.split("/"))))
+    if not (path / LIBRARY_JSON).is_file():
+        raise LibraryFormatError(
+            f"not {WHAT} (no {LIBRARY_JSON}): mocapd was installed without its shipped library; "
+            "rebuild it with python -m bench.shipped_library",
+            path=path,
+        )
+    return path
 
 
 class LibraryFormatError(MocapdError, ValueError):
@@ -87,6 +128,14 @@ class ClassTemplate:
     training: tuple[TrainingClip, ...]
     calibration: Calibration | None = None
     """How ``tau`` was obtained; None: given, not calibrated (as :func:`daemon.calibration.given`)."""
+    keyframe_source: str = LEARNED
+    """Where ``keyframes`` come from, one of :data:`KEYFRAME_SOURCES`."""
+
+    def __post_init__(self) -> None:
+        if self.keyframe_source not in KEYFRAME_SOURCES:
+            raise ValueError(
+                f"keyframe_source must be one of {KEYFRAME_SOURCES}, got {self.keyframe_source!r}"
+            )
 
     @property
     def provenance(self) -> Calibration:
@@ -187,10 +236,18 @@ def _arrays(c: ClassTemplate) -> dict[str, np.ndarray]:
     return {k: np.ascontiguousarray(v, dtype=np.float64) for k, v in arrays.items()}
 
 
-def save_library(library: Library, path: str | Path) -> None:
+def save_library(library: Library, path: str | Path, extra: Mapping[str, str] | None = None) -> None:
     """Write ``library`` as the directory ``path`` (replacing an earlier library or an empty
-    directory; anything else raises :class:`~daemon.errors.FileAccessError`), never half written."""
+    directory; anything else raises :class:`~daemon.errors.FileAccessError`), never half written.
+    ``extra``: other text files to write into the directory with it (name -> UTF-8 text; plain
+    names, neither ``library.json`` nor ``*.npz``), e.g. the training manifest."""
     arrays = {name: _arrays(c) for name, c in library.classes.items()}
+    extra = dict(extra or {})
+    for file in extra:
+        if Path(file).name != file or file in (LIBRARY_JSON, ".", "..") or file.endswith(".npz"):
+            raise ValueError(
+                f"an extra file of a library must be a plain name, not {LIBRARY_JSON} or *.npz: {file!r}"
+            )
     meta: dict[str, Any] = {
         "format": FORMAT,
         "version": VERSION,
@@ -210,12 +267,18 @@ def save_library(library: Library, path: str | Path) -> None:
             "training": [vars(t) for t in c.training],
             "keyframes": [] if c.keyframes is None else keyframe_entries(c.keyframes),
         }
+        if c.keyframe_source != LEARNED:
+            meta["classes"][name]["keyframe_source"] = c.keyframe_source
 
     def fill(temp: Path) -> None:
         for name, values in arrays.items():
             with open(temp / f"{name}.npz", "wb") as out:
                 np.savez(out, allow_pickle=False, **values)
         write_json(temp / LIBRARY_JSON, meta)
+        for file, text in extra.items():
+            with open(temp / file, "w", encoding="utf-8", newline="") as out:
+                out.write(text)
+                sync(out)
 
     replace_directory(path, LIBRARY_JSON, WHAT, fill)
 
@@ -261,6 +324,7 @@ def load_library(path: str | Path, names: Collection[str] | None = None) -> Libr
             e["iterations"],
             e["training"],
             e["calibration"],
+            e["keyframe_source"],
         )
     return Library(rate, classes)
 
@@ -309,7 +373,13 @@ def _read(path: Path) -> tuple[Checker, float, dict[str, dict[str, Any]]]:
         where = f"classes.{name}"
         if not CLASS_NAME.fullmatch(name):
             check.fail(where, "a class name uses letters, digits, '_', '.', '-'")
-        e = dict(check.mapping(entry, where, CLASS_KEYS if version == VERSION else CLASS_KEYS_V2))
+        if version == VERSION:
+            e = dict(check.mapping(entry, where, CLASS_KEYS, CLASS_OPTIONAL))
+        else:
+            e = dict(check.mapping(entry, where, CLASS_KEYS_V2))
+        e["keyframe_source"] = check.choice(
+            e.get("keyframe_source", LEARNED), f"{where}.keyframe_source", KEYFRAME_SOURCES
+        )
         if e["file"] != f"{name}.npz":
             check.fail(f"{where}.file", f"must be '{name}.npz', got {e['file']!r:.60}")
         sums = check.mapping(e["sha256"], f"{where}.sha256", ARRAYS)

@@ -5,6 +5,7 @@ cost matrix, with and without keyframe pre-selection."""
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import re
@@ -20,6 +21,8 @@ from daemon.errors import FileAccessError
 from daemon.index_store import MotionIndex, index_from_matrices, read_document
 from daemon.keyframes import KeyframeQuery, parse_keyframe_queries
 from daemon.library import (
+    LEARNED,
+    PUBLISHED,
     ClassTemplate,
     Library,
     LibraryFormatError,
@@ -154,6 +157,30 @@ def test_library_not_written_over_other_files(library: Library, tmp_path: Path) 
     with pytest.raises(FileAccessError, match=r"is not a mocapd template library, not replaced$"):
         save_library(library, tmp_path / "lib")
     assert (tmp_path / "lib" / "notes.txt").read_text() == "mine"
+
+
+def test_library_keyframe_source_and_extra_files(library: Library, tmp_path: Path) -> None:
+    published = parse_keyframe_queries(json.loads(KEYFRAMES.read_text()), KEYFRAMES)["squat1Reps"]
+    squat = dataclasses.replace(library.classes["squat1Reps"], keyframes=published, keyframe_source=PUBLISHED)
+    lib = tmp_path / "lib"
+    save_library(Library(30.0, {**library.classes, "squat1Reps": squat}), lib, {"notes.csv": "a,b\n"})
+    assert (lib / "notes.csv").read_text() == "a,b\n"
+    meta = json.loads((lib / "library.json").read_text())
+    assert meta["version"] == 3 and meta["classes"]["squat1Reps"]["keyframe_source"] == "published"
+    # learned keyframes write no field: a version 3 library as it was before the field loads as learned
+    assert "keyframe_source" not in meta["classes"]["hopBothLegs1hops"]
+    loaded = load_library(lib)
+    assert loaded.classes["squat1Reps"].keyframe_source == PUBLISHED
+    assert loaded.classes["hopBothLegs1hops"].keyframe_source == LEARNED
+    kf = loaded.classes["squat1Reps"].keyframes
+    assert kf is not None and kf.keyframes == published.keyframes
+    edit_json(lib, {"classes/squat1Reps/keyframe_source": "guessed"})
+    with pytest.raises(LibraryFormatError, match=r"classes\.squat1Reps\.keyframe_source: must be one of"):
+        load_library(lib)
+    with pytest.raises(ValueError, match="plain name"):
+        save_library(library, tmp_path / "other", {"library.json": "{}"})
+    with pytest.raises(ValueError, match="keyframe_source"):
+        dataclasses.replace(squat, keyframe_source="guessed")
 
 
 def edit_json(lib: Path, change: dict[str, object]) -> None:

@@ -8,14 +8,14 @@ import time
 from pathlib import Path
 from typing import Any
 
-from daemon.calibration import Calibration, calibrate_class, given
+from daemon.calibration import Calibration, ClassCalibration, calibrate_class, given
 from daemon.cli import common
 from daemon.config import Config
-from daemon.dtw import STEPS
+from daemon.dtw import STEPS, Steps
 from daemon.errors import UsageError
 from daemon.library import ClassTemplate, Library, check_library_target, learn_class, save_library
 from daemon.plots import template_png
-from daemon.recordings import TrainingClip, read_examples
+from daemon.recordings import Examples, TrainingClip, read_examples
 from daemon.storage import together
 from daemon.templates import THESIS_KEYFRAMES, Generalisation
 from daemon.types import DEFAULT_INDEX_RATE
@@ -86,23 +86,20 @@ def _learn(args: argparse.Namespace, config: Config) -> int:
         default_native_rate=common.default_native_rate(args, config),
     )
     actors = {clip.actor for items in examples.values() for clip, _ in items}
-    calibrating = args.calibrate and len(actors) >= 2
-    labelled = {name: [(clip.actor, m) for clip, m in items] for name, items in examples.items()}
     classes: dict[str, ClassTemplate] = {}
     for i, (name, items) in enumerate(examples.items(), start=1):
         started = time.perf_counter()
-        calibration, generalisation = _calibration(args, labelled, name, calibrating, len(actors))
-        cls = learn_class(
+        cls, found = learn_one(
+            examples,
             name,
-            items,
-            delta=args.delta,
             tau=args.tau,
+            delta=args.delta,
             keyframes=args.keyframes,
             steps=args.steps,
             rate=args.fps,
-            calibration=calibration,
-            generalisation=generalisation,
+            calibrate=args.calibrate,
         )
+        generalisation = THESIS_KEYFRAMES if found is None else found.keyframes
         classes[name] = cls
         keyframes = 0 if cls.keyframes is None else len(cls.keyframes.keyframes)
         print(
@@ -128,28 +125,48 @@ def _learn(args: argparse.Namespace, config: Config) -> int:
     return 0
 
 
-def _calibration(
-    args: argparse.Namespace,
-    labelled: dict[str, list[tuple[str, Any]]],
+def learn_one(
+    examples: Examples,
     name: str,
-    calibrating: bool,
-    actors: int,
-) -> tuple[Calibration, Generalisation]:
-    """The class's τ and keyframe generalisation, by leave-one-actor-out when ``calibrating``."""
-    if not args.calibrate:
-        return given(args.tau, "--no-calibrate"), THESIS_KEYFRAMES
-    if not calibrating:
-        return given(args.tau, f"{actors} actor in the manifest: no leave-one-actor-out"), THESIS_KEYFRAMES
-    found = calibrate_class(
-        labelled,
+    *,
+    tau: float = 0.1,
+    delta: float = 0.1,
+    keyframes: int = 3,
+    steps: Steps = "toolbox",
+    rate: float = DEFAULT_INDEX_RATE,
+    calibrate: bool = True,
+) -> tuple[ClassTemplate, ClassCalibration | None]:
+    """Class ``name`` of ``examples`` (every class's clips and their ``(frames, 39)`` features at
+    ``rate`` Hz, as :func:`daemon.recordings.read_examples` gives them) learned as ``mocapd learn``
+    learns it: τ and the keyframe generalisation by leave-one-actor-out over all classes
+    (:func:`daemon.calibration.calibrate_class`) when ``calibrate`` and the examples name at least
+    2 actors, else ``tau`` given (and why). Returns the class and its calibration (None when not
+    calibrated)."""
+    if not calibrate:
+        calibration, generalisation, found = given(tau, "--no-calibrate"), THESIS_KEYFRAMES, None
+    else:
+        actors = {clip.actor for items in examples.values() for clip, _ in items}
+        if len(actors) < 2:
+            why = f"{len(actors)} actor in the manifest: no leave-one-actor-out"
+            calibration, generalisation, found = given(tau, why), THESIS_KEYFRAMES, None
+        else:
+            labelled = {n: [(clip.actor, m) for clip, m in items] for n, items in examples.items()}
+            found = calibrate_class(
+                labelled, name, tau=tau, delta=delta, keyframes=keyframes, steps=steps, rate=rate
+            )
+            calibration, generalisation = found.calibration, found.keyframes
+    cls = learn_class(
         name,
-        tau=args.tau,
-        delta=args.delta,
-        keyframes=args.keyframes,
-        steps=args.steps,
-        rate=args.fps,
+        examples[name],
+        delta=delta,
+        tau=tau,
+        keyframes=keyframes,
+        steps=steps,
+        rate=rate,
+        calibration=calibration,
+        generalisation=generalisation,
     )
-    return found.calibration, found.keyframes
+    return cls, found
 
 
 def _widened(g: Generalisation) -> str:
