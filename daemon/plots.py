@@ -210,3 +210,40 @@ def repetitions_png(
     fig.tight_layout()
     _save(fig, path)
     plt.close(fig)
+
+
+def timeline_png(
+    detections: Sequence[tuple[str, int, int]],
+    truth: Sequence[tuple[str, int, int]],
+    frames: tuple[int, int],
+    frame_rate: float,
+    path: Target,
+    title: str,
+) -> None:
+    """Draw detections over a recording: one row per class (those detected or labelled), each
+    detection ``(class, first frame, last frame)`` as a bar; labelled segments ``truth`` (same form)
+    as lighter bars beneath in the same row. ``frames``: the recording's first and last frame numbers,
+    at ``frame_rate`` Hz (the axis is in seconds from the first frame)."""
+    plt = _pyplot()
+    names = sorted({c for c, _, _ in detections} | {c for c, _, _ in truth})
+    row = {c: i for i, c in enumerate(names)}
+    first, last = frames
+    seconds = (last - first + 1) / frame_rate
+    fig, ax = plt.subplots(figsize=(min(24.0, max(8.0, seconds / 5.0)), 1.2 + 0.45 * max(1, len(names))))
+    for c, s, e in truth:
+        ax.broken_barh(
+            [((s - first) / frame_rate, (e - s + 1) / frame_rate)], (row[c] - 0.45, 0.4), color="0.75"
+        )
+    for c, s, e in detections:
+        ax.broken_barh(
+            [((s - first) / frame_rate, (e - s + 1) / frame_rate)], (row[c] - 0.05, 0.45), color="C0"
+        )
+    ax.set_yticks(range(len(names)), names)
+    ax.set_ylim(-0.6, max(1, len(names)) - 0.4)
+    ax.set_xlim(0, seconds)
+    ax.invert_yaxis()
+    ax.set_xlabel("seconds" + (" (grey: labelled, blue: detected)" if truth else " (blue: detected)"))
+    ax.set_title(title)
+    fig.tight_layout()
+    _save(fig, path)
+    plt.close(fig)

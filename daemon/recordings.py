@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from daemon.checks import read_text
+from daemon.checks import csv_records, read_text
 from daemon.errors import MocapdError
 from daemon.features import decimate, decimation_factor, features
 from daemon.types import DEFAULT_INDEX_RATE, DEFAULT_NATIVE_RATE, BoolArray, FloatArray, IntArray
@@ -357,3 +357,42 @@ def read_examples(
 def sample_index(frames: IntArray, first: int, last: int) -> IntArray:
     """The rows of ``frames`` (AMC frame numbers of the samples) inside ``first .. last``."""
     return np.flatnonzero((frames >= first) & (frames <= last))
+
+
+# ------------------------------------------------------------------------------------------ labels
+
+
+class LabelError(MocapdError, ValueError):
+    """A labels file that cannot be used; the message names the file and line."""
+
+
+@dataclass(frozen=True)
+class Label:
+    """A labelled segment: class ``name`` over AMC frames ``start_frame .. end_frame`` (inclusive)."""
+
+    name: str
+    start_frame: int
+    end_frame: int
+
+
+def read_labels(path: str | Path, trial: str | None = None) -> list[Label]:
+    """The segments of a labels CSV with columns ``start_frame``, ``end_frame`` and ``class`` (or
+    mocap6's ``label_name``), in file order. With a ``trial`` column (as mocap6's
+    ``segments_120hz.csv``), only the rows of ``trial`` (e.g. ``13_29``; None: all). Raises
+    :class:`LabelError` naming the file and line."""
+    records = list(csv_records(path, LabelError, ("start_frame", "end_frame")))
+    out = []
+    for line, value in records:
+        name = value.get("class") or value.get("label_name")
+        if not name:
+            raise LabelError("no class: give a 'class' (or 'label_name') field", path=path, line=line)
+        if trial is not None and value.get("trial", trial) != trial:
+            continue
+        try:
+            start, end = int(value["start_frame"]), int(value["end_frame"])
+        except ValueError:
+            raise LabelError("start_frame and end_frame must be integers", path=path, line=line) from None
+        if start > end:
+            raise LabelError(f"start_frame {start} is after end_frame {end}", path=path, line=line)
+        out.append(Label(name, start, end))
+    return out

@@ -4,13 +4,16 @@ of manifests. The recordings are read in place from ../shared/data/mocap, never 
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import subprocess
 import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from daemon.recordings import joint_positions, read_recording
+from daemon.keyframes import parse_keyframe_queries
+from daemon.library import ClassTemplate, Library, learn_class
+from daemon.recordings import joint_positions, read_examples, read_recording
 from daemon.types import FloatArray
 from replay.catalog import CMU_SUBSTITUTES, recordings
 
@@ -146,3 +149,30 @@ def csv_written(command: str, out: Path, asf: Path, amc: Path, *extra: str | Pat
 def hits_json(stdout: str) -> list[dict[str, object]]:
     """The hits ``mocapd search --json`` printed, one object per line."""
     return [json.loads(line) for line in stdout.splitlines()]
+
+
+# ---------------------------------------------------------------------------------------- libraries
+
+
+def takes(motion_class: str, actor: str) -> list[int]:
+    """The take numbers of an actor's HDM05 clips of a class."""
+    folder = DATA / "hdm05" / "cut" / motion_class
+    return sorted(int(p.name.split("_")[3]) for p in folder.glob(f"HDM_{actor}_*"))
+
+
+def small_library(where: Path) -> Library:
+    """squat1Reps and hopBothLegs1hops learned (τ 0.1 given) from three clips of bd and of bk, each
+    also with the published keyframes (``<class>.published``); ``where`` takes the manifest."""
+    items = [
+        (c, a, t) for c in ("squat1Reps", "hopBothLegs1hops") for a in ("bd", "bk") for t in takes(c, a)[:3]
+    ]
+    examples = read_examples(write_training(where / "clips.csv", training_rows(items)))
+    published = parse_keyframe_queries(json.loads(KEYFRAMES.read_text(encoding="utf-8")), KEYFRAMES)
+    classes: dict[str, ClassTemplate] = {}
+    for name, clips in examples.items():
+        learned = learn_class(name, clips)
+        classes[name] = learned
+        classes[f"{name}.published"] = dataclasses.replace(
+            learned, name=f"{name}.published", keyframes=published[name]
+        )
+    return Library(30.0, classes)

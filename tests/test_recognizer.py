@@ -6,7 +6,6 @@ bad frames raise :class:`FrameError` and change nothing."""
 from __future__ import annotations
 
 import dataclasses
-import json
 from functools import cache
 from pathlib import Path
 
@@ -18,8 +17,8 @@ from hypothesis import strategies as st
 from daemon.calibration import given as given_tau
 from daemon.dtw import Match, retrieval_cost, subsequence_matches
 from daemon.features import SET_SLICES
-from daemon.keyframes import KeyframeQuery, parse_keyframe_queries
-from daemon.library import ClassTemplate, Library, learn_class
+from daemon.keyframes import KeyframeQuery
+from daemon.library import ClassTemplate, Library
 from daemon.recognizer import (
     CodeRecognizer,
     Detection,
@@ -30,42 +29,20 @@ from daemon.recognizer import (
     keep_apart,
     plans,
 )
-from daemon.recordings import joint_positions, native_rate, read_examples, read_recording
+from daemon.recordings import joint_positions, native_rate, read_recording
 from daemon.templates import MotionTemplate
 from daemon.types import FEATURE_SETS, N_FEATURES, FeatureSet
 from replay import JOINT_NAMES, Motion
-from tests.helpers import DATA, KEYFRAMES, hdm05_clip, pair_id, recording_pairs, training_rows, write_training
+from tests.helpers import hdm05_clip, pair_id, recording_pairs, small_library, takes
 from tests.naive import keyframe_brute_force
 from tests.synth import LOW_BITS, queries, stream_codes, streams
 
 SESSION = "test"
 
 
-def takes(motion_class: str, actor: str) -> list[int]:
-    """The take numbers of an actor's HDM05 clips of a class."""
-    folder = DATA / "hdm05" / "cut" / motion_class
-    return sorted(int(p.name.split("_")[3]) for p in folder.glob(f"HDM_{actor}_*"))
-
-
 @pytest.fixture(scope="module")
 def library(tmp_path_factory: pytest.TempPathFactory) -> Library:
-    """squat1Reps and hopBothLegs1hops learned from three clips of bd and of bk, each also with the
-    published keyframes (``<class>.published``)."""
-    items = [
-        (c, a, t) for c in ("squat1Reps", "hopBothLegs1hops") for a in ("bd", "bk") for t in takes(c, a)[:3]
-    ]
-    examples = read_examples(
-        write_training(tmp_path_factory.mktemp("lib") / "clips.csv", training_rows(items))
-    )
-    published = parse_keyframe_queries(json.loads(KEYFRAMES.read_text(encoding="utf-8")), KEYFRAMES)
-    classes: dict[str, ClassTemplate] = {}
-    for name, clips in examples.items():
-        learned = learn_class(name, clips)
-        classes[name] = learned
-        classes[f"{name}.published"] = dataclasses.replace(
-            learned, name=f"{name}.published", keyframes=published[name]
-        )
-    return Library(30.0, classes)
+    return small_library(tmp_path_factory.mktemp("lib"))
 
 
 @cache

@@ -29,7 +29,7 @@ from pathlib import Path
 from types import FrameType
 from typing import Any, NoReturn
 
-COMMANDS = ("daemon.cli.recordings", "daemon.cli.search", "daemon.cli.learn")
+COMMANDS = ("daemon.cli.recordings", "daemon.cli.search", "daemon.cli.learn", "daemon.cli.detect")
 """The command groups, in the order ``--help`` lists them; each has ``register(subparsers)``."""
 
 EXIT_USAGE = 2

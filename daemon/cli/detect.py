@@ -1,0 +1,136 @@
+"""``mocapd detect``: replay a recording through a live :class:`~daemon.recognizer.Recognizer` in this
+process and print each detection when it is emitted."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+from typing import Any
+
+from daemon.cli import common
+from daemon.config import Config
+from daemon.errors import UsageError
+from daemon.library import default_library_path, load_library
+from daemon.plots import timeline_png
+from daemon.recognizer import Detection, Recognizer
+from daemon.recordings import native_rate, read_labels, read_recording
+
+
+def speed(text: str) -> float | None:
+    """``--speed``: ``max`` (None: as fast as possible) or a positive factor of real time."""
+    if text == "max":
+        return None
+    try:
+        return common.positive_float(text)
+    except argparse.ArgumentTypeError:
+        raise argparse.ArgumentTypeError(
+            f"must be 'max' or a positive factor of real time, got '{text}'"
+        ) from None
+
+
+def register(sub: Any) -> None:
+    cmd = sub.add_parser(
+        "detect", help="recognise motions in a recording, frame by frame as a live stream would arrive"
+    )
+    common.recording_options(cmd)
+    cmd.add_argument(
+        "--library", type=Path, default=None, help="template library directory (default: the shipped one)"
+    )
+    cmd.add_argument(
+        "--classes", default=None, metavar="A,B", help="only these classes of the library (comma-separated)"
+    )
+    cmd.add_argument(
+        "--speed",
+        type=speed,
+        default=None,
+        metavar="1|X|max",
+        help="replay pace: 1 = real time, X times real time, max = as fast as possible (default)",
+    )
+    cmd.add_argument(
+        "--stream", default=None, help="stream id in the detections (default: the AMC file's name)"
+    )
+    cmd.add_argument("--json", action="store_true", help="print one JSON object per detection")
+    cmd.add_argument("--png", type=Path, default=None, help="draw the detections over time into this .png")
+    cmd.add_argument(
+        "--truth",
+        type=Path,
+        default=None,
+        help="CSV of labelled segments (class or label_name, start_frame, end_frame; rows of another trial "
+        "skipped) drawn beneath the detections in --png",
+    )
+    cmd.set_defaults(func=_detect)
+
+
+def _stream_name(amc: Path) -> str:
+    return amc.name.removesuffix(".gz").removesuffix(".amc")
+
+
+def _detect(args: argparse.Namespace, config: Config) -> int:
+    if args.png is not None:
+        common.check_png_output(args.png)
+    elif args.truth is not None:
+        raise UsageError("--truth is drawn in --png: give --png too", field="--truth")
+    classes = None
+    if args.classes is not None:
+        classes = [c.strip() for c in args.classes.split(",")]
+        if not all(classes):
+            raise UsageError(f"an empty class name in '{args.classes}'", field="--classes")
+    library = load_library(default_library_path() if args.library is None else args.library, classes)
+    trial = _stream_name(args.amc)
+    truth = [] if args.truth is None else read_labels(args.truth, trial)
+    motion = read_recording(args.asf, args.amc)
+    rate = native_rate(motion, common.default_native_rate(args, config))
+    stream = trial if args.stream is None else args.stream
+    try:
+        recognizer = Recognizer.for_skeleton(
+            library,
+            motion.skeleton,
+            rate,
+            stream=stream,
+            classes=classes,
+            max_gap_s=config.recognizer.max_gap_s,
+            window_s=config.recognizer.window_s,
+        )
+    except ValueError as exc:  # a class without keyframes, a rate the library's does not divide
+        raise UsageError(str(exc), field="--library") from None
+    found: list[Detection] = []
+
+    def report(detections: list[Detection]) -> None:
+        for d in detections:
+            found.append(d)
+            print(json.dumps(d.as_json()) if args.json else _line(d, rate, motion.frames[0]), flush=True)
+
+    began = time.perf_counter()
+    pace = None if args.speed is None else 1.0 / (rate * args.speed)
+    for i, (number, channels) in enumerate(zip(motion.frames.tolist(), motion.channels, strict=True)):
+        if pace is not None:  # by the clock: a late frame does not delay the next ones
+            ahead = began + i * pace - time.perf_counter()
+            if ahead > 0:
+                time.sleep(ahead)
+        report(recognizer.push(number, channels))
+    report(recognizer.flush())
+    took = time.perf_counter() - began
+    if not args.json:
+        print(
+            f"{len(found)} detections in {len(motion)} frames ({len(motion) / rate:.1f} s at {rate:g} Hz), "
+            f"{len(recognizer.plans)} classes, in {took:.2f} s"
+        )
+    if args.png is not None:
+        title = f"{args.amc.name}: {len(found)} detections"
+        rows = [(d.class_name, d.start_frame, d.end_frame) for d in found]
+        labels = [(t.name, t.start_frame, t.end_frame) for t in truth]
+        frames = (int(motion.frames[0]), int(motion.frames[-1]))
+        common.write_png(args.png, lambda out: timeline_png(rows, labels, frames, rate, out, title))
+    return 0
+
+
+def _line(d: Detection, rate: float, first: int) -> str:
+    """``class  start-end s  cost c (tau t)  latency l s``, times from the recording's first frame."""
+    start, end = (d.start_frame - first) / rate, (d.end_frame + 1 - first) / rate
+    latency = (d.emitted_at_frame - d.end_frame) / rate
+    return (
+        f"{d.class_name:<28} {start:8.2f}-{end:.2f} s  cost {d.cost:.3f} (tau {d.tau:.3f})  "
+        f"latency {latency:.2f} s"
+    )
