@@ -83,7 +83,9 @@ class KeyframeAutomaton:
     counted from 0 again). ``max_gap``: the cap of unbounded gaps in frames (required when the
     query has one)."""
 
-    def __init__(self, query: KeyframeQuery, rate: float, max_gap: int | None = None) -> None:
+    def __init__(
+        self, query: KeyframeQuery, rate: float, max_gap: int | None = None, period: int = 0
+    ) -> None:
         bounds = query_bounds(query, rate, max_gap)
         if any(hi is None for _, hi in bounds):
             raise ValueError(f"{query.name}: a gap with stiffness 0 needs a maximum gap to be searched live")
@@ -98,9 +100,16 @@ class KeyframeAutomaton:
         self._reach = reach  # Σ_{i<j} dmax_i for j = 0..K-1
         self.latency = max(1, reach[-1])
         """A component ending at frame e is emitted no later than after frame e + latency."""
+        if period < 0:
+            raise ValueError(f"the period must not be negative, got {period}")
+        self.period = period
         self._reset()
 
     def _reset(self) -> None:
+        self.reached: list[tuple[int, int]] = []
+        """(start of R(M), first frame of keyframe K) of every match whose range reaches the frame
+        just pushed, t, at t = that first frame + k·period: the match completed (k = 0) or, with a
+        ``period``, its last keyframe still holds k periods later (its range still grows)."""
         self._t = 0
         self._open: list[_Run | None] = [None] * len(self._masks)
         self._partials: list[list[_Partial]] = [[] for _ in self._dmax]
@@ -114,6 +123,7 @@ class KeyframeAutomaton:
     def push(self, code: int) -> list[Component]:
         t = self._t
         self._t += 1
+        self.reached = []
         last = len(self._masks) - 1
         for k, (mask, value) in enumerate(zip(self._masks, self._values, strict=True)):
             run = self._open[k]
@@ -136,6 +146,10 @@ class KeyframeAutomaton:
                 p.linked = run
                 lo = max(run.start, p.lo + dmin)
                 self._add(_Partial((*p.runs, run), lo, max(p.first, lo - self._reach[k])), k, last)
+        if self.period:
+            for m in self._matches:
+                if t > m.lo and (t - m.lo) % self.period == 0 and self._hi(m.runs, t) == t:
+                    self.reached.append((m.first, m.lo))
         self._expire(t)
         return self._emit(t)
 
@@ -149,7 +163,11 @@ class KeyframeAutomaton:
         return out
 
     def _add(self, partial: _Partial, k: int, last: int) -> None:
-        (self._matches if k == last else self._partials[k]).append(partial)
+        if k == last:
+            self._matches.append(partial)
+            self.reached.append((partial.first, partial.lo))
+        else:
+            self._partials[k].append(partial)
 
     def _hi(self, runs: tuple[_Run, ...], t: int) -> int:
         """hi_k of the runs at frame ``t`` (an open run ends at ``t`` so far)."""

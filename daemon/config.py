@@ -8,7 +8,7 @@ from typing import Literal, cast, get_args
 
 from daemon.checks import Checker, read_structured
 from daemon.errors import MocapdError
-from daemon.types import DEFAULT_MAX_GAP_S, DEFAULT_NATIVE_RATE, DEFAULT_WINDOW_S, MAX_NATIVE_RATE
+from daemon.types import DEFAULT_MAX_GAP_S, DEFAULT_NATIVE_RATE, MAX_NATIVE_RATE
 
 Units = Literal["asf", "cm"]
 
@@ -29,10 +29,9 @@ class ReplayConfig:
 @dataclass(frozen=True)
 class RecognizerConfig:
     """The live recogniser (:mod:`daemon.recognizer`): how far an unbounded keyframe gap (stiffness
-    0) may reach, and the longest stretch of a candidate confirmed by DTW, both in seconds."""
+    0) may reach, in seconds."""
 
     max_gap_s: float = DEFAULT_MAX_GAP_S
-    window_s: float = DEFAULT_WINDOW_S
 
 
 @dataclass(frozen=True)
@@ -65,18 +64,11 @@ def parse_config(data: object, source: str = "<config>") -> Config:
     )
     units = check.choice(replay.get("units", defaults.units), "replay.units", get_args(Units))
     section = root.get("recognizer")
-    live = check.mapping({} if section is None else section, "recognizer", optional=("max_gap_s", "window_s"))
-    seconds = {
-        key: check.number(
-            live.get(key, getattr(RecognizerConfig, key)),
-            f"recognizer.{key}",
-            low=0,
-            low_open=True,
-            high=3600,
-        )
-        for key in ("max_gap_s", "window_s")
-    }
+    live = check.mapping({} if section is None else section, "recognizer", optional=("max_gap_s",))
+    gap = check.number(
+        live.get("max_gap_s", DEFAULT_MAX_GAP_S), "recognizer.max_gap_s", low=0, low_open=True, high=3600
+    )
     return Config(
         replay=ReplayConfig(frame_rate_hz=rate, units=cast(Units, units)),
-        recognizer=RecognizerConfig(**seconds),
+        recognizer=RecognizerConfig(max_gap_s=gap),
     )

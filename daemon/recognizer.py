@@ -3,13 +3,17 @@
 Per frame (DESIGN.md, the data flow): AMC-style channels go through forward kinematics (or joint
 positions arrive as they are), :class:`~daemon.features.FeatureStream` gives the 39 features,
 every k-th frame is kept for the library's rate (30 Hz from 120 Hz), and the frame's code (bit i =
-feature i) goes to every class's :class:`~daemon.automaton.KeyframeAutomaton`. Each Ω^Z component it
-emits is a *candidate*; its window, the component widened as
-:func:`daemon.retrieval.keyframe_extension` widens keyframe ranges for ranking, is confirmed by
-subsequence DTW of the class's quantised motion template (thesis §3.4, the retrieval cost and steps
-of :func:`daemon.retrieval.template_search`) once the window's last frame has arrived. Every local
+feature i) goes to every class's :class:`~daemon.automaton.KeyframeAutomaton`. Each keyframe
+*match* it completes (a hit of every keyframe within the stiffness windows, Alg. 4.1) is a
+candidate: its hit-relevant range R(M) (Def. 4.6), widened as
+:func:`daemon.retrieval.keyframe_extension` widens keyframe ranges for ranking (the template's
+columns before the first and after the last keyframe, times 1.5), is confirmed by subsequence DTW of the
+class's quantised motion template (thesis §3.4, the retrieval cost and steps of
+:func:`daemon.retrieval.template_search`) as soon as the window's last frame has arrived. Every local
 minimum at or below the class's τ, after the toolbox's suppression, is a confirmation; its range is
-the DTW match, not the keyframe range.
+the DTW match, not the keyframe range. Matches, not Ω^Z components, start confirmation: a component
+is final only Σ dmax frames after its end, and a long series of repetitions whose ranges touch is one
+component that would be confirmed only when the series ends.
 
 One motion, one detection per class: two confirmations of a class that share more than half of the
 shorter one's frames are one motion (:func:`same_motion`). Among those confirmed together the
@@ -17,12 +21,12 @@ cheaper is kept; one that is the same motion as a detection already emitted is d
 was published and cannot be taken back). A repetition right after the last is reported, even if
 the two share the frame or two of the pose between them.
 
+Latency. A detection comes out when the index-rate frame ``right`` frames after its match's last
+keyframe has been pushed, i.e. at most :attr:`Recognizer.latency_frames` native frames after that
+keyframe (the features' delay of 16 frames at 120 Hz plus ``right`` index frames).
+
 Bounded state. The features keep 33 poses at 120 Hz, each automaton the query's span, and the
-stream one ring of its recent codes. A window is at most ``W`` frames (the candidate's last ``W``:
-``window_s`` seconds, at least 4 template lengths plus the widening); it is confirmed when its last
-frame arrives, at most ``latency`` frames after the component's end, so the ring holds
-``W + max(0, latency - right widening)`` frames of the slowest class. A candidate longer than ``W``
-(a long series of repetitions whose keyframe ranges all touch) is confirmed on its last ``W`` frames.
+stream one ring of its recent codes as long as the widest window (Σ dmax + left + right + 1).
 
 :func:`detect` is the batch twin: features of the whole recording in one vectorised pass, then the
 same candidate and confirmation logic; it equals pushing the frames one by one (tests).
@@ -45,12 +49,12 @@ from daemon.automaton import KeyframeAutomaton
 from daemon.dtw import Match, Steps, local_minima, pack, retrieval_rows, subsequence_fixed, suppress, to_cost
 from daemon.errors import MocapdError
 from daemon.features import FeatureStream, decimation_factor, features
+from daemon.keyframes import query_bounds
 from daemon.library import ClassTemplate, Library
 from daemon.retrieval import keyframe_extension
 from daemon.templates import expand
 from daemon.types import (
     DEFAULT_MAX_GAP_S,
-    DEFAULT_WINDOW_S,
     MAX_NATIVE_RATE,
     N_FEATURES,
     FloatArray,
@@ -107,8 +111,8 @@ class Detection:
 class ClassPlan:
     """What a stream needs of one class, at the library's rate: the expanded quantised template
     (``values`` shape ``(39, M)``, ``weights`` ``(M,)``), τ, the DTW steps, the keyframe query with
-    its gap cap, the window's widening (``left``, ``right``) and longest extent ``window`` in frames,
-    and the automaton's latency bound."""
+    its gap cap, a match's window widening (``left``, ``right``) and ``span``, the most frames a
+    match's range reaches before its last keyframe (Σ dmax)."""
 
     template: ClassTemplate
     values: FloatArray
@@ -116,8 +120,7 @@ class ClassPlan:
     max_gap: int
     left: int
     right: int
-    window: int
-    latency: int
+    span: int
 
     @property
     def name(self) -> str:
@@ -131,22 +134,28 @@ class ClassPlan:
     def steps(self) -> Steps:
         return self.template.steps
 
+    @property
+    def window(self) -> int:
+        """The most frames a window spans: a match's whole range, widened."""
+        return self.span + self.left + self.right + 1
+
+    @property
+    def period(self) -> int:
+        """Frames between the windows of a match whose last keyframe keeps holding (half a window)."""
+        return max(1, self.window // 2)
+
     def automaton(self, rate: float) -> KeyframeAutomaton:
         assert self.template.keyframes is not None
-        return KeyframeAutomaton(self.template.keyframes, rate, self.max_gap)
+        return KeyframeAutomaton(self.template.keyframes, rate, self.max_gap, self.period)
 
 
 def plans(
-    library: Library,
-    classes: Collection[str] | None = None,
-    *,
-    max_gap_s: float = DEFAULT_MAX_GAP_S,
-    window_s: float = DEFAULT_WINDOW_S,
+    library: Library, classes: Collection[str] | None = None, *, max_gap_s: float = DEFAULT_MAX_GAP_S
 ) -> tuple[ClassPlan, ...]:
     """The plans of ``classes`` (None: all, in the library's order); ValueError for a class without
-    keyframes (it could never be a candidate) or settings out of range."""
-    if not (math.isfinite(max_gap_s) and max_gap_s > 0) or not (math.isfinite(window_s) and window_s > 0):
-        raise ValueError(f"max_gap_s and window_s must be positive seconds, got {max_gap_s}, {window_s}")
+    keyframes (it could never be a candidate) or a gap cap out of range."""
+    if not (math.isfinite(max_gap_s) and max_gap_s > 0):
+        raise ValueError(f"max_gap_s must be positive seconds, got {max_gap_s}")
     names = list(library.classes) if classes is None else list(classes)
     rate = library.rate
     out = []
@@ -157,15 +166,14 @@ def plans(
         t = expand(cls.quantised)
         max_gap = max(1, round(max_gap_s * rate))
         left, right = keyframe_extension(cls.keyframes, cls.quantised.length, rate)
-        window = max(math.ceil(window_s * rate), 4 * t.length + left + right)
-        latency = KeyframeAutomaton(cls.keyframes, rate, max_gap).latency
-        out.append(ClassPlan(cls, t.values, t.weights, max_gap, left, right, window, latency))
+        span = sum(hi for _, hi in query_bounds(cls.keyframes, rate, max_gap) if hi is not None)
+        out.append(ClassPlan(cls, t.values, t.weights, max_gap, left, right, span))
     return tuple(out)
 
 
 def ring_size(class_plans: Sequence[ClassPlan]) -> int:
-    """Index-rate frames a stream keeps: every window, confirmed as late as its automaton allows."""
-    return max((p.window + max(0, p.latency - p.right) for p in class_plans), default=1)
+    """Index-rate frames a stream keeps: the widest window of any class."""
+    return max((p.window for p in class_plans), default=1)
 
 
 def confirm(plan: ClassPlan, codes: npt.NDArray[np.uint64]) -> list[Match]:
@@ -196,8 +204,8 @@ def keep_apart(hits: Sequence[Match], published: Sequence[tuple[int, int]]) -> l
 
 
 class _ClassTrack:
-    """One class on one stream: its automaton, the windows waiting for their last frame and the
-    ranges already emitted that a later window could still share frames with."""
+    """One class on one stream: its automaton, the windows waiting for their last frame (in the
+    order they are confirmed) and the ranges emitted that a later window could still overlap."""
 
     __slots__ = ("automaton", "pending", "plan", "published")
 
@@ -205,13 +213,20 @@ class _ClassTrack:
         self.plan = plan
         self.automaton = plan.automaton(rate)
         self.pending: deque[tuple[int, int]] = deque()
-        self.published: deque[tuple[int, int]] = deque()
+        self.published: list[tuple[int, int]] = []
 
 
 class CodeRecognizer:
     """Candidates and confirmations over a stream of index-rate frame codes: ``push(code)`` returns
     the confirmations it made, as (class plan, match in stream frames); ``flush()`` ends the stream.
-    The part of :class:`Recognizer` after the features, shared with :func:`detect`."""
+    The part of :class:`Recognizer` after the features, shared with :func:`detect`.
+
+    Each keyframe match (Alg. 4.1's matches, as the automaton completes them) opens a window, its
+    range R(M) so far widened by the plan's ``left`` and ``right`` frames (its last ``window``
+    frames), confirmed when its last frame arrives: ``right`` frames after the match's last keyframe,
+    whatever comes after. While the last keyframe keeps holding (a long run, e.g. a pose shared by
+    a series of repetitions), the match opens another window every ``period`` frames. Windows are
+    confirmed by their last frame, then their first; equal windows once."""
 
     def __init__(self, class_plans: Sequence[ClassPlan], rate: float) -> None:
         self.plans = tuple(class_plans)
@@ -231,45 +246,46 @@ class CodeRecognizer:
         self._ring.append(code)
         out = []
         for track in self._tracks:
-            self._candidates(track, track.automaton.push(code))
-            out += self._confirm(track, j)
+            track.automaton.push(code)
+            reached = track.automaton.reached
+            if reached:
+                p = track.plan
+                end = j + p.right
+                for a in sorted({max(0, first - p.left, end - p.window + 1) for first, _ in reached}):
+                    track.pending.append((a, end))
+            if track.pending and track.pending[0][1] <= j:
+                out += self._confirm(track, j)
         return out
 
     def flush(self) -> list[tuple[ClassPlan, Match]]:
         last = self._n - 1
         out = []
         for track in self._tracks:
-            self._candidates(track, track.automaton.flush())
+            track.automaton.flush()
             out += self._confirm(track, last, end_of_stream=True)
-            track.pending.clear()
             track.published.clear()
         self._ring.clear()
         self._n = 0
         return out
 
-    def _candidates(self, track: _ClassTrack, components: Sequence[Any]) -> None:
-        p = track.plan
-        for c in components:
-            end = c.end + p.right
-            track.pending.append((max(0, c.start - p.left, end - p.window + 1), end))
-
     def _confirm(
         self, track: _ClassTrack, j: int, end_of_stream: bool = False
     ) -> list[tuple[ClassPlan, Match]]:
+        p = track.plan
         out = []
         base = self._n - len(self._ring)
+        # no later window starts before this: its match completes after j - right
+        track.published = [r for r in track.published if r[1] >= j - p.right - p.span - p.left]
         while track.pending and (end_of_stream or track.pending[0][1] <= j):
             a, b = track.pending.popleft()
             b = min(b, j)
-            if a < base:  # cannot happen: ring_size covers every window at its latest
+            if a < base:  # cannot happen: ring_size covers every window
                 raise AssertionError(f"window {a}..{b} left the ring (from {base})")
-            while track.published and track.published[0][1] < a:
-                track.published.popleft()
             codes = np.fromiter(islice(self._ring, a - base, b - base + 1), dtype=np.uint64, count=b - a + 1)
-            hits = [Match(m.start + a, m.end + a, m.cost) for m in confirm(track.plan, codes)]
+            hits = [Match(m.start + a, m.end + a, m.cost) for m in confirm(p, codes)]
             for m in keep_apart(hits, track.published):
                 track.published.append((m.start, m.end))
-                out.append((track.plan, m))
+                out.append((p, m))
         return out
 
 
@@ -301,7 +317,6 @@ class Recognizer:
         stream: str = "",
         classes: Collection[str] | None = None,
         max_gap_s: float = DEFAULT_MAX_GAP_S,
-        window_s: float = DEFAULT_WINDOW_S,
         session: str | None = None,
         model: KinematicModel | None = None,
         joint_names: Sequence[str] | None = None,
@@ -327,7 +342,7 @@ class Recognizer:
                 raise ValueError("a joint is named twice")
             self._width = len(joint_names)
             self._joint_order = np.array([list(joint_names).index(j) for j in JOINT_NAMES], dtype=np.intp)
-        self._plans = plans(library, classes, max_gap_s=max_gap_s, window_s=window_s)
+        self._plans = plans(library, classes, max_gap_s=max_gap_s)
         self._features = FeatureStream(JOINT_NAMES, native_rate)
         self._codes = CodeRecognizer(self._plans, library.rate)
         self._frames = _Frames(self._step)
@@ -355,10 +370,9 @@ class Recognizer:
 
     @property
     def latency_frames(self) -> int:
-        """Native frames from a motion's last frame to its detection, at most (the features' delay,
-        then the slowest class's keyframe latency or right widening, at the library's rate)."""
-        slowest = max((max(p.latency, p.right) for p in self._plans), default=0)
-        return self._features.latency + (slowest + 1) * self._step
+        """Native frames from a keyframe match's last keyframe to its confirmation, at most: the
+        features' delay, then the widest right widening of a class at the library's rate."""
+        return self._features.latency + max((p.right for p in self._plans), default=0) * self._step
 
     def push(self, number: int, frame: npt.ArrayLike) -> list[Detection]:
         """Add frame ``number``; the detections it completed."""
@@ -398,46 +412,76 @@ class Recognizer:
         return [make_detection(self.session, self.stream, p, m, first, self._step, number) for p, m in found]
 
     def _check(self, number: int, frame: npt.ArrayLike) -> FloatArray:
-        if isinstance(number, bool) or not isinstance(number, int | np.integer):
-            raise FrameError(f"frame number {number!r} is not an integer", "type", stream=self.stream)
-        number = int(number)
-        last = self._frames.last
-        if last is not None and number != last + 1:
-            problem: FrameProblem = "repeat" if number == last else "back" if number < last else "jump"
-            raise FrameError(
-                f"frame {number} after frame {last} ({problem}): frames must be consecutive",
-                problem,
-                stream=self.stream,
-            )
-        try:
-            values = np.asarray(frame, dtype=np.float64)
-        except (TypeError, ValueError):
-            raise FrameError(
-                f"frame {number}: not an array of numbers", "shape", stream=self.stream
-            ) from None
+        number = check_number(number, self._frames.last, self.stream)
+        values = frame_values(number, frame, self.stream)
         if self._model is not None:
-            if values.shape != (self._width,):
-                raise FrameError(
-                    f"frame {number}: {self._width} channels expected, got shape {values.shape}",
-                    "shape",
-                    stream=self.stream,
-                )
-            if not np.isfinite(values).all():
-                raise FrameError(f"frame {number}: a channel is not finite", "non_finite", stream=self.stream)
+            check_channels(number, values, self._width, self.stream)
             pose = self._model.joints(self._model.positions_frame(values, "cm"))
         else:
-            if values.shape != (self._width, 3):
-                raise FrameError(
-                    f"frame {number}: ({self._width}, 3) joint positions expected, got shape {values.shape}",
-                    "shape",
-                    stream=self.stream,
-                )
+            check_positions(number, values, self._width, self.stream)
             pose = values[self._joint_order]
-        if not np.isfinite(pose).all():
-            raise FrameError(
-                f"frame {number}: a joint position is not finite", "non_finite", stream=self.stream
-            )
+        check_pose(number, pose, self.stream)
         return pose
+
+
+def check_number(number: object, last: int | None, stream: str) -> int:
+    """``number`` as an int if it is one and follows ``last`` (None: the stream's first frame), else
+    :class:`FrameError` (``type``, ``repeat``, ``back``, ``jump``)."""
+    if isinstance(number, bool) or not isinstance(number, int | np.integer):
+        raise FrameError(f"frame number {number!r} is not an integer", "type", stream=stream)
+    number = int(number)
+    if last is not None and number != last + 1:
+        problem: FrameProblem = "repeat" if number == last else "back" if number < last else "jump"
+        raise FrameError(
+            f"frame {number} after frame {last} ({problem}): frames must be consecutive",
+            problem,
+            stream=stream,
+        )
+    return number
+
+
+def frame_values(number: int, frame: npt.ArrayLike, stream: str) -> FloatArray:
+    """The frame as float64 (any shape), or :class:`FrameError` (``shape``) if it is not numbers."""
+    try:
+        return np.asarray(frame, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise FrameError(f"frame {number}: not an array of numbers", "shape", stream=stream) from None
+
+
+def check_channels(number: int, values: FloatArray, width: int, stream: str) -> None:
+    """A channel frame has shape ``(width,)`` (else ``shape``) and is finite (else ``non_finite``)."""
+    if values.shape != (width,):
+        raise FrameError(
+            f"frame {number}: {width} channels expected, got shape {values.shape}", "shape", stream=stream
+        )
+    if not np.isfinite(values).all():
+        raise non_finite_channels(number, stream)
+
+
+def check_positions(number: int, values: FloatArray, width: int, stream: str) -> None:
+    """A positions frame has shape ``(width, 3)`` (else ``shape``)."""
+    if values.shape != (width, 3):
+        raise FrameError(
+            f"frame {number}: ({width}, 3) joint positions expected, got shape {values.shape}",
+            "shape",
+            stream=stream,
+        )
+
+
+def check_pose(number: int, pose: FloatArray, stream: str) -> None:
+    """The standard joints (after forward kinematics) are finite (else ``non_finite``)."""
+    if not np.isfinite(pose).all():
+        raise non_finite_pose(number, stream)
+
+
+def non_finite_channels(number: int, stream: str) -> FrameError:
+    """The error :func:`check_channels` raises for non-finite channels."""
+    return FrameError(f"frame {number}: a channel is not finite", "non_finite", stream=stream)
+
+
+def non_finite_pose(number: int, stream: str) -> FrameError:
+    """The error :func:`check_pose` raises."""
+    return FrameError(f"frame {number}: a joint position is not finite", "non_finite", stream=stream)
 
 
 def make_detection(
@@ -463,7 +507,6 @@ def detect(
     stream: str = "",
     classes: Collection[str] | None = None,
     max_gap_s: float = DEFAULT_MAX_GAP_S,
-    window_s: float = DEFAULT_WINDOW_S,
     session: str = "",
 ) -> list[Detection]:
     """The batch twin of :class:`Recognizer`: every detection of ``motion`` (read at ``native_rate``
@@ -479,7 +522,6 @@ def detect(
         stream=stream,
         classes=classes,
         max_gap_s=max_gap_s,
-        window_s=window_s,
         session=session,
     )
 
@@ -493,7 +535,6 @@ def detect_positions(
     stream: str = "",
     classes: Collection[str] | None = None,
     max_gap_s: float = DEFAULT_MAX_GAP_S,
-    window_s: float = DEFAULT_WINDOW_S,
     session: str = "",
 ) -> list[Detection]:
     """:func:`detect` of standard joint positions shape ``(N, 26, 3)`` with frame numbers ``(N,)``
@@ -504,7 +545,7 @@ def detect_positions(
     step = decimation_factor(native_rate, library.rate)
     matrix = features(positions, JOINT_NAMES, native_rate)[::step]  # (n_index, 39)
     codes = pack(matrix).tolist()
-    recognizer = CodeRecognizer(plans(library, classes, max_gap_s=max_gap_s, window_s=window_s), library.rate)
+    recognizer = CodeRecognizer(plans(library, classes, max_gap_s=max_gap_s), library.rate)
     first, last = int(numbers[0]), int(numbers[-1])
     delay = FeatureStream(JOINT_NAMES, native_rate).latency
     out = []

@@ -33,6 +33,3 @@ DEFAULT_INDEX_RATE = 30.0
 DEFAULT_MAX_GAP_S = 2.0
 """Seconds an unbounded keyframe gap (stiffness 0) may span in the live recogniser (config
 ``recognizer.max_gap_s``)."""
-
-DEFAULT_WINDOW_S = 20.0
-"""Seconds of a keyframe candidate the live recogniser confirms at most (config ``recognizer.window_s``)."""

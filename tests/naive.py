@@ -312,30 +312,11 @@ def keyframe_brute_force(
     enumerated frame by frame; a match is the runs its frames lie in; R(M) = (min i_1, max i_K) over
     the match's hits; components are the connected sets of ranges that share frames (pairwise, by a
     graph search)."""
-    deltas = [b.position - a.position for a, b in zip(query.keyframes, query.keyframes[1:], strict=False)]
-    sigmas = [Fraction(repr(kf.stiffness_to_next)) for kf in query.keyframes[:-1]]
     out = []
-    n_docs = len(docs["lower"])
-    for d in range(n_docs):
+    for d in range(len(docs["lower"])):
         n = len(docs["lower"][d])
-        member = []
-        run_id = []
-        for kf in query.keyframes:
-            codes = docs[kf.feature_set][d]
-            m = [(c & kf.mask) == kf.value for c in codes]
-            ids, current = [], -1
-            for i in range(n):
-                if m[i] and (i == 0 or not m[i - 1]):
-                    current += 1
-                ids.append(current)
-            member.append(m)
-            run_id.append(ids)
-        ranges: dict[tuple[int, ...], list[int]] = {}
-        for hit in all_hits(member, deltas, sigmas, max_gap):
-            key = tuple(run_id[j][i] for j, i in enumerate(hit))
-            r = ranges.setdefault(key, [hit[0], hit[-1]])
-            r[0], r[1] = min(r[0], hit[0]), max(r[1], hit[-1])
-        spans = sorted((r[0], r[1]) for r in ranges.values())
+        document = {fs: docs[fs][d] for fs in docs}
+        spans = sorted((first, last) for first, _, last in keyframe_matches(document, query, max_gap))
         components = connected(spans)
         if extend != (0, 0):
             components = connected(
@@ -343,6 +324,35 @@ def keyframe_brute_force(
             )
         out += [(d, s, t) for s, t in components]
     return out
+
+
+def keyframe_matches(
+    codes: dict[FeatureSet, list[int]], query: KeyframeQuery, max_gap: int | None = None
+) -> list[tuple[int, int, int]]:
+    """Every match of ``query`` in one document (Def. 4.4-4.6 read directly): a keyframe's list is
+    the maximal runs of frames whose code lies in V_k; every hit is enumerated frame by frame; a
+    match is the runs its frames lie in. Per match (min i_1, min i_K, max i_K) over its hits: R(M)
+    is (min i_1, max i_K), and min i_K is the first frame at which the match is complete; sorted."""
+    deltas = [b.position - a.position for a, b in zip(query.keyframes, query.keyframes[1:], strict=False)]
+    sigmas = [Fraction(repr(kf.stiffness_to_next)) for kf in query.keyframes[:-1]]
+    n = len(codes["lower"])
+    member = []
+    run_id = []
+    for kf in query.keyframes:
+        m = [(c & kf.mask) == kf.value for c in codes[kf.feature_set]]
+        ids, current = [], -1
+        for i in range(n):
+            if m[i] and (i == 0 or not m[i - 1]):
+                current += 1
+            ids.append(current)
+        member.append(m)
+        run_id.append(ids)
+    found: dict[tuple[int, ...], list[int]] = {}
+    for hit in all_hits(member, deltas, sigmas, max_gap):
+        key = tuple(run_id[j][i] for j, i in enumerate(hit))
+        r = found.setdefault(key, [hit[0], hit[-1], hit[-1]])
+        r[0], r[1], r[2] = min(r[0], hit[0]), min(r[1], hit[-1]), max(r[2], hit[-1])
+    return sorted((a, b, c) for a, b, c in found.values())
 
 
 def all_hits(

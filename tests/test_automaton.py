@@ -21,7 +21,7 @@ from daemon.recordings import motion_features, read_recording
 from daemon.segments import set_codes
 from daemon.types import FEATURE_SETS, FeatureSet
 from tests.helpers import KEYFRAMES, pair_id, recording_pairs
-from tests.naive import keyframe_brute_force
+from tests.naive import keyframe_brute_force, keyframe_matches
 from tests.synth import queries, stream_codes, streams
 
 SHIPPED_HDM05 = (
@@ -40,9 +40,17 @@ SHIPPED_HDM05 = (
 """The HDM05 classes of the shipped library (their published keyframes)."""
 
 
-def run(automaton: KeyframeAutomaton, codes: list[int]) -> list[tuple[Component, int]]:
-    """Every component with the frame after whose push it came out (the last frame for the flush)."""
-    out = [(c, t) for t, code in enumerate(codes) for c in automaton.push(code)]
+def run(
+    automaton: KeyframeAutomaton, codes: list[int], reached: list[tuple[int, int, int]] | None = None
+) -> list[tuple[Component, int]]:
+    """Every component with the frame after whose push it came out (the last frame for the flush);
+    ``reached`` collects (start of R(M), first frame of keyframe K, frame pushed) of every match
+    the automaton reports reaching the frame pushed."""
+    out = []
+    for t, code in enumerate(codes):
+        out += [(c, t) for c in automaton.push(code)]
+        if reached is not None:
+            reached += [(first, at, t) for first, at in automaton.reached]
     return out + [(c, len(codes) - 1) for c in automaton.flush()]
 
 
@@ -59,10 +67,20 @@ def batch(
     return list(zip(found.start.tolist(), found.end.tolist(), strict=True))
 
 
-def check_stream(codes: dict[FeatureSet, list[int]], query: KeyframeQuery, max_gap: int | None) -> None:
-    automaton = KeyframeAutomaton(query, query.rate, max_gap)
-    got = run(automaton, stream_codes(codes))
+def check_stream(
+    codes: dict[FeatureSet, list[int]], query: KeyframeQuery, max_gap: int | None, period: int = 0
+) -> None:
+    automaton = KeyframeAutomaton(query, query.rate, max_gap, period)
+    reached: list[tuple[int, int, int]] = []
+    got = run(automaton, stream_codes(codes), reached)
     assert [(c.start, c.end) for c, _ in got] == batch(codes, query, max_gap)
+    # every match when it completes, and every period later while its last keyframe holds
+    expected = [
+        (first, at, t)
+        for first, at, last in keyframe_matches(codes, query, max_gap)
+        for t in range(at, last + 1, period or 1 << 30)
+    ]
+    assert sorted(reached) == sorted(expected)
     for component, pushed in got:
         assert component.emitted_at == pushed
         assert component.end <= component.emitted_at <= component.end + automaton.latency
@@ -70,12 +88,13 @@ def check_stream(codes: dict[FeatureSet, list[int]], query: KeyframeQuery, max_g
 
 
 @settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.too_slow])
-@given(streams(), queries(), st.integers(0, 8))
+@given(streams(), queries(), st.integers(0, 8), st.integers(0, 4))
 def test_automaton_emits_the_batch_components(
-    codes: dict[FeatureSet, list[int]], query: KeyframeQuery, max_gap: int
+    codes: dict[FeatureSet, list[int]], query: KeyframeQuery, max_gap: int, period: int
 ) -> None:
-    """Components, order and emission frames within the latency bound; batch and brute force agree."""
-    check_stream(codes, query, max_gap)
+    """Components, order and emission frames within the latency bound, matches as they complete and
+    grow; batch and brute force agree."""
+    check_stream(codes, query, max_gap, period)
     expected = keyframe_brute_force({fs: [c] for fs, c in codes.items()}, query, (0, 0), max_gap)
     assert batch(codes, query, max_gap) == [(s, e) for _, s, e in expected]
 
@@ -153,4 +172,4 @@ def test_automaton_equals_batch_on_real_recordings(
     got = motion_features(read_recording(*pair), 30.0)
     codes = {fs: set_codes(got.matrix, fs).tolist() for fs in FEATURE_SETS}
     for query in published.values():
-        check_stream(codes, query, 60)
+        check_stream(codes, query, 60, 10)

@@ -54,8 +54,8 @@ def test_good_config(tmp_path: Path, text: str, expected: ReplayConfig) -> None:
 
 
 def test_recognizer_section(tmp_path: Path) -> None:
-    config = load_config(write(tmp_path, "recognizer:\n  max_gap_s: 1.5\n  window_s: 30\n"))
-    assert config == Config(recognizer=RecognizerConfig(max_gap_s=1.5, window_s=30.0))
+    config = load_config(write(tmp_path, "recognizer:\n  max_gap_s: 1.5\n"))
+    assert config == Config(recognizer=RecognizerConfig(max_gap_s=1.5))
 
 
 # --------------------------------------------------------------------------------------------------
@@ -68,12 +68,12 @@ BAD = [
     (
         "unknown-recognizer",
         "recognizer:\n  gap: 2\n",
-        "recognizer.gap: unknown field (allowed: max_gap_s, window_s)",
+        "recognizer.gap: unknown field (allowed: max_gap_s)",
     ),
     ("gap-zero", "recognizer:\n  max_gap_s: 0\n", "recognizer.max_gap_s"),
     ("gap-string", "recognizer:\n  max_gap_s: 2s\n", "recognizer.max_gap_s"),
-    ("window-huge", "recognizer:\n  window_s: 1e9\n", "recognizer.window_s"),
-    ("window-nan", "recognizer:\n  window_s: .nan\n", "recognizer.window_s"),
+    ("gap-huge", "recognizer:\n  max_gap_s: 1e9\n", "recognizer.max_gap_s"),
+    ("gap-nan", "recognizer:\n  max_gap_s: .nan\n", "recognizer.max_gap_s"),
     ("unknown-replay", "replay:\n  fps: 60\n", "replay.fps: unknown field (allowed: frame_rate_hz, units)"),
     ("misspelt", "replay:\n  frame_rate: 60\n", "replay.frame_rate: unknown field"),
     # wrong types and non-positive frame rates

@@ -34,7 +34,7 @@ from daemon.templates import MotionTemplate
 from daemon.types import FEATURE_SETS, N_FEATURES, FeatureSet
 from replay import JOINT_NAMES, Motion
 from tests.helpers import hdm05_clip, pair_id, recording_pairs, small_library, takes
-from tests.naive import keyframe_brute_force
+from tests.naive import keyframe_matches
 from tests.synth import LOW_BITS, queries, stream_codes, streams
 
 SESSION = "test"
@@ -147,39 +147,45 @@ def random_class(name: str, query: KeyframeQuery, rng: np.random.Generator, tau:
     )
 
 
-def reference(
-    codes: list[int], cls: ClassTemplate, max_gap: int, window: int
-) -> list[tuple[str, int, int, float]]:
-    """The definition read slowly: Ω^Z components by brute force (Def. 4.4-4.8, gaps capped), each
-    widened to its window and cut to its last ``window`` frames, float DTW over the window, local
-    minima at or below τ suppressed, then greedily by cost those sharing no frame with one kept
-    before (of this or an earlier window)."""
+def reference(codes: list[int], cls: ClassTemplate, max_gap: int) -> list[tuple[str, int, int, float, int]]:
+    """The definition read slowly: every keyframe match by brute force (Def. 4.4-4.6, gaps capped),
+    its window R(M) widened by the plan's left and right frames, ending ``right`` frames after the
+    match's first complete frame and after every ``period`` frames more that its range reaches
+    (the last ``window`` frames; cut at the stream's end); windows confirmed by their end, then
+    start, equal ones once; float DTW over each, local minima at or below τ suppressed, then by cost
+    those that share at most half of the shorter one's frames with every one kept before. Each as
+    (class, start, end, cost, frame it comes out at)."""
     assert cls.keyframes is not None
-    per_set: dict[FeatureSet, list[list[int]]] = {
+    sets = {
         fs: [
-            [
-                (c >> SET_SLICES[fs].start) & ((1 << (SET_SLICES[fs].stop - SET_SLICES[fs].start)) - 1)
-                for c in codes
-            ]
+            (c >> SET_SLICES[fs].start) & ((1 << (SET_SLICES[fs].stop - SET_SLICES[fs].start)) - 1)
+            for c in codes
         ]
         for fs in FEATURE_SETS
     }
-    plan = plans(Library(30.0, {cls.name: cls}), max_gap_s=max_gap / 30.0, window_s=window / 30.0)[0]
+    plan = plans(Library(30.0, {cls.name: cls}), max_gap_s=max_gap / 30.0)[0]
     frames = np.array(
         [[(c >> i) & 1 for i in range(N_FEATURES)] for c in codes], dtype=np.float64
     ).T  # (39, n)
+    n = len(codes)
+    windows = sorted(
+        {
+            (t + plan.right, max(0, first - plan.left, t + plan.right - plan.window + 1))
+            for first, at, last in keyframe_matches(sets, cls.keyframes, max_gap)
+            for t in range(at, last + 1, plan.period)
+        }
+    )
     kept: list[tuple[int, int]] = []
     out = []
-    for _, s, e in keyframe_brute_force(per_set, cls.keyframes, (0, 0), max_gap):
-        a = max(0, s - plan.left, e + plan.right - plan.window + 1)
-        b = min(e + plan.right, len(codes) - 1)
+    for end, a in windows:
+        b = min(end, n - 1)
         cost = retrieval_cost(plan.values, plan.weights, frames[:, a : b + 1])
         confirmed = []
         for m in sorted(subsequence_matches(cost, cls.tau, "toolbox"), key=lambda m: (m.cost, m.start)):
             mine = set(range(m.start + a, m.end + a + 1))
             if all(2 * len(mine & set(range(x, y + 1))) <= min(len(mine), y - x + 1) for x, y in kept):
                 kept.append((m.start + a, m.end + a))
-                confirmed.append((cls.name, m.start + a, m.end + a, m.cost))
+                confirmed.append((cls.name, m.start + a, m.end + a, m.cost, b))
         out += sorted(confirmed, key=lambda c: c[1])
     return out
 
@@ -203,15 +209,12 @@ def test_confirmations_equal_the_definition(
 ) -> None:
     rng = np.random.default_rng(seed)
     classes = {n: random_class(n, q, rng, tau) for n, q in (("a", q1), ("b", q2))}
-    window = int(rng.integers(1, 40))
     stream = stream_codes(codes)
-    recognizer = CodeRecognizer(
-        plans(Library(30.0, classes), max_gap_s=max_gap / 30.0, window_s=window / 30.0), 30.0
-    )
+    recognizer = CodeRecognizer(plans(Library(30.0, classes), max_gap_s=max_gap / 30.0), 30.0)
     got = [(p.name, m.start, m.end, m.cost, j) for j, c in enumerate(stream) for p, m in recognizer.push(c)]
     got += [(p.name, m.start, m.end, m.cost, len(stream) - 1) for p, m in recognizer.flush()]
     for name, cls in classes.items():
-        assert [g[:4] for g in got if g[0] == name] == reference(stream, cls, max_gap, window)
+        assert [g for g in got if g[0] == name] == reference(stream, cls, max_gap)
     for _, _, end, _, emitted in got:
         assert end <= emitted  # never before its last frame was seen
 
@@ -246,7 +249,7 @@ def test_bad_frames_change_nothing(library: Library, bad: list[tuple[int, str]])
 
 def damaged(kind: str, i: int, number: int, channels: np.ndarray) -> tuple[str | None, object, object]:
     """The frame ``kind`` makes of frame ``i`` (number, channels) and the problem it must raise;
-    None where the kind makes no bad frame there (no previous frame to repeat)."""
+    None where the kind makes no bad frame there (no previous frame to repeat or jump from)."""
     bad = channels.copy()
     if kind == "short":
         return "shape", number, channels[:-1]
@@ -259,8 +262,8 @@ def damaged(kind: str, i: int, number: int, channels: np.ndarray) -> tuple[str |
         return "type", float(number), channels
     if kind == "text":
         return "type", str(number), channels
+    if i == 0:  # the first frame may have any number
+        return None, number, channels
     if kind == "jump":
         return "jump", number + 1 + i % 3, channels
-    if i == 0:
-        return None, number, channels
     return ("repeat", number - 1, channels) if kind == "repeat" else ("back", number - 2 - i % 3, channels)
