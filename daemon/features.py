@@ -909,6 +909,21 @@ def features(positions: FloatArray, joint_names: Sequence[str], frame_rate: floa
 # ---------------------------------------------------------------------------------- streaming
 
 
+@dataclass(frozen=True)
+class FeatureState:
+    """Everything a :class:`FeatureStream` holds: ``n`` poses pushed, the vectors of the first
+    ``emitted`` frames emitted, ``previous`` the last emitted code (bit k = feature k, the
+    hysteresis' memory), the thresholds of the first pose (in the compiled program's order), and the
+    last ``min(n, keep)`` poses, oldest first, each as (its components flat ``3j + c``, length 3J; its
+    velocity trajectories' points flat ``3k + c``)."""
+
+    n: int
+    emitted: int
+    previous: int
+    thresholds: tuple[Num, ...]
+    history: tuple[tuple[list[float], list[float]], ...]
+
+
 class FeatureStream:
     """The 39 features of a stream, one pose at a time: the incremental twin of :func:`features`.
 
@@ -929,6 +944,43 @@ class FeatureStream:
         # Per window, the frames (relative to t) whose points give its telescoped sum: top, bottom.
         self._offsets = [d for big_l, h, _, _ in self._program.windows for d in (big_l - h + 1, 1 - h)]
         self._reset()
+
+    @property
+    def frames(self) -> int:
+        """Poses pushed since the stream began."""
+        return self._n
+
+    @property
+    def keep(self) -> int:
+        """Poses held: the last ``keep`` (``latency + L/2 + 1``)."""
+        return self._keep
+
+    @property
+    def steady_after(self) -> int:
+        """Once this many poses were pushed, every further push emits a frame whose velocity windows
+        all lie inside the stream (:func:`_interior`): its vector needs only the held points at fixed
+        offsets, the same for every stream of this rate (``latency + ceil(L/2) - 1``)."""
+        return self.latency + self._first_interior
+
+    def state(self) -> FeatureState:
+        """The stream's whole state (the held poses copied), for :meth:`resume`."""
+        return FeatureState(
+            self._n,
+            self._emitted,
+            self._previous,
+            tuple(self._thresholds),
+            tuple((list(rows), list(points)) for rows, points in self._history),
+        )
+
+    def resume(self, state: FeatureState) -> None:
+        """Continue the stream ``state`` describes (of this joint order and rate): the pushes and the
+        flush that follow give what they would have given on the stream it was taken from."""
+        if len(state.history) != min(state.n, self._keep) or not 0 <= state.n - state.emitted <= self.latency:
+            raise ValueError(f"not a feature stream state of {self._keep} held poses, latency {self.latency}")
+        self._reset()
+        self._n, self._emitted, self._previous = state.n, state.emitted, state.previous
+        self._thresholds.extend(state.thresholds)
+        self._history.extend((list(rows), list(points)) for rows, points in state.history)
 
     def _reset(self) -> None:
         self._history: deque[tuple[list[float], list[float]]] = deque(maxlen=self._keep)

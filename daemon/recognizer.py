@@ -416,7 +416,8 @@ class Recognizer:
         values = frame_values(number, frame, self.stream)
         if self._model is not None:
             check_channels(number, values, self._width, self.stream)
-            pose = self._model.joints(self._model.positions_frame(values, "cm"))
+            with np.errstate(over="ignore", invalid="ignore"):  # a huge channel: refused just below
+                pose = self._model.joints(self._model.positions_frame(values, "cm"))
         else:
             check_positions(number, values, self._width, self.stream)
             pose = values[self._joint_order]

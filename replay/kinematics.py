@@ -97,6 +97,7 @@ class KinematicModel:
 
     def __init__(self, skeleton: Skeleton) -> None:
         self.skeleton = skeleton
+        self._width = len(skeleton.channel_names)  # a property that builds the names: asked once
         n_nodes = len(skeleton.bones) + 1
         self.n_nodes = n_nodes
         index = {n: i for i, n in enumerate(skeleton.channel_names)}
@@ -216,10 +217,8 @@ class KinematicModel:
         The same operations as :meth:`positions` in the same order, on Python floats (no per-call numpy
         overhead), so the values are bit-for-bit those of the batch."""
         row = np.asarray(channels, dtype=np.float64)
-        if row.shape != (len(self.skeleton.channel_names),):
-            raise ValueError(
-                f"channels must have shape ({len(self.skeleton.channel_names)},), got {row.shape}"
-            )
+        if row.shape != (self._width,):
+            raise ValueError(f"channels must have shape ({self._width},), got {row.shape}")
         half = 0.5 * row
         cos, sin = np.cos(half).tolist(), np.sin(half).tolist()
         rot: list[tuple[Any, Any, Any, Any]] = [(1.0, 0.0, 0.0, 0.0)] * self.n_nodes

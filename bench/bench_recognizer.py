@@ -1,0 +1,163 @@
+"""The live recogniser on one core: one stream through :class:`Recognizer`, and many streams of 120 Hz
+through :class:`RecognizerBank` against one :class:`Recognizer` per stream in the same run.
+
+    python -m bench.bench_recognizer [--repeat 3] [--ticks 240] [--recordings 24] [--most 400]
+
+Library: the shipped one (``load_library(default_library_path())``). Data: ``--recordings`` AMC
+files of ../shared/data/mocap evenly spaced in the catalogue (CMU and HDM05; joint positions for the
+positions-in figure computed beforehand, not timed).
+
+One stream: every frame of those recordings pushed one by one (channels in, then positions in),
+frames/s, best of ``--repeat``.
+
+Bank: for S streams (1, 10, 50, 100, 200, 400 up to ``--most``), stream k plays recording k mod R
+(channels) from a random frame (looping, renumbered) and joins at a random tick of the first 40 (so
+the streams' decimation phases differ, as they do live); 80 ticks of warm-up, then ``--ticks`` ticks
+timed, each tick one frame of every stream in one push. Time per tick: median and p99 in ms; the
+same S as one recogniser per stream on the same frames is the baseline. A tick is 8.33 ms at
+120 Hz; the aim is p99 <= 2 ms.
+"""
+
+from __future__ import annotations
+
+import gc
+import sys
+import time
+from collections.abc import Callable
+
+import numpy as np
+
+from bench.common import arguments, best_of
+from bench.machine import describe
+from daemon.bank import RecognizerBank
+from daemon.errors import MocapdError
+from daemon.library import Library, default_library_path, load_library
+from daemon.recognizer import Recognizer
+from daemon.recordings import joint_positions, read_recording
+from replay import JOINT_NAMES, Motion
+from replay.catalog import CMU_SUBSTITUTES, recordings
+
+SIZES = (1, 10, 50, 100, 200, 400)
+WARM = 80
+JOIN = 40
+BUDGET_MS = 2.0
+
+
+def one_stream(library: Library, motions: list[Motion], positions: list[np.ndarray], repeat: int) -> None:
+    frames = sum(len(m) for m in motions)
+
+    def channels_in() -> None:
+        for m in motions:
+            r = Recognizer.for_skeleton(library, m.skeleton, 120.0, session="bench")
+            for number, row in zip(m.frames.tolist(), m.channels, strict=True):
+                r.push(number, row)
+            r.flush()
+
+    def positions_in() -> None:
+        for m, p in zip(motions, positions, strict=True):
+            r = Recognizer.for_positions(library, JOINT_NAMES, 120.0, session="bench")
+            for number, pose in zip(m.frames.tolist(), p, strict=True):
+                r.push(number, pose)
+            r.flush()
+
+    print(f"one stream, {len(library.classes)} classes, {frames} frames:")
+    for name, run in (("channels in", channels_in), ("positions in", positions_in)):
+        rate = frames / best_of(repeat, run)
+        print(f"  {name:14s} {rate:10,.0f} frames/s  ({1e6 / rate:.0f} us/frame)")
+
+
+def tick_times(step: Callable[[int], object], ticks: int) -> np.ndarray:
+    """ms per call of ``step(tick)`` over the timed ticks (after the warm-up)."""
+    for t in range(WARM):
+        step(t)
+    gc.collect()
+    out = np.empty(ticks)
+    for t in range(ticks):
+        start = time.perf_counter()
+        step(WARM + t)
+        out[t] = time.perf_counter() - start
+    return 1e3 * out
+
+
+def one_size(
+    library: Library, motions: list[Motion], size: int, ticks: int, seed: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """ms per tick of ``size`` streams: through one bank, and through one recogniser per stream."""
+    rng = np.random.default_rng(seed)
+    picks = [motions[k % len(motions)] for k in range(size)]
+    starts = [int(rng.integers(len(m))) for m in picks]
+    joins = [int(rng.integers(JOIN)) for _ in range(size)]
+    names = [f"s{k}" for k in range(size)]
+
+    def frame(k: int, t: int) -> np.ndarray:
+        m = picks[k]
+        row: np.ndarray = m.channels[(starts[k] + t - joins[k]) % len(m)]
+        return row
+
+    bank = RecognizerBank(library)
+    added: list[int] = []
+
+    def bank_step(t: int) -> None:
+        for k in range(size):
+            if joins[k] == t:
+                bank.add(names[k], 120.0, skeleton=picks[k].skeleton, session="bench")
+                added.append(k)
+        bank.push([(names[k], t - joins[k] + 1, frame(k, t)) for k in added])
+
+    recognizers: dict[int, Recognizer] = {}
+
+    def baseline_step(t: int) -> None:
+        for k in range(size):
+            if joins[k] == t:
+                recognizers[k] = Recognizer.for_skeleton(library, picks[k].skeleton, 120.0, session="bench")
+        for k, r in recognizers.items():
+            r.push(t - joins[k] + 1, frame(k, t))
+
+    return tick_times(bank_step, ticks), tick_times(baseline_step, ticks)
+
+
+def many_streams(library: Library, motions: list[Motion], sizes: list[int], ticks: int) -> None:
+    print(
+        f"many streams of 120 Hz, {len(library.classes)} classes, {len(motions)} recordings, "
+        f"{ticks} ticks timed after {WARM} (ms per tick; a tick is 8.33 ms):"
+    )
+    print(
+        f"{'S':>5s} {'bank med':>9s} {'bank p99':>9s} {'per-stream med':>15s} {'p99':>8s} "
+        f"{'med ratio':>10s} {'bank frames/s':>14s}"
+    )
+    best = 0
+    for size in sizes:
+        banked, alone = one_size(library, motions, size, ticks, size)
+        b_med, b_p99 = float(np.median(banked)), float(np.percentile(banked, 99))
+        a_med, a_p99 = float(np.median(alone)), float(np.percentile(alone, 99))
+        print(
+            f"{size:5d} {b_med:9.2f} {b_p99:9.2f} {a_med:15.2f} {a_p99:8.2f} {a_med / b_med:9.1f}x "
+            f"{size / (b_med / 1e3):14,.0f}"
+        )
+        if b_p99 <= BUDGET_MS:
+            best = max(best, size)
+        sys.stdout.flush()
+    print(f"largest S with bank p99 <= {BUDGET_MS:g} ms: {best if best else 'none'} (of {sizes})")
+
+
+def main() -> None:
+    args = arguments(__doc__, ticks=240, recordings=24, most=400)
+    print(describe())
+    try:
+        library = load_library(default_library_path())
+    except MocapdError as e:
+        print(f"no shipped library ({e}); build it with python -m bench.shipped_library")
+        raise SystemExit(1) from None
+    pairs = recordings(args.data, CMU_SUBSTITUTES)
+    chosen = pairs[:: max(1, len(pairs) // args.recordings)][: args.recordings]
+    motions = [read_recording(asf, amc) for asf, amc in chosen]
+    positions = [joint_positions(m) for m in motions]
+    print(
+        f"pinned to one core; recordings: {len(motions)} of {len(pairs)}, every {len(pairs) // len(chosen)}th"
+    )
+    one_stream(library, motions, positions, args.repeat)
+    many_streams(library, motions, [s for s in SIZES if s <= args.most], args.ticks)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,314 @@
+"""The multi-stream bank equals one :class:`Recognizer` per stream, bit for bit: real recordings (CMU
+and HDM05; channels of two skeleton topologies, joint positions in another joint order, a stream at
+60 Hz) joining and leaving at random ticks, pushed in random interleavings with bad frames among
+them; detections (every field) and refused frames (problem and message) agree push by push. Streams
+join after others and leave at any time, ids can come back, and the bank's arrays do not grow with
+the frames pushed."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+from dataclasses import dataclass, field
+from functools import cache
+from pathlib import Path
+
+import numpy as np
+import numpy.typing as npt
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from daemon.bank import RecognizerBank
+from daemon.keyframes import parse_keyframe_queries
+from daemon.library import ClassTemplate, Library, learn_class
+from daemon.recognizer import Detection, FrameError, Recognizer
+from daemon.recordings import joint_positions, read_examples, read_recording
+from daemon.types import FloatArray
+from replay import JOINT_NAMES, Bone, Motion, Skeleton
+from tests.helpers import DATA, KEYFRAMES, hdm05_clip, training_rows, write_training
+
+SESSION = "bank-test"
+
+
+def takes(motion_class: str, actor: str) -> list[int]:
+    """The take numbers of an actor's HDM05 clips of a class."""
+    folder = DATA / "hdm05" / "cut" / motion_class
+    return sorted(int(p.name.split("_")[3]) for p in folder.glob(f"HDM_{actor}_*"))
+
+
+@pytest.fixture(scope="module")
+def library(tmp_path_factory: pytest.TempPathFactory) -> Library:
+    """squat1Reps and hopBothLegs1hops learned from three clips of bd and of bk, each also with the
+    published keyframes (``<class>.published``)."""
+    items = [
+        (c, a, t) for c in ("squat1Reps", "hopBothLegs1hops") for a in ("bd", "bk") for t in takes(c, a)[:3]
+    ]
+    examples = read_examples(
+        write_training(tmp_path_factory.mktemp("lib") / "clips.csv", training_rows(items))
+    )
+    published = parse_keyframe_queries(json.loads(KEYFRAMES.read_text(encoding="utf-8")), KEYFRAMES)
+    classes: dict[str, ClassTemplate] = {}
+    for name, clips in examples.items():
+        learned = learn_class(name, clips)
+        classes[name] = learned
+        classes[f"{name}.published"] = dataclasses.replace(
+            learned, name=f"{name}.published", keyframes=published[name]
+        )
+    return Library(30.0, classes)
+
+
+# ------------------------------------------------------------------------------------- streams
+
+
+@dataclass
+class Source:
+    """A stream's input: frames ``(number, values)`` at ``rate`` Hz, channels of ``skeleton`` or
+    joint positions named ``joint_names``."""
+
+    rate: float
+    frames: list[tuple[int, FloatArray]]
+    skeleton: Skeleton | None = None
+    joint_names: tuple[str, ...] | None = None
+
+    def recognizer(self, library: Library, stream: str, session: str) -> Recognizer:
+        if self.skeleton is not None:
+            return Recognizer.for_skeleton(library, self.skeleton, self.rate, stream=stream, session=session)
+        assert self.joint_names is not None
+        return Recognizer.for_positions(library, self.joint_names, self.rate, stream=stream, session=session)
+
+    def add_to(self, bank: RecognizerBank, stream: str, session: str) -> None:
+        bank.add(stream, self.rate, skeleton=self.skeleton, joint_names=self.joint_names, session=session)
+
+
+@cache
+def motion(asf: Path, amc: Path) -> Motion:
+    return read_recording(asf, amc)
+
+
+def channels(asf: Path, amc: Path, limit: int) -> Source:
+    m = motion(asf, amc)
+    return Source(120.0, list(zip(m.frames[:limit].tolist(), m.channels[:limit], strict=True)), m.skeleton)
+
+
+def with_prop(asf: Path, amc: Path, limit: int) -> Source:
+    """Channels of the recording's skeleton with an extra one-dof leaf bone under the head (another
+    topology: 63 channels, 32 nodes), the prop's angle swinging."""
+    m = motion(asf, amc)
+    s = m.skeleton
+    prop = Bone(
+        "prop", None, (0.0, 1.0, 0.0), 3.0, (0.0, 0.0, 0.3), "XYZ", ("rx",), ((-math.pi, math.pi),), 0
+    )
+    skeleton = dataclasses.replace(
+        s, bones=(*s.bones, prop), parents=(*s.parents, s.node_names.index("head"))
+    )
+    angle = np.sin(np.arange(len(m)) / 10.0)[:, None]
+    values = np.concatenate([m.channels, angle], axis=1)[:limit]
+    return Source(120.0, list(zip(m.frames[:limit].tolist(), values, strict=True)), skeleton)
+
+
+def positions(asf: Path, amc: Path, limit: int, every: int = 1) -> Source:
+    """Joint positions in a shuffled order with an extra joint, every ``every``-th frame (at 120 /
+    ``every`` Hz), numbered from 1."""
+    p = joint_positions(motion(asf, amc))[::every][:limit]
+    order = np.random.default_rng(7).permutation(len(JOINT_NAMES))
+    names = (*(JOINT_NAMES[i] for i in order), "prop")
+    values = np.concatenate([p[:, order], np.full((len(p), 1, 3), 5.0)], axis=1)
+    return Source(120.0 / every, list(enumerate(values, 1)), joint_names=names)
+
+
+@cache
+def sources() -> dict[str, Source]:
+    cmu_02 = (DATA / "cmu" / "02" / "02.asf", DATA / "cmu" / "02" / "02_01.amc.gz")
+    cmu_13 = (DATA / "cmu" / "13" / "13.asf", DATA / "cmu" / "13" / "13_29.amc.gz")
+    return {
+        "cmu02": channels(*cmu_02, 260),
+        "bd-squat": channels(*hdm05_clip("bd", "squat1Reps", takes("squat1Reps", "bd")[3]), 400),
+        "bk-hop-prop": with_prop(
+            *hdm05_clip("bk", "hopBothLegs1hops", takes("hopBothLegs1hops", "bk")[4]), 400
+        ),
+        "cmu13-positions": positions(*cmu_13, 220),
+        "dg-squat-60hz": positions(*hdm05_clip("dg", "squat1Reps", takes("squat1Reps", "dg")[0]), 400, 2),
+    }
+
+
+# ------------------------------------------------------------------------------- the simulation
+
+
+BAD = ("short", "long", "nan", "inf", "repeat", "back", "jump", "float", "text", "huge")
+
+
+def damaged(kind: str, source: Source, i: int) -> tuple[object, object] | None:
+    """Frame ``i`` of ``source`` made bad by ``kind`` as (number, values); None where ``kind`` makes
+    no bad frame there."""
+    number, values = source.frames[i]
+    bad = values.copy()
+    if kind == "short":
+        return number, values[:-1]
+    if kind == "long":
+        return number, np.concatenate([values, values[:1]])
+    if kind in ("nan", "inf", "huge"):
+        if source.skeleton is not None:
+            if kind == "huge":  # a root translation that overflows in forward kinematics
+                bad[source.skeleton.channel_names.index("root.tx")] = 1e308
+            else:
+                bad[i % len(bad)] = np.nan if kind == "nan" else -np.inf
+        elif kind == "huge":
+            return None  # huge positions are finite
+        else:
+            assert source.joint_names is not None  # a used joint, not the prop
+            bad[source.joint_names.index(JOINT_NAMES[i % len(JOINT_NAMES)]), i % 3] = np.nan
+        return number, bad
+    if kind == "float":
+        return float(number), values
+    if kind == "text":
+        return str(number), values
+    if kind == "jump":  # any number starts a stream
+        return (number + 1 + i % 3, values) if i > 0 else None
+    if kind == "repeat":
+        return (number - 1, values) if i > 0 else None
+    return (number - 2 - i % 3, values) if i > 1 else None  # back
+
+
+@dataclass
+class Plan:
+    """When a stream joins (tick), how far it gets before it leaves (frames), how often it gets a
+    frame in a tick, and the bad frames pushed before its frame ``i``."""
+
+    source: str
+    join: int
+    leave: int
+    chance: float
+    bad: dict[int, list[str]] = field(default_factory=dict)
+
+
+def simulate(library: Library, plans: dict[str, Plan], vector_from: int, seed: int) -> RecognizerBank:
+    """Runs the plans through one bank and through one recogniser per stream, checking every push;
+    returns the (emptied) bank."""
+    rng = np.random.default_rng(seed)
+    bank = RecognizerBank(library, vector_from=vector_from)
+    recognizers: dict[str, Recognizer] = {}
+    at: dict[str, int] = {}
+    pending_bad: dict[str, dict[int, list[str]]] = {}
+    tick = 0
+    done: set[str] = set()
+    while len(done) < len(plans):
+        for name, plan in plans.items():
+            if plan.join == tick:
+                session = f"{SESSION}-{name}"
+                sources()[plan.source].add_to(bank, name, session)
+                recognizers[name] = sources()[plan.source].recognizer(library, name, session)
+                at[name] = 0
+                pending_bad[name] = {i: list(kinds) for i, kinds in plan.bad.items()}
+        frames: list[tuple[str, int, npt.ArrayLike]] = []
+        expected: dict[str, list[Detection]] = {}
+        expected_errors: list[tuple[str, str, str]] = []
+        leaving = []
+        names = list(at)
+        rng.shuffle(names)
+        for name in names:
+            plan, source = plans[name], sources()[plans[name].source]
+            if rng.random() >= plan.chance:
+                continue
+            i = at[name]
+            kinds = pending_bad[name].get(i, [])
+            bad = None
+            while kinds and bad is None:
+                bad = damaged(kinds.pop(), source, i)
+            if bad is not None:
+                number, values = bad
+                with pytest.raises(FrameError) as caught:
+                    recognizers[name].push(number, values)  # type: ignore[arg-type]
+                expected_errors.append((name, caught.value.problem, str(caught.value)))
+                frames.append((name, number, values))  # type: ignore[arg-type]
+                continue
+            number, values = source.frames[i]
+            expected[name] = recognizers[name].push(number, values)
+            frames.append((name, number, values))
+            at[name] = i + 1
+            if at[name] == min(plan.leave, len(source.frames)):
+                leaving.append(name)
+        result = bank.push(frames)
+        assert [(s, e.problem, str(e)) for s, e in result.errors] == expected_errors
+        for name, dets in expected.items():
+            assert [d for d in result.detections if d.stream == name] == dets, (name, tick)
+        assert {d.stream for d in result.detections} <= set(expected)
+        for name in leaving:
+            assert bank.remove(name) == recognizers[name].flush(), name
+            del at[name]
+            done.add(name)
+        tick += 1
+    assert bank.streams == ()
+    return bank
+
+
+@settings(max_examples=15, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(
+    st.integers(0, 2**32 - 1),
+    st.sampled_from([1, 2, 100]),
+    st.lists(
+        st.tuples(st.sampled_from(sorted(sources())), st.integers(0, 200), st.sampled_from(BAD)), max_size=6
+    ),
+)
+def test_bank_equals_one_recognizer_per_stream(
+    library: Library, seed: int, vector_from: int, bad: list[tuple[str, int, str]]
+) -> None:
+    """``vector_from`` 1: every pass on arrays; 100: every pass on Python floats; 2: mixed."""
+    rng = np.random.default_rng(seed)
+    plans = {}
+    for name, source in sources().items():
+        n = len(source.frames)
+        leave = n if rng.random() < 0.5 else int(rng.integers(1, n))  # else mid-stream
+        plans[name] = Plan(name, int(rng.integers(0, 60)), leave, float(rng.uniform(0.6, 1.0)))
+    for name, i, kind in bad:
+        plans[name].bad.setdefault(i, []).append(kind)
+    simulate(library, plans, vector_from, seed)
+
+
+def test_join_leave_any_time_bounded_state(library: Library) -> None:
+    """Streams join after others and leave at any time (one id comes back with a new session), the
+    bank's arrays stay those of the most streams held at once (8 slots), and the detections still
+    equal the recognisers'. Misuse changes nothing."""
+    plans = {
+        "long": Plan("bd-squat", 0, 400, 1.0),
+        "early-leaver": Plan("cmu02", 5, 90, 1.0),
+        "late": Plan("bk-hop-prop", 150, 400, 0.9),
+        "positions": Plan("cmu13-positions", 20, 220, 0.95),
+        "slow": Plan("dg-squat-60hz", 40, 200, 0.5),
+    }
+    # a sequence of short-lived streams, one after another: the slots are reused
+    plans |= {f"brief{k}": Plan("cmu02", 10 + 25 * k, 25 + 2 * k, 1.0) for k in range(12)}
+    bank = simulate(library, plans, 1, 3)
+    # one short stream of each source at once: every array at its smallest capacity
+    few = simulate(library, {name: Plan(name, 0, 60, 1.0) for name in sources()}, 1, 3)
+    assert bank.array_bytes == few.array_bytes > 0
+
+    source = sources()["bd-squat"]
+    bank = RecognizerBank(library, vector_from=1)
+    source.add_to(bank, "a", SESSION)
+    with pytest.raises(ValueError, match="already in the bank"):
+        source.add_to(bank, "a", SESSION)
+    number, values = source.frames[0]
+    with pytest.raises(ValueError, match="at most one frame"):
+        bank.push([("a", number, values), ("a", number + 1, values)])
+    with pytest.raises(ValueError, match="not in the bank"):
+        bank.push([("a", number, values), ("b", number, values)])
+    reference = source.recognizer(library, "a", SESSION)
+    got: list[Detection] = []
+    want: list[Detection] = []
+    sizes = []
+    for k, (_, values) in enumerate(source.frames * 6):  # a squat six times, renumbered
+        got += bank.push([("a", k + 1, values)]).detections
+        want += reference.push(k + 1, values)
+        if k in (100, 5 * len(source.frames)):
+            sizes.append(bank.array_bytes)
+    assert sizes[0] == sizes[1]
+    got += bank.remove("a")
+    assert got == want + reference.flush()
+    assert len([d for d in got if d.class_name == "squat1Reps"]) >= 4
+    with pytest.raises(KeyError):
+        bank.remove("a")
+    # the id comes back as a new stream, frame numbers from 1 again
+    source.add_to(bank, "a", "another")
+    assert bank.push([("a", 1, source.frames[0][1])]).errors == ()
