@@ -124,13 +124,45 @@ def _pooled(h: list[HeldOutKeyframes]) -> str:
     return f"{kept:3d}/{clips:<3d} ({folds:14s}) {false:3d}/{others:<4d}"
 
 
+def keyframe_choice(
+    examples: Examples, learned: dict[str, Learned], published: dict[str, KeyframeQuery]
+) -> dict[str, tuple[bool, list[HeldOutKeyframes], list[HeldOutKeyframes]]]:
+    """Per HDM05 class learned with calibration and published: whether
+    :func:`daemon.calibration.prefer_published` takes the published keyframes, and the held-out
+    figures of the learned and of the published ones."""
+    labelled = {n: [(clip.actor, m) for clip, m in items] for n, items in examples.items()}
+    out = {}
+    for name in HDM05_CLASSES:
+        query = published.get(name)
+        if name not in learned or query is None or learned[name][1] is None:
+            continue
+        found = learned[name][1]
+        assert found is not None
+        mine = held_out_learned(found)
+        theirs = held_out_query(labelled, name, query, [h.actor for h in mine], RATE)
+        out[name] = (prefer_published(mine, theirs), mine, theirs)
+    return out
+
+
+def with_keyframes(
+    learned: dict[str, Learned],
+    published: dict[str, KeyframeQuery],
+    choice: dict[str, tuple[bool, list[HeldOutKeyframes], list[HeldOutKeyframes]]],
+) -> dict[str, ClassTemplate]:
+    """The classes, with the published keyframes where ``choice`` takes them."""
+    out = {name: cls for name, (cls, _, _) in learned.items()}
+    for name, (use, _, _) in choice.items():
+        if use:
+            out[name] = dataclasses.replace(out[name], keyframes=published[name], keyframe_source=PUBLISHED)
+    return out
+
+
 def choose_keyframes(
     examples: Examples, learned: dict[str, Learned], published: dict[str, KeyframeQuery]
 ) -> dict[str, ClassTemplate]:
     """The classes with the published keyframes in place of the learned ones where
     :func:`daemon.calibration.prefer_published` says so; prints the table."""
-    labelled = {n: [(clip.actor, m) for clip, m in items] for n, items in examples.items()}
-    out = {name: cls for name, (cls, _, _) in learned.items()}
+    choice = keyframe_choice(examples, learned, published)
     print(
         "\nKeyframes, leave-one-actor-out on the training data: held-out clips of the class kept "
         "(per fold) and false hits (clips of other classes of the left-out actor with a hit)"
@@ -139,23 +171,14 @@ def choose_keyframes(
         f"{'class':28s} {'learned: kept (bd bk dg)':>28s} {'false':>8s} "
         f"{'published: kept (bd bk dg)':>28s} {'false':>8s}  chosen     learned generalisation"
     )
-    for name in HDM05_CLASSES:
-        query = published.get(name)
-        if name not in learned or query is None:
-            continue
-        cls, found, _ = learned[name]
-        if found is None:
-            continue
-        mine = held_out_learned(found)
-        theirs = held_out_query(labelled, name, query, [h.actor for h in mine], RATE)
-        use = prefer_published(mine, theirs)
-        if use:
-            out[name] = dataclasses.replace(cls, keyframes=query, keyframe_source=PUBLISHED)
+    for name, (use, mine, theirs) in choice.items():
+        found = learned[name][1]
+        assert found is not None
         print(
             f"{name:28s} {_pooled(mine)} {_pooled(theirs)}  {'published' if use else 'learned':10s} "
             f"{_g(found.keyframes)}"
         )
-    return out
+    return with_keyframes(learned, published, choice)
 
 
 def print_taus(classes: dict[str, ClassTemplate], learned: dict[str, Learned]) -> None:
