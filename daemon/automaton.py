@@ -114,6 +114,7 @@ class KeyframeAutomaton:
         self._open: list[_Run | None] = [None] * len(self._masks)
         self._partials: list[list[_Partial]] = [[] for _ in self._dmax]
         self._matches: list[_Partial] = []
+        self._idle = True
 
     @property
     def state_size(self) -> int:
@@ -123,6 +124,10 @@ class KeyframeAutomaton:
     def push(self, code: int) -> list[Component]:
         t = self._t
         self._t += 1
+        if self._idle and all(code & m != v for m, v in zip(self._masks, self._values, strict=True)):
+            if self.reached:
+                self.reached = []
+            return []  # nothing held and no keyframe here: nothing can change
         self.reached = []
         last = len(self._masks) - 1
         for k, (mask, value) in enumerate(zip(self._masks, self._values, strict=True)):
@@ -151,7 +156,9 @@ class KeyframeAutomaton:
                 if t > m.lo and (t - m.lo) % self.period == 0 and self._hi(m.runs, t) == t:
                     self.reached.append((m.first, m.lo))
         self._expire(t)
-        return self._emit(t)
+        out = self._emit(t)
+        self._idle = not self._matches and not any(self._partials) and all(r is None for r in self._open)
+        return out
 
     def flush(self) -> list[Component]:
         t = self._t - 1

@@ -137,6 +137,29 @@ def pack(frames: npt.NDArray[np.bool_]) -> npt.NDArray[np.uint64]:
     )
 
 
+@dataclass(frozen=True)
+class RetrievalTables:
+    """:func:`retrieval_cost` of a template against packed frames, prepared: per template column its
+    fixed bits (``masks``, ``(M,)``), their values (``values``, ``(M,)``) and the fixed-point cost of
+    0..f differing bits (``tables``, ``(M, f + 1)``)."""
+
+    masks: npt.NDArray[np.uint64]
+    values: npt.NDArray[np.uint64]
+    tables: IntArray
+
+
+def retrieval_tables(template: FloatArray, weights: FloatArray) -> RetrievalTables:
+    """The :class:`RetrievalTables` of an ``(f, M)`` quantised template (f <= 64) with weights ``(M,)``."""
+    t = np.asarray(template, dtype=np.float64)
+    f = t.shape[0]
+    bit = np.uint64(1) << np.arange(f, dtype=np.uint64)
+    masks = ((t != 0.5).T.astype(np.uint64) * bit).sum(axis=1, dtype=np.uint64)
+    values = ((t == 1).T.astype(np.uint64) * bit).sum(axis=1, dtype=np.uint64)
+    counts = np.arange(f + 1, dtype=np.float64)
+    tables = np.stack([fixed(counts * factor) for factor in retrieval_factors(t, weights)])
+    return RetrievalTables(masks, values, tables)
+
+
 def retrieval_rows(
     template: FloatArray,
     weights: FloatArray,
@@ -147,19 +170,20 @@ def retrieval_rows(
     template column at a time (popcount of the differing fixed bits, then a table of the f + 1
     possible costs); ``blocked`` columns (e.g. between documents) get :data:`INF`. Equal to
     ``fixed(retrieval_cost(...))`` row by row."""
-    t = np.asarray(template, dtype=np.float64)
-    f = t.shape[0]
-    bit = np.uint64(1) << np.arange(f, dtype=np.uint64)
-    masks = ((t != 0.5).T.astype(np.uint64) * bit).sum(axis=1, dtype=np.uint64)
-    values = ((t == 1).T.astype(np.uint64) * bit).sum(axis=1, dtype=np.uint64)
-    factors = retrieval_factors(t, weights)
-    counts = np.arange(f + 1, dtype=np.float64)
-    for mask, value, factor in zip(masks, values, factors, strict=True):
-        table = fixed(counts * factor)
+    t = retrieval_tables(template, weights)
+    for mask, value, table in zip(t.masks, t.values, t.tables, strict=True):
         row = table[np.bitwise_count((codes ^ value) & mask)]
         if blocked is not None:
             row[blocked] = INF
         yield row
+
+
+def retrieval_matrix(t: RetrievalTables, codes: npt.NDArray[np.uint64]) -> IntArray:
+    """All rows of :func:`retrieval_rows` at once, shape ``(M, N)``, from prepared tables (for many
+    short stretches of frames, where a Python loop per row would cost more than the rows)."""
+    differing = np.bitwise_count((codes[None, :] ^ t.values[:, None]) & t.masks[:, None]).astype(np.intp)
+    out: IntArray = np.take_along_axis(t.tables, differing, axis=1)
+    return out
 
 
 # -------------------------------------------------------------------------------------- full DTW

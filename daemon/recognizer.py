@@ -46,7 +46,18 @@ import numpy as np
 import numpy.typing as npt
 
 from daemon.automaton import KeyframeAutomaton
-from daemon.dtw import Match, Steps, local_minima, pack, retrieval_rows, subsequence_fixed, suppress, to_cost
+from daemon.dtw import (
+    Match,
+    RetrievalTables,
+    Steps,
+    local_minima,
+    pack,
+    retrieval_matrix,
+    retrieval_tables,
+    subsequence_fixed,
+    suppress,
+    to_cost,
+)
 from daemon.errors import MocapdError
 from daemon.features import FeatureStream, decimation_factor, features
 from daemon.keyframes import query_bounds
@@ -110,13 +121,14 @@ class Detection:
 @dataclass(frozen=True)
 class ClassPlan:
     """What a stream needs of one class, at the library's rate: the expanded quantised template
-    (``values`` shape ``(39, M)``, ``weights`` ``(M,)``), τ, the DTW steps, the keyframe query with
-    its gap cap, a match's window widening (``left``, ``right``) and ``span``, the most frames a
-    match's range reaches before its last keyframe (Σ dmax)."""
+    (``values`` shape ``(39, M)``, ``weights`` ``(M,)``, its cost ``tables``), τ, the DTW steps, the
+    keyframe query with its gap cap, a match's window widening (``left``, ``right``) and ``span``,
+    the most frames a match's range reaches before its last keyframe (Σ dmax)."""
 
     template: ClassTemplate
     values: FloatArray
     weights: FloatArray
+    tables: RetrievalTables
     max_gap: int
     left: int
     right: int
@@ -167,7 +179,8 @@ def plans(
         max_gap = max(1, round(max_gap_s * rate))
         left, right = keyframe_extension(cls.keyframes, cls.quantised.length, rate)
         span = sum(hi for _, hi in query_bounds(cls.keyframes, rate, max_gap) if hi is not None)
-        out.append(ClassPlan(cls, t.values, t.weights, max_gap, left, right, span))
+        tables = retrieval_tables(t.values, t.weights)
+        out.append(ClassPlan(cls, t.values, t.weights, tables, max_gap, left, right, span))
     return tuple(out)
 
 
@@ -179,7 +192,7 @@ def ring_size(class_plans: Sequence[ClassPlan]) -> int:
 def confirm(plan: ClassPlan, codes: npt.NDArray[np.uint64]) -> list[Match]:
     """The DTW confirmations of ``plan``'s class in a window of codes shape ``(n,)``: local minima of
     the subsequence DTW at or below τ, suppressed as the toolbox does (window columns)."""
-    delta, first = subsequence_fixed(retrieval_rows(plan.values, plan.weights, codes), plan.steps)
+    delta, first = subsequence_fixed(iter(retrieval_matrix(plan.tables, codes)), plan.steps)
     return suppress(local_minima(to_cost(delta), first, plan.tau))
 
 
@@ -225,8 +238,8 @@ class CodeRecognizer:
     range R(M) so far widened by the plan's ``left`` and ``right`` frames (its last ``window``
     frames), confirmed when its last frame arrives: ``right`` frames after the match's last keyframe,
     whatever comes after. While the last keyframe keeps holding (a long run, e.g. a pose shared by
-    a series of repetitions), the match opens another window every ``period`` frames. Windows are
-    confirmed by their last frame, then their first; equal windows once."""
+    a series of repetitions), the match opens another window every ``period`` frames. The windows a
+    class opens at one frame are one window, the widest."""
 
     def __init__(self, class_plans: Sequence[ClassPlan], rate: float) -> None:
         self.plans = tuple(class_plans)
@@ -251,8 +264,9 @@ class CodeRecognizer:
             if reached:
                 p = track.plan
                 end = j + p.right
-                for a in sorted({max(0, first - p.left, end - p.window + 1) for first, _ in reached}):
-                    track.pending.append((a, end))
+                track.pending.append(
+                    (min(max(0, first - p.left, end - p.window + 1) for first, _ in reached), end)
+                )
             if track.pending and track.pending[0][1] <= j:
                 out += self._confirm(track, j)
         return out

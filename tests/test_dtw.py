@@ -419,6 +419,7 @@ def check_retrieval(
     for row, want in zip(rows, dtw.fixed(cost), strict=True):
         assert row.tolist() == np.where(blocked, INF, want).tolist()
     assert [r.tolist() for r in dtw.retrieval_rows(t, w, codes)] == dtw.fixed(cost).tolist()
+    assert dtw.retrieval_matrix(dtw.retrieval_tables(t, w), codes).tolist() == dtw.fixed(cost).tolist()
 
 
 @settings(SETTINGS, max_examples=120)

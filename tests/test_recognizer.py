@@ -151,10 +151,10 @@ def reference(codes: list[int], cls: ClassTemplate, max_gap: int) -> list[tuple[
     """The definition read slowly: every keyframe match by brute force (Def. 4.4-4.6, gaps capped),
     its window R(M) widened by the plan's left and right frames, ending ``right`` frames after the
     match's first complete frame and after every ``period`` frames more that its range reaches
-    (the last ``window`` frames; cut at the stream's end); windows confirmed by their end, then
-    start, equal ones once; float DTW over each, local minima at or below τ suppressed, then by cost
-    those that share at most half of the shorter one's frames with every one kept before. Each as
-    (class, start, end, cost, frame it comes out at)."""
+    (the last ``window`` frames; cut at the stream's end), the widest of those ending at one frame;
+    float DTW over each, local minima at or below τ suppressed, then by cost those that share at
+    most half of the shorter one's frames with every one kept before. Each as (class, start, end,
+    cost, frame it comes out at)."""
     assert cls.keyframes is not None
     sets = {
         fs: [
@@ -168,13 +168,12 @@ def reference(codes: list[int], cls: ClassTemplate, max_gap: int) -> list[tuple[
         [[(c >> i) & 1 for i in range(N_FEATURES)] for c in codes], dtype=np.float64
     ).T  # (39, n)
     n = len(codes)
-    windows = sorted(
-        {
-            (t + plan.right, max(0, first - plan.left, t + plan.right - plan.window + 1))
-            for first, at, last in keyframe_matches(sets, cls.keyframes, max_gap)
-            for t in range(at, last + 1, plan.period)
-        }
-    )
+    starts: dict[int, int] = {}  # window end: its start, the widest of the windows ending there
+    for first, at, last in keyframe_matches(sets, cls.keyframes, max_gap):
+        for t in range(at, last + 1, plan.period):
+            a = max(0, first - plan.left, t + plan.right - plan.window + 1)
+            starts[t + plan.right] = min(a, starts.get(t + plan.right, a))
+    windows = sorted(starts.items())
     kept: list[tuple[int, int]] = []
     out = []
     for end, a in windows:
