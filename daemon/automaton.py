@@ -74,6 +74,12 @@ class _Partial:
         self.linked: _Run | None = None
 
 
+def _grows(reach: int | None, t: int) -> bool:
+    """Whether something that reaches at most frame ``reach`` (None: no bound yet) can still reach a
+    frame after ``t``."""
+    return reach is None or reach > t
+
+
 class KeyframeAutomaton:
     """Ω^Z components of ``query`` over a stream of index-rate frames at ``rate`` Hz.
 
@@ -84,7 +90,12 @@ class KeyframeAutomaton:
     query has one)."""
 
     def __init__(
-        self, query: KeyframeQuery, rate: float, max_gap: int | None = None, period: int = 0
+        self,
+        query: KeyframeQuery,
+        rate: float,
+        max_gap: int | None = None,
+        period: int = 0,
+        components: bool = True,
     ) -> None:
         bounds = query_bounds(query, rate, max_gap)
         if any(hi is None for _, hi in bounds):
@@ -103,6 +114,9 @@ class KeyframeAutomaton:
         if period < 0:
             raise ValueError(f"the period must not be negative, got {period}")
         self.period = period
+        self.components = components
+        """Whether Ω^Z components are emitted; without, only :attr:`reached` (and a match is dropped
+        as soon as its range can no longer grow)."""
         self._reset()
 
     def _reset(self) -> None:
@@ -156,7 +170,12 @@ class KeyframeAutomaton:
                 if t > m.lo and (t - m.lo) % self.period == 0 and self._hi(m.runs, t) == t:
                     self.reached.append((m.first, m.lo))
         self._expire(t)
-        out = self._emit(t)
+        if self.components:
+            out = self._emit(t)
+        else:
+            out = []
+            if self._matches:
+                self._matches = [m for m in self._matches if _grows(self._max_hi(m.runs), t)]
         self._idle = not self._matches and not any(self._partials) and all(r is None for r in self._open)
         return out
 
@@ -165,9 +184,9 @@ class KeyframeAutomaton:
         for run in self._open:
             if run is not None:
                 run.end = t
-        out = [Component(s, e, t) for s, e in omega_z([self._range(m, t) for m in self._matches])]
+        ranges = [self._range(m, t) for m in self._matches] if self.components else []
         self._reset()
-        return out
+        return [Component(s, e, t) for s, e in omega_z(ranges)]
 
     def _add(self, partial: _Partial, k: int, last: int) -> None:
         if k == last:
@@ -201,7 +220,7 @@ class KeyframeAutomaton:
             keep = []
             for p in partials:
                 reach = self._max_hi(p.runs)
-                if reach is None or reach + dmax > t:
+                if _grows(None if reach is None else reach + dmax, t):
                     keep.append(p)
             self._partials[k] = keep
 

@@ -158,7 +158,7 @@ class ClassPlan:
 
     def automaton(self, rate: float) -> KeyframeAutomaton:
         assert self.template.keyframes is not None
-        return KeyframeAutomaton(self.template.keyframes, rate, self.max_gap, self.period)
+        return KeyframeAutomaton(self.template.keyframes, rate, self.max_gap, self.period, components=False)
 
 
 def plans(

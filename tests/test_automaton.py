@@ -81,6 +81,10 @@ def check_stream(
         for t in range(at, last + 1, period or 1 << 30)
     ]
     assert sorted(reached) == sorted(expected)
+    matches_only = KeyframeAutomaton(query, query.rate, max_gap, period, components=False)
+    alone: list[tuple[int, int, int]] = []
+    assert run(matches_only, stream_codes(codes), alone) == []
+    assert alone == reached  # the same matches at the same frames, in the same order
     for component, pushed in got:
         assert component.emitted_at == pushed
         assert component.end <= component.emitted_at <= component.end + automaton.latency
