@@ -18,7 +18,7 @@ from daemon.calibration import given as given_tau
 from daemon.dtw import Match, retrieval_cost, subsequence_matches
 from daemon.features import SET_SLICES
 from daemon.keyframes import KeyframeQuery
-from daemon.library import ClassTemplate, Library
+from daemon.library import ClassTemplate, Library, default_library_path, load_library
 from daemon.recognizer import (
     CodeRecognizer,
     Detection,
@@ -59,8 +59,15 @@ def pushed(recognizer: Recognizer, m: Motion) -> list[Detection]:
     return out + recognizer.flush()
 
 
+@pytest.fixture(scope="module")
+def shipped() -> Library:
+    return load_library(default_library_path())
+
+
 @pytest.mark.parametrize("pair", recording_pairs(), ids=pair_id)
-def test_push_equals_detect(pair: tuple[Path, Path], library: Library) -> None:
+def test_push_equals_detect(pair: tuple[Path, Path], shipped: Library) -> None:
+    """With the shipped library's 18 classes (learned and published keyframes)."""
+    library = shipped
     m = read_recording(*pair)
     rate = native_rate(m)
     recognizer = Recognizer.for_skeleton(library, m.skeleton, rate, stream="s", session=SESSION)
