@@ -531,16 +531,22 @@ def streams(draw: st.DrawFn) -> dict[FeatureSet, list[int]]:
 
 
 @st.composite
-def queries(draw: st.DrawFn) -> KeyframeQuery:
+def queries(
+    draw: st.DrawFn,
+    sets: tuple[FeatureSet, ...] = FEATURE_SETS,
+    stiffnesses: tuple[float, ...] = (0.0, 0.0, 0.3, 0.5, 0.8, 1.0),
+) -> KeyframeQuery:
+    """1-4 random keyframes over ``sets`` (σ = 0 for an unbounded gap, equal positions for a zero
+    gap), fixing only the low bits random streams vary."""
     k = draw(st.integers(1, 4))
     keyframes = []
     position = 0
     for j in range(k):
-        fs = draw(st.sampled_from(FEATURE_SETS))
+        fs = draw(st.sampled_from(sets))
         width = SET_SLICES[fs].stop - SET_SLICES[fs].start
         low = [draw(st.sampled_from([0.0, 1.0, 0.5, 0.5])) for _ in range(LOW_BITS)]
         high = [draw(st.sampled_from([0.0, 0.5])) for _ in range(width - LOW_BITS)]
-        stiffness = None if j == k - 1 else draw(st.sampled_from([0.0, 0.0, 0.3, 0.5, 0.8, 1.0]))
+        stiffness = None if j == k - 1 else draw(st.sampled_from(stiffnesses))
         keyframes.append(Keyframe(fs, tuple(low + high), position, stiffness))
         position += draw(st.sampled_from([0, 0, 1, 2, 4, 7]))  # equal positions: zero gaps
     return KeyframeQuery("random", tuple(keyframes), 30.0)

@@ -8,7 +8,6 @@ the frames pushed."""
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 from dataclasses import dataclass, field
 from functools import cache
@@ -21,42 +20,19 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from daemon.bank import RecognizerBank
-from daemon.keyframes import parse_keyframe_queries
-from daemon.library import ClassTemplate, Library, learn_class
+from daemon.library import Library
 from daemon.recognizer import Detection, FrameError, Recognizer
-from daemon.recordings import joint_positions, read_examples, read_recording
+from daemon.recordings import joint_positions, read_recording
 from daemon.types import FloatArray
 from replay import JOINT_NAMES, Bone, Motion, Skeleton
-from tests.helpers import DATA, KEYFRAMES, hdm05_clip, training_rows, write_training
+from tests.helpers import DATA, hdm05_clip, small_library, takes
 
 SESSION = "bank-test"
 
 
-def takes(motion_class: str, actor: str) -> list[int]:
-    """The take numbers of an actor's HDM05 clips of a class."""
-    folder = DATA / "hdm05" / "cut" / motion_class
-    return sorted(int(p.name.split("_")[3]) for p in folder.glob(f"HDM_{actor}_*"))
-
-
 @pytest.fixture(scope="module")
 def library(tmp_path_factory: pytest.TempPathFactory) -> Library:
-    """squat1Reps and hopBothLegs1hops learned from three clips of bd and of bk, each also with the
-    published keyframes (``<class>.published``)."""
-    items = [
-        (c, a, t) for c in ("squat1Reps", "hopBothLegs1hops") for a in ("bd", "bk") for t in takes(c, a)[:3]
-    ]
-    examples = read_examples(
-        write_training(tmp_path_factory.mktemp("lib") / "clips.csv", training_rows(items))
-    )
-    published = parse_keyframe_queries(json.loads(KEYFRAMES.read_text(encoding="utf-8")), KEYFRAMES)
-    classes: dict[str, ClassTemplate] = {}
-    for name, clips in examples.items():
-        learned = learn_class(name, clips)
-        classes[name] = learned
-        classes[f"{name}.published"] = dataclasses.replace(
-            learned, name=f"{name}.published", keyframes=published[name]
-        )
-    return Library(30.0, classes)
+    return small_library(tmp_path_factory.mktemp("lib"))
 
 
 # ------------------------------------------------------------------------------------- streams

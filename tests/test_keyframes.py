@@ -29,6 +29,7 @@ from daemon.keyframes import (
 from daemon.types import FeatureSet
 from tests.helpers import SHARED
 from tests.naive import Lists, hits_of_match, keyframe_brute_force
+from tests.synth import LOW_BITS, queries
 
 
 def one_based(matches: list[tuple[int, ...]]) -> list[tuple[int, ...]]:
@@ -113,7 +114,6 @@ def test_gap_bounds_are_exact_for_decimal_stiffness() -> None:
 # ------------------------------------------------------------------------------- brute force
 
 SET_CHOICES: tuple[FeatureSet, ...] = ("lower", "upper")
-LOW_BITS = 3  # random codes use the low bits only, so keyframes hit often
 
 
 @st.composite
@@ -132,20 +132,8 @@ def databases(draw: st.DrawFn) -> dict[FeatureSet, list[list[int]]]:
     return out
 
 
-@st.composite
-def queries(draw: st.DrawFn) -> KeyframeQuery:
-    k = draw(st.integers(1, 4))
-    keyframes = []
-    position = 0
-    for j in range(k):
-        fs = draw(st.sampled_from(SET_CHOICES))
-        width = SET_SLICES[fs].stop - SET_SLICES[fs].start
-        low = [draw(st.sampled_from([0.0, 1.0, 0.5, 0.5])) for _ in range(LOW_BITS)]
-        high = [draw(st.sampled_from([0.0, 0.5])) for _ in range(width - LOW_BITS)]
-        stiffness = None if j == k - 1 else draw(st.sampled_from([0.0, 0.2, 0.5, 0.7, 0.8, 0.9, 1.0]))
-        keyframes.append(Keyframe(fs, tuple(low + high), position, stiffness))
-        position += draw(st.integers(0, 7))
-    return KeyframeQuery("random", tuple(keyframes), 30.0)
+def keyframe_queries() -> st.SearchStrategy[KeyframeQuery]:
+    return queries(sets=SET_CHOICES, stiffnesses=(0.0, 0.2, 0.5, 0.7, 0.8, 0.9, 1.0))
 
 
 def set_indexes(docs: dict[FeatureSet, list[list[int]]]) -> dict[FeatureSet, SetIndex]:
@@ -158,7 +146,7 @@ def set_indexes(docs: dict[FeatureSet, list[list[int]]]) -> dict[FeatureSet, Set
 
 
 @settings(max_examples=400, deadline=None, suppress_health_check=[HealthCheck.too_slow])
-@given(databases(), queries(), st.sampled_from([(0, 0), (0, 0), (2, 0), (1, 3)]))
+@given(databases(), keyframe_queries(), st.sampled_from([(0, 0), (0, 0), (2, 0), (1, 3)]))
 def test_keyframe_search_equals_brute_force(
     docs: dict[FeatureSet, list[list[int]]], query: KeyframeQuery, extend: tuple[int, int]
 ) -> None:
@@ -172,7 +160,7 @@ def test_keyframe_search_equals_brute_force(
 
 
 @settings(max_examples=200, deadline=None)
-@given(databases(), queries())
+@given(databases(), keyframe_queries())
 def test_unpruned_search_per_document(docs: dict[FeatureSet, list[list[int]]], query: KeyframeQuery) -> None:
     """Alg. 4.1 as published, one document at a time on the whole post-segmented lists (no pruning):
     every pointer tuple it reports is a match (Behauptung 4.1) and Ω^Z of its matches equals Ω^Z of
