@@ -12,7 +12,9 @@ points, per-stream hysteresis). Streams near their start (whose velocity windows
 the first frame) run their own :class:`~daemon.features.FeatureStream` until it is steady, and a
 stream that leaves is flushed through one resumed from its ring, so the edges are computed exactly as
 the one-stream recogniser computes them. After the features, each stream keeps every k-th vector and
-runs its own :class:`~daemon.recognizer.CodeRecognizer` (Python, once per index-rate frame).
+advances its own :class:`~daemon.recognizer.CodeRecognizer` (Python, once per index-rate frame);
+the DTW windows due in one push are confirmed in one pass per class over the windows of all
+streams side by side (:func:`~daemon.recognizer.confirm_many`).
 
 Every operation is elementwise with the same operands in the same order as the one-stream path (the
 features' compiled program runs on Python floats there and on arrays here with the same bits), so
@@ -43,9 +45,11 @@ from daemon.recognizer import (
     ClassPlan,
     CodeRecognizer,
     Detection,
+    Due,
     FrameError,
     check_number,
     check_positions,
+    confirm_many,
     frame_values,
     make_detection,
     non_finite_channels,
@@ -539,7 +543,7 @@ class RecognizerBank:
                     errors[i] = non_finite_pose(numbers[i], frames[i][0])
                     del poses[i]
         emitted = self._features_pass(frames, poses)
-        detections: list[Detection] = []
+        index_frames: list[tuple[_Stream, int, list[Due]]] = []
         for i in sorted(poses):
             s = self._streams[frames[i][0]]
             number = numbers[i]
@@ -547,9 +551,24 @@ class RecognizerBank:
                 s.first = number
             s.last = number
             code = emitted.get(i)
-            if code is not None:
-                detections += self._vector(s, code, number)
+            if code is not None and self._kept(s):
+                index_frames.append((s, number, s.codes.advance(code)))
+        detections = self._confirm(index_frames)
         return BankResult(tuple(detections), tuple((frames[i][0], errors[i]) for i in sorted(errors)))
+
+    def _confirm(self, index_frames: list[tuple[_Stream, int, list[Due]]]) -> list[Detection]:
+        """Every window due in this push, one DP pass per class over all streams' windows
+        (:func:`~daemon.recognizer.confirm_many`), then each stream's detections in order."""
+        by_class: dict[int, list[npt.NDArray[np.uint64]]] = {}
+        for _, _, due in index_frames:
+            for d in due:
+                by_class.setdefault(d.track, []).append(d.codes)
+        found = {k: iter(confirm_many(self._plans[k], windows)) for k, windows in by_class.items()}
+        out: list[Detection] = []
+        for s, number, due in index_frames:
+            settled = s.codes.settle(due, [next(found[d.track]) for d in due])
+            out += self._detections(s, settled, number)
+        return out
 
     def _kinematic_pass(
         self,
@@ -615,11 +634,14 @@ class RecognizerBank:
         return out
 
     def _vector(self, s: _Stream, code: int, number: int) -> list[Detection]:
+        return self._detections(s, s.codes.push(code), number) if self._kept(s) else []
+
+    @staticmethod
+    def _kept(s: _Stream) -> bool:
+        """Whether the stream's next feature vector is one the decimation keeps (every k-th)."""
         t = s.seen
         s.seen += 1
-        if t % s.step:
-            return []
-        return self._detections(s, s.codes.push(code), number)
+        return t % s.step == 0
 
     def _detections(self, s: _Stream, found: Sequence[tuple[ClassPlan, Any]], number: int) -> list[Detection]:
         first = s.first

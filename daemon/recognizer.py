@@ -47,6 +47,7 @@ import numpy.typing as npt
 
 from daemon.automaton import KeyframeAutomaton
 from daemon.dtw import (
+    INF,
     Match,
     RetrievalTables,
     Steps,
@@ -192,8 +193,34 @@ def ring_size(class_plans: Sequence[ClassPlan]) -> int:
 def confirm(plan: ClassPlan, codes: npt.NDArray[np.uint64]) -> list[Match]:
     """The DTW confirmations of ``plan``'s class in a window of codes shape ``(n,)``: local minima of
     the subsequence DTW at or below τ, suppressed as the toolbox does (window columns)."""
-    delta, first = subsequence_fixed(iter(retrieval_matrix(plan.tables, codes)), plan.steps)
-    return suppress(local_minima(to_cost(delta), first, plan.tau))
+    return confirm_many(plan, [codes])[0]
+
+
+SEPARATOR = 2
+"""Blocked columns between windows confirmed in one pass: no path of the toolbox's or the thesis'
+steps crosses two (as :func:`daemon.retrieval.template_search` separates its pieces)."""
+
+
+def confirm_many(plan: ClassPlan, windows: Sequence[npt.NDArray[np.uint64]]) -> list[list[Match]]:
+    """:func:`confirm` of every window, in one DP pass over the windows side by side (each followed
+    by :data:`SEPARATOR` blocked columns): one Python loop over the template's rows for all of them,
+    the same integers as one pass per window."""
+    sizes = [len(w) for w in windows]
+    offsets = np.concatenate([[0], np.cumsum(np.asarray(sizes, dtype=np.int64) + SEPARATOR)])
+    codes = np.zeros(int(offsets[-1]), dtype=np.uint64)
+    blocked = np.ones(len(codes), dtype=bool)
+    for w, at in zip(windows, offsets[:-1].tolist(), strict=True):
+        codes[at : at + len(w)] = w
+        blocked[at : at + len(w)] = False
+    rows = retrieval_matrix(plan.tables, codes)
+    rows[:, blocked] = INF
+    delta, first = subsequence_fixed(iter(rows), plan.steps)
+    cost = to_cost(delta)
+    out = []
+    for at, size in zip(offsets[:-1].tolist(), sizes, strict=True):
+        found = local_minima(cost[at : at + size], first[at : at + size] - at, plan.tau)
+        out.append(suppress(found))
+    return out
 
 
 def same_motion(a: tuple[int, int], b: tuple[int, int]) -> bool:
@@ -254,53 +281,84 @@ class CodeRecognizer:
         return self._n
 
     def push(self, code: int) -> list[tuple[ClassPlan, Match]]:
-        j = self._n
-        self._n += 1
-        self._ring.append(code)
-        out = []
-        for track in self._tracks:
-            track.automaton.push(code)
-            reached = track.automaton.reached
-            if reached:
-                p = track.plan
-                end = j + p.right
-                track.pending.append(
-                    (min(max(0, first - p.left, end - p.window + 1) for first, _ in reached), end)
-                )
-            if track.pending and track.pending[0][1] <= j:
-                out += self._confirm(track, j)
-        return out
+        due = self.advance(code)
+        return self.settle(due, [confirm(self.plans[d.track], d.codes) for d in due])
 
     def flush(self) -> list[tuple[ClassPlan, Match]]:
-        last = self._n - 1
-        out = []
-        for track in self._tracks:
-            track.automaton.flush()
-            out += self._confirm(track, last, end_of_stream=True)
-            track.published.clear()
-        self._ring.clear()
-        self._n = 0
-        return out
+        due = self.advance(None)
+        return self.settle(due, [confirm(self.plans[d.track], d.codes) for d in due], end_of_stream=True)
 
-    def _confirm(
-        self, track: _ClassTrack, j: int, end_of_stream: bool = False
-    ) -> list[tuple[ClassPlan, Match]]:
-        p = track.plan
-        out = []
+    def advance(self, code: int | None) -> list[Due]:
+        """The first half of :meth:`push` (``code``) or :meth:`flush` (None): the automata advanced and
+        the windows due now, to be confirmed (:func:`confirm`, or :func:`confirm_many` for many
+        streams at once) and handed to :meth:`settle`."""
+        if code is None:
+            j = self._n - 1
+            for track in self._tracks:
+                track.automaton.flush()
+        else:
+            j = self._n
+            self._n += 1
+            self._ring.append(code)
+            for track in self._tracks:
+                track.automaton.push(code)
+                reached = track.automaton.reached
+                if reached:
+                    p = track.plan
+                    end = j + p.right
+                    track.pending.append(
+                        (min(max(0, first - p.left, end - p.window + 1) for first, _ in reached), end)
+                    )
         base = self._n - len(self._ring)
-        # no later window starts before this: its match completes after j - right
-        track.published = [r for r in track.published if r[1] >= j - p.right - p.span - p.left]
-        while track.pending and (end_of_stream or track.pending[0][1] <= j):
-            a, b = track.pending.popleft()
-            b = min(b, j)
-            if a < base:  # cannot happen: ring_size covers every window
-                raise AssertionError(f"window {a}..{b} left the ring (from {base})")
-            codes = np.fromiter(islice(self._ring, a - base, b - base + 1), dtype=np.uint64, count=b - a + 1)
-            hits = [Match(m.start + a, m.end + a, m.cost) for m in confirm(p, codes)]
-            for m in keep_apart(hits, track.published):
+        due = []
+        for k, track in enumerate(self._tracks):
+            while track.pending and (code is None or track.pending[0][1] <= j):
+                a, b = track.pending.popleft()
+                b = min(b, j)
+                if a < base:  # cannot happen: ring_size covers every window
+                    raise AssertionError(f"window {a}..{b} left the ring (from {base})")
+                window = np.fromiter(
+                    islice(self._ring, a - base, b - base + 1), dtype=np.uint64, count=b - a + 1
+                )
+                due.append(Due(k, a, j, window))
+        return due
+
+    def settle(
+        self, due: Sequence[Due], hits: Sequence[Sequence[Match]], end_of_stream: bool = False
+    ) -> list[tuple[ClassPlan, Match]]:
+        """The second half: each due window's ``hits`` (window columns), in order, kept apart from the
+        detections of its class; with ``end_of_stream``, a fresh stream afterwards."""
+        out = []
+        pruned: set[int] = set()
+        for d, found in zip(due, hits, strict=True):
+            track = self._tracks[d.track]
+            p = track.plan
+            if (
+                d.track not in pruned
+            ):  # no later window starts before this: its match completes after j - right
+                track.published = [r for r in track.published if r[1] >= d.frame - p.right - p.span - p.left]
+                pruned.add(d.track)
+            shifted = [Match(m.start + d.start, m.end + d.start, m.cost) for m in found]
+            for m in keep_apart(shifted, track.published):
                 track.published.append((m.start, m.end))
                 out.append((p, m))
+        if end_of_stream:
+            for track in self._tracks:
+                track.published.clear()
+            self._ring.clear()
+            self._n = 0
         return out
+
+
+@dataclass(frozen=True)
+class Due:
+    """A window due for confirmation: class ``track`` (index in the plans), its first frame
+    ``start`` (stream frames), the frame ``frame`` it is due at, and its codes shape ``(n,)``."""
+
+    track: int
+    start: int
+    frame: int
+    codes: npt.NDArray[np.uint64]
 
 
 class _Frames:
