@@ -27,6 +27,12 @@ every gap needs an upper bound, so gaps with stiffness 0 (unbounded, Def. 4.9) a
 ``max_gap`` frames, and the batch search is given the same cap (``keyframe_search(max_gap=...)``) to
 stay comparable.
 
+Matches. Each push also reports, in :attr:`KeyframeAutomaton.reached`, every match completed at the
+pushed frame (its R(M) start and the first frame of its last keyframe) and, with a ``period``, every
+match whose range still grows ``period``, ``2 period``, ... frames later; the live recogniser starts
+its DTW confirmation from these and runs the automaton with ``components=False`` (no Ω^Z
+bookkeeping; a match is dropped once its range can no longer grow).
+
 Pure: integers in, frozen dataclasses out.
 """
 
