@@ -208,6 +208,26 @@ def percentiles(frames: Sequence[int], rate: float) -> str:
     return f"median {np.median(ms):.0f} ms, p95 {np.percentile(ms, 95):.0f} ms (n = {len(ms)})"
 
 
+def measure(
+    library: Library,
+    motion: Motion,
+    rate: float,
+    truth: Sequence[Segment],
+    data: str,
+    totals: dict[str, Totals],
+    latency: dict[str, list[int]],
+    to_motion: bool = True,
+) -> None:
+    """Run ``motion`` through ``library`` with its calibrated τ and with τ = 0.1; add the tallies to
+    ``totals[data]`` and the latencies (frames; from a motion's end only with ``to_motion``)."""
+    for kind, lib in (("calibrated", library), ("tau 0.1", fixed_tau(library, 0.1))):
+        tally, motion_frames, detection_frames = score(run(lib, motion, rate), truth, list(lib.classes))
+        add(totals[data], kind, tally)
+        if to_motion:
+            latency[f"{data} {kind} motion"] += motion_frames
+        latency[f"{data} {kind} detection"] += detection_frames
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -237,12 +257,7 @@ def main() -> None:
         rng.shuffle(clips)
         rate = native_rate(clips[0][1])
         stream, truth = join(clips, round(args.blend_s * rate))
-        for kind, lib in (("calibrated", library), ("tau 0.1", fixed_tau(library, 0.1))):
-            found = run(lib, stream, rate)
-            tally, to_motion, to_detection = score(found, truth, HDM05_CLASSES)
-            add(totals["HDM05"], kind, tally)
-            latency[f"HDM05 {kind} motion"] += to_motion
-            latency[f"HDM05 {kind} detection"] += to_detection
+        measure(library, stream, rate, truth, "HDM05", totals, latency)
         print(
             f"HDM05 left out {left_out}: {len(clips)} clips, {len(stream)} frames, learned in "
             f"{time.perf_counter() - started:.0f} s",
@@ -260,12 +275,8 @@ def main() -> None:
         motion = read_recording(asf, amc)
         rate = native_rate(motion)
         truth = [Segment(s.label, s.start_frame, s.end_frame) for s in segments if s.trial == left_out]
-        for kind, lib in (("calibrated", library), ("tau 0.1", fixed_tau(library, 0.1))):
-            found = run(lib, motion, rate)
-            tally, _, to_detection = score(found, truth, list(lib.classes))
-            add(totals["CMU"], kind, tally)
-            # a labelled run holds many repetitions: its first detection comes long before its end
-            latency[f"CMU {kind} detection"] += to_detection
+        # a labelled run holds many repetitions: its first detection comes long before its end
+        measure(library, motion, rate, truth, "CMU", totals, latency, to_motion=False)
         print(
             f"CMU left out {left_out}: {len(library.classes)} classes learned in "
             f"{time.perf_counter() - started:.0f} s",

@@ -30,7 +30,6 @@ Pure: numpy in, dataclasses out; no I/O.
 
 from __future__ import annotations
 
-import math
 import uuid
 from collections.abc import Collection, Hashable, Sequence
 from dataclasses import dataclass
@@ -47,16 +46,19 @@ from daemon.recognizer import (
     Detection,
     Due,
     FrameError,
+    check_native_rate,
     check_number,
     check_positions,
     confirm_many,
     frame_values,
+    joint_order,
     make_detection,
     non_finite_channels,
     non_finite_pose,
     plans,
+    vector_code,
 )
-from daemon.types import DEFAULT_MAX_GAP_S, MAX_NATIVE_RATE, FloatArray
+from daemon.types import DEFAULT_MAX_GAP_S, FloatArray
 from replay import JOINT_NAMES, KinematicModel, Skeleton
 from replay.kinematics import _qmul, _qrot
 
@@ -447,8 +449,7 @@ class RecognizerBank:
             raise ValueError(f"stream {stream!r} is already in the bank")
         if (skeleton is None) == (joint_names is None):
             raise ValueError("give a skeleton (channels) or the joint names (positions), not both")
-        if not (math.isfinite(native_rate) and 0 < native_rate <= MAX_NATIVE_RATE):
-            raise ValueError(f"native rate must be in (0, {MAX_NATIVE_RATE:g}] Hz, got {native_rate}")
+        check_native_rate(native_rate)
         rate = float(native_rate)
         step = decimation_factor(rate, self.library.rate)
         s = _Stream(
@@ -468,14 +469,8 @@ class RecognizerBank:
             s.group, s.kinematic_slot, s.width, s.model = group, group.add(model), group.width, model
         else:
             assert joint_names is not None
-            names = list(joint_names)
-            missing = [j for j in JOINT_NAMES if j not in names]
-            if missing:
-                raise ValueError(f"the joints must include {', '.join(missing)}")
-            if len(set(names)) != len(names):
-                raise ValueError("a joint is named twice")
-            s.width = len(names)
-            s.joint_order = np.array([names.index(j) for j in JOINT_NAMES], dtype=np.intp)
+            s.joint_order = joint_order(joint_names)
+            s.width = len(joint_names)
         if rate not in self._features:
             self._features[rate] = _FeatureGroup(rate)
         self._streams[stream] = s
@@ -650,5 +645,4 @@ class RecognizerBank:
 
 
 def _codes(vectors: Sequence[npt.NDArray[np.bool_]]) -> list[int]:
-    """Feature vectors shape ``(39,)`` as codes (bit k = feature k)."""
-    return [sum(1 << k for k, on in enumerate(v.tolist()) if on) for v in vectors]
+    return [vector_code(v) for v in vectors]

@@ -60,15 +60,15 @@ from daemon.dtw import (
     to_cost,
 )
 from daemon.errors import MocapdError
-from daemon.features import FeatureStream, decimation_factor, features
+from daemon.features import FeatureStream, decimation_factor, features, latency_frames
 from daemon.keyframes import query_bounds
 from daemon.library import ClassTemplate, Library
+from daemon.recordings import joint_positions
 from daemon.retrieval import keyframe_extension
 from daemon.templates import expand
 from daemon.types import (
     DEFAULT_MAX_GAP_S,
     MAX_NATIVE_RATE,
-    N_FEATURES,
     FloatArray,
     IntArray,
 )
@@ -362,10 +362,9 @@ class Due:
 
 
 class _Frames:
-    """Native frame numbers of one stream: the first, the last, the decimation step."""
+    """Native frame numbers of one stream: the first and the last."""
 
-    def __init__(self, step: int) -> None:
-        self.step = step
+    def __init__(self) -> None:
         self.first: int | None = None
         self.last: int | None = None
 
@@ -393,8 +392,7 @@ class Recognizer:
         model: KinematicModel | None = None,
         joint_names: Sequence[str] | None = None,
     ) -> None:
-        if not (math.isfinite(native_rate) and 0 < native_rate <= MAX_NATIVE_RATE):
-            raise ValueError(f"native rate must be in (0, {MAX_NATIVE_RATE:g}] Hz, got {native_rate}")
+        check_native_rate(native_rate)
         self.stream = stream
         self.library = library
         self.native_rate = native_rate
@@ -403,23 +401,16 @@ class Recognizer:
         self._model = model
         if model is not None:
             self._width = len(model.skeleton.channel_names)
-            self._joint_order = np.arange(len(JOINT_NAMES), dtype=np.intp)
         else:
             if joint_names is None:
                 raise ValueError("give a kinematic model (channels) or the joint names (positions)")
-            missing = [j for j in JOINT_NAMES if j not in joint_names]
-            if missing:
-                raise ValueError(f"the joints must include {', '.join(missing)}")
-            if len(set(joint_names)) != len(joint_names):
-                raise ValueError("a joint is named twice")
             self._width = len(joint_names)
-            self._joint_order = np.array([list(joint_names).index(j) for j in JOINT_NAMES], dtype=np.intp)
+            self._joint_order = joint_order(joint_names)
         self._plans = plans(library, classes, max_gap_s=max_gap_s)
         self._features = FeatureStream(JOINT_NAMES, native_rate)
         self._codes = CodeRecognizer(self._plans, library.rate)
-        self._frames = _Frames(self._step)
+        self._frames = _Frames()
         self._seen = 0  # feature vectors emitted so far in this stream
-        self._bit = [1 << i for i in range(N_FEATURES)]
 
     @classmethod
     def for_skeleton(cls, library: Library, skeleton: Skeleton, native_rate: float, **kw: Any) -> Recognizer:
@@ -466,7 +457,7 @@ class Recognizer:
         found = self._codes.flush()
         if last is not None:
             out += self._detections(found, last)
-        self._frames = _Frames(self._step)
+        self._frames = _Frames()
         self._seen = 0
         return out
 
@@ -475,8 +466,7 @@ class Recognizer:
         self._seen += 1
         if t % self._step:
             return []
-        code = sum(b for b, on in zip(self._bit, vector.tolist(), strict=True) if on)
-        return self._detections(self._codes.push(code), number)
+        return self._detections(self._codes.push(vector_code(vector)), number)
 
     def _detections(self, found: Sequence[tuple[ClassPlan, Match]], number: int) -> list[Detection]:
         first = self._frames.first
@@ -495,6 +485,29 @@ class Recognizer:
             pose = values[self._joint_order]
         check_pose(number, pose, self.stream)
         return pose
+
+
+def check_native_rate(rate: float) -> None:
+    """ValueError unless ``rate`` (Hz) is one features are computed at."""
+    if not (math.isfinite(rate) and 0 < rate <= MAX_NATIVE_RATE):
+        raise ValueError(f"native rate must be in (0, {MAX_NATIVE_RATE:g}] Hz, got {rate}")
+
+
+def joint_order(joint_names: Sequence[str]) -> npt.NDArray[np.intp]:
+    """Where each standard joint (:data:`replay.JOINT_NAMES`) stands among announced ``joint_names``,
+    shape ``(26,)``; ValueError if one is missing or a name repeats."""
+    names = list(joint_names)
+    missing = [j for j in JOINT_NAMES if j not in names]
+    if missing:
+        raise ValueError(f"the joints must include {', '.join(missing)}")
+    if len(set(names)) != len(names):
+        raise ValueError("a joint is named twice")
+    return np.array([names.index(j) for j in JOINT_NAMES], dtype=np.intp)
+
+
+def vector_code(vector: npt.NDArray[np.bool_]) -> int:
+    """A feature vector shape ``(39,)`` as a code (bit k = feature k)."""
+    return sum(1 << k for k, on in enumerate(vector.tolist()) if on)
 
 
 def check_number(number: object, last: int | None, stream: str) -> int:
@@ -585,10 +598,8 @@ def detect(
     """The batch twin of :class:`Recognizer`: every detection of ``motion`` (read at ``native_rate``
     Hz) in the order the recogniser emits them, equal to pushing its frames one by one with the same
     ``session``. Features come from one vectorised pass over the whole recording."""
-    model = KinematicModel(motion.skeleton)
-    positions = model.joints(model.positions(motion.channels, "cm"))
     return detect_positions(
-        positions,
+        joint_positions(motion),
         motion.frames,
         library,
         native_rate,
@@ -620,7 +631,7 @@ def detect_positions(
     codes = pack(matrix).tolist()
     recognizer = CodeRecognizer(plans(library, classes, max_gap_s=max_gap_s), library.rate)
     first, last = int(numbers[0]), int(numbers[-1])
-    delay = FeatureStream(JOINT_NAMES, native_rate).latency
+    delay = latency_frames(native_rate)
     out = []
     for j, code in enumerate(codes):
         # index frame j's features come out when native frame j·step + delay is pushed
