@@ -242,7 +242,7 @@ def load_index(path: str | Path) -> MotionIndex:
     rate = check.positive_number(root["rate"], "rate")
     if not isinstance(root["base"], str):
         check.fail("base", f"must be a directory path, got {root['base']!r:.60}")
-    documents = _documents(check, root["documents"])
+    documents = _documents(check, root["documents"], rate)
     sets_meta = check.mapping(root["sets"], "sets", FEATURE_SETS)
     sets: dict[FeatureSet, SetIndex] = {}
     for s in FEATURE_SETS:
@@ -340,7 +340,7 @@ def _check_set(
         )
 
 
-def _documents(check: Checker, value: object) -> tuple[Document, ...]:
+def _documents(check: Checker, value: object, rate: float) -> tuple[Document, ...]:
     out = []
     for i, item in enumerate(check.listing(value, "documents", nonempty=True)):
         where = f"documents[{i}]"
@@ -353,5 +353,7 @@ def _documents(check: Checker, value: object) -> tuple[Document, ...]:
         if frames != -(-(last - first + 1) // step):
             check.fail(f"{where}.frames", f"{frames} does not fit AMC frames {first}..{last} every {step}")
         native = check.positive_number(d["native_rate"], f"{where}.native_rate")
+        if not math.isclose(native / step, rate, rel_tol=1e-9):
+            check.fail(f"{where}.step", f"{native:g} Hz every {step} frames is not {rate:g} Hz (rate)")
         out.append(Document(amc, asf, first, last, step, frames, native))
     return tuple(out)

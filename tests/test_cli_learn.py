@@ -140,7 +140,7 @@ def test_search_library_rate_mismatch(learned: Learned, tmp_path: Path) -> None:
     line = assert_one_error_line(
         mocapd("search", "--index", where / "idx", "--library", tmp_path / "lib60", "--class", "squat1Reps")
     )
-    assert "was learned at 60 Hz" in line and "indexed at 30 Hz" in line
+    assert "index.json: rate: 30 Hz" in line and "was learned at 60 Hz" in line
 
 
 @pytest.mark.parametrize(

@@ -331,6 +331,8 @@ def test_load_bad_json(saved: Path, tmp_path: Path) -> None:
         ({"documents.1.frames": 15}, "documents[1].frames"),
         ({"documents.0.step": 0}, "documents[0].step"),
         ({"documents.0.native_rate": "120"}, "documents[0].native_rate"),
+        ({"rate": 1}, "documents[0].step"),  # the documents' steps no longer give the rate
+        ({"documents.1.native_rate": 60.0}, "documents[1].step"),
         ({"documents.2.amc": 7}, "documents[2].amc"),
         ({"documents.0.last_amc_frame": 0}, "documents[0].last_amc_frame"),
         ({"sets.mix.bits": 12}, "sets.mix.bits"),

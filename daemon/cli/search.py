@@ -25,6 +25,7 @@ from daemon.index import (
     ranked,
 )
 from daemon.index_store import (
+    INDEX_JSON,
     Document,
     MotionIndex,
     build_index,
@@ -292,7 +293,9 @@ def _search_library(args: argparse.Namespace, index: MotionIndex) -> tuple[list[
     cls = library.get(args.class_name)
     if not math.isclose(library.rate, index.rate):
         raise UsageError(
-            f"{args.library} was learned at {library.rate:g} Hz, {args.index} is indexed at {index.rate:g} Hz"
+            f"{index.rate:g} Hz, but library {args.library} was learned at {library.rate:g} Hz",
+            path=Path(args.index) / INDEX_JSON,
+            field="rate",
         )
     query = None
     if args.keyframes == LIBRARY_KEYFRAMES:
