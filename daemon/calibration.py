@@ -27,7 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from daemon.dtw import Steps, pack, retrieval_rows, subsequence_fixed, to_cost
+from daemon.dtw import Steps, pack, retrieval_tables, subsequence_codes, to_cost
 from daemon.index import SetIndex, build_set_index
 from daemon.keyframes import KeyframeQuery, keyframe_search
 from daemon.templates import (
@@ -137,7 +137,7 @@ def clip_costs(template: MotionTemplate, clips: Sequence[BoolArray], steps: Step
     for clip, at, size in zip(clips, offsets[:-1], sizes, strict=True):
         codes[at : at + size] = pack(clip)
         blocked[at : at + size] = False
-    delta, _ = subsequence_fixed(retrieval_rows(t.values, t.weights, codes, blocked), steps)
+    delta, _ = subsequence_codes(retrieval_tables(t.values, t.weights), codes, blocked, steps)
     cost = to_cost(delta)
     return np.asarray([cost[at : at + size].min() for at, size in zip(offsets[:-1], sizes, strict=True)])
 

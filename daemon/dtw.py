@@ -28,6 +28,7 @@ from typing import Literal
 import numpy as np
 import numpy.typing as npt
 
+from daemon import _dtw
 from daemon.types import FloatArray, IntArray
 
 Steps = Literal["thesis", "toolbox"]
@@ -372,6 +373,21 @@ def subsequence_fixed(rows: Iterable[IntArray], steps: Steps = "thesis") -> tupl
     if not last:
         raise ValueError("a template needs at least one column")
     return last[0]
+
+
+def subsequence_codes(
+    t: RetrievalTables,
+    codes: npt.NDArray[np.uint64],
+    blocked: npt.NDArray[np.bool_] | None = None,
+    steps: Steps = "thesis",
+) -> tuple[IntArray, IntArray]:
+    """:func:`subsequence_fixed` of :func:`retrieval_rows` (Δ and starts ``(N,)`` in fixed point) of a
+    template's prepared tables against packed frames ``codes`` ``(N,)``, ``blocked`` columns
+    unreachable, computed cell by cell in compiled code (:mod:`daemon._dtw`): the same integers, at
+    C speed and in O(M) memory."""
+    c = np.ascontiguousarray(codes, dtype=np.uint64)
+    b = np.zeros(len(c), dtype=np.uint8) if blocked is None else np.ascontiguousarray(blocked, dtype=np.uint8)
+    return _dtw.subsequence_codes(t.masks, t.values, t.tables, c, b, check_steps(steps) == "toolbox")
 
 
 def subsequence_dtw(cost: FloatArray, steps: Steps = "thesis") -> Subsequence:

@@ -47,15 +47,13 @@ import numpy.typing as npt
 
 from daemon.automaton import KeyframeAutomaton
 from daemon.dtw import (
-    INF,
     Match,
     RetrievalTables,
     Steps,
     local_minima,
     pack,
-    retrieval_matrix,
     retrieval_tables,
-    subsequence_fixed,
+    subsequence_codes,
     suppress,
     to_cost,
 )
@@ -212,9 +210,7 @@ def confirm_many(plan: ClassPlan, windows: Sequence[npt.NDArray[np.uint64]]) -> 
     for w, at in zip(windows, offsets[:-1].tolist(), strict=True):
         codes[at : at + len(w)] = w
         blocked[at : at + len(w)] = False
-    rows = retrieval_matrix(plan.tables, codes)
-    rows[:, blocked] = INF
-    delta, first = subsequence_fixed(iter(rows), plan.steps)
+    delta, first = subsequence_codes(plan.tables, codes, blocked, plan.steps)
     cost = to_cost(delta)
     out = []
     for at, size in zip(offsets[:-1].tolist(), sizes, strict=True):

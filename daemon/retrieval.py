@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from daemon.dtw import Match, Steps, local_minima, retrieval_rows, subsequence_fixed, suppress, to_cost
+from daemon.dtw import Match, Steps, local_minima, retrieval_tables, subsequence_codes, suppress, to_cost
 from daemon.features import SET_SLICES
 from daemon.index import concatenated_ranges
 from daemon.index_store import MotionIndex
@@ -96,6 +96,7 @@ def template_search(
     all_codes = frame_codes(index) if codes is None else codes
     base = np.concatenate([[0], np.cumsum(frames)[:-1]]).astype(np.int64)
     t = expand(template)
+    tables = retrieval_tables(t.values, t.weights)
     found_hits: list[tuple[float, int, int, int]] = []  # cost, doc, start, end
     for p in range(0, len(doc), PIECES_PER_PASS):
         piece = slice(p, p + PIECES_PER_PASS)
@@ -107,7 +108,7 @@ def template_search(
         db[columns] = all_codes[concatenated_ranges(base[doc[piece]] + start[piece], sizes)]
         blocked = np.ones(len(db), dtype=bool)
         blocked[columns] = False
-        delta, first = subsequence_fixed(retrieval_rows(t.values, t.weights, db, blocked), steps)
+        delta, first = subsequence_codes(tables, db, blocked, steps)
         by_piece: dict[int, list[Match]] = {}
         for m in local_minima(to_cost(delta), first, tau):
             by_piece.setdefault(int(np.searchsorted(offsets, m.end, "right")) - 1, []).append(m)

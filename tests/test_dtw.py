@@ -420,6 +420,12 @@ def check_retrieval(
         assert row.tolist() == np.where(blocked, INF, want).tolist()
     assert [r.tolist() for r in dtw.retrieval_rows(t, w, codes)] == dtw.fixed(cost).tolist()
     assert dtw.retrieval_matrix(dtw.retrieval_tables(t, w), codes).tolist() == dtw.fixed(cost).tolist()
+    # the compiled subsequence DTW over packed frames: the cell-by-cell reference, both steps
+    rows_blocked = [r.tolist() for r in dtw.retrieval_rows(t, w, codes, blocked)]
+    for steps in dtw.STEPS:
+        d, s = ref_subsequence(rows_blocked, steps)
+        delta, start = dtw.subsequence_codes(dtw.retrieval_tables(t, w), codes, blocked, steps)
+        assert delta.tolist() == d[-1] and start.tolist() == s[-1], steps
 
 
 @settings(SETTINGS, max_examples=120)
