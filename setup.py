@@ -9,7 +9,10 @@ FLAGS = ["-O2", "-ffp-contract=off", "-mpopcnt"]
 
 setup(
     ext_modules=cythonize(
-        [Extension("daemon._dtw", ["daemon/_dtw.pyx"], extra_compile_args=FLAGS)],
+        [
+            Extension(name, [name.replace(".", "/") + ".pyx"], extra_compile_args=FLAGS)
+            for name in ("daemon._dtw", "daemon._automaton", "daemon._features", "replay._kinematics")
+        ],
         compiler_directives={"language_level": 3},
     )
 )

@@ -33,15 +33,17 @@ match whose range still grows ``period``, ``2 period``, ... frames later; the li
 its DTW confirmation from these and runs the automaton with ``components=False`` (no Ω^Z
 bookkeeping; a match is dropped once its range can no longer grow).
 
-Pure: integers in, frozen dataclasses out.
+Pure: integers in, frozen dataclasses out. The frame step is compiled (``daemon/_automaton.pyx``): the
+same operations on typed runs and partial matches.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
+from daemon._automaton import AutomatonCore
 from daemon.features import SET_SLICES
-from daemon.keyframes import KeyframeQuery, omega_z, query_bounds
+from daemon.keyframes import KeyframeQuery, query_bounds
 
 _OPEN = -1
 
@@ -57,35 +59,6 @@ class Component:
     emitted_at: int
 
 
-class _Run:
-    """A maximal run of frames in one keyframe's set; ``end`` is ``_OPEN`` while it lasts."""
-
-    __slots__ = ("end", "start")
-
-    def __init__(self, start: int) -> None:
-        self.start = start
-        self.end = _OPEN
-
-
-class _Partial:
-    """Runs of keyframes 1..k, ``lo`` = lo_k, ``first`` = the lower bound of R's start so far, and
-    the last run of keyframe k + 1 linked to it (each run is linked once)."""
-
-    __slots__ = ("first", "linked", "lo", "runs")
-
-    def __init__(self, runs: tuple[_Run, ...], lo: int, first: int) -> None:
-        self.runs = runs
-        self.lo = lo
-        self.first = first
-        self.linked: _Run | None = None
-
-
-def _grows(reach: int | None, t: int) -> bool:
-    """Whether something that reaches at most frame ``reach`` (None: no bound yet) can still reach a
-    frame after ``t``."""
-    return reach is None or reach > t
-
-
 class KeyframeAutomaton:
     """Ω^Z components of ``query`` over a stream of index-rate frames at ``rate`` Hz.
 
@@ -93,7 +66,8 @@ class KeyframeAutomaton:
     mix sets side by side as in :func:`daemon.retrieval.frame_codes`) and returns the components that
     became final; ``flush()`` ends the stream, returns the rest and starts a new stream (frames
     counted from 0 again). ``max_gap``: the cap of unbounded gaps in frames (required when the
-    query has one)."""
+    query has one). The frame step runs in compiled code (:class:`daemon._automaton.AutomatonCore`,
+    :attr:`core`), which the live recogniser drives directly."""
 
     def __init__(
         self,
@@ -106,152 +80,41 @@ class KeyframeAutomaton:
         bounds = query_bounds(query, rate, max_gap)
         if any(hi is None for _, hi in bounds):
             raise ValueError(f"{query.name}: a gap with stiffness 0 needs a maximum gap to be searched live")
-        self.query = query
-        self._masks = [kf.mask << SET_SLICES[kf.feature_set].start for kf in query.keyframes]
-        self._values = [kf.value << SET_SLICES[kf.feature_set].start for kf in query.keyframes]
-        self._dmin = [lo for lo, _ in bounds]
-        self._dmax: list[int] = [hi for _, hi in bounds if hi is not None]
-        reach = [0]
-        for d in self._dmax:
-            reach.append(reach[-1] + d)
-        self._reach = reach  # Σ_{i<j} dmax_i for j = 0..K-1
-        self.latency = max(1, reach[-1])
-        """A component ending at frame e is emitted no later than after frame e + latency."""
         if period < 0:
             raise ValueError(f"the period must not be negative, got {period}")
+        dmax = [hi for _, hi in bounds if hi is not None]
+        self.query = query
+        self.latency = max(1, sum(dmax))
+        """A component ending at frame e is emitted no later than after frame e + latency."""
         self.period = period
         self.components = components
         """Whether Ω^Z components are emitted; without, only :attr:`reached` (and a match is dropped
         as soon as its range can no longer grow)."""
-        self._reset()
+        self.core = AutomatonCore(
+            [kf.mask << SET_SLICES[kf.feature_set].start for kf in query.keyframes],
+            [kf.value << SET_SLICES[kf.feature_set].start for kf in query.keyframes],
+            [lo for lo, _ in bounds],
+            dmax,
+            period,
+            components,
+        )
 
-    def _reset(self) -> None:
-        self.reached: list[tuple[int, int]] = []
+    @property
+    def reached(self) -> list[tuple[int, int]]:
         """(start of R(M), first frame of keyframe K) of every match whose range reaches the frame
         just pushed, t, at t = that first frame + k·period: the match completed (k = 0) or, with a
         ``period``, its last keyframe still holds k periods later (its range still grows)."""
-        self._t = 0
-        self._open: list[_Run | None] = [None] * len(self._masks)
-        self._partials: list[list[_Partial]] = [[] for _ in self._dmax]
-        self._matches: list[_Partial] = []
-        self._idle = True
+        return self.core.reached
 
     @property
     def state_size(self) -> int:
         """Partial matches and matches held (the state apart from one open run per keyframe)."""
-        return sum(len(p) for p in self._partials) + len(self._matches)
+        return self.core.state_size
 
     def push(self, code: int) -> list[Component]:
-        t = self._t
-        self._t += 1
-        if self._idle and all(code & m != v for m, v in zip(self._masks, self._values, strict=True)):
-            if self.reached:
-                self.reached = []
-            return []  # nothing held and no keyframe here: nothing can change
-        self.reached = []
-        last = len(self._masks) - 1
-        for k, (mask, value) in enumerate(zip(self._masks, self._values, strict=True)):
-            run = self._open[k]
-            if code & mask != value:
-                if run is not None:
-                    run.end = t - 1
-                    self._open[k] = None
-                continue
-            if run is None:
-                run = self._open[k] = _Run(t)
-            if k == 0:
-                if run.start == t:
-                    self._add(_Partial((run,), t, t), 0, last)
-                continue
-            gap = k - 1
-            dmin, dmax = self._dmin[gap], self._dmax[gap]
-            for p in self._partials[gap]:
-                if p.linked is run or t < p.lo + dmin or t > self._hi(p.runs, t) + dmax:
-                    continue
-                p.linked = run
-                lo = max(run.start, p.lo + dmin)
-                self._add(_Partial((*p.runs, run), lo, max(p.first, lo - self._reach[k])), k, last)
-        if self.period:
-            for m in self._matches:
-                if t > m.lo and (t - m.lo) % self.period == 0 and self._hi(m.runs, t) == t:
-                    self.reached.append((m.first, m.lo))
-        self._expire(t)
-        if self.components:
-            out = self._emit(t)
-        else:
-            out = []
-            if self._matches:
-                self._matches = [m for m in self._matches if _grows(self._max_hi(m.runs), t)]
-        self._idle = not self._matches and not any(self._partials) and all(r is None for r in self._open)
-        return out
+        t = self.core.frames
+        return [Component(s, e, t) for s, e in self.core.push(code)]
 
     def flush(self) -> list[Component]:
-        t = self._t - 1
-        for run in self._open:
-            if run is not None:
-                run.end = t
-        ranges = [self._range(m, t) for m in self._matches] if self.components else []
-        self._reset()
-        return [Component(s, e, t) for s, e in omega_z(ranges)]
-
-    def _add(self, partial: _Partial, k: int, last: int) -> None:
-        if k == last:
-            self._matches.append(partial)
-            self.reached.append((partial.first, partial.lo))
-        else:
-            self._partials[k].append(partial)
-
-    def _hi(self, runs: tuple[_Run, ...], t: int) -> int:
-        """hi_k of the runs at frame ``t`` (an open run ends at ``t`` so far)."""
-        hi = t if runs[0].end == _OPEN else runs[0].end
-        for run, dmax in zip(runs[1:], self._dmax, strict=False):
-            hi = min(t if run.end == _OPEN else run.end, hi + dmax)
-        return hi
-
-    def _max_hi(self, runs: tuple[_Run, ...]) -> int | None:
-        """The largest hi_k the runs can still reach (None: unbounded, the first run is open)."""
-        hi = None if runs[0].end == _OPEN else runs[0].end
-        for run, dmax in zip(runs[1:], self._dmax, strict=False):
-            cap = None if hi is None else hi + dmax
-            end = None if run.end == _OPEN else run.end
-            hi = cap if end is None else end if cap is None else min(end, cap)
-        return hi
-
-    def _range(self, match: _Partial, t: int) -> tuple[int, int]:
-        return match.first, self._hi(match.runs, t)
-
-    def _expire(self, t: int) -> None:
-        for k, partials in enumerate(self._partials):
-            dmax = self._dmax[k]
-            keep = []
-            for p in partials:
-                reach = self._max_hi(p.runs)
-                if _grows(None if reach is None else reach + dmax, t):
-                    keep.append(p)
-            self._partials[k] = keep
-
-    def _emit(self, t: int) -> list[Component]:
-        if not self._matches:
-            return []
-        bound = t + 1
-        for k, partials in enumerate(self._partials):
-            floor = t + 1 - self._reach[k + 1]
-            for p in partials:
-                bound = min(bound, max(p.first, floor))
-        ranges = []
-        for m in self._matches:
-            start, end = self._range(m, t)
-            if end == t:
-                reach = self._max_hi(m.runs)
-                if reach is None or reach > t:
-                    bound = min(bound, start)
-            ranges.append((start, end))
-        out: list[Component] = []
-        for start, end in omega_z(ranges):
-            if end >= bound:
-                break
-            out.append(Component(start, end, t))
-        if out:
-            cut = out[-1].end
-            self._matches = [m for m, r in zip(self._matches, ranges, strict=True) if r[0] > cut]
-        return out
+        t = self.core.frames - 1
+        return [Component(s, e, t) for s, e in self.core.flush()]

@@ -390,6 +390,24 @@ def subsequence_codes(
     return _dtw.subsequence_codes(t.masks, t.values, t.tables, c, b, check_steps(steps) == "toolbox")
 
 
+def subsequence_minima(
+    t: RetrievalTables, codes: npt.NDArray[np.uint64], tau: float, steps: Steps = "thesis"
+) -> list[Match]:
+    """:func:`local_minima` at or below ``tau`` of :func:`subsequence_codes` over ``codes``, found in
+    the compiled pass (the comparisons in fixed point, which order as the costs do)."""
+    c = np.ascontiguousarray(codes, dtype=np.uint64)
+    found = _dtw.minima_codes(
+        t.masks,
+        t.values,
+        t.tables,
+        c,
+        np.zeros(len(c), dtype=np.uint8),
+        check_steps(steps) == "toolbox",
+        threshold(tau),
+    )
+    return [Match(s, e, d / SCALE) for s, e, d in found]
+
+
 def subsequence_dtw(cost: FloatArray, steps: Steps = "thesis") -> Subsequence:
     """Subsequence DTW of an ``(M, N)`` cost matrix: D(0, b) = C(0, b) (free start), free end."""
     delta, start = subsequence_fixed(iter(fixed(cost)), steps)

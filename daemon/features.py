@@ -13,8 +13,8 @@ sections a and 0.
 
 from __future__ import annotations
 
+import ast
 import math
-from collections import deque
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from typing import Any, Literal
@@ -22,6 +22,7 @@ from typing import Any, Literal
 import numpy as np
 import numpy.typing as npt
 
+from daemon._features import Bytecode, FeatureCore
 from daemon.types import MAX_NATIVE_RATE, N_FEATURES, BoolArray, FeatureSet, FloatArray
 from replay.joints import JOINT_NAMES, TOOLBOX_JOINTS
 
@@ -417,7 +418,6 @@ frames)."""
 
 
 # (sqrt, minimum of a list, maximum of a list) for the compiled frame function.
-_FLOAT_OPS = (math.sqrt, min, max)
 _ARRAY_OPS = (np.sqrt, np.minimum.reduce, np.maximum.reduce)
 
 
@@ -587,8 +587,9 @@ class _Program:
     ``frame(P, S, T, sqrt, minimum, maximum) -> (f1, f2)`` evaluates every test on joint positions
     ``P`` and smoothed velocities ``S`` against the thresholds ``T`` (T1 then T2 of each test), on
     floats or on arrays alike; bit k of ``f1``/``f2`` is feature k's loose/strict track.
-    ``points(P)`` gives the velocity trajectories' points (flat, ``3k + c``); ``interior(R)`` the
-    smoothed velocities of a frame whose windows lie inside the motion (see :func:`_smooth`)."""
+    ``points(P)`` gives the velocity trajectories' points (flat, ``3k + c``). ``bytecode`` is the
+    same program for the compiled register machine of :mod:`daemon._features` (the streaming path);
+    ``slots`` maps each threshold to its place in the machine's flat threshold array."""
 
     def __init__(self, joint_names: tuple[str, ...], frame_rate: float) -> None:
         if not (math.isfinite(frame_rate) and 0 < frame_rate <= MAX_NATIVE_RATE):
@@ -638,20 +639,13 @@ class _Program:
         self.windows = [
             (big_l, self.trajectories[ks[0]].h, 3 * ks[0], 3 * ks[-1] + 3) for big_l, ks in by_window.items()
         ]
-        # interior(R): all of S for a frame away from the ends, R = [top, bottom] point rows per window.
-        rows = ", ".join(f"A{w}, B{w}" for w in range(len(self.windows)))
-        sums = ", ".join(
-            f"(A{w}[{i}] - B{w}[{i}]) * {frame_rate / big_l!r}"
-            for w, (big_l, _, first, end) in enumerate(self.windows)
-            for i in range(first, end)
-        )
-        self.source += f"def interior(R):\n    {rows}, = R\n    return [{sums}]\n"
         namespace: dict[str, Any] = {}
         exec(compile(self.source, f"<features at {frame_rate:g} Hz>", "exec"), namespace)
         self.frame: Callable[..., tuple[Num, Num]] = namespace["frame"]
         self.points: Callable[[Poses], list[float]] = namespace["points"]
-        self.interior: Callable[[list[list[float]]], list[float]] = namespace["interior"]
         self.lead = max((tr.lead for tr in self.trajectories), default=0)
+        self.slots = _threshold_slots(self.references)
+        self.bytecode = _assemble(self)
 
     def _test(self, value: str, op: Op, reference: Reference, threshold: float | tuple[float, float]) -> str:
         k = len(self.references)
@@ -738,6 +732,140 @@ class _Program:
             else:
                 out.append(threshold * lengths.get(reference))
         return out
+
+    def flat_thresholds(self, lengths: BodyLengths) -> FloatArray:
+        """:meth:`thresholds` flat in the order of :attr:`slots` (a pair takes two)."""
+        return np.array(
+            [x for t in self.thresholds(lengths) for x in (t if isinstance(t, tuple) else (t,))],
+            dtype=np.float64,
+        )
+
+
+def _threshold_slots(references: Sequence[tuple[Reference, float | tuple[float, float]]]) -> list[int]:
+    """The first flat threshold slot of each threshold (a pair takes two)."""
+    out, at = [], 0
+    for _, threshold in references:
+        out.append(at)
+        at += 2 if isinstance(threshold, tuple) else 1
+    return out
+
+
+_BINARY = {ast.Add: 0, ast.Sub: 1, ast.Mult: 2, ast.Div: 3}
+_UNARY = {"sqrt": 4, "abs": 5}
+_REDUCE = {"minimum": 6, "maximum": 7}
+_CONST = 8
+_COMPARE = {ast.Lt: 0, ast.LtE: 1, ast.Gt: 2, ast.GtE: 3}
+
+
+class _Assembler:
+    """The generated ``frame`` function as register-machine code (:class:`daemon._features.Bytecode`):
+    every arithmetic node of its syntax tree one instruction, in Python's evaluation order, and every
+    threshold comparison one test of a feature bit. The first registers hold the pose components
+    ``P`` and the smoothed velocities ``S``; each instruction writes a register of its own."""
+
+    def __init__(self, slots: Sequence[int], n_rows: int, n_points: int) -> None:
+        self.slots = slots
+        self.n_rows, self.base = n_rows, n_rows + n_points  # registers: P, then S, then results
+        self.ops: list[tuple[int, int, int, int]] = []
+        self.args: list[int] = []
+        self.consts: list[float] = []
+        self.names: dict[str, int] = {}
+        self.thresholds: dict[str, int] = {}
+        self.tests: list[tuple[int, int, int, int, int]] = []
+
+    def emit(self, op: int, a: int, b: int) -> int:
+        self.ops.append((op, self.base + len(self.ops), a, b))
+        return self.base + len(self.ops) - 1
+
+    def expr(self, node: ast.expr) -> int:
+        match node:
+            case ast.Name(id=name) if name in self.names:
+                return self.names[name]
+            case ast.Subscript(value=ast.Name(id="P"), slice=ast.Constant(value=int(i))):
+                return i
+            case ast.Subscript(value=ast.Name(id="S"), slice=ast.Constant(value=int(i))):
+                return self.n_rows + i
+            case ast.BinOp(left, op, right) if type(op) in _BINARY:
+                a = self.expr(left)
+                return self.emit(_BINARY[type(op)], a, self.expr(right))
+            case ast.Call(func=ast.Name(id=f), args=[arg]) if f in _UNARY:
+                return self.emit(_UNARY[f], self.expr(arg), 0)
+            case ast.Call(func=ast.Name(id=f), args=[ast.List(elts=items)]) if f in _REDUCE and items:
+                registers = [self.expr(e) for e in items]
+                self.args += registers
+                return self.emit(_REDUCE[f], len(self.args) - len(registers), len(registers))
+            case ast.Constant(value=float(v) | int(v)) if not isinstance(v, bool):
+                self.consts.append(float(v))
+                return self.emit(_CONST, len(self.consts) - 1, 0)
+        raise _compile_error(f"an expression the register machine lacks: {ast.unparse(node)}")
+
+    def threshold(self, node: ast.expr) -> int:
+        match node:
+            case ast.Name(id=name) if name in self.thresholds:
+                return self.slots[self.thresholds[name]]
+            case ast.Subscript(value=ast.Name(id=name), slice=ast.Constant(value=int(j))) if j in (0, 1):
+                return self.slots[self.thresholds[name]] + j
+        raise _compile_error(f"a threshold the register machine lacks: {ast.unparse(node)}")
+
+    def track(self, node: ast.expr, track: int) -> None:
+        """The tests of ``(tests) | (tests) << 1 | ...`` for ``track`` (0 loose, 1 strict)."""
+        match node:
+            case ast.BinOp(left, ast.BitOr(), right):
+                self.track(left, track)
+                self.track(right, track)
+            case ast.BinOp(conjunction, ast.LShift(), ast.Constant(value=int(bit))):
+                self.conjunction(conjunction, track, bit)
+            case _:
+                self.conjunction(node, track, 0)
+
+    def conjunction(self, node: ast.expr, track: int, bit: int) -> None:
+        match node:
+            case ast.BinOp(left, ast.BitAnd(), right):
+                self.conjunction(left, track, bit)
+                self.conjunction(right, track, bit)
+            case ast.Compare(left, [op], [reference]) if type(op) in _COMPARE:
+                self.tests.append(
+                    (track, bit, self.expr(left), _COMPARE[type(op)], self.threshold(reference))
+                )
+            case _:
+                raise _compile_error(f"a test the register machine lacks: {ast.unparse(node)}")
+
+
+def _assemble(program: _Program) -> Bytecode:
+    """:class:`_Program`'s ``frame`` as :class:`daemon._features.Bytecode`, with its velocity points
+    and window sums."""
+    (function,) = [
+        f for f in ast.parse(program.source).body if isinstance(f, ast.FunctionDef) and f.name == "frame"
+    ]
+    unpack, *assignments, result = function.body
+    assert isinstance(unpack, ast.Assign) and isinstance(unpack.targets[0], ast.Tuple)
+    points = [
+        (3 * tr.q + c, -1 if tr.c is None else 3 * tr.c + c) for tr in program.trajectories for c in range(3)
+    ]
+    n_rows = 3 * len(program.joint_names)
+    asm = _Assembler(program.slots, n_rows, len(points))
+    for k, name in enumerate(unpack.targets[0].elts):
+        assert isinstance(name, ast.Name)
+        asm.thresholds[name.id] = k
+    for a in assignments:
+        assert isinstance(a, ast.Assign) and isinstance(a.targets[0], ast.Name)
+        asm.names[a.targets[0].id] = asm.expr(a.value)
+    assert isinstance(result, ast.Return) and isinstance(result.value, ast.Tuple)
+    for track, node in enumerate(result.value.elts):
+        asm.track(node, track)
+    windows = [(big_l - h + 1, 1 - h, first, end) for big_l, h, first, end in program.windows]
+    return Bytecode(
+        asm.ops,
+        asm.args,
+        asm.consts,
+        asm.tests,
+        points,
+        windows,
+        [program.frame_rate / big_l for big_l, _, _, _ in program.windows],
+        asm.base + len(asm.ops),
+        n_rows,
+        sum(2 if isinstance(t, tuple) else 1 for _, t in program.references),
+    )
 
 
 def _subsignals(signal: Any) -> Iterator[Any]:
@@ -909,21 +1037,6 @@ def features(positions: FloatArray, joint_names: Sequence[str], frame_rate: floa
 # ---------------------------------------------------------------------------------- streaming
 
 
-@dataclass(frozen=True)
-class FeatureState:
-    """Everything a :class:`FeatureStream` holds: ``n`` poses pushed, the vectors of the first
-    ``emitted`` frames emitted, ``previous`` the last emitted code (bit k = feature k, the
-    hysteresis' memory), the thresholds of the first pose (in the compiled program's order), and the
-    last ``min(n, keep)`` poses, oldest first, each as (its components flat ``3j + c``, length 3J; its
-    velocity trajectories' points flat ``3k + c``)."""
-
-    n: int
-    emitted: int
-    previous: int
-    thresholds: tuple[Num, ...]
-    history: tuple[tuple[list[float], list[float]], ...]
-
-
 class FeatureStream:
     """The 39 features of a stream, one pose at a time: the incremental twin of :func:`features`.
 
@@ -932,23 +1045,27 @@ class FeatureStream:
     (``latency`` = :func:`latency_frames`, 16 frames = 133 ms at 120 Hz, because the 250 ms velocity
     windows are centred), and :meth:`flush` returns the last ``latency`` vectors when the stream ends
     (the windows are then mirrored at the end, exactly as in the batch) and makes the object ready
-    for a new stream. Body lengths are measured on the first pose. Memory is bounded: the last
-    ``latency + L/2 + 1`` poses. The output equals :func:`features` on the same frames bit for bit:
-    both run the same compiled arithmetic, on Python floats here and on arrays there."""
+    for a new stream. Body lengths are measured on the first pose. Memory is bounded: a ring of the
+    last ``latency + L/2 + 1`` poses. The output equals :func:`features` on the same frames bit for
+    bit: both run the same program, on arrays there and here in the compiled register machine of
+    :mod:`daemon._features` (numpy's arithmetic on doubles); once every velocity window of the frame
+    being emitted lies inside the stream (:attr:`steady_after`), a push is one compiled step."""
 
     def __init__(self, joint_names: Sequence[str], frame_rate: float = 120.0) -> None:
         self._program = _program(joint_names, frame_rate)
         self.latency = self._program.lead
         self._keep = self.latency + max((tr.h for tr in self._program.trajectories), default=1) + 1
         self._first_interior = max((h - 1 for _, h, _, _ in self._program.windows), default=0)
-        # Per window, the frames (relative to t) whose points give its telescoped sum: top, bottom.
-        self._offsets = [d for big_l, h, _, _ in self._program.windows for d in (big_l - h + 1, 1 - h)]
+        self._n_rows = 3 * len(self._program.joint_names)
+        self._core = FeatureCore(self._program.bytecode, self._keep, self.latency)
+        self._ring: FloatArray = self._core.ring
         self._reset()
 
     @property
     def frames(self) -> int:
         """Poses pushed since the stream began."""
-        return self._n
+        n: int = self._core.n
+        return n
 
     @property
     def keep(self) -> int:
@@ -959,95 +1076,84 @@ class FeatureStream:
     def steady_after(self) -> int:
         """Once this many poses were pushed, every further push emits a frame whose velocity windows
         all lie inside the stream (:func:`_interior`): its vector needs only the held points at fixed
-        offsets, the same for every stream of this rate (``latency + ceil(L/2) - 1``)."""
+        offsets (``latency + ceil(L/2) - 1``)."""
         return self.latency + self._first_interior
 
-    def state(self) -> FeatureState:
-        """The stream's whole state (the held poses copied), for :meth:`resume`."""
-        return FeatureState(
-            self._n,
-            self._emitted,
-            self._previous,
-            tuple(self._thresholds),
-            tuple((list(rows), list(points)) for rows, points in self._history),
-        )
-
-    def resume(self, state: FeatureState) -> None:
-        """Continue the stream ``state`` describes (of this joint order and rate): the pushes and the
-        flush that follow give what they would have given on the stream it was taken from."""
-        if len(state.history) != min(state.n, self._keep) or not 0 <= state.n - state.emitted <= self.latency:
-            raise ValueError(f"not a feature stream state of {self._keep} held poses, latency {self.latency}")
-        self._reset()
-        self._n, self._emitted, self._previous = state.n, state.emitted, state.previous
-        self._thresholds.extend(state.thresholds)
-        self._history.extend((list(rows), list(points)) for rows, points in state.history)
-
     def _reset(self) -> None:
-        self._history: deque[tuple[list[float], list[float]]] = deque(maxlen=self._keep)
-        self._n = 0
+        self._core.reset()
         self._emitted = 0
-        self._thresholds: list[Num] = []
-        self._previous = 0
 
     def push(self, pose: FloatArray) -> list[BoolArray]:
         """Add the next pose; return the vectors that became final (at most one)."""
         program = self._program
-        p = np.asarray(pose, dtype=np.float64)
+        p = np.ascontiguousarray(pose, dtype=np.float64)
         if p.shape != (len(program.joint_names), 3):
             raise ValueError(f"pose must have shape ({len(program.joint_names)}, 3), got {p.shape}")
-        rows: list[float] = p.ravel().tolist()
-        if not math.isfinite(sum(rows)) and not all(map(math.isfinite, rows)):
-            raise ValueError(f"pose {self._n} is not finite")
-        if self._n == 0:
-            self._thresholds = program.thresholds(body_lengths(p, program.joint_names))
-        self._history.append((rows, program.points(rows)))
-        self._n += 1
-        t = self._n - 1 - self.latency
-        return [] if t < 0 else [self._emit(t, self._n)]
+        rows = p.reshape(-1)
+        if not np.isfinite(rows).all():
+            raise ValueError(f"pose {self._core.n} is not finite")
+        return [] if (code := self.push_rows(rows)) is None else [_unpack(code)]
+
+    def push_rows(self, rows: FloatArray) -> int | None:
+        """:meth:`push` of a pose already checked: finite, contiguous float64, flat (``3j + c``,
+        shape ``(3J,)``); the vector that became final as a code (bit k = feature k), or None."""
+        core = self._core
+        if core.n == 0:
+            pose = rows.reshape(-1, 3)
+            core.set_thresholds(self._program.flat_thresholds(body_lengths(pose, self._program.joint_names)))
+        core.store(rows)
+        t = core.n - 1 - self.latency
+        if t < 0:
+            return None
+        self._emitted = t + 1
+        if t >= self._first_interior:
+            code: int = core.steady()
+            return code
+        return self._emit(t, core.n)
 
     def flush(self) -> list[BoolArray]:
         """End the stream: the vectors of its last frames, then a fresh state."""
-        n = self._n
+        return [_unpack(code) for code in self.flush_codes()]
+
+    def flush_codes(self) -> list[int]:
+        """:meth:`flush` giving codes (bit k = feature k)."""
+        n = self._core.n
         out = [self._emit(t, n) for t in range(self._emitted, n)]
         self._reset()
         return out
 
+    def _points(self, f: int) -> list[float]:
+        """The velocity points of held frame ``f``."""
+        points: list[float] = self._ring[f % self._keep, self._n_rows :].tolist()
+        return points
+
     def _velocities(self, t: int, n: int) -> list[float]:
         """Smoothed velocities at frame ``t`` of ``n`` frames, flat (``3k + c``), as :func:`_smooth`."""
-        history, base, windows = self._history, n - len(self._history), self._program.windows
-        if t >= self._first_interior and n - t > self.latency:  # every window sum telescopes
-            return self._program.interior([history[t + d - base][1] for d in self._offsets])
         out: list[float] = []
         fs = self._program.frame_rate
-        for big_l, h, first, end in windows:
+        for big_l, h, first, end in self._program.windows:
             if t in _interior(n, big_l, h):
-                top, bottom = history[t + big_l - h + 1 - base][1], history[t - h + 1 - base][1]
+                top, bottom = self._points(t + big_l - h + 1), self._points(t - h + 1)
                 out += [(top[i] - bottom[i]) * (fs / big_l) for i in range(first, end)]
             elif n < 2:
                 out += [0.0] * (end - first)
             else:
                 ms = _edge_indices(np.array([t]), n, big_l, h)[0].tolist()
                 for i in range(first, end):
-                    acc = history[ms[0] + 1 - base][1][i] - history[ms[0] - base][1][i]
+                    acc = self._points(ms[0] + 1)[i] - self._points(ms[0])[i]
                     for m in ms[1:]:
-                        acc = acc + (history[m + 1 - base][1][i] - history[m - base][1][i])
+                        acc = acc + (self._points(m + 1)[i] - self._points(m)[i])
                     out.append(acc * (fs / big_l))
         return out
 
-    def _emit(self, t: int, n: int) -> BoolArray:
-        program = self._program
-        rows = self._history[t - (n - len(self._history))][0]
-        velocities = self._velocities(t, n)
-        try:
-            f1, f2 = program.frame(rows, velocities, self._thresholds, *_FLOAT_OPS)
-        except ZeroDivisionError:  # a degenerate pose: evaluate as the batch does, to nan
-            with np.errstate(all="ignore"):
-                columns, smoothed = list(np.array(rows)[:, None]), list(np.array(velocities)[:, None])
-                a1, a2 = program.frame(columns, smoothed, self._thresholds, *_ARRAY_OPS)
-            f1, f2 = int(a1[0]), int(a2[0])
-        self._previous = f2 | (self._previous & f1)  # the hysteresis, all features at once
-        self._emitted = t + 1
-        return _unpack(self._previous)
+    def _emit(self, t: int, n: int) -> int:
+        """The code of frame ``t`` of ``n`` frames with its windows mirrored at the stream's ends."""
+        core = self._core
+        velocities = np.array(self._velocities(t, n), dtype=np.float64)
+        f1, f2 = core.evaluate(np.ascontiguousarray(self._ring[t % self._keep, : self._n_rows]), velocities)
+        core.previous = f2 | (core.previous & f1)  # the hysteresis, all features at once
+        code: int = core.previous
+        return code
 
 
 # ---------------------------------------------------------------------------------- frame rates

@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import math
 import uuid
+import weakref
 from collections import deque
 from collections.abc import Collection, Sequence
 from dataclasses import dataclass
@@ -45,17 +46,16 @@ from typing import Any, Literal
 import numpy as np
 import numpy.typing as npt
 
+from daemon._automaton import AutomatonSet
 from daemon.automaton import KeyframeAutomaton
 from daemon.dtw import (
     Match,
     RetrievalTables,
     Steps,
-    local_minima,
     pack,
     retrieval_tables,
-    subsequence_codes,
+    subsequence_minima,
     suppress,
-    to_cost,
 )
 from daemon.errors import MocapdError
 from daemon.features import FeatureStream, decimation_factor, features, latency_frames
@@ -160,14 +160,29 @@ class ClassPlan:
         return KeyframeAutomaton(self.template.keyframes, rate, self.max_gap, self.period, components=False)
 
 
+_PLANS: dict[tuple[int, tuple[str, ...] | None, float], tuple[weakref.ref[Library], tuple[ClassPlan, ...]]]
+_PLANS = {}
+
+
 def plans(
     library: Library, classes: Collection[str] | None = None, *, max_gap_s: float = DEFAULT_MAX_GAP_S
 ) -> tuple[ClassPlan, ...]:
     """The plans of ``classes`` (None: all, in the library's order); ValueError for a class without
-    keyframes (it could never be a candidate) or a gap cap out of range."""
+    keyframes (it could never be a candidate) or a gap cap out of range. Made once per library
+    object and settings (a stream joining a service costs no template preparation)."""
     if not (math.isfinite(max_gap_s) and max_gap_s > 0):
         raise ValueError(f"max_gap_s must be positive seconds, got {max_gap_s}")
     names = list(library.classes) if classes is None else list(classes)
+    key = (id(library), None if classes is None else tuple(names), float(max_gap_s))
+    held = _PLANS.get(key)
+    if held is not None and held[0]() is library:
+        return held[1]
+    made = _make_plans(library, names, max_gap_s)
+    _PLANS[key] = (weakref.ref(library, lambda _: _PLANS.pop(key, None)), made)
+    return made
+
+
+def _make_plans(library: Library, names: Sequence[str], max_gap_s: float) -> tuple[ClassPlan, ...]:
     rate = library.rate
     out = []
     for name in names:
@@ -190,33 +205,9 @@ def ring_size(class_plans: Sequence[ClassPlan]) -> int:
 
 def confirm(plan: ClassPlan, codes: npt.NDArray[np.uint64]) -> list[Match]:
     """The DTW confirmations of ``plan``'s class in a window of codes shape ``(n,)``: local minima of
-    the subsequence DTW at or below τ, suppressed as the toolbox does (window columns)."""
-    return confirm_many(plan, [codes])[0]
-
-
-SEPARATOR = 2
-"""Blocked columns between windows confirmed in one pass: no path of the toolbox's or the thesis'
-steps crosses two (as :func:`daemon.retrieval.template_search` separates its pieces)."""
-
-
-def confirm_many(plan: ClassPlan, windows: Sequence[npt.NDArray[np.uint64]]) -> list[list[Match]]:
-    """:func:`confirm` of every window, in one DP pass over the windows side by side (each followed
-    by :data:`SEPARATOR` blocked columns): one Python loop over the template's rows for all of them,
-    the same integers as one pass per window."""
-    sizes = [len(w) for w in windows]
-    offsets = np.concatenate([[0], np.cumsum(np.asarray(sizes, dtype=np.int64) + SEPARATOR)])
-    codes = np.zeros(int(offsets[-1]), dtype=np.uint64)
-    blocked = np.ones(len(codes), dtype=bool)
-    for w, at in zip(windows, offsets[:-1].tolist(), strict=True):
-        codes[at : at + len(w)] = w
-        blocked[at : at + len(w)] = False
-    delta, first = subsequence_codes(plan.tables, codes, blocked, plan.steps)
-    cost = to_cost(delta)
-    out = []
-    for at, size in zip(offsets[:-1].tolist(), sizes, strict=True):
-        found = local_minima(cost[at : at + size], first[at : at + size] - at, plan.tau)
-        out.append(suppress(found))
-    return out
+    the subsequence DTW (compiled, :func:`daemon.dtw.subsequence_minima`) at or below τ, suppressed
+    as the toolbox does (window columns)."""
+    return suppress(subsequence_minima(plan.tables, codes, plan.tau, plan.steps))
 
 
 def same_motion(a: tuple[int, int], b: tuple[int, int]) -> bool:
@@ -240,14 +231,13 @@ def keep_apart(hits: Sequence[Match], published: Sequence[tuple[int, int]]) -> l
 
 
 class _ClassTrack:
-    """One class on one stream: its automaton, the windows waiting for their last frame (in the
-    order they are confirmed) and the ranges emitted that a later window could still overlap."""
+    """One class on one stream: the windows waiting for their last frame (in the order they are
+    confirmed) and the ranges emitted that a later window could still overlap."""
 
-    __slots__ = ("automaton", "pending", "plan", "published")
+    __slots__ = ("pending", "plan", "published")
 
-    def __init__(self, plan: ClassPlan, rate: float) -> None:
+    def __init__(self, plan: ClassPlan) -> None:
         self.plan = plan
-        self.automaton = plan.automaton(rate)
         self.pending: deque[tuple[int, int]] = deque()
         self.published: list[tuple[int, int]] = []
 
@@ -268,7 +258,10 @@ class CodeRecognizer:
         self.plans = tuple(class_plans)
         self.rate = rate
         self._ring: deque[int] = deque(maxlen=ring_size(self.plans))
-        self._tracks = [_ClassTrack(p, rate) for p in self.plans]
+        self._tracks = [_ClassTrack(p) for p in self.plans]
+        # every class's automaton, stepped in one compiled call per frame
+        self._automata = AutomatonSet([p.automaton(rate).core for p in self.plans])
+        self._next_due = _NEVER  # the earliest frame a pending window is due at
         self._n = 0
 
     @property
@@ -277,92 +270,56 @@ class CodeRecognizer:
         return self._n
 
     def push(self, code: int) -> list[tuple[ClassPlan, Match]]:
-        due = self.advance(code)
-        return self.settle(due, [confirm(self.plans[d.track], d.codes) for d in due])
+        j = self._n
+        self._n += 1
+        self._ring.append(code)
+        for k, reached in self._automata.push(code):
+            track = self._tracks[k]
+            p = track.plan
+            end = j + p.right
+            track.pending.append(
+                (min(max(0, first - p.left, end - p.window + 1) for first, _ in reached), end)
+            )
+            self._next_due = min(self._next_due, end)
+        return [] if j < self._next_due else self._confirm(j, False)
 
     def flush(self) -> list[tuple[ClassPlan, Match]]:
-        due = self.advance(None)
-        return self.settle(due, [confirm(self.plans[d.track], d.codes) for d in due], end_of_stream=True)
+        self._automata.flush()
+        out = self._confirm(self._n - 1, True)
+        for track in self._tracks:
+            track.published.clear()
+        self._ring.clear()
+        self._n = 0
+        return out
 
-    def advance(self, code: int | None) -> list[Due]:
-        """The first half of :meth:`push` (``code``) or :meth:`flush` (None): the automata advanced and
-        the windows due now, to be confirmed (:func:`confirm`, or :func:`confirm_many` for many
-        streams at once) and handed to :meth:`settle`."""
-        if code is None:
-            j = self._n - 1
-            for track in self._tracks:
-                track.automaton.flush()
-        else:
-            j = self._n
-            self._n += 1
-            self._ring.append(code)
-            for track in self._tracks:
-                track.automaton.push(code)
-                reached = track.automaton.reached
-                if reached:
-                    p = track.plan
-                    end = j + p.right
-                    track.pending.append(
-                        (min(max(0, first - p.left, end - p.window + 1) for first, _ in reached), end)
-                    )
+    def _confirm(self, j: int, ended: bool) -> list[tuple[ClassPlan, Match]]:
+        """Every window due at frame ``j`` (all, if the stream ``ended``) confirmed and kept apart
+        from its class's detections."""
         base = self._n - len(self._ring)
-        due = []
-        for k, track in enumerate(self._tracks):
-            while track.pending and (code is None or track.pending[0][1] <= j):
-                a, b = track.pending.popleft()
-                b = min(b, j)
-                if a < base:  # cannot happen: ring_size covers every window
-                    raise AssertionError(f"window {a}..{b} left the ring (from {base})")
-                window = np.fromiter(
-                    islice(self._ring, a - base, b - base + 1), dtype=np.uint64, count=b - a + 1
-                )
-                due.append(Due(k, a, j, window))
-        return due
-
-    def settle(
-        self, due: Sequence[Due], hits: Sequence[Sequence[Match]], end_of_stream: bool = False
-    ) -> list[tuple[ClassPlan, Match]]:
-        """The second half: each due window's ``hits`` (window columns), in order, kept apart from the
-        detections of its class; with ``end_of_stream``, a fresh stream afterwards."""
         out = []
-        pruned: set[int] = set()
-        for d, found in zip(due, hits, strict=True):
-            track = self._tracks[d.track]
-            p = track.plan
-            if (
-                d.track not in pruned
-            ):  # no later window starts before this: its match completes after j - right
-                track.published = [r for r in track.published if r[1] >= d.frame - p.right - p.span - p.left]
-                pruned.add(d.track)
-            shifted = [Match(m.start + d.start, m.end + d.start, m.cost) for m in found]
-            for m in keep_apart(shifted, track.published):
-                track.published.append((m.start, m.end))
-                out.append((p, m))
-        if end_of_stream:
-            for track in self._tracks:
-                track.published.clear()
-            self._ring.clear()
-            self._n = 0
+        self._next_due = _NEVER
+        for track in self._tracks:
+            pending = track.pending
+            if pending and (ended or pending[0][1] <= j):
+                p = track.plan
+                # no later window starts before this one: its match completes after j - right
+                track.published = [r for r in track.published if r[1] >= j - p.right - p.span - p.left]
+                while pending and (ended or pending[0][1] <= j):
+                    a, b = pending.popleft()
+                    b = min(b, j)
+                    if a < base:  # cannot happen: ring_size covers every window
+                        raise AssertionError(f"window {a}..{b} left the ring (from {base})")
+                    window = np.fromiter(islice(self._ring, a - base, b - base + 1), np.uint64, b - a + 1)
+                    shifted = [Match(m.start + a, m.end + a, m.cost) for m in confirm(p, window)]
+                    for m in keep_apart(shifted, track.published):
+                        track.published.append((m.start, m.end))
+                        out.append((p, m))
+            if pending:
+                self._next_due = min(self._next_due, pending[0][1])
         return out
 
 
-@dataclass(frozen=True)
-class Due:
-    """A window due for confirmation: class ``track`` (index in the plans), its first frame
-    ``start`` (stream frames), the frame ``frame`` it is due at, and its codes shape ``(n,)``."""
-
-    track: int
-    start: int
-    frame: int
-    codes: npt.NDArray[np.uint64]
-
-
-class _Frames:
-    """Native frame numbers of one stream: the first and the last."""
-
-    def __init__(self) -> None:
-        self.first: int | None = None
-        self.last: int | None = None
+_NEVER = 1 << 62
 
 
 class Recognizer:
@@ -394,7 +351,7 @@ class Recognizer:
         self.native_rate = native_rate
         self.session = uuid.uuid4().hex if session is None else session
         self._step = decimation_factor(native_rate, library.rate)
-        self._model = model
+        self.model = model
         if model is not None:
             self._width = len(model.skeleton.channel_names)
         else:
@@ -405,15 +362,15 @@ class Recognizer:
         self._plans = plans(library, classes, max_gap_s=max_gap_s)
         self._features = FeatureStream(JOINT_NAMES, native_rate)
         self._codes = CodeRecognizer(self._plans, library.rate)
-        self._frames = _Frames()
+        self._rows = np.empty(3 * len(JOINT_NAMES))  # the standard joints of the frame being pushed
+        self._first: int | None = None  # native frame numbers of the stream's first and last frame
+        self._last: int | None = None
         self._seen = 0  # feature vectors emitted so far in this stream
 
     @classmethod
     def for_skeleton(cls, library: Library, skeleton: Skeleton, native_rate: float, **kw: Any) -> Recognizer:
         """Frames of AMC-style channels of ``skeleton`` (forward kinematics per frame)."""
-        model = KinematicModel(skeleton)
-        model.joints(np.zeros((len(skeleton.node_names), 3)))  # the standard joints exist, or an error
-        return cls(library, native_rate, model=model, **kw)
+        return cls(library, native_rate, model=skeleton_model(skeleton), **kw)
 
     @classmethod
     def for_positions(
@@ -435,52 +392,77 @@ class Recognizer:
 
     def push(self, number: int, frame: npt.ArrayLike) -> list[Detection]:
         """Add frame ``number``; the detections it completed."""
-        pose = self._check(number, frame)
-        frames = self._frames
-        if frames.first is None:
-            frames.first = number
-        frames.last = number
-        out: list[Detection] = []
-        for vector in self._features.push(pose):
-            out += self._vector(vector, number)
-        return out
+        n, values = self._check(number, frame)
+        if self.model is None:
+            return self._push_positions(n, values)
+        half = 0.5 * values
+        return self._push_channels(n, values, np.cos(half), np.sin(half))
 
     def flush(self) -> list[Detection]:
         """End the stream: the remaining detections, then a fresh stream (frame numbers start anew)."""
-        last = self._frames.last
-        vectors = self._features.flush()  # none if no frame came
-        out = [d for v in vectors for d in self._vector(v, last or 0)]
+        last = self._last
+        out = [d for code in self._features.flush_codes() for d in self._code(code, last or 0)]
         found = self._codes.flush()
         if last is not None:
             out += self._detections(found, last)
-        self._frames = _Frames()
+        self._first = self._last = None
         self._seen = 0
         return out
 
-    def _vector(self, vector: npt.NDArray[np.bool_], number: int) -> list[Detection]:
+    def _check(self, number: object, frame: npt.ArrayLike) -> tuple[int, FloatArray]:
+        """The frame number and the frame's values (contiguous float64) if their number, type and
+        shape (and for channels, finiteness) are right, else :class:`FrameError`."""
+        n = check_number(number, self._last, self.stream)
+        values = frame_values(n, frame, self.stream)
+        if self.model is not None:
+            check_channels(n, values, self._width, self.stream)
+        else:
+            check_positions(n, values, self._width, self.stream)
+        return n, values
+
+    def _push_channels(
+        self, number: int, values: FloatArray, cos: FloatArray, sin: FloatArray
+    ) -> list[Detection]:
+        """:meth:`push` of a checked channel frame with its half angles' cosines and sines (the
+        bank computes those for many streams at once)."""
+        assert self.model is not None
+        if not self.model.joints_frame(values, cos, sin, self._rows):
+            raise non_finite_pose(number, self.stream)
+        return self._advance(number, self._rows)
+
+    def _push_positions(self, number: int, values: FloatArray) -> list[Detection]:
+        """:meth:`push` of a checked positions frame."""
+        rows = values[self._joint_order].reshape(-1)
+        if not np.isfinite(rows).all():
+            raise non_finite_pose(number, self.stream)
+        return self._advance(number, rows)
+
+    def _advance(self, number: int, rows: FloatArray) -> list[Detection]:
+        if self._first is None:
+            self._first = number
+        self._last = number
+        code = self._features.push_rows(rows)
+        return [] if code is None else self._code(code, number)
+
+    def _code(self, code: int, number: int) -> list[Detection]:
+        """A feature vector's code: every k-th goes on to the classes (decimation to the index rate)."""
         t = self._seen
         self._seen += 1
         if t % self._step:
             return []
-        return self._detections(self._codes.push(vector_code(vector)), number)
+        return self._detections(self._codes.push(code), number)
 
     def _detections(self, found: Sequence[tuple[ClassPlan, Match]], number: int) -> list[Detection]:
-        first = self._frames.first
+        first = self._first
         assert first is not None
         return [make_detection(self.session, self.stream, p, m, first, self._step, number) for p, m in found]
 
-    def _check(self, number: int, frame: npt.ArrayLike) -> FloatArray:
-        number = check_number(number, self._frames.last, self.stream)
-        values = frame_values(number, frame, self.stream)
-        if self._model is not None:
-            check_channels(number, values, self._width, self.stream)
-            with np.errstate(over="ignore", invalid="ignore"):  # a huge channel: refused just below
-                pose = self._model.joints(self._model.positions_frame(values, "cm"))
-        else:
-            check_positions(number, values, self._width, self.stream)
-            pose = values[self._joint_order]
-        check_pose(number, pose, self.stream)
-        return pose
+
+def skeleton_model(skeleton: Skeleton) -> KinematicModel:
+    """The forward kinematics of ``skeleton``; an error naming the bones the standard joints lack."""
+    model = KinematicModel(skeleton)
+    model.joints(np.zeros((len(skeleton.node_names), 3)))
+    return model
 
 
 def check_native_rate(rate: float) -> None:
@@ -499,11 +481,6 @@ def joint_order(joint_names: Sequence[str]) -> npt.NDArray[np.intp]:
     if len(set(names)) != len(names):
         raise ValueError("a joint is named twice")
     return np.array([names.index(j) for j in JOINT_NAMES], dtype=np.intp)
-
-
-def vector_code(vector: npt.NDArray[np.bool_]) -> int:
-    """A feature vector shape ``(39,)`` as a code (bit k = feature k)."""
-    return sum(1 << k for k, on in enumerate(vector.tolist()) if on)
 
 
 def check_number(number: object, last: int | None, stream: str) -> int:
@@ -525,7 +502,7 @@ def check_number(number: object, last: int | None, stream: str) -> int:
 def frame_values(number: int, frame: npt.ArrayLike, stream: str) -> FloatArray:
     """The frame as float64 (any shape), or :class:`FrameError` (``shape``) if it is not numbers."""
     try:
-        return np.asarray(frame, dtype=np.float64)
+        return np.ascontiguousarray(frame, dtype=np.float64)
     except (TypeError, ValueError):
         raise FrameError(f"frame {number}: not an array of numbers", "shape", stream=stream) from None
 
@@ -550,19 +527,13 @@ def check_positions(number: int, values: FloatArray, width: int, stream: str) ->
         )
 
 
-def check_pose(number: int, pose: FloatArray, stream: str) -> None:
-    """The standard joints (after forward kinematics) are finite (else ``non_finite``)."""
-    if not np.isfinite(pose).all():
-        raise non_finite_pose(number, stream)
-
-
 def non_finite_channels(number: int, stream: str) -> FrameError:
     """The error :func:`check_channels` raises for non-finite channels."""
     return FrameError(f"frame {number}: a channel is not finite", "non_finite", stream=stream)
 
 
 def non_finite_pose(number: int, stream: str) -> FrameError:
-    """The error :func:`check_pose` raises."""
+    """The error for a frame whose standard joints (after forward kinematics) are not finite."""
     return FrameError(f"frame {number}: a joint position is not finite", "non_finite", stream=stream)
 
 

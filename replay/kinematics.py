@@ -27,6 +27,7 @@ import numpy as np
 import numpy.typing as npt
 
 from daemon.types import FloatArray
+from replay._kinematics import FrameKinematics
 from replay.asf import ROTATION_DOFS, TRANSLATION_DOFS, Skeleton
 from replay.errors import MocapFormatError
 from replay.joints import JOINT_BONE_END, JOINT_NAMES
@@ -134,17 +135,6 @@ class KinematicModel:
         offsets = np.array([[0.0, 0.0, 0.0]] + [np.array(b.direction) * b.length for b in skeleton.bones])
         self._offsets = offsets.T[:, :, None]  # (3, nodes, 1)
 
-        # The same tables as plain floats, for one frame at a time (positions_frame).
-        self._slot_lists = [
-            [
-                (int(k), int(c), tuple(axes[:, i, 0].tolist()))
-                for i, (k, c) in enumerate(zip(nodes, chans, strict=True))
-            ]
-            for nodes, chans, axes in self._slots
-        ]
-        self._offset_lists = [tuple(o) for o in offsets.tolist()]
-        self._orientation_list = tuple(self._orientation.tolist())
-
         depth = [0] * n_nodes
         for k in range(1, n_nodes):
             node, d = k, 0
@@ -166,6 +156,26 @@ class KinematicModel:
             if not missing
             else None
         )
+
+        # The same tables for one frame at a time in compiled code (positions_frame).
+        entries = [
+            (int(k), int(c), axes[:, i, 0], slot == 0)
+            for slot, (nodes, chans, axes) in enumerate(self._slots)
+            for i, (k, c) in enumerate(zip(nodes, chans, strict=True))
+        ]
+        self._frame = FrameKinematics(
+            [e[0] for e in entries],
+            [e[1] for e in entries],
+            [e[3] for e in entries],
+            np.array([e[2] for e in entries]).reshape(-1, 3),
+            self._orientation,
+            self._root_position,
+            np.array(self._translation, dtype=np.int64).reshape(-1, 2),
+            np.array(self._pairs, dtype=np.int64).reshape(-1, 2),
+            offsets,
+            [] if self._joint_nodes is None else self._joint_nodes,
+        )
+        self._cm = 2.54 / skeleton.length_unit
 
     def _check(self, channels: FloatArray) -> FloatArray:
         channels = np.asarray(channels, dtype=np.float64)
@@ -203,7 +213,7 @@ class KinematicModel:
         """Positions of all nodes: ``channels`` shape ``(N, C)`` gives shape ``(N, nodes, 3)``."""
         _, pos = self._forward(self._check(channels))
         if unit == "cm":
-            pos *= 2.54 / self.skeleton.length_unit
+            pos *= self._cm
         return np.ascontiguousarray(pos.transpose(2, 1, 0))
 
     def rotations(self, channels: FloatArray) -> FloatArray:
@@ -214,34 +224,26 @@ class KinematicModel:
     def positions_frame(self, channels: FloatArray, unit: Unit = "asf") -> FloatArray:
         """Positions of all nodes for one frame: ``channels`` shape ``(C,)`` gives shape ``(nodes, 3)``.
 
-        The same operations as :meth:`positions` in the same order, on Python floats (no per-call numpy
-        overhead), so the values are bit-for-bit those of the batch."""
-        row = np.asarray(channels, dtype=np.float64)
+        The same operations as :meth:`positions` in the same order, in compiled code
+        (:mod:`replay._kinematics`; the half angles' cosines and sines from numpy), so the values are
+        bit-for-bit those of the batch."""
+        row = np.ascontiguousarray(channels, dtype=np.float64)
         if row.shape != (self._width,):
             raise ValueError(f"channels must have shape ({self._width},), got {row.shape}")
         half = 0.5 * row
-        cos, sin = np.cos(half).tolist(), np.sin(half).tolist()
-        rot: list[tuple[Any, Any, Any, Any]] = [(1.0, 0.0, 0.0, 0.0)] * self.n_nodes
-        for slot, entries in enumerate(self._slot_lists):
-            for k, c, (ux, uy, uz) in entries:
-                s = sin[c]
-                elementary = (cos[c], s * ux, s * uy, s * uz)
-                rot[k] = elementary if slot == 0 else _qmul(elementary, rot[k])
-        rot[0] = _qmul(self._orientation_list, rot[0])
-        root = self._root_position.tolist()
-        for axis, chan in self._translation:
-            root[axis] += float(row[chan])
-        pos: list[tuple[Any, Any, Any]] = [(0.0, 0.0, 0.0)] * self.n_nodes
-        pos[0] = (root[0], root[1], root[2])
-        for k, p in self._pairs:
-            rot[k] = _qmul(rot[p], rot[k])
-            dx, dy, dz = _qrot(rot[k], self._offset_lists[k])
-            px, py, pz = pos[p]
-            pos[k] = (px + dx, py + dy, pz + dz)
-        out = np.array(pos, dtype=np.float64)
-        if unit == "cm":
-            out *= 2.54 / self.skeleton.length_unit
+        out = np.empty((self.n_nodes, 3))
+        self._frame.positions(row, np.cos(half), np.sin(half), self._cm, unit == "cm", out)
         return out
+
+    def joints_frame(self, channels: FloatArray, cos: FloatArray, sin: FloatArray, out: FloatArray) -> bool:
+        """The standard joints of one frame in centimetres (:meth:`positions_frame` with ``"cm"``,
+        then :meth:`joints`) written flat (``3j + c``) into ``out`` shape ``(78,)``; whether every
+        coordinate is finite. ``channels`` shape ``(C,)`` and the cosines and sines of their halves
+        (``np.cos(0.5 * channels)``, as the batch computes them): contiguous float64."""
+        if self._joint_nodes is None:
+            self.joints(np.zeros((self.n_nodes, 3)))  # raises naming the missing bones
+        finite: bool = self._frame.joints(channels, cos, sin, self._cm, out)
+        return finite
 
     def joints(self, node_positions: FloatArray) -> FloatArray:
         """Select the standard joints (:data:`replay.joints.JOINT_NAMES`): shape ``(..., nodes, 3)``

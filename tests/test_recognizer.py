@@ -24,8 +24,6 @@ from daemon.recognizer import (
     Detection,
     FrameError,
     Recognizer,
-    confirm,
-    confirm_many,
     detect,
     detect_positions,
     keep_apart,
@@ -225,26 +223,6 @@ def test_confirmations_equal_the_definition(
         assert [g for g in got if g[0] == name] == reference(stream, cls, max_gap)
     for _, _, end, _, emitted in got:
         assert end <= emitted  # never before its last frame was seen
-
-
-@settings(max_examples=60, deadline=None)
-@given(queries(), st.integers(0, 2**32 - 1), st.lists(st.integers(1, 40), min_size=1, max_size=6))
-def test_confirm_many_equals_one_window_at_a_time(query: KeyframeQuery, seed: int, sizes: list[int]) -> None:
-    """Windows side by side in one DP pass (as the bank confirms many streams) give each window's
-    own confirmations."""
-    rng = np.random.default_rng(seed)
-    plan = plans(Library(30.0, {"a": random_class("a", query, rng, 0.3)}))[0]
-    windows = [
-        np.array(
-            [
-                sum(int(rng.integers(0, 1 << LOW_BITS)) << SET_SLICES[fs].start for fs in FEATURE_SETS)
-                for _ in range(n)
-            ],
-            dtype=np.uint64,
-        )
-        for n in sizes
-    ]
-    assert confirm_many(plan, windows) == [confirm(plan, w) for w in windows]
 
 
 # ------------------------------------------------------------------------------- bad frames

@@ -1,0 +1,38 @@
+from collections.abc import Sequence
+
+import numpy as np
+import numpy.typing as npt
+
+class Bytecode:
+    registers: int
+    n_rows: int
+    n_points: int
+    n_slots: int
+    def __init__(
+        self,
+        ops: Sequence[tuple[int, int, int, int]],
+        args: Sequence[int],
+        consts: Sequence[float],
+        tests: Sequence[tuple[int, int, int, int, int]],
+        points: Sequence[tuple[int, int]],
+        windows: Sequence[tuple[int, int, int, int]],
+        scales: Sequence[float],
+        registers: int,
+        n_rows: int,
+        n_slots: int,
+    ) -> None: ...
+
+class FeatureCore:
+    ring: npt.NDArray[np.float64]
+    keep: int
+    latency: int
+    n: int
+    previous: int
+    def __init__(self, code: Bytecode, keep: int, latency: int) -> None: ...
+    def set_thresholds(self, thresholds: npt.NDArray[np.float64]) -> None: ...
+    def reset(self) -> None: ...
+    def store(self, rows: npt.NDArray[np.float64]) -> None: ...
+    def steady(self) -> int: ...
+    def evaluate(
+        self, rows: npt.NDArray[np.float64], smoothed: npt.NDArray[np.float64]
+    ) -> tuple[int, int]: ...
