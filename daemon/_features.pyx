@@ -145,18 +145,29 @@ cdef class Bytecode:
         f2[0] = self.present[1] & ~fail[1]
 
 
+cdef inline Py_ssize_t mirror(Py_ssize_t j, Py_ssize_t m) noexcept nogil:
+    """``j`` reflected into [0, m) with the edge repeated, periodically (padarray's 'symmetric')."""
+    cdef Py_ssize_t r = j % (2 * m)
+    if r < 0:
+        r += 2 * m
+    return r if r < m else 2 * m - 1 - r
+
+
 cdef class FeatureCore:
-    """One stream's held poses and hysteresis for a :class:`Bytecode`: ``ring`` ``(keep, 3J + 3K)``
-    (frame f in row f mod keep: its pose components, then its velocity points), ``n`` poses stored,
-    ``previous`` the last emitted code, the stream's flat thresholds."""
+    """One stream's features for a :class:`Bytecode` (the algorithm of
+    :class:`daemon.features.FeatureStream`): ``ring`` ``(keep, 3J + 3K)`` holds frame f in row
+    f mod keep (its pose components, then its velocity points); ``n`` poses stored, the vectors of
+    the first ``emitted`` frames emitted, ``previous`` the last emitted code (the hysteresis'
+    memory); the stream's flat thresholds. A frame whose velocity windows reach past either end of
+    the stream has them mirrored there, as :func:`daemon.features._smooth` does."""
 
     cdef Bytecode code
     cdef public object ring
     cdef double[:, ::1] _ring
     cdef double[::1] _thresholds, _regs, _smoothed
     cdef readonly Py_ssize_t keep, latency
-    cdef public int64_t n
-    cdef public uint64_t previous
+    cdef readonly int64_t n, emitted
+    cdef readonly uint64_t previous
 
     def __init__(self, Bytecode code, Py_ssize_t keep, Py_ssize_t latency):
         self.code = code
@@ -164,66 +175,98 @@ cdef class FeatureCore:
         self.latency = latency
         self.ring = np.zeros((keep, code.n_rows + code.n_points))
         self._ring = self.ring
-        self._thresholds = np.zeros(code.n_slots)
+        self._thresholds = np.zeros(max(1, code.n_slots))
         self._regs = np.zeros(max(1, code.registers))
         self._smoothed = np.zeros(max(1, code.n_points))
-        self.n = 0
-        self.previous = 0
+        self.reset()
 
     def set_thresholds(self, thresholds):
         """The stream's thresholds, flat in the program's slot order."""
-        self._thresholds = np.ascontiguousarray(thresholds, dtype=np.float64).copy()
-        if self._thresholds.shape[0] != self.code.n_slots:
+        t = np.ascontiguousarray(thresholds, dtype=np.float64).copy()
+        if t.shape[0] != self.code.n_slots:
             raise ValueError(f"{self.code.n_slots} thresholds expected")
+        self._thresholds = t if t.shape[0] else np.zeros(1)
 
     def reset(self):
         self.n = 0
+        self.emitted = 0
         self.previous = 0
 
-    def store(self, const double[::1] rows):
-        """Hold the next pose (components flat, ``3j + c``) and its velocity points."""
+    def push(self, const double[::1] rows):
+        """Hold the next pose (finite components, flat ``3j + c``); the code of the frame that became
+        final (``latency`` frames back), or -1."""
         cdef Bytecode c = self.code
         if rows.shape[0] != c.n_rows:
             raise ValueError(f"{c.n_rows} pose components expected")
-        cdef Py_ssize_t i, row = self.n % self.keep
-        cdef double *out = &self._ring[row, 0]
+        cdef int64_t t
         with nogil:
-            for i in range(c.n_rows):
-                out[i] = rows[i]
-            for i in range(c.n_points):
-                if c.points[i, 1] < 0:
-                    out[c.n_rows + i] = rows[c.points[i, 0]]
-                else:
-                    out[c.n_rows + i] = rows[c.points[i, 0]] - rows[c.points[i, 1]]
+            self._store(&rows[0])
+            t = self.n - 1 - self.latency
+            if t >= 0:
+                self._emit(t, self.n)
+        return -1 if t < 0 else <int64_t> self.previous
+
+    def flush(self):
+        """The codes of the frames not yet emitted, their windows mirrored at the stream's end; then
+        a fresh stream."""
+        out = []
+        cdef int64_t t, n = self.n
+        for t in range(self.emitted, n):
+            with nogil:
+                self._emit(t, n)
+            out.append(self.previous)
+        self.reset()
+        return out
+
+    cdef void _store(self, const double *rows) noexcept nogil:
+        cdef Py_ssize_t i
+        cdef double *out = &self._ring[self.n % self.keep, 0]
+        for i in range(self.code.n_rows):
+            out[i] = rows[i]
+        for i in range(self.code.n_points):
+            if self.code.points[i, 1] < 0:
+                out[self.code.n_rows + i] = rows[self.code.points[i, 0]]
+            else:
+                out[self.code.n_rows + i] = rows[self.code.points[i, 0]] - rows[self.code.points[i, 1]]
         self.n += 1
 
-    def steady(self):
-        """The code of frame ``n - 1 - latency`` (every velocity window inside the stream, so each
-        window sum telescopes to the difference of two held point rows), after the hysteresis."""
-        cdef Bytecode c = self.code
-        cdef int64_t t = self.n - 1 - self.latency
-        cdef Py_ssize_t w, i, top, bottom
-        cdef double scale
-        cdef uint64_t f1, f2
-        cdef Py_ssize_t keep = self.keep, n_rows = c.n_rows
-        with nogil:
-            for w in range(c.windows.shape[0]):
-                top = ((t + c.windows[w, 0]) % keep + keep) % keep
-                bottom = ((t + c.windows[w, 1]) % keep + keep) % keep
-                scale = c.scales[w]
-                for i in range(c.windows[w, 2], c.windows[w, 3]):
-                    self._smoothed[i] = (self._ring[top, n_rows + i] - self._ring[bottom, n_rows + i]) * scale
-            c.run(&self._ring[t % keep, 0], &self._smoothed[0], &self._thresholds[0], &self._regs[0], &f1, &f2)
-            self.previous = f2 | (self.previous & f1)
-        return self.previous
+    cdef inline double *_point_row(self, int64_t f) noexcept nogil:
+        return &self._ring[f % self.keep, self.code.n_rows]
 
-    def evaluate(self, const double[::1] rows, const double[::1] smoothed):
-        """The loose and strict tracks (bit k = feature k) of a pose ``rows`` with its smoothed
-        velocities (flat, ``3k + c``)."""
-        cdef Bytecode c = self.code
-        if rows.shape[0] != c.n_rows or smoothed.shape[0] != c.n_points:
-            raise ValueError(f"{c.n_rows} pose components and {c.n_points} velocities expected")
+    cdef void _emit(self, int64_t t, int64_t n) noexcept nogil:
+        """Frame ``t`` of ``n`` frames: its smoothed velocities, tracks and hysteresis."""
+        cdef Py_ssize_t w, i, k, big_l, h, first, end, m
+        cdef double scale, acc
+        cdef double *top
+        cdef double *bottom
         cdef uint64_t f1, f2
-        cdef const double *s = &smoothed[0] if c.n_points else &self._smoothed[0]
-        c.run(&rows[0], s, &self._thresholds[0], &self._regs[0], &f1, &f2)
-        return f1, f2
+        for w in range(self.code.windows.shape[0]):
+            h = 1 - self.code.windows[w, 1]
+            big_l = self.code.windows[w, 0] - self.code.windows[w, 1]
+            first = self.code.windows[w, 2]
+            end = self.code.windows[w, 3]
+            scale = self.code.scales[w]
+            if h - 1 <= t < n - big_l + h - 1:  # the window sum telescopes
+                top = self._point_row(t + big_l - h + 1)
+                bottom = self._point_row(t - h + 1)
+                for i in range(first, end):
+                    self._smoothed[i] = (top[i] - bottom[i]) * scale
+            elif n < 2:
+                for i in range(first, end):
+                    self._smoothed[i] = 0.0
+            else:  # forward differences at mirrored indices, summed in order
+                for i in range(first, end):
+                    acc = 0.0
+                    for k in range(big_l):
+                        m = t + k - (h - 1)
+                        m = mirror(mirror(m, big_l), n) if n < big_l else mirror(m, n)
+                        if m > n - 2:
+                            m = n - 2
+                        if k == 0:
+                            acc = self._point_row(m + 1)[i] - self._point_row(m)[i]
+                        else:
+                            acc = acc + (self._point_row(m + 1)[i] - self._point_row(m)[i])
+                    self._smoothed[i] = acc * scale
+        self.code.run(&self._ring[t % self.keep, 0], &self._smoothed[0], &self._thresholds[0], &self._regs[0], &f1, &f2)
+        self.previous = f2 | (self.previous & f1)
+        self.emitted = t + 1

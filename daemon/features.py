@@ -1047,41 +1047,25 @@ class FeatureStream:
     (the windows are then mirrored at the end, exactly as in the batch) and makes the object ready
     for a new stream. Body lengths are measured on the first pose. Memory is bounded: a ring of the
     last ``latency + L/2 + 1`` poses. The output equals :func:`features` on the same frames bit for
-    bit: both run the same program, on arrays there and here in the compiled register machine of
-    :mod:`daemon._features` (numpy's arithmetic on doubles); once every velocity window of the frame
-    being emitted lies inside the stream (:attr:`steady_after`), a push is one compiled step."""
+    bit: both run the same program and the same window sums, on arrays there and here in compiled
+    code (:class:`daemon._features.FeatureCore`: the program as register-machine code on doubles
+    with numpy's arithmetic)."""
 
     def __init__(self, joint_names: Sequence[str], frame_rate: float = 120.0) -> None:
         self._program = _program(joint_names, frame_rate)
         self.latency = self._program.lead
         self._keep = self.latency + max((tr.h for tr in self._program.trajectories), default=1) + 1
-        self._first_interior = max((h - 1 for _, h, _, _ in self._program.windows), default=0)
-        self._n_rows = 3 * len(self._program.joint_names)
         self._core = FeatureCore(self._program.bytecode, self._keep, self.latency)
-        self._ring: FloatArray = self._core.ring
-        self._reset()
 
     @property
     def frames(self) -> int:
         """Poses pushed since the stream began."""
-        n: int = self._core.n
-        return n
+        return self._core.n
 
     @property
     def keep(self) -> int:
         """Poses held: the last ``keep`` (``latency + L/2 + 1``)."""
         return self._keep
-
-    @property
-    def steady_after(self) -> int:
-        """Once this many poses were pushed, every further push emits a frame whose velocity windows
-        all lie inside the stream (:func:`_interior`): its vector needs only the held points at fixed
-        offsets (``latency + ceil(L/2) - 1``)."""
-        return self.latency + self._first_interior
-
-    def _reset(self) -> None:
-        self._core.reset()
-        self._emitted = 0
 
     def push(self, pose: FloatArray) -> list[BoolArray]:
         """Add the next pose; return the vectors that became final (at most one)."""
@@ -1101,15 +1085,8 @@ class FeatureStream:
         if core.n == 0:
             pose = rows.reshape(-1, 3)
             core.set_thresholds(self._program.flat_thresholds(body_lengths(pose, self._program.joint_names)))
-        core.store(rows)
-        t = core.n - 1 - self.latency
-        if t < 0:
-            return None
-        self._emitted = t + 1
-        if t >= self._first_interior:
-            code: int = core.steady()
-            return code
-        return self._emit(t, core.n)
+        code = core.push(rows)
+        return None if code < 0 else code
 
     def flush(self) -> list[BoolArray]:
         """End the stream: the vectors of its last frames, then a fresh state."""
@@ -1117,43 +1094,7 @@ class FeatureStream:
 
     def flush_codes(self) -> list[int]:
         """:meth:`flush` giving codes (bit k = feature k)."""
-        n = self._core.n
-        out = [self._emit(t, n) for t in range(self._emitted, n)]
-        self._reset()
-        return out
-
-    def _points(self, f: int) -> list[float]:
-        """The velocity points of held frame ``f``."""
-        points: list[float] = self._ring[f % self._keep, self._n_rows :].tolist()
-        return points
-
-    def _velocities(self, t: int, n: int) -> list[float]:
-        """Smoothed velocities at frame ``t`` of ``n`` frames, flat (``3k + c``), as :func:`_smooth`."""
-        out: list[float] = []
-        fs = self._program.frame_rate
-        for big_l, h, first, end in self._program.windows:
-            if t in _interior(n, big_l, h):
-                top, bottom = self._points(t + big_l - h + 1), self._points(t - h + 1)
-                out += [(top[i] - bottom[i]) * (fs / big_l) for i in range(first, end)]
-            elif n < 2:
-                out += [0.0] * (end - first)
-            else:
-                ms = _edge_indices(np.array([t]), n, big_l, h)[0].tolist()
-                for i in range(first, end):
-                    acc = self._points(ms[0] + 1)[i] - self._points(ms[0])[i]
-                    for m in ms[1:]:
-                        acc = acc + (self._points(m + 1)[i] - self._points(m)[i])
-                    out.append(acc * (fs / big_l))
-        return out
-
-    def _emit(self, t: int, n: int) -> int:
-        """The code of frame ``t`` of ``n`` frames with its windows mirrored at the stream's ends."""
-        core = self._core
-        velocities = np.array(self._velocities(t, n), dtype=np.float64)
-        f1, f2 = core.evaluate(np.ascontiguousarray(self._ring[t % self._keep, : self._n_rows]), velocities)
-        core.previous = f2 | (core.previous & f1)  # the hysteresis, all features at once
-        code: int = core.previous
-        return code
+        return self._core.flush()
 
 
 # ---------------------------------------------------------------------------------- frame rates
