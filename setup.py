@@ -11,7 +11,13 @@ setup(
     ext_modules=cythonize(
         [
             Extension(name, [name.replace(".", "/") + ".pyx"], extra_compile_args=FLAGS)
-            for name in ("daemon._dtw", "daemon._automaton", "daemon._features", "replay._kinematics")
+            for name in (
+                "daemon._dtw",
+                "daemon._automaton",
+                "daemon._features",
+                "daemon._live",
+                "replay._kinematics",
+            )
         ],
         compiler_directives={"language_level": 3},
     )

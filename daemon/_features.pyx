@@ -27,14 +27,6 @@ cdef enum:
     CMP_GE = 3
 
 
-cdef struct Op:
-    int op, dst, a, b
-
-
-cdef struct Test:
-    int track, bit, register, cmp, slot
-
-
 cdef class Bytecode:
     """A feature program: ``ops`` ``(n, 4)`` (opcode, destination register, operand registers;
     MIN/MAX take a start and a count in ``args``, CONST an index in ``consts``; registers
@@ -44,19 +36,6 @@ cdef class Bytecode:
     (the pose components whose difference is a velocity point, -1 for none) and ``windows``
     ``(W, 4)`` (frames after t of the window sum's top and bottom point rows, the point components
     ``first``..``end``) with their ``scales`` (rate / L)."""
-
-    cdef object _keep
-    cdef Op *ops
-    cdef Py_ssize_t n_ops
-    cdef Test *tests_
-    cdef Py_ssize_t n_tests
-    cdef int64_t[::1] args
-    cdef double[::1] consts
-    cdef int64_t[:, ::1] points
-    cdef int64_t[:, ::1] windows
-    cdef double[::1] scales
-    cdef readonly Py_ssize_t registers, n_rows, n_points, n_slots
-    cdef uint64_t[2] present
 
     def __init__(self, ops, args, consts, tests, points, windows, scales, Py_ssize_t registers,
                  Py_ssize_t n_rows, Py_ssize_t n_slots):
@@ -161,14 +140,6 @@ cdef class FeatureCore:
     memory); the stream's flat thresholds. A frame whose velocity windows reach past either end of
     the stream has them mirrored there, as :func:`daemon.features._smooth` does."""
 
-    cdef Bytecode code
-    cdef public object ring
-    cdef double[:, ::1] _ring
-    cdef double[::1] _thresholds, _regs, _smoothed
-    cdef readonly Py_ssize_t keep, latency
-    cdef readonly int64_t n, emitted
-    cdef readonly uint64_t previous
-
     def __init__(self, Bytecode code, Py_ssize_t keep, Py_ssize_t latency):
         self.code = code
         self.keep = keep
@@ -198,13 +169,19 @@ cdef class FeatureCore:
         cdef Bytecode c = self.code
         if rows.shape[0] != c.n_rows:
             raise ValueError(f"{c.n_rows} pose components expected")
-        cdef int64_t t
+        cdef int64_t code
         with nogil:
-            self._store(&rows[0])
-            t = self.n - 1 - self.latency
-            if t >= 0:
-                self._emit(t, self.n)
-        return -1 if t < 0 else <int64_t> self.previous
+            code = self.push_ptr(&rows[0])
+        return code
+
+    cdef int64_t push_ptr(self, const double *rows) noexcept nogil:
+        """:meth:`push` of ``n_rows`` components at ``rows``."""
+        self._store(rows)
+        cdef int64_t t = self.n - 1 - self.latency
+        if t < 0:
+            return -1
+        self._emit(t, self.n)
+        return <int64_t> self.previous
 
     def flush(self):
         """The codes of the frames not yet emitted, their windows mirrored at the stream's end; then
@@ -230,7 +207,7 @@ cdef class FeatureCore:
                 out[self.code.n_rows + i] = rows[self.code.points[i, 0]] - rows[self.code.points[i, 1]]
         self.n += 1
 
-    cdef inline double *_point_row(self, int64_t f) noexcept nogil:
+    cdef double *_point_row(self, int64_t f) noexcept nogil:
         return &self._ring[f % self.keep, self.code.n_rows]
 
     cdef void _emit(self, int64_t t, int64_t n) noexcept nogil:

@@ -20,12 +20,14 @@ Pure: numpy in, dataclasses out; no I/O.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Collection, Sequence
 from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
 
+from daemon._live import push_channels_many
 from daemon.library import Library
 from daemon.recognizer import (
     ClassPlan,
@@ -33,6 +35,7 @@ from daemon.recognizer import (
     FrameError,
     Recognizer,
     check_native_rate,
+    non_finite_channels,
     plans,
     skeleton_model,
 )
@@ -135,21 +138,32 @@ class RecognizerBank:
                 errors.append((i, name, e))
             else:
                 checked.append((i, r, n, values))
-        channels = [values for _, r, _, values in checked if r.model is not None]
-        if channels:  # the half angles' cosines and sines of every channel frame in one pass
-            half = 0.5 * np.concatenate(channels)
-            cos, sin = np.cos(half), np.sin(half)
+        codes: dict[int, int] = {}
+        channels = [(i, r, n, values) for i, r, n, values in checked if r.model is not None]
+        if channels:  # every channel frame's finiteness, trigonometry and frame step in one pass each
+            flat = np.concatenate([values for _, _, _, values in channels])
+            starts = np.cumsum([0, *(len(values) for _, _, _, values in channels[:-1])])
+            sums: list[float] = np.add.reduceat(flat, starts).tolist()
+            if not all(map(math.isfinite, sums)):
+                kept = []
+                for item, total in zip(channels, sums, strict=True):
+                    i, r, n, values = item
+                    if math.isfinite(total) or np.isfinite(values).all():
+                        kept.append(item)
+                    else:
+                        errors.append((i, r.stream, non_finite_channels(n, r.stream)))
+                channels = kept
+                flat = np.concatenate([values for _, _, _, values in channels]) if channels else flat[:0]
+            half = 0.5 * flat
+            found = push_channels_many([r._live for _, r, _, _ in channels], flat, np.cos(half), np.sin(half))
+            codes = {i: code for (i, _, _, _), code in zip(channels, found, strict=True)}
         detections: list[Detection] = []
-        at = 0
         for i, r, n, values in checked:
+            code = codes.get(i) if r.model is not None else r._live.push_positions(values.reshape(-1))
+            if code is None:
+                continue  # refused above
             try:
-                if r.model is None:
-                    detections += r._push_positions(n, values)
-                else:
-                    end = at + len(values)
-                    c, s = cos[at:end], sin[at:end]
-                    at = end
-                    detections += r._push_channels(n, values, c, s)
+                detections += r._after(n, code)
             except FrameError as e:
                 errors.append((i, r.stream, e))
         errors.sort(key=lambda e: e[0])

@@ -1067,6 +1067,15 @@ class FeatureStream:
         """Poses held: the last ``keep`` (``latency + L/2 + 1``)."""
         return self._keep
 
+    @property
+    def core(self) -> FeatureCore:
+        """The compiled state (the live recogniser steps it directly)."""
+        return self._core
+
+    def thresholds_of(self, rows: FloatArray) -> FloatArray:
+        """The flat thresholds of a stream whose first pose is ``rows`` (flat, ``3j + c``)."""
+        return self._program.flat_thresholds(body_lengths(rows.reshape(-1, 3), self._program.joint_names))
+
     def push(self, pose: FloatArray) -> list[BoolArray]:
         """Add the next pose; return the vectors that became final (at most one)."""
         program = self._program
@@ -1083,8 +1092,7 @@ class FeatureStream:
         shape ``(3J,)``); the vector that became final as a code (bit k = feature k), or None."""
         core = self._core
         if core.n == 0:
-            pose = rows.reshape(-1, 3)
-            core.set_thresholds(self._program.flat_thresholds(body_lengths(pose, self._program.joint_names)))
+            core.set_thresholds(self.thresholds_of(rows))
         code = core.push(rows)
         return None if code < 0 else code
 

@@ -47,6 +47,7 @@ import numpy as np
 import numpy.typing as npt
 
 from daemon._automaton import AutomatonSet
+from daemon._live import NON_FINITE, LiveStream
 from daemon.automaton import KeyframeAutomaton
 from daemon.dtw import (
     Match,
@@ -360,12 +361,22 @@ class Recognizer:
             self._width = len(joint_names)
             self._joint_order = joint_order(joint_names)
         self._plans = plans(library, classes, max_gap_s=max_gap_s)
-        self._features = FeatureStream(JOINT_NAMES, native_rate)
+        features = FeatureStream(JOINT_NAMES, native_rate)
+        self._features_latency = features.latency
+        if model is not None:
+            self._shape: tuple[int, ...] = (self._width,)
+            self._live = LiveStream(
+                model.frame_kinematics, features.core, features.thresholds_of, None, self._width, self._step
+            )
+        else:
+            self._shape = (self._width, 3)
+            order = (3 * self._joint_order[:, None] + np.arange(3)).reshape(-1)
+            self._live = LiveStream(
+                None, features.core, features.thresholds_of, order, 3 * self._width, self._step
+            )
         self._codes = CodeRecognizer(self._plans, library.rate)
-        self._rows = np.empty(3 * len(JOINT_NAMES))  # the standard joints of the frame being pushed
         self._first: int | None = None  # native frame numbers of the stream's first and last frame
         self._last: int | None = None
-        self._seen = 0  # feature vectors emitted so far in this stream
 
     @classmethod
     def for_skeleton(cls, library: Library, skeleton: Skeleton, native_rate: float, **kw: Any) -> Recognizer:
@@ -388,69 +399,53 @@ class Recognizer:
     def latency_frames(self) -> int:
         """Native frames from a keyframe match's last keyframe to its confirmation, at most: the
         features' delay, then the widest right widening of a class at the library's rate."""
-        return self._features.latency + max((p.right for p in self._plans), default=0) * self._step
+        return self._features_latency + max((p.right for p in self._plans), default=0) * self._step
 
     def push(self, number: int, frame: npt.ArrayLike) -> list[Detection]:
         """Add frame ``number``; the detections it completed."""
         n, values = self._check(number, frame)
         if self.model is None:
-            return self._push_positions(n, values)
+            return self._after(n, self._live.push_positions(values.reshape(-1)))
+        if not math.isfinite(values.sum()) and not np.isfinite(values).all():  # one reduction if finite
+            raise non_finite_channels(n, self.stream)
         half = 0.5 * values
-        return self._push_channels(n, values, np.cos(half), np.sin(half))
+        return self._after(n, self._live.push_channels(values, np.cos(half), np.sin(half)))
 
     def flush(self) -> list[Detection]:
         """End the stream: the remaining detections, then a fresh stream (frame numbers start anew)."""
         last = self._last
-        out = [d for code in self._features.flush_codes() for d in self._code(code, last or 0)]
+        out = [d for code in self._live.flush() for d in self._detections(self._codes.push(code), last or 0)]
         found = self._codes.flush()
         if last is not None:
             out += self._detections(found, last)
         self._first = self._last = None
-        self._seen = 0
         return out
 
     def _check(self, number: object, frame: npt.ArrayLike) -> tuple[int, FloatArray]:
         """The frame number and the frame's values (contiguous float64) if their number, type and
-        shape (and for channels, finiteness) are right, else :class:`FrameError`."""
-        n = check_number(number, self._last, self.stream)
-        values = frame_values(n, frame, self.stream)
-        if self.model is not None:
-            check_channels(n, values, self._width, self.stream)
+        shape are right, else :class:`FrameError`. Channels' finiteness is checked by the caller
+        (the bank checks every stream's at once)."""
+        last = self._last
+        if type(number) is int and last is not None and number == last + 1:
+            n = number  # the usual case, without the checks' calls
         else:
+            n = check_number(number, last, self.stream)
+        values = frame_values(n, frame, self.stream)
+        if values.shape != self._shape:
+            if self.model is not None:
+                check_channels(n, values, self._width, self.stream)
             check_positions(n, values, self._width, self.stream)
         return n, values
 
-    def _push_channels(
-        self, number: int, values: FloatArray, cos: FloatArray, sin: FloatArray
-    ) -> list[Detection]:
-        """:meth:`push` of a checked channel frame with its half angles' cosines and sines (the
-        bank computes those for many streams at once)."""
-        assert self.model is not None
-        if not self.model.joints_frame(values, cos, sin, self._rows):
+    def _after(self, number: int, code: int) -> list[Detection]:
+        """What the compiled frame step gave for frame ``number``: an index-rate code for the classes,
+        nothing, or a refusal (the step changed nothing then)."""
+        if code == NON_FINITE:
             raise non_finite_pose(number, self.stream)
-        return self._advance(number, self._rows)
-
-    def _push_positions(self, number: int, values: FloatArray) -> list[Detection]:
-        """:meth:`push` of a checked positions frame."""
-        rows = values[self._joint_order].reshape(-1)
-        if not np.isfinite(rows).all():
-            raise non_finite_pose(number, self.stream)
-        return self._advance(number, rows)
-
-    def _advance(self, number: int, rows: FloatArray) -> list[Detection]:
         if self._first is None:
             self._first = number
         self._last = number
-        code = self._features.push_rows(rows)
-        return [] if code is None else self._code(code, number)
-
-    def _code(self, code: int, number: int) -> list[Detection]:
-        """A feature vector's code: every k-th goes on to the classes (decimation to the index rate)."""
-        t = self._seen
-        self._seen += 1
-        if t % self._step:
-            return []
-        return self._detections(self._codes.push(code), number)
+        return [] if code < 0 else self._detections(self._codes.push(code), number)
 
     def _detections(self, found: Sequence[tuple[ClassPlan, Match]], number: int) -> list[Detection]:
         first = self._first
@@ -508,13 +503,11 @@ def frame_values(number: int, frame: npt.ArrayLike, stream: str) -> FloatArray:
 
 
 def check_channels(number: int, values: FloatArray, width: int, stream: str) -> None:
-    """A channel frame has shape ``(width,)`` (else ``shape``) and is finite (else ``non_finite``)."""
+    """A channel frame has shape ``(width,)`` (else ``shape``)."""
     if values.shape != (width,):
         raise FrameError(
             f"frame {number}: {width} channels expected, got shape {values.shape}", "shape", stream=stream
         )
-    if not np.isfinite(values).all():
-        raise non_finite_channels(number, stream)
 
 
 def check_positions(number: int, values: FloatArray, width: int, stream: str) -> None:

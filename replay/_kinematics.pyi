@@ -4,6 +4,7 @@ import numpy.typing as npt
 class FrameKinematics:
     n_nodes: int
     width: int
+    scale: float
     def __init__(
         self,
         nodes: object,
@@ -16,13 +17,13 @@ class FrameKinematics:
         pairs: object,
         offsets: object,
         joint_nodes: object,
+        scale: float,
     ) -> None: ...
     def positions(
         self,
         channels: npt.NDArray[np.float64],
         cos: npt.NDArray[np.float64],
         sin: npt.NDArray[np.float64],
-        scale: float,
         scaled: bool,
         out: npt.NDArray[np.float64],
     ) -> None: ...
@@ -31,6 +32,5 @@ class FrameKinematics:
         channels: npt.NDArray[np.float64],
         cos: npt.NDArray[np.float64],
         sin: npt.NDArray[np.float64],
-        scale: float,
         out: npt.NDArray[np.float64],
     ) -> bool: ...

@@ -23,19 +23,10 @@ cdef class FrameKinematics:
     ``axes`` ``(E, 3)``, ``first``: whether the entry is its node's first dof), the root
     ``orientation`` ``(4,)`` and ``position`` ``(3,)``, root ``translation`` (axis, channel) pairs
     ``(T, 2)``, the (node, parent) ``pairs`` ``(P, 2)`` down the hierarchy, bone ``offsets``
-    ``(nodes, 3)`` and the length ``scale`` applied at the end."""
-
-    cdef int64_t[::1] nodes, chans
-    cdef unsigned char[::1] first
-    cdef double[:, ::1] axes, offsets
-    cdef double[::1] orientation, position
-    cdef int64_t[:, ::1] translation, pairs
-    cdef double[:, ::1] rot, pos
-    cdef int64_t[::1] joint_nodes
-    cdef readonly Py_ssize_t n_nodes, width
+    ``(nodes, 3)``, the nodes of the standard joints and the length ``scale`` (to centimetres)."""
 
     def __init__(self, nodes, chans, first, axes, orientation, position, translation, pairs, offsets,
-                 joint_nodes):
+                 joint_nodes, double scale):
         self.nodes = np.ascontiguousarray(nodes, dtype=np.int64)
         self.chans = np.ascontiguousarray(chans, dtype=np.int64)
         self.first = np.ascontiguousarray(first, dtype=np.uint8)
@@ -49,46 +40,57 @@ cdef class FrameKinematics:
         self.rot = np.zeros((self.n_nodes, 4))
         self.pos = np.zeros((self.n_nodes, 3))
         self.joint_nodes = np.ascontiguousarray(joint_nodes, dtype=np.int64)
-        self.width = 1 + max([-1] + np.asarray(chans, dtype=np.int64).tolist() + np.asarray(self.translation[:, 1]).tolist())
+        used = np.asarray(chans, dtype=np.int64).tolist() + np.asarray(self.translation[:, 1]).tolist()
+        self.width = 1 + max([-1] + used)
+        self.scale = scale
 
     def positions(self, const double[::1] channels, const double[::1] cos, const double[::1] sin,
-                  double scale, bint scaled, double[:, ::1] out):
+                  bint scaled, double[:, ::1] out):
         """Every node's position into ``out`` ``(nodes, 3)`` from the frame's ``channels`` ``(C,)``
-        and the cosines and sines of their halves; times ``scale`` if ``scaled``."""
+        and the cosines and sines of their halves; times :attr:`scale` if ``scaled``."""
         if out.shape[0] != self.n_nodes or out.shape[1] != 3:
             raise ValueError(f"out must have shape ({self.n_nodes}, 3)")
         self._check(channels, cos, sin)
         with nogil:
-            self._forward(channels, cos, sin, scale, scaled, out)
+            self.forward(&channels[0], &cos[0], &sin[0], scaled, &out[0, 0])
 
     def joints(self, const double[::1] channels, const double[::1] cos, const double[::1] sin,
-               double scale, double[::1] out):
-        """The standard joints' positions times ``scale``, flat (``3j + c``), into ``out``
+               double[::1] out):
+        """The standard joints' positions in centimetres, flat (``3j + c``), into ``out``
         ``(3 * 26,)``; whether every one is finite."""
-        cdef Py_ssize_t j, c, n = self.joint_nodes.shape[0]
-        cdef bint finite = True
-        cdef double v
-        if out.shape[0] != 3 * n:
-            raise ValueError(f"out must have shape ({3 * n},)")
+        if out.shape[0] != 3 * self.joint_nodes.shape[0]:
+            raise ValueError(f"out must have shape ({3 * self.joint_nodes.shape[0]},)")
         self._check(channels, cos, sin)
+        cdef bint finite
         with nogil:
-            self._forward(channels, cos, sin, scale, True, self.pos)
-            for j in range(n):
-                for c in range(3):
-                    v = self.pos[self.joint_nodes[j], c]
-                    out[3 * j + c] = v
-                    if not isfinite(v):
-                        finite = False
+            finite = self.joints_into(&channels[0], &cos[0], &sin[0], &out[0])
         return finite
 
     cdef void _check(self, const double[::1] channels, const double[::1] cos, const double[::1] sin) except *:
         if channels.shape[0] != cos.shape[0] or channels.shape[0] != sin.shape[0]:
             raise ValueError("channels, cos and sin must have one entry per channel")
-        if channels.shape[0] < self.width:
+        if channels.shape[0] < max(1, self.width):
             raise ValueError(f"{self.width} channels expected")
 
-    cdef void _forward(self, const double[::1] channels, const double[::1] cos, const double[::1] sin,
-                       double scale, bint scaled, double[:, ::1] out) noexcept nogil:
+    cdef bint joints_into(self, const double *channels, const double *cos, const double *sin,
+                          double *out) noexcept nogil:
+        """The standard joints in centimetres into ``out`` (``3j + c``); whether all are finite."""
+        cdef Py_ssize_t j, c, n = self.joint_nodes.shape[0]
+        cdef bint finite = True
+        cdef double v
+        cdef double *pos = &self.pos[0, 0]
+        self.forward(channels, cos, sin, True, pos)
+        for j in range(n):
+            for c in range(3):
+                v = pos[3 * self.joint_nodes[j] + c]
+                out[3 * j + c] = v
+                if not isfinite(v):
+                    finite = False
+        return finite
+
+    cdef void forward(self, const double *channels, const double *cos, const double *sin, bint scaled,
+                      double *out) noexcept nogil:
+        """Every node's position into ``out`` (``3k + c``)."""
         cdef Py_ssize_t e, k, c, p, i, a
         cdef double s, w, x, y, z, vx, vy, vz, tx, ty, tz
         cdef double q[4]
@@ -115,21 +117,22 @@ cdef class FrameKinematics:
                 rot[4 * k + 2] = q[2]
                 rot[4 * k + 3] = q[3]
         qmul(self.orientation[0], self.orientation[1], self.orientation[2], self.orientation[3],
-             rot[4 * 0 + 0], rot[4 * 0 + 1], rot[4 * 0 + 2], rot[4 * 0 + 3], q)
-        rot[4 * 0 + 0] = q[0]
-        rot[4 * 0 + 1] = q[1]
-        rot[4 * 0 + 2] = q[2]
-        rot[4 * 0 + 3] = q[3]
-        out[0, 0] = self.position[0]
-        out[0, 1] = self.position[1]
-        out[0, 2] = self.position[2]
+             rot[0], rot[1], rot[2], rot[3], q)
+        rot[0] = q[0]
+        rot[1] = q[1]
+        rot[2] = q[2]
+        rot[3] = q[3]
+        out[0] = self.position[0]
+        out[1] = self.position[1]
+        out[2] = self.position[2]
         for i in range(self.translation.shape[0]):
             a = self.translation[i, 0]
-            out[0, a] = out[0, a] + channels[self.translation[i, 1]]
+            out[a] = out[a] + channels[self.translation[i, 1]]
         for i in range(self.pairs.shape[0]):
             k = self.pairs[i, 0]
             p = self.pairs[i, 1]
-            qmul(rot[4 * p + 0], rot[4 * p + 1], rot[4 * p + 2], rot[4 * p + 3], rot[4 * k + 0], rot[4 * k + 1], rot[4 * k + 2], rot[4 * k + 3], q)
+            qmul(rot[4 * p + 0], rot[4 * p + 1], rot[4 * p + 2], rot[4 * p + 3],
+                 rot[4 * k + 0], rot[4 * k + 1], rot[4 * k + 2], rot[4 * k + 3], q)
             w = q[0]
             x = q[1]
             y = q[2]
@@ -144,11 +147,9 @@ cdef class FrameKinematics:
             tx = 2.0 * (y * vz - z * vy)
             ty = 2.0 * (z * vx - x * vz)
             tz = 2.0 * (x * vy - y * vx)
-            out[k, 0] = out[p, 0] + ((vx + w * tx) + (y * tz - z * ty))
-            out[k, 1] = out[p, 1] + ((vy + w * ty) + (z * tx - x * tz))
-            out[k, 2] = out[p, 2] + ((vz + w * tz) + (x * ty - y * tx))
+            out[3 * k + 0] = out[3 * p + 0] + ((vx + w * tx) + (y * tz - z * ty))
+            out[3 * k + 1] = out[3 * p + 1] + ((vy + w * ty) + (z * tx - x * tz))
+            out[3 * k + 2] = out[3 * p + 2] + ((vz + w * tz) + (x * ty - y * tx))
         if scaled:
-            for k in range(self.n_nodes):
-                out[k, 0] = out[k, 0] * scale
-                out[k, 1] = out[k, 1] * scale
-                out[k, 2] = out[k, 2] * scale
+            for k in range(3 * self.n_nodes):
+                out[k] = out[k] * self.scale

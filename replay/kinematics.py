@@ -157,6 +157,7 @@ class KinematicModel:
             else None
         )
 
+        self._cm = 2.54 / skeleton.length_unit
         # The same tables for one frame at a time in compiled code (positions_frame).
         entries = [
             (int(k), int(c), axes[:, i, 0], slot == 0)
@@ -174,8 +175,8 @@ class KinematicModel:
             np.array(self._pairs, dtype=np.int64).reshape(-1, 2),
             offsets,
             [] if self._joint_nodes is None else self._joint_nodes,
+            self._cm,
         )
-        self._cm = 2.54 / skeleton.length_unit
 
     def _check(self, channels: FloatArray) -> FloatArray:
         channels = np.asarray(channels, dtype=np.float64)
@@ -232,8 +233,16 @@ class KinematicModel:
             raise ValueError(f"channels must have shape ({self._width},), got {row.shape}")
         half = 0.5 * row
         out = np.empty((self.n_nodes, 3))
-        self._frame.positions(row, np.cos(half), np.sin(half), self._cm, unit == "cm", out)
+        self._frame.positions(row, np.cos(half), np.sin(half), unit == "cm", out)
         return out
+
+    @property
+    def frame_kinematics(self) -> FrameKinematics:
+        """The compiled one-frame kinematics (the live recogniser drives it directly); an error
+        naming the missing bones if the skeleton lacks a standard joint."""
+        if self._joint_nodes is None:
+            self.joints(np.zeros((self.n_nodes, 3)))  # raises naming the missing bones
+        return self._frame
 
     def joints_frame(self, channels: FloatArray, cos: FloatArray, sin: FloatArray, out: FloatArray) -> bool:
         """The standard joints of one frame in centimetres (:meth:`positions_frame` with ``"cm"``,
@@ -242,7 +251,7 @@ class KinematicModel:
         (``np.cos(0.5 * channels)``, as the batch computes them): contiguous float64."""
         if self._joint_nodes is None:
             self.joints(np.zeros((self.n_nodes, 3)))  # raises naming the missing bones
-        finite: bool = self._frame.joints(channels, cos, sin, self._cm, out)
+        finite: bool = self._frame.joints(channels, cos, sin, out)
         return finite
 
     def joints(self, node_positions: FloatArray) -> FloatArray:
