@@ -1,0 +1,394 @@
+"""The wire (DESIGN.md, "The wire"; schema for other languages in ``protocols/README.md``).
+
+Every message is a msgpack map with ``"v": 1`` and a ``"type"``: ``skeleton`` (a stream announces
+what its poses carry), ``pose`` (one frame), ``detection`` (a recognised motion), ``boundary`` (a
+behaviour cut) and ``status`` (a daemon instance online or offline). :func:`encode` writes one,
+:func:`decode` reads one and validates it completely — type, version, every field's type, the
+shape and finiteness of the pose arrays, a maximum size — raising :class:`WireError` with one
+reason code on anything else. Topics (:func:`topic`, :func:`parse_topic`) are the MQTT topic words,
+also the first frame of a ZeroMQ multipart message.
+
+Pure: bytes in, frozen dataclasses out; no sockets.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from dataclasses import dataclass
+from typing import Any, Literal, get_args
+
+import msgpack
+import numpy as np
+import numpy.typing as npt
+
+VERSION = 1
+DEFAULT_MAX_BYTES = 1 << 20
+"""The largest message :func:`decode` accepts by default (1 MiB: an embedded ASF is ~20 KiB)."""
+
+Reason = Literal["undecodable", "oversize", "version", "type", "schema", "shape", "non_finite"]
+REASONS: tuple[Reason, ...] = get_args(Reason)
+Units = Literal["m", "cm", "mm", "in", "asf"]
+Up = Literal["y", "z"]
+AngleUnit = Literal["deg", "rad"]
+State = Literal["online", "offline"]
+Kind = Literal["skeleton", "pose", "detection", "boundary", "status"]
+
+STREAM_ID = re.compile(r"[A-Za-z0-9_.:@-]{1,128}")
+"""A stream or instance id: one MQTT topic level (no ``/``, ``+``, ``#``), at most 128 characters."""
+
+
+class WireError(ValueError):
+    """A message that cannot be used: ``reason`` (one of :data:`REASONS`) and what was wrong."""
+
+    def __init__(self, reason: Reason, detail: str) -> None:
+        super().__init__(f"{reason}: {detail}")
+        self.reason = reason
+        self.detail = detail
+
+
+@dataclass(frozen=True)
+class SkeletonMessage:
+    """A stream's announcement. Positions streams: ``joints`` (names, in the order of every pose's
+    coordinates; they must include mocapd's standard joints), ``up`` axis and length ``units``.
+    Channel streams: ``asf``, the text of an ASF file; poses then carry AMC-style channels in its
+    channel order, angles in ``angle_unit``. ``rate``: frames per second."""
+
+    stream: str
+    rate: float
+    joints: tuple[str, ...] | None = None
+    up: Up = "y"
+    units: Units = "cm"
+    asf: str | None = None
+    angle_unit: AngleUnit = "deg"
+
+    @property
+    def kind(self) -> Literal["positions", "channels"]:
+        return "channels" if self.asf is not None else "positions"
+
+
+@dataclass(frozen=True)
+class PoseMessage:
+    """One frame of ``stream``: its sequence number ``seq`` (consecutive from any start), the
+    source's timestamp ``time`` (seconds since the Unix epoch) and either ``positions`` ``(J, 3)``
+    (float32 on the wire) or ``channels`` ``(C,)`` (float64 on the wire)."""
+
+    stream: str
+    seq: int
+    time: float
+    positions: npt.NDArray[np.float32] | None = None
+    channels: npt.NDArray[np.float64] | None = None
+
+
+@dataclass(frozen=True)
+class DetectionMessage:
+    """A detection (:class:`daemon.recognizer.Detection`'s fields; frames are the stream's sequence
+    numbers), ``source_time``: the timestamp of the pose whose arrival emitted it, ``emit_time``:
+    when the daemon published it (seconds since the Unix epoch). ``id`` is unique per detection: a
+    consumer drops a repeat (QoS 1 may deliver twice)."""
+
+    id: str
+    stream: str
+    class_name: str
+    start_frame: int
+    end_frame: int
+    cost: float
+    tau: float
+    emitted_at_frame: int
+    source_time: float
+    emit_time: float
+
+
+@dataclass(frozen=True)
+class BoundaryMessage:
+    """A behaviour boundary: ``stream`` cut before ``frame`` by ``method``, with its ``score``."""
+
+    id: str
+    stream: str
+    frame: int
+    method: str
+    score: float
+    emit_time: float
+
+
+@dataclass(frozen=True)
+class StatusMessage:
+    """A daemon ``instance`` going ``online`` or ``offline``: its ``version``, the ``streams`` it
+    holds and when it ``started`` (seconds since the Unix epoch)."""
+
+    instance: str
+    state: State
+    version: str
+    streams: int
+    started: float
+
+
+Message = SkeletonMessage | PoseMessage | DetectionMessage | BoundaryMessage | StatusMessage
+
+TOPIC_OF: dict[type[Any], str] = {
+    SkeletonMessage: "skeleton",
+    PoseMessage: "pose",
+    DetectionMessage: "detections",
+    BoundaryMessage: "boundaries",
+}
+"""The topic word of each per-stream message: ``mocap/<stream>/<word>``."""
+
+
+def topic(message: Message) -> str:
+    """The topic a message is published on: ``mocap/<stream>/<word>`` or ``mocapd/<instance>/status``."""
+    if isinstance(message, StatusMessage):
+        return f"mocapd/{message.instance}/status"
+    return f"mocap/{message.stream}/{TOPIC_OF[type(message)]}"
+
+
+def parse_topic(name: str) -> tuple[str, str] | None:
+    """(stream, word) of a per-stream topic ``mocap/<stream>/<word>``, None for any other topic."""
+    parts = name.split("/")
+    if len(parts) != 3 or parts[0] != "mocap" or not STREAM_ID.fullmatch(parts[1]):
+        return None
+    return parts[1], parts[2]
+
+
+# ------------------------------------------------------------------------------------- encoding
+
+
+def encode(message: Message) -> bytes:
+    """The msgpack bytes of ``message`` (arrays packed little-endian)."""
+    body: dict[str, Any] = {"v": VERSION}
+    if isinstance(message, SkeletonMessage):
+        body |= {"type": "skeleton", "stream": message.stream, "rate": float(message.rate)}
+        if message.asf is not None:
+            body |= {"asf": message.asf, "angle_unit": message.angle_unit}
+        else:
+            assert message.joints is not None
+            body |= {"joints": list(message.joints), "up": message.up, "units": message.units}
+    elif isinstance(message, PoseMessage):
+        body |= {"type": "pose", "stream": message.stream, "seq": message.seq, "time": float(message.time)}
+        if message.positions is not None:
+            body["positions"] = np.ascontiguousarray(message.positions, dtype="<f4").tobytes()
+        else:
+            assert message.channels is not None
+            body["channels"] = np.ascontiguousarray(message.channels, dtype="<f8").tobytes()
+    elif isinstance(message, DetectionMessage):
+        body |= {
+            "type": "detection",
+            "id": message.id,
+            "stream": message.stream,
+            "class": message.class_name,
+            "start_frame": message.start_frame,
+            "end_frame": message.end_frame,
+            "cost": float(message.cost),
+            "tau": float(message.tau),
+            "emitted_at_frame": message.emitted_at_frame,
+            "source_time": float(message.source_time),
+            "emit_time": float(message.emit_time),
+        }
+    elif isinstance(message, BoundaryMessage):
+        body |= {
+            "type": "boundary",
+            "id": message.id,
+            "stream": message.stream,
+            "frame": message.frame,
+            "method": message.method,
+            "score": float(message.score),
+            "emit_time": float(message.emit_time),
+        }
+    else:
+        body |= {
+            "type": "status",
+            "instance": message.instance,
+            "state": message.state,
+            "version": message.version,
+            "streams": message.streams,
+            "started": float(message.started),
+        }
+    out: bytes = msgpack.packb(body, use_bin_type=True)
+    return out
+
+
+# ------------------------------------------------------------------------------------- decoding
+
+
+def decode(payload: bytes, max_bytes: int = DEFAULT_MAX_BYTES) -> Message:
+    """The message in ``payload``; :class:`WireError` (with its reason) for anything that is not a
+    valid message of this version at most ``max_bytes`` long."""
+    if len(payload) > max_bytes:
+        raise WireError("oversize", f"{len(payload)} bytes, at most {max_bytes}")
+    try:
+        body = msgpack.unpackb(payload, raw=False, strict_map_key=True, use_list=True)
+    except Exception as e:  # msgpack raises several unrelated types for bad bytes
+        raise WireError("undecodable", f"not msgpack ({type(e).__name__})") from None
+    if not isinstance(body, dict):
+        raise WireError("schema", f"a message is a map, got {type(body).__name__}")
+    version = body.get("v")
+    if type(version) is not int:
+        raise WireError("version", f"'v' must be the integer {VERSION}, got {version!r:.40}")
+    if version != VERSION:
+        raise WireError("version", f"version {version} (this daemon speaks {VERSION})")
+    kind = body.get("type")
+    reader = _READERS.get(kind) if isinstance(kind, str) else None
+    if reader is None:
+        raise WireError("type", f"unknown type {kind!r:.40} (one of {', '.join(_READERS)})")
+    return reader(_Fields(body, kind))
+
+
+class _Fields:
+    """The fields of one message body, each taken once; left-overs are a schema error."""
+
+    def __init__(self, body: dict[str, Any], kind: str) -> None:
+        self.body = body
+        self.kind = kind
+        self.seen = {"v", "type"}
+
+    def fail(self, name: str, what: str, reason: Reason = "schema") -> WireError:
+        return WireError(reason, f"{self.kind}.{name}: {what}")
+
+    def take(self, name: str, default: Any = ..., *, required: bool = True) -> Any:
+        self.seen.add(name)
+        if name in self.body:
+            return self.body[name]
+        if default is not ... or not required:
+            return None if default is ... else default
+        raise self.fail(name, "missing")
+
+    def text(self, name: str, pattern: re.Pattern[str] | None = None, default: Any = ...) -> str:
+        value = self.take(name, default)
+        if not isinstance(value, str):
+            raise self.fail(name, f"must be a string, got {type(value).__name__}")
+        if pattern is not None and not pattern.fullmatch(value):
+            raise self.fail(name, f"{value!r:.60} is not an id (letters, digits, _.:@-, at most 128)")
+        return value
+
+    def integer(self, name: str, low: int | None = None) -> int:
+        value = self.take(name)
+        if type(value) is not int:
+            raise self.fail(name, f"must be an integer, got {type(value).__name__}")
+        if low is not None and value < low:
+            raise self.fail(name, f"must be at least {low}, got {value}")
+        return value
+
+    def number(self, name: str, *, positive: bool = False) -> float:
+        value = self.take(name)
+        if type(value) not in (int, float):
+            raise self.fail(name, f"must be a number, got {type(value).__name__}")
+        if not math.isfinite(value):
+            raise self.fail(name, f"must be finite, got {value}", "non_finite")
+        if positive and value <= 0:
+            raise self.fail(name, f"must be positive, got {value}")
+        return float(value)
+
+    def choice(self, name: str, options: tuple[str, ...], default: Any = ...) -> str:
+        value = self.text(name, default=default)
+        if value not in options:
+            raise self.fail(name, f"{value!r:.40} is not one of {', '.join(options)}")
+        return value
+
+    def array(self, name: str, dtype: str, width: int) -> npt.NDArray[Any]:
+        """A packed little-endian array of ``dtype`` whose length is a multiple of ``width``, finite."""
+        value = self.take(name)
+        if not isinstance(value, bytes):
+            raise self.fail(name, f"must be bytes (packed {dtype}), got {type(value).__name__}")
+        size = np.dtype(dtype).itemsize
+        if not value or len(value) % (size * width):
+            raise self.fail(name, f"{len(value)} bytes is not a whole number of {width} x {dtype}", "shape")
+        a = np.frombuffer(value, dtype=dtype)
+        if not np.isfinite(a).all():
+            raise self.fail(
+                name, f"value {int(np.flatnonzero(~np.isfinite(a))[0])} is not finite", "non_finite"
+            )
+        return a
+
+    def done(self) -> None:
+        extra = sorted(str(k) for k in self.body if k not in self.seen)
+        if extra:
+            raise WireError("schema", f"{self.kind}: unknown field(s) {', '.join(extra)[:120]}")
+
+
+def _skeleton(f: _Fields) -> SkeletonMessage:
+    stream = f.text("stream", STREAM_ID)
+    rate = f.number("rate", positive=True)
+    asf = f.take("asf", required=False)
+    joints = f.take("joints", required=False)
+    if (asf is None) == (joints is None):
+        raise f.fail("joints", "a skeleton carries either 'joints' (positions) or 'asf' (channels)")
+    if asf is not None:
+        if not isinstance(asf, str) or not asf.strip():
+            raise f.fail("asf", "must be the text of an ASF file")
+        unit = f.choice("angle_unit", get_args(AngleUnit), "deg")
+        f.done()
+        return SkeletonMessage(stream, rate, asf=asf, angle_unit=unit)  # type: ignore[arg-type]
+    if not isinstance(joints, list) or not joints or not all(isinstance(j, str) and j for j in joints):
+        raise f.fail("joints", "must be a non-empty list of joint names")
+    if len(set(joints)) != len(joints):
+        raise f.fail("joints", "a joint is named twice")
+    up = f.choice("up", get_args(Up), "y")
+    units = f.choice("units", get_args(Units), "cm")
+    f.done()
+    return SkeletonMessage(stream, rate, tuple(joints), up, units)  # type: ignore[arg-type]
+
+
+def _pose(f: _Fields) -> PoseMessage:
+    stream = f.text("stream", STREAM_ID)
+    seq = f.integer("seq", low=0)
+    time = f.number("time")
+    has_positions, has_channels = "positions" in f.body, "channels" in f.body
+    if has_positions == has_channels:
+        raise f.fail("positions", "a pose carries either 'positions' or 'channels'")
+    if has_positions:
+        positions = f.array("positions", "<f4", 3).reshape(-1, 3)
+        f.done()
+        return PoseMessage(stream, seq, time, positions=positions)
+    channels = f.array("channels", "<f8", 1)
+    f.done()
+    return PoseMessage(stream, seq, time, channels=channels)
+
+
+def _detection(f: _Fields) -> DetectionMessage:
+    out = DetectionMessage(
+        f.text("id"),
+        f.text("stream", STREAM_ID),
+        f.text("class"),
+        f.integer("start_frame"),
+        f.integer("end_frame"),
+        f.number("cost"),
+        f.number("tau"),
+        f.integer("emitted_at_frame"),
+        f.number("source_time"),
+        f.number("emit_time"),
+    )
+    f.done()
+    return out
+
+
+def _boundary(f: _Fields) -> BoundaryMessage:
+    out = BoundaryMessage(
+        f.text("id"),
+        f.text("stream", STREAM_ID),
+        f.integer("frame"),
+        f.text("method"),
+        f.number("score"),
+        f.number("emit_time"),
+    )
+    f.done()
+    return out
+
+
+def _status(f: _Fields) -> StatusMessage:
+    out = StatusMessage(
+        f.text("instance", STREAM_ID),
+        f.choice("state", get_args(State)),  # type: ignore[arg-type]
+        f.text("version"),
+        f.integer("streams", low=0),
+        f.number("started"),
+    )
+    f.done()
+    return out
+
+
+_READERS = {
+    "skeleton": _skeleton,
+    "pose": _pose,
+    "detection": _detection,
+    "boundary": _boundary,
+    "status": _status,
+}

@@ -1,0 +1,222 @@
+"""The wire (protocols/messages.py): every message type survives encode/decode exactly (hypothesis),
+and every way a payload can be wrong is refused with its reason code and nothing else."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import msgpack
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from protocols.messages import (
+    REASONS,
+    BoundaryMessage,
+    DetectionMessage,
+    Message,
+    PoseMessage,
+    SkeletonMessage,
+    StatusMessage,
+    WireError,
+    decode,
+    encode,
+    parse_topic,
+    topic,
+)
+from replay import JOINT_NAMES
+from tests.helpers import DATA
+
+ids = st.from_regex(r"[A-Za-z0-9_.:@-]{1,20}", fullmatch=True)
+finite = st.floats(allow_nan=False, allow_infinity=False, width=64)
+times = st.floats(0, 4e9)
+
+
+@st.composite
+def messages(draw: st.DrawFn) -> Message:
+    kind = draw(st.sampled_from(["skeleton-p", "skeleton-c", "pose-p", "pose-c", "det", "bound", "status"]))
+    stream = draw(ids)
+    if kind == "skeleton-p":
+        joints = tuple(draw(st.lists(ids, min_size=1, max_size=30, unique=True)))
+        return SkeletonMessage(
+            stream,
+            draw(st.floats(1, 1000)),
+            joints,
+            draw(st.sampled_from(["y", "z"])),
+            draw(st.sampled_from(["m", "cm", "asf"])),
+        )
+    if kind == "skeleton-c":
+        return SkeletonMessage(
+            stream,
+            draw(st.floats(1, 1000)),
+            asf=draw(st.text(min_size=1).filter(str.strip)),
+            angle_unit=draw(st.sampled_from(["deg", "rad"])),
+        )
+    if kind == "pose-p":
+        n = draw(st.integers(1, 40))
+        values = draw(st.lists(st.floats(-1e6, 1e6, width=32), min_size=3 * n, max_size=3 * n))
+        return PoseMessage(
+            stream,
+            draw(st.integers(0, 2**62)),
+            draw(times),
+            positions=np.array(values, dtype=np.float32).reshape(n, 3),
+        )
+    if kind == "pose-c":
+        values = draw(st.lists(finite, min_size=1, max_size=70))
+        return PoseMessage(stream, draw(st.integers(0, 2**62)), draw(times), channels=np.array(values))
+    if kind == "det":
+        return DetectionMessage(
+            draw(st.uuids()).hex,
+            stream,
+            draw(st.text(min_size=1)),
+            draw(st.integers(-(2**40), 2**40)),
+            draw(st.integers(0, 2**40)),
+            draw(finite),
+            draw(finite),
+            draw(st.integers(0, 2**40)),
+            draw(times),
+            draw(times),
+        )
+    if kind == "bound":
+        return BoundaryMessage(
+            draw(st.uuids()).hex,
+            stream,
+            draw(st.integers(0, 2**40)),
+            draw(st.sampled_from(["pca", "ppca"])),
+            draw(finite),
+            draw(times),
+        )
+    return StatusMessage(
+        stream,
+        draw(st.sampled_from(["online", "offline"])),
+        "0.1.0",
+        draw(st.integers(0, 10**6)),
+        draw(times),
+    )
+
+
+def same(a: Message, b: Message) -> bool:
+    if type(a) is not type(b):
+        return False
+    for name in a.__dataclass_fields__:
+        x, y = getattr(a, name), getattr(b, name)
+        if isinstance(x, np.ndarray) or isinstance(y, np.ndarray):
+            if not (
+                isinstance(x, np.ndarray)
+                and isinstance(y, np.ndarray)
+                and x.shape == y.shape
+                and np.array_equal(x, y)
+            ):
+                return False
+        elif x != y:
+            return False
+    return True
+
+
+@settings(max_examples=300, deadline=None)
+@given(messages())
+def test_round_trip(message: Message) -> None:
+    payload = encode(message)
+    back = decode(payload)
+    assert same(message, back), (message, back)
+    assert encode(back) == payload
+    if not isinstance(message, StatusMessage):
+        assert parse_topic(topic(message)) == (message.stream, topic(message).rsplit("/", 1)[1])
+
+
+def test_example_of_each_type_from_the_schema_document() -> None:
+    """The examples protocols/README.md shows decode to what they say."""
+    skeleton = decode(encode(SkeletonMessage("studio-a", 120.0, JOINT_NAMES)))
+    assert (
+        isinstance(skeleton, SkeletonMessage)
+        and skeleton.kind == "positions"
+        and skeleton.joints == JOINT_NAMES
+    )
+    asf = (DATA / "cmu" / "13" / "13.asf").read_text()
+    channels = decode(encode(SkeletonMessage("s", 120.0, asf=asf, angle_unit="rad")))
+    assert isinstance(channels, SkeletonMessage) and channels.kind == "channels" and channels.asf == asf
+    assert topic(skeleton) == "mocap/studio-a/skeleton"
+    assert topic(StatusMessage("i1", "online", "0.1.0", 0, 0.0)) == "mocapd/i1/status"
+    assert parse_topic("mocap/a/b/c") is None and parse_topic("other/a/pose") is None
+
+
+def raw(body: dict[str, Any]) -> bytes:
+    out: bytes = msgpack.packb(body, use_bin_type=True)
+    return out
+
+
+POSE = {
+    "v": 1,
+    "type": "pose",
+    "stream": "s",
+    "seq": 3,
+    "time": 1.5,
+    "positions": np.zeros(78, "<f4").tobytes(),
+}
+
+
+@pytest.mark.parametrize(
+    ("payload", "reason", "words"),
+    [
+        (b"\xc1", "undecodable", "msgpack"),
+        (b"", "undecodable", "msgpack"),
+        (raw([1, 2]), "schema", "map"),  # type: ignore[arg-type]
+        (raw({"type": "pose"}), "version", "'v'"),
+        (raw({**POSE, "v": 2}), "version", "version 2"),
+        (raw({**POSE, "v": True}), "version", "'v'"),
+        (raw({**POSE, "type": "posture"}), "type", "unknown type"),
+        (raw({**POSE, "type": 7}), "type", "unknown type"),
+        (raw({k: v for k, v in POSE.items() if k != "seq"}), "schema", "pose.seq: missing"),
+        (raw({**POSE, "seq": -1}), "schema", "pose.seq"),
+        (raw({**POSE, "seq": 1.0}), "schema", "pose.seq: must be an integer"),
+        (raw({**POSE, "stream": "a/b"}), "schema", "pose.stream"),
+        (raw({**POSE, "stream": ""}), "schema", "pose.stream"),
+        (raw({**POSE, "time": float("nan")}), "non_finite", "pose.time"),
+        (raw({**POSE, "positions": b"\0" * 10}), "shape", "pose.positions"),
+        (raw({**POSE, "positions": b""}), "shape", "pose.positions"),
+        (raw({**POSE, "positions": [1.0, 2.0, 3.0]}), "schema", "must be bytes"),
+        (raw({**POSE, "positions": np.array([0, np.nan, 0], "<f4").tobytes()}), "non_finite", "value 1"),
+        (raw({**POSE, "channels": b"\0" * 8}), "schema", "either"),
+        (raw({**POSE, "extra": 1}), "schema", "unknown field(s) extra"),
+        (raw({"v": 1, "type": "skeleton", "stream": "s", "rate": 120}), "schema", "either"),
+        (raw({"v": 1, "type": "skeleton", "stream": "s", "rate": 0, "joints": ["a"]}), "schema", "positive"),
+        (
+            raw({"v": 1, "type": "skeleton", "stream": "s", "rate": 120, "joints": ["a", "a"]}),
+            "schema",
+            "twice",
+        ),
+        (
+            raw({"v": 1, "type": "skeleton", "stream": "s", "rate": 120, "joints": ["a"], "up": "w"}),
+            "schema",
+            "up",
+        ),
+        (
+            raw({"v": 1, "type": "status", "instance": "i", "version": "1", "streams": 0, "started": 0.0}),
+            "schema",
+            "state",
+        ),
+    ],
+)
+def test_bad_payloads_are_refused_with_their_reason(payload: bytes, reason: str, words: str) -> None:
+    with pytest.raises(WireError) as caught:
+        decode(payload)
+    assert caught.value.reason == reason and reason in REASONS
+    assert words in str(caught.value), str(caught.value)
+
+
+def test_oversize_before_parsing() -> None:
+    payload = encode(PoseMessage("s", 0, 0.0, positions=np.zeros((26, 3), np.float32)))
+    assert isinstance(decode(payload, max_bytes=len(payload)), PoseMessage)
+    with pytest.raises(WireError, match=r"^oversize: ") as caught:
+        decode(payload, max_bytes=len(payload) - 1)
+    assert caught.value.reason == "oversize"
+
+
+@settings(max_examples=400, deadline=None)
+@given(st.binary(max_size=300))
+def test_random_bytes_never_escape_as_another_error(payload: bytes) -> None:
+    try:
+        decode(payload)
+    except WireError as e:
+        assert e.reason in REASONS
