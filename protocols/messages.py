@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import math
 import re
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, Literal, get_args
 
@@ -226,10 +227,9 @@ def decode(payload: bytes, max_bytes: int = DEFAULT_MAX_BYTES) -> Message:
     if version != VERSION:
         raise WireError("version", f"version {version} (this daemon speaks {VERSION})")
     kind = body.get("type")
-    reader = _READERS.get(kind) if isinstance(kind, str) else None
-    if reader is None:
+    if not isinstance(kind, str) or kind not in _READERS:
         raise WireError("type", f"unknown type {kind!r:.40} (one of {', '.join(_READERS)})")
-    return reader(_Fields(body, kind))
+    return _READERS[kind](_Fields(body, kind))
 
 
 class _Fields:
@@ -385,7 +385,7 @@ def _status(f: _Fields) -> StatusMessage:
     return out
 
 
-_READERS = {
+_READERS: dict[str, Callable[[_Fields], Message]] = {
     "skeleton": _skeleton,
     "pose": _pose,
     "detection": _detection,
