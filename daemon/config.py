@@ -1,20 +1,42 @@
-"""``config.yaml``, parsed once at the edge into frozen dataclasses; errors name the file and field."""
+"""``config.yaml``, parsed once at the edge into frozen dataclasses; errors name the file and field.
+
+Each section is a frozen dataclass whose fields carry their checks (``metadata``: a range, or the
+registry a name must be in); :func:`parse_config` reads them generically, so a field is declared
+once. Environment variables ``MOCAPD_<SECTION>_<FIELD>`` (e.g. ``MOCAPD_MQTT_URL``) override the file
+(:func:`environment_overrides`): the value is read as a YAML scalar, lists as comma-separated words,
+and errors name the variable."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+import types
+from collections.abc import Mapping
+from dataclasses import dataclass, field, fields
 from pathlib import Path
-from typing import Literal, cast, get_args
+from typing import Any, Literal, Union, get_args, get_origin, get_type_hints
+
+import yaml
 
 from daemon.checks import Checker, read_structured
 from daemon.errors import MocapdError
 from daemon.types import DEFAULT_MAX_GAP_S, DEFAULT_NATIVE_RATE, MAX_NATIVE_RATE
 
 Units = Literal["asf", "cm"]
+LogLevel = Literal["debug", "info", "warning", "error"]
+StdoutFormat = Literal["json", "text"]
+TRANSPORTS = ("zmq", "mqtt", "stdout")
+SOURCES = ("zmq", "mqtt")
 
 
 class ConfigError(MocapdError, ValueError):
     """A configuration value that cannot be used; the message names the file and the field."""
+
+
+def _range(low: float | None = None, high: float | None = None, *, open_low: bool = False) -> dict[str, Any]:
+    return {"low": low, "high": high, "low_open": open_low}
+
+
+def _positive(high: float | None = None) -> dict[str, Any]:
+    return _range(0, high, open_low=True)
 
 
 @dataclass(frozen=True)
@@ -22,7 +44,7 @@ class ReplayConfig:
     """How recordings are read: the frame rate assumed when an AMC file does not state one, and the
     units of joint positions."""
 
-    frame_rate_hz: float = DEFAULT_NATIVE_RATE
+    frame_rate_hz: float = field(default=DEFAULT_NATIVE_RATE, metadata=_positive(MAX_NATIVE_RATE))
     units: Units = "asf"
 
 
@@ -31,44 +53,232 @@ class RecognizerConfig:
     """The live recogniser (:mod:`daemon.recognizer`): how far an unbounded keyframe gap (stiffness
     0) may reach, in seconds."""
 
-    max_gap_s: float = DEFAULT_MAX_GAP_S
+    max_gap_s: float = field(default=DEFAULT_MAX_GAP_S, metadata=_positive(3600))
+
+
+@dataclass(frozen=True)
+class ServiceConfig:
+    """``mocapd run``: this instance's name (empty: the host name), the transports poses come in on
+    and detections go out on, and the limits of the stream table (see config.yaml)."""
+
+    instance: str = ""
+    sources: tuple[str, ...] = field(default=("zmq",), metadata={"choices": SOURCES})
+    sinks: tuple[str, ...] = field(default=("zmq", "stdout"), metadata={"choices": TRANSPORTS})
+    idle_s: float = field(default=30.0, metadata=_positive())
+    queue_frames: int = field(default=240, metadata=_range(1, 1_000_000))
+    max_streams: int = field(default=1000, metadata=_range(1, 1_000_000))
+    max_message_bytes: int = field(default=1 << 20, metadata=_range(1024, 1 << 30))
+    max_gap_s: float = field(default=0.25, metadata=_range(0, 60))
+    grace_s: float = field(default=5.0, metadata=_positive(3600))
+    tick_budget_ms: float = field(default=2.0, metadata=_positive(1000))
+
+
+@dataclass(frozen=True)
+class ZmqConfig:
+    """ZeroMQ endpoints (``bind``/``connect`` prefix optional; bare: bind), queue size, linger, CURVE."""
+
+    poses: str = "tcp://127.0.0.1:5555"
+    detections: str = "tcp://127.0.0.1:5556"
+    hwm: int = field(default=100_000, metadata=_range(1, 1 << 30))
+    linger_ms: int = field(default=1000, metadata=_range(0, 600_000))
+    curve_secret_key_file: str | None = None
+    curve_clients_dir: str | None = None
+
+
+@dataclass(frozen=True)
+class MqttConfig:
+    """The MQTT broker, the client's identity and credentials, TLS files and the queue bounds."""
+
+    url: str = "mqtt://127.0.0.1:1883"
+    client_id: str = ""
+    username: str | None = None
+    password: str | None = None
+    ca_file: str | None = None
+    cert_file: str | None = None
+    key_file: str | None = None
+    queue: int = field(default=10_000, metadata=_range(1, 10_000_000))
+    outbox: int = field(default=100_000, metadata=_range(1, 10_000_000))
+    keepalive_s: int = field(default=30, metadata=_range(5, 3600))
+    reconnect_min_s: float = field(default=0.25, metadata=_positive(60))
+    reconnect_max_s: float = field(default=10.0, metadata=_positive(3600))
+
+
+@dataclass(frozen=True)
+class StdoutConfig:
+    """The stdout sink: JSON lines or readable lines."""
+
+    format: StdoutFormat = "json"
+
+
+@dataclass(frozen=True)
+class MetricsConfig:
+    """``/healthz`` and ``/metrics`` (port 0: off); per-stream labels only with a bounded stream table."""
+
+    host: str = "127.0.0.1"
+    port: int = field(default=9464, metadata=_range(0, 65535))
+    stream_labels: bool = False
+
+
+@dataclass(frozen=True)
+class LoggingConfig:
+    """Structured logs (one JSON object per line on stderr) at ``level``."""
+
+    level: LogLevel = "info"
 
 
 @dataclass(frozen=True)
 class Config:
     replay: ReplayConfig = field(default_factory=ReplayConfig)
     recognizer: RecognizerConfig = field(default_factory=RecognizerConfig)
+    service: ServiceConfig = field(default_factory=ServiceConfig)
+    zmq: ZmqConfig = field(default_factory=ZmqConfig)
+    mqtt: MqttConfig = field(default_factory=MqttConfig)
+    stdout: StdoutConfig = field(default_factory=StdoutConfig)
+    metrics: MetricsConfig = field(default_factory=MetricsConfig)
+    logging: LoggingConfig = field(default_factory=LoggingConfig)
 
 
-def load_config(path: str | Path | None) -> Config:
-    """Read ``path`` (``None``: the built-in defaults)."""
-    if path is None:
-        return Config()
-    data = read_structured(path, "yaml", ConfigError)
-    return parse_config({} if data is None else data, str(path))
+MAX_LABELLED_STREAMS = 100
+"""``metrics.stream_labels`` needs ``service.max_streams`` at most this (a label per stream)."""
+
+
+def load_config(path: str | Path | None, environ: Mapping[str, str] | None = None) -> Config:
+    """Read ``path`` (``None``: the built-in defaults), then the ``MOCAPD_...`` variables of
+    ``environ`` (None: none)."""
+    data: Any = {}
+    if path is not None:
+        data = read_structured(path, "yaml", ConfigError)
+        data = {} if data is None else data
+    config = parse_config(data, str(path) if path is not None else "<defaults>")
+    return config if environ is None else environment_overrides(config, environ)
 
 
 def parse_config(data: object, source: str = "<config>") -> Config:
     """Build a :class:`Config` from parsed YAML; unknown or ill-typed fields are errors."""
     check = Checker(source, ConfigError)
-    root = check.mapping(data, "", optional=("replay", "recognizer"))
-    section = root.get("replay")
-    replay = check.mapping({} if section is None else section, "replay", optional=("frame_rate_hz", "units"))
-    defaults = ReplayConfig()
-    rate = check.number(
-        replay.get("frame_rate_hz", defaults.frame_rate_hz),
-        "replay.frame_rate_hz",
-        low=0,
-        low_open=True,
-        high=MAX_NATIVE_RATE,
-    )
-    units = check.choice(replay.get("units", defaults.units), "replay.units", get_args(Units))
-    section = root.get("recognizer")
-    live = check.mapping({} if section is None else section, "recognizer", optional=("max_gap_s",))
-    gap = check.number(
-        live.get("max_gap_s", DEFAULT_MAX_GAP_S), "recognizer.max_gap_s", low=0, low_open=True, high=3600
-    )
-    return Config(
-        replay=ReplayConfig(frame_rate_hz=rate, units=cast(Units, units)),
-        recognizer=RecognizerConfig(max_gap_s=gap),
-    )
+    sections = {f.name: f for f in fields(Config)}
+    root = check.mapping(data, "", optional=list(sections))
+    out = {}
+    for name, f in sections.items():
+        value = root.get(name)
+        cls = _section_type(f)
+        out[name] = _section(check, name, cls, {} if value is None else value)
+    config = Config(**out)
+    _cross_checks(check, config)
+    return config
+
+
+def environment_overrides(config: Config, environ: Mapping[str, str]) -> Config:
+    """``config`` with every ``MOCAPD_<SECTION>_<FIELD>`` of ``environ`` applied."""
+    changes: dict[str, dict[str, Any]] = {}
+    known = {f.name: _section_type(f) for f in fields(Config)}
+    for key, text in sorted(environ.items()):
+        if not key.startswith("MOCAPD_"):
+            continue
+        rest = key[len("MOCAPD_") :].lower()
+        section = next((s for s in known if rest.startswith(s + "_")), None)
+        if section is None:
+            raise ConfigError(f"no section {rest.split('_')[0]!r} (known: {', '.join(known)})", path=key)
+        name = rest[len(section) + 1 :]
+        names = {f.name for f in fields(known[section])}
+        if name not in names:
+            raise ConfigError(
+                f"{section} has no field {name!r} (fields: {', '.join(sorted(names))})", path=key
+            )
+        try:
+            value = yaml.safe_load(text) if text.strip() else None
+        except yaml.YAMLError:
+            value = text
+        if _is_tuple(get_type_hints(known[section])[name]):
+            value = [w for w in str(text).replace(",", " ").split()]
+        changes.setdefault(section, {})[name] = value
+    if not changes:
+        return config
+    check = Checker("environment", ConfigError)
+    out = {}
+    for f in fields(Config):
+        current = getattr(config, f.name)
+        mine = {g.name: getattr(current, g.name) for g in fields(current)}
+        mine = {k: list(v) if isinstance(v, tuple) else v for k, v in mine.items()}
+        mine.update(changes.get(f.name, {}))
+        out[f.name] = _section(check, f.name, _section_type(f), mine)
+    result = Config(**out)
+    _cross_checks(check, result)
+    return result
+
+
+def _section_type(f: Any) -> type[Any]:
+    cls: type[Any] = f.default_factory
+    return cls
+
+
+def _is_tuple(kind: Any) -> bool:
+    return get_origin(kind) is tuple
+
+
+def _section(check: Checker, name: str, cls: type[Any], value: object) -> Any:
+    hints = get_type_hints(cls)
+    own = check.mapping(value, name, optional=[f.name for f in fields(cls)])
+    kwargs = {}
+    for f in fields(cls):
+        if f.name not in own:
+            continue
+        kwargs[f.name] = _field(check, f"{name}.{f.name}", hints[f.name], f.metadata, own[f.name])
+    return cls(**kwargs)
+
+
+def _field(check: Checker, where: str, kind: Any, meta: Mapping[str, Any], value: Any) -> Any:
+    origin, args = get_origin(kind), get_args(kind)
+    if origin in (Union, types.UnionType) and type(None) in args:
+        if value is None:
+            return None
+        (kind,) = [a for a in args if a is not type(None)]
+        origin, args = get_origin(kind), get_args(kind)
+    if origin is Literal:
+        return check.choice(value, where, args)
+    if origin is tuple:
+        items = check.listing(value, where)
+        choices = meta.get("choices")
+        out = []
+        for i, item in enumerate(items):
+            word = check.string(item, f"{where}[{i}]")
+            if choices is not None and word not in choices:
+                check.fail(f"{where}[{i}]", f"must be one of {', '.join(choices)}, got {word!r:.60}")
+            out.append(word)
+        if len(set(out)) != len(out):
+            check.fail(where, "names a transport twice")
+        return tuple(out)
+    if kind is bool:
+        if not isinstance(value, bool):
+            check.fail(where, f"must be true or false, got {value!r:.60}")
+        return value
+    if kind is int:
+        return check.integer(value, where, minimum=meta.get("low"), maximum=meta.get("high"))
+    if kind is float:
+        return check.number(
+            value, where, low=meta.get("low"), high=meta.get("high"), low_open=meta.get("low_open", False)
+        )
+    if kind is str:
+        if not isinstance(value, str):
+            check.fail(where, f"must be a string, got {value!r:.60}")
+        return value
+    raise TypeError(f"{where}: no check for {kind}")
+
+
+def _cross_checks(check: Checker, config: Config) -> None:
+    if config.metrics.stream_labels and config.service.max_streams > MAX_LABELLED_STREAMS:
+        check.fail(
+            "metrics.stream_labels",
+            f"per-stream labels need service.max_streams <= {MAX_LABELLED_STREAMS}, "
+            f"it is {config.service.max_streams}",
+        )
+    if config.mqtt.reconnect_min_s > config.mqtt.reconnect_max_s:
+        check.fail("mqtt.reconnect_min_s", "must not exceed mqtt.reconnect_max_s")
+    if "mqtt" not in config.service.sources + config.service.sinks:
+        return
+    from protocols.mqtt import parse_url  # the one place MQTT URLs are understood
+
+    try:
+        parse_url(config.mqtt.url)
+    except ValueError as e:
+        check.fail("mqtt.url", str(e))

@@ -6,10 +6,21 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
+import shutil
+import signal
+import socket
 import subprocess
 import sys
-from collections.abc import Sequence
+import threading
+import time
+import urllib.error
+import urllib.request
+from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import Any
+
+import msgpack
 
 from daemon.keyframes import parse_keyframe_queries
 from daemon.library import ClassTemplate, Library, learn_class
@@ -176,3 +187,289 @@ def small_library(where: Path) -> Library:
             learned, name=f"{name}.published", keyframes=published[name]
         )
     return Library(30.0, classes)
+
+
+# ------------------------------------------------------------------------ the service's real parts
+
+
+def free_port() -> int:
+    """A TCP port on loopback nobody listens on now."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port: int = s.getsockname()[1]
+        return port
+
+
+def wait_for(condition: Callable[[], bool], timeout: float, what: str, step: float = 0.02) -> None:
+    """Poll ``condition`` until it holds; AssertionError saying ``what`` after ``timeout`` seconds."""
+    deadline = time.monotonic() + timeout
+    while not condition():
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out after {timeout:g} s waiting for {what}")
+        time.sleep(step)
+
+
+def _accepts(port: int) -> bool:
+    with socket.socket() as s:
+        s.settimeout(0.2)
+        return s.connect_ex(("127.0.0.1", port)) == 0
+
+
+class Broker:
+    """A real mosquitto on a free loopback port with persistence on (its database in ``where``);
+    :meth:`start`, :meth:`stop` (SIGTERM: it saves its sessions), :meth:`kill`, start again on the
+    same port."""
+
+    def __init__(self, where: Path) -> None:
+        self.where = where
+        self.port = free_port()
+        self.config = where / "mosquitto.conf"
+        self.config.write_text(
+            f"listener {self.port} 127.0.0.1\nallow_anonymous true\npersistence true\n"
+            f"persistence_location {where}/\nautosave_interval 1\nmax_queued_messages 100000\n"
+            f"log_dest file {where}/mosquitto.log\n",
+            encoding="utf-8",
+        )
+        self.process: subprocess.Popen[bytes] | None = None
+
+    @property
+    def url(self) -> str:
+        return f"mqtt://127.0.0.1:{self.port}"
+
+    def start(self) -> Broker:
+        binary = shutil.which("mosquitto") or "/usr/sbin/mosquitto"
+        if not Path(binary).exists():
+            raise AssertionError(
+                "mosquitto is not installed (.ci/run installs it: apt-get install mosquitto)"
+            )
+        self.process = subprocess.Popen(
+            [binary, "-c", str(self.config)], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
+        )
+        wait_for(lambda: _accepts(self.port), 10, f"mosquitto on port {self.port}")
+        return self
+
+    def stop(self, sig: int = signal.SIGTERM) -> None:
+        if self.process is not None and self.process.poll() is None:
+            self.process.send_signal(sig)
+            self.process.wait(10)
+        self.process = None
+
+    def kill(self) -> None:
+        self.stop(signal.SIGKILL)
+
+
+class Daemon:
+    """``mocapd run`` as a real process on free ports: ZeroMQ poses/detections endpoints, the metrics
+    port, the MQTT broker ``mqtt`` if given, more ``config`` sections merged in. Its stdout (the
+    stdout sink's JSON lines) and stderr (structured logs) go to files in ``where``."""
+
+    def __init__(
+        self,
+        where: Path,
+        *,
+        sources: Sequence[str] = ("zmq",),
+        sinks: Sequence[str] = ("zmq", "stdout"),
+        mqtt: str | None = None,
+        config: dict[str, dict[str, object]] | None = None,
+        env: dict[str, str] | None = None,
+    ) -> None:
+        self.where = where
+        self.poses = f"tcp://127.0.0.1:{free_port()}"
+        self.detections = f"tcp://127.0.0.1:{free_port()}"
+        self.metrics_port = free_port()
+        sections: dict[str, dict[str, object]] = {
+            "service": {
+                "instance": f"test-{self.metrics_port}",
+                "sources": list(sources),
+                "sinks": list(sinks),
+            },
+            "zmq": {"poses": self.poses, "detections": self.detections},
+            "metrics": {"port": self.metrics_port},
+            "logging": {"level": "debug"},
+        }
+        if mqtt is not None:
+            sections["mqtt"] = {"url": mqtt, "reconnect_max_s": 0.5}
+        for name, values in (config or {}).items():
+            sections.setdefault(name, {}).update(values)
+        self.instance = str(sections["service"]["instance"])
+        self.config = where / "daemon.yaml"
+        self.config.write_text(json.dumps(sections), encoding="utf-8")  # JSON is YAML
+        self.stdout_path, self.stderr_path = where / "daemon.out", where / "daemon.err"
+        self.env = {**os.environ, **(env or {})}
+        self.process: subprocess.Popen[bytes] | None = None
+
+    def start(self, wait: bool = True) -> Daemon:
+        with self.stdout_path.open("ab") as out, self.stderr_path.open("ab") as err:
+            self.process = subprocess.Popen(
+                [str(MOCAPD_SCRIPT), "--config", str(self.config), "run"],
+                stdout=out,
+                stderr=err,
+                env=self.env,
+            )
+        if wait:
+            wait_for(lambda: self.health()[0] == 200 or not self.alive, 30, "the daemon's /healthz")
+            assert self.alive, self.stderr_path.read_text()
+        return self
+
+    @property
+    def alive(self) -> bool:
+        return self.process is not None and self.process.poll() is None
+
+    def http(self, path: str) -> tuple[int, str]:
+        try:
+            with urllib.request.urlopen(f"http://127.0.0.1:{self.metrics_port}{path}", timeout=2) as r:
+                return r.status, r.read().decode()
+        except urllib.error.HTTPError as e:
+            return e.code, e.read().decode()
+        except OSError:
+            return 0, ""
+
+    def health(self) -> tuple[int, str]:
+        return self.http("/healthz")
+
+    def metrics(self) -> dict[str, float]:
+        """The /metrics samples by name with labels, e.g. ``mocapd_rejects_total{reason="shape"}``."""
+        _, text = self.http("/metrics")
+        out = {}
+        for line in text.splitlines():
+            if line and not line.startswith("#"):
+                name, value = line.rsplit(" ", 1)
+                out[name] = float(value)
+        return out
+
+    def signal(self, sig: int) -> None:
+        assert self.process is not None
+        self.process.send_signal(sig)
+
+    def wait(self, timeout: float) -> int:
+        assert self.process is not None
+        code = self.process.wait(timeout)
+        return code
+
+    def stop(self) -> int:
+        if not self.alive:
+            return self.process.returncode if self.process else 0
+        self.signal(signal.SIGTERM)
+        return self.wait(30)
+
+    def printed(self) -> list[dict[str, Any]]:
+        """The messages the stdout sink printed (decoded JSON lines)."""
+        return [json.loads(line) for line in self.stdout_path.read_text().splitlines() if line.strip()]
+
+    def detections_printed(self) -> list[dict[str, Any]]:
+        return [m for m in self.printed() if m.get("type") == "detection"]
+
+    def logs(self) -> list[dict[str, Any]]:
+        return [
+            json.loads(line) for line in self.stderr_path.read_text().splitlines() if line.startswith("{")
+        ]
+
+
+def replay(
+    asf: Path, amc: Path, to: str, *extra: str, stream: str | None = None, speed: str = "max"
+) -> subprocess.Popen[str]:
+    """``mocapd replay`` as a process (not waited for)."""
+    args = [str(MOCAPD_SCRIPT), "replay", "--asf", str(asf), "--amc", str(amc), "--to", to, "--speed", speed]
+    if stream is not None:
+        args += ["--stream", stream]
+    return subprocess.Popen([*args, *extra], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def finished(process: subprocess.Popen[str], timeout: float = 120) -> str:
+    """The output of a process that must succeed."""
+    out, err = process.communicate(timeout=timeout)
+    assert process.returncode == 0, err
+    return out
+
+
+class MqttCollector:
+    """A subscriber in its own thread (paho): QoS 1 on ``topics`` with a persistent session (fixed
+    ``client_id``, so the broker keeps what arrives while it is away), reconnecting by itself;
+    :attr:`messages` holds (topic, decoded message dict) as they arrive."""
+
+    def __init__(self, url: str, topics: Sequence[str], client_id: str = "collector") -> None:
+        import paho.mqtt.client as paho
+
+        host, port = url.removeprefix("mqtt://").split(":")
+        self.messages: list[tuple[str, dict[str, Any]]] = []
+        self.lock = threading.Lock()
+        self.client = paho.Client(paho.CallbackAPIVersion.VERSION2, client_id=client_id, clean_session=False)
+        self.client.reconnect_delay_set(0.05, 0.5)
+        self.topics = list(topics)
+        self.connected = threading.Event()
+
+        def on_connect(client: Any, userdata: Any, flags: Any, reason: Any, properties: Any) -> None:
+            for t in self.topics:
+                client.subscribe(t, qos=1)
+            self.connected.set()
+
+        def on_message(client: Any, userdata: Any, message: Any) -> None:
+            body = msgpack.unpackb(message.payload, raw=False)
+            with self.lock:
+                self.messages.append((message.topic, body))
+
+        self.client.on_connect = on_connect
+        self.client.on_message = on_message
+        self.client.connect(host, int(port), keepalive=10)
+        self.client.loop_start()
+        assert self.connected.wait(10), "the collector did not connect"
+
+    def detections(self) -> list[dict[str, Any]]:
+        with self.lock:
+            return [m for _, m in self.messages if m.get("type") == "detection"]
+
+    def statuses(self) -> list[dict[str, Any]]:
+        with self.lock:
+            return [m for _, m in self.messages if m.get("type") == "status"]
+
+    def close(self) -> None:
+        self.client.loop_stop()
+        self.client.disconnect()
+
+
+class ZmqCollector:
+    """A SUB socket on the daemon's detections endpoint in its own thread; returns once connected."""
+
+    def __init__(self, endpoint: str) -> None:
+        import zmq
+
+        self.ctx = zmq.Context()
+        self.sock = self.ctx.socket(zmq.SUB)
+        self.sock.setsockopt(zmq.LINGER, 0)
+        self.sock.setsockopt(zmq.RCVHWM, 1_000_000)
+        monitor = self.sock.get_monitor_socket(zmq.EVENT_HANDSHAKE_SUCCEEDED)
+        self.sock.setsockopt(zmq.SUBSCRIBE, b"mocap")
+        self.sock.connect(endpoint)
+        assert monitor.poll(10_000), "the collector's SUB socket did not connect"
+        self.sock.disable_monitor()
+        monitor.close()
+        time.sleep(0.2)  # the subscription reaches the publisher just after the handshake
+        self.messages: list[dict[str, Any]] = []
+        self.running = True
+        self.thread = threading.Thread(target=self._collect, daemon=True)
+        self.thread.start()
+
+    def _collect(self) -> None:
+        import zmq
+
+        while self.running:
+            if self.sock.poll(50):
+                _, payload = self.sock.recv_multipart(zmq.NOBLOCK)
+                self.messages.append(msgpack.unpackb(payload, raw=False))
+
+    def detections(self) -> list[dict[str, Any]]:
+        return [m for m in list(self.messages) if m.get("type") == "detection"]
+
+    def close(self) -> None:
+        self.running = False
+        self.thread.join(5)
+        self.sock.close()
+        self.ctx.term()
+
+
+DETECTION_KEY = ("class", "start_frame", "end_frame", "cost", "tau", "emitted_at_frame")
+
+
+def detection_keys(items: Sequence[dict[str, Any]]) -> list[tuple[Any, ...]]:
+    """What must agree between a detection on the wire and ``mocapd detect``'s: all but the id."""
+    return [tuple(d[k] for k in DETECTION_KEY) for d in items]

@@ -29,7 +29,13 @@ from pathlib import Path
 from types import FrameType
 from typing import Any, NoReturn
 
-COMMANDS = ("daemon.cli.recordings", "daemon.cli.search", "daemon.cli.learn", "daemon.cli.detect")
+COMMANDS = (
+    "daemon.cli.recordings",
+    "daemon.cli.search",
+    "daemon.cli.learn",
+    "daemon.cli.detect",
+    "daemon.cli.service",
+)
 """The command groups, in the order ``--help`` lists them; each has ``register(subparsers)``."""
 
 EXIT_USAGE = 2
@@ -114,7 +120,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         try:
             args = parser().parse_args(arguments)
             debug = args.debug
-            status: int = args.func(args, load_config(args.config))
+            status: int = args.func(args, load_config(args.config, os.environ))
             sys.stdout.flush()
             return status
         except MocapdError as exc:

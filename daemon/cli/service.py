@@ -1,0 +1,166 @@
+"""``mocapd run`` (the daemon) and ``mocapd replay`` (a recording onto the bus as a live stream)."""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import dataclasses
+import time
+from collections.abc import Callable, Coroutine
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from daemon.cli import common
+from daemon.cli.detect import speed
+from daemon.config import Config
+from daemon.errors import UsageError
+from daemon.library import default_library_path, load_library
+from daemon.recordings import native_rate, read_recording
+
+if TYPE_CHECKING:
+    from daemon.service.app import Service
+
+STANDARD_MQTT = "mqtt://127.0.0.1:1883"
+
+
+def register(sub: Any) -> None:
+    run = sub.add_parser("run", help="the daemon: recognise motions on every stream of the bus")
+    run.add_argument(
+        "--mqtt",
+        default=None,
+        metavar="mqtt://HOST:PORT",
+        help="use this MQTT broker as the only source and sink (overrides service.sources/sinks, mqtt.url)",
+    )
+    run.add_argument(
+        "--metrics-port", type=int, default=None, metavar="N", help="port of /healthz and /metrics (0: off)"
+    )
+    run.add_argument(
+        "--library", type=Path, default=None, help="template library directory (default: the shipped one)"
+    )
+    run.add_argument(
+        "--replay",
+        nargs=2,
+        type=Path,
+        default=None,
+        metavar=("ASF", "AMC"),
+        help="also replay this recording into the daemon over its first source, and stop when it ends",
+    )
+    run.add_argument(
+        "--speed", type=speed, default=1.0, metavar="1|X|max", help="--replay's pace (default 1)"
+    )
+    run.add_argument("--stream", default=None, help="--replay's stream id (default: the AMC file's name)")
+    run.set_defaults(func=_run)
+
+    rep = sub.add_parser(
+        "replay", help="publish a recording onto the bus as a live stream, paced by the clock"
+    )
+    common.recording_options(rep)
+    rep.add_argument(
+        "--to",
+        required=True,
+        metavar="URL",
+        help="zmq+tcp://HOST:PORT (the daemon's poses socket) or mqtt://HOST:PORT (a broker)",
+    )
+    rep.add_argument("--stream", default=None, help="stream id (default: the AMC file's name)")
+    rep.add_argument(
+        "--speed", type=speed, default=1.0, metavar="1|X|max", help="1 = real time (default), X times, max"
+    )
+    rep.add_argument("--loop", action="store_true", help="start over at the end, until interrupted")
+    rep.set_defaults(func=_replay)
+
+
+def stream_name(amc: Path) -> str:
+    return amc.name.removesuffix(".gz").removesuffix(".amc")
+
+
+def _replay(args: argparse.Namespace, config: Config) -> int:
+    from replay.publish import replay_to
+
+    motion = read_recording(args.asf, args.amc)
+    rate = native_rate(motion, common.default_native_rate(args, config))
+    asf_text = Path(args.asf).read_text(encoding="utf-8", errors="replace")
+    stream = stream_name(args.amc) if args.stream is None else args.stream
+    try:
+        sent = asyncio.run(
+            replay_to(args.to, motion, asf_text, stream=stream, rate=rate, speed=args.speed, loop=args.loop)
+        )
+    except ValueError as e:
+        raise UsageError(str(e), field="--to") from None
+    except TimeoutError:
+        raise UsageError(
+            f"nothing answered at {args.to} (is the daemon or broker running?)", field="--to"
+        ) from None
+    print(f"replayed {sent} frames of {args.amc.name} as stream {stream!r} to {args.to}")
+    return 0
+
+
+def _run(args: argparse.Namespace, config: Config) -> int:
+    from daemon.cli import package_version
+    from daemon.service.app import serve
+
+    config = _overridden(args, config)
+    library = load_library(default_library_path() if args.library is None else args.library)
+    extra = None if args.replay is None else _replay_into(args, config)
+    return serve(config, library, version=package_version(), extra=extra)
+
+
+Task = tuple[str, Callable[[], Coroutine[Any, Any, None]]]
+Tasks = Callable[["Service", asyncio.Event], list[Task]]
+
+
+def _replay_into(args: argparse.Namespace, config: Config) -> Tasks:
+    """``run --replay``'s task: once the daemon serves, the recording into its first source; when
+    every pose sent has been received and recognised, the stop."""
+    from replay.publish import replay_to
+
+    asf, amc = args.replay
+    motion = read_recording(asf, amc)
+    rate = native_rate(motion, config.replay.frame_rate_hz)
+    asf_text = asf.read_text(encoding="utf-8", errors="replace")
+    stream = stream_name(amc) if args.stream is None else args.stream
+    url = _own_source(config)
+
+    def tasks(service: Service, stop: asyncio.Event) -> list[Task]:
+        async def replay_then_stop() -> None:
+            while service.health() is not None:
+                await asyncio.sleep(0.01)
+            await replay_to(url, motion, asf_text, stream=stream, rate=rate, speed=args.speed)
+            quiet = time.monotonic()
+            while time.monotonic() - quiet < 0.3:  # the last poses received, nothing queued
+                await asyncio.sleep(0.02)
+                if service.table.queued:
+                    quiet = time.monotonic()
+            stop.set()
+
+        return [("replay", replay_then_stop)]
+
+    return tasks
+
+
+def _overridden(args: argparse.Namespace, config: Config) -> Config:
+    service, metrics, mqtt = config.service, config.metrics, config.mqtt
+    if args.mqtt is not None:
+        from protocols.mqtt import parse_url
+
+        try:
+            parse_url(args.mqtt)
+        except ValueError as e:
+            raise UsageError(str(e), field="--mqtt") from None
+        service = dataclasses.replace(service, sources=("mqtt",), sinks=("mqtt",))
+        mqtt = dataclasses.replace(mqtt, url=args.mqtt)
+    if args.metrics_port is not None:
+        if not 0 <= args.metrics_port <= 65535:
+            raise UsageError(f"must be a port in 0..65535, got {args.metrics_port}", field="--metrics-port")
+        metrics = dataclasses.replace(metrics, port=args.metrics_port)
+    return dataclasses.replace(config, service=service, metrics=metrics, mqtt=mqtt)
+
+
+def _own_source(config: Config) -> str:
+    """Where ``run --replay`` sends: the daemon's first source, as a replay URL."""
+    first = config.service.sources[0]
+    if first == "mqtt":
+        return config.mqtt.url
+    from protocols.zeromq import split_endpoint
+
+    endpoint, _ = split_endpoint(config.zmq.poses)
+    return "zmq+" + endpoint.replace("://*:", "://127.0.0.1:").replace("://0.0.0.0:", "://127.0.0.1:")

@@ -1,0 +1,468 @@
+"""``mocapd run``: the daemon on its transports (DESIGN.md, the data flow; config.yaml says every knob).
+
+Tasks, named, under one :class:`asyncio.TaskGroup`: one intake per source (decode, validate, route
+into the :class:`~daemon.service.streams.StreamTable`), the recogniser, the idle evictor and the
+``/healthz`` + ``/metrics`` server (and, for ``run --replay``, the replay). Intake only decodes and
+queues; recognition runs on the same loop in slices (``service.tick_budget_ms``): each slice pushes
+one queued pose of every stream with one through the bank, again and again until the budget is
+spent, then yields, so receiving and publishing are never held up longer than a slice, and a burst
+or a slow stream only grows the queues, which are bounded (a stream's oldest pose is dropped, never a
+detection). Intake yields every few messages too, so a flood cannot starve recognition.
+
+Shutdown (SIGTERM/SIGINT through ``loop.add_signal_handler``): intake stops, every queued pose is
+recognised and every stream flushed, what that gives is published, the transports close (MQTT
+drains its outbox, publishes "offline" and disconnects; ZeroMQ sockets linger), the metrics server
+stops; all within ``service.grace_s``, after which what is left is cancelled. A second signal exits
+at once.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import logging
+import os
+import signal
+import socket
+import sys
+import time
+from collections import Counter
+from collections.abc import Callable, Coroutine, Iterable
+from dataclasses import replace
+from typing import Any
+
+from prometheus_client.core import CounterMetricFamily
+from prometheus_client.registry import Collector
+
+from daemon.config import Config
+from daemon.library import Library
+from daemon.service.metrics import Metrics, serve_http
+from daemon.service.streams import Emitted, Refused, StreamTable
+from protocols.messages import (
+    PoseMessage,
+    SkeletonMessage,
+    StatusMessage,
+    WireError,
+    decode,
+    encode,
+    parse_topic,
+    topic,
+)
+from protocols.transport import Incoming, Outgoing, Transport, make
+
+EVENTS = ("gaps", "gap_frames", "idle", "skeleton_changed")
+"""Counts of the stream table that are neither refusals nor drops."""
+DROPS = ("lagging",)
+YIELD_EVERY = 64
+"""Messages an intake takes before it lets the other tasks run."""
+
+
+class _Stop(Exception):
+    """Raised by the shutdown task once everything is published: ends the task group."""
+
+
+class EventLog:
+    """Structured warnings, one JSON line per event; per (stream, reason) the first is logged and
+    then at most one every ``every_s`` seconds, saying how many were not."""
+
+    def __init__(self, logger: logging.Logger, every_s: float = 10.0) -> None:
+        self.logger = logger
+        self.every_s = every_s
+        self._last: dict[tuple[str, str], float] = {}
+        self._quiet: Counter[tuple[str, str]] = Counter()
+
+    def warn(self, stream: str, reason: str, detail: str) -> None:
+        key = (stream, reason)
+        now = time.monotonic()
+        last = self._last.get(key)
+        if last is not None and now - last < self.every_s:
+            self._quiet[key] += 1
+            return
+        self._last[key] = now
+        suppressed = self._quiet.pop(key, 0)
+        self.logger.warning(
+            "refused",
+            extra={
+                "fields": {"stream": stream, "reason": reason, "detail": detail, "since_last": suppressed}
+            },
+        )
+
+
+class JsonFormatter(logging.Formatter):
+    """A log record as one JSON object: time, level, event, and its ``fields``."""
+
+    def format(self, record: logging.LogRecord) -> str:
+        body: dict[str, Any] = {
+            "ts": round(record.created, 6),
+            "level": record.levelname.lower(),
+            "event": record.getMessage(),
+        }
+        body.update(getattr(record, "fields", {}))
+        if record.exc_info:
+            body["error"] = self.formatException(record.exc_info)
+        return json.dumps(body, default=str)
+
+
+def configure_logging(level: str) -> logging.Logger:
+    """The ``mocapd`` logger writing JSON lines to stderr at ``level`` (the service's edge)."""
+    logger = logging.getLogger("mocapd")
+    logger.handlers.clear()
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(JsonFormatter())
+    logger.addHandler(handler)
+    logger.setLevel(level.upper())
+    logger.propagate = False
+    return logger
+
+
+class _Counts(Collector):
+    """Rejects, drops and stream events as Prometheus counters, read from the service's tallies when
+    scraped."""
+
+    def __init__(self, service: Service) -> None:
+        self.service = service
+
+    def collect(self) -> Iterable[CounterMetricFamily]:
+        s = self.service
+        rejects = CounterMetricFamily("mocapd_rejects", "Messages refused, by reason", labels=["reason"])
+        drops = CounterMetricFamily("mocapd_drops", "Poses or messages dropped, by reason", labels=["reason"])
+        events = CounterMetricFamily(
+            "mocapd_stream_events", "Gaps, evictions, skeleton changes", labels=["event"]
+        )
+        table = s.table.counts
+        for reason, n in sorted(
+            (s.rejects + Counter({k: v for k, v in table.items() if k not in EVENTS + DROPS})).items()
+        ):
+            rejects.add_metric([reason], n)
+        for reason in DROPS:
+            drops.add_metric([reason], table.get(reason, 0))
+        for t in s.transports:
+            for reason, n in t.dropped().items():
+                drops.add_metric([reason], n)
+        for event in EVENTS:
+            events.add_metric([event], table.get(event, 0))
+        yield rejects
+        yield drops
+        yield events
+
+
+class Service:
+    """One daemon instance over ``transports`` (entered by :meth:`run`) with the library's classes."""
+
+    def __init__(
+        self,
+        config: Config,
+        library: Library,
+        transports: list[Transport],
+        *,
+        instance: str,
+        version: str,
+        logger: logging.Logger,
+    ) -> None:
+        self.config = config
+        self.instance = instance
+        self.version = version
+        self.log = logger
+        self.events = EventLog(logger)
+        self.transports = transports
+        self.started = time.time()
+        self.table = StreamTable(
+            library,
+            session=f"{instance}/{self.started:.6f}",
+            queue_frames=config.service.queue_frames,
+            max_streams=config.service.max_streams,
+            max_gap_s=config.service.max_gap_s,
+            max_gap_frame_s=config.recognizer.max_gap_s,
+        )
+        self.metrics = Metrics(config.metrics.stream_labels)
+        self.metrics.registry.register(_Counts(self))
+        self.rejects: Counter[str] = Counter()
+        self.stopping = False
+        self.published = 0
+        self._work = asyncio.Event()
+        self._entered = False
+        for t in transports:
+            t.announce(self._status("online"), self._status("offline"))
+
+    def _status(self, state: str) -> Outgoing:
+        message = StatusMessage(self.instance, state, self.version, len(self.table.streams), self.started)  # type: ignore[arg-type]
+        return Outgoing(topic(message), encode(message), retain=True, reliable=True)
+
+    def health(self) -> str | None:
+        """None while every transport is connected and serving, else why not."""
+        if self.stopping:
+            return "stopping"
+        if not self._entered:
+            return "starting"
+        return next((p for t in self.transports if (p := t.problem) is not None), None)
+
+    # ---------------------------------------------------------------------------------- intake
+
+    def receive(self, incoming: Incoming) -> list[Emitted]:
+        """Decode, validate and route one message; what it completed (a replaced stream's last
+        detections). Refusals are counted and logged, never raised."""
+        started = time.perf_counter()
+        parsed = parse_topic(incoming.topic)
+        stream = parsed[0] if parsed else "?"
+        try:
+            if parsed is None or parsed[1] not in ("skeleton", "pose"):
+                raise Refused("topic", f"not a topic mocapd takes: {incoming.topic[:80]!r}")
+            message = decode(incoming.payload, self.config.service.max_message_bytes)
+            self.metrics.messages.labels(type(message).__name__.removesuffix("Message").lower()).inc()
+            if not isinstance(message, SkeletonMessage | PoseMessage):
+                raise Refused("type", f"a {type(message).__name__} is not taken in")
+            if message.stream != stream or (parsed[1] == "pose") != isinstance(message, PoseMessage):
+                raise Refused(
+                    "schema", f"a {type(message).__name__} for {message.stream!r} on {incoming.topic!r}"
+                )
+            now = time.monotonic()
+            if isinstance(message, PoseMessage):
+                self.table.pose(message, now)
+                (
+                    self.metrics.frames.labels(stream) if self.metrics.stream_labels else self.metrics.frames
+                ).inc()
+                self._work.set()
+                return []
+            self.log.info(
+                "skeleton", extra={"fields": {"stream": stream, "kind": message.kind, "rate": message.rate}}
+            )
+            return self.table.skeleton(message, now)
+        except WireError as e:
+            self.rejects[e.reason] += 1
+            self.events.warn(stream, e.reason, e.detail)
+        except Refused as e:
+            self.rejects[e.reason] += 1
+            self.events.warn(stream, e.reason, str(e))
+        finally:
+            self.metrics.stage.labels("decode").observe(time.perf_counter() - started)
+        return []
+
+    async def _intake(self, transport: Transport) -> None:
+        source = transport.source()
+        assert source is not None
+        n = 0
+        async for incoming in source:
+            for e in self.receive(incoming):
+                await self.publish(e)
+            n += 1
+            if n % YIELD_EVERY == 0:
+                await asyncio.sleep(0)
+
+    # ------------------------------------------------------------------------------ recognition
+
+    async def _recognise(self) -> None:
+        budget = self.config.service.tick_budget_ms / 1000
+        stage = self.metrics.stage.labels("recognise")
+        while True:
+            await self._work.wait()
+            self._work.clear()
+            deadline = time.perf_counter() + budget
+            while self.table.queued:
+                started = time.perf_counter()
+                emitted, _ = self.table.tick()
+                done = time.perf_counter()
+                stage.observe(done - started)
+                for e in emitted:
+                    await self.publish(e)
+                if done > deadline:
+                    await asyncio.sleep(0)
+                    deadline = time.perf_counter() + budget
+
+    async def publish(self, e: Emitted) -> None:
+        started = time.perf_counter()
+        message = replace(e.message, emit_time=time.time())
+        out = Outgoing(topic(message), encode(message), reliable=True)
+        for t in self.transports:
+            sink = t.sink()
+            if sink is not None:
+                await sink.publish(out)
+        self.published += 1
+        m = self.metrics
+        (m.detections.labels(message.stream) if m.stream_labels else m.detections).inc()
+        if e.source_time > 0:
+            m.end_to_end.observe(max(0.0, message.emit_time - e.source_time))
+        m.stage.labels("publish").observe(time.perf_counter() - started)
+        self.log.debug(
+            "detection",
+            extra={"fields": {"id": message.id, "stream": message.stream, "class": message.class_name}},
+        )
+
+    async def _housekeeping(self) -> None:
+        while True:
+            await asyncio.sleep(1.0)
+            for e in self.table.evict_idle(time.monotonic(), self.config.service.idle_s):
+                await self.publish(e)
+            self._gauges()
+
+    def _gauges(self) -> None:
+        m = self.metrics
+        m.streams.set(len(self.table.streams))
+        m.queued.set(self.table.queued)
+        m.pending.set(sum(getattr(t, "pending", 0) for t in self.transports))
+        for t in self.transports:
+            m.connected.labels(t.name).set(1 if t.problem is None else 0)
+
+    # --------------------------------------------------------------------------------- running
+
+    async def run(
+        self, stop: asyncio.Event, extra: Iterable[tuple[str, Callable[[], Coroutine[Any, Any, None]]]] = ()
+    ) -> bool:
+        """Serve until ``stop`` is set, then shut down (see the module docstring). ``extra``: more
+        (name, coroutine function) tasks for the group. True if everything was published within the
+        grace."""
+        clean = True
+        async with contextlib.AsyncExitStack() as stack:
+            for t in self.transports:
+                await stack.enter_async_context(t)
+            self._entered = True
+            self.log.info(
+                "online",
+                extra={
+                    "fields": {"instance": self.instance, "transports": [t.name for t in self.transports]}
+                },
+            )
+            intakes: list[asyncio.Task[None]] = []
+            try:
+                async with asyncio.TaskGroup() as group:
+                    for t in self.transports:
+                        if t.source() is not None:
+                            intakes.append(group.create_task(self._intake(t), name=f"intake {t.name}"))
+                    group.create_task(self._recognise(), name="recognise")
+                    group.create_task(self._housekeeping(), name="housekeeping")
+                    if self.config.metrics.port:
+                        listening = asyncio.Event()
+                        group.create_task(
+                            serve_http(
+                                self.config.metrics.host,
+                                self.config.metrics.port,
+                                self.health,
+                                self.metrics,
+                                listening,
+                            ),
+                            name="http",
+                        )
+                    for name, factory in extra:
+                        group.create_task(factory(), name=name)
+                    group.create_task(self._shutdown(stop, intakes), name="shutdown")
+            except* _Stop:
+                pass
+            except* TimeoutError:
+                clean = False
+            self.stopping = True
+            self._gauges()
+            self.log.info(
+                "offline",
+                extra={"fields": {"instance": self.instance, "published": self.published, "clean": clean}},
+            )
+        return clean
+
+    async def _shutdown(self, stop: asyncio.Event, intakes: list[asyncio.Task[None]]) -> None:
+        await stop.wait()
+        deadline = asyncio.get_running_loop().time() + self.config.service.grace_s
+        self.stopping = True
+        self.log.info(
+            "stopping",
+            extra={
+                "fields": {
+                    "queued": self.table.queued,
+                    "received": {name: st.received for name, st in self.table.streams.items()},
+                }
+            },
+        )
+        for task in intakes:
+            task.cancel()
+        async with asyncio.timeout_at(deadline):
+            for e in self.table.flush_all():
+                await self.publish(e)
+        left = max(0.1, deadline - asyncio.get_running_loop().time())
+        for t in self.transports:
+            if hasattr(t, "drain_s"):
+                t.drain_s = left
+        raise _Stop
+
+
+def instance_name(config: Config) -> str:
+    return config.service.instance or socket.gethostname().split(".")[0] or "mocapd"
+
+
+def transports_of(config: Config, instance: str) -> list[Transport]:
+    """The transports config names (sources and sinks, each made once), in that order."""
+    names = list(dict.fromkeys(config.service.sources + config.service.sinks))
+    out: list[Transport] = []
+    for name in names:
+        source, sink = name in config.service.sources, name in config.service.sinks
+        if name == "zmq":
+            z = config.zmq
+            out.append(
+                make(
+                    "zmq",
+                    poses=z.poses if source else None,
+                    detections=z.detections if sink else None,
+                    hwm=z.hwm,
+                    linger_ms=z.linger_ms,
+                    curve_secret_key_file=z.curve_secret_key_file,
+                    curve_clients_dir=z.curve_clients_dir,
+                )
+            )
+        elif name == "mqtt":
+            q = config.mqtt
+            out.append(
+                make(
+                    "mqtt",
+                    url=q.url,
+                    client_id=q.client_id or f"mocapd-{instance}",
+                    subscribe=[("mocap/+/skeleton", 1), ("mocap/+/pose", 0)] if source else [],
+                    username=q.username,
+                    password=q.password,
+                    ca_file=q.ca_file,
+                    cert_file=q.cert_file,
+                    key_file=q.key_file,
+                    queue=q.queue,
+                    outbox=q.outbox,
+                    keepalive_s=q.keepalive_s,
+                    reconnect_min_s=q.reconnect_min_s,
+                    reconnect_max_s=q.reconnect_max_s,
+                )
+            )
+        else:
+            out.append(make("stdout", format=config.stdout.format))
+    return out
+
+
+def serve(
+    config: Config,
+    library: Library,
+    *,
+    version: str,
+    extra: Callable[[Service, asyncio.Event], Iterable[tuple[str, Callable[[], Coroutine[Any, Any, None]]]]]
+    | None = None,
+) -> int:
+    """Run the service until SIGTERM/SIGINT (or ``extra``'s tasks set the stop event); the exit
+    status: 0 when everything was published within the grace, 1 otherwise."""
+    logger = configure_logging(config.logging.level)
+    instance = instance_name(config)
+
+    async def main() -> bool:
+        loop = asyncio.get_running_loop()
+        stop = asyncio.Event()
+
+        def on_signal(signum: int) -> None:
+            if stop.is_set():
+                os._exit(128 + signum)  # a second signal: at once
+            logger.info("signal", extra={"fields": {"signal": signal.Signals(signum).name}})
+            stop.set()
+
+        for signum in (signal.SIGTERM, signal.SIGINT):
+            loop.add_signal_handler(signum, on_signal, signum)
+        service = Service(
+            config,
+            library,
+            transports_of(config, instance),
+            instance=instance,
+            version=version,
+            logger=logger,
+        )
+        return await service.run(stop, extra(service, stop) if extra is not None else ())
+
+    return 0 if asyncio.run(main()) else 1

@@ -1,0 +1,287 @@
+"""The service's stream table: decoded wire messages in, detections out (no sockets, no asyncio).
+
+A stream exists once its skeleton arrived: :meth:`StreamTable.skeleton` makes (or, for a changed
+skeleton, remakes) its recogniser in the :class:`~daemon.bank.RecognizerBank`; :meth:`StreamTable.pose`
+checks the sequence number (a repeat and anything older than the last pose are dropped) and queues
+the pose; :meth:`StreamTable.tick` takes one queued pose of every stream that has one into one bank
+push. Everything refused or dropped is counted by reason in :attr:`StreamTable.counts`.
+
+Frame numbers. The recogniser needs consecutive frame numbers; a stream's sequence numbers may have
+gaps (poses lost on the way, or dropped here when its queue is full). A gap of at most
+``max_gap_frames`` is bridged: the pose after it is given the next frame number, and detections
+report sequence numbers through the stream's table of (frame, sequence offset) changes. A longer gap
+ends the stream's motion: its recogniser is flushed and begins again at the new pose. With no gap,
+frame number = sequence number, so a replayed recording's detections are those of ``mocapd detect``.
+"""
+
+from __future__ import annotations
+
+from collections import Counter, deque
+from collections.abc import Collection
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from daemon.bank import RecognizerBank
+from daemon.features import latency_frames
+from daemon.library import Library
+from daemon.recognizer import Detection, ring_size
+from protocols.messages import DetectionMessage, PoseMessage, SkeletonMessage
+from replay import MocapFormatError, Skeleton, parse_asf
+from replay.amc import DEG
+
+
+class Refused(Exception):
+    """A message the table does not take, with the counter ``reason`` and a sentence."""
+
+    def __init__(self, reason: str, detail: str) -> None:
+        super().__init__(detail)
+        self.reason = reason
+
+
+@dataclass
+class _Stream:
+    """One stream: its announcement, the skeleton parsed from it (channel streams), the last
+    sequence number received and the last fed to the recogniser, the poses waiting, and the frame
+    number ↔ sequence number offsets (frame f has sequence number f + offset of the last change at
+    or before f)."""
+
+    announced: SkeletonMessage
+    skeleton: Skeleton | None
+    angles: np.ndarray | None
+    last_received: int | None = None
+    received: int = 0
+    last_fed: int | None = None
+    next_frame: int = 0
+    queue: deque[PoseMessage] = field(default_factory=deque)
+    offsets: deque[tuple[int, int]] = field(default_factory=deque)
+    times: np.ndarray = field(default_factory=lambda: np.zeros(1))
+    seen: float = 0.0
+    generation: int = 0
+
+
+@dataclass(frozen=True)
+class Emitted:
+    """A detection ready for the wire, and when the pose that completed it was stamped by its
+    source (for the end-to-end latency)."""
+
+    message: DetectionMessage
+    source_time: float
+
+
+class StreamTable:
+    """The streams of one service instance (see the module docstring). ``session`` makes detection
+    ids unique to this run; ``queue_frames`` bounds each stream's waiting poses (the oldest dropped),
+    ``max_streams`` the table, ``max_gap_frames`` the bridged gaps (at 120 Hz; scaled by the
+    stream's rate)."""
+
+    def __init__(
+        self,
+        library: Library,
+        *,
+        session: str,
+        queue_frames: int = 240,
+        max_streams: int = 1000,
+        max_gap_s: float = 0.25,
+        max_gap_frame_s: float = 2.0,
+        classes: Collection[str] | None = None,
+    ) -> None:
+        self.bank = RecognizerBank(library, max_gap_s=max_gap_frame_s, classes=classes)
+        self.session = session
+        self.queue_frames = queue_frames
+        self.max_streams = max_streams
+        self.max_gap_s = max_gap_s
+        self.library = library
+        self.streams: dict[str, _Stream] = {}
+        self.counts: Counter[str] = Counter()
+        """Refusals and drops by reason, and ``gaps``/``gap_frames``."""
+        self._window = ring_size(self.bank.plans)
+
+    def _horizon(self, rate: float) -> int:
+        """Native frames a detection at ``rate`` Hz reaches back at most: its widest window of
+        index-rate frames, the features' delay, and margin (offsets and source times are kept as
+        long)."""
+        step = max(1, round(rate / self.library.rate))
+        return (self._window + 2) * step + latency_frames(rate) + 8
+
+    @property
+    def queued(self) -> int:
+        return sum(len(s.queue) for s in self.streams.values())
+
+    # ------------------------------------------------------------------------------------ intake
+
+    def skeleton(self, message: SkeletonMessage, now: float) -> list[Emitted]:
+        """Make or remake the stream's recogniser; the last detections of a replaced one."""
+        old = self.streams.get(message.stream)
+        if old is not None and old.announced == message:
+            old.seen = now
+            return []  # a repeated (retained) announcement
+        if old is None and len(self.streams) >= self.max_streams:
+            raise Refused("too_many_streams", f"the table holds {self.max_streams} streams")
+        skeleton = angles = None
+        if message.asf is not None:
+            try:
+                skeleton = parse_asf(message.asf.splitlines(), f"<skeleton of {message.stream}>")
+            except MocapFormatError as e:
+                raise Refused("skeleton", str(e)) from None
+            if message.angle_unit == "deg":
+                angles = np.asarray(skeleton.angle_channels, dtype=np.intp)
+        out = self._remove(message.stream, "skeleton_changed") if old is not None else []
+        try:
+            self.bank.add(
+                message.stream,
+                message.rate,
+                skeleton=skeleton,
+                joint_names=message.joints,
+                session=f"{self.session}/{(old.generation + 1) if old else 0}",  # ids unique per run
+            )
+        except (ValueError, MocapFormatError) as e:
+            raise Refused("skeleton", str(e)) from None
+        self.streams[message.stream] = _Stream(
+            message,
+            skeleton,
+            angles,
+            times=np.zeros(self._horizon(message.rate)),
+            seen=now,
+            generation=(old.generation + 1) if old else 0,
+        )
+        return out
+
+    def pose(self, message: PoseMessage, now: float) -> None:
+        """Queue a pose, or :class:`Refused` (``no_skeleton``, ``duplicate``, ``out_of_order``,
+        ``shape``)."""
+        s = self.streams.get(message.stream)
+        if s is None:
+            raise Refused("no_skeleton", f"stream {message.stream!r} has announced no skeleton")
+        kind = s.announced.kind
+        if (message.positions is None) != (kind == "channels"):
+            raise Refused(
+                "shape", f"a {kind} stream got a pose of {'channels' if kind == 'positions' else 'positions'}"
+            )
+        last = s.last_received
+        if last is not None and message.seq <= last:
+            raise Refused(
+                "duplicate" if message.seq == last else "out_of_order", f"seq {message.seq} after {last}"
+            )
+        s.last_received = message.seq
+        s.received += 1
+        s.seen = now
+        if len(s.queue) >= self.queue_frames:
+            s.queue.popleft()
+            self.counts["lagging"] += 1
+        s.queue.append(message)
+
+    # ------------------------------------------------------------------------------ recognition
+
+    def tick(self) -> tuple[list[Emitted], int]:
+        """One queued pose of every stream that has one, through one bank push: the detections, and
+        the poses pushed."""
+        frames = []
+        out: list[Emitted] = []
+        for name, s in self.streams.items():
+            if not s.queue:
+                continue
+            pose = s.queue.popleft()
+            gap = 0 if s.last_fed is None else pose.seq - s.last_fed - 1
+            if gap > round(self.max_gap_s * s.announced.rate):
+                self.counts["gaps"] += 1
+                self.counts["gap_frames"] += gap
+                out += self._restart(name, s)
+            elif gap > 0:
+                self.counts["gaps"] += 1
+                self.counts["gap_frames"] += gap
+            if s.last_fed is None:  # a new motion: frame numbers are the sequence numbers
+                s.next_frame = pose.seq
+                s.offsets.clear()
+                s.offsets.append((pose.seq, 0))
+            elif gap > 0:
+                s.offsets.append((s.next_frame, pose.seq - s.next_frame))
+            frame = s.next_frame
+            s.next_frame += 1
+            s.last_fed = pose.seq
+            horizon = len(s.times)
+            s.times[frame % horizon] = pose.time
+            while len(s.offsets) > 1 and s.offsets[1][0] < frame - horizon:
+                s.offsets.popleft()
+            frames.append((name, frame, self._values(s, pose)))
+        if not frames:
+            return out, 0
+        result = self.bank.push(frames)
+        for _, error in result.errors:
+            self.counts[error.problem] += 1
+        out += [self._emitted(d) for d in result.detections]
+        return out, len(frames)
+
+    def _values(self, s: _Stream, pose: PoseMessage) -> np.ndarray:
+        if pose.positions is not None:
+            p = pose.positions.astype(np.float64)
+            if s.announced.up == "z":  # to mocapd's y up: a quarter turn about x
+                p = np.stack([p[:, 0], p[:, 2], -p[:, 1]], axis=1)
+            return p
+        assert pose.channels is not None and s.skeleton is not None
+        if s.angles is None or len(pose.channels) != len(s.skeleton.channel_names):
+            return pose.channels  # radians, or a wrong length the bank refuses
+        c = pose.channels.copy()
+        c[s.angles] *= DEG  # as the AMC reader converts degrees
+        return c
+
+    # ------------------------------------------------------------------------------- the end
+
+    def evict_idle(self, now: float, idle_s: float) -> list[Emitted]:
+        """Flush and forget the streams silent for more than ``idle_s`` seconds whose poses are
+        all recognised."""
+        out = []
+        for name in [n for n, s in self.streams.items() if now - s.seen > idle_s and not s.queue]:
+            out += self._remove(name, "idle")
+        return out
+
+    def flush_all(self) -> list[Emitted]:
+        """Every stream's last detections (its queued poses first), the table emptied."""
+        out = []
+        while self.queued:
+            out += self.tick()[0]
+        for name in list(self.streams):
+            out += self._remove(name, None)
+        return out
+
+    def _remove(self, name: str, reason: str | None) -> list[Emitted]:
+        s = self.streams.pop(name)
+        if reason is not None:
+            self.counts[reason] += 1
+        return [self._emitted(d, s) for d in self.bank.remove(name)]
+
+    def _restart(self, name: str, s: _Stream) -> list[Emitted]:
+        """End the stream's motion at a long gap: its detections so far, then a fresh recogniser."""
+        out = [self._emitted(d) for d in self.bank.remove(name)]
+        a = s.announced
+        s.generation += 1
+        session = f"{self.session}/{s.generation}"
+        self.bank.add(name, a.rate, skeleton=s.skeleton, joint_names=a.joints, session=session)
+        s.last_fed = None
+        return out
+
+    def _emitted(self, d: Detection, s: _Stream | None = None) -> Emitted:
+        s = s if s is not None else self.streams[d.stream]
+        source_time = float(s.times[d.emitted_at_frame % len(s.times)])
+        message = DetectionMessage(
+            d.id,
+            d.stream,
+            d.class_name,
+            self._seq(s, d.start_frame),
+            self._seq(s, d.end_frame),
+            d.cost,
+            d.tau,
+            self._seq(s, d.emitted_at_frame),
+            source_time,
+            0.0,
+        )
+        return Emitted(message, source_time)
+
+    @staticmethod
+    def _seq(s: _Stream, frame: int) -> int:
+        offset = 0
+        for start, value in s.offsets:
+            if start > frame:
+                break
+            offset = value
+        return frame + offset

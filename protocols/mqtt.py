@@ -1,0 +1,263 @@
+"""MQTT through aiomqtt (2.x): subscriptions in, publications out, over one connection that mends
+itself.
+
+The connection follows aiomqtt's documented reconnect loop: one client, re-entered after every loss
+with a capped exponential back-off, subscribing again on every connect. The session is persistent
+(``clean_session=False`` with a fixed client id), so the broker keeps the subscriptions and queued
+QoS 1 messages across the daemon's reconnects and, with persistence on, its own restarts. Reliable
+messages (detections: QoS 1) go through an outbox and leave it only when the broker acknowledged
+them; what was not acknowledged when the connection dropped is sent again after the reconnect
+(a consumer may see a repeat: detections carry an event id). With :meth:`MqttTransport.announce`,
+the "online" status is published retained on every connect, the "offline" one is the retained last
+will, and a planned close publishes "offline" itself before disconnecting (a clean disconnect
+suppresses the will). The incoming queue is bounded: when it is full the oldest message is dropped
+(counted).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import ssl
+import time
+from collections import deque
+from collections.abc import AsyncIterator, Sequence
+from types import TracebackType
+from urllib.parse import urlsplit
+
+import aiomqtt
+
+from protocols.transport import Incoming, Outgoing
+
+LOG = logging.getLogger("mocapd.mqtt")
+
+
+def parse_url(url: str) -> tuple[str, int, bool]:
+    """(host, port, tls) of ``mqtt://host:port`` or ``mqtts://host:port`` (ports 1883 / 8883 by
+    default); ValueError otherwise."""
+    parts = urlsplit(url)
+    if parts.scheme not in ("mqtt", "mqtts") or not parts.hostname:
+        raise ValueError(f"an MQTT broker is mqtt://HOST[:PORT] or mqtts://HOST[:PORT], got {url!r}")
+    tls = parts.scheme == "mqtts"
+    return parts.hostname, parts.port or (8883 if tls else 1883), tls
+
+
+class _DropOldest(asyncio.Queue[aiomqtt.Message]):
+    """aiomqtt's incoming queue, bounded: a message arriving when it is full pushes out the oldest."""
+
+    dropped = 0
+
+    def put_nowait(self, item: aiomqtt.Message) -> None:
+        if self.maxsize > 0 and self.full():
+            self.get_nowait()
+            type(self).dropped += 1
+        super().put_nowait(item)
+
+
+class MqttTransport:
+    """An MQTT connection to the broker at ``url``: ``subscribe`` (topic, QoS) pairs in, publications
+    out. ``client_id`` fixed (the persistent session is the broker's record of it); ``queue`` bounds
+    the incoming messages, ``outbox`` the reliable ones awaiting acknowledgement; ``reconnect_min_s``
+    doubling up to ``reconnect_max_s`` between attempts; ``username``/``password``; TLS with
+    ``mqtts://`` or ``ca_file`` (and ``cert_file``/``key_file`` for a client certificate)."""
+
+    name = "mqtt"
+
+    def __init__(
+        self,
+        *,
+        url: str = "mqtt://127.0.0.1:1883",
+        client_id: str = "mocapd",
+        subscribe: Sequence[tuple[str, int]] = (),
+        username: str | None = None,
+        password: str | None = None,
+        ca_file: str | None = None,
+        cert_file: str | None = None,
+        key_file: str | None = None,
+        queue: int = 10_000,
+        outbox: int = 100_000,
+        keepalive_s: int = 30,
+        reconnect_min_s: float = 0.25,
+        reconnect_max_s: float = 10.0,
+        drain_s: float = 2.0,
+    ) -> None:
+        self.host, self.port, tls = parse_url(url)
+        self.url = url
+        self.client_id = client_id
+        self.subscriptions = list(subscribe)
+        self.username, self.password = username, password
+        self.tls = tls or ca_file is not None
+        self.ca_file, self.cert_file, self.key_file = ca_file, cert_file, key_file
+        self.queue = queue
+        self.outbox_size = outbox
+        self.keepalive_s = keepalive_s
+        self.reconnect = (reconnect_min_s, reconnect_max_s)
+        self.drain_s = drain_s
+        self._online: Outgoing | None = None
+        self._offline: Outgoing | None = None
+        self._client: aiomqtt.Client | None = None
+        self._runner: asyncio.Task[None] | None = None
+        self._incoming: asyncio.Queue[Incoming] = asyncio.Queue()
+        self._outbox: deque[Outgoing] = deque()
+        self._wake = asyncio.Event()
+        self._connected = asyncio.Event()
+        self._problem: str | None = "mqtt: not connected yet"
+        self._dropped_incoming = 0
+        self._dropped_outbox = 0
+        self.connects = 0
+
+    def announce(self, online: Outgoing, offline: Outgoing) -> None:
+        """Publish ``online`` on every connect; ``offline`` is the last will and is published before a
+        planned close. Call before entering."""
+        self._online, self._offline = online, offline
+
+    async def __aenter__(self) -> MqttTransport:
+        context = None
+        if self.tls:
+            context = ssl.create_default_context(cafile=self.ca_file)
+            if self.cert_file is not None:
+                context.load_cert_chain(self.cert_file, self.key_file)
+        will = None
+        if self._offline is not None:
+            will = aiomqtt.Will(self._offline.topic, self._offline.payload, qos=1, retain=True)
+
+        queue_type = type("Queue", (_DropOldest,), {"dropped": 0})
+        self._queue_type = queue_type
+        self._client = aiomqtt.Client(
+            self.host,
+            self.port,
+            identifier=self.client_id,
+            clean_session=False,
+            username=self.username,
+            password=self.password,
+            will=will,
+            keepalive=self.keepalive_s,
+            tls_context=context,
+            queue_type=queue_type,
+            max_queued_incoming_messages=self.queue,
+            timeout=10,
+        )
+        self._runner = asyncio.create_task(self._run(), name=f"mqtt {self.host}:{self.port}")
+        return self
+
+    async def __aexit__(
+        self, kind: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        """Drain the outbox (at most ``drain_s`` seconds), publish "offline", disconnect."""
+        deadline = time.monotonic() + self.drain_s
+        while self._outbox and self._connected.is_set() and time.monotonic() < deadline:
+            await asyncio.sleep(0.01)
+        client = self._client
+        if self._offline is not None and client is not None and self._connected.is_set():
+            with contextlib.suppress(aiomqtt.MqttError, asyncio.TimeoutError):
+                await asyncio.wait_for(
+                    self._send(client, self._offline), max(0.1, deadline - time.monotonic())
+                )
+        if self._runner is not None:
+            self._runner.cancel()
+            with contextlib.suppress(asyncio.CancelledError, aiomqtt.MqttError):
+                await self._runner
+        self._runner = None
+
+    async def _run(self) -> None:
+        assert self._client is not None
+        client = self._client
+        delay = self.reconnect[0]
+        while True:
+            try:
+                async with client:
+                    self.connects += 1
+                    if self._online is not None:
+                        await self._send(client, self._online)
+                    for topic, qos in self.subscriptions:
+                        await client.subscribe(topic, qos=qos)
+                    self._problem = None
+                    self._connected.set()
+                    LOG.info(
+                        "mqtt connected", extra={"fields": {"broker": self.url, "connects": self.connects}}
+                    )
+                    delay = self.reconnect[0]
+                    async with asyncio.TaskGroup() as tasks:
+                        tasks.create_task(self._sender(client), name="mqtt sender")
+                        tasks.create_task(self._reader(client), name="mqtt reader")
+            except* aiomqtt.MqttError as group:
+                self._problem = f"mqtt: {group.exceptions[0]} (reconnecting)"
+                LOG.warning(
+                    "mqtt lost", extra={"fields": {"broker": self.url, "error": str(group.exceptions[0])}}
+                )
+            self._connected.clear()
+            await asyncio.sleep(delay)
+            delay = min(2 * delay, self.reconnect[1])
+
+    async def _reader(self, client: aiomqtt.Client) -> None:
+        async for m in client.messages:
+            payload = m.payload if isinstance(m.payload, bytes) else str(m.payload or "").encode()
+            self._put(Incoming(m.topic.value, payload, time.time()))
+
+    async def _sender(self, client: aiomqtt.Client) -> None:
+        while True:
+            while not self._outbox:
+                self._wake.clear()
+                await self._wake.wait()
+            message = self._outbox[0]
+            await self._send(client, message)  # MqttError: kept, sent again after the reconnect
+            if self._outbox and self._outbox[0] is message:
+                self._outbox.popleft()
+
+    async def _send(self, client: aiomqtt.Client, m: Outgoing) -> None:
+        await client.publish(m.topic, m.payload, qos=1 if m.reliable else 0, retain=m.retain)
+
+    def _put(self, message: Incoming) -> None:
+        if self._incoming.qsize() >= self.queue > 0:
+            self._incoming.get_nowait()
+            self._dropped_incoming += 1
+        self._incoming.put_nowait(message)
+
+    # ----------------------------------------------------------------------------- the interface
+
+    def source(self) -> MqttTransport:
+        return self
+
+    def sink(self) -> MqttTransport:
+        return self
+
+    async def __aiter__(self) -> AsyncIterator[Incoming]:
+        while True:
+            yield await self._incoming.get()
+
+    async def publish(self, message: Outgoing) -> None:
+        """Queue ``message`` for sending (never waits for the network). An unreliable message while
+        disconnected is dropped; when the outbox is full the oldest unreliable one goes, or if there
+        is none the message itself is dropped (counted)."""
+        if not message.reliable and not self._connected.is_set():
+            self._dropped_outbox += 1
+            return
+        if len(self._outbox) >= self.outbox_size:
+            for i, queued in enumerate(self._outbox):
+                if not queued.reliable:
+                    del self._outbox[i]
+                    break
+            else:
+                self._dropped_outbox += 1
+                return
+        self._outbox.append(message)
+        self._wake.set()
+
+    async def wait_connected(self, timeout: float | None = None) -> None:
+        await asyncio.wait_for(self._connected.wait(), timeout)
+
+    @property
+    def problem(self) -> str | None:
+        return self._problem
+
+    @property
+    def pending(self) -> int:
+        """Messages in the outbox (not yet acknowledged)."""
+        return len(self._outbox)
+
+    def dropped(self) -> dict[str, int]:
+        return {
+            "mqtt_incoming_full": self._dropped_incoming + getattr(self, "_queue_type", _DropOldest).dropped,
+            "mqtt_outbox_full": self._dropped_outbox,
+        }

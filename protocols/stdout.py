@@ -1,0 +1,81 @@
+"""Standard output as a sink: every published message as one JSON line (``{"topic": ..., **fields}``,
+bytes fields as hex) or, with ``format: text``, a readable line per detection and boundary. Lines
+are flushed at once, so a pipe sees each detection when it is published."""
+
+from __future__ import annotations
+
+import json
+import sys
+from types import TracebackType
+from typing import Any, TextIO
+
+import msgpack
+
+from protocols.transport import Outgoing
+
+
+def _plain(value: Any) -> Any:
+    return value.hex() if isinstance(value, bytes) else value
+
+
+class StdoutTransport:
+    """A sink writing to ``stream`` (default ``sys.stdout``) in ``format`` ``json`` or ``text``."""
+
+    name = "stdout"
+
+    def __init__(self, *, format: str = "json", stream: TextIO | None = None) -> None:
+        if format not in ("json", "text"):
+            raise ValueError(f"stdout format must be json or text, got {format!r}")
+        self.format = format
+        self.stream = stream
+        self._status: tuple[Outgoing, Outgoing] | None = None
+
+    def announce(self, online: Outgoing, offline: Outgoing) -> None:
+        """Print ``online`` on entering and ``offline`` on leaving."""
+        self._status = (online, offline)
+
+    async def __aenter__(self) -> StdoutTransport:
+        if self._status is not None:
+            await self.publish(self._status[0])
+        return self
+
+    async def __aexit__(
+        self, kind: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        if self._status is not None:
+            await self.publish(self._status[1])
+        (self.stream or sys.stdout).flush()
+
+    def source(self) -> None:
+        return None
+
+    def sink(self) -> StdoutTransport:
+        return self
+
+    async def publish(self, message: Outgoing) -> None:
+        body = msgpack.unpackb(message.payload, raw=False)
+        out = self.stream or sys.stdout
+        if self.format == "json":
+            line = json.dumps({"topic": message.topic, **{k: _plain(v) for k, v in body.items()}})
+        elif body.get("type") == "detection":
+            line = (
+                f"{body['stream']}: {body['class']:30s} frames {body['start_frame']}-{body['end_frame']}  "
+                f"cost {body['cost']:.3f} (tau {body['tau']:.3f})"
+            )
+        elif body.get("type") == "boundary":
+            line = (
+                f"{body['stream']}: boundary at frame {body['frame']} ({body['method']}, {body['score']:.3g})"
+            )
+        elif body.get("type") == "status":
+            line = f"mocapd {body['instance']} {body['state']} ({body['streams']} streams)"
+        else:
+            return
+        out.write(line + "\n")
+        out.flush()
+
+    @property
+    def problem(self) -> str | None:
+        return None
+
+    def dropped(self) -> dict[str, int]:
+        return {}

@@ -1,0 +1,93 @@
+"""The one small interface every transport implements, and the registry config names them from.
+
+A :class:`Transport` owns its connections (``async with transport:``); its :meth:`Transport.source`
+yields :class:`Incoming` messages (a ``Source``) and its :meth:`Transport.sink` publishes
+:class:`Outgoing` ones (a ``Sink``); either may be absent (stdout has no source). Publishing never
+blocks the caller for long: a transport that cannot send drops (ZeroMQ at its high-water mark) or
+queues (MQTT, bounded) and says so in :meth:`Transport.dropped`. :attr:`Transport.problem` is None
+while the transport is connected and serving, else why not (``/healthz`` reports it).
+
+The implementations are in :mod:`protocols.zeromq`, :mod:`protocols.mqtt` and :mod:`protocols.stdout`,
+chosen by name from the explicit :data:`REGISTRY` (:func:`make`); each is the only code that touches
+its sockets.
+"""
+
+from __future__ import annotations
+
+import importlib
+from collections.abc import AsyncIterator, Callable
+from dataclasses import dataclass
+from types import TracebackType
+from typing import Any, Protocol
+
+
+@dataclass(frozen=True)
+class Incoming:
+    """A message received on ``topic`` at ``received`` (``time.time()``)."""
+
+    topic: str
+    payload: bytes
+    received: float
+
+
+@dataclass(frozen=True)
+class Outgoing:
+    """A message to publish: ``retain`` (MQTT: the broker keeps the last one for late subscribers)
+    and ``reliable`` (MQTT: QoS 1, kept until the broker acknowledges it, resent after a
+    reconnect)."""
+
+    topic: str
+    payload: bytes
+    retain: bool = False
+    reliable: bool = False
+
+
+class Source(Protocol):
+    def __aiter__(self) -> AsyncIterator[Incoming]: ...
+
+
+class Sink(Protocol):
+    async def publish(self, message: Outgoing) -> None: ...
+
+
+class Transport(Protocol):
+    """A connection owner: enter it to connect (or bind), leave it to close with linger."""
+
+    name: str
+
+    def announce(self, online: Outgoing, offline: Outgoing) -> None:
+        """Publish ``online`` when connected (every time, for a transport that reconnects) and
+        ``offline`` when closing (and, where the transport has one, as its last will)."""
+
+    async def __aenter__(self) -> Transport: ...
+
+    async def __aexit__(
+        self, kind: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None: ...
+
+    def source(self) -> Source | None: ...
+
+    def sink(self) -> Sink | None: ...
+
+    @property
+    def problem(self) -> str | None: ...
+
+    def dropped(self) -> dict[str, int]: ...
+
+
+REGISTRY: dict[str, tuple[str, str]] = {
+    "zmq": ("protocols.zeromq", "ZmqTransport"),
+    "mqtt": ("protocols.mqtt", "MqttTransport"),
+    "stdout": ("protocols.stdout", "StdoutTransport"),
+}
+"""Transport name → (module, class); imported when named, so an unused transport's library is not."""
+
+
+def make(name: str, **settings: Any) -> Transport:
+    """The transport ``name`` of :data:`REGISTRY` made with ``settings``; KeyError naming the known
+    ones."""
+    if name not in REGISTRY:
+        raise KeyError(f"no transport {name!r} (known: {', '.join(sorted(REGISTRY))})")
+    module, cls = REGISTRY[name]
+    factory: Callable[..., Transport] = getattr(importlib.import_module(module), cls)
+    return factory(**settings)

@@ -1,0 +1,196 @@
+"""ZeroMQ: poses in on a SUB socket, detections out on a PUB socket, each message a two-frame
+multipart ``[topic, payload]`` (topics as MQTT's, DESIGN.md). Both sockets bind by default (the
+daemon is the fixed point; producers and consumers connect); ``connect`` in the endpoint's place
+makes one connect instead. Every socket gets its high-water mark before bind/connect and an explicit
+linger; publishing never blocks (PUB drops at the high-water mark, as ZeroMQ does). With
+``curve_secret_key_file`` (a key pair written by ``zmq.auth.create_certificates``) both sockets are
+CURVE servers: traffic is encrypted, and with ``curve_clients_dir`` only the clients whose public
+keys are in that directory may connect."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import AsyncIterator
+from pathlib import Path
+from types import TracebackType
+
+import zmq
+import zmq.asyncio
+import zmq.auth
+from zmq.auth.asyncio import AsyncioAuthenticator
+
+from protocols.transport import Incoming, Outgoing
+
+PREFIX = b"mocap/"
+
+
+def open_socket(
+    ctx: zmq.asyncio.Context,
+    kind: int,
+    endpoint: str,
+    *,
+    bind: bool,
+    hwm: int,
+    linger_ms: int,
+    curve_server_secret: bytes | None = None,
+    curve_server_public: bytes | None = None,
+) -> zmq.asyncio.Socket:
+    """A socket of ``kind`` with its high-water marks and linger set before it binds or connects
+    ``endpoint``; a CURVE server when ``curve_server_secret`` is given."""
+    sock = ctx.socket(kind)
+    sock.setsockopt(zmq.SNDHWM, hwm)
+    sock.setsockopt(zmq.RCVHWM, hwm)
+    sock.setsockopt(zmq.LINGER, linger_ms)
+    if curve_server_secret is not None:
+        sock.setsockopt(zmq.CURVE_SECRETKEY, curve_server_secret)
+        if curve_server_public is not None:
+            sock.setsockopt(zmq.CURVE_PUBLICKEY, curve_server_public)
+        sock.setsockopt(zmq.CURVE_SERVER, 1)
+    if bind:
+        sock.bind(endpoint)
+    else:
+        sock.connect(endpoint)
+    return sock
+
+
+def split_endpoint(endpoint: str) -> tuple[str, bool]:
+    """``"connect tcp://h:p"`` → (``"tcp://h:p"``, False); a bare endpoint binds."""
+    words = endpoint.split()
+    if len(words) == 2 and words[0] in ("bind", "connect"):
+        return words[1], words[0] == "bind"
+    return endpoint, True
+
+
+class ZmqTransport:
+    """The daemon's ZeroMQ side: ``poses`` (SUB) and ``detections`` (PUB) endpoints (None: that
+    side is off), ``hwm`` messages queued per socket, ``linger_ms`` at close."""
+
+    name = "zmq"
+
+    def __init__(
+        self,
+        *,
+        poses: str | None = "tcp://127.0.0.1:5555",
+        detections: str | None = "tcp://127.0.0.1:5556",
+        hwm: int = 100_000,
+        linger_ms: int = 1000,
+        curve_secret_key_file: str | None = None,
+        curve_clients_dir: str | None = None,
+    ) -> None:
+        self.poses = poses
+        self.detections = detections
+        self.hwm = hwm
+        self.linger_ms = linger_ms
+        self.curve_secret_key_file = curve_secret_key_file
+        self.curve_clients_dir = curve_clients_dir
+        self._ctx: zmq.asyncio.Context | None = None
+        self._sub: zmq.asyncio.Socket | None = None
+        self._pub: zmq.asyncio.Socket | None = None
+        self._auth: AsyncioAuthenticator | None = None
+        self._dropped = 0
+        self._status: tuple[Outgoing, Outgoing] | None = None
+
+    def announce(self, online: Outgoing, offline: Outgoing) -> None:
+        """Publish ``online`` once bound and ``offline`` before closing (on the PUB socket)."""
+        self._status = (online, offline)
+
+    async def __aenter__(self) -> ZmqTransport:
+        self._ctx = zmq.asyncio.Context()
+        secret = public = None
+        if self.curve_secret_key_file is not None:
+            public, secret = zmq.auth.load_certificate(self.curve_secret_key_file)
+            if secret is None:
+                raise ValueError(f"{self.curve_secret_key_file}: not a secret key file")
+            auth = AsyncioAuthenticator(self._ctx)
+            auth.start()
+            clients = self.curve_clients_dir
+            auth.configure_curve(domain="*", location=clients if clients else zmq.auth.CURVE_ALLOW_ANY)
+            self._auth = auth
+        try:
+            if self.poses is not None:
+                endpoint, bind = split_endpoint(self.poses)
+                self._sub = open_socket(
+                    self._ctx,
+                    zmq.SUB,
+                    endpoint,
+                    bind=bind,
+                    hwm=self.hwm,
+                    linger_ms=self.linger_ms,
+                    curve_server_secret=secret,
+                    curve_server_public=public,
+                )
+                self._sub.setsockopt(zmq.SUBSCRIBE, PREFIX)
+            if self.detections is not None:
+                endpoint, bind = split_endpoint(self.detections)
+                self._pub = open_socket(
+                    self._ctx,
+                    zmq.PUB,
+                    endpoint,
+                    bind=bind,
+                    hwm=self.hwm,
+                    linger_ms=self.linger_ms,
+                    curve_server_secret=secret,
+                    curve_server_public=public,
+                )
+        except BaseException:
+            await self.__aexit__(None, None, None)
+            raise
+        if self._pub is not None and self._status is not None:
+            await self.publish(self._status[0])
+        return self
+
+    async def __aexit__(
+        self, kind: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        if self._pub is not None and self._status is not None:
+            await self.publish(self._status[1])
+        for sock in (self._sub, self._pub):
+            if sock is not None:
+                sock.close(linger=self.linger_ms)
+        self._sub = self._pub = None
+        if self._auth is not None:
+            self._auth.stop()
+            self._auth = None
+        if self._ctx is not None:
+            self._ctx.term()
+            self._ctx = None
+
+    def source(self) -> _Source | None:
+        return None if self._sub is None else _Source(self._sub)
+
+    def sink(self) -> ZmqTransport | None:
+        return None if self._pub is None else self
+
+    async def publish(self, message: Outgoing) -> None:
+        assert self._pub is not None
+        try:
+            self._pub.send_multipart([message.topic.encode(), message.payload], flags=zmq.NOBLOCK)
+        except zmq.Again:
+            self._dropped += 1
+
+    @property
+    def problem(self) -> str | None:
+        return None if self._ctx is not None else "zmq: not started"
+
+    def dropped(self) -> dict[str, int]:
+        return {"zmq_send_full": self._dropped}
+
+
+class _Source:
+    def __init__(self, sock: zmq.asyncio.Socket) -> None:
+        self._sock = sock
+
+    async def __aiter__(self) -> AsyncIterator[Incoming]:
+        while True:
+            parts: list[bytes] = await self._sock.recv_multipart()
+            received = time.time()
+            if len(parts) != 2:
+                yield Incoming("", b"", received)  # counted as undecodable by the service
+                continue
+            yield Incoming(parts[0].decode("utf-8", "replace"), parts[1], received)
+
+
+def curve_keys(directory: str | Path, name: str) -> tuple[Path, Path]:
+    """A new CURVE key pair ``name.key`` (public) and ``name.key_secret`` in ``directory``."""
+    public, secret = zmq.auth.create_certificates(str(directory), name)
+    return Path(public), Path(secret)

@@ -1,0 +1,219 @@
+"""``mocapd run`` end to end, every part real: the daemon and the replays are processes, the broker is
+a mosquitto on a loopback port, the sockets are ZeroMQ's. A replayed recording gives exactly the
+detections ``mocapd detect`` gives (every field but the id), over ZeroMQ and over MQTT, for one
+stream and for eight at once; SIGTERM mid-stream publishes everything received and "offline"; a
+broker restart loses no detection; kill -9 leaves the will."""
+
+from __future__ import annotations
+
+import signal
+import time
+from functools import cache
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from daemon.library import default_library_path, load_library
+from daemon.recognizer import detect
+from daemon.recordings import read_recording
+from replay import Motion
+from tests.helpers import (
+    DATA,
+    Broker,
+    Daemon,
+    MqttCollector,
+    ZmqCollector,
+    detection_keys,
+    finished,
+    hdm05_clip,
+    replay,
+    takes,
+    wait_for,
+)
+
+CMU_13 = DATA / "cmu" / "13" / "13.asf"
+TRIAL = (CMU_13, DATA / "cmu" / "13" / "13_30.amc.gz")
+LONG = (CMU_13, DATA / "cmu" / "13" / "13_29.amc.gz")
+
+
+@cache
+def expected(asf: Path, amc: Path, frames: int | None = None) -> list[dict[str, Any]]:
+    """``mocapd detect``'s detections (its batch twin) on the recording, or its first ``frames``."""
+    motion = read_recording(asf, amc)
+    if frames is not None:
+        motion = Motion(
+            motion.source, motion.skeleton, motion.header, motion.frames[:frames], motion.channels[:frames]
+        )
+    return [d.as_json() for d in detect(motion, load_library(default_library_path()), 120.0)]
+
+
+def unique(items: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """First arrivals only (QoS 1 may deliver a detection twice; the id says which)."""
+    seen: set[str] = set()
+    out = []
+    for d in items:
+        if d["id"] not in seen:
+            seen.add(d["id"])
+            out.append(d)
+    return out
+
+
+BIG_QUEUE = {"service": {"queue_frames": 100_000}}
+"""A replay as fast as possible outruns recognition; with a queue this long nothing is dropped."""
+
+
+def test_zeromq_replay_gives_the_detections_of_detect(tmp_path: Path) -> None:
+    daemon = Daemon(tmp_path, config=BIG_QUEUE).start()
+    collector = ZmqCollector(daemon.detections)
+    try:
+        finished(replay(*TRIAL, "zmq+" + daemon.poses, speed="max"))
+        want = detection_keys(expected(*TRIAL))
+        wait_for(lambda: daemon.metrics().get("mocapd_frames_in_total") == 2465, 30, "every pose received")
+        assert daemon.stop() == 0
+        wait_for(lambda: len(collector.detections()) >= len(want), 10, "the last detections")
+        assert detection_keys(collector.detections()) == want
+        assert detection_keys(daemon.detections_printed()) == want
+        statuses = [m["state"] for m in collector.messages if m.get("type") == "status"]
+        assert statuses[-1:] == ["offline"]
+    finally:
+        collector.close()
+        daemon.stop()
+
+
+def test_mqtt_replay_gives_the_detections_of_detect(tmp_path: Path) -> None:
+    broker = Broker(tmp_path).start()
+    daemon = Daemon(
+        tmp_path, sources=["mqtt"], sinks=["mqtt", "stdout"], mqtt=broker.url, config=BIG_QUEUE
+    ).start()
+    collector = MqttCollector(broker.url, ["mocap/+/detections", "mocapd/+/status"])
+    try:
+        assert daemon.health() == (200, "ok\n")
+        wait_for(lambda: any(s["state"] == "online" for s in collector.statuses()), 10, "the retained online")
+        finished(replay(*TRIAL, broker.url, speed="8"))
+        wait_for(lambda: daemon.metrics().get("mocapd_frames_in_total") == 2465, 30, "every pose received")
+        assert daemon.stop() == 0
+        want = detection_keys(expected(*TRIAL))
+        wait_for(lambda: len(unique(collector.detections())) >= len(want), 10, "the last detections")
+        assert detection_keys(unique(collector.detections())) == want
+        wait_for(lambda: collector.statuses()[-1]["state"] == "offline", 10, "offline")
+    finally:
+        collector.close()
+        daemon.stop()
+        broker.stop()
+
+
+def test_eight_replays_at_once_are_eight_streams(tmp_path: Path) -> None:
+    sources = [
+        TRIAL,
+        (DATA / "cmu" / "02" / "02.asf", DATA / "cmu" / "02" / "02_05.amc.gz"),
+        (DATA / "cmu" / "86" / "86.asf", DATA / "cmu" / "86" / "86_01.amc.gz"),
+        hdm05_clip("bd", "squat1Reps", takes("squat1Reps", "bd")[0]),
+        hdm05_clip("bk", "hopBothLegs1hops", takes("hopBothLegs1hops", "bk")[1]),
+        hdm05_clip("dg", "kickLFront1Reps", takes("kickLFront1Reps", "dg")[0]),
+        hdm05_clip("bd", "elbowToKnee1RepsLelbowStart", takes("elbowToKnee1RepsLelbowStart", "bd")[0]),
+        TRIAL,  # the same recording as another stream
+    ]
+    daemon = Daemon(tmp_path, config=BIG_QUEUE).start()
+    collector = ZmqCollector(daemon.detections)
+    try:
+        names = [f"s{k}" for k in range(len(sources))]
+        running = [
+            replay(asf, amc, "zmq+" + daemon.poses, stream=n, speed="4")
+            for n, (asf, amc) in zip(names, sources, strict=True)
+        ]
+        for p in running:
+            finished(p)
+        total = sum(len(read_recording(asf, amc)) for asf, amc in sources)
+        wait_for(lambda: daemon.metrics().get("mocapd_frames_in_total") == total, 60, "every pose received")
+        assert daemon.stop() == 0
+        got = daemon.detections_printed()
+        for name, (asf, amc) in zip(names, sources, strict=True):
+            mine = [d for d in got if d["stream"] == name]
+            assert detection_keys(mine) == detection_keys(expected(asf, amc)), name
+        assert sum(len(expected(a, m)) for a, m in sources) > 20  # not a vacuous comparison
+        wait_for(lambda: len(collector.detections()) == len(got), 10, "the published detections")
+    finally:
+        collector.close()
+        daemon.stop()
+
+
+def test_sigterm_mid_stream_publishes_what_was_received_then_offline(tmp_path: Path) -> None:
+    daemon = Daemon(tmp_path, config={"service": {"grace_s": 5}}).start()
+    collector = ZmqCollector(daemon.detections)
+    sender = replay(*LONG, "zmq+" + daemon.poses, speed="2")
+    try:
+        wait_for(lambda: daemon.metrics().get("mocapd_frames_in_total", 0) > 1500, 60, "poses flowing")
+        daemon.signal(signal.SIGTERM)
+        began = time.monotonic()
+        assert daemon.wait(timeout=5 + 5) == 0
+        stopping = next(e for e in daemon.logs() if e["event"] == "stopping")
+        received = stopping["received"][Path(LONG[1]).name.removesuffix(".amc.gz")]
+        assert received > 1500
+        want = detection_keys(expected(*LONG, received))
+        assert detection_keys(daemon.detections_printed()) == want
+        wait_for(lambda: len(collector.detections()) == len(want), 10, "the published detections")
+        assert detection_keys(collector.detections()) == want
+        statuses = [m["state"] for m in collector.messages if m.get("type") == "status"]
+        assert statuses[-1:] == ["offline"]
+        assert time.monotonic() - began < 10
+    finally:
+        sender.kill()
+        sender.communicate()
+        collector.close()
+        daemon.stop()
+
+
+def test_broker_restart_mid_stream_loses_no_detection(tmp_path: Path) -> None:
+    broker = Broker(tmp_path).start()
+    daemon = Daemon(tmp_path, sources=["mqtt"], sinks=["mqtt", "stdout"], mqtt=broker.url).start()
+    collector = MqttCollector(broker.url, ["mocap/+/detections"], client_id="restart-collector")
+    sender = replay(*LONG, broker.url, speed="2")
+    try:
+        wait_for(lambda: len(daemon.detections_printed()) >= 5, 60, "detections flowing")
+        broker.stop()
+        wait_for(lambda: daemon.health()[0] == 503, 10, "the daemon noticing")
+        assert "mqtt" in daemon.health()[1]
+        time.sleep(0.5)
+        broker.start()
+        wait_for(lambda: daemon.health()[0] == 200, 20, "the daemon reconnecting by itself")
+        finished(sender, timeout=120)
+        wait_for(lambda: daemon.metrics().get("mocapd_queued_poses", 1) == 0, 30, "the last poses recognised")
+        assert daemon.stop() == 0
+        emitted = {d["id"] for d in daemon.detections_printed()}
+        assert len(emitted) > 10
+        wait_for(lambda: emitted <= {d["id"] for d in collector.detections()}, 20, "every emitted detection")
+        connects = [e for e in daemon.logs() if e["event"] == "mqtt connected"]
+        assert len(connects) >= 2
+    finally:
+        sender.kill()
+        sender.communicate()
+        collector.close()
+        daemon.stop()
+        broker.stop()
+
+
+def test_kill_9_leaves_the_will(tmp_path: Path) -> None:
+    broker = Broker(tmp_path).start()
+    daemon = Daemon(tmp_path, sources=["mqtt"], sinks=["mqtt"], mqtt=broker.url).start()
+    collector = MqttCollector(broker.url, ["mocapd/+/status"], client_id="will-collector")
+    try:
+        wait_for(lambda: [s["state"] for s in collector.statuses()][-1:] == ["online"], 10, "online")
+        daemon.signal(signal.SIGKILL)
+        daemon.wait(10)
+        wait_for(lambda: [s["state"] for s in collector.statuses()][-1:] == ["offline"], 10, "the will")
+        assert collector.statuses()[-1]["instance"] == daemon.instance
+    finally:
+        collector.close()
+        broker.stop()
+
+
+def test_a_channel_frame_roundtrip_is_exact() -> None:
+    """What makes the equality above possible: a channel frame crosses the wire as float64, bit for bit."""
+    from protocols.messages import PoseMessage, decode, encode
+
+    motion = read_recording(*TRIAL)
+    for row in motion.channels[::97]:
+        back = decode(encode(PoseMessage("s", 1, 0.0, channels=row)))
+        assert isinstance(back, PoseMessage) and back.channels is not None
+        assert np.array_equal(back.channels, row)
