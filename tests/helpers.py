@@ -16,7 +16,7 @@ import threading
 import time
 import urllib.error
 import urllib.request
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -270,7 +270,7 @@ class Daemon:
         sources: Sequence[str] = ("zmq",),
         sinks: Sequence[str] = ("zmq", "stdout"),
         mqtt: str | None = None,
-        config: dict[str, dict[str, object]] | None = None,
+        config: Mapping[str, Mapping[str, object]] | None = None,
         env: dict[str, str] | None = None,
     ) -> None:
         self.where = where
@@ -389,12 +389,13 @@ class MqttCollector:
 
     def __init__(self, url: str, topics: Sequence[str], client_id: str = "collector") -> None:
         import paho.mqtt.client as paho
+        from paho.mqtt.enums import CallbackAPIVersion
 
         host, port = url.removeprefix("mqtt://").split(":")
         self.messages: list[tuple[str, dict[str, Any]]] = []
         self.lock = threading.Lock()
-        self.client = paho.Client(paho.CallbackAPIVersion.VERSION2, client_id=client_id, clean_session=False)
-        self.client.reconnect_delay_set(0.05, 0.5)
+        self.client = paho.Client(CallbackAPIVersion.VERSION2, client_id=client_id, clean_session=False)
+        self.client.reconnect_delay_set(1, 1)
         self.topics = list(topics)
         self.connected = threading.Event()
 

@@ -64,7 +64,11 @@ def test_recognizer_section(tmp_path: Path) -> None:
 
 BAD = [
     # unknown fields
-    ("unknown-top", "replay: {}\nextra: 1\n", "extra: unknown field (allowed: logging, metrics, mqtt, recognizer"),
+    (
+        "unknown-top",
+        "replay: {}\nextra: 1\n",
+        "extra: unknown field (allowed: logging, metrics, mqtt, recognizer",
+    ),
     (
         "unknown-recognizer",
         "recognizer:\n  gap: 2\n",
