@@ -260,7 +260,9 @@ class Service:
             deadline = time.perf_counter() + budget
             while self.table.queued:
                 started = time.perf_counter()
-                emitted, _ = self.table.tick()
+                emitted, refused = self.table.tick()
+                for stream, problem, why in refused:
+                    self.events.warn(stream, problem, why)
                 done = time.perf_counter()
                 stage.observe(done - started)
                 for e in emitted:

@@ -158,6 +158,12 @@ class StreamTable:
             raise Refused(
                 "shape", f"a {kind} stream got a pose of {'channels' if kind == 'positions' else 'positions'}"
             )
+        width = len(s.skeleton.channel_names) if s.skeleton is not None else len(s.announced.joints or ())
+        values = message.channels if message.channels is not None else message.positions
+        got = 0 if values is None else len(values)
+        if got != width:
+            what = "channels" if kind == "channels" else "joints"
+            raise Refused("shape", f"{got} {what}, the skeleton announced {width}")
         last = s.last_received
         if last is not None and message.seq <= last:
             raise Refused(
@@ -173,9 +179,9 @@ class StreamTable:
 
     # ------------------------------------------------------------------------------ recognition
 
-    def tick(self) -> tuple[list[Emitted], int]:
+    def tick(self) -> tuple[list[Emitted], list[tuple[str, str, str]]]:
         """One queued pose of every stream that has one, through one bank push: the detections, and
-        the poses pushed."""
+        the poses the recognisers refused as (stream, problem, why)."""
         frames = []
         out: list[Emitted] = []
         for name, s in self.streams.items():
@@ -205,12 +211,14 @@ class StreamTable:
                 s.offsets.popleft()
             frames.append((name, frame, self._values(s, pose)))
         if not frames:
-            return out, 0
+            return out, []
         result = self.bank.push(frames)
-        for _, error in result.errors:
+        refused: list[tuple[str, str, str]] = []
+        for name, error in result.errors:
             self.counts[error.problem] += 1
+            refused.append((name, error.problem, str(error)))
         out += [self._emitted(d) for d in result.detections]
-        return out, len(frames)
+        return out, refused
 
     def _values(self, s: _Stream, pose: PoseMessage) -> np.ndarray:
         if pose.positions is not None:

@@ -1,0 +1,190 @@
+"""Bad input on both transports, sent by a real process's socket beside a good stream: every kind of
+bad message is counted on /metrics under its reason and logged once, the daemon neither crashes nor
+grows, and the good stream keeps exactly its detections."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Any
+
+import msgpack
+import numpy as np
+import pytest
+import zmq
+
+from daemon.library import default_library_path, load_library
+from daemon.recognizer import detect
+from daemon.recordings import read_recording
+from protocols.messages import PoseMessage, SkeletonMessage, encode
+from replay import JOINT_NAMES
+from tests.helpers import DATA, Broker, Daemon, detection_keys, finished, replay, wait_for
+
+GOOD = (DATA / "cmu" / "13" / "13.asf", DATA / "cmu" / "13" / "13_30.amc.gz")
+POSE = np.zeros((len(JOINT_NAMES), 3), dtype=np.float32)
+
+
+def raw(body: dict[str, Any]) -> bytes:
+    out: bytes = msgpack.packb(body, use_bin_type=True)
+    return out
+
+
+def pose(stream: str, seq: int, positions: np.ndarray = POSE) -> bytes:
+    return encode(PoseMessage(stream, seq, time.time(), positions=positions))
+
+
+def bad_messages() -> list[tuple[str, bytes, str]]:
+    """(topic, payload, the reason it is counted under)."""
+    skeleton = encode(SkeletonMessage("bad-a", 120.0, JOINT_NAMES))
+    body = {"v": 1, "type": "pose", "stream": "bad-a", "seq": 1, "time": 0.0, "positions": POSE.tobytes()}
+    return [
+        ("mocap/bad-a/skeleton", skeleton, ""),  # fine: the bad stream exists
+        ("mocap/bad-a/pose", b"\x00\xff garbage", "undecodable"),
+        ("mocap/bad-a/pose", raw({**body, "v": 9}), "version"),
+        ("mocap/bad-a/pose", raw({**body, "type": "posture"}), "type"),
+        ("mocap/bad-a/pose", raw({**body, "positions": np.full(78, np.nan, "<f4").tobytes()}), "non_finite"),
+        ("mocap/bad-a/pose", raw({**body, "pad": b"x" * 70_000}), "oversize"),
+        ("mocap/bad-a/pose", raw({k: v for k, v in body.items() if k != "seq"}), "schema"),
+        ("mocap/bad-a/pose", pose("bad-a", 10), ""),
+        ("mocap/bad-a/pose", pose("bad-a", 10), "duplicate"),
+        ("mocap/bad-a/pose", pose("bad-a", 4), "out_of_order"),
+        ("mocap/bad-a/pose", pose("bad-a", 11, POSE[:10]), "shape"),  # 10 joints, 26 announced
+        ("mocap/bad-b/pose", pose("bad-b", 1), "no_skeleton"),
+        ("mocap/bad-a/detections", pose("bad-a", 12), "topic"),  # MQTT: not subscribed, never arrives
+        ("mocap/bad-a/skeleton", encode(SkeletonMessage("bad-a", 120.0, tuple(reversed(JOINT_NAMES)))), ""),
+        ("mocap/bad-a/pose", pose("bad-a", 100), ""),  # after the change: a new stream, any start
+        ("mocap/bad-a/pose", pose("bad-a", 200), ""),  # a gap
+        ("mocap/bad-c/skeleton", encode(SkeletonMessage("bad-c", 120.0, ("a", "b"))), "skeleton"),
+    ]
+
+
+class ZmqSender:
+    def __init__(self, endpoint: str) -> None:
+        self.ctx = zmq.Context()
+        self.sock = self.ctx.socket(zmq.XPUB)
+        self.sock.setsockopt(zmq.SNDHWM, 1_000_000)
+        self.sock.setsockopt(zmq.LINGER, 5000)
+        self.sock.connect(endpoint)
+        assert self.sock.poll(10_000), "the daemon did not subscribe"
+        self.sock.recv()
+
+    def send(self, topic: str, payload: bytes) -> None:
+        self.sock.send_multipart([topic.encode(), payload])
+
+    def close(self) -> None:
+        self.sock.close()
+        self.ctx.term()
+
+
+class MqttSender:
+    def __init__(self, url: str) -> None:
+        import paho.mqtt.client as paho
+        from paho.mqtt.enums import CallbackAPIVersion
+
+        host, port = url.removeprefix("mqtt://").split(":")
+        self.client = paho.Client(CallbackAPIVersion.VERSION2, client_id="bad-sender")
+        self.client.max_queued_messages_set(0)
+        self.client.connect(host, int(port))
+        self.client.loop_start()
+        self.last: Any = None
+
+    def send(self, topic: str, payload: bytes) -> None:
+        self.last = self.client.publish(topic, payload, qos=1)
+
+    def close(self) -> None:
+        if self.last is not None:
+            self.last.wait_for_publish(30)
+        self.client.loop_stop()
+        self.client.disconnect()
+
+
+def rss_kib(pid: int) -> int:
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1])
+    raise AssertionError("no VmRSS")
+
+
+@pytest.mark.parametrize("transport", ["zmq", "mqtt"])
+def test_bad_input_is_counted_and_spoils_nothing(tmp_path: Path, transport: str) -> None:
+    broker = Broker(tmp_path).start() if transport == "mqtt" else None
+    daemon = Daemon(
+        tmp_path,
+        sources=[transport],
+        sinks=["stdout"],
+        mqtt=broker.url if broker else None,
+        config={"service": {"queue_frames": 100_000, "max_message_bytes": 65536}, "mqtt": {"queue": 100_000}},
+    ).start()
+    assert daemon.process is not None
+    sender: ZmqSender | MqttSender = ZmqSender(daemon.poses) if transport == "zmq" else MqttSender(broker.url)  # type: ignore[union-attr]
+    to = "zmq+" + daemon.poses if transport == "zmq" else broker.url  # type: ignore[union-attr]
+    try:
+        good = replay(*GOOD, to, stream="good", speed="8")
+        for topic, payload, _ in bad_messages():
+            sender.send(topic, payload)
+        reasons = [r for _, _, r in bad_messages() if r and not (r == "topic" and transport == "mqtt")]
+
+        def counted() -> dict[str, float]:
+            m = daemon.metrics()
+            return {r: m.get(f'mocapd_rejects_total{{reason="{r}"}}', 0) for r in set(reasons)}
+
+        wait_for(
+            lambda: all(counted()[r] >= reasons.count(r) for r in reasons), 20, "every bad message counted"
+        )
+        assert counted() == {r: reasons.count(r) for r in set(reasons)}
+        m = daemon.metrics()
+        assert m['mocapd_stream_events_total{event="skeleton_changed"}'] == 1
+        wait_for(lambda: daemon.metrics()['mocapd_stream_events_total{event="gaps"}'] == 1, 10, "the gap")
+        assert daemon.metrics()['mocapd_stream_events_total{event="gap_frames"}'] == 99
+
+        # a flood of 10,000 bad messages: counted, memory flat
+        before = rss_kib(daemon.process.pid)
+        for k in range(10_000):
+            sender.send("mocap/bad-a/pose", b"\xc1" * (1 + k % 50))
+        wait_for(
+            lambda: daemon.metrics().get('mocapd_rejects_total{reason="undecodable"}', 0) >= 10_001,
+            60,
+            "the flood counted",
+        )
+        assert rss_kib(daemon.process.pid) - before < 20_000  # KiB
+        assert daemon.alive
+
+        finished(good, timeout=120)
+        wait_for(
+            lambda: daemon.metrics().get("mocapd_queued_poses", 1) == 0, 30, "the good stream recognised"
+        )
+        assert daemon.stop() == 0
+        motion = read_recording(*GOOD)
+        want = detection_keys(
+            [d.as_json() for d in detect(motion, load_library(default_library_path()), 120.0)]
+        )
+        assert detection_keys([d for d in daemon.detections_printed() if d["stream"] == "good"]) == want
+        refused = [e for e in daemon.logs() if e["event"] == "refused"]
+        per = [(e["stream"], e["reason"]) for e in refused]
+        assert per.count(("bad-a", "undecodable")) == 1  # logged once, then rate-limited
+        assert {r for _, r in per} >= set(reasons)
+    finally:
+        sender.close()
+        daemon.stop()
+        if broker is not None:
+            broker.stop()
+
+
+def test_a_lagging_stream_drops_its_oldest_poses_and_says_so(tmp_path: Path) -> None:
+    """A replay as fast as possible into a daemon with a short queue: poses are dropped (counted),
+    detections never are, and the stream's frames still arrive in order."""
+    daemon = Daemon(tmp_path, config={"service": {"queue_frames": 8}}).start()
+    try:
+        finished(replay(*GOOD, "zmq+" + daemon.poses, speed="max"))
+        wait_for(lambda: daemon.metrics().get("mocapd_frames_in_total") == 2465, 30, "every pose received")
+        wait_for(lambda: daemon.metrics().get("mocapd_queued_poses", 1) == 0, 30, "the queue emptied")
+        m = daemon.metrics()
+        assert m['mocapd_drops_total{reason="lagging"}'] > 0
+        assert m['mocapd_stream_events_total{event="gaps"}'] > 0
+        published = m.get("mocapd_detections_out_total", 0)
+        assert daemon.stop() == 0
+        printed = daemon.detections_printed()
+        assert all(d["start_frame"] <= d["end_frame"] <= d["emitted_at_frame"] for d in printed)
+        assert len(printed) >= published
+    finally:
+        daemon.stop()

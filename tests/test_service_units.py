@@ -1,0 +1,255 @@
+"""The service's parts without sockets: the stream table (sequence numbers, bridged and long gaps,
+skeleton changes, eviction, the wire's units and axes) against plain recognisers, the service
+configuration and its environment overrides, and the replay's clock."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import re
+from functools import cache
+from itertools import pairwise
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from daemon.config import (
+    Config,
+    ConfigError,
+    MqttConfig,
+    ServiceConfig,
+    environment_overrides,
+    load_config,
+    parse_config,
+)
+from daemon.library import Library
+from daemon.recognizer import Recognizer
+from daemon.recordings import joint_positions, read_recording
+from daemon.service.streams import Refused, StreamTable
+from protocols.messages import PoseMessage, SkeletonMessage
+from replay import JOINT_NAMES, Motion
+from replay.amc import DEG
+from replay.publish import due
+from tests.helpers import hdm05_clip, small_library, takes
+
+ASF, AMC = hdm05_clip("bd", "squat1Reps", takes("squat1Reps", "bd")[1])
+
+
+@pytest.fixture(scope="module")
+def library(tmp_path_factory: pytest.TempPathFactory) -> Library:
+    return small_library(tmp_path_factory.mktemp("lib"))
+
+
+@cache
+def motion() -> Motion:
+    return read_recording(ASF, AMC)
+
+
+def table(library: Library, **kw: float) -> StreamTable:
+    return StreamTable(library, session="t", queue_frames=100_000, **kw)  # type: ignore[arg-type]
+
+
+def announce(t: StreamTable, stream: str = "s") -> None:
+    t.skeleton(SkeletonMessage(stream, 120.0, asf=ASF.read_text(), angle_unit="rad"), 0.0)
+
+
+def run(t: StreamTable, poses: list[PoseMessage]) -> list[tuple[str, int, int, float]]:
+    for p in poses:
+        t.pose(p, 0.0)
+    out = []
+    while t.queued:
+        out += t.tick()[0]
+    out += t.flush_all()
+    return [(e.message.class_name, e.message.start_frame, e.message.end_frame, e.message.cost) for e in out]
+
+
+def reference(
+    library: Library, kept: list[int], seqs: list[int], max_gap: int
+) -> list[tuple[str, int, int, float]]:
+    """A plain reading: the recording's frames ``kept`` with sequence numbers ``seqs``, consecutive
+    frame numbers for them, a new recogniser after a gap longer than ``max_gap``, detections'
+    frames mapped back to sequence numbers one by one."""
+    m = motion()
+    out = []
+    pieces: list[list[int]] = [[]]
+    for k, seq in enumerate(seqs):
+        if k and seq - seqs[k - 1] - 1 > max_gap:
+            pieces.append([])
+        pieces[-1].append(k)
+    for piece in pieces:
+        r = Recognizer.for_skeleton(library, m.skeleton, 120.0, session="ref")
+        number_to_seq = {}
+        found = []
+        for j, k in enumerate(piece):
+            number = seqs[piece[0]] + j
+            number_to_seq[number] = seqs[k]
+            found += r.push(number, m.channels[kept[k]])
+        found += r.flush()
+        out += [
+            (d.class_name, number_to_seq[d.start_frame], number_to_seq[d.end_frame], d.cost) for d in found
+        ]
+    return out
+
+
+@settings(max_examples=10, deadline=None)
+@given(st.lists(st.tuples(st.integers(0, 400), st.integers(1, 60)), max_size=4), st.integers(0, 30))
+def test_gaps_bridged_or_restarted_as_a_plain_reading_says(
+    library: Library, gaps: list[tuple[int, int]], bridge: int
+) -> None:
+    n = len(motion())
+    lost = {k for at, size in gaps for k in range(at, min(n, at + size))}
+    kept = [k for k in range(n) if k not in lost]
+    seqs = [1000 + k for k in kept]
+    t = table(library, max_gap_s=bridge / 120)
+    announce(t)
+    got = run(
+        t, [PoseMessage("s", s, 0.0, channels=motion().channels[k]) for s, k in zip(seqs, kept, strict=True)]
+    )
+    assert got == reference(library, kept, seqs, bridge)
+    gapped = sum(1 for a, b in pairwise(seqs) if b - a > 1)
+    assert t.counts["gaps"] == gapped
+
+
+def test_without_gaps_frames_are_sequence_numbers(library: Library) -> None:
+    t = table(library)
+    announce(t)
+    m = motion()
+    got = run(
+        t, [PoseMessage("s", int(f), 0.0, channels=c) for f, c in zip(m.frames, m.channels, strict=True)]
+    )
+    r = Recognizer.for_skeleton(library, m.skeleton, 120.0, session="x")
+    want = [d for f, c in zip(m.frames.tolist(), m.channels, strict=True) for d in r.push(f, c)] + r.flush()
+    assert got == [(d.class_name, d.start_frame, d.end_frame, d.cost) for d in want]
+    assert any(name.startswith("squat") for name, *_ in got)
+
+
+def test_refusals(library: Library) -> None:
+    t = table(library)
+    m = motion()
+    with pytest.raises(Refused) as caught:
+        t.pose(PoseMessage("s", 1, 0.0, channels=m.channels[0]), 0.0)
+    assert caught.value.reason == "no_skeleton"
+    announce(t)
+    t.pose(PoseMessage("s", 5, 0.0, channels=m.channels[0]), 0.0)
+    for seq, reason in ((5, "duplicate"), (3, "out_of_order")):
+        with pytest.raises(Refused) as caught:
+            t.pose(PoseMessage("s", seq, 0.0, channels=m.channels[0]), 0.0)
+        assert caught.value.reason == reason
+    with pytest.raises(Refused) as caught:
+        t.pose(PoseMessage("s", 6, 0.0, channels=m.channels[0][:-1]), 0.0)
+    assert caught.value.reason == "shape"
+    with pytest.raises(Refused) as caught:
+        t.pose(PoseMessage("s", 6, 0.0, positions=np.zeros((26, 3), np.float32)), 0.0)
+    assert caught.value.reason == "shape"
+    with pytest.raises(Refused) as caught:
+        t.skeleton(SkeletonMessage("x", 120.0, asf=":root\n  order TX\n:bonedata\n  begin\n"), 0.0)
+    assert caught.value.reason == "skeleton"
+    small = StreamTable(library, session="t", max_streams=1)
+    announce(small, "a")
+    with pytest.raises(Refused) as caught:
+        announce(small, "b")
+    assert caught.value.reason == "too_many_streams"
+
+
+def test_skeleton_change_repeat_and_eviction(library: Library) -> None:
+    t = table(library)
+    m = motion()
+    announce(t)
+    for f, c in zip(m.frames.tolist(), m.channels, strict=True):
+        t.pose(PoseMessage("s", f, 0.0, channels=c), 1.0)
+    while t.queued:
+        t.tick()
+    announce(t)  # the same skeleton again (a retained message): nothing happens
+    assert t.counts["skeleton_changed"] == 0
+    flushed = t.skeleton(SkeletonMessage("s", 120.0, JOINT_NAMES), 2.0)  # now positions
+    assert t.counts["skeleton_changed"] == 1 and flushed  # the squat's last detections came out
+    assert t.evict_idle(3.0, idle_s=5.0) == [] and "s" in t.streams
+    assert t.evict_idle(8.0, idle_s=5.0) == [] and "s" not in t.streams
+    assert t.counts["idle"] == 1
+
+
+def test_wire_units_and_axes(library: Library) -> None:
+    """Degrees on the wire are converted as the AMC reader converts them; z-up positions turned to
+    y-up give the detections of y-up positions."""
+    m = motion()
+    angles = np.asarray(m.skeleton.angle_channels, dtype=np.intp)
+    degrees = m.channels.copy()
+    degrees[:, angles] /= DEG
+    radians_table, degrees_table = table(library), table(library)
+    announce(radians_table)
+    degrees_table.skeleton(SkeletonMessage("s", 120.0, asf=ASF.read_text(), angle_unit="deg"), 0.0)
+    a = run(radians_table, [PoseMessage("s", k, 0.0, channels=c) for k, c in enumerate(m.channels, 1)])
+    b = run(degrees_table, [PoseMessage("s", k, 0.0, channels=c) for k, c in enumerate(degrees, 1)])
+    assert [x[:3] for x in a] == [x[:3] for x in b] and a
+    assert all(math.isclose(x[3], y[3], abs_tol=1e-6) for x, y in zip(a, b, strict=True))
+
+    p = joint_positions(m).astype(np.float32)
+    z_up = np.stack([p[..., 0], -p[..., 2], p[..., 1]], axis=-1)  # y-up turned a quarter about x
+    y_table, z_table = table(library), table(library)
+    y_table.skeleton(SkeletonMessage("s", 120.0, JOINT_NAMES, up="y"), 0.0)
+    z_table.skeleton(SkeletonMessage("s", 120.0, JOINT_NAMES, up="z"), 0.0)
+    y = run(y_table, [PoseMessage("s", k, 0.0, positions=q) for k, q in enumerate(p, 1)])
+    z = run(z_table, [PoseMessage("s", k, 0.0, positions=q) for k, q in enumerate(z_up, 1)])
+    assert y == z and y
+
+
+# ------------------------------------------------------------------------------------- config
+
+
+def test_service_sections_and_their_errors(tmp_path: Path) -> None:
+    path = tmp_path / "c.yaml"
+    path.write_text(
+        "service:\n  sources: [mqtt]\n  sinks: [mqtt, stdout]\nmqtt:\n  url: mqtts://broker:8884\n"
+    )
+    config = load_config(path)
+    assert config.service.sources == ("mqtt",) and config.mqtt.url == "mqtts://broker:8884"
+    bad = {
+        "service:\n  sources: [stdout]\n": "service.sources[0]: must be one of zmq, mqtt",
+        "service:\n  sinks: [zmq, zmq]\n": "service.sinks: names a transport twice",
+        "service:\n  queue_frames: 0\n": "service.queue_frames",
+        "metrics:\n  stream_labels: true\n": "metrics.stream_labels: per-stream labels need service.max",
+        "metrics:\n  stream_labels: 1\n": "metrics.stream_labels: must be true or false",
+        "service:\n  sources: [mqtt]\nmqtt:\n  url: http://x\n": "mqtt.url: an MQTT broker is",
+        "mqtt:\n  reconnect_min_s: 20\n": "mqtt.reconnect_min_s: must not exceed",
+        "zmq:\n  hwm: -1\n": "zmq.hwm",
+        "logging:\n  level: loud\n": "logging.level: must be one of debug, info, warning, error",
+    }
+    for text, message in bad.items():
+        path.write_text(text)
+        with pytest.raises(ConfigError, match=rf"^{re.escape(str(path))}: {re.escape(message)}"):
+            load_config(path)
+    assert parse_config(
+        {"metrics": {"stream_labels": True}, "service": {"max_streams": 50}}
+    ).metrics.stream_labels
+
+
+def test_environment_overrides() -> None:
+    config = environment_overrides(
+        Config(),
+        {
+            "MOCAPD_MQTT_URL": "mqtt://b:1",
+            "MOCAPD_SERVICE_SOURCES": "mqtt,zmq",
+            "MOCAPD_SERVICE_IDLE_S": "2.5",
+            "HOME": "/x",
+        },
+    )
+    assert config.mqtt == dataclasses.replace(MqttConfig(), url="mqtt://b:1")
+    assert config.service == dataclasses.replace(ServiceConfig(), sources=("mqtt", "zmq"), idle_s=2.5)
+    for env, message in (
+        ({"MOCAPD_NOPE_X": "1"}, "MOCAPD_NOPE_X: no section 'nope'"),
+        ({"MOCAPD_MQTT_PORT": "1"}, "MOCAPD_MQTT_PORT: mqtt has no field 'port'"),
+        ({"MOCAPD_SERVICE_IDLE_S": "soon"}, "environment: service.idle_s: must be a positive number"),
+    ):
+        with pytest.raises(ConfigError, match=f"^{re.escape(message)}"):
+            environment_overrides(Config(), env)
+
+
+def test_replay_clock_does_not_drift() -> None:
+    """Each frame's due time is computed from the start, never from the previous frame's."""
+    assert due(10.0, 0, 120.0, 1.0) == 10.0
+    assert due(10.0, 120 * 3600, 120.0, 1.0) == 10.0 + 3600.0
+    assert due(10.0, 240, 120.0, 2.0) == 11.0
+    assert due(10.0, 10**6, 120.0, None) == 10.0
