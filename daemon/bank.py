@@ -23,6 +23,7 @@ from __future__ import annotations
 import math
 from collections.abc import Collection, Sequence
 from dataclasses import dataclass
+from itertools import accumulate
 
 import numpy as np
 import numpy.typing as npt
@@ -142,7 +143,7 @@ class RecognizerBank:
         channels = [(i, r, n, values) for i, r, n, values in checked if r.model is not None]
         if channels:  # every channel frame's finiteness, trigonometry and frame step in one pass each
             flat = np.concatenate([values for _, _, _, values in channels])
-            starts = np.cumsum([0, *(len(values) for _, _, _, values in channels[:-1])])
+            starts = list(accumulate((len(values) for _, _, _, values in channels[:-1]), initial=0))
             sums: list[float] = np.add.reduceat(flat, starts).tolist()
             if not all(map(math.isfinite, sums)):
                 kept = []

@@ -10,20 +10,24 @@ them; what was not acknowledged when the connection dropped is sent again after 
 (a consumer may see a repeat: detections carry an event id). With :meth:`MqttTransport.announce`,
 the "online" status is published retained on every connect, the "offline" one is the retained last
 will, and a planned close publishes "offline" itself before disconnecting (a clean disconnect
-suppresses the will). The incoming queue is bounded: when it is full the oldest message is dropped
-(counted).
+suppresses the will). The incoming queue is bounded (``queue``): when it is full the oldest message
+is dropped (counted).
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
+import itertools
 import logging
+import select
+import socket
 import ssl
 import time
 from collections import deque
-from collections.abc import AsyncIterator, Sequence
+from collections.abc import AsyncIterator, Callable, Sequence
 from types import TracebackType
+from typing import Any
 from urllib.parse import urlsplit
 
 import aiomqtt
@@ -43,16 +47,53 @@ def parse_url(url: str) -> tuple[str, int, bool]:
     return parts.hostname, parts.port or (8883 if tls else 1883), tls
 
 
-class _DropOldest(asyncio.Queue[aiomqtt.Message]):
-    """aiomqtt's incoming queue, bounded: a message arriving when it is full pushes out the oldest."""
+def _forwarding(deliver: Callable[[aiomqtt.Message], None]) -> type[asyncio.Queue[aiomqtt.Message]]:
+    """A queue type for aiomqtt's incoming messages that hands each one to ``deliver`` as it
+    arrives instead of holding it: the client's message iterator (a task and a wait per message)
+    is then only the watch for a lost connection."""
 
-    dropped = 0
+    class Forward(asyncio.Queue[aiomqtt.Message]):
+        def put_nowait(self, item: aiomqtt.Message) -> None:
+            deliver(item)
 
-    def put_nowait(self, item: aiomqtt.Message) -> None:
-        if self.maxsize > 0 and self.full():
-            self.get_nowait()
-            type(self).dropped += 1
-        super().put_nowait(item)
+    return Forward
+
+
+class _Client(aiomqtt.Client):
+    """aiomqtt's client reading every packet the socket holds when it becomes readable, not one:
+    at thousands of poses a second, one packet per event-loop turn falls behind. (The same
+    callback as aiomqtt's ``_on_socket_open``, looping while the socket has data.)"""
+
+    def _on_socket_open(self, client: Any, userdata: Any, sock: Any) -> None:
+        def callback() -> None:
+            try:
+                for _ in range(DRAIN_PACKETS):
+                    client.loop_read()
+                    s = client.socket()
+                    if s is None:
+                        break
+                    if hasattr(s, "pending") and s.pending() > 0:
+                        continue
+                    if not select.select([s], [], [], 0)[0]:
+                        break
+            except Exception as exc:  # aiomqtt's rule: any read error ends the connection
+                if not self._disconnected.done():
+                    self._disconnected.set_exception(exc)
+
+        def create_misc_task() -> None:
+            self._misc_task = self._loop.create_task(self._misc_loop())
+
+        self._loop.call_soon_threadsafe(self._loop.add_reader, sock.fileno(), callback)
+        self._loop.call_soon_threadsafe(create_misc_task)
+
+
+def inflight_limit(inflight: int) -> int:
+    """paho's own limit of QoS 1 messages in flight (20 by default), raised to ours."""
+    return max(20, inflight)
+
+
+DRAIN_PACKETS = 512
+"""The most packets one readable event takes, so that reading yields to the other tasks."""
 
 
 class MqttTransport:
@@ -81,6 +122,7 @@ class MqttTransport:
         reconnect_min_s: float = 0.25,
         reconnect_max_s: float = 10.0,
         drain_s: float = 2.0,
+        inflight: int = 100,
     ) -> None:
         self.host, self.port, tls = parse_url(url)
         self.url = url
@@ -94,12 +136,16 @@ class MqttTransport:
         self.keepalive_s = keepalive_s
         self.reconnect = (reconnect_min_s, reconnect_max_s)
         self.drain_s = drain_s
+        self.inflight = inflight
         self._online: Outgoing | None = None
         self._offline: Outgoing | None = None
         self._client: aiomqtt.Client | None = None
         self._runner: asyncio.Task[None] | None = None
-        self._incoming: asyncio.Queue[Incoming] = asyncio.Queue()
-        self._outbox: deque[Outgoing] = deque()
+        self._incoming: deque[Incoming] = deque()
+        self._arrived = asyncio.Event()
+        self._outbox: dict[int, Outgoing] = {}  # by number, in order; left when acknowledged
+        self._to_send: deque[int] = deque()  # outbox numbers not yet handed to this connection
+        self._numbers = itertools.count()
         self._wake = asyncio.Event()
         self._connected = asyncio.Event()
         self._problem: str | None = "mqtt: not connected yet"
@@ -122,9 +168,7 @@ class MqttTransport:
         if self._offline is not None:
             will = aiomqtt.Will(self._offline.topic, self._offline.payload, qos=1, retain=True)
 
-        queue_type = type("Queue", (_DropOldest,), {"dropped": 0})
-        self._queue_type = queue_type
-        self._client = aiomqtt.Client(
+        self._client = _Client(
             self.host,
             self.port,
             identifier=self.client_id,
@@ -134,9 +178,10 @@ class MqttTransport:
             will=will,
             keepalive=self.keepalive_s,
             tls_context=context,
-            queue_type=queue_type,
-            max_queued_incoming_messages=self.queue,
+            queue_type=_forwarding(self._deliver),
+            max_inflight_messages=inflight_limit(self.inflight),
             timeout=10,
+            socket_options=[(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)],  # no Nagle delay on small packets
         )
         self._runner = asyncio.create_task(self._run(), name=f"mqtt {self.host}:{self.port}")
         return self
@@ -191,28 +236,48 @@ class MqttTransport:
             delay = min(2 * delay, self.reconnect[1])
 
     async def _reader(self, client: aiomqtt.Client) -> None:
-        async for m in client.messages:
-            payload = m.payload if isinstance(m.payload, bytes) else str(m.payload or "").encode()
-            self._put(Incoming(m.topic.value, payload, time.time()))
+        async for m in client.messages:  # raises when the connection is lost
+            self._deliver(m)
+
+    def _deliver(self, m: aiomqtt.Message) -> None:
+        payload = m.payload if isinstance(m.payload, bytes) else str(m.payload or "").encode()
+        self._put(Incoming(m.topic.value, payload, time.time()))
 
     async def _sender(self, client: aiomqtt.Client) -> None:
-        while True:
-            while not self._outbox:
-                self._wake.clear()
-                await self._wake.wait()
-            message = self._outbox[0]
-            await self._send(client, message)  # MqttError: kept, sent again after the reconnect
-            if self._outbox and self._outbox[0] is message:
-                self._outbox.popleft()
+        """Hand the outbox to the connection, up to ``inflight`` messages awaiting acknowledgement
+        at once (one at a time would pay a round trip per detection); after a reconnect, all of
+        it again."""
+        self._to_send = deque(self._outbox)
+        slots = asyncio.Semaphore(self.inflight)
+
+        async def one(number: int, message: Outgoing) -> None:
+            try:
+                await self._send(client, message)  # MqttError: kept, sent again after the reconnect
+                self._outbox.pop(number, None)
+            finally:
+                slots.release()
+
+        async with asyncio.TaskGroup() as flights:
+            while True:
+                while not self._to_send:
+                    self._wake.clear()
+                    await self._wake.wait()
+                number = self._to_send.popleft()
+                message = self._outbox.get(number)
+                if message is None:
+                    continue
+                await slots.acquire()
+                flights.create_task(one(number, message))
 
     async def _send(self, client: aiomqtt.Client, m: Outgoing) -> None:
         await client.publish(m.topic, m.payload, qos=1 if m.reliable else 0, retain=m.retain)
 
     def _put(self, message: Incoming) -> None:
-        if self._incoming.qsize() >= self.queue > 0:
-            self._incoming.get_nowait()
+        if len(self._incoming) >= self.queue:
+            self._incoming.popleft()
             self._dropped_incoming += 1
-        self._incoming.put_nowait(message)
+        self._incoming.append(message)
+        self._arrived.set()
 
     # ----------------------------------------------------------------------------- the interface
 
@@ -223,8 +288,12 @@ class MqttTransport:
         return self
 
     async def __aiter__(self) -> AsyncIterator[Incoming]:
+        incoming = self._incoming
         while True:
-            yield await self._incoming.get()
+            while not incoming:
+                self._arrived.clear()
+                await self._arrived.wait()
+            yield incoming.popleft()
 
     async def publish(self, message: Outgoing) -> None:
         """Queue ``message`` for sending (never waits for the network). An unreliable message while
@@ -234,14 +303,14 @@ class MqttTransport:
             self._dropped_outbox += 1
             return
         if len(self._outbox) >= self.outbox_size:
-            for i, queued in enumerate(self._outbox):
-                if not queued.reliable:
-                    del self._outbox[i]
-                    break
-            else:
+            unreliable = next((n for n, queued in self._outbox.items() if not queued.reliable), None)
+            if unreliable is None:
                 self._dropped_outbox += 1
                 return
-        self._outbox.append(message)
+            del self._outbox[unreliable]
+        number = next(self._numbers)
+        self._outbox[number] = message
+        self._to_send.append(number)
         self._wake.set()
 
     async def wait_connected(self, timeout: float | None = None) -> None:
@@ -258,6 +327,6 @@ class MqttTransport:
 
     def dropped(self) -> dict[str, int]:
         return {
-            "mqtt_incoming_full": self._dropped_incoming + getattr(self, "_queue_type", _DropOldest).dropped,
+            "mqtt_incoming_full": self._dropped_incoming,
             "mqtt_outbox_full": self._dropped_outbox,
         }

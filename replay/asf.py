@@ -13,6 +13,7 @@ Conventions (Acclaim; the Bonn toolbox, reference facts section c):
 
 from __future__ import annotations
 
+import functools
 import math
 import re
 from collections.abc import Iterator, Sequence
@@ -86,7 +87,7 @@ class Skeleton:
         """Node index of a bone name (or ``"root"``); ``ValueError`` if the skeleton has no such bone."""
         return self.node_names.index(name)
 
-    @property
+    @functools.cached_property
     def channel_names(self) -> tuple[str, ...]:
         """Names ``"<bone>.<dof>"`` of the AMC channels: root channels first, then each bone's dofs in
         ``:bonedata`` order. This is the layout of every channel vector the AMC readers return."""

@@ -5,6 +5,7 @@ of manifests. The recordings are read in place from ../shared/data/mocap, never 
 from __future__ import annotations
 
 import dataclasses
+import getpass
 import json
 import os
 import shutil
@@ -225,9 +226,10 @@ class Broker:
         self.port = free_port()
         self.config = where / "mosquitto.conf"
         self.config.write_text(
-            f"listener {self.port} 127.0.0.1\nallow_anonymous true\npersistence true\n"
+            f"listener {self.port} 127.0.0.1\nallow_anonymous true\nset_tcp_nodelay true\npersistence true\n"
             f"persistence_location {where}/\nautosave_interval 1\nmax_queued_messages 100000\n"
-            f"log_dest file {where}/mosquitto.log\n",
+            f"log_dest file {where}/mosquitto.log\n"
+            f"user {getpass.getuser()}\n",  # as root it would switch to 'mosquitto' and not reach ``where``
             encoding="utf-8",
         )
         self.process: subprocess.Popen[bytes] | None = None

@@ -32,9 +32,6 @@ from collections.abc import Callable, Coroutine, Iterable
 from dataclasses import replace
 from typing import Any
 
-from prometheus_client.core import CounterMetricFamily
-from prometheus_client.registry import Collector
-
 from daemon.config import Config
 from daemon.library import Library
 from daemon.service.metrics import Metrics, serve_http
@@ -116,37 +113,6 @@ def configure_logging(level: str) -> logging.Logger:
     return logger
 
 
-class _Counts(Collector):
-    """Rejects, drops and stream events as Prometheus counters, read from the service's tallies when
-    scraped."""
-
-    def __init__(self, service: Service) -> None:
-        self.service = service
-
-    def collect(self) -> Iterable[CounterMetricFamily]:
-        s = self.service
-        rejects = CounterMetricFamily("mocapd_rejects", "Messages refused, by reason", labels=["reason"])
-        drops = CounterMetricFamily("mocapd_drops", "Poses or messages dropped, by reason", labels=["reason"])
-        events = CounterMetricFamily(
-            "mocapd_stream_events", "Gaps, evictions, skeleton changes", labels=["event"]
-        )
-        table = s.table.counts
-        for reason, n in sorted(
-            (s.rejects + Counter({k: v for k, v in table.items() if k not in EVENTS + DROPS})).items()
-        ):
-            rejects.add_metric([reason], n)
-        for reason in DROPS:
-            drops.add_metric([reason], table.get(reason, 0))
-        for t in s.transports:
-            for reason, n in t.dropped().items():
-                drops.add_metric([reason], n)
-        for event in EVENTS:
-            events.add_metric([event], table.get(event, 0))
-        yield rejects
-        yield drops
-        yield events
-
-
 class Service:
     """One daemon instance over ``transports`` (entered by :meth:`run`) with the library's classes."""
 
@@ -175,9 +141,8 @@ class Service:
             max_gap_s=config.service.max_gap_s,
             max_gap_frame_s=config.recognizer.max_gap_s,
         )
-        self.metrics = Metrics(config.metrics.stream_labels)
-        self.metrics.registry.register(_Counts(self))
         self.rejects: Counter[str] = Counter()
+        self.metrics = Metrics(config.metrics.stream_labels, self._tallies, self._gauge_values)
         self.stopping = False
         self.published = 0
         self._work = asyncio.Event()
@@ -209,7 +174,7 @@ class Service:
             if parsed is None or parsed[1] not in ("skeleton", "pose"):
                 raise Refused("topic", f"not a topic mocapd takes: {incoming.topic[:80]!r}")
             message = decode(incoming.payload, self.config.service.max_message_bytes)
-            self.metrics.messages.labels(type(message).__name__.removesuffix("Message").lower()).inc()
+            self.metrics.messages[message_type(message)] += 1
             if not isinstance(message, SkeletonMessage | PoseMessage):
                 raise Refused("type", f"a {type(message).__name__} is not taken in")
             if message.stream != stream or (parsed[1] == "pose") != isinstance(message, PoseMessage):
@@ -219,9 +184,7 @@ class Service:
             now = time.monotonic()
             if isinstance(message, PoseMessage):
                 self.table.pose(message, now)
-                (
-                    self.metrics.frames.labels(stream) if self.metrics.stream_labels else self.metrics.frames
-                ).inc()
+                self.metrics.frame_in(stream)
                 self._work.set()
                 return []
             self.log.info(
@@ -235,7 +198,7 @@ class Service:
             self.rejects[e.reason] += 1
             self.events.warn(stream, e.reason, str(e))
         finally:
-            self.metrics.stage.labels("decode").observe(time.perf_counter() - started)
+            self.metrics.stage["decode"].observe(time.perf_counter() - started)
         return []
 
     async def _intake(self, transport: Transport) -> None:
@@ -253,7 +216,7 @@ class Service:
 
     async def _recognise(self) -> None:
         budget = self.config.service.tick_budget_ms / 1000
-        stage = self.metrics.stage.labels("recognise")
+        stage = self.metrics.stage["recognise"]
         while True:
             await self._work.wait()
             self._work.clear()
@@ -281,10 +244,10 @@ class Service:
                 await sink.publish(out)
         self.published += 1
         m = self.metrics
-        (m.detections.labels(message.stream) if m.stream_labels else m.detections).inc()
+        m.detection_out(message.stream)
         if e.source_time > 0:
             m.end_to_end.observe(max(0.0, message.emit_time - e.source_time))
-        m.stage.labels("publish").observe(time.perf_counter() - started)
+        m.stage["publish"].observe(time.perf_counter() - started)
         self.log.debug(
             "detection",
             extra={"fields": {"id": message.id, "stream": message.stream, "class": message.class_name}},
@@ -295,15 +258,20 @@ class Service:
             await asyncio.sleep(1.0)
             for e in self.table.evict_idle(time.monotonic(), self.config.service.idle_s):
                 await self.publish(e)
-            self._gauges()
 
-    def _gauges(self) -> None:
-        m = self.metrics
-        m.streams.set(len(self.table.streams))
-        m.queued.set(self.table.queued)
-        m.pending.set(sum(getattr(t, "pending", 0) for t in self.transports))
+    def _tallies(self) -> tuple[Counter[str], Counter[str], Counter[str]]:
+        """Rejects, drops and stream events by reason, for /metrics."""
+        table = self.table.counts
+        rejects = self.rejects + Counter({k: v for k, v in table.items() if k not in EVENTS + DROPS})
+        drops = Counter({k: table.get(k, 0) for k in DROPS})
         for t in self.transports:
-            m.connected.labels(t.name).set(1 if t.problem is None else 0)
+            drops.update(t.dropped())
+        return rejects, drops, Counter({k: table.get(k, 0) for k in EVENTS})
+
+    def _gauge_values(self) -> tuple[int, int, int, dict[str, bool]]:
+        outbox = sum(getattr(t, "pending", 0) for t in self.transports)
+        up = {t.name: t.problem is None for t in self.transports}
+        return len(self.table.streams), self.table.queued, outbox, up
 
     # --------------------------------------------------------------------------------- running
 
@@ -352,7 +320,6 @@ class Service:
             except* TimeoutError:
                 clean = False
             self.stopping = True
-            self._gauges()
             self.log.info(
                 "offline",
                 extra={"fields": {"instance": self.instance, "published": self.published, "clean": clean}},
@@ -382,6 +349,10 @@ class Service:
             if hasattr(t, "drain_s"):
                 t.drain_s = left
         raise _Stop
+
+
+def message_type(message: object) -> str:
+    return type(message).__name__.removesuffix("Message").lower()
 
 
 def instance_name(config: Config) -> str:

@@ -1,57 +1,144 @@
-"""The service's Prometheus metrics (prometheus-client, one registry per service) and the tiny HTTP
-server of ``/healthz`` and ``/metrics``.
+"""The service's Prometheus metrics and the tiny HTTP server of ``/healthz`` and ``/metrics``.
 
-Series: frames in, messages by type, detections out, live streams, queued poses, the outbox,
-transports up, per-stage latency (decode, recognise, publish; buckets from 25 µs to 50 ms
-with one at the 2 ms budget) and end to end (a pose's source timestamp to the publish of the
-detection it completed). No series has a stream label unless ``metrics.stream_labels`` is set, which
-config allows only for a bounded stream table. Rejects and drops by reason and the streams' gaps
-are read from the service's tallies when scraped (:mod:`daemon.service.app`).
+The live path counts in plain Python ints and fixed-bucket histograms (a bisect and an add per
+observation: prometheus-client's own counters take a lock per increment, too much at 12,000 poses
+a second); prometheus-client turns them into its exposition format when ``/metrics`` is scraped
+(:class:`Metrics` is a registry collector).
+
+Series (prefix ``mocapd_``): ``frames_in``, ``messages_in{type}``, ``detections_out``, ``rejects{reason}``,
+``drops{reason}``, ``stream_events{event}`` (gaps, poses missing in them, evictions, skeleton
+changes), ``streams``, ``queued_poses``, ``outbox``, ``transport_up{transport}``,
+``stage_seconds{stage}`` (decode, recognise, publish; buckets from 25 µs to 50 ms with one at the
+2 ms budget) and ``end_to_end_seconds`` (a pose's source timestamp to the publish of the detection
+it completed). ``frames_in`` and ``detections_out`` have a ``stream`` label only with
+``metrics.stream_labels``, which config allows only for a bounded stream table.
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
-from collections.abc import Callable
+from bisect import bisect_left
+from collections import Counter
+from collections.abc import Callable, Iterable, Mapping
+from dataclasses import dataclass, field
 
-from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, generate_latest
+from prometheus_client import CollectorRegistry, generate_latest
+from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, HistogramMetricFamily, Metric
 from prometheus_client.exposition import CONTENT_TYPE_LATEST
+from prometheus_client.registry import Collector
 
 STAGE_BUCKETS = (25e-6, 50e-6, 100e-6, 250e-6, 500e-6, 1e-3, 2e-3, 5e-3, 10e-3, 20e-3, 50e-3)
 END_TO_END_BUCKETS = (1e-3, 2e-3, 5e-3, 10e-3, 20e-3, 50e-3, 0.1, 0.2, 0.5, 1.0, 2.0, 5.0)
 
 
-class Metrics:
-    """The series of one service (names prefixed ``mocapd_``)."""
+@dataclass
+class Histogram:
+    """Observations in fixed buckets (upper bounds, inclusive), their count per bucket and sum."""
 
-    def __init__(self, stream_labels: bool = False) -> None:
-        self.registry = CollectorRegistry()
-        r = self.registry
+    bounds: tuple[float, ...]
+    counts: list[int] = field(default_factory=list)
+    total: float = 0.0
+
+    def __post_init__(self) -> None:
+        self.counts = [0] * (len(self.bounds) + 1)
+
+    def observe(self, value: float) -> None:
+        self.counts[bisect_left(self.bounds, value)] += 1
+        self.total += value
+
+    def buckets(self) -> list[tuple[str, float]]:
+        """Cumulative (le, count) pairs, ``+Inf`` last."""
+        out, running = [], 0
+        for bound, n in zip((*self.bounds, float("inf")), self.counts, strict=True):
+            running += n
+            out.append(("+Inf" if bound == float("inf") else repr(bound), float(running)))
+        return out
+
+
+class Metrics(Collector):
+    """The series of one service; ``tallies()`` gives the rejects, drops and stream events (by
+    reason) and ``gauges()`` the current gauge values when scraped."""
+
+    def __init__(
+        self,
+        stream_labels: bool,
+        tallies: Callable[[], tuple[Mapping[str, int], Mapping[str, int], Mapping[str, int]]],
+        gauges: Callable[[], tuple[int, int, int, Mapping[str, bool]]],
+    ) -> None:
         self.stream_labels = stream_labels
-        extra = ("stream",) if stream_labels else ()
-        self.frames = Counter("mocapd_frames_in", "Poses received and queued", extra, registry=r)
-        self.messages = Counter("mocapd_messages_in", "Messages received, by type", ("type",), registry=r)
-        self.detections = Counter("mocapd_detections_out", "Detections published", extra, registry=r)
-        self.streams = Gauge("mocapd_streams", "Live streams", registry=r)
-        self.queued = Gauge("mocapd_queued_poses", "Poses waiting for recognition", registry=r)
-        self.pending = Gauge("mocapd_outbox", "Detections awaiting the broker's acknowledgement", registry=r)
-        self.connected = Gauge(
-            "mocapd_transport_up", "1 while a transport serves", ("transport",), registry=r
-        )
-        self.stage = Histogram(
-            "mocapd_stage_seconds", "Time per stage call", ("stage",), buckets=STAGE_BUCKETS, registry=r
-        )
-        self.end_to_end = Histogram(
-            "mocapd_end_to_end_seconds",
-            "Source timestamp of the pose that completed a detection to the detection's publish",
-            buckets=END_TO_END_BUCKETS,
-            registry=r,
-        )
+        self.frames: Counter[str] = Counter()
+        """Poses received by stream ("" for all when streams are not labelled)."""
+        self.messages: Counter[str] = Counter()
+        self.detections: Counter[str] = Counter()
+        self.stage = {s: Histogram(STAGE_BUCKETS) for s in ("decode", "recognise", "publish")}
+        self.end_to_end = Histogram(END_TO_END_BUCKETS)
+        self._tallies = tallies
+        self._gauges = gauges
+        self.registry = CollectorRegistry()
+        self.registry.register(self)
+
+    def frame_in(self, stream: str) -> None:
+        self.frames[stream if self.stream_labels else ""] += 1
+
+    def detection_out(self, stream: str) -> None:
+        self.detections[stream if self.stream_labels else ""] += 1
 
     def exposition(self) -> bytes:
         out: bytes = generate_latest(self.registry)
         return out
+
+    def collect(self) -> Iterable[Metric]:
+        labels = ["stream"] if self.stream_labels else []
+        for name, doc, per_stream in (
+            ("mocapd_frames_in", "Poses received and queued", self.frames),
+            ("mocapd_detections_out", "Detections published", self.detections),
+        ):
+            family = CounterMetricFamily(name, doc, labels=labels)
+            for stream, n in sorted(per_stream.items()) or [("", 0)]:
+                family.add_metric([stream] if labels else [], n)
+            yield family
+        messages = CounterMetricFamily("mocapd_messages_in", "Messages decoded, by type", labels=["type"])
+        for kind, n in sorted(self.messages.items()):
+            messages.add_metric([kind], n)
+        yield messages
+        rejects, drops, events = self._tallies()
+        for name, doc, label, counts in (
+            ("mocapd_rejects", "Messages refused, by reason", "reason", rejects),
+            ("mocapd_drops", "Poses or messages dropped, by reason", "reason", drops),
+            (
+                "mocapd_stream_events",
+                "Gaps, poses missing in them, evictions, skeleton changes",
+                "event",
+                events,
+            ),
+        ):
+            family = CounterMetricFamily(name, doc, labels=[label])
+            for key, n in sorted(counts.items()):
+                family.add_metric([key], n)
+            yield family
+        streams, queued, outbox, up = self._gauges()
+        yield GaugeMetricFamily("mocapd_streams", "Live streams", value=streams)
+        yield GaugeMetricFamily("mocapd_queued_poses", "Poses waiting for recognition", value=queued)
+        yield GaugeMetricFamily(
+            "mocapd_outbox", "Detections awaiting the broker's acknowledgement", value=outbox
+        )
+        transports = GaugeMetricFamily(
+            "mocapd_transport_up", "1 while a transport serves", labels=["transport"]
+        )
+        for name, ok in sorted(up.items()):
+            transports.add_metric([name], 1.0 if ok else 0.0)
+        yield transports
+        stage = HistogramMetricFamily("mocapd_stage_seconds", "Time per stage call", labels=["stage"])
+        for name, h in self.stage.items():
+            stage.add_metric([name], h.buckets(), h.total)
+        yield stage
+        e2e = HistogramMetricFamily(
+            "mocapd_end_to_end_seconds",
+            "Source timestamp of the pose that completed a detection to the detection's publish",
+        )
+        e2e.add_metric([], self.end_to_end.buckets(), self.end_to_end.total)
+        yield e2e
 
 
 async def serve_http(
@@ -67,25 +154,18 @@ async def serve_http(
                 pass
             words = line.decode("latin-1").split()
             path = words[1] if len(words) >= 2 and words[0] in ("GET", "HEAD") else ""
+            kind = "text/plain; charset=utf-8"
             if path == "/healthz":
                 problem = health()
-                status, body, kind = (
-                    (200, b"ok\n", "text/plain")
-                    if problem is None
-                    else (
-                        503,
-                        f"{problem}\n".encode(),
-                        "text/plain",
-                    )
-                )
+                status, body = (200, b"ok\n") if problem is None else (503, f"{problem}\n".encode())
             elif path == "/metrics":
                 status, body, kind = 200, metrics.exposition(), CONTENT_TYPE_LATEST
             else:
-                status, body, kind = 404, b"not found\n", "text/plain"
+                status, body = 404, b"not found\n"
             reason = {200: "OK", 404: "Not Found", 503: "Service Unavailable"}[status]
             head = f"HTTP/1.1 {status} {reason}\r\nContent-Type: {kind}\r\nContent-Length: {len(body)}\r\n"
             writer.write(
-                (head + "Connection: close\r\n\r\n").encode() + (body if words[:1] != ["HEAD"] else b"")
+                (head + "Connection: close\r\n\r\n").encode() + (b"" if words[:1] == ["HEAD"] else body)
             )
             await writer.drain()
         except (TimeoutError, ConnectionError, UnicodeDecodeError):

@@ -56,6 +56,7 @@ class _Stream:
     queue: deque[PoseMessage] = field(default_factory=deque)
     offsets: deque[tuple[int, int]] = field(default_factory=deque)
     times: np.ndarray = field(default_factory=lambda: np.zeros(1))
+    width: int = 0
     seen: float = 0.0
     generation: int = 0
 
@@ -96,6 +97,8 @@ class StreamTable:
         self.counts: Counter[str] = Counter()
         """Refusals and drops by reason, and ``gaps``/``gap_frames``."""
         self._window = ring_size(self.bank.plans)
+        self._queued = 0
+        self._waiting: dict[str, _Stream] = {}  # the streams with queued poses, in arrival order
 
     def _horizon(self, rate: float) -> int:
         """Native frames a detection at ``rate`` Hz reaches back at most: its widest window of
@@ -106,7 +109,8 @@ class StreamTable:
 
     @property
     def queued(self) -> int:
-        return sum(len(s.queue) for s in self.streams.values())
+        """Poses waiting in all streams' queues."""
+        return self._queued
 
     # ------------------------------------------------------------------------------------ intake
 
@@ -142,6 +146,7 @@ class StreamTable:
             skeleton,
             angles,
             times=np.zeros(self._horizon(message.rate)),
+            width=len(skeleton.channel_names) if skeleton is not None else len(message.joints or ()),
             seen=now,
             generation=(old.generation + 1) if old else 0,
         )
@@ -158,9 +163,9 @@ class StreamTable:
             raise Refused(
                 "shape", f"a {kind} stream got a pose of {'channels' if kind == 'positions' else 'positions'}"
             )
-        width = len(s.skeleton.channel_names) if s.skeleton is not None else len(s.announced.joints or ())
         values = message.channels if message.channels is not None else message.positions
         got = 0 if values is None else len(values)
+        width = s.width
         if got != width:
             what = "channels" if kind == "channels" else "joints"
             raise Refused("shape", f"{got} {what}, the skeleton announced {width}")
@@ -175,7 +180,10 @@ class StreamTable:
         if len(s.queue) >= self.queue_frames:
             s.queue.popleft()
             self.counts["lagging"] += 1
+            self._queued -= 1
         s.queue.append(message)
+        self._queued += 1
+        self._waiting.setdefault(message.stream, s)
 
     # ------------------------------------------------------------------------------ recognition
 
@@ -184,10 +192,11 @@ class StreamTable:
         the poses the recognisers refused as (stream, problem, why)."""
         frames = []
         out: list[Emitted] = []
-        for name, s in self.streams.items():
-            if not s.queue:
-                continue
+        for name, s in list(self._waiting.items()):
             pose = s.queue.popleft()
+            self._queued -= 1
+            if not s.queue:
+                del self._waiting[name]
             gap = 0 if s.last_fed is None else pose.seq - s.last_fed - 1
             if gap > round(self.max_gap_s * s.announced.rate):
                 self.counts["gaps"] += 1
@@ -254,6 +263,8 @@ class StreamTable:
 
     def _remove(self, name: str, reason: str | None) -> list[Emitted]:
         s = self.streams.pop(name)
+        self._queued -= len(s.queue)
+        self._waiting.pop(name, None)
         if reason is not None:
             self.counts[reason] += 1
         return [self._emitted(d, s) for d in self.bank.remove(name)]

@@ -1,0 +1,279 @@
+"""The daemon on a real broker: how many concurrent 120 Hz streams one ``mocapd run`` process holds
+with no drops, and the end-to-end latency from a pose leaving its source (its timestamp; the broker
+is on loopback) to the detection it completed arriving at a subscriber.
+
+    python -m bench.bench_service [--sizes 1,10,50,100,150,200] [--seconds 15]
+
+A mosquitto broker on a free loopback port; the daemon (``mocapd run --mqtt``) pinned to core 0;
+one load process on the other core publishes S streams at 120 Hz each (QoS 0 from a plain socket,
+each tick's poses in one write, paced by the clock),
+every stream a real recording looped from a different start (CMU and HDM05 of
+``../shared/data/mocap``, channels on the wire), and subscribes to the detections (QoS 1). Each size
+runs ``--seconds`` after a 2 s warm-up; a size holds when the daemon dropped nothing (no lagging
+pose, no full queue), saw no gap, and was at most 0.5 s behind at the end. Latency: p50 and p99 of
+(detection received) − (``source_time``, the completing pose's timestamp), in ms. Baseline in the
+same run: one stream, the floor the broker and the wire add.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import socket
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+import urllib.request
+from pathlib import Path
+
+import msgpack
+import numpy as np
+import paho.mqtt.client as paho
+from paho.mqtt.enums import CallbackAPIVersion
+
+from bench.common import DATA
+from bench.machine import describe
+from daemon.recordings import read_recording
+from protocols.messages import PoseMessage, SkeletonMessage, encode
+from replay.catalog import CMU_SUBSTITUTES, recordings
+
+RATE = 120.0
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port: int = s.getsockname()[1]
+        return port
+
+
+def wait_port(port: int, timeout: float = 10) -> None:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        with socket.socket() as s:
+            if s.connect_ex(("127.0.0.1", port)) == 0:
+                return
+        time.sleep(0.05)
+    raise SystemExit(f"nothing listens on port {port}")
+
+
+def metrics(port: int) -> dict[str, float]:
+    with urllib.request.urlopen(f"http://127.0.0.1:{port}/metrics", timeout=5) as r:
+        text = r.read().decode()
+    out = {}
+    for line in text.splitlines():
+        if line and not line.startswith("#"):
+            name, value = line.rsplit(" ", 1)
+            out[name] = float(value)
+    return out
+
+
+def lost(m: dict[str, float]) -> float:
+    """Poses the daemon dropped or never saw (gaps), by its own counters."""
+    keys = [k for k in m if k.startswith("mocapd_drops_total")]
+    return sum(m[k] for k in keys) + m.get('mocapd_stream_events_total{event="gap_frames"}', 0.0)
+
+
+def nodelay(client: paho.Client) -> None:
+    """No Nagle delay on the client's small packets (paho leaves it on)."""
+    sock = client.socket()
+    if isinstance(sock, socket.socket):
+        sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+
+
+def _varint(n: int) -> bytes:
+    out = bytearray()
+    while True:
+        n, b = divmod(n, 128)
+        out.append(b | (0x80 if n else 0))
+        if not n:
+            return bytes(out)
+
+
+def _utf8(text: str) -> bytes:
+    b = text.encode()
+    return len(b).to_bytes(2, "big") + b
+
+
+class RawPublisher:
+    """An MQTT 3.1.1 publisher on a plain socket: QoS 0 PUBLISH packets, a tick's packets in one
+    ``sendall``. A Python client library would queue them through threads and add latency of its
+    own to what is measured."""
+
+    def __init__(self, port: int, client_id: str) -> None:
+        self.sock = socket.create_connection(("127.0.0.1", port))
+        self.sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        body = _utf8("MQTT") + bytes([4, 0x02]) + (60).to_bytes(2, "big") + _utf8(client_id)
+        self.sock.sendall(b"\x10" + _varint(len(body)) + body)
+        if self.sock.recv(4)[:1] != b"\x20":
+            raise SystemExit("the broker refused the load's connection")
+
+    @staticmethod
+    def packet(topic: str, payload: bytes, retain: bool = False) -> bytes:
+        body = _utf8(topic) + payload
+        return bytes([0x31 if retain else 0x30]) + _varint(len(body)) + body
+
+    def send(self, packets: list[bytes]) -> None:
+        self.sock.sendall(b"".join(packets))
+
+
+class Load:
+    """S streams published at 120 Hz from this process, detections collected with their latency."""
+
+    def __init__(self, port: int, sources: list[tuple[bytes, list[bytes]]]) -> None:
+        self.sources = sources
+        self.pub = RawPublisher(port, f"bench-load-{os.getpid()}")
+        self.latencies: list[float] = []
+        self.lock = threading.Lock()
+        self.seq: dict[str, int] = {}
+        self.sub = paho.Client(CallbackAPIVersion.VERSION2, client_id=f"bench-sub-{os.getpid()}")
+        self.sub.on_message = self._on_message
+        self.sub.connect("127.0.0.1", port)
+        nodelay(self.sub)
+        self.sub.subscribe("mocap/+/detections", qos=1)
+        self.sub.loop_start()
+
+    def _on_message(self, client: object, userdata: object, message: paho.MQTTMessage) -> None:
+        now = time.time()
+        body = msgpack.unpackb(message.payload, raw=False)
+        if body.get("source_time", 0) > 0:
+            with self.lock:
+                self.latencies.append(now - body["source_time"])
+
+    def run(self, streams: int, seconds: float, prefix: str) -> int:
+        """Publish ``streams`` streams for ``seconds``; the poses sent."""
+        rng = np.random.default_rng(streams)
+        picks = [self.sources[k % len(self.sources)] for k in range(streams)]
+        names = [f"{prefix}{k}" for k in range(streams)]
+        at = [int(rng.integers(len(frames))) for _, frames in picks]
+        for name, (asf, _) in zip(names, picks, strict=True):
+            if name not in self.seq:
+                message = SkeletonMessage(name, RATE, asf=asf.decode(), angle_unit="rad")
+                self.pub.send([RawPublisher.packet(f"mocap/{name}/skeleton", encode(message))])
+                self.seq[name] = 0
+        time.sleep(0.5)
+        start = time.monotonic()
+        ticks = int(seconds * RATE)
+        sent = 0
+        for tick in range(ticks):
+            wait = start + tick / RATE - time.monotonic()
+            if wait > 0:
+                time.sleep(wait)
+            now = time.time()
+            packets = []
+            for k, name in enumerate(names):
+                frames = picks[k][1]
+                channels = np.frombuffer(frames[(at[k] + tick) % len(frames)], dtype="<f8")
+                self.seq[name] += 1
+                payload = encode(PoseMessage(name, self.seq[name], now, channels=channels))
+                packets.append(RawPublisher.packet(f"mocap/{name}/pose", payload))
+            self.pub.send(packets)
+            sent += len(packets)
+        return sent
+
+    def take_latencies(self) -> list[float]:
+        with self.lock:
+            out, self.latencies = self.latencies, []
+        return out
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--sizes", default="1,10,50,100,150,200")
+    parser.add_argument("--seconds", type=float, default=15.0)
+    parser.add_argument("--data", type=Path, default=DATA)
+    args = parser.parse_args()
+    sizes = [int(x) for x in args.sizes.split(",")]
+    print(describe())
+    mosquitto = shutil.which("mosquitto") or "/usr/sbin/mosquitto"
+    work = Path(tempfile.mkdtemp(prefix="bench-service-"))
+    broker_port, metrics_port = free_port(), free_port()
+    (work / "m.conf").write_text(
+        f"listener {broker_port} 127.0.0.1\nallow_anonymous true\nset_tcp_nodelay true\nmax_queued_messages 1000000\n"
+    )
+    broker = subprocess.Popen([mosquitto, "-c", str(work / "m.conf")], stderr=subprocess.DEVNULL)
+    wait_port(broker_port)
+    cores = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else [0]
+    daemon_core, load_cores = cores[0], set(cores[1:] or cores)
+    env = {**os.environ, "MOCAPD_LOGGING_LEVEL": "warning", "MOCAPD_SERVICE_IDLE_S": "3600"}
+    mocapd = str(Path(sys.executable).parent / "mocapd")
+    daemon = subprocess.Popen(
+        [
+            "taskset",
+            "-c",
+            str(daemon_core),
+            mocapd,
+            "run",
+            "--mqtt",
+            f"mqtt://127.0.0.1:{broker_port}",
+            "--metrics-port",
+            str(metrics_port),
+        ],
+        stdout=subprocess.DEVNULL,
+        stderr=open(work / "daemon.err", "wb"),  # noqa: SIM115
+        env=env,
+    )
+    wait_port(metrics_port, 30)
+    if hasattr(os, "sched_setaffinity"):
+        os.sched_setaffinity(0, load_cores)
+    pairs = recordings(args.data, CMU_SUBSTITUTES)
+    chosen = pairs[:: max(1, len(pairs) // 12)][:12]
+    sources = []
+    for asf, amc in chosen:
+        m = read_recording(asf, amc)
+        sources.append((Path(asf).read_bytes(), [np.ascontiguousarray(row).tobytes() for row in m.channels]))
+    load = Load(broker_port, sources)
+    print(
+        f"broker: mosquitto on loopback; daemon on core {daemon_core}, load on {sorted(load_cores)}; {args.seconds:g} s per size"
+    )
+    print(
+        f"{'streams':>8s} {'poses/s':>9s} {'lost':>6s} {'behind':>8s} {'detections':>11s} {'p50 ms':>8s} {'p99 ms':>8s}  holds"
+    )
+    held = 0
+    try:
+        for size in sizes:
+            before = metrics(metrics_port)
+            load.run(size, 2.0, f"w{size}-")  # warm-up: the recognisers made, the phases spread
+            load.take_latencies()
+            warm = metrics(metrics_port)
+            sent = load.run(size, args.seconds, f"w{size}-")
+            time.sleep(0.5)
+            after = metrics(metrics_port)
+            received = after.get("mocapd_frames_in_total", 0) - warm.get("mocapd_frames_in_total", 0)
+            behind = after.get("mocapd_queued_poses", 0)
+            gone = lost(after) - lost(before) + max(0.0, sent - received)
+            lat = np.array(load.take_latencies()) * 1e3
+            p50, p99 = (np.percentile(lat, 50), np.percentile(lat, 99)) if lat.size else (float("nan"),) * 2
+            ok = gone == 0 and behind <= 0.5 * RATE * size
+            held = max(held, size) if ok else held
+            print(
+                f"{size:8d} {sent / args.seconds:9,.0f} {gone:6.0f} {behind / (RATE * size):7.2f}s {lat.size:11d} "
+                f"{p50:8.1f} {p99:8.1f}  {'yes' if ok else 'no'}",
+                flush=True,
+            )
+            time.sleep(1.0)
+        print(f"largest size held with no drops: {held} streams of {RATE:g} Hz (aim: >= 100, p99 <= 20 ms)")
+        print(json.dumps({"daemon_rss_kib": _rss(daemon.pid)}))
+    finally:
+        daemon.terminate()
+        daemon.wait(30)
+        broker.terminate()
+        broker.wait(10)
+        shutil.rmtree(work, ignore_errors=True)
+
+
+def _rss(pid: int) -> int:
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1])
+    return 0
+
+
+if __name__ == "__main__":
+    main()
