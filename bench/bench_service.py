@@ -11,7 +11,7 @@ every stream a real recording looped from a different start (CMU and HDM05 of
 ``../shared/data/mocap``, channels on the wire), and subscribes to the detections (QoS 1). Each size
 runs ``--seconds`` after a 2 s warm-up; a size holds when the daemon dropped nothing (no lagging
 pose, no full queue), saw no gap, and was at most 0.5 s behind at the end. Latency: p50 and p99 of
-(detection received) − (``source_time``, the completing pose's timestamp), in ms. Baseline in the
+(detection received) - (``source_time``, the completing pose's timestamp), in ms. Baseline in the
 same run: one stream, the floor the broker and the wire add.
 """
 
@@ -28,11 +28,13 @@ import tempfile
 import threading
 import time
 import urllib.request
+from collections.abc import Callable
 from pathlib import Path
 
 import msgpack
 import numpy as np
 import paho.mqtt.client as paho
+import zmq
 from paho.mqtt.enums import CallbackAPIVersion
 
 from bench.common import DATA
@@ -121,31 +123,74 @@ class RawPublisher:
         self.sock.sendall(b"".join(packets))
 
 
-class Load:
-    """S streams published at 120 Hz from this process, detections collected with their latency."""
+class ZmqLoad:
+    """The same load over ZeroMQ: an XPUB socket connected to the daemon's poses socket (waiting for
+    its subscription), a SUB socket on its detections."""
 
-    def __init__(self, port: int, sources: list[tuple[bytes, list[bytes]]]) -> None:
-        self.sources = sources
+    def __init__(self, poses: str, detections: str, on_detection: Callable[[bytes], None]) -> None:
+        self.ctx = zmq.Context()
+        self.pub = self.ctx.socket(zmq.XPUB)
+        self.pub.setsockopt(zmq.SNDHWM, 10_000_000)
+        self.pub.setsockopt(zmq.LINGER, 0)
+        self.pub.connect(poses)
+        if not self.pub.poll(10_000):
+            raise SystemExit("the daemon did not subscribe")
+        self.pub.recv()
+        self.sub = self.ctx.socket(zmq.SUB)
+        self.sub.setsockopt(zmq.LINGER, 0)
+        self.sub.setsockopt(zmq.SUBSCRIBE, b"mocap/")
+        self.sub.connect(detections)
+        self.on_detection = on_detection
+        threading.Thread(target=self._collect, daemon=True).start()
+        time.sleep(0.3)
+
+    def _collect(self) -> None:
+        while True:
+            _, payload = self.sub.recv_multipart()
+            self.on_detection(payload)
+
+    def send(self, messages: list[tuple[str, bytes]]) -> None:
+        for topic, payload in messages:
+            self.pub.send_multipart([topic.encode(), payload])
+
+
+class MqttLoad:
+    """The load over MQTT: :class:`RawPublisher` out, a paho subscriber (QoS 1) on the detections."""
+
+    def __init__(self, port: int, on_detection: Callable[[bytes], None]) -> None:
         self.pub = RawPublisher(port, f"bench-load-{os.getpid()}")
-        self.latencies: list[float] = []
-        self.lock = threading.Lock()
-        self.seq: dict[str, int] = {}
         self.sub = paho.Client(CallbackAPIVersion.VERSION2, client_id=f"bench-sub-{os.getpid()}")
-        self.sub.on_message = self._on_message
+        self.sub.on_message = lambda client, userdata, message: on_detection(bytes(message.payload))
         self.sub.connect("127.0.0.1", port)
         nodelay(self.sub)
         self.sub.subscribe("mocap/+/detections", qos=1)
         self.sub.loop_start()
 
-    def _on_message(self, client: object, userdata: object, message: paho.MQTTMessage) -> None:
+    def send(self, messages: list[tuple[str, bytes]]) -> None:
+        self.pub.send([RawPublisher.packet(topic, payload) for topic, payload in messages])
+
+
+class Load:
+    """S streams published at 120 Hz from this process through ``wire`` (ZmqLoad or MqttLoad),
+    detections collected with their latency."""
+
+    def __init__(self, sources: list[tuple[bytes, list[bytes]]]) -> None:
+        self.sources = sources
+        self.latencies: list[float] = []
+        self.lock = threading.Lock()
+        self.seq: dict[str, int] = {}
+        self.wire: ZmqLoad | MqttLoad | None = None
+
+    def on_detection(self, payload: bytes) -> None:
         now = time.time()
-        body = msgpack.unpackb(message.payload, raw=False)
-        if body.get("source_time", 0) > 0:
+        body = msgpack.unpackb(payload, raw=False)
+        if body.get("type") == "detection" and body.get("source_time", 0) > 0:
             with self.lock:
                 self.latencies.append(now - body["source_time"])
 
     def run(self, streams: int, seconds: float, prefix: str) -> int:
         """Publish ``streams`` streams for ``seconds``; the poses sent."""
+        assert self.wire is not None
         rng = np.random.default_rng(streams)
         picks = [self.sources[k % len(self.sources)] for k in range(streams)]
         names = [f"{prefix}{k}" for k in range(streams)]
@@ -153,7 +198,7 @@ class Load:
         for name, (asf, _) in zip(names, picks, strict=True):
             if name not in self.seq:
                 message = SkeletonMessage(name, RATE, asf=asf.decode(), angle_unit="rad")
-                self.pub.send([RawPublisher.packet(f"mocap/{name}/skeleton", encode(message))])
+                self.wire.send([(f"mocap/{name}/skeleton", encode(message))])
                 self.seq[name] = 0
         time.sleep(0.5)
         start = time.monotonic()
@@ -164,15 +209,15 @@ class Load:
             if wait > 0:
                 time.sleep(wait)
             now = time.time()
-            packets = []
+            messages = []
             for k, name in enumerate(names):
                 frames = picks[k][1]
                 channels = np.frombuffer(frames[(at[k] + tick) % len(frames)], dtype="<f8")
                 self.seq[name] += 1
                 payload = encode(PoseMessage(name, self.seq[name], now, channels=channels))
-                packets.append(RawPublisher.packet(f"mocap/{name}/pose", payload))
-            self.pub.send(packets)
-            sent += len(packets)
+                messages.append((f"mocap/{name}/pose", payload))
+            self.wire.send(messages)
+            sent += len(messages)
         return sent
 
     def take_latencies(self) -> list[float]:
@@ -187,38 +232,35 @@ def main() -> None:
     )
     parser.add_argument("--sizes", default="1,10,50,100,150,200")
     parser.add_argument("--seconds", type=float, default=15.0)
+    parser.add_argument("--transport", choices=("mqtt", "zmq"), default="mqtt")
     parser.add_argument("--data", type=Path, default=DATA)
     args = parser.parse_args()
     sizes = [int(x) for x in args.sizes.split(",")]
     print(describe())
-    mosquitto = shutil.which("mosquitto") or "/usr/sbin/mosquitto"
     work = Path(tempfile.mkdtemp(prefix="bench-service-"))
-    broker_port, metrics_port = free_port(), free_port()
-    (work / "m.conf").write_text(
-        f"listener {broker_port} 127.0.0.1\nallow_anonymous true\nset_tcp_nodelay true\nmax_queued_messages 1000000\n"
-    )
-    broker = subprocess.Popen([mosquitto, "-c", str(work / "m.conf")], stderr=subprocess.DEVNULL)
-    wait_port(broker_port)
+    metrics_port = free_port()
+    env = {**os.environ, "MOCAPD_LOGGING_LEVEL": "warning", "MOCAPD_SERVICE_IDLE_S": "3600"}
+    broker = None
+    broker_port = free_port()
+    poses, detections = f"tcp://127.0.0.1:{free_port()}", f"tcp://127.0.0.1:{free_port()}"
+    if args.transport == "mqtt":
+        (work / "m.conf").write_text(
+            f"listener {broker_port} 127.0.0.1\nallow_anonymous true\nset_tcp_nodelay true\n"
+            "max_queued_messages 1000000\n"
+        )
+        mosquitto = shutil.which("mosquitto") or "/usr/sbin/mosquitto"
+        broker = subprocess.Popen([mosquitto, "-c", str(work / "m.conf")], stderr=subprocess.DEVNULL)
+        wait_port(broker_port)
+        where = ["--mqtt", f"mqtt://127.0.0.1:{broker_port}"]
+    else:
+        env |= {"MOCAPD_ZMQ_POSES": poses, "MOCAPD_ZMQ_DETECTIONS": detections, "MOCAPD_SERVICE_SINKS": "zmq"}
+        where = []
     cores = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else [0]
     daemon_core, load_cores = cores[0], set(cores[1:] or cores)
-    env = {**os.environ, "MOCAPD_LOGGING_LEVEL": "warning", "MOCAPD_SERVICE_IDLE_S": "3600"}
     mocapd = str(Path(sys.executable).parent / "mocapd")
-    daemon = subprocess.Popen(
-        [
-            "taskset",
-            "-c",
-            str(daemon_core),
-            mocapd,
-            "run",
-            "--mqtt",
-            f"mqtt://127.0.0.1:{broker_port}",
-            "--metrics-port",
-            str(metrics_port),
-        ],
-        stdout=subprocess.DEVNULL,
-        stderr=open(work / "daemon.err", "wb"),  # noqa: SIM115
-        env=env,
-    )
+    command = ["taskset", "-c", str(daemon_core), mocapd, "run", *where, "--metrics-port", str(metrics_port)]
+    with open(work / "daemon.err", "wb") as err:
+        daemon = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=err, env=env)
     wait_port(metrics_port, 30)
     if hasattr(os, "sched_setaffinity"):
         os.sched_setaffinity(0, load_cores)
@@ -228,13 +270,17 @@ def main() -> None:
     for asf, amc in chosen:
         m = read_recording(asf, amc)
         sources.append((Path(asf).read_bytes(), [np.ascontiguousarray(row).tobytes() for row in m.channels]))
-    load = Load(broker_port, sources)
+    load = Load(sources)
+    if args.transport == "mqtt":
+        load.wire = MqttLoad(broker_port, load.on_detection)
+    else:
+        load.wire = ZmqLoad(poses, detections, load.on_detection)
     print(
-        f"broker: mosquitto on loopback; daemon on core {daemon_core}, load on {sorted(load_cores)}; {args.seconds:g} s per size"
+        f"{args.transport}{' (mosquitto on loopback)' if broker else ' on loopback'}; daemon on core "
+        f"{daemon_core}, load on {sorted(load_cores)}; {args.seconds:g} s per size"
     )
-    print(
-        f"{'streams':>8s} {'poses/s':>9s} {'lost':>6s} {'behind':>8s} {'detections':>11s} {'p50 ms':>8s} {'p99 ms':>8s}  holds"
-    )
+    head = ("streams", "poses/s", "lost", "behind", "detections", "p50 ms", "p99 ms")
+    print(" ".join(f"{h:>{w}s}" for h, w in zip(head, (8, 9, 6, 8, 11, 8, 8), strict=True)) + "  holds")
     held = 0
     try:
         for size in sizes:
@@ -253,8 +299,8 @@ def main() -> None:
             ok = gone == 0 and behind <= 0.5 * RATE * size
             held = max(held, size) if ok else held
             print(
-                f"{size:8d} {sent / args.seconds:9,.0f} {gone:6.0f} {behind / (RATE * size):7.2f}s {lat.size:11d} "
-                f"{p50:8.1f} {p99:8.1f}  {'yes' if ok else 'no'}",
+                f"{size:8d} {sent / args.seconds:9,.0f} {gone:6.0f} {behind / (RATE * size):7.2f}s "
+                f"{lat.size:11d} {p50:8.1f} {p99:8.1f}  {'yes' if ok else 'no'}",
                 flush=True,
             )
             time.sleep(1.0)
@@ -263,8 +309,9 @@ def main() -> None:
     finally:
         daemon.terminate()
         daemon.wait(30)
-        broker.terminate()
-        broker.wait(10)
+        if broker is not None:
+            broker.terminate()
+            broker.wait(10)
         shutil.rmtree(work, ignore_errors=True)
 
 
