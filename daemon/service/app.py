@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import gc
 import json
 import logging
 import os
@@ -436,6 +437,9 @@ def serve(
             version=version,
             logger=logger,
         )
+        # the library, the plans and the modules are there for good: keep the collector off them
+        gc.collect()
+        gc.freeze()
         return await service.run(stop, extra(service, stop) if extra is not None else ())
 
     return 0 if asyncio.run(main()) else 1
