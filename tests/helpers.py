@@ -217,16 +217,17 @@ def _accepts(port: int) -> bool:
 
 
 class Broker:
-    """A real mosquitto on a free loopback port with persistence on (its database in ``where``);
+    """A real mosquitto on a free loopback port with persistence on (its database in ``where``) and
+    ``settings`` (default: anonymous clients allowed) for its listener;
     :meth:`start`, :meth:`stop` (SIGTERM: it saves its sessions), :meth:`kill`, start again on the
     same port."""
 
-    def __init__(self, where: Path) -> None:
+    def __init__(self, where: Path, settings: str = "allow_anonymous true\n") -> None:
         self.where = where
         self.port = free_port()
         self.config = where / "mosquitto.conf"
         self.config.write_text(
-            f"listener {self.port} 127.0.0.1\nallow_anonymous true\nset_tcp_nodelay true\npersistence true\n"
+            f"listener {self.port} 127.0.0.1\n{settings}set_tcp_nodelay true\npersistence true\n"
             f"persistence_location {where}/\nautosave_interval 1\nmax_queued_messages 100000\n"
             f"log_dest file {where}/mosquitto.log\n"
             f"user {getpass.getuser()}\n",  # as root it would switch to 'mosquitto' and not reach ``where``

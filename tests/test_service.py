@@ -217,3 +217,20 @@ def test_a_channel_frame_roundtrip_is_exact() -> None:
         back = decode(encode(PoseMessage("s", 1, 0.0, channels=row)))
         assert isinstance(back, PoseMessage) and back.channels is not None
         assert np.array_equal(back.channels, row)
+
+
+def test_a_second_signal_exits_at_once(tmp_path: Path) -> None:
+    """The first SIGTERM starts recognising a long backlog; the second ends the process there."""
+    daemon = Daemon(tmp_path, config={"service": {"queue_frames": 1_000_000, "grace_s": 120}}).start()
+    sender = replay(*LONG, "zmq+" + daemon.poses, "--loop", speed="max")
+    try:
+        wait_for(lambda: daemon.metrics().get("mocapd_queued_poses", 0) > 20_000, 60, "a backlog")
+        daemon.signal(signal.SIGTERM)
+        wait_for(lambda: any(e["event"] == "stopping" for e in daemon.logs()), 10, "the shutdown begun")
+        assert daemon.alive  # still recognising the backlog
+        daemon.signal(signal.SIGTERM)
+        assert daemon.wait(timeout=5) == 128 + signal.SIGTERM
+    finally:
+        sender.kill()
+        sender.communicate()
+        daemon.stop()
