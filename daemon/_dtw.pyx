@@ -133,14 +133,9 @@ def minima_codes(
     """The local minima of Δ (:func:`subsequence_codes`) at or below ``threshold`` (fixed point):
     Δ(b) < Δ(b-1) and Δ(b) <= Δ(b+1), outside the columns counting as unreachable; a list of
     (start, end, Δ) in column order."""
-    check(masks, values, tables, codes, blocked)
-    cdef Py_ssize_t n = codes.shape[0], j
-    delta_out = np.empty(n, dtype=np.int64)
-    start_out = np.empty(n, dtype=np.int64)
+    delta_out, start_out = subsequence_codes(masks, values, tables, codes, blocked, toolbox)
     cdef int64_t[::1] delta = delta_out, start = start_out
-    cdef int64_t[:, ::1] b = np.empty((7, masks.shape[0]), dtype=np.int64)
-    with nogil:
-        _subsequence(masks, values, tables, codes, blocked, toolbox, delta, start, b)
+    cdef Py_ssize_t n = codes.shape[0], j
     out = []
     cdef int64_t d, before, after
     for j in range(n):

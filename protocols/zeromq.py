@@ -106,32 +106,27 @@ class ZmqTransport:
             clients = self.curve_clients_dir
             auth.configure_curve(domain="*", location=clients if clients else zmq.auth.CURVE_ALLOW_ANY)
             self._auth = auth
+
+        def opened(kind: int, spec: str) -> zmq.asyncio.Socket:
+            assert self._ctx is not None
+            endpoint, bind = split_endpoint(spec)
+            return open_socket(
+                self._ctx,
+                kind,
+                endpoint,
+                bind=bind,
+                hwm=self.hwm,
+                linger_ms=self.linger_ms,
+                curve_server_secret=secret,
+                curve_server_public=public,
+            )
+
         try:
             if self.poses is not None:
-                endpoint, bind = split_endpoint(self.poses)
-                self._sub = open_socket(
-                    self._ctx,
-                    zmq.SUB,
-                    endpoint,
-                    bind=bind,
-                    hwm=self.hwm,
-                    linger_ms=self.linger_ms,
-                    curve_server_secret=secret,
-                    curve_server_public=public,
-                )
+                self._sub = opened(zmq.SUB, self.poses)
                 self._sub.setsockopt(zmq.SUBSCRIBE, PREFIX)
             if self.detections is not None:
-                endpoint, bind = split_endpoint(self.detections)
-                self._pub = open_socket(
-                    self._ctx,
-                    zmq.PUB,
-                    endpoint,
-                    bind=bind,
-                    hwm=self.hwm,
-                    linger_ms=self.linger_ms,
-                    curve_server_secret=secret,
-                    curve_server_public=public,
-                )
+                self._pub = opened(zmq.PUB, self.detections)
         except BaseException:
             await self.__aexit__(None, None, None)
             raise

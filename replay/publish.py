@@ -32,6 +32,9 @@ from replay.amc import Motion
 SEND_HWM = 10_000_000
 
 
+Items = Iterator[SkeletonMessage | PoseMessage]
+
+
 def due(start: float, i: int, rate: float, speed: float | None) -> float:
     """When frame ``i`` of a replay begun at ``start`` goes out (``speed`` None: at once)."""
     return start if speed is None else start + i / (rate * speed)
@@ -68,16 +71,17 @@ async def replay_to(
     ``mqtt://HOST:PORT`` or ``mqtts://``: a broker) as ``stream``; the poses sent. ValueError for
     another URL; TimeoutError when no subscriber or broker answers within ``wait_s``."""
     scheme = urlsplit(url).scheme
+    items = messages(motion, asf_text, stream, rate, None if loop else 1)
     if scheme.startswith("zmq+"):
-        return await _to_zmq(url[len("zmq+") :], motion, asf_text, stream, rate, speed, loop, wait_s)
+        return await _to_zmq(url[len("zmq+") :], items, rate, speed, wait_s)
     if scheme in ("mqtt", "mqtts"):
-        return await _to_mqtt(url, motion, asf_text, stream, rate, speed, loop, wait_s)
+        return await _to_mqtt(url, items, stream, rate, speed, wait_s)
     raise ValueError(f"--to must be zmq+tcp://HOST:PORT or mqtt://HOST:PORT, got {url!r}")
 
 
 async def _send_all(
     send: Callable[[Outgoing], Awaitable[None]],
-    items: Iterator[SkeletonMessage | PoseMessage],
+    items: Items,
     rate: float,
     speed: float | None,
 ) -> int:
@@ -102,16 +106,7 @@ async def _send_all(
     return sent
 
 
-async def _to_zmq(
-    endpoint: str,
-    motion: Motion,
-    asf_text: str,
-    stream: str,
-    rate: float,
-    speed: float | None,
-    loop: bool,
-    wait_s: float,
-) -> int:
+async def _to_zmq(endpoint: str, items: Items, rate: float, speed: float | None, wait_s: float) -> int:
     ctx = zmq.asyncio.Context()
     sock = ctx.socket(zmq.XPUB)
     sock.setsockopt(zmq.SNDHWM, SEND_HWM)
@@ -127,23 +122,14 @@ async def _to_zmq(
         async def send(out: Outgoing) -> None:
             await sock.send_multipart([out.topic.encode(), out.payload])
 
-        return await _send_all(
-            send, messages(motion, asf_text, stream, rate, None if loop else 1), rate, speed
-        )
+        return await _send_all(send, items, rate, speed)
     finally:
         sock.close(linger=10_000)
         ctx.term()
 
 
 async def _to_mqtt(
-    url: str,
-    motion: Motion,
-    asf_text: str,
-    stream: str,
-    rate: float,
-    speed: float | None,
-    loop: bool,
-    wait_s: float,
+    url: str, items: Items, stream: str, rate: float, speed: float | None, wait_s: float
 ) -> int:
     from protocols.mqtt import MqttTransport
 
@@ -156,9 +142,7 @@ async def _to_mqtt(
                 await asyncio.sleep(0.001)
             await client.publish(out)
 
-        sent = await _send_all(
-            send, messages(motion, asf_text, stream, rate, None if loop else 1), rate, speed
-        )
+        sent = await _send_all(send, items, rate, speed)
         with contextlib.suppress(TimeoutError):
             async with asyncio.timeout(60):
                 while client.pending:
