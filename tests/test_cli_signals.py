@@ -361,3 +361,28 @@ def test_a_signal_while_writing_to_stdout_exits_with_one_line(
     assert first.startswith(b"frame,joint,x,y,z\n")
     assert whole.startswith(first + stdout)
     assert len(first + stdout) < len(whole)
+
+
+def test_a_signal_inside_a_weakref_callback_is_not_lost() -> None:
+    """Python cannot raise an exception out of a weak reference's callback: it prints "Exception
+    ignored" and goes on. The CLI's unraisable hook sends such a signal again, so the command still
+    stops."""
+    script = (
+        "import signal, sys, time, weakref\n"
+        "from daemon import cli\n"
+        "signal.signal(signal.SIGINT, cli._interrupt)\n"
+        "sys.unraisablehook = cli._unraisable(sys.__unraisablehook__)\n"
+        "class A: pass\n"
+        "def callback(ref): raise cli.Interrupted\n"
+        "a = A(); r = weakref.ref(a, callback)\n"
+        "try:\n"
+        "    del a\n"
+        "    time.sleep(2)\n"
+        "    print('lost')\n"
+        "except KeyboardInterrupt:\n"
+        "    print('stopped')\n"
+    )
+    result = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, timeout=30, cwd=REPO
+    )
+    assert (result.stdout, result.stderr) == ("stopped\n", "")

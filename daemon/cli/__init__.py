@@ -22,8 +22,9 @@ import importlib
 import os
 import signal
 import sys
+import threading
 import traceback
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 from types import FrameType
@@ -63,6 +64,24 @@ def _terminate(signum: int, frame: FrameType | None) -> NoReturn:
 
 def _interrupt(signum: int, frame: FrameType | None) -> NoReturn:
     raise Interrupted
+
+
+def _unraisable(hook: Callable[[Any], object]) -> Callable[[Any], object]:
+    """A ``sys.unraisablehook`` for a signal whose exception landed where Python cannot raise it
+    (a weak reference's or a finalizer's callback: it would print "Exception ignored" and lose the
+    signal): the signal is sent again a moment later from a helper thread, so the main thread's
+    handler runs once the callback and this hook are over. Anything else goes to ``hook``."""
+
+    def again(unraisable: Any) -> object:
+        for kind, signum in ((Interrupted, signal.SIGINT), (Terminated, signal.SIGTERM)):
+            if isinstance(unraisable.exc_value, kind):
+                later = threading.Timer(0.01, signal.raise_signal, (signum,))  # once the hook is left
+                later.daemon = True
+                later.start()
+                return None
+        return hook(unraisable)
+
+    return again
 
 
 class Parser(argparse.ArgumentParser):
@@ -114,6 +133,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         if signal.getsignal(signal.SIGINT) is signal.default_int_handler:  # not ignored (``command &``)
             previous[signal.SIGINT] = signal.signal(signal.SIGINT, _interrupt)
         previous[signal.SIGTERM] = signal.signal(signal.SIGTERM, _terminate)
+        sys.unraisablehook = _unraisable(sys.__unraisablehook__)
         from daemon.config import load_config
         from daemon.errors import FileAccessError, MocapdError
 
@@ -147,3 +167,4 @@ def main(argv: Sequence[str] | None = None) -> int:
     finally:
         for number, handler in previous.items():
             signal.signal(number, signal.SIG_IGN if argv is None else handler)
+        sys.unraisablehook = sys.__unraisablehook__
