@@ -170,6 +170,13 @@ GENERALISATIONS = tuple(
 )
 """The keyframe generalisations tried, the thesis' rule first."""
 
+MOST_GENERAL = Generalisation(window=2, margin=2.0, min_gap=0, fixed=3)
+"""The most general of :data:`GENERALISATIONS` (fewest fixed features, each stable over the widest
+window, gaps widened the most): the keyframes of a class whose folds cannot show that any
+generalisation keeps a new person's clips (one actor, or none kept enough in some fold). Keyframes
+only pre-select; the template's DTW decides, so a class had better give a few candidates too many
+than none."""
+
 
 # ------------------------------------------------------------------------------------ the folds
 
@@ -262,17 +269,19 @@ def retention(found: Sequence[Fold], g: Generalisation) -> list[float]:
 def choose_generalisation(found: Sequence[Fold], min_kept: float = MIN_RECALL) -> Generalisation:
     """The keyframe generalisation that keeps at least ``min_kept`` of the left-out clips of the
     class in every fold and, among those, the fewest clips of other classes (ties: the earlier one
-    tried, the least widened). If none keeps enough in every fold: the one with the best worst fold
-    (then fewest other clips). The thesis' rule when there are no folds or trials."""
-    tried = [t.generalisation for t in found[0].trials] if found else []
+    tried, the least widened). If none keeps enough in every fold, or there are no folds:
+    :data:`MOST_GENERAL`. The thesis' rule when keyframes were not tried (no trials)."""
+    if not found:
+        return MOST_GENERAL
+    tried = [t.generalisation for t in found[0].trials]
     if not tried:
         return THESIS_KEYFRAMES
     scores = []
     for i, g in enumerate(tried):
-        worst = min(retention(found, g))
         others = sum(t.negatives for f in found for t in f.trials if t.generalisation == g)
-        scores.append((worst >= min_kept, worst if worst < min_kept else 1.0, -others, -i))
-    return tried[max(range(len(tried)), key=lambda i: scores[i])]
+        scores.append((min(retention(found, g)) >= min_kept, -others, -i))
+    best = max(range(len(tried)), key=lambda i: scores[i])
+    return tried[best] if scores[best][0] else MOST_GENERAL
 
 
 def calibrate_class(
@@ -294,7 +303,7 @@ def calibrate_class(
     actors = len({a for a, _ in examples[name]})
     if not found:
         why = "one actor" if actors < 2 else "no fold"
-        return ClassCalibration(given(tau, f"{why}: no leave-one-actor-out"), THESIS_KEYFRAMES, ())
+        return ClassCalibration(given(tau, f"{why}: no leave-one-actor-out"), MOST_GENERAL, ())
     generalisation = choose_generalisation(found, min_recall)
     pos = np.concatenate([f.positive_costs for f in found])
     neg = np.concatenate([f.negative_costs for f in found])

@@ -8,7 +8,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from daemon.calibration import Calibration, ClassCalibration, calibrate_class, given
+from daemon.calibration import MOST_GENERAL, Calibration, ClassCalibration, calibrate_class, given
 from daemon.cli import common
 from daemon.config import Config
 from daemon.dtw import STEPS, Steps
@@ -140,21 +140,23 @@ def learn_one(
     ``rate`` Hz, as :func:`daemon.recordings.read_examples` gives them) learned as ``mocapd learn``
     learns it: τ and the keyframe generalisation by leave-one-actor-out over all classes
     (:func:`daemon.calibration.calibrate_class`) when ``calibrate`` and the examples name at least
-    2 actors, else ``tau`` given (and why). Returns the class and its calibration (None when not
-    calibrated)."""
+    2 actors; with one actor ``tau`` given (and why) and the most general keyframes
+    (:data:`daemon.calibration.MOST_GENERAL`). Returns the class and its calibration (None with
+    ``calibrate`` False: τ given, the thesis' keyframes)."""
+    found: ClassCalibration | None = None
     if not calibrate:
-        calibration, generalisation, found = given(tau, "--no-calibrate"), THESIS_KEYFRAMES, None
+        calibration, generalisation = given(tau, "--no-calibrate"), THESIS_KEYFRAMES
     else:
         actors = {clip.actor for items in examples.values() for clip, _ in items}
         if len(actors) < 2:
             why = f"{len(actors)} actor in the manifest: no leave-one-actor-out"
-            calibration, generalisation, found = given(tau, why), THESIS_KEYFRAMES, None
+            found = ClassCalibration(given(tau, why), MOST_GENERAL, ())
         else:
             labelled = {n: [(clip.actor, m) for clip, m in items] for n, items in examples.items()}
             found = calibrate_class(
                 labelled, name, tau=tau, delta=delta, keyframes=keyframes, steps=steps, rate=rate
             )
-            calibration, generalisation = found.calibration, found.keyframes
+        calibration, generalisation = found.calibration, found.keyframes
     cls = learn_class(
         name,
         examples[name],
