@@ -69,10 +69,12 @@ class RecognizerBank:
         *,
         max_gap_s: float = DEFAULT_MAX_GAP_S,
         classes: Collection[str] | None = None,
+        compete: bool = True,
     ) -> None:
         self.library = library
         self._classes = None if classes is None else tuple(classes)
         self._max_gap_s = max_gap_s
+        self._compete = compete
         self._plans: tuple[ClassPlan, ...] = plans(library, classes, max_gap_s=max_gap_s)
         self._streams: dict[str, Recognizer] = {}
 
@@ -110,6 +112,7 @@ class RecognizerBank:
             session=session,
             classes=self._classes,
             max_gap_s=self._max_gap_s,
+            compete=self._compete,
             model=None if skeleton is None else skeleton_model(skeleton),
             joint_names=joint_names,
         )

@@ -51,9 +51,10 @@ class ReplayConfig:
 @dataclass(frozen=True)
 class RecognizerConfig:
     """The live recogniser (:mod:`daemon.recognizer`): how far an unbounded keyframe gap (stiffness
-    0) may reach, in seconds."""
+    0) may reach, in seconds; whether classes compete for a motion (the cheaper template wins)."""
 
     max_gap_s: float = field(default=DEFAULT_MAX_GAP_S, metadata=_positive(3600))
+    compete: bool = True
 
 
 @dataclass(frozen=True)

@@ -199,9 +199,11 @@ def _make_plans(library: Library, names: Sequence[str], max_gap_s: float) -> tup
     return tuple(out)
 
 
-def ring_size(class_plans: Sequence[ClassPlan]) -> int:
-    """Index-rate frames a stream keeps: the widest window of any class."""
-    return max((p.window for p in class_plans), default=1)
+def ring_size(class_plans: Sequence[ClassPlan], compete: bool = False) -> int:
+    """Index-rate frames a stream keeps: the widest window of any class, and with ``compete`` the
+    longest template before it (the other classes' DTW reaches that far back)."""
+    reach = max((len(p.weights) for p in class_plans), default=0) if compete else 0
+    return max((p.window for p in class_plans), default=1) + reach
 
 
 def confirm(plan: ClassPlan, codes: npt.NDArray[np.uint64]) -> list[Match]:
@@ -253,12 +255,17 @@ class CodeRecognizer:
     frames), confirmed when its last frame arrives: ``right`` frames after the match's last keyframe,
     whatever comes after. While the last keyframe keeps holding (a long run, e.g. a pose shared by
     a series of repetitions), the match opens another window every ``period`` frames. The windows a
-    class opens at one frame are one window, the widest."""
+    class opens at one frame are one window, the widest.
 
-    def __init__(self, class_plans: Sequence[ClassPlan], rate: float) -> None:
+    With ``compete`` (the default), classes compete for a motion: a confirmation is dropped when
+    another class's template matches the same motion (:func:`same_motion`) more cheaply, at or below
+    that class's own τ, in the frames seen so far (:meth:`_beaten`)."""
+
+    def __init__(self, class_plans: Sequence[ClassPlan], rate: float, *, compete: bool = True) -> None:
         self.plans = tuple(class_plans)
         self.rate = rate
-        self._ring: deque[int] = deque(maxlen=ring_size(self.plans))
+        self.compete = compete and len(self.plans) > 1
+        self._ring: deque[int] = deque(maxlen=ring_size(self.plans, self.compete))
         self._tracks = [_ClassTrack(p) for p in self.plans]
         # every class's automaton, stepped in one compiled call per frame
         self._automata = AutomatonSet([p.automaton(rate).core for p in self.plans])
@@ -313,11 +320,31 @@ class CodeRecognizer:
                     window = np.fromiter(islice(self._ring, a - base, b - base + 1), np.uint64, b - a + 1)
                     shifted = [Match(m.start + a, m.end + a, m.cost) for m in confirm(p, window)]
                     for m in keep_apart(shifted, track.published):
+                        if self.compete and self._beaten(p, m, j, base):
+                            continue
                         track.published.append((m.start, m.end))
                         out.append((p, m))
             if pending:
                 self._next_due = min(self._next_due, pending[0][1])
         return out
+
+    def _beaten(self, plan: ClassPlan, m: Match, j: int, base: int) -> bool:
+        """Whether another class matches ``m``'s motion more cheaply: its DTW confirmations (as
+        :func:`confirm` makes them, at or below its own τ) over frames ``m.start - M`` .. ``j`` (its
+        template's length ``M`` before ``m``, up to the frame pushed last) include one that is the
+        :func:`same_motion` as ``m`` at a lower cost. A class's own detector cannot tell a squat
+        from a knee raise; the cheaper template is the better explanation of the motion."""
+        reach = max(len(q.weights) for q in self.plans)
+        first = max(base, m.start - reach)
+        codes = np.fromiter(islice(self._ring, first - base, j - base + 1), np.uint64, j - first + 1)
+        for q in self.plans:
+            if q is plan:
+                continue
+            lo = max(first, m.start - len(q.weights))
+            for c in confirm(q, codes[lo - first :]):
+                if c.cost < m.cost and same_motion((m.start, m.end), (c.start + lo, c.end + lo)):
+                    return True
+        return False
 
 
 _NEVER = 1 << 62
@@ -342,6 +369,7 @@ class Recognizer:
         stream: str = "",
         classes: Collection[str] | None = None,
         max_gap_s: float = DEFAULT_MAX_GAP_S,
+        compete: bool = True,
         session: str | None = None,
         model: KinematicModel | None = None,
         joint_names: Sequence[str] | None = None,
@@ -374,7 +402,7 @@ class Recognizer:
             self._live = LiveStream(
                 None, features.core, features.thresholds_of, order, 3 * self._width, self._step
             )
-        self._codes = CodeRecognizer(self._plans, library.rate)
+        self._codes = CodeRecognizer(self._plans, library.rate, compete=compete)
         self._first: int | None = None  # native frame numbers of the stream's first and last frame
         self._last: int | None = None
 
@@ -553,6 +581,7 @@ def detect(
     stream: str = "",
     classes: Collection[str] | None = None,
     max_gap_s: float = DEFAULT_MAX_GAP_S,
+    compete: bool = True,
     session: str = "",
 ) -> list[Detection]:
     """The batch twin of :class:`Recognizer`: every detection of ``motion`` (read at ``native_rate``
@@ -566,6 +595,7 @@ def detect(
         stream=stream,
         classes=classes,
         max_gap_s=max_gap_s,
+        compete=compete,
         session=session,
     )
 
@@ -579,6 +609,7 @@ def detect_positions(
     stream: str = "",
     classes: Collection[str] | None = None,
     max_gap_s: float = DEFAULT_MAX_GAP_S,
+    compete: bool = True,
     session: str = "",
 ) -> list[Detection]:
     """:func:`detect` of standard joint positions shape ``(N, 26, 3)`` with frame numbers ``(N,)``
@@ -589,7 +620,7 @@ def detect_positions(
     step = decimation_factor(native_rate, library.rate)
     matrix = features(positions, JOINT_NAMES, native_rate)[::step]  # (n_index, 39)
     codes = pack(matrix).tolist()
-    recognizer = CodeRecognizer(plans(library, classes, max_gap_s=max_gap_s), library.rate)
+    recognizer = CodeRecognizer(plans(library, classes, max_gap_s=max_gap_s), library.rate, compete=compete)
     first, last = int(numbers[0]), int(numbers[-1])
     delay = latency_frames(native_rate)
     out = []

@@ -54,8 +54,9 @@ def test_good_config(tmp_path: Path, text: str, expected: ReplayConfig) -> None:
 
 
 def test_recognizer_section(tmp_path: Path) -> None:
-    config = load_config(write(tmp_path, "recognizer:\n  max_gap_s: 1.5\n"))
-    assert config == Config(recognizer=RecognizerConfig(max_gap_s=1.5))
+    config = load_config(write(tmp_path, "recognizer:\n  max_gap_s: 1.5\n  compete: false\n"))
+    assert config == Config(recognizer=RecognizerConfig(max_gap_s=1.5, compete=False))
+    assert load_config(write(tmp_path, "recognizer: {}\n")).recognizer.compete
 
 
 # --------------------------------------------------------------------------------------------------
@@ -72,12 +73,13 @@ BAD = [
     (
         "unknown-recognizer",
         "recognizer:\n  gap: 2\n",
-        "recognizer.gap: unknown field (allowed: max_gap_s)",
+        "recognizer.gap: unknown field (allowed: compete, max_gap_s)",
     ),
     ("gap-zero", "recognizer:\n  max_gap_s: 0\n", "recognizer.max_gap_s"),
     ("gap-string", "recognizer:\n  max_gap_s: 2s\n", "recognizer.max_gap_s"),
     ("gap-huge", "recognizer:\n  max_gap_s: 1e9\n", "recognizer.max_gap_s"),
     ("gap-nan", "recognizer:\n  max_gap_s: .nan\n", "recognizer.max_gap_s"),
+    ("compete-string", "recognizer:\n  compete: 'yes'\n", "recognizer.compete"),
     ("unknown-replay", "replay:\n  fps: 60\n", "replay.fps: unknown field (allowed: frame_rate_hz, units)"),
     ("misspelt", "replay:\n  frame_rate: 60\n", "replay.frame_rate: unknown field"),
     # wrong types and non-positive frame rates

@@ -6,10 +6,12 @@ bad frames raise :class:`FrameError` and change nothing."""
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Sequence
 from functools import cache
 from pathlib import Path
 
 import numpy as np
+import numpy.typing as npt
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
@@ -30,7 +32,7 @@ from daemon.recognizer import (
     plans,
 )
 from daemon.recordings import joint_positions, native_rate, read_recording
-from daemon.templates import MotionTemplate
+from daemon.templates import MotionTemplate, expand
 from daemon.types import FEATURE_SETS, N_FEATURES, FeatureSet
 from replay import JOINT_NAMES, Motion
 from tests.helpers import hdm05_clip, pair_id, recording_pairs, small_library, takes
@@ -154,14 +156,27 @@ def random_class(name: str, query: KeyframeQuery, rng: np.random.Generator, tau:
     )
 
 
-def reference(codes: list[int], cls: ClassTemplate, max_gap: int) -> list[tuple[str, int, int, float, int]]:
+def float_matches(cls: ClassTemplate, frames: npt.NDArray[np.float64], lo: int, hi: int) -> list[Match]:
+    """Float DTW of ``cls``'s expanded template over ``frames[:, lo..hi]``: the local minima at or below
+    its τ, suppressed, in stream frames."""
+    plan = plans(Library(30.0, {cls.name: cls}))[0]
+    cost = retrieval_cost(plan.values, plan.weights, frames[:, lo : hi + 1])
+    return [Match(m.start + lo, m.end + lo, m.cost) for m in subsequence_matches(cost, cls.tau, "toolbox")]
+
+
+def reference(
+    codes: list[int], cls: ClassTemplate, max_gap: int, others: Sequence[ClassTemplate] = ()
+) -> list[tuple[str, int, int, float, int]]:
     """The definition read slowly: every keyframe match by brute force (Def. 4.4-4.6, gaps capped),
     its window R(M) widened by the plan's left and right frames, ending ``right`` frames after the
     match's first complete frame and after every ``period`` frames more that its range reaches
     (the last ``window`` frames; cut at the stream's end), the widest of those ending at one frame;
     float DTW over each, local minima at or below τ suppressed, then by cost those that share at
-    most half of the shorter one's frames with every one kept before. Each as (class, start, end,
-    cost, frame it comes out at)."""
+    most half of the shorter one's frames with every one kept before; of those, the ones no class of
+    ``others`` beats: none of its own float DTW matches (at or below its τ, over the frames from its
+    template's length before the confirmation's start to the frame it comes out at) shares more than
+    half of the shorter one's frames with it at a lower cost. Each as (class, start, end, cost, frame
+    it comes out at)."""
     assert cls.keyframes is not None
     sets = {
         fs: [
@@ -183,15 +198,26 @@ def reference(codes: list[int], cls: ClassTemplate, max_gap: int) -> list[tuple[
     windows = sorted(starts.items())
     kept: list[tuple[int, int]] = []
     out = []
+
+    def one_motion(x: tuple[int, int], y: tuple[int, int]) -> bool:
+        shared = set(range(x[0], x[1] + 1)) & set(range(y[0], y[1] + 1))
+        return 2 * len(shared) > min(x[1] - x[0], y[1] - y[0]) + 1
+
     for end, a in windows:
         b = min(end, n - 1)
-        cost = retrieval_cost(plan.values, plan.weights, frames[:, a : b + 1])
+        apart: list[tuple[int, int]] = []
         confirmed = []
-        for m in sorted(subsequence_matches(cost, cls.tau, "toolbox"), key=lambda m: (m.cost, m.start)):
-            mine = set(range(m.start + a, m.end + a + 1))
-            if all(2 * len(mine & set(range(x, y + 1))) <= min(len(mine), y - x + 1) for x, y in kept):
-                kept.append((m.start + a, m.end + a))
-                confirmed.append((cls.name, m.start + a, m.end + a, m.cost, b))
+        for m in sorted(float_matches(cls, frames, a, b), key=lambda m: (m.cost, m.start)):
+            if all(not one_motion((m.start, m.end), r) for r in kept + apart):
+                apart.append((m.start, m.end))
+                beaten = any(
+                    c.cost < m.cost and one_motion((m.start, m.end), (c.start, c.end))
+                    for q in others
+                    for c in float_matches(q, frames, max(0, m.start - len(expand(q.quantised).weights)), b)
+                )
+                if not beaten:
+                    kept.append((m.start, m.end))
+                    confirmed.append((cls.name, m.start, m.end, m.cost, b))
         out += sorted(confirmed, key=lambda c: c[1])
     return out
 
@@ -204,6 +230,7 @@ def reference(codes: list[int], cls: ClassTemplate, max_gap: int) -> list[tuple[
     st.integers(0, 2**32 - 1),
     st.sampled_from([0.05, 0.2, 0.5]),
     st.integers(1, 8),
+    st.booleans(),
 )
 def test_confirmations_equal_the_definition(
     codes: dict[FeatureSet, list[int]],
@@ -212,15 +239,18 @@ def test_confirmations_equal_the_definition(
     seed: int,
     tau: float,
     max_gap: int,
+    compete: bool,
 ) -> None:
     rng = np.random.default_rng(seed)
     classes = {n: random_class(n, q, rng, tau) for n, q in (("a", q1), ("b", q2))}
     stream = stream_codes(codes)
-    recognizer = CodeRecognizer(plans(Library(30.0, classes), max_gap_s=max_gap / 30.0), 30.0)
+    class_plans = plans(Library(30.0, classes), max_gap_s=max_gap / 30.0)
+    recognizer = CodeRecognizer(class_plans, 30.0, compete=compete)
     got = [(p.name, m.start, m.end, m.cost, j) for j, c in enumerate(stream) for p, m in recognizer.push(c)]
     got += [(p.name, m.start, m.end, m.cost, len(stream) - 1) for p, m in recognizer.flush()]
     for name, cls in classes.items():
-        assert [g for g in got if g[0] == name] == reference(stream, cls, max_gap)
+        others = [c for n, c in classes.items() if n != name] if compete else []
+        assert [g for g in got if g[0] == name] == reference(stream, cls, max_gap, others)
     for _, _, end, _, emitted in got:
         assert end <= emitted  # never before its last frame was seen
 

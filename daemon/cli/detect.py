@@ -91,6 +91,7 @@ def _detect(args: argparse.Namespace, config: Config) -> int:
             stream=stream,
             classes=classes,
             max_gap_s=config.recognizer.max_gap_s,
+            compete=config.recognizer.compete,
         )
     except ValueError as exc:  # a class without keyframes, a rate the library's does not divide
         raise UsageError(str(exc), field="--library") from None

@@ -141,6 +141,7 @@ class Service:
             max_streams=config.service.max_streams,
             max_gap_s=config.service.max_gap_s,
             max_gap_frame_s=config.recognizer.max_gap_s,
+            compete=config.recognizer.compete,
         )
         self.rejects: Counter[str] = Counter()
         self.metrics = Metrics(config.metrics.stream_labels, self._tallies, self._gauge_values)

@@ -85,9 +85,10 @@ class StreamTable:
         max_streams: int = 1000,
         max_gap_s: float = 0.25,
         max_gap_frame_s: float = 2.0,
+        compete: bool = True,
         classes: Collection[str] | None = None,
     ) -> None:
-        self.bank = RecognizerBank(library, max_gap_s=max_gap_frame_s, classes=classes)
+        self.bank = RecognizerBank(library, max_gap_s=max_gap_frame_s, classes=classes, compete=compete)
         self.session = session
         self.queue_frames = queue_frames
         self.max_streams = max_streams
