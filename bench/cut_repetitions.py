@@ -25,14 +25,14 @@ from daemon.mocap6 import (
     SEGMENTS,
     TRIALS,
     RepetitionRow,
-    cut_trial,
+    cut_trials,
     read_segments,
     repetition_rows,
     rows_csv,
     trial_recording,
 )
 from daemon.plots import repetitions_png
-from daemon.recordings import joint_positions, read_recording
+from daemon.recordings import joint_positions
 from replay import JOINT_NAMES
 
 CURVES = ("lwrist", "rwrist", "lknee", "rknee", "headtop")
@@ -53,11 +53,10 @@ def main() -> None:
         f"{'trial':6} {'class':16} {'runs':>4} {'reps':>4} {'period s':>8} {'conf':>5}"
         "  repetition lengths in s"
     )
-    for trial in TRIALS:
-        start = time.perf_counter()
+    start = time.perf_counter()
+    for motion, cuts in cut_trials(args.data, segments, TRIALS, rate=args.rate):
+        trial = cuts.trial
         asf, amc = trial_recording(args.data, trial)
-        motion = read_recording(asf, amc)
-        cuts = cut_trial(motion, segments, trial, rate=args.rate)
         by_class = defaultdict(list)
         for run in cuts.runs:
             by_class[run.segment.label].append(run)
@@ -93,7 +92,8 @@ def main() -> None:
             png,
             f"CMU {trial}{skeleton}: mocap6 runs and repetition cuts at {cuts.features.rate:g} Hz",
         )
-        print(f"{trial}: {len(cuts.runs)} runs cut in {elapsed:.2f} s; {png}")
+        print(f"{trial}: {len(cuts.runs)} runs read and cut in {elapsed:.2f} s; {png}")
+        start = time.perf_counter()
     manifest = args.out / "mocap6_repetitions.csv"
     manifest.write_text(rows_csv(rows), encoding="utf-8")
     print(f"{len(rows)} repetitions in {manifest}")

@@ -10,8 +10,9 @@ the previous one ended, with ``--blend-s`` of linear blending of the joint angle
 the stream is pushed frame by frame through a :class:`~daemon.recognizer.Recognizer`. A detection is
 right when at least half of it lies inside a clip of its class; a clip is found when it holds a right
 detection. CMU mocap6: the 7 exercise classes are learned from the single repetitions (cut as the
-shipped library cuts them) of two of 13_29, 13_30, 14_14 and detected on the whole third trial; a
-labelled run is found when it holds a right detection.
+shipped library cuts them, the phase of each class taken from those two trials) of two of 13_29,
+13_30, 14_14 and detected on the whole third trial; a labelled run is found when it holds a right
+detection.
 
 Each fold runs twice: with the calibrated τ per class and with the thesis' fixed τ = 0.1 (the same
 templates and keyframes). Prints per-class precision and recall for both, and the latency from a
@@ -265,11 +266,13 @@ def main() -> None:
             flush=True,
         )
 
-    print("CMU repetitions:", file=sys.stderr)
-    cmu = read_all(cmu_rows(args.data, REPO))
     segments = mocap6.read_segments(args.data / mocap6.SEGMENTS)
     for left_out in mocap6.TRIALS:
         started = time.perf_counter()
+        # the training trials' repetitions, cut at phases found in those trials only
+        print(f"CMU repetitions without {left_out}:", file=sys.stderr)
+        training = [t for t in mocap6.TRIALS if t != left_out]
+        cmu = read_all(cmu_rows(args.data, REPO, trials=training))
         library = learn(examples_of(cmu, trial_of, left_out), {})
         asf, amc = mocap6.trial_recording(args.data, left_out)
         motion = read_recording(asf, amc)

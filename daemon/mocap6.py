@@ -19,15 +19,21 @@ from __future__ import annotations
 
 import csv
 import io
-from collections.abc import Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
 from daemon.checks import csv_records
 from daemon.errors import MocapdError
-from daemon.recordings import RecordingFeatures, joint_positions, motion_features, sample_index
+from daemon.recordings import (
+    RecordingFeatures,
+    joint_positions,
+    motion_features,
+    read_recording,
+    sample_index,
+)
 from daemon.repetitions import Cutting, cut_run
-from daemon.types import DEFAULT_INDEX_RATE, IntArray
+from daemon.types import DEFAULT_INDEX_RATE, BoolArray, IntArray
 from replay import Motion
 from replay.catalog import CMU_SUBSTITUTES, find_skeleton
 
@@ -132,6 +138,15 @@ class TrialCuts:
     features: RecordingFeatures
     runs: tuple[RunCut, ...]
 
+    def anchors(self) -> dict[str, BoolArray]:
+        """Per class, the features ``(39,)`` of the reference frame of its first run that gave
+        repetitions: the phase the class was cut at."""
+        out: dict[str, BoolArray] = {}
+        for run in self.runs:
+            if run.cutting.repetitions and run.segment.label not in out:
+                out[run.segment.label] = self.features.matrix[run.samples[run.cutting.reference]]
+        return out
+
 
 def cut_trial(
     motion: Motion,
@@ -140,10 +155,13 @@ def cut_trial(
     *,
     rate: float | None = DEFAULT_INDEX_RATE,
     classes: Sequence[str] = CLASSES,
+    anchors: Mapping[str, BoolArray] | None = None,
 ) -> TrialCuts:
     """Cut every run of ``trial`` in ``segments`` labelled with one of ``classes`` into repetitions,
-    on ``motion``'s features and joint positions at ``rate`` Hz (None: the native rate). Raises
+    on ``motion``'s features and joint positions at ``rate`` Hz (None: the native rate), each at the
+    phase of its class's anchor if ``anchors`` has one (:func:`daemon.repetitions.cut_run`). Raises
     :class:`Mocap6Error` naming the labels file and line if a run lies outside the recording."""
+    anchors = {} if anchors is None else anchors
     features = motion_features(motion, rate)
     joints = joint_positions(motion)[:: features.step]
     runs = []
@@ -159,9 +177,29 @@ def cut_trial(
                 line=segment.line,
             )
         samples = sample_index(features.frames, segment.start_frame, segment.end_frame)
-        cutting = cut_run(features.matrix[samples], features.rate, joints[samples])
+        anchor = anchors.get(segment.label)
+        cutting = cut_run(features.matrix[samples], features.rate, joints[samples], anchor=anchor)
         runs.append(RunCut(segment, samples, cutting))
     return TrialCuts(trial, features, tuple(runs))
+
+
+def cut_trials(
+    data_root: str | Path,
+    segments: Sequence[Segment],
+    trials: Sequence[str] = TRIALS,
+    *,
+    rate: float | None = DEFAULT_INDEX_RATE,
+    classes: Sequence[str] = CLASSES,
+) -> Iterator[tuple[Motion, TrialCuts]]:
+    """Each of ``trials`` (below ``data_root``, :func:`trial_recording`) read and cut by
+    :func:`cut_trial`, in order, every class at the phase it was first cut at (the anchors of the
+    trials before)."""
+    anchors: dict[str, BoolArray] = {}
+    for trial in trials:
+        motion = read_recording(*trial_recording(data_root, trial))
+        cuts = cut_trial(motion, segments, trial, rate=rate, classes=classes, anchors=anchors)
+        anchors = {**cuts.anchors(), **anchors}
+        yield motion, cuts
 
 
 @dataclass(frozen=True)

@@ -24,7 +24,8 @@ repetition per example. A run is cut in three steps:
    every lag; a slow drift has ``d`` rising with the lag and no dip). The default range, 0.4-5 s,
    holds every exercise of mocap6 (a jog cycle 0.7 s, a twist or one-hand toe touch to both sides
    up to 4.3 s).
-3. **Cuts.** A repetition starts and ends at the same phase. For every frame ``r`` of the run taken
+3. **Cuts.** A repetition starts and ends at the same phase (and, given an ``anchor`` from another
+   run of the class, at that run's phase: see :func:`cut_run`). For every frame ``r`` of the run taken
    as the reference phase, its distance profile ``D(r, .)`` has minima where the motion passes
    ``r``'s pose again; a pass counts only at the lowest point within ``reach * P`` on either side
    inside the run and, near an end, only if the distance rises by ``edge_rise`` (of the run's mean
@@ -53,6 +54,7 @@ Pure: numpy in, frozen dataclasses out; no I/O. Distances take ``O(n²)`` memory
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -322,10 +324,15 @@ def cut_run(
     reach: float = REACH,
     edge_rise: float = EDGE_RISE,
     close: float = CLOSE,
+    anchor: npt.ArrayLike | None = None,
 ) -> Cutting:
     """Cut a labelled run into single repetitions (the module's method): ``features`` shape
     ``(n, 39)`` at ``rate`` Hz, ``joints`` (optional) shape ``(n, J, 3)`` at the same rate, in any
-    unit, ``root`` the joint they are made relative to. Never raises for short, constant or
+    unit, ``root`` the joint they are made relative to. ``anchor`` (optional, shape ``(39,)``) is the
+    feature vector of the phase to cut at, e.g. where another run of the class was cut: only the
+    frames whose features are nearest to it (Hamming) are tried as the reference, if one of them
+    gives repetitions, so that every run of a class starts its repetitions at one phase (a template
+    averaged over repetitions cut at different phases blurs). Never raises for short, constant or
     aperiodic runs (the :class:`Cutting` has no repetitions and a ``reason``); raises
     :class:`ValueError` for arrays of the wrong shape or a rate that is not positive."""
     if not (math.isfinite(rate) and rate > 0):
@@ -349,7 +356,13 @@ def cut_run(
         tempo_weight=tempo_weight,
         skip=skip,
     )
-    reference = min(range(n), key=lambda r: found[r].total)
+    references: Sequence[int] = range(n)
+    if anchor is not None:
+        away = (np.asarray(features, dtype=bool) != np.asarray(anchor, dtype=bool)).sum(axis=1)
+        nearest = np.flatnonzero(away == away.min()).tolist()
+        if any(found[r].repetitions for r in nearest):
+            references = nearest
+    reference = min(references, key=lambda r: found[r].total)
     chain = found[reference]
     if not chain.repetitions:
         return Cutting(n, rate, period, -1, (), (), math.nan, "no pose recurs at the period")

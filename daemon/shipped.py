@@ -26,7 +26,7 @@ from pathlib import Path
 
 from daemon import mocap6
 from daemon.errors import MocapdError
-from daemon.recordings import ManifestRow, TrainingRow, read_recording
+from daemon.recordings import ManifestRow, TrainingRow
 from daemon.types import DEFAULT_INDEX_RATE
 
 HDM05_CLASSES = (
@@ -98,14 +98,20 @@ def hdm05_rows(data: Path, base: Path) -> list[Row]:
     return out
 
 
-def cmu_rows(data: Path, base: Path, progress: Callable[[str, int], object] | None = None) -> list[Row]:
-    """One row per repetition of the mocap6 runs of :data:`CMU_CLASSES` in the trials below
-    ``data``, the CMU subject as the actor; ``progress(trial, repetitions)`` after each trial."""
+def cmu_rows(
+    data: Path,
+    base: Path,
+    progress: Callable[[str, int], object] | None = None,
+    trials: Sequence[str] = mocap6.TRIALS,
+) -> list[Row]:
+    """One row per repetition of the mocap6 runs of :data:`CMU_CLASSES` in ``trials`` below ``data``
+    (cut by :func:`daemon.mocap6.cut_trials`: each class at the phase of its first run), the CMU
+    subject as the actor; ``progress(trial, repetitions)`` after each trial."""
     segments = mocap6.read_segments(data / mocap6.SEGMENTS)
     out = []
-    for trial in mocap6.TRIALS:
+    for _, cuts in mocap6.cut_trials(data, segments, trials, rate=RATE, classes=CMU_CLASSES):
+        trial = cuts.trial
         asf, amc = mocap6.trial_recording(data, trial)
-        cuts = mocap6.cut_trial(read_recording(asf, amc), segments, trial, rate=RATE, classes=CMU_CLASSES)
         subject = trial.split("_")[0]
         rows = mocap6.repetition_rows(cuts, _written(asf, base), _written(amc, base))
         out += [Row(r.name, r.asf, r.amc, r.start_frame, r.end_frame, subject) for r in rows]

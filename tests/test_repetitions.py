@@ -23,6 +23,7 @@ from daemon.mocap6 import (
     Mocap6Error,
     TrialCuts,
     cut_trial,
+    cut_trials,
     read_segments,
     repetition_rows,
     rows_csv,
@@ -165,8 +166,43 @@ EXPECTED_CLASSES = {
 
 @pytest.fixture(scope="module")
 def cuts() -> dict[str, TrialCuts]:
+    """The trials cut as the shipped library cuts them: each class at the phase of its first run."""
+    return {c.trial: c for _, c in cut_trials(DATA, read_segments(DATA / SEGMENTS), TRIALS)}
+
+
+def test_every_class_is_cut_at_one_phase(cuts: dict[str, TrialCuts]) -> None:
+    """Every run of a class is cut where its features are nearest the class's first cut run's
+    reference features, unless no such frame gives repetitions (then as if cut alone); cutting a
+    trial alone (no anchors) differs for some class."""
+    anchors: dict[str, BoolArray] = {}
+    for got in cuts.values():
+        anchors = {**got.anchors(), **anchors}
+    changed = anchored = 0
     segments = read_segments(DATA / SEGMENTS)
-    return {t: cut_trial(read_recording(*trial_recording(DATA, t)), segments, t) for t in TRIALS}
+    for trial, got in cuts.items():
+        alone = cut_trial(read_recording(*trial_recording(DATA, trial)), segments, trial)
+        for run, plain in zip(got.runs, alone.runs, strict=True):
+            away = (got.features.matrix[run.samples] != anchors[run.segment.label]).sum(axis=1)
+            if away[run.cutting.reference] == away.min():
+                anchored += 1
+            else:
+                assert run.cutting == plain.cutting, (trial, run.segment.label)
+            changed += plain.cutting.cuts != run.cutting.cuts
+    assert changed >= 4 and anchored >= 15  # of 17 runs
+
+
+@SETTINGS
+@given(st.integers(0, 2**32 - 1), st.integers(15, 45), st.integers(3, 8), st.integers(0, 1000))
+def test_an_anchor_sets_the_phase(seed: int, period: int, k: int, at: int) -> None:
+    features, joints, _ = periodic_run(seed, period, k, 0.0)
+    anchor = features[at % len(features)]
+    got = cut_run(features, RATE, joints, anchor=anchor)
+    away = (features != anchor).sum(axis=1)
+    assert got.repetitions and away[got.reference] == away.min()
+    free = cut_run(features, RATE, joints)
+    assert (got.period, got.samples) == (free.period, free.samples)
+    # far from every pose of the run: nothing nearer to choose among but the nearest there is
+    assert cut_run(features, RATE, joints, anchor=~anchor).repetitions
 
 
 def test_the_labels_file_holds_the_seven_classes_in_three_trials() -> None:
