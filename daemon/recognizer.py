@@ -47,6 +47,7 @@ import numpy as np
 import numpy.typing as npt
 
 from daemon._automaton import AutomatonSet
+from daemon._dtw import StreamDTW
 from daemon._live import NON_FINITE, LiveStream
 from daemon.automaton import KeyframeAutomaton
 from daemon.dtw import (
@@ -57,6 +58,7 @@ from daemon.dtw import (
     retrieval_tables,
     subsequence_minima,
     suppress,
+    threshold,
 )
 from daemon.errors import MocapdError
 from daemon.features import FeatureStream, decimation_factor, features, latency_frames
@@ -199,11 +201,9 @@ def _make_plans(library: Library, names: Sequence[str], max_gap_s: float) -> tup
     return tuple(out)
 
 
-def ring_size(class_plans: Sequence[ClassPlan], compete: bool = False) -> int:
-    """Index-rate frames a stream keeps: the widest window of any class, and with ``compete`` the
-    longest template before it (the other classes' DTW reaches that far back)."""
-    reach = max((len(p.weights) for p in class_plans), default=0) if compete else 0
-    return max((p.window for p in class_plans), default=1) + reach
+def ring_size(class_plans: Sequence[ClassPlan]) -> int:
+    """Index-rate frames a stream keeps: the widest window of any class."""
+    return max((p.window for p in class_plans), default=1)
 
 
 def confirm(plan: ClassPlan, codes: npt.NDArray[np.uint64]) -> list[Match]:
@@ -258,14 +258,29 @@ class CodeRecognizer:
     class opens at one frame are one window, the widest.
 
     With ``compete`` (the default), classes compete for a motion: a confirmation is dropped when
-    another class's template matches the same motion (:func:`same_motion`) more cheaply, at or below
-    that class's own τ, in the frames seen so far (:meth:`_beaten`)."""
+    another class's template matches the same motion more cheaply. Every class's template runs as
+    a subsequence DTW over the whole stream, one column per frame (:class:`daemon._dtw.StreamDTW`,
+    the cells of :func:`confirm`'s pass); a confirmation ``m`` of one class due at frame ``j`` is
+    beaten when another class's Δ has a local minimum (below the frame before, not above the frame
+    after if it has come) at some frame from ``m.start`` to ``j``, at or below that class's τ and
+    below ``m``'s cost, whose match is the :func:`same_motion` as ``m``. A class's own detector
+    cannot tell a squat from a knee raise; the cheaper template is the better explanation."""
 
     def __init__(self, class_plans: Sequence[ClassPlan], rate: float, *, compete: bool = True) -> None:
         self.plans = tuple(class_plans)
         self.rate = rate
-        self.compete = compete and len(self.plans) > 1
-        self._ring: deque[int] = deque(maxlen=ring_size(self.plans, self.compete))
+        self._ring: deque[int] = deque(maxlen=ring_size(self.plans))
+        self._compete = (
+            StreamDTW(
+                [
+                    (p.tables.masks, p.tables.values, p.tables.tables, threshold(p.tau), p.steps == "toolbox")
+                    for p in self.plans
+                ],
+                ring_size(self.plans) + 1,
+            )
+            if compete and len(self.plans) > 1
+            else None
+        )
         self._tracks = [_ClassTrack(p) for p in self.plans]
         # every class's automaton, stepped in one compiled call per frame
         self._automata = AutomatonSet([p.automaton(rate).core for p in self.plans])
@@ -281,6 +296,8 @@ class CodeRecognizer:
         j = self._n
         self._n += 1
         self._ring.append(code)
+        if self._compete is not None:
+            self._compete.push(code)
         for k, reached in self._automata.push(code):
             track = self._tracks[k]
             p = track.plan
@@ -297,6 +314,8 @@ class CodeRecognizer:
         for track in self._tracks:
             track.published.clear()
         self._ring.clear()
+        if self._compete is not None:
+            self._compete.reset()
         self._n = 0
         return out
 
@@ -305,8 +324,9 @@ class CodeRecognizer:
         from its class's detections."""
         base = self._n - len(self._ring)
         out = []
+        rivals = self._compete
         self._next_due = _NEVER
-        for track in self._tracks:
+        for k, track in enumerate(self._tracks):
             pending = track.pending
             if pending and (ended or pending[0][1] <= j):
                 p = track.plan
@@ -320,31 +340,13 @@ class CodeRecognizer:
                     window = np.fromiter(islice(self._ring, a - base, b - base + 1), np.uint64, b - a + 1)
                     shifted = [Match(m.start + a, m.end + a, m.cost) for m in confirm(p, window)]
                     for m in keep_apart(shifted, track.published):
-                        if self.compete and self._beaten(p, m, j, base):
+                        if rivals is not None and rivals.beaten(k, m.start, m.end, threshold(m.cost)):
                             continue
                         track.published.append((m.start, m.end))
                         out.append((p, m))
             if pending:
                 self._next_due = min(self._next_due, pending[0][1])
         return out
-
-    def _beaten(self, plan: ClassPlan, m: Match, j: int, base: int) -> bool:
-        """Whether another class matches ``m``'s motion more cheaply: its DTW confirmations (as
-        :func:`confirm` makes them, at or below its own τ) over frames ``m.start - M`` .. ``j`` (its
-        template's length ``M`` before ``m``, up to the frame pushed last) include one that is the
-        :func:`same_motion` as ``m`` at a lower cost. A class's own detector cannot tell a squat
-        from a knee raise; the cheaper template is the better explanation of the motion."""
-        reach = max(len(q.weights) for q in self.plans)
-        first = max(base, m.start - reach)
-        codes = np.fromiter(islice(self._ring, first - base, j - base + 1), np.uint64, j - first + 1)
-        for q in self.plans:
-            if q is plan:
-                continue
-            lo = max(first, m.start - len(q.weights))
-            for c in confirm(q, codes[lo - first :]):
-                if c.cost < m.cost and same_motion((m.start, m.end), (c.start + lo, c.end + lo)):
-                    return True
-        return False
 
 
 _NEVER = 1 << 62

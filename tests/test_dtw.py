@@ -17,6 +17,7 @@ from hypothesis import Phase, given, settings
 from hypothesis import strategies as st
 
 from daemon import dtw
+from daemon._dtw import StreamDTW
 from daemon.dtw import INF, SCALE, Match, Steps
 from daemon.types import FloatArray
 from tests.naive import (
@@ -519,3 +520,75 @@ def test_tau_above_cell_cost_range() -> None:
     assert dtw.subsequence_matches(cost, 200.0) == [Match(0, 0, 128.0)]
     assert dtw.disjoint_matches(cost, 200.0) == [Match(0, 0, 128.0)]
     assert run_stream(dtw.SubsequenceStream(2, 200.0), cost) == [Match(0, 0, 128.0)]
+
+
+# ------------------------------------------------------------------- streaming DTW of many templates
+
+
+@settings(SETTINGS, max_examples=150)
+@given(st.integers(1, 4), st.integers(1, 40), st.integers(2, 12), st.data())
+def test_stream_dtw_equals_batch_and_beaten_reads_its_definition(
+    k: int, n: int, keep: int, data: st.DataObject
+) -> None:
+    """:class:`StreamDTW` pushed frame by frame gives each template's Δ and starts of
+    :func:`subsequence_codes` over the whole stream; ``beaten`` is a brute-force reading of its
+    docstring over the kept frames (random ranges and costs, ties with Δ included)."""
+    f = 4  # few features: many equal costs, ties between Δ(e - 1), Δ(e), Δ(e + 1) and the cost
+    templates = []
+    for _ in range(k):
+        m = data.draw(st.integers(1, 5))
+        t = data.draw(ternary(f, m))
+        w = np.array(data.draw(st.lists(st.floats(0.5, 1.5), min_size=m, max_size=m)))
+        templates.append((dtw.retrieval_tables(t, w), data.draw(st.sampled_from(dtw.STEPS))))
+    thresholds = data.draw(st.lists(st.integers(0, 3 * SCALE), min_size=k, max_size=k))
+    codes = np.array(data.draw(st.lists(st.integers(0, 2**f - 1), min_size=n, max_size=n)), dtype=np.uint64)
+    stream = StreamDTW(
+        [
+            (tb.masks, tb.values, tb.tables, h, s == "toolbox")
+            for (tb, s), h in zip(templates, thresholds, strict=True)
+        ],
+        keep,
+        data.draw(st.integers(1, 20)),
+    )
+    batch = [dtw.subsequence_codes(tb, codes, None, s) for tb, s in templates]
+    for j, code in enumerate(codes.tolist()):
+        stream.push(code)
+        for i, (delta, start) in enumerate(batch):
+            for e in range(max(0, j + 1 - keep), j + 1):
+                assert stream.delta(i, e) == (delta[e], start[e])
+        for _ in range(3):
+            first = data.draw(st.integers(max(0, j + 2 - keep), j)) if j + 2 - keep <= j else j
+            if first > 0 and first - 1 < j + 1 - keep:
+                continue
+            end = data.draw(st.integers(first, first + 6))
+            cost = data.draw(st.sampled_from([0, SCALE // 2, SCALE, 2 * SCALE, INF]))
+            skip = data.draw(st.integers(-1, k - 1))
+            expected = any(
+                delta[e] < cost
+                and delta[e] <= thresholds[i]
+                and delta[e] < (delta[e - 1] if e > 0 else INF)
+                and (e == j or delta[e] <= delta[e + 1])
+                and 2 * (min(end, e) - max(first, start[e]) + 1) > min(end - first, e - start[e]) + 1
+                for i, (delta, start) in enumerate(batch)
+                if i != skip
+                for e in range(first, j + 1)
+            )
+            assert stream.beaten(skip, first, end, cost) == expected
+    stream.reset()
+    assert stream.n == 0
+
+
+def test_stream_dtw_refuses_frames_it_no_longer_keeps() -> None:
+    tb = dtw.retrieval_tables(np.array([[1.0, 0.0]]), np.ones(2))
+    stream = StreamDTW([(tb.masks, tb.values, tb.tables, SCALE, True)], 3)
+    for code in (0, 1, 0, 1, 0):
+        stream.push(code)
+    with pytest.raises(IndexError, match="not among the last 3 of 5"):
+        stream.delta(0, 1)
+    with pytest.raises(IndexError, match="not among the last 3 of 5"):
+        stream.beaten(-1, 2, 4, SCALE)  # frame 1 (before the start) is gone
+    assert stream.beaten(-1, 3, 4, INF) in (True, False)
+    with pytest.raises(ValueError, match="needs templates"):
+        StreamDTW([], 3)
+    with pytest.raises(ValueError, match="a batch of at least 1"):
+        StreamDTW([(tb.masks, tb.values, tb.tables, SCALE, True)], 3, 0)

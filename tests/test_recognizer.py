@@ -17,7 +17,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from daemon.calibration import given as given_tau
-from daemon.dtw import Match, retrieval_cost, subsequence_matches
+from daemon.dtw import Match, local_minima, retrieval_cost, subsequence_dtw, subsequence_matches
 from daemon.features import SET_SLICES
 from daemon.keyframes import KeyframeQuery
 from daemon.library import ClassTemplate, Library, default_library_path, load_library
@@ -32,7 +32,7 @@ from daemon.recognizer import (
     plans,
 )
 from daemon.recordings import joint_positions, native_rate, read_recording
-from daemon.templates import MotionTemplate, expand
+from daemon.templates import MotionTemplate
 from daemon.types import FEATURE_SETS, N_FEATURES, FeatureSet
 from replay import JOINT_NAMES, Motion
 from tests.helpers import hdm05_clip, pair_id, recording_pairs, small_library, takes
@@ -164,6 +164,14 @@ def float_matches(cls: ClassTemplate, frames: npt.NDArray[np.float64], lo: int, 
     return [Match(m.start + lo, m.end + lo, m.cost) for m in subsequence_matches(cost, cls.tau, "toolbox")]
 
 
+def rival_minima(cls: ClassTemplate, frames: npt.NDArray[np.float64], last: int) -> list[Match]:
+    """Float DTW of ``cls``'s expanded template over the stream's ``frames[:, 0..last]``: every local
+    minimum at or below its τ, not suppressed."""
+    plan = plans(Library(30.0, {cls.name: cls}))[0]
+    sub = subsequence_dtw(retrieval_cost(plan.values, plan.weights, frames[:, : last + 1]), "toolbox")
+    return local_minima(sub.delta, sub.start, cls.tau)
+
+
 def reference(
     codes: list[int], cls: ClassTemplate, max_gap: int, others: Sequence[ClassTemplate] = ()
 ) -> list[tuple[str, int, int, float, int]]:
@@ -173,10 +181,11 @@ def reference(
     (the last ``window`` frames; cut at the stream's end), the widest of those ending at one frame;
     float DTW over each, local minima at or below τ suppressed, then by cost those that share at
     most half of the shorter one's frames with every one kept before; of those, the ones no class of
-    ``others`` beats: none of its own float DTW matches (at or below its τ, over the frames from its
-    template's length before the confirmation's start to the frame it comes out at) shares more than
-    half of the shorter one's frames with it at a lower cost. Each as (class, start, end, cost, frame
-    it comes out at)."""
+    ``others`` beats: its float subsequence DTW over the stream up to the frame the confirmation
+    comes out at has no local minimum (the last frame's compared with the one before only) ending
+    at or after the confirmation's start, at or below its τ and below the confirmation's cost,
+    whose match shares more than half of the shorter one's frames with it. Each as (class, start,
+    end, cost, frame it comes out at)."""
     assert cls.keyframes is not None
     sets = {
         fs: [
@@ -211,9 +220,9 @@ def reference(
             if all(not one_motion((m.start, m.end), r) for r in kept + apart):
                 apart.append((m.start, m.end))
                 beaten = any(
-                    c.cost < m.cost and one_motion((m.start, m.end), (c.start, c.end))
+                    c.end >= m.start and c.cost < m.cost and one_motion((m.start, m.end), (c.start, c.end))
                     for q in others
-                    for c in float_matches(q, frames, max(0, m.start - len(expand(q.quantised).weights)), b)
+                    for c in rival_minima(q, frames, b)
                 )
                 if not beaten:
                     kept.append((m.start, m.end))
