@@ -19,14 +19,17 @@ One motion, one detection per class: two confirmations of a class that share mor
 shorter one's frames are one motion (:func:`same_motion`). Among those confirmed together the
 cheaper is kept; one that is the same motion as a detection already emitted is dropped (that one
 was published and cannot be taken back). A repetition right after the last is reported, even if
-the two share the frame or two of the pose between them.
+the two share the frame or two of the pose between them. One motion, one class (``compete``): a
+confirmation is dropped when another class's template fits the same motion more cheaply
+(:class:`CodeRecognizer`).
 
 Latency. A detection comes out when the index-rate frame ``right`` frames after its match's last
 keyframe has been pushed, i.e. at most :attr:`Recognizer.latency_frames` native frames after that
 keyframe (the features' delay of 16 frames at 120 Hz plus ``right`` index frames).
 
 Bounded state. The features keep 33 poses at 120 Hz, each automaton the query's span, and the
-stream one ring of its recent codes as long as the widest window (Σ dmax + left + right + 1).
+stream one ring of its recent codes as long as the widest window (Σ dmax + left + right + 1); with
+``compete``, three DTW columns per class and each class's Δ over that ring.
 
 :func:`detect` is the batch twin: features of the whole recording in one vectorised pass, then the
 same candidate and confirmation logic; it equals pushing the frames one by one (tests).
