@@ -23,7 +23,8 @@ from daemon.library import (
     default_library_path,
     load_library,
 )
-from daemon.recordings import TrainingClip, read_example
+from daemon.recognizer import detect_positions
+from daemon.recordings import TrainingClip, joint_positions, native_rate, read_example, read_recording
 from daemon.shipped import (
     CLASSES,
     CMU_CLASSES,
@@ -34,13 +35,14 @@ from daemon.shipped import (
     training_items,
     training_rows,
 )
-from daemon.types import BoolArray
+from daemon.types import BoolArray, FloatArray
+from replay import Motion
 from tests.helpers import DATA, KEYFRAMES, REPO
 
 MIN_KEPT = 0.9
 """Share of a class's own training clips its keyframes must find (as the published keyframes' test
-on HDM05 asks). Measured on the library built 2026-12-02: every class finds all of its clips (233 of
-233), learned keyframes by construction, published ones on these clips; the published keyframes of
+on HDM05 asks). Measured on the library built 2026-12-02: every class finds all of its clips (231 of
+231), learned keyframes by construction, published ones on these clips; the published keyframes of
 depositFloorR and hopBothLegs1hops would miss one each (17/18, 29/30), which is why they were not
 chosen."""
 MIN_KEPT_ALL = 0.98
@@ -128,3 +130,25 @@ def test_keyframes_find_their_training_clips(
     low = {n: f"{k.sum()}/{len(k)}" for n, k in found.items() if k.mean() < MIN_KEPT}
     assert not low, f"keyframes find too few of their own training clips: {low}"
     assert np.concatenate(list(found.values())).mean() >= MIN_KEPT_ALL
+
+
+def test_every_class_is_detected_in_its_own_training_clips(shipped: Library, rows: list[Row]) -> None:
+    """Every class is detectable: the live recogniser (its batch twin, all 18 classes competing)
+    detects it in some of its training clips, each clip replayed on its own, and in most of them
+    in all (measured 2026-12-02: 220 of 231; KneeRaise 1 of 6, its repetitions being taken for the
+    HDM05 elbowToKnee1RepsLelbowStart, which fits them more cheaply; ArmCircle 8 of 13, some single
+    circles of 13_29 too short on their own for the window)."""
+    motions: dict[tuple[str, str], tuple[Motion, FloatArray]] = {}
+    found: dict[str, list[bool]] = {}
+    for r in rows:
+        if (r.asf, r.amc) not in motions:
+            m = read_recording(REPO / r.asf, REPO / r.amc)
+            motions[r.asf, r.amc] = m, joint_positions(m)
+        m, positions = motions[r.asf, r.amc]
+        first = int(m.frames[0])
+        lo = 0 if r.start_frame is None else r.start_frame - first
+        hi = len(m) if r.end_frame is None else r.end_frame - first + 1
+        detections = detect_positions(positions[lo:hi], m.frames[lo:hi], shipped, native_rate(m))
+        found.setdefault(r.name, []).append(any(d.class_name == r.name for d in detections))
+    assert [n for n, f in found.items() if not any(f)] == []
+    assert sum(map(sum, found.values())) >= 0.9 * len(rows)
