@@ -90,6 +90,70 @@ cdef inline void _column(
             cur_s[i] = s
 
 
+cdef inline Py_ssize_t _pruned_column(
+    const uint64_t *masks,
+    const uint64_t *values,
+    const int64_t *tab,
+    Py_ssize_t width,
+    Py_ssize_t m,
+    uint64_t code,
+    Py_ssize_t j,
+    int64_t limit,
+    Py_ssize_t hi1,
+    Py_ssize_t hi2,
+    int64_t *cur_d,
+    int64_t *cur_s,
+    const int64_t *p1_d,
+    const int64_t *p1_s,
+    const int64_t *p2_d,
+    const int64_t *p2_s,
+) noexcept nogil:
+    """:func:`_column` with the toolbox's steps for a caller that needs only the cells at most
+    ``limit``: a cell above it is :data:`INF` (costs are never negative, so no path through it ends
+    at or below ``limit``; every cell at or below it, and its start, is exactly :func:`_column`'s).
+    Only rows a finite cell can reach are computed: up to ``hi1 + 2`` and ``hi2 + 1``, the highest
+    finite rows of the two columns before; the three rows above those computed are written
+    :data:`INF` (what the next two columns may read). Returns this column's highest finite row (-1:
+    none)."""
+    cdef Py_ssize_t i, hi = -1, top = hi1 + 2 if hi1 + 2 > hi2 + 1 else hi2 + 1
+    cdef int64_t c, a1, a2, a3, d, s
+    if top > m - 1:
+        top = m - 1
+    d = tab[popcount((code ^ values[0]) & masks[0])]
+    if d > limit:
+        cur_d[0] = INF
+        cur_s[0] = NO_START
+    else:
+        cur_d[0] = d
+        cur_s[0] = j
+        hi = 0
+    for i in range(1, top + 1):
+        c = tab[i * width + popcount((code ^ values[i]) & masks[i])]
+        a1 = p1_d[i - 1]  # (i-1, j-1)
+        a2 = p2_d[i - 1]  # (i-1, j-2)
+        a3 = p1_d[i - 2] if i >= 2 else INF  # (i-2, j-1)
+        if a1 <= a2 and a1 <= a3:
+            d = clamp(a1 + c)
+            s = p1_s[i - 1]
+        elif a2 <= a3:
+            d = clamp(a2 + c)
+            s = p2_s[i - 1]
+        else:
+            d = clamp(a3 + 2 * c)
+            s = p1_s[i - 2]
+        if d > limit:
+            d = INF
+            s = NO_START
+        else:
+            hi = i
+        cur_d[i] = d
+        cur_s[i] = s
+    for i in range(top + 1, min(m, top + 4)):
+        cur_d[i] = INF
+        cur_s[i] = NO_START
+    return hi
+
+
 cdef void _subsequence(
     const uint64_t[::1] masks,
     const uint64_t[::1] values,
@@ -151,10 +215,32 @@ def minima_codes(
 ):
     """The local minima of Δ (:func:`subsequence_codes`) at or below ``threshold`` (fixed point):
     Δ(b) < Δ(b-1) and Δ(b) <= Δ(b+1), outside the columns counting as unreachable; a list of
-    (start, end, Δ) in column order."""
-    delta_out, start_out = subsequence_codes(masks, values, tables, codes, blocked, toolbox)
-    cdef int64_t[::1] delta = delta_out, start = start_out
-    cdef Py_ssize_t n = codes.shape[0], j
+    (start, end, Δ) in column order. With the toolbox's steps and no blocked column only the cells
+    at or below ``threshold`` are kept (:func:`_pruned_column`): the minima are the same, since a
+    neighbour above the threshold is above any Δ that counts either way."""
+    check(masks, values, tables, codes, blocked)
+    cdef Py_ssize_t n = codes.shape[0], m = masks.shape[0], j, hi1 = -1, hi2 = -1, hi
+    cdef int64_t[::1] delta
+    cdef int64_t[::1] start
+    cdef int64_t[:, ::1] b
+    if toolbox and not any(blocked):
+        delta = np.empty(n, dtype=np.int64)
+        start = np.empty(n, dtype=np.int64)
+        b = np.empty((6, m), dtype=np.int64)
+        b[:, :] = INF
+        with nogil:
+            for j in range(n):
+                hi = _pruned_column(&masks[0], &values[0], &tables[0, 0], tables.shape[1], m, codes[j], j,
+                                    threshold, hi1, hi2, &b[2 * (j % 3), 0], &b[2 * (j % 3) + 1, 0],
+                                    &b[2 * ((j + 2) % 3), 0], &b[2 * ((j + 2) % 3) + 1, 0],
+                                    &b[2 * ((j + 1) % 3), 0], &b[2 * ((j + 1) % 3) + 1, 0])
+                # the last row may not have been written this column: it is finite only if highest
+                delta[j] = b[2 * (j % 3), m - 1] if hi == m - 1 else INF
+                start[j] = b[2 * (j % 3) + 1, m - 1] if hi == m - 1 else NO_START
+                hi2 = hi1
+                hi1 = hi
+    else:
+        delta, start = subsequence_codes(masks, values, tables, codes, blocked, toolbox)
     out = []
     cdef int64_t d, before, after
     for j in range(n):
@@ -199,6 +285,9 @@ cdef class StreamDTW:
     ``batch`` frames, template by template (a template's columns stay in the cache for the run,
     instead of every template's being fetched again for every frame), and before any question:
     the same integers as one column per frame, since a column depends only on the ones before.
+    Only Δ at or below a template's threshold is ever asked for, so a template with the toolbox's
+    steps keeps only the cells at or below it (:func:`_pruned_column`; Δ above it reads
+    :data:`INF`): a stream that looks nothing like a template costs a few rows per frame, not all.
     State: three columns per template and the rings, whatever the stream's length; the templates'
     tables are the caller's arrays, not copied."""
 
@@ -213,6 +302,7 @@ cdef class StreamDTW:
     cdef int64_t[::1] lengths, offsets, widths, thresholds
     cdef int64_t[:, ::1] cols  # rows: three (Δ, start) slots used in turn; templates side by side
     cdef int64_t[::1] costs  # one template column's cell costs
+    cdef int64_t[:, ::1] highest  # (templates, 3): each slot's highest finite row (pruned templates)
     cdef uint64_t[::1] codes  # ring of the last ``keep`` codes
     cdef int64_t[:, ::1] ring_d, ring_s  # (templates, keep)
 
@@ -270,6 +360,7 @@ cdef class StreamDTW:
         self.most = max(lengths)
         self.cols = np.empty((6, self.total), dtype=np.int64)
         self.costs = np.empty(self.most, dtype=np.int64)
+        self.highest = np.empty((self.k, 3), dtype=np.int64)
         self.codes = np.zeros(keep, dtype=np.uint64)
         self.ring_d = np.empty((self.k, keep), dtype=np.int64)
         self.ring_s = np.empty((self.k, keep), dtype=np.int64)
@@ -281,6 +372,9 @@ cdef class StreamDTW:
         for r in range(6):
             for i in range(self.total):
                 self.cols[r, i] = INF if r % 2 == 0 else NO_START
+        for i in range(self.k):
+            for r in range(3):
+                self.highest[i, r] = -1
         self.n = 0
         self.done = 0
 
@@ -293,7 +387,7 @@ cdef class StreamDTW:
 
     cdef void _catch_up(self) noexcept:
         """Every template's columns for the frames pushed and not yet computed."""
-        cdef Py_ssize_t t, o, m, cur, p1, p2
+        cdef Py_ssize_t t, o, m, cur, p1, p2, hi
         cdef int64_t f
         with nogil:
             for t in range(self.k):
@@ -303,16 +397,27 @@ cdef class StreamDTW:
                     cur = 2 * (f % 3)
                     p1 = 2 * ((f + 2) % 3)
                     p2 = 2 * ((f + 1) % 3)
-                    _column(self._masks[t], self._values[t], self._tables[t], self.widths[t], m,
-                            self.codes[f % self.keep], False, self.toolbox[t] != 0, f, &self.costs[0],
+                    if self.toolbox[t] != 0:
+                        hi = self.highest[t, f % 3] = _pruned_column(
+                            self._masks[t], self._values[t], self._tables[t], self.widths[t], m,
+                            self.codes[f % self.keep], f, self.thresholds[t],
+                            self.highest[t, (f + 2) % 3], self.highest[t, (f + 1) % 3],
                             &self.cols[cur, o], &self.cols[cur + 1, o], &self.cols[p1, o],
                             &self.cols[p1 + 1, o], &self.cols[p2, o], &self.cols[p2 + 1, o])
-                    self.ring_d[t, f % self.keep] = self.cols[cur, o + m - 1]
-                    self.ring_s[t, f % self.keep] = self.cols[cur + 1, o + m - 1]
+                    else:
+                        _column(self._masks[t], self._values[t], self._tables[t], self.widths[t], m,
+                                self.codes[f % self.keep], False, False, f, &self.costs[0],
+                                &self.cols[cur, o], &self.cols[cur + 1, o], &self.cols[p1, o],
+                                &self.cols[p1 + 1, o], &self.cols[p2, o], &self.cols[p2 + 1, o])
+                        hi = m - 1
+                    # the last row may not have been written this column: finite only if highest
+                    self.ring_d[t, f % self.keep] = self.cols[cur, o + m - 1] if hi == m - 1 else INF
+                    self.ring_s[t, f % self.keep] = self.cols[cur + 1, o + m - 1] if hi == m - 1 else NO_START
         self.done = self.n
 
     def delta(self, Py_ssize_t template, int64_t frame):
-        """(Δ, start) of ``template`` at ``frame`` (one of the last ``keep`` pushed)."""
+        """(Δ, start) of ``template`` at ``frame`` (one of the last ``keep`` pushed); a template
+        with the toolbox's steps gives (:data:`INF`, -1) where Δ is above its threshold."""
         if not (0 <= template < self.k and self.n - self.keep <= frame < self.n and frame >= 0):
             raise IndexError(f"frame {frame} is not among the last {self.keep} of {self.n}")
         self._catch_up()

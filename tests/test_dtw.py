@@ -525,7 +525,7 @@ def test_tau_above_cell_cost_range() -> None:
 # ------------------------------------------------------------------- streaming DTW of many templates
 
 
-@settings(SETTINGS, max_examples=150)
+@settings(SETTINGS, max_examples=400)
 @given(st.integers(1, 4), st.integers(1, 40), st.integers(2, 12), st.data())
 def test_stream_dtw_equals_batch_and_beaten_reads_its_definition(
     k: int, n: int, keep: int, data: st.DataObject
@@ -536,11 +536,13 @@ def test_stream_dtw_equals_batch_and_beaten_reads_its_definition(
     f = 4  # few features: many equal costs, ties between Δ(e - 1), Δ(e), Δ(e + 1) and the cost
     templates = []
     for _ in range(k):
-        m = data.draw(st.integers(1, 5))
+        m = data.draw(st.integers(1, 9))
         t = data.draw(ternary(f, m))
         w = np.array(data.draw(st.lists(st.floats(0.5, 1.5), min_size=m, max_size=m)))
         templates.append((dtw.retrieval_tables(t, w), data.draw(st.sampled_from(dtw.STEPS))))
-    thresholds = data.draw(st.lists(st.integers(0, 3 * SCALE), min_size=k, max_size=k))
+    thresholds = data.draw(
+        st.lists(st.sampled_from([0, SCALE // 10, SCALE // 2, 3 * SCALE]), min_size=k, max_size=k)
+    )
     codes = np.array(data.draw(st.lists(st.integers(0, 2**f - 1), min_size=n, max_size=n)), dtype=np.uint64)
     stream = StreamDTW(
         [
@@ -554,8 +556,10 @@ def test_stream_dtw_equals_batch_and_beaten_reads_its_definition(
     for j, code in enumerate(codes.tolist()):
         stream.push(code)
         for i, (delta, start) in enumerate(batch):
+            pruned = templates[i][1] == "toolbox"  # only cells within the threshold are kept
             for e in range(max(0, j + 1 - keep), j + 1):
-                assert stream.delta(i, e) == (delta[e], start[e])
+                kept = not pruned or delta[e] <= thresholds[i]
+                assert stream.delta(i, e) == ((delta[e], start[e]) if kept else (INF, -1))
         for _ in range(3):
             first = data.draw(st.integers(max(0, j + 2 - keep), j)) if j + 2 - keep <= j else j
             if first > 0 and first - 1 < j + 1 - keep:
@@ -592,3 +596,21 @@ def test_stream_dtw_refuses_frames_it_no_longer_keeps() -> None:
         StreamDTW([], 3)
     with pytest.raises(ValueError, match="a batch of at least 1"):
         StreamDTW([(tb.masks, tb.values, tb.tables, SCALE, True)], 3, 0)
+
+
+@settings(SETTINGS, max_examples=300)
+@given(st.integers(1, 6), st.integers(1, 60), st.sampled_from(dtw.STEPS), st.data())
+def test_subsequence_minima_are_the_local_minima_of_the_whole_pass(
+    m: int, n: int, steps: Steps, data: st.DataObject
+) -> None:
+    """The compiled pass's minima (the toolbox's keeping only cells within the threshold) are
+    :func:`local_minima` of the full Δ (few features: many ties)."""
+    f = 3
+    t = dtw.retrieval_tables(
+        data.draw(ternary(f, m)), np.array(data.draw(st.lists(st.floats(0.5, 1.5), min_size=m, max_size=m)))
+    )
+    codes = np.array(data.draw(st.lists(st.integers(0, 2**f - 1), min_size=n, max_size=n)), dtype=np.uint64)
+    tau = data.draw(st.sampled_from([0.0, 0.01, 0.1, 0.3, 1.0, 5.0]))
+    delta, start = dtw.subsequence_codes(t, codes, None, steps)
+    expected = dtw.local_minima(dtw.to_cost(delta), start, dtw.threshold(tau) / SCALE)
+    assert dtw.subsequence_minima(t, codes, tau, steps) == expected
