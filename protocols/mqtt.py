@@ -47,35 +47,49 @@ def parse_url(url: str) -> tuple[str, int, bool]:
     return parts.hostname, parts.port or (8883 if tls else 1883), tls
 
 
-def _forwarding(deliver: Callable[[aiomqtt.Message], None]) -> type[asyncio.Queue[aiomqtt.Message]]:
-    """A queue type for aiomqtt's incoming messages that hands each one to ``deliver`` as it
-    arrives instead of holding it: the client's message iterator (a task and a wait per message)
-    is then only the watch for a lost connection."""
-
-    class Forward(asyncio.Queue[aiomqtt.Message]):
-        def put_nowait(self, item: aiomqtt.Message) -> None:
-            deliver(item)
-
-    return Forward
-
-
 class _Client(aiomqtt.Client):
     """aiomqtt's client reading every packet the socket holds when it becomes readable, not one:
     at thousands of poses a second, one packet per event-loop turn falls behind. (The same
-    callback as aiomqtt's ``_on_socket_open``, looping while the socket has data.)"""
+    callback as aiomqtt's ``_on_socket_open``, looping while the socket has data.) Each message
+    paho parsed goes straight to ``deliver(topic, payload)``: paho's dispatch (two locks and a
+    topic-filter search per message, for per-topic callbacks this client never registers) and
+    aiomqtt's Message and queue cost a sixth of the daemon at a hundred streams. paho reads a
+    packet with three or four ``recv`` calls (the type byte, each byte of its length, the rest);
+    here they are served from one large read of the socket (paho's own ``_sock_recv``, so TLS and
+    its errors are as paho handles them)."""
+
+    def __init__(self, *args: Any, deliver: Callable[[str, bytes], None], **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self._read = _Buffered(self._client._sock_recv)
+        self._client._sock_recv = self._read.recv  # type: ignore[method-assign,assignment]
+
+        def handle(message: Any) -> None:  # paho's MQTTMessage
+            try:
+                topic = message._topic.decode()
+            except UnicodeDecodeError:  # paho drops such a message's topic callbacks too
+                return
+            payload = message.payload
+            deliver(topic, payload if isinstance(payload, bytes) else bytes(payload))
+
+        self._client._handle_on_message = handle  # type: ignore[method-assign]
 
     def _on_socket_open(self, client: Any, userdata: Any, sock: Any) -> None:
+        read = self._read
+        read.clear()  # a new connection: nothing of the last one is left to parse
+
         def callback() -> None:
             try:
                 for _ in range(DRAIN_PACKETS):
                     client.loop_read()
                     s = client.socket()
                     if s is None:
-                        break
-                    if hasattr(s, "pending") and s.pending() > 0:
+                        return
+                    if read.pending() or (hasattr(s, "pending") and s.pending() > 0):
                         continue
                     if not select.select([s], [], [], 0)[0]:
-                        break
+                        return
+                if read.pending():  # the socket may have nothing more to say: come back for these
+                    self._loop.call_soon(callback)
             except Exception as exc:  # aiomqtt's rule: any read error ends the connection
                 if not self._disconnected.done():
                     self._disconnected.set_exception(exc)
@@ -85,6 +99,31 @@ class _Client(aiomqtt.Client):
 
         self._loop.call_soon_threadsafe(self._loop.add_reader, sock.fileno(), callback)
         self._loop.call_soon_threadsafe(create_misc_task)
+
+
+class _Buffered:
+    """``recv(n)`` served from reads of ``read(READ_BYTES)`` (which raises as a socket does)."""
+
+    def __init__(self, read: Callable[[int], bytes]) -> None:
+        self._fill = read
+        self._data = b""
+        self._at = 0
+
+    def recv(self, size: int) -> bytes:
+        if self._at >= len(self._data):
+            self._data, self._at = self._fill(READ_BYTES), 0  # b"": the connection closed
+        out = self._data[self._at : self._at + size]
+        self._at += len(out)
+        return out
+
+    def pending(self) -> int:
+        return len(self._data) - self._at
+
+    def clear(self) -> None:
+        self._data, self._at = b"", 0
+
+
+READ_BYTES = 1 << 16
 
 
 def inflight_limit(inflight: int) -> int:
@@ -178,7 +217,7 @@ class MqttTransport:
             will=will,
             keepalive=self.keepalive_s,
             tls_context=context,
-            queue_type=_forwarding(self._deliver),
+            deliver=self._deliver,
             max_inflight_messages=inflight_limit(self.inflight),
             timeout=10,
             socket_options=[(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)],  # no Nagle delay on small packets
@@ -236,12 +275,11 @@ class MqttTransport:
             delay = min(2 * delay, self.reconnect[1])
 
     async def _reader(self, client: aiomqtt.Client) -> None:
-        async for m in client.messages:  # raises when the connection is lost
-            self._deliver(m)
+        async for _ in client.messages:  # nothing comes (see _Client); raises when the connection is lost
+            pass
 
-    def _deliver(self, m: aiomqtt.Message) -> None:
-        payload = m.payload if isinstance(m.payload, bytes) else str(m.payload or "").encode()
-        self._put(Incoming(m.topic.value, payload, time.time()))
+    def _deliver(self, topic: str, payload: bytes) -> None:
+        self._put(Incoming(topic, payload, time.time()))
 
     async def _sender(self, client: aiomqtt.Client) -> None:
         """Hand the outbox to the connection, up to ``inflight`` messages awaiting acknowledgement
