@@ -10,6 +10,7 @@ from typing import IO, Any
 import numpy as np
 import numpy.typing as npt
 
+from daemon.behaviours import Band, GmmResult, PcaResult, PpcaResult
 from daemon.errors import MocapdError
 from daemon.features import FEATURE_NAMES, SET_SLICES
 from daemon.types import N_FEATURES, BoolArray
@@ -246,4 +247,65 @@ def timeline_png(
     ax.set_title(title)
     fig.tight_layout()
     _save(fig, path)
+    plt.close(fig)
+
+
+def _broken(frame: npt.NDArray[np.int64], segment: npt.NDArray[np.int64], values: Any) -> tuple[Any, Any]:
+    """``frame`` and ``values`` with a NaN between segments, so a line is not drawn across a cut."""
+    if frame.shape[0] == 0:
+        return frame.astype(np.float64), values
+    gaps = np.flatnonzero(np.diff(segment)) + 1
+    return (
+        np.insert(frame.astype(np.float64), gaps, np.nan),
+        np.insert(np.asarray(values, dtype=np.float64), gaps, np.nan),
+    )
+
+
+def segmentation_png(
+    target: Target,
+    title: str,
+    rate: float,
+    frames: tuple[int, int],
+    results: Sequence[PcaResult | PpcaResult | GmmResult],
+    bands: Sequence[Band] = (),
+) -> None:
+    """One panel per result, against seconds from the recording's first frame (``frames``: its first
+    and last AMC frame numbers; the results count frames from 0): PCA's error derivative ``d`` and
+    its threshold, PPCA's ``H`` (first forward pass, log scale), GMM's raw and merged labels; each
+    method's cuts as red lines and the true boundaries ``bands`` (AMC frames) as green bands."""
+    if not results:
+        raise ValueError("segmentation_png needs at least one method's result")
+    plt = _pyplot()
+    first, last = frames
+    seconds = (last - first + 1) / rate
+    fig, axes = plt.subplots(
+        len(results), 1, figsize=(min(24.0, max(10.0, seconds / 2)), 1.5 + 2.7 * len(results)), squeeze=False
+    )
+    for ax, result in zip(axes[:, 0], results, strict=True):
+        if isinstance(result, PcaResult):
+            t, d = _broken(result.frame, result.segment, result.d)
+            ax.plot(t / rate, d, linewidth=0.8)
+            t, threshold = _broken(result.frame, result.segment, result.threshold)
+            ax.plot(t / rate, threshold, linewidth=0.8)
+            label = "PCA: d_i (blue) and mean + kσ·std of the earlier d (orange)"
+        elif isinstance(result, PpcaResult):
+            t, h = _broken(result.frame, result.segment, result.h)
+            ax.semilogy(t / rate, h, linewidth=0.8, marker=".", markersize=2)
+            label = "PPCA: H (first forward pass; cuts of all passes)"
+        else:
+            n = result.labels.shape[0]
+            ax.plot(np.arange(n) / rate, result.raw_labels, color="0.6", linewidth=0.6)
+            ax.plot(np.arange(n) / rate, result.labels, color="C0", linewidth=1.2)
+            label = "GMM: cluster of each frame (grey: most likely, blue: short runs merged)"
+        for b in bands:
+            ax.axvspan((b.lo - first) / rate, (b.hi - first) / rate, color="tab:green", alpha=0.25)
+        for c in result.boundaries:
+            ax.axvline(c.frame / rate, color="tab:red", linewidth=0.8)
+        ax.set_xlim(0, seconds)
+        ax.set_title(label, fontsize=9, loc="left")
+    truth = "; green: true boundaries with their tolerance" if bands else ""
+    axes[-1, 0].set_xlabel(f"seconds (red: cuts{truth})")
+    fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    _save(fig, target)
     plt.close(fig)

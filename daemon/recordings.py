@@ -25,6 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
+from daemon.behaviours import Band
 from daemon.checks import csv_records, read_text
 from daemon.errors import MocapdError
 from daemon.features import decimate, decimation_factor, features
@@ -396,3 +397,47 @@ def read_labels(path: str | Path, trial: str | None = None) -> list[Label]:
             raise LabelError(f"start_frame {start} is after end_frame {end}", path=path, line=line)
         out.append(Label(name, start, end))
     return out
+
+
+BOUNDARY_TOLERANCE_S = 0.5
+"""A labelled boundary's tolerance either side when the labels give none (mocap6's ± 60 frames at
+120 Hz)."""
+
+
+def read_boundaries(
+    path: str | Path,
+    trial: str | None = None,
+    *,
+    rate: float = 120.0,
+    tolerance_s: float = BOUNDARY_TOLERANCE_S,
+) -> list[Band]:
+    """The true behaviour boundaries of a labels CSV, in AMC frame numbers, each with the frames a
+    cut may fall on to find it (:class:`daemon.behaviours.Band`). Two layouts: with columns
+    ``end_frame``, ``end_lo`` and ``end_hi`` (as ``cmu86_segments.csv``), a boundary after each
+    segment but the last (the next behaviour starts at ``end_frame + 1``; found by a cut starting
+    it at ``end_lo + 1 .. end_hi + 1``), segments in the order of a ``segment`` column if there is
+    one; otherwise the segments of :func:`read_labels` (``class`` or ``label_name``), a boundary at
+    the first frame of each but the first, ± ``tolerance_s`` seconds at ``rate`` Hz. A ``trial``
+    column filters the rows to ``trial`` (None: all). Raises :class:`LabelError` naming the file and
+    line."""
+    records = list(csv_records(path, LabelError, ("start_frame", "end_frame")))
+    if records and {"end_lo", "end_hi"} <= records[0][1].keys():
+        rows: list[tuple[int, int, int, int]] = []
+        for line, value in records:
+            if trial is not None and value.get("trial", trial) != trial:
+                continue
+            try:
+                end, lo, hi = (int(value[k]) for k in ("end_frame", "end_lo", "end_hi"))
+                order = int(value.get("segment", len(rows)))
+            except ValueError:
+                raise LabelError(
+                    "end_frame, end_lo, end_hi and segment must be integers", path=path, line=line
+                ) from None
+            rows.append((order, end, lo, hi))
+        rows.sort()
+        return [Band(end + 1, lo + 1, hi + 1) for _, end, lo, hi in rows[:-1]]
+    labels = sorted(read_labels(path, trial), key=lambda label: label.start_frame)
+    reach = round(tolerance_s * rate)
+    return [
+        Band(label.start_frame, label.start_frame - reach, label.start_frame + reach) for label in labels[1:]
+    ]

@@ -217,6 +217,13 @@ class KinematicModel:
             pos *= self._cm
         return np.ascontiguousarray(pos.transpose(2, 1, 0))
 
+    def local_rotations(self, channels: FloatArray) -> FloatArray:
+        """Every node's rotation relative to its parent as a unit quaternion ``(w, x, y, z)``: ``O
+        M_root`` for the root, ``C_k M_k C_k.T`` for bone k (so ``G_k = G_parent(k) @ local_k``; the
+        identity for a bone without rotation dofs): ``channels`` shape ``(N, C)`` gives shape ``(N,
+        nodes, 4)``. Elementwise like the rest, so one frame alone gives its values in a batch."""
+        return np.ascontiguousarray(self._local(self._check(channels)).transpose(2, 1, 0))
+
     def rotations(self, channels: FloatArray) -> FloatArray:
         """Global rotation matrices of all nodes: ``channels`` shape ``(N, C)`` gives ``(N, nodes, 3, 3)``."""
         rot, _ = self._forward(self._check(channels))

@@ -7,7 +7,7 @@ from __future__ import annotations
 import math
 from collections.abc import Iterator, Sequence
 from fractions import Fraction
-from itertools import product
+from itertools import pairwise, product
 from pathlib import Path
 
 import numpy as np
@@ -628,3 +628,126 @@ def naive_features(asf: Path, amc: Path, step: int = 1, native_rate: float = 120
     joints = model.joints(model.positions(read_amc(amc, skeleton).channels, "cm"))
     out: BoolArray = features(joints, JOINT_NAMES, native_rate)[::step]
     return out
+
+
+# ------------------------------------------------------- behaviour segmentation (Barbič et al. 2004)
+
+
+def slow_dimension(singular_values: Sequence[float], tau: float) -> int:
+    """Eq. 6 read literally: the smallest ``r`` with ``sum_(j<=r) σ_j² / sum σ_j² > tau``, the
+    singular values given in decreasing order; 0 when they are all zero."""
+    squares = [float(s) ** 2 for s in singular_values]
+    total = sum(squares)
+    if total == 0:
+        return 0
+    kept = 0.0
+    for r, square in enumerate(squares, 1):
+        kept += square
+        if kept / total > tau:
+            return r
+    return len(squares)
+
+
+def slow_projection_error(frames: FloatArray, r: int) -> float:
+    """Eq. 5: the squared singular values of the centred ``frames`` ``(i, D)`` beyond the ``r``
+    largest (the SVD of Eq. 4)."""
+    singular = np.linalg.svd(frames - frames.mean(axis=0), compute_uv=False)
+    return sum(float(s) ** 2 for s in singular[r:])
+
+
+def slow_pca_segment(
+    x: FloatArray, k: int, ell: int, i0: int, tau: float, k_sigma: float
+) -> tuple[list[tuple[int, float]], list[tuple[int, float, float]]]:
+    """§3.1 read literally, an SVD of the segment's frames 1..i for every i: ``r`` from the first
+    ``k`` frames, ``d_i = e_i - e_(i-ℓ)`` for ``i >= k``, a cut at frame ``i > i0`` when ``d_i`` lies
+    more than ``k_sigma`` (population) standard deviations above the mean of the earlier ``d_j``
+    (deviation > 0), the next segment starting at the cut frame. Returns the cuts ``(frame,
+    (d - mean) / std)`` and every ``(frame, e_i, d_i)`` (frames 0-based)."""
+    cuts: list[tuple[int, float]] = []
+    trace: list[tuple[int, float, float]] = []
+    start = 0
+    while x.shape[0] - start >= k:
+        segment = x[start:]
+        first = segment[:k]
+        r = slow_dimension(np.linalg.svd(first - first.mean(axis=0), compute_uv=False).tolist(), tau)
+        earlier: list[float] = []
+        cut = None
+        for i in range(k, segment.shape[0] + 1):
+            e = slow_projection_error(segment[:i], r)
+            d = e - slow_projection_error(segment[: i - ell], r)
+            trace.append((start + i - 1, e, d))
+            if i > i0 and earlier:
+                mean = sum(earlier) / len(earlier)
+                std = math.sqrt(sum((v - mean) ** 2 for v in earlier) / len(earlier))
+                if std > 0 and d > mean + k_sigma * std:
+                    cut = (start + i - 1, (d - mean) / std)
+                    break
+            earlier.append(d)
+        if cut is None:
+            break
+        cuts.append(cut)
+        start = cut[0]
+    return cuts, trace
+
+
+def slow_ppca_h(model: FloatArray, window: FloatArray, tau: float) -> float:
+    """Eqs. 7-10 read literally: the PPCA Gaussian of the frames ``model`` ``(K, D)`` (K > D) from
+    the SVD of the centred frames (σ² the mean of the discarded squared singular values, ``W = V_r
+    (Σ_r² - σ² I)^(1/2)``, ``C = (W W^T + σ² I) / (K - 1)``) and the mean Mahalanobis distance ``H``
+    of the frames ``window`` ``(T, D)`` under it (a linear solve per frame)."""
+    mean = model.mean(axis=0)
+    _, singular, vt = np.linalg.svd(model - mean)
+    dims = model.shape[1]
+    r = slow_dimension(singular.tolist(), tau)
+    sigma2 = sum(float(s) ** 2 for s in singular[r:]) / (dims - r) if r < dims else 0.0
+    w = vt[:r].T @ np.diag(np.sqrt(np.maximum(singular[:r] ** 2 - sigma2, 0.0)))
+    c = (w @ w.T + sigma2 * np.eye(dims)) / (model.shape[0] - 1)
+    return sum(float(v @ np.linalg.solve(c, v)) for v in window - mean) / int(window.shape[0])
+
+
+def slow_ppca_forward(
+    x: FloatArray, window: int, delta: int, rise: float, tau: float
+) -> tuple[list[tuple[int, float, int]], list[tuple[int, float]]]:
+    """§3.2's forward pass read literally: ``K = T``; ``H`` (:func:`slow_ppca_h`) of frames ``K + 1
+    .. K + T`` under the model of frames ``1 .. K``; ``K += Δ``; a cut at the first ``H`` that is
+    followed by a lower one and lies ``rise`` or more above the lowest ``H`` before it (cut frame: the
+    first frame after the model's ``K``), the search restarting at the cut. Returns the cuts
+    ``(frame, rise, frame seen last)`` and every ``(K's frame, H)``."""
+    cuts: list[tuple[int, float, int]] = []
+    trace: list[tuple[int, float]] = []
+    start, n = 0, x.shape[0]
+    while start + window <= n:
+        big_k, valley, previous, cut = window, math.inf, None, None
+        while start + big_k + window <= n:
+            h = slow_ppca_h(x[start : start + big_k], x[start + big_k : start + big_k + window], tau)
+            trace.append((start + big_k, h))
+            if previous is not None and h < previous[1] and previous[1] - valley >= rise:
+                cut = (start + previous[0], previous[1] - valley, start + big_k + window - 1)
+                break
+            valley = min(valley, h)
+            previous = (big_k, h)
+            big_k += delta
+        if cut is None:
+            break
+        cuts.append(cut)
+        start = cut[0]
+    return cuts, trace
+
+
+def slow_ppca_segment(x: FloatArray, window: int, delta: int, rise: float, tau: float) -> list[int]:
+    """§3.2's passes: the forward pass, then passes alternating direction inside each segment the
+    cuts so far leave (backward: the segment reversed, a cut ``p`` frames from its end at ``end -
+    p``), until a pass adds no cut."""
+    cuts = {c[0] for c in slow_ppca_forward(x, window, delta, rise, tau)[0]}
+    forward = False
+    while True:
+        edges = [0, *sorted(cuts), x.shape[0]]
+        found = set()
+        for a, b in pairwise(edges):
+            part = x[a:b] if forward else x[a:b][::-1]
+            for c, _, _ in slow_ppca_forward(part, window, delta, rise, tau)[0]:
+                found.add(a + c if forward else b - c)
+        if not found:
+            return sorted(cuts)
+        cuts |= found
+        forward = not forward
