@@ -1014,6 +1014,20 @@ def segment(
     raise ValueError(f"unknown segmentation method {method!r}: pca, ppca or gmm")
 
 
+def analyse(
+    frames: npt.ArrayLike, rate: float, method: Method, *, params: Params | None = None
+) -> PcaResult | PpcaResult | GmmResult:
+    """:func:`segment` with the method's signal (:func:`pca_analysis`, :func:`ppca_analysis`,
+    :func:`gmm_analysis`): the same cuts in ``.boundaries``."""
+    if method == "pca":
+        return pca_analysis(frames, rate, params=_params(params, PcaParams, PCA_PAPER))
+    if method == "ppca":
+        return ppca_analysis(frames, rate, params=_params(params, PpcaParams, PPCA_PAPER))
+    if method == "gmm":
+        return gmm_analysis(frames, rate, params=_params(params, GmmParams, GMM_PAPER))
+    raise ValueError(f"unknown segmentation method {method!r}: pca, ppca or gmm")
+
+
 def online_segmenter(
     rate: float, method: Method, *, params: Params | None = None
 ) -> PcaSegmenter | PpcaSegmenter:

@@ -68,9 +68,10 @@ FEATURES = ("kneeRightBent", "kneeLeftBent", "feetApartRelHips", "handRightRaise
 def fuzz(examples: int) -> settings:
     """Hypothesis settings of a fuzz test: ``examples`` examples, no deadline (a run takes 10-100 ms,
     a PNG a second), the function-scoped ``capsys`` shared by the examples (each reads it out).
-    ``MOCAPD_FUZZ_SCALE=10`` in the environment runs ten times as many."""
+    ``FUZZ_SCALE=10`` in the environment runs ten times as many (a ``MOCAPD_`` name would be read as a
+    configuration override and refused)."""
     return settings(
-        max_examples=round(examples * float(os.environ.get("MOCAPD_FUZZ_SCALE", "1"))),
+        max_examples=round(examples * float(os.environ.get("FUZZ_SCALE", "1"))),
         deadline=None,
         suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow],
         database=None,
@@ -431,14 +432,14 @@ def outputs(where: Path) -> None:
 
 def recording_argv(command: str, where: Path, asf: Path, amc: Path) -> list[str | Path]:
     argv: list[str | Path] = [command, "--asf", asf, "--amc", amc]
-    if command != "info":
+    if command not in ("info", "segment"):
         (where / "out.csv").write_text("known content\n")
         argv += ["--csv", where / "out.csv"]
     return argv
 
 
 @given(
-    command=st.sampled_from(["info", "positions", "features"]),
+    command=st.sampled_from(["info", "positions", "features", "segment"]),
     damaged=st.sampled_from(["asf", "amc", "config"]).flatmap(
         lambda which: st.tuples(
             st.just(which),
@@ -468,7 +469,12 @@ def test_recording_commands_with_damaged_files(
         amc = target if which == "amc" else amc
         config = ["--config", target] if which == "config" else []
         argv = [*config, *recording_argv(command, where, asf, amc)]
-        usable = {"info": ["--json"], "positions": ["--cm"], "features": ["--fps", "--png"]}[command]
+        usable = {
+            "info": ["--json"],
+            "positions": ["--cm"],
+            "features": ["--fps", "--png"],
+            "segment": ["--json"],
+        }[command]
         if extra == ["--png"] and command == "features":
             shutil.copy(valid.png, where / "out.png")  # the PNG output, pre-created
             argv += ["--png", where / "out.png"]
@@ -484,6 +490,17 @@ RECORDING_OPTIONS = {
     "info": [RATE, JSON],
     "positions": [RATE, Opt("--cm"), CSV],
     "features": [RATE, Opt("--fps", typical("30", "60", "120"), number_text("30", "60", "120")), CSV],
+    "segment": [
+        RATE,
+        JSON,
+        Opt("--method", typical("pca", "ppca", "gmm"), typical("PCA", "", "svd") | ODD_TEXT),
+        Opt("--window", typical("0.2", "1.25"), number_text("0.2", "1.25")),
+        Opt("--rise", typical("15", "0"), number_text("15", "0")),
+        Opt("--k-sigma", typical("3"), number_text("3")),
+        Opt("--ell", typical("0.1", "0.5"), number_text("0.1", "0.5")),
+        Opt("--clusters", typical("2", "4"), number_text("2", "4")),
+        Opt("--variance", typical("0.9", "1"), number_text("0.9", "1")),
+    ],
 }
 
 

@@ -35,6 +35,7 @@ COMMANDS = (
     "daemon.cli.search",
     "daemon.cli.learn",
     "daemon.cli.detect",
+    "daemon.cli.segment",
     "daemon.cli.service",
 )
 """The command groups, in the order ``--help`` lists them; each has ``register(subparsers)``."""
