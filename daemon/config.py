@@ -23,6 +23,7 @@ from daemon.types import DEFAULT_MAX_GAP_S, DEFAULT_NATIVE_RATE, MAX_NATIVE_RATE
 Units = Literal["asf", "cm"]
 LogLevel = Literal["debug", "info", "warning", "error"]
 StdoutFormat = Literal["json", "text"]
+SegmentationMethod = Literal["none", "pca", "ppca"]
 TRANSPORTS = ("zmq", "mqtt", "stdout")
 SOURCES = ("zmq", "mqtt")
 
@@ -55,6 +56,15 @@ class RecognizerConfig:
 
     max_gap_s: float = field(default=DEFAULT_MAX_GAP_S, metadata=_positive(3600))
     compete: bool = True
+
+
+@dataclass(frozen=True)
+class SegmentationConfig:
+    """Behaviour boundaries in the daemon (:mod:`daemon.behaviours`, the online methods): ``method``
+    (``none``: off) and the ``streams`` it runs on (shell-style patterns of stream ids)."""
+
+    method: SegmentationMethod = "none"
+    streams: tuple[str, ...] = ("*",)
 
 
 @dataclass(frozen=True)
@@ -131,6 +141,7 @@ class LoggingConfig:
 class Config:
     replay: ReplayConfig = field(default_factory=ReplayConfig)
     recognizer: RecognizerConfig = field(default_factory=RecognizerConfig)
+    segmentation: SegmentationConfig = field(default_factory=SegmentationConfig)
     service: ServiceConfig = field(default_factory=ServiceConfig)
     zmq: ZmqConfig = field(default_factory=ZmqConfig)
     mqtt: MqttConfig = field(default_factory=MqttConfig)

@@ -426,6 +426,11 @@ class MqttCollector:
         with self.lock:
             return [m for _, m in self.messages if m.get("type") == "status"]
 
+    def boundaries(self) -> list[tuple[str, dict[str, Any]]]:
+        """(topic, message) of every behaviour boundary."""
+        with self.lock:
+            return [(t, m) for t, m in self.messages if m.get("type") == "boundary"]
+
     def close(self) -> None:
         self.client.loop_stop()
         self.client.disconnect()

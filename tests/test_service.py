@@ -14,6 +14,7 @@ from typing import Any
 
 import numpy as np
 
+from daemon.behaviours import JointRotations, ppca_forward
 from daemon.library import default_library_path, load_library
 from daemon.recognizer import detect
 from daemon.recordings import read_recording
@@ -59,7 +60,7 @@ def unique(items: list[dict[str, Any]]) -> list[dict[str, Any]]:
     return out
 
 
-BIG_QUEUE = {"service": {"queue_frames": 100_000}}
+BIG_QUEUE: dict[str, dict[str, object]] = {"service": {"queue_frames": 100_000}}
 """A replay as fast as possible outruns recognition; with a queue this long nothing is dropped."""
 
 
@@ -97,6 +98,34 @@ def test_mqtt_replay_gives_the_detections_of_detect(tmp_path: Path) -> None:
         wait_for(lambda: len(unique(collector.detections())) >= len(want), 10, "the last detections")
         assert detection_keys(unique(collector.detections())) == want
         wait_for(lambda: collector.statuses()[-1]["state"] == "offline", 10, "offline")
+    finally:
+        collector.close()
+        daemon.stop()
+        broker.stop()
+
+
+def test_mqtt_boundaries_of_a_segmented_stream(tmp_path: Path) -> None:
+    """With segmentation on, the daemon publishes a replayed stream's behaviour boundaries on
+    ``mocap/<stream>/boundaries``: the online method's cuts (PPCA's forward pass) of the recording,
+    at its AMC frame numbers, beside its detections."""
+    broker = Broker(tmp_path).start()
+    config: dict[str, dict[str, object]] = {**BIG_QUEUE, "segmentation": {"method": "ppca"}}
+    daemon = Daemon(tmp_path, sources=["mqtt"], sinks=["mqtt"], mqtt=broker.url, config=config).start()
+    collector = MqttCollector(broker.url, ["mocap/+/boundaries", "mocap/+/detections"])
+    try:
+        finished(replay(*TRIAL, broker.url, "--stream", "take7", speed="8"))
+        wait_for(lambda: daemon.metrics().get("mocapd_frames_in_total") == 2465, 30, "every pose received")
+        wait_for(lambda: daemon.metrics().get("mocapd_boundaries_out_total", 0) > 0, 30, "a boundary counted")
+        assert daemon.stop() == 0
+        motion = read_recording(*TRIAL)
+        x = JointRotations(motion.skeleton)(motion.channels)
+        want = [int(motion.frames[b.frame]) for b in ppca_forward(x, 120.0)]
+        wait_for(lambda: len(collector.boundaries()) >= len(want), 10, "the boundaries")
+        got = {m["id"]: (t, m["frame"], m["method"]) for t, m in collector.boundaries()}  # QoS 1 repeats
+        assert sorted(got.values(), key=lambda g: g[1]) == [
+            ("mocap/take7/boundaries", f, "ppca") for f in want
+        ]
+        assert len(want) >= 3 and collector.detections()
     finally:
         collector.close()
         daemon.stop()

@@ -1,6 +1,7 @@
 """The service's parts without sockets: the stream table (sequence numbers, bridged and long gaps,
 skeleton changes, eviction, the wire's units and axes) against plain recognisers, the service
-configuration and its environment overrides, and the replay's clock."""
+configuration and its environment overrides, the replay's clock, and the behaviour boundaries of
+segmented streams against the batch segmentation."""
 
 from __future__ import annotations
 
@@ -10,12 +11,15 @@ import re
 from functools import cache
 from itertools import pairwise
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from daemon import behaviours as bh
+from daemon.behaviours import JointRotations
 from daemon.config import (
     Config,
     ConfigError,
@@ -29,11 +33,11 @@ from daemon.library import Library
 from daemon.recognizer import Recognizer
 from daemon.recordings import joint_positions, read_recording
 from daemon.service.streams import Refused, StreamTable
-from protocols.messages import PoseMessage, SkeletonMessage
+from protocols.messages import BoundaryMessage, DetectionMessage, PoseMessage, SkeletonMessage
 from replay import JOINT_NAMES, Motion
 from replay.amc import DEG
 from replay.publish import due
-from tests.helpers import hdm05_clip, small_library, takes
+from tests.helpers import DATA, hdm05_clip, small_library, takes
 
 ASF, AMC = hdm05_clip("bd", "squat1Reps", takes("squat1Reps", "bd")[1])
 
@@ -63,7 +67,11 @@ def run(t: StreamTable, poses: list[PoseMessage]) -> list[tuple[str, int, int, f
     while t.queued:
         out += t.tick()[0]
     out += t.flush_all()
-    return [(e.message.class_name, e.message.start_frame, e.message.end_frame, e.message.cost) for e in out]
+    return [
+        (e.message.class_name, e.message.start_frame, e.message.end_frame, e.message.cost)
+        for e in out
+        if isinstance(e.message, DetectionMessage)
+    ]
 
 
 def reference(
@@ -253,3 +261,46 @@ def test_replay_clock_does_not_drift() -> None:
     assert due(10.0, 120 * 3600, 120.0, 1.0) == 10.0 + 3600.0
     assert due(10.0, 240, 120.0, 2.0) == 11.0
     assert due(10.0, 10**6, 120.0, None) == 10.0
+
+
+# ---------------------------------------------------------------------------- behaviour boundaries
+
+SEGMENTED = (DATA / "cmu" / "13" / "13.asf", DATA / "cmu" / "13" / "13_30.amc.gz")
+
+
+@pytest.mark.parametrize("method", ["pca", "ppca"])
+def test_boundaries_are_the_online_methods_batch_cuts(
+    library: Library, method: Literal["pca", "ppca"]
+) -> None:
+    """A segmented stream's boundaries are its recording's batch cuts (PCA; PPCA's forward pass) in
+    sequence numbers, also across a long gap (each side segmented on its own); a stream its
+    patterns do not name, and a stream of positions, get none."""
+    m = read_recording(*SEGMENTED)
+    x = JointRotations(m.skeleton)(m.channels)
+    batch = bh.pca_segment if method == "pca" else bh.ppca_forward
+    t = StreamTable(library, session="t", queue_frames=100_000, segmentation=method, segmented=["seg*"])
+    asf = SEGMENTED[0].read_text()
+    for name in ("seg", "plain"):
+        t.skeleton(SkeletonMessage(name, 120.0, asf=asf, angle_unit="rad"), 0.0)
+    t.skeleton(SkeletonMessage("segpos", 120.0, joints=tuple(JOINT_NAMES)), 0.0)
+    cut = 1500  # a gap of 10 s after frame cut: the motion ends, a new one begins
+    seqs = [int(f) if k < cut else int(f) + 1200 for k, f in enumerate(m.frames)]
+    positions = joint_positions(m)
+    for k, (seq, c) in enumerate(zip(seqs, m.channels, strict=True)):
+        t.pose(PoseMessage("seg", seq, 0.0, channels=c), 0.0)
+        t.pose(PoseMessage("plain", seq, 0.0, channels=c), 0.0)
+        t.pose(PoseMessage("segpos", seq, 0.0, positions=positions[k].astype(np.float32)), 0.0)
+    out = []
+    while t.queued:
+        out += t.tick()[0]
+    out += t.flush_all()
+    got = [
+        (e.message.stream, e.message.frame, e.message.method)
+        for e in out
+        if isinstance(e.message, BoundaryMessage)
+    ]
+    want = [("seg", seqs[b.frame], method) for b in batch(x[:cut], 120.0)]
+    want += [("seg", seqs[cut + b.frame], method) for b in batch(x[cut:], 120.0)]
+    assert got == want != []
+    ids = [e.message.id for e in out if isinstance(e.message, BoundaryMessage)]
+    assert len(set(ids)) == len(ids)

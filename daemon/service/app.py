@@ -38,6 +38,7 @@ from daemon.library import Library
 from daemon.service.metrics import Metrics, serve_http
 from daemon.service.streams import Emitted, Refused, StreamTable
 from protocols.messages import (
+    BoundaryMessage,
     PoseMessage,
     SkeletonMessage,
     StatusMessage,
@@ -142,6 +143,8 @@ class Service:
             max_gap_s=config.service.max_gap_s,
             max_gap_frame_s=config.recognizer.max_gap_s,
             compete=config.recognizer.compete,
+            segmentation=config.segmentation.method,
+            segmented=config.segmentation.streams,
         )
         self.rejects: Counter[str] = Counter()
         self.metrics = Metrics(config.metrics.stream_labels, self._tallies, self._gauge_values)
@@ -246,10 +249,17 @@ class Service:
                 await sink.publish(out)
         self.published += 1
         m = self.metrics
+        m.stage["publish"].observe(time.perf_counter() - started)
+        if isinstance(message, BoundaryMessage):
+            m.boundaries += 1
+            self.log.debug(
+                "boundary",
+                extra={"fields": {"id": message.id, "stream": message.stream, "frame": message.frame}},
+            )
+            return
         m.detection_out(message.stream)
         if e.source_time > 0:
             m.end_to_end.observe(max(0.0, message.emit_time - e.source_time))
-        m.stage["publish"].observe(time.perf_counter() - started)
         self.log.debug(
             "detection",
             extra={"fields": {"id": message.id, "stream": message.stream, "class": message.class_name}},

@@ -5,13 +5,14 @@ observation: prometheus-client's own counters take a lock per increment, too muc
 a second); prometheus-client turns them into its exposition format when ``/metrics`` is scraped
 (:class:`Metrics` is a registry collector).
 
-Series (prefix ``mocapd_``): ``frames_in``, ``messages_in{type}``, ``detections_out``, ``rejects{reason}``,
-``drops{reason}``, ``stream_events{event}`` (gaps, poses missing in them, evictions, skeleton
-changes), ``streams``, ``queued_poses``, ``outbox``, ``transport_up{transport}``,
-``stage_seconds{stage}`` (decode, recognise, publish; buckets from 25 µs to 50 ms with one at the
-2 ms budget) and ``end_to_end_seconds`` (a pose's source timestamp to the publish of the detection
-it completed). ``frames_in`` and ``detections_out`` have a ``stream`` label only with
-``metrics.stream_labels``, which config allows only for a bounded stream table.
+Series (prefix ``mocapd_``): ``frames_in``, ``messages_in{type}``, ``detections_out``,
+``boundaries_out``, ``rejects{reason}``, ``drops{reason}``, ``stream_events{event}`` (gaps, poses
+missing in them, evictions, skeleton changes), ``streams``, ``queued_poses``, ``outbox``,
+``transport_up{transport}``, ``stage_seconds{stage}`` (decode, recognise, publish; buckets from
+25 µs to 50 ms with one at the 2 ms budget) and ``end_to_end_seconds`` (a pose's source timestamp
+to the publish of the detection it completed). ``frames_in`` and ``detections_out`` have a
+``stream`` label only with ``metrics.stream_labels``, which config allows only for a bounded
+stream table.
 """
 
 from __future__ import annotations
@@ -71,6 +72,8 @@ class Metrics(Collector):
         """Poses received by stream ("" for all when streams are not labelled)."""
         self.messages: Counter[str] = Counter()
         self.detections: Counter[str] = Counter()
+        self.boundaries = 0
+        """Behaviour boundaries published."""
         self.stage = {s: Histogram(STAGE_BUCKETS) for s in ("decode", "recognise", "publish")}
         self.end_to_end = Histogram(END_TO_END_BUCKETS)
         self._tallies = tallies
@@ -98,6 +101,9 @@ class Metrics(Collector):
             for stream, n in sorted(per_stream.items()) or [("", 0)]:
                 family.add_metric([stream] if labels else [], n)
             yield family
+        yield CounterMetricFamily(
+            "mocapd_boundaries_out", "Behaviour boundaries published", value=self.boundaries
+        )
         messages = CounterMetricFamily("mocapd_messages_in", "Messages decoded, by type", labels=["type"])
         for kind, n in sorted(self.messages.items()):
             messages.add_metric([kind], n)

@@ -12,21 +12,33 @@ gaps (poses lost on the way, or dropped here when its queue is full). A gap of a
 report sequence numbers through the stream's table of (frame, sequence offset) changes. A longer gap
 ends the stream's motion: its recogniser is flushed and begins again at the new pose. With no gap,
 frame number = sequence number, so a replayed recording's detections are those of ``mocapd detect``.
+
+Behaviour boundaries. With a segmentation method (``segmentation`` of the config), every channel
+stream whose id matches one of its patterns also goes through an online segmenter
+(:func:`daemon.behaviours.online_segmenter` on :class:`daemon.behaviours.RotationStream`'s joint
+rotations), fed the frames its recogniser took; a cut comes out as a :class:`BoundaryMessage` at the
+sequence number where the new behaviour starts. A long gap, a changed skeleton or the stream's end
+starts the segmenter anew, as it does the recogniser.
 """
 
 from __future__ import annotations
 
+import fnmatch
+import uuid
 from collections import Counter, deque
-from collections.abc import Collection
+from collections.abc import Collection, Sequence
 from dataclasses import dataclass, field
+from typing import Literal
 
 import numpy as np
 
 from daemon.bank import RecognizerBank
+from daemon.behaviours import Boundary, JointRotations, PcaSegmenter, PpcaSegmenter
+from daemon.behaviours import online_segmenter as make_segmenter
 from daemon.features import latency_frames
 from daemon.library import Library
 from daemon.recognizer import Detection, ring_size
-from protocols.messages import DetectionMessage, PoseMessage, SkeletonMessage
+from protocols.messages import BoundaryMessage, DetectionMessage, PoseMessage, SkeletonMessage
 from replay import MocapFormatError, Skeleton, parse_asf
 from replay.amc import DEG
 
@@ -37,6 +49,32 @@ class Refused(Exception):
     def __init__(self, reason: str, detail: str) -> None:
         super().__init__(detail)
         self.reason = reason
+
+
+class _Segmenting:
+    """A stream's behaviour segmentation: its joint rotations, the online segmenter, and the frame
+    number of the segmenter's first frame."""
+
+    def __init__(self, rotations: JointRotations, method: Literal["pca", "ppca"], rate: float) -> None:
+        self.rotations = rotations.stream()
+        self.segmenter: PcaSegmenter | PpcaSegmenter = make_segmenter(rate, method)
+        self.first: int | None = None
+
+    def push(self, frame: int, channels: np.ndarray) -> list[tuple[int, int, Boundary]]:
+        """Frame ``frame``'s channels: the cuts that became known, as (frame of the new behaviour,
+        frame at which it was known, boundary)."""
+        if self.first is None:
+            self.first = frame
+        found = self.segmenter.push(self.rotations.frame(channels))
+        return [(self.first + b.frame, self.first + b.emitted, b) for b in found]
+
+    def restart(self) -> list[tuple[int, int, Boundary]]:
+        """The stream's motion ends: what the segmenter still gives, then a fresh one."""
+        first = self.first
+        found = self.segmenter.flush()
+        self.rotations.flush()
+        self.first = None
+        return [] if first is None else [(first + b.frame, first + b.emitted, b) for b in found]
 
 
 @dataclass
@@ -59,14 +97,15 @@ class _Stream:
     width: int = 0
     seen: float = 0.0
     generation: int = 0
+    segmenting: _Segmenting | None = None
 
 
 @dataclass(frozen=True)
 class Emitted:
-    """A detection ready for the wire, and when the pose that completed it was stamped by its
-    source (for the end-to-end latency)."""
+    """A detection or a behaviour boundary ready for the wire, and when the pose that completed it
+    was stamped by its source (for the end-to-end latency)."""
 
-    message: DetectionMessage
+    message: DetectionMessage | BoundaryMessage
     source_time: float
 
 
@@ -87,6 +126,8 @@ class StreamTable:
         max_gap_frame_s: float = 2.0,
         compete: bool = True,
         classes: Collection[str] | None = None,
+        segmentation: Literal["none", "pca", "ppca"] = "none",
+        segmented: Sequence[str] = ("*",),
     ) -> None:
         self.bank = RecognizerBank(library, max_gap_s=max_gap_frame_s, classes=classes, compete=compete)
         self.session = session
@@ -98,6 +139,8 @@ class StreamTable:
         self.counts: Counter[str] = Counter()
         """Refusals and drops by reason, and ``gaps``/``gap_frames``."""
         self._window = ring_size(self.bank.plans)
+        self.segmentation = segmentation
+        self.segmented = tuple(segmented)
         self._queued = 0
         self._waiting: dict[str, _Stream] = {}  # the streams with queued poses, in arrival order
 
@@ -150,8 +193,21 @@ class StreamTable:
             width=len(skeleton.channel_names) if skeleton is not None else len(message.joints or ()),
             seen=now,
             generation=(old.generation + 1) if old else 0,
+            segmenting=self._segmenting(message, skeleton),
         )
         return out
+
+    def _segmenting(self, message: SkeletonMessage, skeleton: Skeleton | None) -> _Segmenting | None:
+        """A segmenter for a channel stream that the segmentation patterns name (None: none)."""
+        method = self.segmentation
+        if method == "none" or skeleton is None:
+            return None
+        if not any(fnmatch.fnmatchcase(message.stream, p) for p in self.segmented):
+            return None
+        try:
+            return _Segmenting(JointRotations(skeleton), method, message.rate)
+        except ValueError as e:  # a skeleton without rotating bones, windows that do not fit the rate
+            raise Refused("skeleton", f"segmentation: {e}") from None
 
     def pose(self, message: PoseMessage, now: float) -> None:
         """Queue a pose, or :class:`Refused` (``no_skeleton``, ``duplicate``, ``out_of_order``,
@@ -228,6 +284,12 @@ class StreamTable:
             self.counts[error.problem] += 1
             refused.append((name, error.problem, str(error)))
         out += [self._emitted(d) for d in result.detections]
+        if self.segmentation != "none":
+            taken = {name for name, _ in result.errors}
+            for name, frame, values in frames:
+                s = self.streams[name]
+                if s.segmenting is not None and name not in taken:
+                    out += [self._boundary(name, s, *cut) for cut in s.segmenting.push(frame, values)]
         return out, refused
 
     def _values(self, s: _Stream, pose: PoseMessage) -> np.ndarray:
@@ -268,11 +330,15 @@ class StreamTable:
         self._waiting.pop(name, None)
         if reason is not None:
             self.counts[reason] += 1
-        return [self._emitted(d, s) for d in self.bank.remove(name)]
+        return [self._emitted(d, s) for d in self.bank.remove(name)] + self._segments_end(name, s)
+
+    def _segments_end(self, name: str, s: _Stream) -> list[Emitted]:
+        """The boundaries the end of a stream's motion gives (its segmenter starts anew)."""
+        return [] if s.segmenting is None else [self._boundary(name, s, *c) for c in s.segmenting.restart()]
 
     def _restart(self, name: str, s: _Stream) -> list[Emitted]:
         """End the stream's motion at a long gap: its detections so far, then a fresh recogniser."""
-        out = [self._emitted(d) for d in self.bank.remove(name)]
+        out = [self._emitted(d) for d in self.bank.remove(name)] + self._segments_end(name, s)
         a = s.announced
         s.generation += 1
         session = f"{self.session}/{s.generation}"
@@ -295,6 +361,13 @@ class StreamTable:
             source_time,
             0.0,
         )
+        return Emitted(message, source_time)
+
+    def _boundary(self, name: str, s: _Stream, frame: int, known: int, b: Boundary) -> Emitted:
+        seq = self._seq(s, frame)
+        key = f"{self.session}/{s.generation}/{name}/boundary/{b.method}/{seq}"
+        source_time = float(s.times[known % len(s.times)])
+        message = BoundaryMessage(str(uuid.uuid5(uuid.NAMESPACE_URL, key)), name, seq, b.method, b.score, 0.0)
         return Emitted(message, source_time)
 
     @staticmethod
