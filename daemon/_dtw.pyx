@@ -21,6 +21,30 @@ cdef inline int64_t clamp(int64_t x) noexcept nogil:
     return INF if x > INF else x
 
 
+cdef inline int64_t _toolbox_cell(
+    int64_t c,
+    Py_ssize_t i,
+    const int64_t *p1_d,
+    const int64_t *p1_s,
+    const int64_t *p2_d,
+    const int64_t *p2_s,
+    int64_t *start,
+) noexcept nogil:
+    """Cell ``i`` (>= 1) of a column with the toolbox's steps (1,1), (1,2), (2,1), weights 1, 1, 2,
+    from the two columns before, its cell cost ``c``: D, and its start column in ``start``."""
+    cdef int64_t a1 = p1_d[i - 1]  # (i-1, j-1)
+    cdef int64_t a2 = p2_d[i - 1]  # (i-1, j-2)
+    cdef int64_t a3 = p1_d[i - 2] if i >= 2 else INF  # (i-2, j-1)
+    if a1 <= a2 and a1 <= a3:
+        start[0] = p1_s[i - 1]
+        return clamp(a1 + c)
+    if a2 <= a3:
+        start[0] = p2_s[i - 1]
+        return clamp(a2 + c)
+    start[0] = p1_s[i - 2]
+    return clamp(a3 + 2 * c)
+
+
 cdef inline void _column(
     const uint64_t *masks,
     const uint64_t *values,
@@ -41,7 +65,7 @@ cdef inline void _column(
 ) noexcept nogil:
     """Column ``j`` of D and its cells' start columns (``cur_d``, ``cur_s``) from the two before."""
     cdef Py_ssize_t i
-    cdef int64_t c, a1, a2, a3, d, s, e_diag, e_left, e_down
+    cdef int64_t c, d, s, e_diag, e_left, e_down
     for i in range(m):
         cur_c[i] = INF if blk else tab[i * width + popcount((code ^ values[i]) & masks[i])]
     d = cur_c[0]
@@ -49,19 +73,7 @@ cdef inline void _column(
     cur_s[0] = j if d < INF else NO_START
     if toolbox:
         for i in range(1, m):
-            c = cur_c[i]
-            a1 = p1_d[i - 1]  # (i-1, j-1)
-            a2 = p2_d[i - 1]  # (i-1, j-2)
-            a3 = p1_d[i - 2] if i >= 2 else INF  # (i-2, j-1)
-            if a1 <= a2 and a1 <= a3:
-                d = clamp(a1 + c)
-                s = p1_s[i - 1]
-            elif a2 <= a3:
-                d = clamp(a2 + c)
-                s = p2_s[i - 1]
-            else:
-                d = clamp(a3 + 2 * c)
-                s = p1_s[i - 2]
+            d = _toolbox_cell(cur_c[i], i, p1_d, p1_s, p2_d, p2_s, &s)
             if d >= INF:
                 d = INF
                 s = NO_START
@@ -116,7 +128,7 @@ cdef inline Py_ssize_t _pruned_column(
     :data:`INF` (what the next two columns may read). Returns this column's highest finite row (-1:
     none)."""
     cdef Py_ssize_t i, hi = -1, top = hi1 + 2 if hi1 + 2 > hi2 + 1 else hi2 + 1
-    cdef int64_t c, a1, a2, a3, d, s
+    cdef int64_t c, d, s
     if top > m - 1:
         top = m - 1
     d = tab[popcount((code ^ values[0]) & masks[0])]
@@ -129,18 +141,7 @@ cdef inline Py_ssize_t _pruned_column(
         hi = 0
     for i in range(1, top + 1):
         c = tab[i * width + popcount((code ^ values[i]) & masks[i])]
-        a1 = p1_d[i - 1]  # (i-1, j-1)
-        a2 = p2_d[i - 1]  # (i-1, j-2)
-        a3 = p1_d[i - 2] if i >= 2 else INF  # (i-2, j-1)
-        if a1 <= a2 and a1 <= a3:
-            d = clamp(a1 + c)
-            s = p1_s[i - 1]
-        elif a2 <= a3:
-            d = clamp(a2 + c)
-            s = p2_s[i - 1]
-        else:
-            d = clamp(a3 + 2 * c)
-            s = p1_s[i - 2]
+        d = _toolbox_cell(c, i, p1_d, p1_s, p2_d, p2_s, &s)
         if d > limit:
             d = INF
             s = NO_START

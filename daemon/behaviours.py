@@ -4,10 +4,10 @@ punch, ...) ends and the next begins, with no training.
 
 **Representation** (§3). Each frame is the rotation of every joint relative to its parent as a unit
 quaternion ``(w, x, y, z)``, treated as a vector of length 4; root position and root orientation are
-left out. The joints are the ASF's non-root bones with at least one rotation dof, in ``:bonedata``
-order (:class:`JointRotations`); for CMU's skeleton that is 28 bones (all but the root and the
-dof-less ``lhipjoint``/``rhipjoint``), so a frame is a vector of ``D = 112`` (the paper's hierarchy
-had 14 joints, ``R^56``). A bone's quaternion is ``C_k M_k C_k^T`` (its dof rotations about its
+left out. The joints are, as many as the paper's hierarchy had (14, ``R^56``), the spine, head, arms,
+legs and feet of the CMU/HDM05 skeleton (:data:`PAPER_BONES`, in ``:bonedata`` order), so a frame is
+a vector of ``D = 56``; :class:`JointRotations` takes any other set of bones with a rotation dof (all
+28 of CMU's: ``D = 112``). A bone's quaternion is ``C_k M_k C_k^T`` (its dof rotations about its
 axes, :meth:`replay.kinematics.KinematicModel.local_rotations`); writing it in the bone's own axes
 instead (``M_k``) changes each 4-vector by a fixed orthogonal map, which leaves every quantity below
 unchanged. ``q`` and ``-q`` are the same rotation, so the signs are made consistent over time: the
@@ -467,7 +467,7 @@ class PcaSegmenter:
     State: the moments (``D² + 2D`` floats), the spectra at the ``ℓ / step`` evaluations before
     ``r`` is known (``D`` floats each), then the last ``ℓ / step`` errors, and fewer than ``step``
     frames. Work: one ``eigvalsh`` of ``D x D`` per ``step`` frames from frame ``k - ℓ`` of a
-    segment on (with the paper's every frame, some 250 µs for ``D = 112``)."""
+    segment on (with the paper's every frame, some 60 µs for ``D = 56``, 250 µs for ``D = 112``)."""
 
     def __init__(self, rate: float, *, params: PcaParams = PCA_PAPER) -> None:
         self.rate = _check_rate(rate)
