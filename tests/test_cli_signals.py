@@ -386,3 +386,29 @@ def test_a_signal_inside_a_weakref_callback_is_not_lost() -> None:
         [sys.executable, "-c", script], capture_output=True, text=True, timeout=30, cwd=REPO
     )
     assert (result.stdout, result.stderr) == ("stopped\n", "")
+
+
+@pytest.mark.parametrize(
+    ("raised", "status", "line"), [("Terminated", 143, "terminated"), ("Interrupted", 130, "interrupted")]
+)
+def test_a_signal_wrapped_by_class_creation_still_stops_the_command(
+    raised: str, status: int, line: str
+) -> None:
+    """A signal arriving while a class is made (``__set_name__``, as when matplotlib is imported) is
+    wrapped by Python in a RuntimeError; the command still ends as that signal says, not as a bug."""
+    script = (
+        "import sys\n"
+        "from unittest import mock\n"
+        "from daemon import cli\n"
+        "class D:\n"
+        f"    def __set_name__(self, owner, name): raise cli.{raised}\n"
+        "def command(args, config):\n"
+        "    class C:\n"
+        "        d = D()\n"
+        "with mock.patch('daemon.cli.recordings._info', command):\n"
+        "    sys.exit(cli.main(['info', '--asf', 'x', '--amc', 'y']))\n"
+    )
+    result = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, timeout=30, cwd=REPO
+    )
+    assert (result.returncode, result.stderr) == (status, f"mocapd: {line}\n")

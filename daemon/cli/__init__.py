@@ -85,6 +85,22 @@ def _unraisable(hook: Callable[[Any], object]) -> Callable[[Any], object]:
     return again
 
 
+def _signal_within(exc: BaseException) -> int | None:
+    """The signal whose exception caused ``exc`` (its ``__cause__`` or ``__context__`` chain), if one
+    did: Python wraps an exception raised where it calls a hook of class creation ("Error calling
+    __set_name__ ...", as a signal arriving while matplotlib is imported does) in a RuntimeError."""
+    seen: set[int] = set()
+    link: BaseException | None = exc
+    while link is not None and id(link) not in seen:
+        seen.add(id(link))
+        if isinstance(link, KeyboardInterrupt):
+            return signal.SIGINT
+        if isinstance(link, Terminated):
+            return signal.SIGTERM
+        link = link.__cause__ or link.__context__
+    return None
+
+
 class Parser(argparse.ArgumentParser):
     """An argument parser whose errors are :class:`~daemon.errors.UsageError` (one line, exit 2)."""
 
@@ -161,6 +177,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         _say("terminated")
         return 128 + signal.SIGTERM
     except Exception as exc:
+        stopped = _signal_within(exc)
+        if stopped is not None:  # a signal that Python wrapped in another error on the way up
+            _say("interrupted" if stopped == signal.SIGINT else "terminated")
+            return 128 + stopped
         if debug:
             traceback.print_exc()
         _say(f"internal error: {type(exc).__name__}: {exc} ({BUG_REPORT})".replace("\n", " "))
