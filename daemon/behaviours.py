@@ -627,7 +627,12 @@ class _PpcaRun:
     def h(self, window: FloatArray) -> float:
         """Eq. 10: the mean Mahalanobis distance of ``window`` ``(T, D)`` under the PPCA model of
         the first ``K`` frames (Eqs. 7-9: mean ``x̄``; ``C = V Σ̃² V^T / (K - 1)`` where ``Σ̃²`` keeps
-        the ``r`` largest ``σ_j²`` and replaces the others by their mean ``σ²``)."""
+        the ``r`` largest ``σ_j²`` and replaces the others by their mean ``σ²``). A frame's distance is
+        ``sqrt((x - x̄)^T C^-1 (x - x̄))``, "in units of standard deviation from the mean" as the
+        paper says (the square root is missing from Eq. 10 as our copy of the text renders it):
+        a frame of the model's own distribution is about ``sqrt(D)`` away, so R = 15 is a clear
+        change. The squared form runs at 10² to 10⁴ within one behaviour here and moves by more than 15
+        between two values of K, so nearly every bump of ``H`` became a cut (README)."""
         eigenvalues, vectors = np.linalg.eigh(self.moments.scatter())
         eigenvalues = np.maximum(eigenvalues, 0.0)
         r = dimension(eigenvalues, self.p.tau)
@@ -637,7 +642,7 @@ class _PpcaRun:
             variances[:dropped] = eigenvalues[:dropped].mean()
         variances = np.maximum(variances / (self.k - 1), self.p.min_variance)
         z = (window - self.moments.mean()) @ vectors
-        return float((z * z / variances).sum() / window.shape[0])
+        return float(np.sqrt((z * z / variances).sum(axis=1)).sum() / window.shape[0])
 
     def observe(self, h: float) -> tuple[int, float] | None:
         """Take ``H`` at the current ``K``: the previous ``(K, rise)`` if it was a peak rising at

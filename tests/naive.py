@@ -694,7 +694,7 @@ def slow_ppca_h(model: FloatArray, window: FloatArray, tau: float) -> float:
     """Eqs. 7-10 read literally: the PPCA Gaussian of the frames ``model`` ``(K, D)`` (K > D) from
     the SVD of the centred frames (σ² the mean of the discarded squared singular values, ``W = V_r
     (Σ_r² - σ² I)^(1/2)``, ``C = (W W^T + σ² I) / (K - 1)``) and the mean Mahalanobis distance ``H``
-    of the frames ``window`` ``(T, D)`` under it (a linear solve per frame)."""
+    of the frames ``window`` ``(T, D)`` under it (a linear solve and a square root per frame)."""
     mean = model.mean(axis=0)
     _, singular, vt = np.linalg.svd(model - mean)
     dims = model.shape[1]
@@ -702,7 +702,7 @@ def slow_ppca_h(model: FloatArray, window: FloatArray, tau: float) -> float:
     sigma2 = sum(float(s) ** 2 for s in singular[r:]) / (dims - r) if r < dims else 0.0
     w = vt[:r].T @ np.diag(np.sqrt(np.maximum(singular[:r] ** 2 - sigma2, 0.0)))
     c = (w @ w.T + sigma2 * np.eye(dims)) / (model.shape[0] - 1)
-    return sum(float(v @ np.linalg.solve(c, v)) for v in window - mean) / int(window.shape[0])
+    return sum(math.sqrt(float(v @ np.linalg.solve(c, v))) for v in window - mean) / int(window.shape[0])
 
 
 def slow_ppca_forward(
