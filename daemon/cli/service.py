@@ -74,7 +74,7 @@ def stream_name(amc: Path) -> str:
 
 
 def _replay(args: argparse.Namespace, config: Config) -> int:
-    from replay.publish import replay_to
+    from protocols.replay import replay_to
 
     motion = read_recording(args.asf, args.amc)
     rate = native_rate(motion, common.default_native_rate(args, config))
@@ -111,7 +111,7 @@ Tasks = Callable[["Service", asyncio.Event], list[Task]]
 def _replay_into(args: argparse.Namespace, config: Config) -> Tasks:
     """``run --replay``'s task: once the daemon serves, the recording into its first source; when
     every pose sent has been received and recognised, the stop."""
-    from replay.publish import replay_to
+    from protocols.replay import replay_to
 
     asf, amc = args.replay
     motion = read_recording(asf, amc)

@@ -1,0 +1,123 @@
+"""A recording replayed onto a bus as a live stream (``mocapd replay``): the messages of
+:func:`replay.publish.messages` sent to the daemon's ZeroMQ poses socket or an MQTT broker, each pose
+on its due time (:func:`replay.publish.due`: paced by the clock, no drift over a long file).
+
+ZeroMQ late joiners: a PUB socket sends nothing to a subscriber whose connection is not up yet, so a
+replay's first frames would be lost. The replay's socket is an XPUB, which receives the subscriber's
+subscription once the connection is up; the replay waits for it before the skeleton goes out, and
+its high-water mark is large enough that a replay as fast as possible is not dropped at the sender.
+On MQTT the skeleton is retained, so a daemon started later still learns it.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import os
+import time
+from collections.abc import Awaitable, Callable
+from urllib.parse import urlsplit
+
+import zmq
+import zmq.asyncio
+
+from protocols.messages import PoseMessage, encode, topic
+from protocols.transport import Outgoing
+from replay.amc import Motion
+from replay.publish import Items, due, messages
+
+SEND_HWM = 10_000_000
+
+
+async def replay_to(
+    url: str,
+    motion: Motion,
+    asf_text: str,
+    *,
+    stream: str,
+    rate: float,
+    speed: float | None = 1.0,
+    loop: bool = False,
+    wait_s: float = 10.0,
+) -> int:
+    """Replay ``motion`` onto ``url`` (``zmq+tcp://HOST:PORT``: the daemon's poses socket;
+    ``mqtt://HOST:PORT`` or ``mqtts://``: a broker) as ``stream``; the poses sent. ValueError for
+    another URL; TimeoutError when no subscriber or broker answers within ``wait_s``."""
+    scheme = urlsplit(url).scheme
+    items = messages(motion, asf_text, stream, rate, None if loop else 1)
+    if scheme.startswith("zmq+"):
+        return await _to_zmq(url[len("zmq+") :], items, rate, speed, wait_s)
+    if scheme in ("mqtt", "mqtts"):
+        return await _to_mqtt(url, items, stream, rate, speed, wait_s)
+    raise ValueError(f"--to must be zmq+tcp://HOST:PORT or mqtt://HOST:PORT, got {url!r}")
+
+
+async def _send_all(
+    send: Callable[[Outgoing], Awaitable[None]],
+    items: Items,
+    rate: float,
+    speed: float | None,
+) -> int:
+    """Send every message through ``send(Outgoing)`` (awaited), poses on their due times."""
+    sent = 0
+    start = time.monotonic()
+    i = 0
+    for m in items:
+        if isinstance(m, PoseMessage):
+            wait = due(start, i, rate, speed) - time.monotonic()
+            if wait > 0:
+                await asyncio.sleep(wait)
+            elif i % 256 == 0:
+                await asyncio.sleep(0)
+            m = PoseMessage(m.stream, m.seq, time.time(), channels=m.channels)
+            out = Outgoing(topic(m), encode(m))
+            i += 1
+            sent += 1
+        else:
+            out = Outgoing(topic(m), encode(m), retain=True, reliable=True)
+        await send(out)
+    return sent
+
+
+async def _to_zmq(endpoint: str, items: Items, rate: float, speed: float | None, wait_s: float) -> int:
+    ctx = zmq.asyncio.Context()
+    sock = ctx.socket(zmq.XPUB)
+    sock.setsockopt(zmq.SNDHWM, SEND_HWM)
+    sock.setsockopt(zmq.LINGER, 10_000)
+    try:
+        sock.connect(endpoint)
+        # the daemon's subscription arrives once the connection is up (see the module docstring)
+        while True:
+            event = await asyncio.wait_for(sock.recv(), wait_s)
+            if event[:1] == b"\x01":
+                break
+
+        async def send(out: Outgoing) -> None:
+            await sock.send_multipart([out.topic.encode(), out.payload])
+
+        return await _send_all(send, items, rate, speed)
+    finally:
+        sock.close(linger=10_000)
+        ctx.term()
+
+
+async def _to_mqtt(
+    url: str, items: Items, stream: str, rate: float, speed: float | None, wait_s: float
+) -> int:
+    from protocols.mqtt import MqttTransport
+
+    client = MqttTransport(url=url, client_id=f"mocapd-replay-{stream}-{os.getpid()}", drain_s=60.0)
+    async with client:
+        await client.wait_connected(wait_s)
+
+        async def send(out: Outgoing) -> None:
+            while client.pending > 10_000:  # let the sender catch up rather than drop
+                await asyncio.sleep(0.001)
+            await client.publish(out)
+
+        sent = await _send_all(send, items, rate, speed)
+        with contextlib.suppress(TimeoutError):
+            async with asyncio.timeout(60):
+                while client.pending:
+                    await asyncio.sleep(0.005)
+        return sent
