@@ -7,8 +7,10 @@ Prints frames/s for: the baselines, measured in the same run because this machin
 between runs (per-frame forward kinematics of every 20th frame, as the other benchmarks; the frame
 representation, batch and one frame at a time); PCA (§3.1) online, one ``push`` per frame, with the
 error evaluated every frame (the paper) and every ℓ frames (``PCA_GRID``); PPCA's forward pass online
-(§3.2); and the batch functions: PCA both ways, PPCA's forward pass and all its passes, GMM (§3.3).
-The segmenters take the representation's frames (computed once, not timed).
+(§3.2); the same online methods from channels, each frame's representation computed as it comes
+(``live``: what a segmented stream of the daemon runs per pose); and the batch functions: PCA both
+ways, PPCA's forward pass and all its passes, GMM (§3.3). The other segmenter rows take the
+representation's frames (computed once, not timed).
 
 The process is pinned to one core, so it runs with OpenBLAS on one thread (it starts itself again
 with ``OPENBLAS_NUM_THREADS=1`` if that is not set): BLAS threads sharing one core make a 112 x 112
@@ -80,6 +82,16 @@ def main() -> None:
 
         return go
 
+    def live(make: Callable[[float], bh.PcaSegmenter | bh.PpcaSegmenter]) -> Callable[[], None]:
+        def go() -> None:
+            for r, m, rate in zip(rotations, motions, rates, strict=True):
+                stream, segmenter = r.stream(), make(rate)
+                for row in m.channels:
+                    segmenter.push(stream.frame(row))
+                segmenter.flush()
+
+        return go
+
     def batch(method: Callable[[FloatArray, float], object]) -> Callable[[], None]:
         def go() -> None:
             for x, rate in zip(xs, rates, strict=True):
@@ -100,6 +112,8 @@ def main() -> None:
             online(lambda rate: bh.PcaSegmenter(rate, params=bh.PCA_GRID)),
         ),
         ("PPCA online (forward pass)", online(lambda rate: bh.PpcaSegmenter(rate))),
+        ("live: channels -> PCA online, every frame", live(lambda rate: bh.PcaSegmenter(rate))),
+        ("live: channels -> PPCA online", live(lambda rate: bh.PpcaSegmenter(rate))),
         ("PCA batch, every frame", batch(lambda x, rate: bh.pca_segment(x, rate))),
         ("PCA batch, every ℓ frames", batch(lambda x, rate: bh.pca_segment(x, rate, params=bh.PCA_GRID))),
         ("PPCA batch, forward pass", batch(lambda x, rate: bh.ppca_forward(x, rate))),
@@ -107,9 +121,9 @@ def main() -> None:
         ("GMM batch (k = 4)", batch(lambda x, rate: bh.gmm_segment(x, rate))),
     ]
     rows += [(name, frames / best_of(args.repeat, go)) for name, go in cases]
-    print(f"{'stage':44s} {'frames/s':>12s} {'vs baseline':>12s} {'streams at 120 Hz':>18s}")
+    print(f"{'stage':46s} {'frames/s':>12s} {'vs baseline':>12s} {'streams at 120 Hz':>18s}")
     for name, speed in rows:
-        print(f"{name:44s} {speed:12,.0f} {speed / base:11.2f}x {speed / 120:18,.0f}")
+        print(f"{name:46s} {speed:12,.0f} {speed / base:11.2f}x {speed / 120:18,.0f}")
 
 
 if __name__ == "__main__":

@@ -152,7 +152,7 @@ class JointRotations:
 
     def __init__(self, skeleton: Skeleton, bones: Sequence[str] | None = None) -> None:
         self.skeleton = skeleton
-        self._model = KinematicModel(skeleton)
+        self.model = KinematicModel(skeleton)
         rotating = [
             k + 1 for k, bone in enumerate(skeleton.bones) if any(d in ROTATION_DOFS for d in bone.dofs)
         ]
@@ -170,7 +170,7 @@ class JointRotations:
         self.bones: tuple[str, ...] = tuple(skeleton.node_names[k] for k in self.nodes)
         self.dims = 4 * len(self.nodes)
         self.width = len(skeleton.channel_names)
-        self._index = np.array(self.nodes, dtype=np.intp)
+        self.index = np.array(self.nodes, dtype=np.intp)
 
     def raw(self, channels: npt.ArrayLike) -> FloatArray:
         """The bones' quaternions as forward kinematics gives them (signs not made consistent):
@@ -180,7 +180,7 @@ class JointRotations:
         if c.ndim != 2 or c.shape[1] != self.width:
             raise ValueError(f"channels must have shape (N, {self.width}), got {c.shape}")
         _check_finite(c, "channels")
-        out: FloatArray = self._model.local_rotations(c)[:, self._index]
+        out: FloatArray = self.model.local_rotations(c)[:, self.index]
         return out
 
     def __call__(self, channels: npt.ArrayLike) -> FloatArray:
@@ -208,6 +208,7 @@ class RotationStream:
     def __init__(self, rotations: JointRotations) -> None:
         self.rotations = rotations
         self._t = 0
+        self._local = np.empty((rotations.model.n_nodes, 4))
         self._previous: FloatArray | None = None
         self._signs: FloatArray | None = None
 
@@ -222,7 +223,7 @@ class RotationStream:
         if not np.isfinite(row).all():
             raise ValueError(f"frame {self._t}: channels have a value that is not finite")
         self._t += 1
-        q = self.rotations.raw(row[None])[0]
+        q = self.rotations.model.local_rotations_frame(row, self._local)[self.rotations.index]
         if self._previous is None or self._signs is None:
             signs = _canonical_signs(q)
         else:

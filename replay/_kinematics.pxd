@@ -13,6 +13,7 @@ cdef class FrameKinematics:
     cdef readonly double scale
 
     cdef void _check(self, const double[::1] channels, const double[::1] cos, const double[::1] sin) except *
+    cdef void local(self, const double *cos, const double *sin, double *rot) noexcept nogil
     cdef void forward(self, const double *channels, const double *cos, const double *sin, bint scaled,
                       double *out) noexcept nogil
     cdef bint joints_into(self, const double *channels, const double *cos, const double *sin,

@@ -34,3 +34,10 @@ class FrameKinematics:
         sin: npt.NDArray[np.float64],
         out: npt.NDArray[np.float64],
     ) -> bool: ...
+    def local_rotations(
+        self,
+        channels: npt.NDArray[np.float64],
+        cos: npt.NDArray[np.float64],
+        sin: npt.NDArray[np.float64],
+        out: npt.NDArray[np.float64],
+    ) -> None: ...

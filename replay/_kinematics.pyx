@@ -88,13 +88,21 @@ cdef class FrameKinematics:
                     finite = False
         return finite
 
-    cdef void forward(self, const double *channels, const double *cos, const double *sin, bint scaled,
-                      double *out) noexcept nogil:
-        """Every node's position into ``out`` (``3k + c``)."""
-        cdef Py_ssize_t e, k, c, p, i, a
-        cdef double s, w, x, y, z, vx, vy, vz, tx, ty, tz
+    def local_rotations(self, const double[::1] channels, const double[::1] cos, const double[::1] sin,
+                        double[:, ::1] out):
+        """Every node's rotation relative to its parent, ``(w, x, y, z)``, into ``out`` ``(nodes, 4)``
+        (:meth:`replay.kinematics.KinematicModel.local_rotations` of the one frame)."""
+        if out.shape[0] != self.n_nodes or out.shape[1] != 4:
+            raise ValueError(f"out must have shape ({self.n_nodes}, 4)")
+        self._check(channels, cos, sin)
+        with nogil:
+            self.local(&cos[0], &sin[0], &out[0, 0])
+
+    cdef void local(self, const double *cos, const double *sin, double *rot) noexcept nogil:
+        """Every node's local rotation into ``rot`` (``4k + c``): the batch's ``_local``."""
+        cdef Py_ssize_t e, k, c
+        cdef double s
         cdef double q[4]
-        cdef double *rot = &self.rot[0, 0]
         for k in range(self.n_nodes):
             rot[4 * k + 0] = 1.0
             rot[4 * k + 1] = 0.0
@@ -122,6 +130,15 @@ cdef class FrameKinematics:
         rot[1] = q[1]
         rot[2] = q[2]
         rot[3] = q[3]
+
+    cdef void forward(self, const double *channels, const double *cos, const double *sin, bint scaled,
+                      double *out) noexcept nogil:
+        """Every node's position into ``out`` (``3k + c``)."""
+        cdef Py_ssize_t k, p, i, a
+        cdef double w, x, y, z, vx, vy, vz, tx, ty, tz
+        cdef double q[4]
+        cdef double *rot = &self.rot[0, 0]
+        self.local(cos, sin, rot)
         out[0] = self.position[0]
         out[1] = self.position[1]
         out[2] = self.position[2]

@@ -243,6 +243,18 @@ class KinematicModel:
         self._frame.positions(row, np.cos(half), np.sin(half), unit == "cm", out)
         return out
 
+    def local_rotations_frame(self, channels: FloatArray, out: FloatArray | None = None) -> FloatArray:
+        """:meth:`local_rotations` of one frame, in compiled code and bit for bit the batch's:
+        ``channels`` shape ``(C,)`` gives shape ``(nodes, 4)`` (into ``out`` if given)."""
+        row = np.ascontiguousarray(channels, dtype=np.float64)
+        if row.shape != (self._width,):
+            raise ValueError(f"channels must have shape ({self._width},), got {row.shape}")
+        half = 0.5 * row
+        if out is None:
+            out = np.empty((self.n_nodes, 4))
+        self._frame.local_rotations(row, np.cos(half), np.sin(half), out)
+        return out
+
     @property
     def frame_kinematics(self) -> FrameKinematics:
         """The compiled one-frame kinematics (the live recogniser drives it directly); an error

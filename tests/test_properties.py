@@ -234,6 +234,7 @@ def test_forward_kinematics_matches_a_slow_reference(case: tuple[AsfFile, AmcFil
     assert pos.shape == pos_cm.shape == (len(rows), n_nodes, 3)
 
     rotations = model.rotations(channels)
+    local = model.local_rotations(channels)
     assert rotations.shape == (len(rows), n_nodes, 3, 3)
     poses = [reference_pose(spec, row) for row in rows]
     # positions are bounded by |root position| + the sum of the bone lengths
@@ -254,6 +255,7 @@ def test_forward_kinematics_matches_a_slow_reference(case: tuple[AsfFile, AmcFil
         # 4. one frame alone == its row of the batch, bit for bit
         assert bits(model.positions_frame(channels[i])) == bits(pos[i])
         assert bits(model.positions_frame(channels[i], "cm")) == bits(pos_cm[i])
+        assert bits(model.local_rotations_frame(channels[i])) == bits(local[i])
 
     # 5. bone lengths in every frame
     for k, bone in enumerate(spec.bones, 1):

@@ -55,3 +55,6 @@ def test_recording(pair: tuple[Path, Path]) -> None:
     batch = model.positions(motion.channels)
     for i in [*range(0, n, 10), n - 1]:
         assert np.array_equal(model.positions_frame(motion.channels[i]), batch[i])
+    local = model.local_rotations(motion.channels)
+    for i in [*range(0, n, 10), n - 1]:
+        assert np.array_equal(model.local_rotations_frame(motion.channels[i]), local[i])
