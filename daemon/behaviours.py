@@ -610,12 +610,14 @@ PPCA_PAPER = PpcaParams()
 
 class _PpcaRun:
     """§3.2 over one segment: the moments of its first ``K`` frames and what the peak test needs
-    (the valley: the lowest ``H`` so far; the previous ``H`` and its ``K``)."""
+    (the valley: the lowest local minimum of ``H`` so far; the ``H`` before the previous one; the
+    previous ``H`` and its ``K``)."""
 
     def __init__(self, p: PpcaParams, f: PpcaFrames) -> None:
         self.p, self.f = p, f
         self.moments = _Moments()
         self.valley = math.inf
+        self.before: float | None = None
         self.previous: tuple[int, float] | None = None
 
     @property
@@ -646,14 +648,20 @@ class _PpcaRun:
         return float(np.sqrt((z * z / variances).sum(axis=1)).sum() / window.shape[0])
 
     def observe(self, h: float) -> tuple[int, float] | None:
-        """Take ``H`` at the current ``K``: the previous ``(K, rise)`` if it was a peak rising at
-        least R above the valley before it (``H`` falls after it), else None."""
+        """Take ``H`` at the current ``K``: the previous ``(K, rise)`` if it was a peak (``H`` rose
+        into it and falls after it) at least R above a valley before it, else None. A valley is a
+        local minimum (``H`` fell into it and does not fall after it), as in the paper's "a valley
+        in H is followed by a peak": a segment whose ``H`` only rises from its first value has
+        none, and is not cut until ``H`` has fallen and risen again."""
         found = None
         if self.previous is not None:
             k, last = self.previous
-            if h < last and last - self.valley >= self.p.rise:
-                found = (k, last - self.valley)
-        self.valley = min(self.valley, h)
+            if self.before is not None:
+                if self.before > last <= h:
+                    self.valley = min(self.valley, last)
+                elif self.before < last > h and last - self.valley >= self.p.rise:
+                    found = (k, last - self.valley)
+            self.before = last
         self.previous = (self.k, h)
         return found
 

@@ -705,27 +705,42 @@ def slow_ppca_h(model: FloatArray, window: FloatArray, tau: float) -> float:
     return sum(math.sqrt(float(v @ np.linalg.solve(c, v))) for v in window - mean) / int(window.shape[0])
 
 
+def slow_peak(hs: list[float], rise: float) -> tuple[int, float] | None:
+    """§3.2's test on the ``H`` so far, ``hs``, the last one just computed: ``(j, rise)`` if the one
+    before it, ``j``, is a peak (higher than its neighbours) lying ``rise`` or more above the lowest
+    valley before it (lower than the ``H`` before it, not higher than the one after), else None."""
+    j = len(hs) - 2
+    if j < 1 or not hs[j - 1] < hs[j] > hs[j + 1]:
+        return None
+    valleys = [hs[i] for i in range(1, j) if hs[i - 1] > hs[i] <= hs[i + 1]]
+    if not valleys or hs[j] - min(valleys) < rise:
+        return None
+    return j, hs[j] - min(valleys)
+
+
 def slow_ppca_forward(
     x: FloatArray, window: int, delta: int, rise: float, tau: float
 ) -> tuple[list[tuple[int, float, int]], list[tuple[int, float]]]:
     """§3.2's forward pass read literally: ``K = T``; ``H`` (:func:`slow_ppca_h`) of frames ``K + 1
-    .. K + T`` under the model of frames ``1 .. K``; ``K += Δ``; a cut at the first ``H`` that is
-    followed by a lower one and lies ``rise`` or more above the lowest ``H`` before it (cut frame: the
-    first frame after the model's ``K``), the search restarting at the cut. Returns the cuts
-    ``(frame, rise, frame seen last)`` and every ``(K's frame, H)``."""
+    .. K + T`` under the model of frames ``1 .. K``; ``K += Δ``; a cut at the first peak of ``H`` (higher
+    than the ``H`` on either side) that lies ``rise`` or more above the lowest valley before it (a
+    valley: lower than the ``H`` before it, not higher than the one after); cut frame: the first frame
+    after the model's ``K``; the search restarts at the cut. Returns the cuts ``(frame, rise, frame
+    seen last)`` and every ``(K's frame, H)``."""
     cuts: list[tuple[int, float, int]] = []
     trace: list[tuple[int, float]] = []
     start, n = 0, x.shape[0]
     while start + window <= n:
-        big_k, valley, previous, cut = window, math.inf, None, None
+        big_k, cut = window, None
+        hs: list[tuple[int, float]] = []
         while start + big_k + window <= n:
             h = slow_ppca_h(x[start : start + big_k], x[start + big_k : start + big_k + window], tau)
             trace.append((start + big_k, h))
-            if previous is not None and h < previous[1] and previous[1] - valley >= rise:
-                cut = (start + previous[0], previous[1] - valley, start + big_k + window - 1)
+            hs.append((big_k, h))
+            peak = slow_peak([v for _, v in hs], rise)
+            if peak is not None:
+                cut = (start + hs[peak[0]][0], peak[1], start + big_k + window - 1)
                 break
-            valley = min(valley, h)
-            previous = (big_k, h)
             big_k += delta
         if cut is None:
             break

@@ -13,7 +13,7 @@ import math
 
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
 from daemon import behaviours as bh
@@ -36,7 +36,7 @@ from replay import Motion
 from replay.asf import ROTATION_DOFS
 from replay.kinematics import KinematicModel, quaternion_matrix
 from tests.helpers import DATA
-from tests.naive import slow_pca_segment, slow_ppca_forward, slow_ppca_segment
+from tests.naive import slow_pca_segment, slow_peak, slow_ppca_forward, slow_ppca_segment
 
 SETTINGS = settings(deadline=None, max_examples=25, suppress_health_check=[HealthCheck.too_slow])
 REAL = ("86_01", "13_29", "13_30", "14_14", "135_06")
@@ -297,6 +297,24 @@ def test_ppca_forward_pass_equals_the_paper_read_literally(
     assert np.allclose([b.score for b in forward], [s for _, s, _ in cuts], rtol=1e-7)
     assert got.frame.tolist() == [f for f, _ in trace]
     assert np.allclose(got.h, [h for _, h in trace], rtol=1e-8)
+
+
+@settings(deadline=None, max_examples=3000)
+@given(st.lists(st.integers(0, 6), max_size=30), st.integers(0, 4))
+@example([0, 2, 2, 5, 1], 1)  # no valley: H never fell
+@example([3, 1, 1, 5, 2], 1)  # a valley where a plateau starts
+@example([3, 1, 4, 4, 2, 5, 0], 1)  # a plateau at the top is no peak
+def test_the_peak_test_follows_the_paper(hs: list[int], rise: int) -> None:
+    """§3.2's cut: the first peak of ``H`` at least R above a valley before it, on sequences with
+    many ties (a plateau is no peak, and no valley where it starts)."""
+    params = PpcaParams(window=1.5, delta=0.2, rise=float(rise))
+    run = bh._PpcaRun(params, params.frames(RATE))
+    for i, h in enumerate(hs):
+        run.moments.n = i  # K, the index here
+        peak = run.observe(float(h))
+        assert peak == slow_peak([float(v) for v in hs[: i + 1]], rise)
+        if peak is not None:
+            break
 
 
 @settings(deadline=None, max_examples=10, suppress_health_check=[HealthCheck.too_slow])
