@@ -127,7 +127,11 @@ def main() -> None:
     if args.png is not None:
         args.png.mkdir(parents=True, exist_ok=True)
     print(describe())
-    outcomes = [o for trial in TRIALS for o in evaluate(args.data, trial, args.png)]
+    report([o for trial in TRIALS for o in evaluate(args.data, trial, args.png)])
+
+
+def report(outcomes: list[Outcome]) -> None:
+    """The table: per method, each file's cuts, boundaries, hits, precision and recall, then pooled."""
     print(f"\n{'method':9s} {'file':6s} {'cuts':>5s} {'bounds':>6s} {'hits':>5s} {'prec':>5s} {'recall':>6s}")
     for method in METHODS:
         rows = [o for o in outcomes if o.method == method]
