@@ -15,7 +15,8 @@ method and file, then pooled per method (sums over files).
 
 Methods: ``pca`` (§3.1, online, every frame), ``pca-grid`` (the same, the error evaluated every ℓ
 frames: ``step = 0.5 s``), ``ppca-fwd`` (§3.2's forward pass alone: what runs online), ``ppca``
-(§3.2, forward and backward passes until no new cut), ``gmm`` (§3.3, k = 4, seed 0).
+(§3.2, forward and backward passes until no new cut; behaviours of at least 2 T), ``ppca-pub`` (the
+same as published: a segment as short as T), ``gmm`` (§3.3, k = 4, seed 0).
 
 ``--png DIR`` draws one picture per file: PCA's error derivative and its threshold, PPCA's ``H``
 (first forward pass), GMM's labels, each with its cuts (red) and the true boundaries' tolerance bands
@@ -77,6 +78,7 @@ METHODS: dict[str, Callable[[FloatArray, float], Any]] = {
     "pca-grid": lambda x, rate: bh.pca_analysis(x, rate, params=bh.PCA_GRID),
     "ppca-fwd": lambda x, rate: bh.ppca_forward(x, rate),
     "ppca": lambda x, rate: bh.ppca_analysis(x, rate),
+    "ppca-pub": lambda x, rate: bh.ppca_analysis(x, rate, params=bh.PPCA_PUBLISHED),
     "gmm": lambda x, rate: bh.gmm_analysis(x, rate),
 }
 

@@ -705,28 +705,30 @@ def slow_ppca_h(model: FloatArray, window: FloatArray, tau: float) -> float:
     return sum(math.sqrt(float(v @ np.linalg.solve(c, v))) for v in window - mean) / int(window.shape[0])
 
 
-def slow_peak(hs: list[float], rise: float) -> tuple[int, float] | None:
-    """§3.2's test on the ``H`` so far, ``hs``, the last one just computed: ``(j, rise)`` if the one
-    before it, ``j``, is a peak (higher than its neighbours) lying ``rise`` or more above the lowest
-    valley before it (lower than the ``H`` before it, not higher than the one after), else None."""
-    j = len(hs) - 2
-    if j < 1 or not hs[j - 1] < hs[j] > hs[j + 1]:
+def slow_peak(hs: list[tuple[int, float]], rise: float, shortest: int) -> tuple[int, float] | None:
+    """§3.2's test on the ``(K, H)`` so far, ``hs``, the last one just computed: ``(K, rise)`` of the
+    one before it if that is a peak (higher than its neighbours) at ``K >= shortest``, lying ``rise``
+    or more above the lowest valley before it (lower than the ``H`` before it, not higher than the one
+    after), else None."""
+    h = [v for _, v in hs]
+    j = len(h) - 2
+    if j < 1 or not h[j - 1] < h[j] > h[j + 1] or hs[j][0] < shortest:
         return None
-    valleys = [hs[i] for i in range(1, j) if hs[i - 1] > hs[i] <= hs[i + 1]]
-    if not valleys or hs[j] - min(valleys) < rise:
+    valleys = [h[i] for i in range(1, j) if h[i - 1] > h[i] <= h[i + 1]]
+    if not valleys or h[j] - min(valleys) < rise:
         return None
-    return j, hs[j] - min(valleys)
+    return hs[j][0], h[j] - min(valleys)
 
 
 def slow_ppca_forward(
-    x: FloatArray, window: int, delta: int, rise: float, tau: float
+    x: FloatArray, window: int, delta: int, rise: float, tau: float, shortest: int = 0
 ) -> tuple[list[tuple[int, float, int]], list[tuple[int, float]]]:
     """§3.2's forward pass read literally: ``K = T``; ``H`` (:func:`slow_ppca_h`) of frames ``K + 1
     .. K + T`` under the model of frames ``1 .. K``; ``K += Δ``; a cut at the first peak of ``H`` (higher
-    than the ``H`` on either side) that lies ``rise`` or more above the lowest valley before it (a
-    valley: lower than the ``H`` before it, not higher than the one after); cut frame: the first frame
-    after the model's ``K``; the search restarts at the cut. Returns the cuts ``(frame, rise, frame
-    seen last)`` and every ``(K's frame, H)``."""
+    than the ``H`` on either side) at ``K >= shortest`` that lies ``rise`` or more above the lowest
+    valley before it (a valley: lower than the ``H`` before it, not higher than the one after); cut
+    frame: the first frame after the model's ``K``; the search restarts at the cut. Returns the
+    cuts ``(frame, rise, frame seen last)`` and every ``(K's frame, H)``."""
     cuts: list[tuple[int, float, int]] = []
     trace: list[tuple[int, float]] = []
     start, n = 0, x.shape[0]
@@ -737,9 +739,9 @@ def slow_ppca_forward(
             h = slow_ppca_h(x[start : start + big_k], x[start + big_k : start + big_k + window], tau)
             trace.append((start + big_k, h))
             hs.append((big_k, h))
-            peak = slow_peak([v for _, v in hs], rise)
+            peak = slow_peak(hs, rise, shortest)
             if peak is not None:
-                cut = (start + hs[peak[0]][0], peak[1], start + big_k + window - 1)
+                cut = (start + peak[0], peak[1], start + big_k + window - 1)
                 break
             big_k += delta
         if cut is None:
@@ -749,18 +751,20 @@ def slow_ppca_forward(
     return cuts, trace
 
 
-def slow_ppca_segment(x: FloatArray, window: int, delta: int, rise: float, tau: float) -> list[int]:
+def slow_ppca_segment(
+    x: FloatArray, window: int, delta: int, rise: float, tau: float, shortest: int = 0
+) -> list[int]:
     """§3.2's passes: the forward pass, then passes alternating direction inside each segment the
     cuts so far leave (backward: the segment reversed, a cut ``p`` frames from its end at ``end -
     p``), until a pass adds no cut."""
-    cuts = {c[0] for c in slow_ppca_forward(x, window, delta, rise, tau)[0]}
+    cuts = {c[0] for c in slow_ppca_forward(x, window, delta, rise, tau, shortest)[0]}
     forward = False
     while True:
         edges = [0, *sorted(cuts), x.shape[0]]
         found = set()
         for a, b in pairwise(edges):
             part = x[a:b] if forward else x[a:b][::-1]
-            for c, _, _ in slow_ppca_forward(part, window, delta, rise, tau)[0]:
+            for c, _, _ in slow_ppca_forward(part, window, delta, rise, tau, shortest)[0]:
                 found.add(a + c if forward else b - c)
         if not found:
             return sorted(cuts)

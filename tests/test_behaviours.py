@@ -194,13 +194,20 @@ def test_windows_are_seconds_scaled_to_the_rate() -> None:
     assert bh.PCA_PAPER.frames(120.0) == bh.PcaFrames(240, 60, 300, 1)
     assert bh.PCA_PAPER.frames(60.0) == bh.PcaFrames(120, 30, 150, 1)
     assert bh.PCA_GRID.frames(120.0) == bh.PcaFrames(240, 60, 300, 60)
-    assert bh.PPCA_PAPER.frames(120.0) == bh.PpcaFrames(150, 10)
-    assert bh.PPCA_PAPER.frames(240.0) == bh.PpcaFrames(300, 20)
+    assert bh.PPCA_DEFAULT.frames(120.0) == bh.PpcaFrames(150, 10, 300)
+    assert bh.PPCA_DEFAULT.frames(240.0) == bh.PpcaFrames(300, 20, 600)
+    assert bh.PPCA_PUBLISHED.frames(120.0) == bh.PpcaFrames(150, 10, 0)
     assert GmmParams().check(120.0) == 120
     for bad in (PcaParams(step=0.3), PcaParams(tau=1.0), PcaParams(k=0.4), PcaParams(k_sigma=-1)):
         with pytest.raises(ValueError):
             bad.frames(120.0)
-    for wrong in (PpcaParams(delta=2.0), PpcaParams(window=0.001), PpcaParams(min_variance=0.0)):
+    for wrong in (
+        PpcaParams(delta=2.0),
+        PpcaParams(window=0.001),
+        PpcaParams(min_variance=0.0),
+        PpcaParams(shortest=-1.0),
+        PpcaParams(shortest=math.nan),
+    ):
         with pytest.raises(ValueError):
             wrong.frames(120.0)
     with pytest.raises(ValueError, match="rate"):
@@ -282,15 +289,18 @@ def test_the_pca_stream_equals_the_batch(
     st.integers(2, 5),
     st.lists(st.integers(20, 90), min_size=1, max_size=4),
     st.floats(1.0, 40.0),
+    st.sampled_from([None, 0, 25]),
 )
 def test_ppca_forward_pass_equals_the_paper_read_literally(
-    seed: int, dims: int, lengths: list[int], rise: float
+    seed: int, dims: int, lengths: list[int], rise: float, shortest: int | None
 ) -> None:
     """The running moments and the eigen-decomposition of their scatter give the ``H`` that an SVD
     of the first ``K`` frames and Eqs. 7-10 give, hence the same peaks and cuts."""
     x = regimes(seed, dims, lengths)
-    params = PpcaParams(window=1.5, delta=0.2, rise=rise)
-    cuts, trace = slow_ppca_forward(x, 15, 2, rise, 0.95)
+    params = PpcaParams(
+        window=1.5, delta=0.2, rise=rise, shortest=None if shortest is None else shortest / RATE
+    )
+    cuts, trace = slow_ppca_forward(x, 15, 2, rise, 0.95, 30 if shortest is None else shortest)
     got = bh.ppca_analysis(x, RATE, params=params)
     forward = bh.ppca_forward(x, RATE, params=params)
     assert [(b.frame, b.emitted) for b in forward] == [(c, e) for c, _, e in cuts]
@@ -300,19 +310,21 @@ def test_ppca_forward_pass_equals_the_paper_read_literally(
 
 
 @settings(deadline=None, max_examples=3000)
-@given(st.lists(st.integers(0, 6), max_size=30), st.integers(0, 4))
-@example([0, 2, 2, 5, 1], 1)  # no valley: H never fell
-@example([3, 1, 1, 5, 2], 1)  # a valley where a plateau starts
-@example([3, 1, 4, 4, 2, 5, 0], 1)  # a plateau at the top is no peak
-def test_the_peak_test_follows_the_paper(hs: list[int], rise: int) -> None:
-    """§3.2's cut: the first peak of ``H`` at least R above a valley before it, on sequences with
-    many ties (a plateau is no peak, and no valley where it starts)."""
-    params = PpcaParams(window=1.5, delta=0.2, rise=float(rise))
+@given(st.lists(st.integers(0, 6), max_size=30), st.integers(0, 4), st.integers(0, 8))
+@example([0, 2, 2, 5, 1], 1, 0)  # no valley: H never fell
+@example([3, 1, 1, 5, 2], 1, 0)  # a valley where a plateau starts
+@example([3, 1, 4, 4, 2, 5, 0], 1, 0)  # a plateau at the top is no peak
+@example([3, 1, 4, 2, 5, 0], 1, 3)  # the first peak is too early, the second is a cut
+def test_the_peak_test_follows_the_paper(hs: list[int], rise: int, shortest: int) -> None:
+    """§3.2's cut: the first peak of ``H`` at least R above a valley before it and at ``K`` no
+    shorter than the shortest behaviour, on sequences with many ties (a plateau is no peak, and no
+    valley where it starts)."""
+    params = PpcaParams(window=1.5, delta=0.2, rise=float(rise), shortest=shortest / RATE)
     run = bh._PpcaRun(params, params.frames(RATE))
     for i, h in enumerate(hs):
         run.moments.n = i  # K, the index here
         peak = run.observe(float(h))
-        assert peak == slow_peak([float(v) for v in hs[: i + 1]], rise)
+        assert peak == slow_peak([(k, float(v)) for k, v in enumerate(hs[: i + 1])], rise, shortest)
         if peak is not None:
             break
 
@@ -322,7 +334,7 @@ def test_the_peak_test_follows_the_paper(hs: list[int], rise: int) -> None:
 def test_ppca_passes_equal_the_slow_passes(seed: int, dims: int, lengths: list[int]) -> None:
     x = regimes(seed, dims, lengths)
     got = bh.ppca_segment(x, RATE, params=PPCA_SMALL)
-    assert [b.frame for b in got] == slow_ppca_segment(x, 15, 2, 15.0, 0.95)
+    assert [b.frame for b in got] == slow_ppca_segment(x, 15, 2, 15.0, 0.95, 30)
     forward = bh.ppca_forward(x, RATE, params=PPCA_SMALL)
     assert set(forward) <= set(got)  # the forward pass's cuts are kept as they are
     assert all(b.emitted == len(x) - 1 for b in set(got) - set(forward))
@@ -349,12 +361,13 @@ def test_the_backward_pass_finds_a_narrow_behaviour_after_a_wide_one() -> None:
     st.lists(st.integers(5, 90), min_size=1, max_size=4),
     st.floats(0.0, 40.0),
     st.integers(0, 300),
+    st.sampled_from([None, 0.0]),
 )
 def test_the_ppca_stream_equals_the_forward_pass(
-    seed: int, dims: int, lengths: list[int], rise: float, split: int
+    seed: int, dims: int, lengths: list[int], rise: float, split: int, shortest: float | None
 ) -> None:
     x = regimes(seed, dims, lengths)
-    params = PpcaParams(window=1.5, delta=0.2, rise=rise)
+    params = PpcaParams(window=1.5, delta=0.2, rise=rise, shortest=shortest)
     stream = PpcaSegmenter(RATE, params=params)
     split = min(split, len(x))
     for piece in (x[:split], x[split:]):
@@ -382,15 +395,16 @@ def test_the_streams_equal_their_batch_twins_on_real_recordings(trial: str) -> N
         expected = bh.pca_segment(x, rate, params=params)
         assert pushed(PcaSegmenter(rate, params=params), x) == expected
     assert len(expected) >= 1
-    forward = bh.ppca_forward(x, rate)
+    for ppca in (bh.PPCA_DEFAULT, bh.PPCA_PUBLISHED):
+        forward = bh.ppca_forward(x, rate, params=ppca)
+        stream, online, kept = PpcaSegmenter(rate, params=ppca), [], 0
+        for row in x:
+            online += stream.push(row)
+            kept = max(kept, len(stream._kept))
+        assert online + stream.flush() == forward
+        assert kept <= 2 * 150  # bounded: the frames from K - Δ (or the segment's start) on
+        assert all(b.emitted == b.frame + 10 + 150 - 1 for b in forward)
     assert len(forward) >= 1
-    stream, online, kept = PpcaSegmenter(rate), [], 0
-    for row in x:
-        online += stream.push(row)
-        kept = max(kept, len(stream._kept))
-    assert online + stream.flush() == forward
-    assert kept <= 2 * 150  # bounded: the frames from K - Δ (or the segment's start) on
-    assert all(b.emitted == b.frame + 10 + 150 - 1 for b in forward)
 
 
 # ------------------------------------------------------------------------------------------- GMM

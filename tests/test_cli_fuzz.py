@@ -496,6 +496,7 @@ RECORDING_OPTIONS = {
         Opt("--method", typical("pca", "ppca", "gmm"), typical("PCA", "", "svd") | ODD_TEXT),
         Opt("--window", typical("0.2", "1.25"), number_text("0.2", "1.25")),
         Opt("--rise", typical("15", "0"), number_text("15", "0")),
+        Opt("--shortest", typical("0", "2.5"), number_text("0", "2.5")),
         Opt("--k-sigma", typical("3"), number_text("3")),
         Opt("--ell", typical("0.1", "0.5"), number_text("0.1", "0.5")),
         Opt("--clusters", typical("2", "4"), number_text("2", "4")),

@@ -57,6 +57,7 @@ def test_readable_lines_scored_against_the_truth_and_drawn(tmp_path: Path) -> No
         (("--method", "svd"), "--method: invalid choice: 'svd'"),
         (("--window", "0"), "--method ppca: window = 0 s is 0 frames at 120 Hz"),
         (("--method", "pca", "--ell", "nan"), "--method pca: ell must be a finite number of seconds"),
+        (("--shortest", "-1"), "--method ppca: shortest = -1 s is -120 frames at 120 Hz; it must be >= 0"),
         (("--method", "gmm", "--variance", "2"), "--method gmm: variance must lie in (0, 1]"),
         (("--png", "x.txt"), "does not end in .png"),
     ],

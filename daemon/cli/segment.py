@@ -58,7 +58,7 @@ def register(sub: Any) -> None:
     )
     pca.add_argument("--pca-tau", type=float, default=p.tau, help=f"τ of the dimension (default {p.tau:g})")
     ppca = cmd.add_argument_group("ppca (§3.2)")
-    q = bh.PPCA_PAPER
+    q = bh.PPCA_DEFAULT
     ppca.add_argument(
         "--window",
         type=float,
@@ -72,6 +72,13 @@ def register(sub: Any) -> None:
         "--rise", type=float, default=q.rise, help=f"R, a peak's rise over its valley (default {q.rise:g})"
     )
     ppca.add_argument("--ppca-tau", type=float, default=q.tau, help=f"τ of the dimension (default {q.tau:g})")
+    ppca.add_argument(
+        "--shortest",
+        type=float,
+        default=q.shortest,
+        help="s of the shortest behaviour, a peak earlier in its segment no cut (default 2 T; "
+        "0: the algorithm as published)",
+    )
     gmm = cmd.add_argument_group("gmm (§3.3)")
     g = bh.GMM_PAPER
     gmm.add_argument(
@@ -98,7 +105,9 @@ def params(args: argparse.Namespace) -> bh.PcaParams | bh.PpcaParams | bh.GmmPar
     if args.method == "pca":
         return bh.PcaParams(k=args.k, ell=args.ell, i0=args.i0, tau=args.pca_tau, k_sigma=args.k_sigma)
     if args.method == "ppca":
-        return bh.PpcaParams(window=args.window, delta=args.delta, rise=args.rise, tau=args.ppca_tau)
+        return bh.PpcaParams(
+            window=args.window, delta=args.delta, rise=args.rise, tau=args.ppca_tau, shortest=args.shortest
+        )
     return bh.GmmParams(
         variance=args.variance, clusters=args.clusters, min_length=args.min_length, seed=args.seed
     )
