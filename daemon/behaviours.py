@@ -147,8 +147,9 @@ distance."""
 
 class JointRotations:
     """The paper's frame vectors (§3) for one skeleton: ``bones`` (names) are the non-root bones
-    with a rotation dof, ``nodes`` their node indices, ``dims = 4 * len(bones)``; a frame is the
-    bones' sign-consistent quaternions ``(w, x, y, z)`` one after another."""
+    with a rotation dof, ``nodes`` their node indices (``index`` as an array), ``dims = 4 *
+    len(bones)``; a frame is the bones' sign-consistent quaternions ``(w, x, y, z)`` one after
+    another, from the skeleton's forward kinematics ``model``."""
 
     def __init__(self, skeleton: Skeleton, bones: Sequence[str] | None = None) -> None:
         self.skeleton = skeleton
