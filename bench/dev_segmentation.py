@@ -65,15 +65,6 @@ def blend(a: FloatArray, b: FloatArray, frames: int) -> FloatArray:
     return out
 
 
-def consistent(x: FloatArray) -> FloatArray:
-    """``x`` ``(n, D)`` with each quaternion's sign flipped where it turns against the frame before."""
-    q = x.reshape(x.shape[0], -1, 4).copy()
-    for i in range(1, q.shape[0]):
-        q[i, (q[i] * q[i - 1]).sum(axis=1) < 0] *= -1
-    out: FloatArray = q.reshape(x.shape)
-    return out
-
-
 def take(classes: dict[str, list[FloatArray]], seed: int) -> tuple[FloatArray, list[Band], list[str]]:
     """One take: its frames ``(n, D)``, true boundaries and the classes' order."""
     order = [str(c) for c in np.random.default_rng(seed).permutation(sorted(classes))]
@@ -90,7 +81,8 @@ def take(classes: dict[str, list[FloatArray]], seed: int) -> tuple[FloatArray, l
                     bands.append(Band(middle, middle - TOLERANCE, middle + TOLERANCE))
             parts.append(x)
             n += x.shape[0]
-    return consistent(np.concatenate(parts)), bands, order
+    x = np.concatenate(parts)
+    return bh.consistent_signs(x.reshape(x.shape[0], -1, 4)).reshape(x.shape), bands, order
 
 
 def main() -> None:

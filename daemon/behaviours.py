@@ -122,6 +122,18 @@ def _canonical_signs(q: FloatArray) -> FloatArray:
     return out
 
 
+def consistent_signs(q: FloatArray) -> FloatArray:
+    """Quaternions ``q`` shape ``(N, J, 4)`` with signs consistent over time: the first frame's each
+    with its first non-zero component positive, then ``q -> -q`` wherever ``q . q_prev < 0``."""
+    if q.shape[0] == 0:
+        return q.copy()
+    signs = np.empty(q.shape[:2])
+    signs[0] = _canonical_signs(q[0])
+    signs[1:] = _step_signs(q[1:], q[:-1])
+    out: FloatArray = q * np.cumprod(signs, axis=0)[..., None]
+    return out
+
+
 PAPER_BONES = (
     "lowerback",
     "upperback",
@@ -187,14 +199,7 @@ class JointRotations:
     def __call__(self, channels: npt.ArrayLike) -> FloatArray:
         """The frame vectors of a whole recording: ``channels`` shape ``(N, C)`` gives ``(N, D)``."""
         q = self.raw(channels)
-        n = q.shape[0]
-        if n == 0:
-            return np.zeros((0, self.dims))
-        signs = np.empty(q.shape[:2])
-        signs[0] = _canonical_signs(q[0])
-        signs[1:] = _step_signs(q[1:], q[:-1])
-        flipped: FloatArray = q * np.cumprod(signs, axis=0)[..., None]
-        return flipped.reshape(n, self.dims)
+        return consistent_signs(q).reshape(q.shape[0], self.dims)
 
     def stream(self) -> RotationStream:
         """A new per-frame stream of this representation."""
