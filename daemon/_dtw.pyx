@@ -279,33 +279,26 @@ def subsequence_codes(
 
 
 cdef class StreamDTW:
-    """Subsequence DTW (:func:`subsequence_codes`) of several templates over one stream of codes: each
-    template's Δ and start column at the stream's last ``keep`` frames, kept in rings, so that
-    :meth:`beaten` can look back over them. Frames are numbered from 0 since the last
-    :meth:`reset`. :meth:`push` only keeps the code; the columns are computed in runs of up to
-    ``batch`` frames, template by template (a template's columns stay in the cache for the run,
-    instead of every template's being fetched again for every frame), and before any question:
-    the same integers as one column per frame, since a column depends only on the ones before.
-    Only Δ at or below a template's threshold is ever asked for, so a template with the toolbox's
-    steps keeps only the cells at or below it (:func:`_pruned_column`; Δ above it reads
-    :data:`INF`): a stream that looks nothing like a template costs a few rows per frame, not all.
-    State: three columns per template and the rings, whatever the stream's length; the templates'
-    tables are the caller's arrays, not copied."""
+    """Subsequence DTW (:func:`subsequence_codes`) of several templates over one stream of codes, one
+    column per frame: each :meth:`push` computes every template's column of the new frame and
+    returns the local minima of Δ that it completes. Frames are numbered from 0 since the last
+    :meth:`reset`. A template with the toolbox's steps keeps only the cells at or below its
+    threshold (:func:`_pruned_column`; above it a cell reads :data:`INF`): a stream that looks
+    nothing like a template costs a few rows per frame, not all. State: three columns per template
+    (D and start column of each cell), whatever the stream's length; the templates' tables are the
+    caller's arrays, not copied."""
 
     cdef list _arrays  # the templates' tables, kept alive for the pointers below
     cdef const uint64_t **_masks
     cdef const uint64_t **_values
     cdef const int64_t **_tables
-    cdef Py_ssize_t k, keep, batch, total, most
+    cdef Py_ssize_t k, total, most
     cdef readonly int64_t n
-    cdef int64_t done  # frames whose columns are computed
     cdef unsigned char[::1] toolbox
     cdef int64_t[::1] lengths, offsets, widths, thresholds
-    cdef int64_t[:, ::1] cols  # rows: three (Δ, start) slots used in turn; templates side by side
+    cdef int64_t[:, ::1] cols  # rows: three (D, start) slots, frame f in slot f % 3; templates side by side
     cdef int64_t[::1] costs  # one template column's cell costs
     cdef int64_t[:, ::1] highest  # (templates, 3): each slot's highest finite row (pruned templates)
-    cdef uint64_t[::1] codes  # ring of the last ``keep`` codes
-    cdef int64_t[:, ::1] ring_d, ring_s  # (templates, keep)
 
     def __cinit__(self):
         self._masks = NULL
@@ -317,17 +310,13 @@ cdef class StreamDTW:
         PyMem_Free(self._values)
         PyMem_Free(self._tables)
 
-    def __init__(self, list templates, Py_ssize_t keep, Py_ssize_t batch=16):
+    def __init__(self, list templates):
         """``templates``: per template (masks, values, tables, threshold, toolbox): its retrieval
         tables (uint64 ``(M,)``, uint64 ``(M,)``, int64 ``(M, f + 1)``, contiguous), its τ in fixed
-        point and whether it takes the toolbox's steps (else the thesis'); ``keep``: frames of Δ and
-        starts kept (at least 2); ``batch``: the most frames left uncomputed (at least 1; at most
-        ``keep`` are)."""
-        if not templates or keep < 2 or batch < 1:
-            raise ValueError("a StreamDTW needs templates, keeps at least 2 frames and a batch of at least 1")
+        point and whether it takes the toolbox's steps (else the thesis')."""
+        if not templates:
+            raise ValueError("a StreamDTW needs templates")
         self.k = len(templates)
-        self.keep = keep
-        self.batch = min(batch, keep)
         self._arrays = []
         self._masks = <const uint64_t **> PyMem_Malloc(self.k * sizeof(uint64_t *))
         self._values = <const uint64_t **> PyMem_Malloc(self.k * sizeof(uint64_t *))
@@ -362,9 +351,6 @@ cdef class StreamDTW:
         self.cols = np.empty((6, self.total), dtype=np.int64)
         self.costs = np.empty(self.most, dtype=np.int64)
         self.highest = np.empty((self.k, 3), dtype=np.int64)
-        self.codes = np.zeros(keep, dtype=np.uint64)
-        self.ring_d = np.empty((self.k, keep), dtype=np.int64)
-        self.ring_s = np.empty((self.k, keep), dtype=np.int64)
         self.reset()
 
     def reset(self):
@@ -377,79 +363,148 @@ cdef class StreamDTW:
             for r in range(3):
                 self.highest[i, r] = -1
         self.n = 0
-        self.done = 0
+
+    cdef inline int64_t _last(self, Py_ssize_t t, int64_t f) noexcept nogil:
+        """Δ of template ``t`` at frame ``f`` (one of the last three; :data:`INF` before frame 0)."""
+        if f < 0:
+            return INF
+        cdef Py_ssize_t slot = f % 3
+        if self.toolbox[t] != 0 and self.highest[t, slot] != self.lengths[t] - 1:
+            return INF  # the last row was not written this column
+        return self.cols[2 * slot, self.offsets[t] + self.lengths[t] - 1]
+
+    cdef inline int64_t _start(self, Py_ssize_t t, int64_t f) noexcept nogil:
+        return self.cols[2 * (f % 3) + 1, self.offsets[t] + self.lengths[t] - 1]
 
     def push(self, uint64_t code):
-        """The next frame's code."""
-        self.codes[self.n % self.keep] = code
-        self.n += 1
-        if self.n - self.done >= self.batch:
-            self._catch_up()
-
-    cdef void _catch_up(self) noexcept:
-        """Every template's columns for the frames pushed and not yet computed."""
-        cdef Py_ssize_t t, o, m, cur, p1, p2, hi
-        cdef int64_t f
+        """The next frame's code; the local minima it completes: every template's Δ at the frame
+        before (e), at or below its threshold, below Δ(e - 1) and not above Δ at this frame, as a
+        list of (template, start column, e, Δ) in template order (None if there is none)."""
+        cdef Py_ssize_t t, o, m, cur, p1, p2
+        cdef int64_t f = self.n, d
         with nogil:
+            cur = 2 * (f % 3)
+            p1 = 2 * ((f + 2) % 3)
+            p2 = 2 * ((f + 1) % 3)
             for t in range(self.k):
                 o = self.offsets[t]
                 m = self.lengths[t]
-                for f in range(self.done, self.n):
-                    cur = 2 * (f % 3)
-                    p1 = 2 * ((f + 2) % 3)
-                    p2 = 2 * ((f + 1) % 3)
-                    if self.toolbox[t] != 0:
-                        hi = self.highest[t, f % 3] = _pruned_column(
-                            self._masks[t], self._values[t], self._tables[t], self.widths[t], m,
-                            self.codes[f % self.keep], f, self.thresholds[t],
-                            self.highest[t, (f + 2) % 3], self.highest[t, (f + 1) % 3],
-                            &self.cols[cur, o], &self.cols[cur + 1, o], &self.cols[p1, o],
-                            &self.cols[p1 + 1, o], &self.cols[p2, o], &self.cols[p2 + 1, o])
-                    else:
-                        _column(self._masks[t], self._values[t], self._tables[t], self.widths[t], m,
-                                self.codes[f % self.keep], False, False, f, &self.costs[0],
-                                &self.cols[cur, o], &self.cols[cur + 1, o], &self.cols[p1, o],
-                                &self.cols[p1 + 1, o], &self.cols[p2, o], &self.cols[p2 + 1, o])
-                        hi = m - 1
-                    # the last row may not have been written this column: finite only if highest
-                    self.ring_d[t, f % self.keep] = self.cols[cur, o + m - 1] if hi == m - 1 else INF
-                    self.ring_s[t, f % self.keep] = self.cols[cur + 1, o + m - 1] if hi == m - 1 else NO_START
-        self.done = self.n
+                if self.toolbox[t] != 0:
+                    self.highest[t, f % 3] = _pruned_column(
+                        self._masks[t], self._values[t], self._tables[t], self.widths[t], m, code, f,
+                        self.thresholds[t], self.highest[t, (f + 2) % 3], self.highest[t, (f + 1) % 3],
+                        &self.cols[cur, o], &self.cols[cur + 1, o], &self.cols[p1, o],
+                        &self.cols[p1 + 1, o], &self.cols[p2, o], &self.cols[p2 + 1, o])
+                else:
+                    _column(self._masks[t], self._values[t], self._tables[t], self.widths[t], m, code,
+                            False, False, f, &self.costs[0], &self.cols[cur, o], &self.cols[cur + 1, o],
+                            &self.cols[p1, o], &self.cols[p1 + 1, o], &self.cols[p2, o],
+                            &self.cols[p2 + 1, o])
+                    self.highest[t, f % 3] = m - 1
+        self.n = f + 1
+        if f == 0:
+            return None
+        out = None
+        for t in range(self.k):
+            d = self._last(t, f - 1)
+            if d <= self.thresholds[t] and d < INF and d < self._last(t, f - 2) and d <= self._last(t, f):
+                if out is None:
+                    out = []
+                out.append((t, self._start(t, f - 1), f - 1, d))
+        return out
+
+    def finish(self):
+        """The local minima at the last frame pushed, as if the stream ended there (no frame after
+        it to compare with), as :meth:`push` lists them (None if there is none)."""
+        cdef int64_t f = self.n - 1, d
+        if f < 0:
+            return None
+        out = None
+        for t in range(self.k):
+            d = self._last(t, f)
+            if d <= self.thresholds[t] and d < INF and d < self._last(t, f - 1):
+                if out is None:
+                    out = []
+                out.append((t, self._start(t, f), f, d))
+        return out
 
     def delta(self, Py_ssize_t template, int64_t frame):
-        """(Δ, start) of ``template`` at ``frame`` (one of the last ``keep`` pushed); a template
-        with the toolbox's steps gives (:data:`INF`, -1) where Δ is above its threshold."""
-        if not (0 <= template < self.k and self.n - self.keep <= frame < self.n and frame >= 0):
-            raise IndexError(f"frame {frame} is not among the last {self.keep} of {self.n}")
-        self._catch_up()
-        return self.ring_d[template, frame % self.keep], self.ring_s[template, frame % self.keep]
+        """(Δ, start) of ``template`` at ``frame``, one of the last three pushed; a template with
+        the toolbox's steps gives (:data:`INF`, -1) where Δ is above its threshold."""
+        if not (0 <= template < self.k and self.n - 3 <= frame < self.n and frame >= 0):
+            raise IndexError(f"frame {frame} is not among the last 3 of {self.n}")
+        d = self._last(template, frame)
+        return (d, self._start(template, frame)) if d < INF else (INF, NO_START)
 
-    def beaten(self, Py_ssize_t skip, int64_t start, int64_t end, int64_t cost):
-        """Whether a template other than ``skip`` matches the motion of frames ``start .. end`` more
-        cheaply than ``cost`` (fixed point): Δ at some frame e from ``start`` to the last pushed is
-        a local minimum (below Δ(e - 1), not above Δ(e + 1) if pushed), at most the template's
-        threshold and below ``cost``, and its match (start column .. e) shares more than half of the
-        shorter range's frames with ``start .. end``. ``start - 1`` must be among the kept frames
-        (or ``start`` the stream's first)."""
-        cdef int64_t last = self.n - 1, e, d, before, after, s, shared, shorter
-        if start > last or start < 0 or (start > 0 and start - 1 < self.n - self.keep) or start > end:
-            raise IndexError(f"frames {start}..{end} are not among the last {self.keep} of {self.n}")
-        self._catch_up()
-        cdef Py_ssize_t t
-        for t in range(self.k):
-            if t == skip:
-                continue
-            for e in range(start, last + 1):
-                d = self.ring_d[t, e % self.keep]
-                if d >= cost or d > self.thresholds[t]:
-                    continue
-                before = self.ring_d[t, (e - 1) % self.keep] if e > 0 else INF
-                after = self.ring_d[t, (e + 1) % self.keep] if e < last else INF
-                if not (d < before and d <= after):
-                    continue
-                s = self.ring_s[t, e % self.keep]
-                shared = min(end, e) - max(start, s) + 1
-                shorter = min(end - start, e - s) + 1
-                if 2 * shared > shorter:
-                    return True
-        return False
+    def blocks(self, int64_t cost, int64_t start, int64_t end, Py_ssize_t lo, Py_ssize_t hi):
+        """Whether a template ``lo`` .. ``hi - 1`` may still end a match below ``cost`` (fixed
+        point) that shares more than half of the shorter range's frames with ``start .. end``
+        (``end`` before the last frame pushed, j). Every path that ends at j or later and starts
+        by ``end`` passes a cell of column j or j - 1, and costs only grow along a path; so it is a
+        cell of those columns below ``cost`` and at most its template's threshold, in row i of M,
+        whose start s allows 2 (end - max(start, s) + 1) > min(end - start, e - s) + 1 at the
+        earliest end e a path through it can reach (the shorter range is shortest there): the
+        column plus ⌈(M - 1 - i) / 2⌉ with the toolbox's steps (two rows per column at most), the
+        column itself with the thesis' (rows may climb within a column), and not before j."""
+        cdef int64_t j = self.n - 1, s, e, shared, shorter, d
+        cdef Py_ssize_t t, i, o, slot, top, r, m
+        cdef bint found = False
+        if j <= end:
+            raise ValueError(f"the range must end before the last frame pushed ({j}), got {end}")
+        if not 0 <= lo <= hi <= self.k:
+            raise IndexError(f"templates {lo}..{hi - 1} of {self.k}")
+        with nogil:
+            for t in range(lo, hi):
+                o = self.offsets[t]
+                m = self.lengths[t]
+                for r in range(2):
+                    if j - r < 0:
+                        continue
+                    slot = (j - r) % 3
+                    top = self.highest[t, slot]
+                    for i in range(top + 1):
+                        d = self.cols[2 * slot, o + i]
+                        if d >= cost or d > self.thresholds[t]:
+                            continue
+                        s = self.cols[2 * slot + 1, o + i]
+                        if s < 0 or s > end:
+                            continue
+                        e = j - r + (m - i) // 2 if self.toolbox[t] != 0 else j - r
+                        if e < j:
+                            e = j
+                        shared = end - (start if start > s else s) + 1
+                        shorter = (end - start if end - start < e - s else e - s) + 1
+                        if 2 * shared > shorter:
+                            found = True
+                            break
+                    if found:
+                        break
+                if found:
+                    break
+        return found
+
+
+def accumulated(const int64_t[:, ::1] cost):
+    """Alg. 3.1 on a fixed-point cost matrix ``(M, N)``: D(i, j) = C(i, j) + min(D(i-1, j-1),
+    D(i, j-1), D(i-1, j)), D(0, 0) = C(0, 0), the first row and column accumulated, clamped at
+    :data:`INF`; int64 ``(M, N)``, the integers of :func:`daemon.dtw.accumulated`'s row scans."""
+    cdef Py_ssize_t m = cost.shape[0], n = cost.shape[1], i, j
+    if m == 0 or n == 0:
+        raise ValueError("a DTW cost matrix must be non-empty")
+    out = np.empty((m, n), dtype=np.int64)
+    cdef int64_t[:, ::1] d = out
+    cdef int64_t best
+    with nogil:
+        d[0, 0] = clamp(cost[0, 0])
+        for j in range(1, n):
+            d[0, j] = clamp(d[0, j - 1] + cost[0, j])
+        for i in range(1, m):
+            d[i, 0] = clamp(d[i - 1, 0] + cost[i, 0])
+            for j in range(1, n):
+                best = d[i - 1, j - 1]
+                if d[i, j - 1] < best:
+                    best = d[i, j - 1]
+                if d[i - 1, j] < best:
+                    best = d[i - 1, j]
+                d[i, j] = clamp(best + cost[i, j])
+    return out

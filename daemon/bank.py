@@ -40,7 +40,7 @@ from daemon.recognizer import (
     plans,
     skeleton_model,
 )
-from daemon.types import DEFAULT_MAX_GAP_S, FloatArray
+from daemon.types import DEFAULT_HOLD_S, DEFAULT_MAX_GAP_S, FloatArray
 from replay import Skeleton
 
 Frame = tuple[str, int, npt.ArrayLike]
@@ -70,8 +70,10 @@ class RecognizerBank:
         max_gap_s: float = DEFAULT_MAX_GAP_S,
         classes: Collection[str] | None = None,
         compete: bool = True,
+        hold_s: float = DEFAULT_HOLD_S,
     ) -> None:
         self.library = library
+        self._hold_s = hold_s
         self._classes = None if classes is None else tuple(classes)
         self._max_gap_s = max_gap_s
         self._compete = compete
@@ -113,6 +115,7 @@ class RecognizerBank:
             classes=self._classes,
             max_gap_s=self._max_gap_s,
             compete=self._compete,
+            hold_s=self._hold_s,
             model=None if skeleton is None else skeleton_model(skeleton),
             joint_names=joint_names,
         )

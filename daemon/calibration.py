@@ -1,19 +1,40 @@
-"""Per-class retrieval thresholds learned by leave-one-actor-out (issue 12).
+"""How each class is recognised, learned from its training data by leaving groups out (issue 20).
 
-The thesis fixes one cost threshold τ = 0.1 for every class (§3.4, Table 3.1). A template learned
-from some people matches a new person's performances at a cost that depends on the class, so each
-class's τ is learned from its training data: for every actor holding clips of the class, the class
-is learned (:func:`daemon.templates.learn`) from the other actors' clips, and the quantised MT is
-matched by subsequence DTW (thesis Alg. 3.2 with free start and end; :mod:`daemon.dtw`, the
-retrieval cost and steps of :mod:`daemon.retrieval`) over each of the left-out actor's clips: the
-best cost over a clip of the class is a positive, over a clip of another class a negative. Pooled
-over the folds, τ is chosen for the best F1 with recall ≥ 0.95 on the positives
-(:func:`choose_tau`). The same folds measure how many of the left-out actor's clips the learned
-keyframes (thesis ch. 6) keep, a clip being kept when the keyframe search (Alg. 4.1/4.2) over it
-returns a component: learned by the thesis' rule they are exact for their training actors and lose
-a new actor's clips, so each :class:`~daemon.templates.Generalisation` of :data:`GENERALISATIONS`
-is tried and the one keeping ≥ 0.95 of the left-out clips in every fold with the fewest clips of
-other classes is chosen (:func:`choose_generalisation`).
+The thesis fixes one cost threshold τ = 0.1 for every class (§3.4, Table 3.1) and keyframes exact
+for the training clips (ch. 6). A template learned from some people matches a new person at a cost
+that depends on the class, and exact keyframes miss a new person's motions; both are learned here
+from folds that leave a group out: the people (actors) when the training data names at least two,
+otherwise up to :data:`TAKE_GROUPS` groups of one person's examples (:func:`groups`).
+
+For each fold, every class is learned (:func:`daemon.templates.learn`) from the other groups'
+examples, and the left-out group's examples of all classes, joined one after another in a
+shuffled order, become a stream (:func:`fold_stream`): motions, the transitions between them and
+pieces of other motions, as the live recogniser sees them. Each class's template runs as a
+subsequence DTW over the whole stream (thesis Alg. 3.2, free start and end; the retrieval cost and
+steps of :mod:`daemon.retrieval`), and its local minima are *candidates*, as in the live
+recogniser (:class:`daemon.recognizer.CodeRecognizer`): a candidate is *beaten* by a cheaper one
+(order cost, end, class) of the same motion (more than half of the shorter range shared) of its own
+class, or of another class whose τ it is within. What is not beaten is a detection; it is right
+when at least half of it lies inside a motion of its class (:func:`outcomes`).
+
+**τ** (:func:`thresholds`): per class, the costs of the right detections (for each motion of the
+class the cheapest, ``inf`` if none: its *positives*) and of the wrong ones (*negatives*), pooled
+over the folds, give the τ of the best F1 subject to recall ≥ :data:`MIN_RECALL`
+(:func:`choose_tau`), placed a fraction ``position`` of the way from the positive cost it needs to
+the next negative cost. Whether another class's candidate counts as a rival depends on that class's
+τ, so the thresholds are found again with the rivals' τ of the round before (:data:`ROUNDS` rounds,
+the first without rivals). The ``position`` is chosen by nested folds (:func:`choose_position`):
+each fold's detections are scored with the τ the *other* folds give, for each of
+:data:`POSITIONS`, and the one with the best F1 over all classes and folds is taken, so τ is placed
+where it carried to a group the thresholds had not seen.
+
+**Keyframes** (:func:`choose_gate`): the automaton is a gate that lets a stream-wide match of its
+class count only where a keyframe match overlaps it. In each fold the class's keyframes are learned
+with each :class:`~daemon.templates.Generalisation` of :data:`GENERALISATIONS` and run over the
+fold's stream; a gate must keep at least :data:`MIN_KEPT` of the motions the class finds without
+it, in every fold, and keep out some of its wrong detections. A class that makes no wrong detection
+in the folds, or whose wrong detections no gate keeps out, is recognised from the stream-wide DTW
+alone (mode ``dtw``); the reason is kept.
 
 Pure: numpy in, frozen dataclasses out; no I/O.
 """
@@ -21,17 +42,30 @@ Pure: numpy in, frozen dataclasses out; no I/O.
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping, Sequence
+import random
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 import numpy.typing as npt
 
-from daemon.dtw import Steps, pack, retrieval_tables, subsequence_codes, to_cost
+from daemon.dtw import (
+    Steps,
+    accumulated,
+    fixed,
+    l1_cost,
+    local_minima,
+    pack,
+    retrieval_tables,
+    subsequence_codes,
+    to_cost,
+)
 from daemon.index import SetIndex, build_set_index
 from daemon.keyframes import KeyframeQuery, keyframe_search
+from daemon.library import Calibration, given
+from daemon.recognizer import gate_ranges
 from daemon.templates import (
-    THESIS_KEYFRAMES,
     Generalisation,
     MotionTemplate,
     aligned_frames,
@@ -39,36 +73,27 @@ from daemon.templates import (
     expand,
     learn,
 )
-from daemon.types import DEFAULT_INDEX_RATE, FEATURE_SETS, BoolArray, FeatureSet, FloatArray
+from daemon.types import (
+    DEFAULT_INDEX_RATE,
+    DEFAULT_MAX_GAP_S,
+    FEATURE_SETS,
+    BoolArray,
+    FeatureSet,
+    FloatArray,
+)
 
 MIN_RECALL = 0.95
-SEPARATOR = 2
-GIVEN = "given, not calibrated"
-
-
-@dataclass(frozen=True)
-class Calibration:
-    """How a class's retrieval threshold ``tau`` was obtained: ``method`` in words, the number of
-    leave-one-actor-out ``folds`` (0: τ was given, not calibrated), the pooled ``positives`` and
-    ``negatives`` (clips costed) and the ``recall`` and ``precision`` τ gave on them (None when not
-    calibrated)."""
-
-    tau: float
-    method: str
-    folds: int = 0
-    positives: int = 0
-    negatives: int = 0
-    recall: float | None = None
-    precision: float | None = None
-
-    @property
-    def calibrated(self) -> bool:
-        return self.folds > 0
-
-
-def given(tau: float, why: str = "") -> Calibration:
-    """A τ taken as given (``why``: the reason, shown after the method)."""
-    return Calibration(tau, f"{GIVEN} ({why})" if why else GIVEN)
+MIN_KEPT = 0.98
+POSITIONS = (0.25, 0.5, 0.75)
+"""Where τ may sit between the positive cost it needs and the next negative cost (0: at the
+positive, 1: at the negative); nested folds choose."""
+DEFAULT_POSITION = 0.5
+ROUNDS = 3
+CAP = 0.5
+"""Candidates costlier than this are not collected: no τ is chosen above it."""
+TAKE_GROUPS = 3
+MIN_MEMBER = 3
+"""The fewest examples a second template of a class is learned from."""
 
 
 @dataclass(frozen=True)
@@ -84,7 +109,12 @@ class Choice:
 
 
 def choose_tau(
-    positives: npt.ArrayLike, negatives: npt.ArrayLike, *, min_recall: float = MIN_RECALL, fallback: float
+    positives: npt.ArrayLike,
+    negatives: npt.ArrayLike,
+    *,
+    min_recall: float = MIN_RECALL,
+    fallback: float,
+    position: float = DEFAULT_POSITION,
 ) -> Choice | None:
     """The threshold with the best F1 = 2TP / (2TP + FP + FN) subject to recall TP / P ≥
     ``min_recall``, a hit being a cost ≤ τ. ``positives`` ``(P,)`` and ``negatives`` ``(Q,)`` are
@@ -93,10 +123,12 @@ def choose_tau(
     The candidates are the finite positive costs: F1 only changes at a cost, and raising τ from a
     positive cost to the next one adds a true positive, which always raises F1, so the best τ sits at
     a positive cost whose next larger cost is a negative's. Ties in F1: the larger cost (more recall
-    for a new person). The chosen τ is then moved midway to the next larger negative cost, which
-    leaves every count unchanged and keeps the same margin to both sides; with no negative above it,
-    τ is the larger of that cost and ``fallback``. If the recall cannot reach ``min_recall`` (too
-    many positives never match), τ is the largest finite positive cost, ``feasible`` False."""
+    for a new person). The chosen τ is then moved the fraction ``position`` of the way to the next
+    larger negative cost, which leaves every count unchanged; with no negative above it, τ is the
+    larger of that cost and ``fallback``. If the recall cannot reach ``min_recall`` (too many
+    positives never match), τ is the largest finite positive cost, ``feasible`` False."""
+    if not 0 <= position < 1:
+        raise ValueError(f"position must lie in [0, 1), got {position}")
     pos = np.sort(np.asarray(positives, dtype=np.float64))
     neg = np.sort(np.asarray(negatives, dtype=np.float64))
     finite = pos[np.isfinite(pos)]
@@ -113,25 +145,129 @@ def choose_tau(
     cost = float(candidates[best])
     above = neg[neg > cost]
     limit = float(above[0]) if above.size else math.inf
-    tau = (cost + limit) / 2 if math.isfinite(limit) else max(cost, fallback)
+    tau = cost + position * (limit - cost) if math.isfinite(limit) else max(cost, fallback)
     t, f = int(tp[best]), int(fp[best])
     return Choice(tau, t / total, t / (t + f), float(f1[best]), bool(ok[best]))
 
 
-# ------------------------------------------------------------------------------------ the costs
+# ------------------------------------------------------------------------------------ the groups
+
+
+def groups(actors: Sequence[str], classes: Sequence[str]) -> tuple[list[str], str]:
+    """The fold group of each example (``actors[i]`` and ``classes[i]``: its person and class) and
+    what the groups are: the actors when there are at least two; else the examples of each class
+    dealt in turn into up to :data:`TAKE_GROUPS` groups (``"take 1"``, ...), so every group holds
+    some of every class that has enough examples."""
+    if len(set(actors)) >= 2:
+        return list(actors), "actors"
+    dealt: dict[str, int] = {}
+    out = []
+    for name in classes:
+        k = dealt.get(name, 0)
+        dealt[name] = k + 1
+        out.append(f"take {k % TAKE_GROUPS + 1}")
+    return out, f"groups of one person's examples (one actor: at most {TAKE_GROUPS})"
+
+
+# ------------------------------------------------------------------------------------ the folds
+
+
+class Candidate(NamedTuple):
+    """A local minimum of a template's subsequence DTW over a fold's stream: ``cost``, ``end``, the
+    template (its index in :attr:`Fold.owner`) and ``start``; ordered as the live recogniser orders
+    candidates."""
+
+    cost: float
+    end: int
+    template: int
+    start: int
+
+
+@dataclass(frozen=True)
+class KeyframeTrial:
+    """Keyframes learned with ``generalisation`` in one fold: which of the left-out group's
+    examples of the class they keep (``positives``, ``(P,)``) and how many of its examples of other
+    classes (``negatives``)."""
+
+    generalisation: Generalisation
+    query: KeyframeQuery
+    positives: npt.NDArray[np.bool_]
+    negatives: int
+
+
+@dataclass(frozen=True)
+class Fold:
+    """One group left out: its examples joined into a stream (``codes``) whose motions are
+    ``truth`` (class index, first frame, last frame); the class of each template learned from the
+    other groups (``owner``; at first template k is class k's, absent when the class has no
+    training examples in the fold) and their ``candidates`` over the stream (sorted); per class
+    the keyframe ``trials`` (empty when no keyframes are learned)."""
+
+    group: str
+    codes: npt.NDArray[np.uint64]
+    truth: tuple[tuple[int, int, int], ...]
+    owner: tuple[int, ...]
+    candidates: tuple[Candidate, ...]
+    learned: frozenset[int]
+    trials: Mapping[int, tuple[KeyframeTrial, ...]]
+    same: npt.NDArray[np.bool_]
+    """:func:`rivals` of the candidates."""
+
+
+def make_fold(
+    group: str,
+    codes: npt.NDArray[np.uint64],
+    truth: Sequence[tuple[int, int, int]],
+    owner: Sequence[int],
+    candidates: Sequence[Candidate],
+    learned: frozenset[int],
+    trials: Mapping[int, tuple[KeyframeTrial, ...]],
+) -> Fold:
+    """A :class:`Fold`, its candidates sorted and their :func:`rivals` found."""
+    ordered = tuple(sorted(candidates))
+    return Fold(group, codes, tuple(truth), tuple(owner), ordered, learned, trials, rivals(ordered))
+
+
+Labelled = Mapping[str, Sequence[tuple[str, BoolArray]]]
+"""Per class, its examples as (group, ``(N, 39)`` boolean features at the learning rate)."""
+
+
+def fold_stream(examples: Labelled, group: str) -> tuple[npt.NDArray[np.uint64], list[tuple[int, int, int]]]:
+    """The examples of ``group`` of every class, in an order shuffled by the group's name, joined
+    into one stream: its packed codes ``(N,)`` and each example's (class index, first, last frame)."""
+    names = list(examples)
+    items = [(k, m) for k, name in enumerate(names) for g, m in examples[name] if g == group]
+    random.Random(group).shuffle(items)
+    truth, at = [], 0
+    for k, m in items:
+        truth.append((k, at, at + len(m) - 1))
+        at += len(m)
+    codes = pack(np.concatenate([m for _, m in items])) if items else np.zeros(0, dtype=np.uint64)
+    return codes, truth
+
+
+def stream_candidates(
+    template: MotionTemplate, codes: npt.NDArray[np.uint64], steps: Steps, index: int
+) -> list[Candidate]:
+    """The local minima at or below :data:`CAP` of ``template``'s subsequence DTW over ``codes``
+    (expanded by its weights, as the live recogniser matches it), as template ``index``'s."""
+    if len(codes) == 0:
+        return []
+    t = expand(template)
+    delta, start = subsequence_codes(retrieval_tables(t.values, t.weights), codes, None, steps)
+    return [Candidate(m.cost, m.end, index, m.start) for m in local_minima(to_cost(delta), start, CAP)]
 
 
 def clip_costs(template: MotionTemplate, clips: Sequence[BoolArray], steps: Steps) -> FloatArray:
-    """The best subsequence-DTW cost of the quantised ``template`` (expanded by its weights, as
-    :func:`daemon.retrieval.template_search` matches it) over each clip, ``(n,)`` for ``n`` clips of
-    shape ``(N_i, 39)``: min over b of Δ(b) (thesis Alg. 3.2, free start and end), ``inf`` when no
-    path fits (a clip less than half the template long under the toolbox's steps). The clips are
-    laid out one after another with blocked columns between them, so one pass costs them all."""
+    """The best subsequence-DTW cost of the quantised ``template`` (expanded by its weights) over
+    each clip ``(N_i, 39)``, ``(n,)``: min over b of Δ(b) (thesis Alg. 3.2, free start and end),
+    ``inf`` when no path fits. The clips are laid out with two blocked columns between them, so one
+    pass costs them all."""
     if not clips:
         return np.zeros(0)
     t = expand(template)
     sizes = np.asarray([len(c) for c in clips], dtype=np.int64)
-    offsets = np.concatenate([[0], np.cumsum(sizes + SEPARATOR)]).astype(np.int64)
+    offsets = np.concatenate([[0], np.cumsum(sizes + 2)]).astype(np.int64)
     codes = np.zeros(int(offsets[-1]), dtype=np.uint64)
     blocked = np.ones(len(codes), dtype=bool)
     for clip, at, size in zip(clips, offsets[:-1], sizes, strict=True):
@@ -163,241 +299,527 @@ def keyframes_kept(query: KeyframeQuery, clips: ClipSets, rate: float) -> npt.ND
 
 GENERALISATIONS = tuple(
     Generalisation(w, r, g, n)
-    for n in (None, 5, 3)
-    for w in (0, 1, 2)
-    for r in (0.0, 0.25, 0.5, 1.0, 2.0)
+    for n in (None, 5, 3, 2)
+    for w in (0, 1, 2, 3)
+    for r in (0.0, 0.5, 1.0, 2.0)
     for g in (0, 2)
 )
 """The keyframe generalisations tried, the thesis' rule first."""
 
-MOST_GENERAL = Generalisation(window=2, margin=2.0, min_gap=0, fixed=3)
-"""The most general of :data:`GENERALISATIONS` (fewest fixed features, each stable over the widest
-window, gaps widened the most): the keyframes of a class whose folds cannot show that any
-generalisation keeps a new person's clips (one actor, or none kept enough in some fold). Keyframes
-only pre-select; the template's DTW decides, so a class had better give a few candidates too many
-than none."""
-
-
-# ------------------------------------------------------------------------------------ the folds
-
-
-@dataclass(frozen=True)
-class KeyframeTrial:
-    """Keyframes learned with ``generalisation`` in one fold: which of the left-out actor's clips of
-    the class they keep (``positives``, ``(P,)``) and how many of its other clips (``negatives``)."""
-
-    generalisation: Generalisation
-    positives: npt.NDArray[np.bool_]
-    negatives: int
-
-
-@dataclass(frozen=True)
-class Fold:
-    """One class with one actor left out: the best costs of the class's template (learned on the
-    other actors) over the actor's clips of the class (``positive_costs``, ``(P,)``) and of the other
-    classes (``negative_costs``, ``(Q,)``), and the keyframes learned with each of ``generalisations``
-    (``trials``; empty when no keyframes are learned)."""
-
-    actor: str
-    positive_costs: FloatArray
-    negative_costs: FloatArray
-    trials: tuple[KeyframeTrial, ...]
-
-
-@dataclass(frozen=True)
-class ClassCalibration:
-    """A class's :class:`Calibration`, the keyframe :class:`Generalisation` chosen by
-    :func:`choose_generalisation` and the folds both came from."""
-
-    calibration: Calibration
-    keyframes: Generalisation
-    folds: tuple[Fold, ...]
-
-
-Labelled = Mapping[str, Sequence[tuple[str, BoolArray]]]
-"""Per class, its examples as (actor, ``(N, 39)`` boolean features at the learning rate)."""
-
 
 def folds(
     examples: Labelled,
-    name: str,
     *,
     delta: float = 0.1,
     keyframes: int = 3,
     steps: Steps = "toolbox",
     rate: float = DEFAULT_INDEX_RATE,
     generalisations: Sequence[Generalisation] = GENERALISATIONS,
+    progress: Callable[[str], object] | None = None,
 ) -> list[Fold]:
-    """The leave-one-actor-out folds of class ``name``: one per actor holding clips of it whose
-    other actors hold clips of it too (in order of first appearance)."""
-    actors = list(dict.fromkeys(a for a, _ in examples[name]))
+    """One :class:`Fold` per group (in order of first appearance) whose stream holds at least one
+    example of a class that the other groups hold examples of too."""
+    names = list(examples)
+    order = list(dict.fromkeys(g for items in examples.values() for g, _ in items))
     out = []
-    for actor in actors:
-        training = [m for a, m in examples[name] if a != actor]
-        if not training:
+    for group in order:
+        codes, truth = fold_stream(examples, group)
+        candidates: list[Candidate] = []
+        trials: dict[int, tuple[KeyframeTrial, ...]] = {}
+        learned = set()
+        for k, name in enumerate(names):
+            training = [m for g, m in examples[name] if g != group]
+            if not training:
+                continue
+            learned.add(k)
+            result = learn(training, delta=delta, keyframes=0, name=name, rate=rate)
+            candidates += stream_candidates(result.quantised, codes, steps, k)
+            positives = [m for g, m in examples[name] if g == group]
+            if keyframes and positives:
+                negatives = [
+                    m for other, items in examples.items() if other != name for g, m in items if g == group
+                ]
+                pos_sets, neg_sets = clip_sets(positives), clip_sets(negatives)
+                hard = result.hard.template
+                aligned = np.stack([aligned_frames(hard, m) for m in training])
+                made = []
+                for g in generalisations:
+                    query = automatic_keyframes(hard, training, keyframes, name, rate, g, aligned)
+                    kept = keyframes_kept(query, pos_sets, rate)
+                    others = int(keyframes_kept(query, neg_sets, rate).sum())
+                    made.append(KeyframeTrial(g, query, kept, others))
+                trials[k] = tuple(made)
+        if not any(k in learned for k, _, _ in truth):
             continue
-        learned = learn(training, delta=delta, keyframes=0, name=name, rate=rate)
-        positives = [m for a, m in examples[name] if a == actor]
-        negatives = [m for other, items in examples.items() if other != name for a, m in items if a == actor]
-        trials = []
-        if keyframes:
-            pos_sets, neg_sets = clip_sets(positives), clip_sets(negatives)
-            hard = learned.hard.template
-            aligned = np.stack([aligned_frames(hard, m) for m in training])
-            for g in generalisations:
-                query = automatic_keyframes(hard, training, keyframes, name, rate, g, aligned)
-                kept = keyframes_kept(query, pos_sets, rate)
-                trials.append(KeyframeTrial(g, kept, int(keyframes_kept(query, neg_sets, rate).sum())))
-        template = learned.quantised
-        out.append(
-            Fold(
-                actor,
-                clip_costs(template, positives, steps),
-                clip_costs(template, negatives, steps),
-                tuple(trials),
-            )
-        )
+        owner = tuple(range(len(names)))
+        out.append(make_fold(group, codes, truth, owner, candidates, frozenset(learned), trials))
+        if progress is not None:
+            progress(f"fold {group} left out: {len(learned)} classes learned and run over its stream")
     return out
 
 
-def retention(found: Sequence[Fold], g: Generalisation) -> list[float]:
-    """The share of the left-out clips of the class that the keyframes learned with ``g`` keep,
-    fold by fold."""
-    return [float(t.positives.mean()) for f in found for t in f.trials if t.generalisation == g]
+def with_members(fold: Fold, k: int, templates: Sequence[MotionTemplate | None], steps: Steps) -> Fold:
+    """``fold`` with class ``k``'s templates replaced by ``templates`` (None: a style without
+    training examples in the fold: a template without candidates), appended to the fold's
+    templates in their order. The replaced templates keep their indices, owned by no class (-1)."""
+    owner = [-1 if c == k else c for c in fold.owner]
+    kept = [x for x in fold.candidates if fold.owner[x.template] != k]
+    for t in templates:
+        if t is not None:
+            kept += stream_candidates(t, fold.codes, steps, len(owner))
+        owner.append(k)
+    return make_fold(fold.group, fold.codes, fold.truth, owner, kept, fold.learned, fold.trials)
 
 
-def choose_generalisation(found: Sequence[Fold], min_kept: float = MIN_RECALL) -> Generalisation:
-    """The keyframe generalisation that keeps at least ``min_kept`` of the left-out clips of the
-    class in every fold and, among those, the fewest clips of other classes (ties: the earlier one
-    tried, the least widened). If none keeps enough in every fold, or there are no folds:
-    :data:`MOST_GENERAL`. The thesis' rule when keyframes were not tried (no trials)."""
-    if not found:
-        return MOST_GENERAL
-    tried = [t.generalisation for t in found[0].trials]
-    if not tried:
-        return THESIS_KEYFRAMES
-    scores = []
-    for i, g in enumerate(tried):
-        others = sum(t.negatives for f in found for t in f.trials if t.generalisation == g)
-        scores.append((min(retention(found, g)) >= min_kept, -others, -i))
-    best = max(range(len(tried)), key=lambda i: scores[i])
-    return tried[best] if scores[best][0] else MOST_GENERAL
+# -------------------------------------------------------------------------------- the detections
 
 
-def calibrate_class(
-    examples: Labelled,
-    name: str,
+def same_motion(a: tuple[int, int], b: tuple[int, int]) -> bool:
+    """:func:`daemon.recognizer.same_motion`: more than half of the shorter range shared."""
+    shared = min(a[1], b[1]) - max(a[0], b[0]) + 1
+    return 2 * shared > min(a[1] - a[0], b[1] - b[0]) + 1
+
+
+def inside(start: int, end: int, first: int, last: int) -> bool:
+    """At least half of ``start .. end`` lies in ``first .. last``."""
+    return 2 * (min(end, last) - max(start, first) + 1) >= end - start + 1
+
+
+Taus = Sequence[float | None]
+"""Per template of a fold, its τ (None: no rival yet, detects nothing)."""
+
+
+def rivals(c: Sequence[Candidate]) -> npt.NDArray[np.bool_]:
+    """Which pairs of candidates (sorted) are the same motion, the later one in the order (row)
+    against each one before it (column): shape ``(candidates, candidates)``, lower triangular, made
+    in blocks of rows."""
+    n = len(c)
+    end = np.array([x.end for x in c], dtype=np.int64)
+    start = np.array([x.start for x in c], dtype=np.int64)
+    out = np.zeros((n, n), dtype=bool)
+    for lo in range(0, n, 512):
+        hi = min(n, lo + 512)
+        shared = (
+            np.minimum(end[lo:hi, None], end[None, :]) - np.maximum(start[lo:hi, None], start[None, :]) + 1
+        )
+        shorter = np.minimum((end - start)[lo:hi, None], (end - start)[None, :]) + 1
+        out[lo:hi] = (2 * shared > shorter) & (np.arange(n)[None, :] < np.arange(lo, hi)[:, None])
+    return out
+
+
+def survivors(fold: Fold, taus: Taus) -> npt.NDArray[np.bool_]:
+    """Which of the fold's candidates are not beaten when the templates' thresholds are ``taus``:
+    beaten by a candidate before it in the order (cost, end, template) that is the same motion
+    (:func:`rivals`), of its class or within its own template's τ; shape ``(candidates,)``."""
+    c = fold.candidates
+    if not c:
+        return np.zeros(0, dtype=bool)
+    cost = np.array([x.cost for x in c])
+    tpl = np.array([x.template for x in c], dtype=np.int64)
+    cls = np.asarray(fold.owner, dtype=np.int64)[tpl]
+    limit = np.array([math.inf if t is None else t for t in taus], dtype=np.float64)
+    rival = np.array([t is not None for t in taus], dtype=bool)
+    live = rival[tpl] & (cost <= limit[tpl])
+    beats = np.logical_and(fold.same, (cls[:, None] == cls[None, :]) | live[None, :])
+    return np.asarray(~beats.any(axis=1), dtype=bool)
+
+
+def motion_of(fold: Fold, x: Candidate) -> int | None:
+    """The index in ``fold.truth`` of the motion of ``x``'s class that holds at least half of it."""
+    k = fold.owner[x.template]
+    for i, (c, first, last) in enumerate(fold.truth):
+        if c == k and inside(x.start, x.end, first, last):
+            return i
+    return None
+
+
+def outcomes(fold: Fold, taus: Taus) -> tuple[list[list[float]], list[list[float]]]:
+    """Per template, the fold's positives and negatives when the thresholds are ``taus``: the
+    candidates that :func:`survivors` keeps are the detections, a detection right when it lies in a
+    motion of its class (:func:`motion_of`). Each motion of a learned class is one positive of the
+    class's template whose right detection is the cheapest (its cost; ``inf`` of the first template
+    if it has none); each wrong detection a negative of its template."""
+    keep = survivors(fold, taus)
+    best: list[tuple[float, int] | None] = [None] * len(fold.truth)
+    negatives: list[list[float]] = [[] for _ in fold.owner]
+    for x, ok in zip(fold.candidates, keep, strict=True):
+        if ok:
+            i = motion_of(fold, x)
+            if i is None:
+                negatives[x.template].append(x.cost)
+            elif best[i] is None or x.cost < best[i][0]:  # type: ignore[index]
+                best[i] = (x.cost, x.template)
+    positives: list[list[float]] = [[] for _ in fold.owner]
+    first: dict[int, int] = {}
+    for t, k in enumerate(fold.owner):
+        first.setdefault(k, t)
+    for (k, _, _), b in zip(fold.truth, best, strict=True):
+        if k in fold.learned:
+            if b is None:
+                positives[first[k]].append(math.inf)
+            else:
+                positives[b[1]].append(b[0])
+    return positives, negatives
+
+
+def thresholds(
+    found: Sequence[Fold],
     *,
-    tau: float = 0.1,
-    delta: float = 0.1,
-    keyframes: int = 3,
-    steps: Steps = "toolbox",
-    rate: float = DEFAULT_INDEX_RATE,
+    position: float = DEFAULT_POSITION,
     min_recall: float = MIN_RECALL,
-) -> ClassCalibration:
-    """Class ``name``'s τ by leave-one-actor-out (:func:`folds`, pooled, :func:`choose_tau`); the
-    learning parameters are those the class will be learned with. Falls back to the given ``tau``
-    (and says why in the method) when the class's clips come from one actor or no positive ever
-    matches."""
-    found = folds(examples, name, delta=delta, keyframes=keyframes, steps=steps, rate=rate)
-    actors = len({a for a, _ in examples[name]})
-    if not found:
-        why = "one actor" if actors < 2 else "no fold"
-        return ClassCalibration(given(tau, f"{why}: no leave-one-actor-out"), MOST_GENERAL, ())
-    generalisation = choose_generalisation(found, min_recall)
-    pos = np.concatenate([f.positive_costs for f in found])
-    neg = np.concatenate([f.negative_costs for f in found])
-    choice = choose_tau(pos, neg, min_recall=min_recall, fallback=tau)
-    if choice is None:
-        why = f"no left-out clip matched in {len(found)} folds"
-        return ClassCalibration(given(tau, why), generalisation, tuple(found))
+    fallback: float = 0.1,
+) -> list[Choice | None]:
+    """Each template's :func:`choose_tau` over the pooled :func:`outcomes` of ``found`` (folds with
+    the same templates), found :data:`ROUNDS` times, each round's rivals within the thresholds of
+    the round before (none in the first). None for a template without positives, or whose
+    positives never matched."""
+    n = len(found[0].owner) if found else 0
+    taus: list[float | None] = [None] * n
+    choices: list[Choice | None] = [None] * n
+    for _ in range(ROUNDS):
+        pos: list[list[float]] = [[] for _ in range(n)]
+        neg: list[list[float]] = [[] for _ in range(n)]
+        for f in found:
+            p, q = outcomes(f, taus)
+            for t in range(n):
+                pos[t] += p[t]
+                neg[t] += q[t]
+        choices = [
+            choose_tau(pos[t], neg[t], min_recall=min_recall, fallback=fallback, position=position)
+            if pos[t]
+            else None
+            for t in range(n)
+        ]
+        taus = [None if ch is None else ch.tau for ch in choices]
+    return choices
+
+
+def scored(fold: Fold, taus: Taus, k: int | None = None) -> tuple[int, int, int]:
+    """True positives, false positives and false negatives of ``fold`` (of class ``k`` only, if
+    given) with thresholds ``taus``: a motion is found when a detection within its template's τ
+    lies in it, a detection within its τ that lies in none is false."""
+    keep = survivors(fold, taus)
+    found, fp = set(), 0
+    for x, ok in zip(fold.candidates, keep, strict=True):
+        t = taus[x.template]
+        if not ok or t is None or x.cost > t or (k is not None and fold.owner[x.template] != k):
+            continue
+        i = motion_of(fold, x)
+        if i is None:
+            fp += 1
+        else:
+            found.add(i)
+    motions = [i for i, (c, _, _) in enumerate(fold.truth) if c in fold.learned and (k is None or c == k)]
+    tp = sum(i in found for i in motions)
+    return tp, fp, len(motions) - tp
+
+
+def f1(tp: int, fp: int, fn: int) -> float:
+    return 2 * tp / max(2 * tp + fp + fn, 1)
+
+
+def choose_position(
+    found: Sequence[Fold], *, min_recall: float = MIN_RECALL, fallback: float = 0.1
+) -> tuple[float, dict[float, float]]:
+    """The :data:`POSITIONS` entry whose thresholds, chosen without a fold and scored on it, give
+    the best F1 summed over the folds (ties: the one nearest :data:`DEFAULT_POSITION`), and the F1
+    of each. :data:`DEFAULT_POSITION` with fewer than two folds."""
+    if len(found) < 2:
+        return DEFAULT_POSITION, {}
+    out = {}
+    for position in POSITIONS:
+        tp = fp = fn = 0
+        for i, f in enumerate(found):
+            rest = [g for j, g in enumerate(found) if j != i]
+            choices = thresholds(rest, position=position, min_recall=min_recall, fallback=fallback)
+            a, b, c = scored(f, [None if ch is None else ch.tau for ch in choices])
+            tp, fp, fn = tp + a, fp + b, fn + c
+        out[position] = f1(tp, fp, fn)
+    best = max(POSITIONS, key=lambda p: (out[p], -abs(p - DEFAULT_POSITION)))
+    return best, out
+
+
+# ----------------------------------------------------------------------- more than one template
+
+
+def dtw_distance(a: BoolArray, b: BoolArray) -> float:
+    """The DTW distance (thesis Def. 3.3, l1 cost, steps (1,0), (0,1), (1,1)) of two examples
+    ``(N, 39)`` and ``(M, 39)``, divided by N + M."""
+    d = accumulated(fixed(l1_cost(a.T.astype(np.float64), b.T.astype(np.float64))))
+    return float(to_cost(d[-1, -1])) / (len(a) + len(b))
+
+
+def two_clusters(examples: Sequence[BoolArray], smallest: int = MIN_MEMBER) -> tuple[int, ...] | None:
+    """The examples split into two styles: the two medoids (examples) whose nearer one is nearest,
+    summed over all examples (:func:`dtw_distance`), and each example's cluster (0: the first
+    example's); None with fewer than ``smallest`` examples in a cluster."""
+    n = len(examples)
+    if n < 2 * smallest:
+        return None
+    dist = np.zeros((n, n))
+    for i in range(n):
+        for j in range(i + 1, n):
+            dist[i, j] = dist[j, i] = dtw_distance(examples[i], examples[j])
+    best: tuple[float, int, int] | None = None
+    for i in range(n):
+        for j in range(i + 1, n):
+            total = float(np.minimum(dist[i], dist[j]).sum())
+            if best is None or total < best[0]:
+                best = (total, i, j)
+    assert best is not None
+    _, i, j = best
+    labels = (dist[:, j] < dist[:, i]).astype(int)
+    if labels[0] == 1:
+        labels = 1 - labels
+    if min(np.bincount(labels, minlength=2)) < smallest:
+        return None
+    return tuple(int(x) for x in labels)
+
+
+def spread(found: Sequence[Fold], taus: Taus, k: int) -> bool:
+    """Whether class ``k``'s left-out costs spread wider than its gap to wrong detections: some
+    motion of it found at a cost above one of its wrong detections', or never found."""
+    pos: list[float] = []
+    neg: list[float] = []
+    for f in found:
+        p, q = outcomes(f, taus)
+        for t, c in enumerate(f.owner):
+            if c == k:
+                pos += p[t]
+                neg += q[t]
+    return bool(pos) and (max(pos) == math.inf or (bool(neg) and max(pos) > min(neg)))
+
+
+# ------------------------------------------------------------------------------------ keyframes
+
+
+def retention(found: Sequence[Fold], k: int, g: Generalisation) -> list[float]:
+    """The share of the left-out examples of class ``k`` in which the keyframes learned with ``g``
+    have a hit, fold by fold (folds with such examples)."""
+    return [
+        float(t.positives.mean())
+        for f in found
+        for t in f.trials.get(k, ())
+        if t.generalisation == g and len(t.positives)
+    ]
+
+
+def detected(fold: Fold, taus: Taus, k: int) -> list[tuple[Candidate, int | None]]:
+    """Class ``k``'s detections in ``fold`` at thresholds ``taus`` (its candidates that
+    :func:`survivors` keeps, at most their template's τ), each with its motion (:func:`motion_of`;
+    None: wrong)."""
+    keep = survivors(fold, taus)
+    out = []
+    for x, ok in zip(fold.candidates, keep, strict=True):
+        t = taus[x.template]
+        if ok and fold.owner[x.template] == k and t is not None and x.cost <= t:
+            out.append((x, motion_of(fold, x)))
+    return out
+
+
+def gated(
+    found: Sequence[tuple[Candidate, int | None]], ranges: Sequence[tuple[int, int]]
+) -> list[tuple[Candidate, int | None]]:
+    """The detections that share a frame with one of the gate's ``ranges`` (the live gate)."""
+    return [(x, i) for x, i in found if any(a <= x.end and x.start <= b for a, b in ranges)]
+
+
+def choose_gate(
+    found: Sequence[Fold],
+    k: int,
+    taus: Sequence[float | None],
+    *,
+    rate: float = DEFAULT_INDEX_RATE,
+    max_gap_s: float = DEFAULT_MAX_GAP_S,
+    min_kept: float = MIN_KEPT,
+) -> tuple[Generalisation | None, str]:
+    """The keyframe gate of class ``k``, or None (the stream-wide DTW alone), and why.
+
+    In each fold, class ``k``'s detections at the thresholds ``taus`` are gated by the keyframes
+    learned in the fold with each :class:`~daemon.templates.Generalisation` tried
+    (:func:`daemon.recognizer.gate_ranges` over the fold's stream, gap cap ``max_gap_s``): a
+    generalisation qualifies when, in every fold, the gated detections still find at least
+    ``min_kept`` of the motions the ungated ones find, and over all folds they make fewer wrong
+    detections. The qualifying one with the fewest wrong detections, then the fewest examples of
+    other classes hit, then the earliest tried, is the gate. No wrong detection at all: no gate (it
+    could only lose motions)."""
+    base = {f.group: detected(f, taus, k) for f in found}
+    wrong = sum(i is None for d in base.values() for _, i in d)
+    if not found or not any(f.trials.get(k) for f in found):
+        return None, "no fold to learn keyframes on: stream-wide DTW"
+    if wrong == 0:
+        return None, "no wrong detection in the folds to keep out: stream-wide DTW"
+    max_gap = max(1, round(max_gap_s * rate))
+    tried = list(dict.fromkeys(t.generalisation for f in found for t in f.trials.get(k, ())))
+    best: tuple[int, int, int] | None = None
+    chosen = None
+    for order, g in enumerate(tried):
+        if min(retention(found, k, g), default=0.0) < min_kept:
+            continue  # it misses whole examples already
+        wrong_g = others = 0
+        for f in found:
+            trial = next((t for t in f.trials.get(k, ()) if t.generalisation == g), None)
+            if trial is None:
+                continue
+            kept = gated(base[f.group], gate_ranges(trial.query, rate, max_gap, f.codes.tolist()))
+            motions = {i for _, i in base[f.group] if i is not None}
+            if len({i for _, i in kept if i is not None}) < math.ceil(min_kept * len(motions) - 1e-9):
+                break
+            wrong_g += sum(i is None for _, i in kept)
+            others += trial.negatives
+        else:
+            if wrong_g < wrong and (best is None or (wrong_g, others, order) < best):
+                best, chosen = (wrong_g, others, order), g
+    if chosen is None or best is None:
+        return (
+            None,
+            f"no keyframes kept out any of {wrong} wrong detections without losing motions: stream-wide DTW",
+        )
+    return chosen, f"keyframes kept every motion found and {wrong - best[0]} of {wrong} wrong detections out"
+
+
+# ------------------------------------------------------------------------------------ the result
+
+
+@dataclass(frozen=True)
+class ClassCalibration:
+    """A class's :class:`Calibration`, its keyframe gate (None: recognised by the stream-wide DTW
+    alone) and why; with two templates, each example's template (``members``, 0 or 1, None: one
+    template) and the second one's calibration."""
+
+    calibration: Calibration
+    keyframes: Generalisation | None
+    reason: str
+    members: tuple[int, ...] | None = None
+    second: Calibration | None = None
+
+
+@dataclass(frozen=True)
+class Calibrated:
+    """Every class's :class:`ClassCalibration`, the folds they came from (with the templates
+    chosen), what the groups were and the position of τ with the nested folds' F1 of each."""
+
+    classes: Mapping[str, ClassCalibration]
+    folds: tuple[Fold, ...]
+    groups: str
+    position: float
+    position_f1: Mapping[float, float]
+
+
+def _record(
+    found: Sequence[Fold],
+    taus: Taus,
+    t: int,
+    choice: Choice,
+    groups_are: str,
+    position: float,
+    min_recall: float,
+) -> Calibration:
+    pos: list[float] = []
+    neg: list[float] = []
+    for f in found:
+        p, q = outcomes(f, taus)
+        pos += p[t]
+        neg += q[t]
     rule = f"best F1 with recall >= {min_recall:g}" if choice.feasible else "largest positive cost"
     method = (
-        f"leave-one-actor-out over {actors} actors ({len(found)} folds): {rule}, "
-        "midway to the next negative cost"
+        f"left-out streams of {len(found)} folds ({groups_are}): {rule}, {position:g} of the way to the "
+        "next wrong detection's cost"
     )
-    calibration = Calibration(
-        choice.tau, method, len(found), len(pos), len(neg), choice.recall, choice.precision
-    )
-    return ClassCalibration(calibration, generalisation, tuple(found))
+    return Calibration(choice.tau, method, len(found), len(pos), len(neg), choice.recall, choice.precision)
 
 
 def calibrate(
     examples: Labelled,
     *,
+    groups_are: str = "actors",
     tau: float = 0.1,
     delta: float = 0.1,
     keyframes: int = 3,
     steps: Steps = "toolbox",
     rate: float = DEFAULT_INDEX_RATE,
     min_recall: float = MIN_RECALL,
-) -> dict[str, ClassCalibration]:
-    """:func:`calibrate_class` for every class of ``examples``, in their order."""
-    return {
-        name: calibrate_class(
-            examples,
-            name,
-            tau=tau,
-            delta=delta,
-            keyframes=keyframes,
-            steps=steps,
-            rate=rate,
-            min_recall=min_recall,
+    min_kept: float = MIN_KEPT,
+    progress: Callable[[str], object] | None = None,
+) -> Calibrated:
+    """Every class's τ, templates and gate from the :func:`folds` of ``examples`` (grouped as
+    ``groups_are`` says, for the record); the learning parameters are those the classes will be
+    learned with.
+
+    1. τ of every class's template: :func:`choose_position`, then :func:`thresholds`.
+    2. Two templates for a class whose left-out costs :func:`spread` wider than its gap to wrong
+       detections: its examples split by :func:`two_clusters` (all of them, once, so a fold's
+       templates are the final ones' styles), in each fold one template learned from the training
+       examples of each style, every template's τ found again; kept if the class's F1 over the
+       folds (:func:`scored`) rises.
+    3. The keyframe gate of a class of one template (:func:`choose_gate`).
+
+    A class without a fold, or whose left-out motions never matched, keeps the given ``tau`` (and
+    says why)."""
+    names = list(examples)
+    found = folds(examples, delta=delta, keyframes=keyframes, steps=steps, rate=rate, progress=progress)
+    position, position_f1 = choose_position(found, min_recall=min_recall, fallback=tau)
+
+    def taus_of(folds_: Sequence[Fold]) -> list[float | None]:
+        chosen = thresholds(folds_, position=position, min_recall=min_recall, fallback=tau)
+        return [None if ch is None else ch.tau for ch in chosen]
+
+    choices = thresholds(found, position=position, min_recall=min_recall, fallback=tau)
+    taus: list[float | None] = [None if ch is None else ch.tau for ch in choices]
+    members: dict[int, tuple[int, ...]] = {}
+    for k, name in enumerate(names):
+        if not found or not spread(found, taus, k):
+            continue
+        labels = two_clusters([m for _, m in examples[name]])
+        if labels is None:
+            continue
+        changed = []
+        for f in found:
+            styles: list[MotionTemplate | None] = []
+            for style in (0, 1):
+                training = [
+                    m for (g, m), c in zip(examples[name], labels, strict=True) if g != f.group and c == style
+                ]
+                styles.append(learn(training, delta=delta, keyframes=0).quantised if training else None)
+            changed.append(with_members(f, k, styles, steps))
+        before = [sum(x) for x in zip(*(scored(f, taus, k) for f in found), strict=True)]
+        after_taus = taus_of(changed)
+        after = [sum(x) for x in zip(*(scored(f, after_taus, k) for f in changed), strict=True)]
+        styles_ok = all(
+            any(p and math.isfinite(min(p)) for f in changed for p in [outcomes(f, after_taus)[0][t]])
+            for t in range(len(changed[0].owner) - 2, len(changed[0].owner))
         )
-        for name in examples
-    }
-
-
-# ------------------------------------------------------------------- learned vs published keyframes
-
-
-@dataclass(frozen=True)
-class HeldOutKeyframes:
-    """Keyframes on one left-out actor's clips: ``kept`` of the ``clips`` of the class hold a hit
-    (a keyframe-search component inside the clip) and ``false`` of the ``others`` clips of other
-    classes do."""
-
-    actor: str
-    kept: int
-    clips: int
-    false: int
-    others: int
-
-
-def held_out_learned(found: ClassCalibration) -> list[HeldOutKeyframes]:
-    """The learned keyframes, generalised as calibration chose (``found.keyframes``), fold by fold:
-    in each fold learned on the other actors and run on the left-out actor's clips."""
-    out = []
-    for f in found.folds:
-        for t in f.trials:
-            if t.generalisation == found.keyframes:
-                kept, n = int(t.positives.sum()), len(t.positives)
-                others = len(f.negative_costs)
-                out.append(HeldOutKeyframes(f.actor, kept, n, t.negatives, others))
-    return out
-
-
-def held_out_query(
-    examples: Labelled,
-    name: str,
-    query: KeyframeQuery,
-    actors: Sequence[str],
-    rate: float = DEFAULT_INDEX_RATE,
-) -> list[HeldOutKeyframes]:
-    """A fixed keyframe ``query`` (e.g. the published one) on the clips :func:`folds` leaves out for
-    each of ``actors``: the actor's clips of class ``name`` and of the other classes."""
-    out = []
-    for actor in actors:
-        positives = [m for a, m in examples[name] if a == actor]
-        negatives = [m for other, items in examples.items() if other != name for a, m in items if a == actor]
-        kept = keyframes_kept(query, clip_sets(positives), rate)
-        false = keyframes_kept(query, clip_sets(negatives), rate)
-        out.append(HeldOutKeyframes(actor, int(kept.sum()), len(positives), int(false.sum()), len(negatives)))
-    return out
-
-
-def prefer_published(learned: Sequence[HeldOutKeyframes], published: Sequence[HeldOutKeyframes]) -> bool:
-    """Whether the published keyframes replace the learned ones: pooled over the same folds, they
-    keep at least as many left-out clips of the class and hit no more clips of other classes."""
-    kept = sum(h.kept for h in published) >= sum(h.kept for h in learned)
-    return kept and sum(h.false for h in published) <= sum(h.false for h in learned)
+        if styles_ok and f1(*after) > f1(*before):
+            found, taus = changed, after_taus
+            choices = thresholds(found, position=position, min_recall=min_recall, fallback=tau)
+            members[k] = labels
+            if progress is not None:
+                progress(
+                    f"class {name}: two templates (F1 over the folds {f1(*before):.2f} -> {f1(*after):.2f})"
+                )
+    out = {}
+    for k, name in enumerate(names):
+        held = [f for f in found if any(c == k for c, _, _ in f.truth) and k in f.learned]
+        templates = [t for t, c in enumerate(found[0].owner) if c == k] if found else [k]
+        if k in members:
+            gate, reason = None, "two templates, one per style: stream-wide DTW"
+        elif keyframes:
+            gate, reason = choose_gate(held, k, taus, rate=rate, min_kept=min_kept)
+        else:
+            gate, reason = None, "no keyframes asked for: stream-wide DTW"
+        records = []
+        for t in templates[-2:] if k in members else templates[:1]:
+            choice = choices[t] if t < len(choices) else None
+            if choice is None:
+                why = "no fold" if not held else f"no left-out motion matched in {len(held)} folds"
+                records.append(given(tau, f"{why}: nothing to calibrate on"))
+            else:
+                records.append(_record(held, taus, t, choice, groups_are, position, min_recall))
+        out[name] = ClassCalibration(
+            records[0],
+            gate,
+            reason,
+            members.get(k),
+            records[1] if k in members else None,
+        )
+    return Calibrated(out, tuple(found), groups_are, position, position_f1)

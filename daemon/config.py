@@ -18,7 +18,7 @@ import yaml
 
 from daemon.checks import Checker, read_structured
 from daemon.errors import MocapdError
-from daemon.types import DEFAULT_MAX_GAP_S, DEFAULT_NATIVE_RATE, MAX_NATIVE_RATE
+from daemon.types import DEFAULT_HOLD_S, DEFAULT_MAX_GAP_S, DEFAULT_NATIVE_RATE, MAX_NATIVE_RATE
 
 Units = Literal["asf", "cm"]
 LogLevel = Literal["debug", "info", "warning", "error"]
@@ -52,10 +52,13 @@ class ReplayConfig:
 @dataclass(frozen=True)
 class RecognizerConfig:
     """The live recogniser (:mod:`daemon.recognizer`): how far an unbounded keyframe gap (stiffness
-    0) may reach, in seconds; whether classes compete for a motion (the cheaper template wins)."""
+    0) may reach, in seconds; whether classes compete for a motion (the cheaper template wins); the
+    longest a detection is held while another template could still explain its motion more
+    cheaply, in seconds."""
 
     max_gap_s: float = field(default=DEFAULT_MAX_GAP_S, metadata=_positive(3600))
     compete: bool = True
+    hold_s: float = field(default=DEFAULT_HOLD_S, metadata=_range(0, 60))
 
 
 @dataclass(frozen=True)

@@ -201,7 +201,14 @@ class Alignment:
 
 def accumulated(cost: IntArray) -> IntArray:
     """Alg. 3.1: the accumulated cost matrix ``(M, N)`` of a fixed-point cost matrix, steps (1,0),
-    (0,1), (1,1), D(0,0) = C(0,0), first row and column accumulated."""
+    (0,1), (1,1), D(0,0) = C(0,0), first row and column accumulated (compiled,
+    :func:`daemon._dtw.accumulated`; :func:`accumulated_rows` is the same row by row in numpy)."""
+    return _dtw.accumulated(np.ascontiguousarray(cost, dtype=np.int64))
+
+
+def accumulated_rows(cost: IntArray) -> IntArray:
+    """:func:`accumulated` one row at a time: the diagonal and template steps from the row before,
+    the database step a min-plus prefix scan along the row."""
     m, n = cost.shape
     out = np.empty((m, n), dtype=np.int64)
     first = np.full(n, INF, dtype=np.int64)

@@ -53,7 +53,6 @@ from typing import Any
 
 import numpy as np
 
-from daemon.calibration import Calibration, given
 from daemon.checks import Checker
 from daemon.dtw import STEPS, Steps
 from daemon.errors import MocapdError
@@ -65,28 +64,63 @@ from daemon.templates import THESIS_KEYFRAMES, Generalisation, MotionTemplate, l
 from daemon.types import DEFAULT_INDEX_RATE, N_FEATURES, BoolArray
 
 FORMAT = "mocapd-templates"
-VERSION = 3
-VERSIONS = (2, 3)
+VERSION = 4
+VERSIONS = (2, 3, 4)
 LIBRARY_JSON = "library.json"
 WHAT = "a mocapd template library"
 ARRAYS = ("soft", "soft_weights", "quantised", "quantised_weights", "hard", "hard_weights")
 MAX_WEIGHT = 1.5
 """Every weight of a learned template is below this (:func:`daemon.templates.balance`)."""
 CLASS_KEYS_V2 = ("file", "sha256", "tau", "delta", "steps", "iterations", "training", "keyframes")
-CLASS_KEYS = (*CLASS_KEYS_V2, "calibration")
+CLASS_KEYS_V3 = (*CLASS_KEYS_V2, "calibration")
+CLASS_KEYS = (*CLASS_KEYS_V3, "mode", "mode_reason", "members")
 CALIBRATION_KEYS = ("method", "folds", "positives", "negatives", "recall", "precision")
+MEMBER_KEYS = ("tau", "calibration", "examples")
 CLASS_OPTIONAL = ("keyframe_source",)
-"""Optional fields of a version 3 class entry."""
+"""Optional fields of a version 3 or 4 class entry."""
 CLIP_KEYS_V2 = ("asf", "amc", "start_frame", "end_frame", "frames")
 V2_TAU = "a version 2 library"
 LEARNED = "learned"
 PUBLISHED = "published"
 KEYFRAME_SOURCES = (LEARNED, PUBLISHED)
 """Where a class's keyframes come from (``keyframe_source``)."""
+GATED = "keyframes"
+DTW = "dtw"
+MODES = (GATED, DTW)
+"""How the live recogniser finds a class's motions: a stream-wide DTW match counts only where a
+keyframe match of the class overlaps it (``keyframes``), or every one counts (``dtw``)."""
 DEFAULT_LIBRARY = "data/library"
 """The shipped library: this directory inside the ``daemon`` package (package data, installed with
 it; :func:`default_library_path`). Rebuilt by ``python -m bench.shipped_library``, which writes
 ``library.json``, one ``<class>.npz`` per class and ``training.csv``, the training manifest."""
+
+
+GIVEN = "given, not calibrated"
+
+
+@dataclass(frozen=True)
+class Calibration:
+    """How a class's retrieval threshold ``tau`` was obtained: ``method`` in words, the number of
+    ``folds`` (0: τ was given, not calibrated), the pooled ``positives`` (motions of the class in
+    the left-out streams) and ``negatives`` (wrong detections at the largest τ tried) and the
+    ``recall`` and ``precision`` τ gave on them (None when not calibrated)."""
+
+    tau: float
+    method: str
+    folds: int = 0
+    positives: int = 0
+    negatives: int = 0
+    recall: float | None = None
+    precision: float | None = None
+
+    @property
+    def calibrated(self) -> bool:
+        return self.folds > 0
+
+
+def given(tau: float, why: str = "") -> Calibration:
+    """A τ taken as given (``why``: the reason, shown after the method)."""
+    return Calibration(tau, f"{GIVEN} ({why})" if why else GIVEN)
 
 
 def default_library_path() -> Path:
@@ -113,6 +147,18 @@ class UnknownClassError(MocapdError, KeyError):
 
 
 @dataclass(frozen=True)
+class Variant:
+    """Another template of a class, for a style its own template does not cover: the quantised
+    template learned from some of the class's examples (``examples``: their indices in its
+    ``training``), with its own τ and how that was obtained."""
+
+    quantised: MotionTemplate
+    tau: float
+    calibration: Calibration
+    examples: tuple[int, ...]
+
+
+@dataclass(frozen=True)
 class ClassTemplate:
     """Everything retrieval and recognition need for one class."""
 
@@ -130,12 +176,30 @@ class ClassTemplate:
     """How ``tau`` was obtained; None: given, not calibrated (as :func:`daemon.calibration.given`)."""
     keyframe_source: str = LEARNED
     """Where ``keyframes`` come from, one of :data:`KEYFRAME_SOURCES`."""
+    mode: str = ""
+    """How the live recogniser finds the class, one of :data:`MODES` ("": keyframes if the class
+    has any, else dtw)."""
+    mode_reason: str = ""
+    """Why that mode (how learning chose it)."""
+    variants: tuple[Variant, ...] = ()
+    """More templates of the class beside ``quantised`` (one per style: learning chooses how many)."""
 
     def __post_init__(self) -> None:
         if self.keyframe_source not in KEYFRAME_SOURCES:
             raise ValueError(
                 f"keyframe_source must be one of {KEYFRAME_SOURCES}, got {self.keyframe_source!r}"
             )
+        if not self.mode:
+            object.__setattr__(self, "mode", DTW if self.keyframes is None else GATED)
+        if self.mode not in MODES:
+            raise ValueError(f"mode must be one of {MODES}, got {self.mode!r}")
+        if self.mode == GATED and self.keyframes is None:
+            raise ValueError(f"class {self.name}: the keyframes mode needs keyframes")
+
+    @property
+    def members(self) -> tuple[tuple[MotionTemplate, float], ...]:
+        """The class's templates and their τ, the quantised template first."""
+        return ((self.quantised, self.tau), *((v.quantised, v.tau) for v in self.variants))
 
     @property
     def provenance(self) -> Calibration:
@@ -175,6 +239,8 @@ def learn_class(
     rate: float = DEFAULT_INDEX_RATE,
     calibration: Calibration | None = None,
     generalisation: Generalisation = THESIS_KEYFRAMES,
+    mode: str = "",
+    mode_reason: str = "",
 ) -> ClassTemplate:
     """A class learned from its examples' ``(frames, 39)`` matrices at ``rate`` Hz: soft MT (toolbox
     strategy 5) and its quantisation by ``delta``, hard MT (thesis §3.3.1) and ``keyframes`` automatic
@@ -182,9 +248,11 @@ def learn_class(
     toolbox's (1,1), (1,2), (2,1) by default, whose slopes between ½ and 2 keep a template from
     matching a much shorter or longer stretch (README: on HDM05 they raise precision at τ = 0.1 from
     0.09-0.6 to 0.3-1 on the weakest classes at the same recall). ``calibration``: the class's
-    calibrated τ (:func:`daemon.calibration.calibrate_class`), which then replaces ``tau``; without
-    it, ``tau`` is recorded as given. ``generalisation``: how far the keyframes reach beyond the
-    training actors (:class:`daemon.templates.Generalisation`; calibration chooses it)."""
+    calibrated τ (:func:`daemon.calibration.calibrate`), which then replaces ``tau``; without it,
+    ``tau`` is recorded as given. ``generalisation``: how far the keyframes reach beyond the training
+    actors (:class:`daemon.templates.Generalisation`; calibration chooses it). ``mode`` and
+    ``mode_reason``: how the live recogniser finds the class and why (:data:`MODES`; "": keyframes
+    when there are any)."""
     learned = learn(
         [m for _, m in examples],
         delta=delta,
@@ -205,6 +273,8 @@ def learn_class(
         learned.soft.iterations,
         tuple(clip for clip, _ in examples),
         given(tau) if calibration is None else calibration,
+        mode=mode,
+        mode_reason=mode_reason,
     )
 
 
@@ -233,6 +303,9 @@ def _arrays(c: ClassTemplate) -> dict[str, np.ndarray]:
         "hard": c.hard.values,
         "hard_weights": c.hard.weights,
     }
+    for i, v in enumerate(c.variants, start=1):
+        arrays[f"member{i}"] = v.quantised.values
+        arrays[f"member{i}_weights"] = v.quantised.weights
     return {k: np.ascontiguousarray(v, dtype=np.float64) for k, v in arrays.items()}
 
 
@@ -266,6 +339,12 @@ def save_library(library: Library, path: str | Path, extra: Mapping[str, str] | 
             "iterations": c.iterations,
             "training": [vars(t) for t in c.training],
             "keyframes": [] if c.keyframes is None else keyframe_entries(c.keyframes),
+            "mode": c.mode,
+            "mode_reason": c.mode_reason,
+            "members": [
+                {"tau": v.tau, "calibration": _calibration_entry(v.calibration), "examples": list(v.examples)}
+                for v in c.variants
+            ],
         }
         if c.keyframe_source != LEARNED:
             meta["classes"][name]["keyframe_source"] = c.keyframe_source
@@ -308,7 +387,7 @@ def load_library(path: str | Path, names: Collection[str] | None = None) -> Libr
     for name in wanted:
         where = f"classes.{name}"
         e = entries[name]
-        soft, quantised, hard = _templates(path / e["file"], e["sha256"])
+        soft, quantised, hard, members = _templates(path / e["file"], e["sha256"], len(e["members"]))
         keyframes = None
         if e["keyframes"]:
             keyframes = parse_keyframes(e["keyframes"], check, f"{where}.keyframes", name, rate, hard.length)
@@ -325,6 +404,12 @@ def load_library(path: str | Path, names: Collection[str] | None = None) -> Libr
             e["training"],
             e["calibration"],
             e["keyframe_source"],
+            e["mode"],
+            e["mode_reason"],
+            tuple(
+                Variant(t, m["tau"], m["calibration"], m["examples"])
+                for t, m in zip(members, e["members"], strict=True)
+            ),
         )
     return Library(rate, classes)
 
@@ -375,6 +460,8 @@ def _read(path: Path) -> tuple[Checker, float, dict[str, dict[str, Any]]]:
             check.fail(where, "a class name uses letters, digits, '_', '.', '-'")
         if version == VERSION:
             e = dict(check.mapping(entry, where, CLASS_KEYS, CLASS_OPTIONAL))
+        elif version == 3:
+            e = dict(check.mapping(entry, where, CLASS_KEYS_V3, CLASS_OPTIONAL))
         else:
             e = dict(check.mapping(entry, where, CLASS_KEYS_V2))
         e["keyframe_source"] = check.choice(
@@ -382,26 +469,50 @@ def _read(path: Path) -> tuple[Checker, float, dict[str, dict[str, Any]]]:
         )
         if e["file"] != f"{name}.npz":
             check.fail(f"{where}.file", f"must be '{name}.npz', got {e['file']!r:.60}")
-        sums = check.mapping(e["sha256"], f"{where}.sha256", ARRAYS)
-        for a in ARRAYS:
+        members = check.listing(e.get("members", []), f"{where}.members")
+        arrays = (*ARRAYS, *(f"member{i}{w}" for i in range(1, len(members) + 1) for w in ("", "_weights")))
+        sums = check.mapping(e["sha256"], f"{where}.sha256", arrays)
+        for a in arrays:
             check.string(sums[a], f"{where}.sha256.{a}")
         e["tau"] = check.positive_number(e["tau"], f"{where}.tau")
         e["delta"] = check.number(e["delta"], f"{where}.delta", low=0, high=0.5, high_open=True)
         check.choice(e["steps"], f"{where}.steps", STEPS)
         e["iterations"] = check.integer(e["iterations"], f"{where}.iterations")
         e["training"] = _training(check, e["training"], f"{where}.training", version)
-        if version == VERSION:
+        if version >= 3:
             e["calibration"] = _calibration(check, e["calibration"], f"{where}.calibration", e["tau"])
         else:
             e["calibration"] = given(e["tau"], V2_TAU)
         check.listing(e["keyframes"], f"{where}.keyframes")
+        if version == VERSION:
+            check.choice(e["mode"], f"{where}.mode", MODES)
+            if e["mode"] == GATED and not e["keyframes"]:
+                check.fail(f"{where}.mode", "the keyframes mode needs keyframes")
+            if not isinstance(e["mode_reason"], str):
+                check.fail(f"{where}.mode_reason", f"must be a string, got {e['mode_reason']!r:.60}")
+        else:  # gated by their keyframes, as those versions were recognised
+            e["mode"], e["mode_reason"] = "", ""
+        e["members"] = [
+            _member(check, m, f"{where}.members[{i}]", len(e["training"])) for i, m in enumerate(members)
+        ]
         entries[name] = e
     return check, rate, entries
 
 
+def _member(check: Checker, value: object, where: str, clips: int) -> dict[str, Any]:
+    m = dict(check.mapping(value, where, MEMBER_KEYS))
+    m["tau"] = check.positive_number(m["tau"], f"{where}.tau")
+    m["calibration"] = _calibration(check, m["calibration"], f"{where}.calibration", m["tau"])
+    examples = check.listing(m["examples"], f"{where}.examples", nonempty=True)
+    m["examples"] = tuple(
+        check.integer(x, f"{where}.examples[{i}]", maximum=clips - 1) for i, x in enumerate(examples)
+    )
+    return m
+
+
 def _training(check: Checker, value: object, where: str, version: int) -> tuple[TrainingClip, ...]:
     out = []
-    keys = CLIP_KEYS_V2 if version < VERSION else (*CLIP_KEYS_V2, "actor")
+    keys = CLIP_KEYS_V2 if version < 3 else (*CLIP_KEYS_V2, "actor")
     for i, item in enumerate(check.listing(value, where)):
         here = f"{where}[{i}]"
         t = check.mapping(item, here, keys)
@@ -414,7 +525,11 @@ def _training(check: Checker, value: object, where: str, version: int) -> tuple[
     return tuple(out)
 
 
-def _templates(file: Path, sums: Mapping[str, str]) -> tuple[MotionTemplate, MotionTemplate, MotionTemplate]:
+def _templates(
+    file: Path, sums: Mapping[str, str], members: int = 0
+) -> tuple[MotionTemplate, MotionTemplate, MotionTemplate, list[MotionTemplate]]:
+    """The soft, quantised and hard templates of a class file and its ``members`` other quantised
+    templates, their checksums and values checked."""
     if not file.is_file():
         raise LibraryFormatError("missing", path=file)
     try:
@@ -423,14 +538,16 @@ def _templates(file: Path, sums: Mapping[str, str]) -> tuple[MotionTemplate, Mot
     except Exception as exc:  # any failure to decode an untrusted file means the file is damaged
         reason = str(exc).split("\n")[0] or type(exc).__name__
         raise LibraryFormatError(f"not a readable .npz: {reason}", path=file) from None
-    missing = [a for a in ARRAYS if a not in arrays]
+    kinds = ["soft", "quantised", "hard", *(f"member{i}" for i in range(1, members + 1))]
+    names = [n for kind in kinds for n in (kind, f"{kind}_weights")]
+    missing = [a for a in names if a not in arrays]
     if missing:
         raise LibraryFormatError(f"missing arrays {', '.join(missing)}", path=file)
-    for a in ARRAYS:
+    for a in names:
         if checksum(arrays[a]) != sums[a]:
             raise LibraryFormatError(f"{a}: SHA-256 differs from library.json's", path=file)
     out = []
-    for kind in ("soft", "quantised", "hard"):
+    for kind in kinds:
         values, weights = arrays[kind], arrays[f"{kind}_weights"]
         if values.dtype != np.float64 or values.ndim != 2 or values.shape[0] != N_FEATURES:
             raise LibraryFormatError(
@@ -458,4 +575,4 @@ def _templates(file: Path, sums: Mapping[str, str]) -> tuple[MotionTemplate, Mot
         elif not np.all(np.isin(values, (0.0, 0.5, 1.0))):
             raise LibraryFormatError(f"{kind}: values must be 0, 0.5 or 1", path=file)
         out.append(MotionTemplate(values, weights))
-    return out[0], out[1], out[2]
+    return out[0], out[1], out[2], out[3:]

@@ -43,8 +43,8 @@ import weakref
 from collections import deque
 from collections.abc import Collection, Sequence
 from dataclasses import dataclass
-from itertools import islice
-from typing import Any, Literal
+from itertools import accumulate
+from typing import Any, Literal, NamedTuple
 
 import numpy as np
 import numpy.typing as npt
@@ -53,24 +53,15 @@ from daemon._automaton import AutomatonSet
 from daemon._dtw import StreamDTW
 from daemon._live import NON_FINITE, LiveStream
 from daemon.automaton import KeyframeAutomaton
-from daemon.dtw import (
-    Match,
-    RetrievalTables,
-    Steps,
-    pack,
-    retrieval_tables,
-    subsequence_minima,
-    suppress,
-    threshold,
-)
+from daemon.dtw import SCALE, Match, RetrievalTables, Steps, pack, retrieval_tables, threshold
 from daemon.errors import MocapdError
 from daemon.features import FeatureStream, decimation_factor, features, latency_frames
-from daemon.keyframes import query_bounds
-from daemon.library import ClassTemplate, Library
+from daemon.keyframes import KeyframeQuery
+from daemon.library import GATED, ClassTemplate, Library
 from daemon.recordings import joint_positions
-from daemon.retrieval import keyframe_extension
 from daemon.templates import expand
 from daemon.types import (
+    DEFAULT_HOLD_S,
     DEFAULT_MAX_GAP_S,
     MAX_NATIVE_RATE,
     FloatArray,
@@ -124,20 +115,30 @@ class Detection:
 
 
 @dataclass(frozen=True)
-class ClassPlan:
-    """What a stream needs of one class, at the library's rate: the expanded quantised template
-    (``values`` shape ``(39, M)``, ``weights`` ``(M,)``, its cost ``tables``), τ, the DTW steps, the
-    keyframe query with its gap cap, a match's window widening (``left``, ``right``) and ``span``,
-    the most frames a match's range reaches before its last keyframe (Σ dmax)."""
+class MemberPlan:
+    """One template of a class, prepared: the expanded quantised template (``values`` shape
+    ``(39, M)``, ``weights`` ``(M,)``), its cost ``tables`` and its τ."""
 
-    template: ClassTemplate
     values: FloatArray
     weights: FloatArray
     tables: RetrievalTables
+    tau: float
+
+    @property
+    def length(self) -> int:
+        return int(self.weights.shape[0])
+
+
+@dataclass(frozen=True)
+class ClassPlan:
+    """What a stream needs of one class, at the library's rate: its templates (``members``, the
+    class's own first), whether its keyframes gate its matches (``gated``) and the keyframe query's
+    gap cap in frames."""
+
+    template: ClassTemplate
+    members: tuple[MemberPlan, ...]
+    gated: bool
     max_gap: int
-    left: int
-    right: int
-    span: int
 
     @property
     def name(self) -> str:
@@ -151,19 +152,29 @@ class ClassPlan:
     def steps(self) -> Steps:
         return self.template.steps
 
-    @property
-    def window(self) -> int:
-        """The most frames a window spans: a match's whole range, widened."""
-        return self.span + self.left + self.right + 1
-
-    @property
-    def period(self) -> int:
-        """Frames between the windows of a match whose last keyframe keeps holding (half a window)."""
-        return max(1, self.window // 2)
-
     def automaton(self, rate: float) -> KeyframeAutomaton:
+        """The class's keyframe automaton reporting every match whose range still grows, each frame."""
         assert self.template.keyframes is not None
-        return KeyframeAutomaton(self.template.keyframes, rate, self.max_gap, self.period, components=False)
+        return gate_automaton(self.template.keyframes, rate, self.max_gap)
+
+
+def gate_automaton(query: KeyframeQuery, rate: float, max_gap: int) -> KeyframeAutomaton:
+    """The automaton of a keyframe gate: every match reported at each frame its range R(M) reaches,
+    from the frame that completes it while its last keyframe holds (period 1, no Ω^Z components)."""
+    return KeyframeAutomaton(query, rate, max_gap, 1, components=False)
+
+
+def gate_ranges(
+    query: KeyframeQuery, rate: float, max_gap: int, codes: Sequence[int]
+) -> list[tuple[int, int]]:
+    """The ranges a keyframe gate opens over a stream of index-rate ``codes``: (start of R(M),
+    frame) for every frame that :func:`gate_automaton` reports a match at, in order."""
+    automaton = gate_automaton(query, rate, max_gap)
+    out = []
+    for j, code in enumerate(codes):
+        automaton.push(code)
+        out += [(first, j) for first, _ in automaton.reached]
+    return out
 
 
 _PLANS: dict[tuple[int, tuple[str, ...] | None, float], tuple[weakref.ref[Library], tuple[ClassPlan, ...]]]
@@ -173,9 +184,9 @@ _PLANS = {}
 def plans(
     library: Library, classes: Collection[str] | None = None, *, max_gap_s: float = DEFAULT_MAX_GAP_S
 ) -> tuple[ClassPlan, ...]:
-    """The plans of ``classes`` (None: all, in the library's order); ValueError for a class without
-    keyframes (it could never be a candidate) or a gap cap out of range. Made once per library
-    object and settings (a stream joining a service costs no template preparation)."""
+    """The plans of ``classes`` (None: all, in the library's order); ValueError for a gap cap out of
+    range. Made once per library object and settings (a stream joining a service costs no template
+    preparation)."""
     if not (math.isfinite(max_gap_s) and max_gap_s > 0):
         raise ValueError(f"max_gap_s must be positive seconds, got {max_gap_s}")
     names = list(library.classes) if classes is None else list(classes)
@@ -193,101 +204,107 @@ def _make_plans(library: Library, names: Sequence[str], max_gap_s: float) -> tup
     out = []
     for name in names:
         cls = library.get(name)
-        if cls.keyframes is None:
-            raise ValueError(f"class {name} has no keyframes: learn it with --keyframes to recognise it live")
-        t = expand(cls.quantised)
-        max_gap = max(1, round(max_gap_s * rate))
-        left, right = keyframe_extension(cls.keyframes, cls.quantised.length, rate)
-        span = sum(hi for _, hi in query_bounds(cls.keyframes, rate, max_gap) if hi is not None)
-        tables = retrieval_tables(t.values, t.weights)
-        out.append(ClassPlan(cls, t.values, t.weights, tables, max_gap, left, right, span))
+        members = []
+        for template, tau in cls.members:
+            t = expand(template)
+            members.append(MemberPlan(t.values, t.weights, retrieval_tables(t.values, t.weights), tau))
+        out.append(ClassPlan(cls, tuple(members), cls.mode == GATED, max(1, round(max_gap_s * rate))))
     return tuple(out)
 
 
-def ring_size(class_plans: Sequence[ClassPlan]) -> int:
-    """Index-rate frames a stream keeps: the widest window of any class."""
-    return max((p.window for p in class_plans), default=1)
-
-
-def confirm(plan: ClassPlan, codes: npt.NDArray[np.uint64]) -> list[Match]:
-    """The DTW confirmations of ``plan``'s class in a window of codes shape ``(n,)``: local minima of
-    the subsequence DTW (compiled, :func:`daemon.dtw.subsequence_minima`) at or below τ, suppressed
-    as the toolbox does (window columns)."""
-    return suppress(subsequence_minima(plan.tables, codes, plan.tau, plan.steps))
+def reach(class_plans: Sequence[ClassPlan], hold: int) -> int:
+    """Index-rate frames before the frame that emits it that a detection may start at, at most: a
+    match spans at most twice its template's columns (the toolbox's steps; longer matches under the
+    thesis' are forgotten as rivals after that long too), then it is held ``hold`` frames after the
+    frame that found it."""
+    return max((2 * m.length for p in class_plans for m in p.members), default=1) + hold + 2
 
 
 def same_motion(a: tuple[int, int], b: tuple[int, int]) -> bool:
-    """Whether two ranges (inclusive) of one class are one motion: they share more than half of the
-    shorter one's frames. DTW matches of consecutive repetitions may share a frame or two of the
-    pose between them (it fits the end of one template and the start of the next)."""
+    """Whether two ranges (inclusive) are one motion: they share more than half of the shorter
+    one's frames. DTW matches of consecutive repetitions may share a frame or two of the pose
+    between them (it fits the end of one template and the start of the next)."""
     shared = min(a[1], b[1]) - max(a[0], b[0]) + 1
     return 2 * shared > min(a[1] - a[0], b[1] - b[0]) + 1
 
 
-def keep_apart(hits: Sequence[Match], published: Sequence[tuple[int, int]]) -> list[Match]:
-    """``hits`` by increasing cost, each kept unless it is the :func:`same_motion` as one kept or
-    ``published``; sorted by start."""
-    taken = list(published)
-    kept = []
-    for m in sorted(hits, key=lambda m: (m.cost, m.start)):
-        if not any(same_motion((m.start, m.end), r) for r in taken):
-            kept.append(m)
-            taken.append((m.start, m.end))
-    return sorted(kept, key=lambda m: m.start)
+class _Candidate(NamedTuple):
+    """A local minimum of one template's stream-wide Δ: fixed-point ``cost``, ``end``, the template
+    (``member``, numbered over all classes' templates) and ``start``; ordered by (cost, end,
+    member), the order in which candidates beat each other."""
+
+    cost: int
+    end: int
+    member: int
+    start: int
 
 
-class _ClassTrack:
-    """One class on one stream: the windows waiting for their last frame (in the order they are
-    confirmed) and the ranges emitted that a later window could still overlap."""
-
-    __slots__ = ("pending", "plan", "published")
-
-    def __init__(self, plan: ClassPlan) -> None:
-        self.plan = plan
-        self.pending: deque[tuple[int, int]] = deque()
-        self.published: list[tuple[int, int]] = []
+Confirmation = tuple[ClassPlan, Match, float]
+"""A detection in index-rate frames: its class, its match and the τ of the template that made it."""
 
 
 class CodeRecognizer:
-    """Candidates and confirmations over a stream of index-rate frame codes: ``push(code)`` returns
-    the confirmations it made, as (class plan, match in stream frames); ``flush()`` ends the stream.
-    The part of :class:`Recognizer` after the features, shared with :func:`detect`.
+    """Detections over a stream of index-rate frame codes: ``push(code)`` returns the confirmations
+    it made, ``flush()`` ends the stream. The part of :class:`Recognizer` after the features, shared
+    with :func:`detect`.
 
-    Each keyframe match (Alg. 4.1's matches, as the automaton completes them) opens a window, its
-    range R(M) so far widened by the plan's ``left`` and ``right`` frames (its last ``window``
-    frames), confirmed when its last frame arrives: ``right`` frames after the match's last keyframe,
-    whatever comes after. While the last keyframe keeps holding (a long run, e.g. a pose shared by
-    a series of repetitions), the match opens another window every ``period`` frames. The windows a
-    class opens at one frame are one window, the widest.
+    *Candidates.* Every template of every class runs as a subsequence DTW over the whole stream, one
+    column per frame (:class:`daemon._dtw.StreamDTW`; thesis Alg. 3.2 with free start, the retrieval
+    cost and steps of :func:`daemon.retrieval.template_search`). Each local minimum of a template's
+    Δ at or below its τ (below the frame before, not above the frame after) is a candidate, known
+    one frame after its end.
 
-    With ``compete`` (the default), classes compete for a motion: a confirmation is dropped when
-    another class's template matches the same motion more cheaply. Every class's template runs as
-    a subsequence DTW over the whole stream, one column per frame (:class:`daemon._dtw.StreamDTW`,
-    the cells of :func:`confirm`'s pass); a confirmation ``m`` of one class due at frame ``j`` is
-    beaten when another class's Δ has a local minimum (below the frame before, not above the frame
-    after if it has come) at some frame from ``m.start`` to ``j``, at or below that class's τ and
-    below ``m``'s cost, whose match is the :func:`same_motion` as ``m``. A class's own detector
-    cannot tell a squat from a knee raise; the cheaper template is the better explanation."""
+    *One motion, one detection.* A candidate is beaten by any candidate that comes before it in the
+    order (cost, end, template) and is the :func:`same_motion`: of another class when classes
+    ``compete`` (the cheaper template is the better explanation), of its own class always (one
+    detection per motion). A candidate that is not beaten is held until no template can still end
+    a match that would beat it (:meth:`daemon._dtw.StreamDTW.blocks`: costs only grow along a DTW
+    path, so a cell already above its cost cannot), or until ``hold`` frames after the frame that
+    found it, whichever comes first; then it is published, unless its class is ``gated`` and no
+    keyframe match of the class (below) overlaps it, or it is the same motion as a detection
+    already published (after the hold ran out). Candidates and keyframe matches are remembered for
+    :func:`reach` frames.
 
-    def __init__(self, class_plans: Sequence[ClassPlan], rate: float, *, compete: bool = True) -> None:
+    *The keyframe gate.* A gated class's automaton reports each keyframe match (Alg. 4.1's matches,
+    :class:`~daemon.automaton.KeyframeAutomaton`) at the frame that completes it and at every frame
+    after while its last keyframe holds, with the start of its hit-relevant range R(M): a candidate
+    of the class passes when one of these ranges (start to the frame reported at), reported by the
+    time it is decided, shares a frame with it (:func:`gate_ranges`)."""
+
+    def __init__(
+        self, class_plans: Sequence[ClassPlan], rate: float, *, compete: bool = True, hold: int = 0
+    ) -> None:
+        if hold < 0:
+            raise ValueError(f"hold must not be negative, got {hold}")
         self.plans = tuple(class_plans)
         self.rate = rate
-        self._ring: deque[int] = deque(maxlen=ring_size(self.plans))
-        self._compete = (
+        self.compete = compete
+        self.hold = hold
+        self._owner = [k for k, p in enumerate(self.plans) for _ in p.members]
+        first = list(accumulate((len(p.members) for p in self.plans), initial=0))
+        # the templates a candidate's rivals come from: all, or its own class's
+        self._rivals = [(0, len(self._owner)) if compete else (first[k], first[k + 1]) for k in self._owner]
+        self._taus = [m.tau for p in self.plans for m in p.members]
+        self._dtw = (
             StreamDTW(
                 [
-                    (p.tables.masks, p.tables.values, p.tables.tables, threshold(p.tau), p.steps == "toolbox")
+                    (m.tables.masks, m.tables.values, m.tables.tables, threshold(m.tau), p.steps == "toolbox")
                     for p in self.plans
-                ],
-                ring_size(self.plans) + 1,
+                    for m in p.members
+                ]
             )
-            if compete and len(self.plans) > 1
+            if self.plans
             else None
         )
-        self._tracks = [_ClassTrack(p) for p in self.plans]
-        # every class's automaton, stepped in one compiled call per frame
-        self._automata = AutomatonSet([p.automaton(rate).core for p in self.plans])
-        self._next_due = _NEVER  # the earliest frame a pending window is due at
+        self._gated = [k for k, p in enumerate(self.plans) if p.gated]
+        self._automata = (
+            AutomatonSet([self.plans[k].automaton(rate).core for k in self._gated]) if self._gated else None
+        )
+        self._windows: dict[int, deque[tuple[int, int]]] = {k: deque() for k in self._gated}
+        self._memory = reach(self.plans, hold)
+        self._held: list[_Candidate] = []
+        self._recent: deque[_Candidate] = deque()
+        self._published: deque[tuple[int, int, int]] = deque()  # (start, end, class)
         self._n = 0
 
     @property
@@ -295,64 +312,99 @@ class CodeRecognizer:
         """Index-rate frames pushed since the stream began."""
         return self._n
 
-    def push(self, code: int) -> list[tuple[ClassPlan, Match]]:
+    def push(self, code: int) -> list[Confirmation]:
         j = self._n
+        if self._dtw is None:
+            self._n += 1
+            return []
+        found = self._dtw.push(code)
         self._n += 1
-        self._ring.append(code)
-        if self._compete is not None:
-            self._compete.push(code)
-        for k, reached in self._automata.push(code):
-            track = self._tracks[k]
-            p = track.plan
-            end = j + p.right
-            track.pending.append(
-                (min(max(0, first - p.left, end - p.window + 1) for first, _ in reached), end)
-            )
-            self._next_due = min(self._next_due, end)
-        return [] if j < self._next_due else self._confirm(j, False)
+        if self._automata is not None:
+            for i, reached in self._automata.push(code):
+                w = self._windows[self._gated[i]]
+                for first, _ in reached:
+                    if w and w[-1] == (first, j - 1):  # the same match, its range grown by a frame
+                        w[-1] = (first, j)
+                    else:
+                        w.append((first, j))
+        if found is not None:
+            for c in sorted(_Candidate(d, e, u, s) for u, s, e, d in found):
+                self._arrive(c)
+        out = self._decide(j, False) if self._held else []
+        self._forget(j)
+        return out
 
-    def flush(self) -> list[tuple[ClassPlan, Match]]:
-        self._automata.flush()
-        out = self._confirm(self._n - 1, True)
-        for track in self._tracks:
-            track.published.clear()
-        self._ring.clear()
-        if self._compete is not None:
-            self._compete.reset()
+    def flush(self) -> list[Confirmation]:
+        out: list[Confirmation] = []
+        if self._dtw is not None and self._n:
+            found = self._dtw.finish()
+            if found is not None:
+                for c in sorted(_Candidate(d, e, u, s) for u, s, e, d in found):
+                    self._arrive(c)
+            out = self._decide(self._n - 1, True)
+            self._dtw.reset()
+        if self._automata is not None:
+            self._automata.flush()
+        for w in self._windows.values():
+            w.clear()
+        self._held.clear()
+        self._recent.clear()
+        self._published.clear()
         self._n = 0
         return out
 
-    def _confirm(self, j: int, ended: bool) -> list[tuple[ClassPlan, Match]]:
-        """Every window due at frame ``j`` (all, if the stream ``ended``) confirmed and kept apart
-        from its class's detections."""
-        base = self._n - len(self._ring)
+    def _rival(self, x: _Candidate, y: _Candidate) -> bool:
+        """Whether ``x`` and ``y`` may beat one another: the same motion, of one class or competing."""
+        return (self.compete or self._owner[x.member] == self._owner[y.member]) and same_motion(
+            (x.start, x.end), (y.start, y.end)
+        )
+
+    def _arrive(self, y: _Candidate) -> None:
+        """A new candidate: remembered as a rival; held unless something before it beats it or it is
+        a motion already published; a held one it beats is dropped."""
+        beaten = any(x < y and self._rival(x, y) for x in self._recent)
+        self._recent.append(y)
+        k = self._owner[y.member]
+        if beaten or any(
+            (self.compete or c == k) and same_motion((y.start, y.end), (a, b)) for a, b, c in self._published
+        ):
+            return
+        self._held = [x for x in self._held if not (y < x and self._rival(x, y))]
+        self._held.append(y)
+
+    def _decide(self, j: int, ended: bool) -> list[Confirmation]:
+        """The held candidates that frame ``j`` (the stream's last, if it ``ended``) makes final:
+        those published, in the order (end, start, class)."""
+        assert self._dtw is not None
+        final, keep = [], []
+        for x in self._held:
+            lo, hi = self._rivals[x.member]
+            if ended or j > x.end + self.hold or not self._dtw.blocks(x.cost, x.start, x.end, lo, hi):
+                final.append(x)
+            else:
+                keep.append(x)
+        self._held = keep
         out = []
-        rivals = self._compete
-        self._next_due = _NEVER
-        for k, track in enumerate(self._tracks):
-            pending = track.pending
-            if pending and (ended or pending[0][1] <= j):
-                p = track.plan
-                # no later window starts before this one: its match completes after j - right
-                track.published = [r for r in track.published if r[1] >= j - p.right - p.span - p.left]
-                while pending and (ended or pending[0][1] <= j):
-                    a, b = pending.popleft()
-                    b = min(b, j)
-                    if a < base:  # cannot happen: ring_size covers every window
-                        raise AssertionError(f"window {a}..{b} left the ring (from {base})")
-                    window = np.fromiter(islice(self._ring, a - base, b - base + 1), np.uint64, b - a + 1)
-                    shifted = [Match(m.start + a, m.end + a, m.cost) for m in confirm(p, window)]
-                    for m in keep_apart(shifted, track.published):
-                        if rivals is not None and rivals.beaten(k, m.start, m.end, threshold(m.cost)):
-                            continue
-                        track.published.append((m.start, m.end))
-                        out.append((p, m))
-            if pending:
-                self._next_due = min(self._next_due, pending[0][1])
+        for x in sorted(final, key=lambda x: (x.end, x.start, self._owner[x.member])):
+            k = self._owner[x.member]
+            if k in self._windows and not any(a <= x.end and x.start <= b for a, b in self._windows[k]):
+                continue
+            self._published.append((x.start, x.end, k))
+            out.append((self.plans[k], Match(x.start, x.end, x.cost / SCALE), self._taus[x.member]))
         return out
 
-
-_NEVER = 1 << 62
+    def _forget(self, j: int) -> None:
+        """Drop what no candidate after frame ``j`` can be compared with: rivals and published
+        detections that end more than :func:`reach` frames back (a later candidate cannot overlap
+        them), and keyframe matches as long."""
+        forget = j - self._memory
+        while self._recent and self._recent[0].end < forget:
+            self._recent.popleft()
+        while self._published and self._published[0][1] < forget:
+            self._published.popleft()
+        for w in self._windows.values():
+            while w and w[0][1] < forget:
+                w.popleft()
 
 
 class Recognizer:
@@ -375,6 +427,7 @@ class Recognizer:
         classes: Collection[str] | None = None,
         max_gap_s: float = DEFAULT_MAX_GAP_S,
         compete: bool = True,
+        hold_s: float = DEFAULT_HOLD_S,
         session: str | None = None,
         model: KinematicModel | None = None,
         joint_names: Sequence[str] | None = None,
@@ -407,7 +460,9 @@ class Recognizer:
             self._live = LiveStream(
                 None, features.core, features.thresholds_of, order, 3 * self._width, self._step
             )
-        self._codes = CodeRecognizer(self._plans, library.rate, compete=compete)
+        self._codes = CodeRecognizer(
+            self._plans, library.rate, compete=compete, hold=hold_frames(hold_s, library.rate)
+        )
         self._first: int | None = None  # native frame numbers of the stream's first and last frame
         self._last: int | None = None
 
@@ -430,9 +485,9 @@ class Recognizer:
 
     @property
     def latency_frames(self) -> int:
-        """Native frames from a keyframe match's last keyframe to its confirmation, at most: the
-        features' delay, then the widest right widening of a class at the library's rate."""
-        return self._features_latency + max((p.right for p in self._plans), default=0) * self._step
+        """Native frames from a detection's last frame to its emission, at most: the features'
+        delay, the frame after it that shows Δ's minimum, then the hold."""
+        return self._features_latency + (self._codes.hold + 2) * self._step
 
     def push(self, number: int, frame: npt.ArrayLike) -> list[Detection]:
         """Add frame ``number``; the detections it completed."""
@@ -480,10 +535,10 @@ class Recognizer:
         self._last = number
         return [] if code < 0 else self._detections(self._codes.push(code), number)
 
-    def _detections(self, found: Sequence[tuple[ClassPlan, Match]], number: int) -> list[Detection]:
+    def _detections(self, found: Sequence[Confirmation], number: int) -> list[Detection]:
         first = self._first
         assert first is not None
-        return [make_detection(self.session, self.stream, p, m, first, self._step, number) for p, m in found]
+        return [make_detection(self.session, self.stream, c, first, self._step, number) for c in found]
 
 
 def skeleton_model(skeleton: Skeleton) -> KinematicModel:
@@ -563,18 +618,26 @@ def non_finite_pose(number: int, stream: str) -> FrameError:
     return FrameError(f"frame {number}: a joint position is not finite", "non_finite", stream=stream)
 
 
+def hold_frames(hold_s: float, rate: float) -> int:
+    """The hold in frames at ``rate`` Hz; ValueError unless ``hold_s`` is seconds >= 0."""
+    if not (math.isfinite(hold_s) and hold_s >= 0):
+        raise ValueError(f"hold_s must be seconds >= 0, got {hold_s}")
+    return round(hold_s * rate)
+
+
 def make_detection(
-    session: str, stream: str, plan: ClassPlan, m: Match, first: int, step: int, number: int
+    session: str, stream: str, found: Confirmation, first: int, step: int, number: int
 ) -> Detection:
-    """A confirmation ``m`` (index-rate frames) as a :class:`Detection` in the source's frame
-    numbers: index frame j covers native frames ``first + j·step`` .. ``first + (j+1)·step - 1``,
-    the end capped by the frame ``number`` being pushed (the features' delay makes it later than
-    every covered frame but at the stream's end)."""
+    """A confirmation (index-rate frames) as a :class:`Detection` in the source's frame numbers:
+    index frame j covers native frames ``first + j·step`` .. ``first + (j+1)·step - 1``, the end
+    capped by the frame ``number`` being pushed (the features' delay makes it later than every
+    covered frame but at the stream's end)."""
+    plan, m, tau = found
     start = first + m.start * step
     end = min(first + (m.end + 1) * step - 1, number)
     key = f"{session}/{stream}/{plan.name}/{start}/{end}"
     return Detection(
-        str(uuid.uuid5(uuid.NAMESPACE_URL, key)), stream, plan.name, start, end, m.cost, plan.tau, number
+        str(uuid.uuid5(uuid.NAMESPACE_URL, key)), stream, plan.name, start, end, m.cost, tau, number
     )
 
 
@@ -587,6 +650,7 @@ def detect(
     classes: Collection[str] | None = None,
     max_gap_s: float = DEFAULT_MAX_GAP_S,
     compete: bool = True,
+    hold_s: float = DEFAULT_HOLD_S,
     session: str = "",
 ) -> list[Detection]:
     """The batch twin of :class:`Recognizer`: every detection of ``motion`` (read at ``native_rate``
@@ -601,6 +665,7 @@ def detect(
         classes=classes,
         max_gap_s=max_gap_s,
         compete=compete,
+        hold_s=hold_s,
         session=session,
     )
 
@@ -615,6 +680,7 @@ def detect_positions(
     classes: Collection[str] | None = None,
     max_gap_s: float = DEFAULT_MAX_GAP_S,
     compete: bool = True,
+    hold_s: float = DEFAULT_HOLD_S,
     session: str = "",
 ) -> list[Detection]:
     """:func:`detect` of standard joint positions shape ``(N, 26, 3)`` with frame numbers ``(N,)``
@@ -625,13 +691,18 @@ def detect_positions(
     step = decimation_factor(native_rate, library.rate)
     matrix = features(positions, JOINT_NAMES, native_rate)[::step]  # (n_index, 39)
     codes = pack(matrix).tolist()
-    recognizer = CodeRecognizer(plans(library, classes, max_gap_s=max_gap_s), library.rate, compete=compete)
+    recognizer = CodeRecognizer(
+        plans(library, classes, max_gap_s=max_gap_s),
+        library.rate,
+        compete=compete,
+        hold=hold_frames(hold_s, library.rate),
+    )
     first, last = int(numbers[0]), int(numbers[-1])
     delay = latency_frames(native_rate)
     out = []
     for j, code in enumerate(codes):
         # index frame j's features come out when native frame j·step + delay is pushed
         number = min(first + j * step + delay, last)
-        out += [make_detection(session, stream, p, m, first, step, number) for p, m in recognizer.push(code)]
-    out += [make_detection(session, stream, p, m, first, step, last) for p, m in recognizer.flush()]
+        out += [make_detection(session, stream, c, first, step, number) for c in recognizer.push(code)]
+    out += [make_detection(session, stream, c, first, step, last) for c in recognizer.flush()]
     return out

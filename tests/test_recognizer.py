@@ -16,7 +16,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from daemon.calibration import given as given_tau
+from daemon.library import given as given_tau
 from daemon.dtw import Match, local_minima, retrieval_cost, subsequence_dtw, subsequence_matches
 from daemon.features import SET_SLICES
 from daemon.keyframes import KeyframeQuery

@@ -92,6 +92,7 @@ def _detect(args: argparse.Namespace, config: Config) -> int:
             classes=classes,
             max_gap_s=config.recognizer.max_gap_s,
             compete=config.recognizer.compete,
+            hold_s=config.recognizer.hold_s,
         )
     except ValueError as exc:  # a class without keyframes, a rate the library's does not divide
         raise UsageError(str(exc), field="--library") from None

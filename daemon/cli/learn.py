@@ -1,4 +1,4 @@
-"""``mocapd learn``: motion templates and keyframes from labelled clips."""
+"""``mocapd learn``: motion templates, thresholds and keyframe gates from labelled clips."""
 
 from __future__ import annotations
 
@@ -8,17 +8,29 @@ import time
 from pathlib import Path
 from typing import Any
 
-from daemon.calibration import MOST_GENERAL, Calibration, ClassCalibration, calibrate_class, given
+from daemon.checks import read_structured
 from daemon.cli import common
 from daemon.config import Config
-from daemon.dtw import STEPS, Steps
+from daemon.dtw import STEPS
 from daemon.errors import UsageError
-from daemon.library import ClassTemplate, Library, check_library_target, learn_class, save_library
+from daemon.keyframes import KeyframeError, KeyframeQuery, parse_keyframe_queries
+from daemon.learning import learn_library
+from daemon.library import GATED, Calibration, ClassTemplate, check_library_target, save_library
 from daemon.plots import template_png
-from daemon.recordings import Examples, TrainingClip, read_examples
+from daemon.recordings import TrainingClip, read_examples
 from daemon.storage import together
-from daemon.templates import THESIS_KEYFRAMES, Generalisation
 from daemon.types import DEFAULT_INDEX_RATE
+
+
+def keyframes_option(text: str) -> int | Path:
+    """``--keyframes``: a count of keyframes to learn per class, or a keyframe file."""
+    try:
+        count = int(text)
+    except ValueError:
+        return Path(text)
+    if count < 0:
+        raise argparse.ArgumentTypeError(f"must not be negative, got {count}")
+    return count
 
 
 def register(sub: Any) -> None:
@@ -50,7 +62,13 @@ def register(sub: Any) -> None:
         "--delta", type=float, default=0.1, help="quantisation threshold δ in [0, 0.5) (default 0.1)"
     )
     learn.add_argument(
-        "--keyframes", type=int, default=3, metavar="K", help="keyframes chosen per class (3; 0: none)"
+        "--keyframes",
+        type=keyframes_option,
+        default=3,
+        metavar="K|FILE",
+        help="keyframes learned per class (3; 0: none, every class recognised by stream-wide DTW), or a "
+        "JSON file as manual-keyframes.json whose keyframes gate the classes it names (3 learned for "
+        "the others)",
     )
     learn.add_argument(
         "--steps",
@@ -65,8 +83,11 @@ def register(sub: Any) -> None:
 def _learn(args: argparse.Namespace, config: Config) -> int:
     if not 0 <= args.delta < 0.5:
         raise UsageError(f"--delta must lie in [0, 0.5), got {args.delta:g}")
-    if args.keyframes < 0:
-        raise UsageError(f"--keyframes must not be negative, got {args.keyframes}")
+    given: dict[str, KeyframeQuery] = {}
+    count = args.keyframes
+    if isinstance(count, Path):
+        given = parse_keyframe_queries(read_structured(count, "json", KeyframeError), count)
+        count = 3
     check_library_target(args.out)  # before the long part
     if args.png is not None:
         common.check_png_output(args.png, directory=True)
@@ -85,100 +106,52 @@ def _learn(args: argparse.Namespace, config: Config) -> int:
         progress=progress,
         default_native_rate=common.default_native_rate(args, config),
     )
-    actors = {clip.actor for items in examples.values() for clip, _ in items}
-    classes: dict[str, ClassTemplate] = {}
-    for i, (name, items) in enumerate(examples.items(), start=1):
-        started = time.perf_counter()
-        cls, found = learn_one(
-            examples,
-            name,
-            tau=args.tau,
-            delta=args.delta,
-            keyframes=args.keyframes,
-            steps=args.steps,
-            rate=args.fps,
-            calibrate=args.calibrate,
+    unknown = sorted(set(given) - set(examples))
+    if unknown:
+        raise UsageError(
+            f"keyframes for classes the manifest lacks: {', '.join(unknown)}", path=args.keyframes
         )
-        generalisation = THESIS_KEYFRAMES if found is None else found.keyframes
-        classes[name] = cls
-        keyframes = 0 if cls.keyframes is None else len(cls.keyframes.keyframes)
-        print(
-            f"[class {i}/{len(examples)}] {name}: {len(items)} examples, soft MT {cls.soft.length} "
-            f"columns after {cls.iterations} iterations, hard MT {cls.hard.length} columns, "
-            f"{keyframes} keyframes{_widened(generalisation) if keyframes else ''}, tau {cls.tau:.4g} "
-            f"({time.perf_counter() - started:.1f} s)",
-            file=sys.stderr,
-            flush=True,
-        )
+    learned = learn_library(
+        examples,
+        tau=args.tau,
+        delta=args.delta,
+        keyframes=count,
+        steps=args.steps,
+        rate=args.fps,
+        calibrate_classes=args.calibrate,
+        given_keyframes={n: given[n] for n in given if n in examples},
+        progress=lambda message: print(
+            f"[{time.perf_counter() - began:.1f} s] {message}", file=sys.stderr, flush=True
+        ),
+    )
+    library = learned.library
     with together():  # an interrupted run leaves the previous library and pictures, all of them
         if args.png is not None:
-            for name, cls in classes.items():
+            for name, cls in library.classes.items():
                 _draw(cls, args.png / f"{name}.png", args.fps)
-        save_library(Library(args.fps, classes), args.out)
+        save_library(library, args.out)
+    actors = {clip.actor for items in examples.values() for clip, _ in items}
     print(f"library:    {args.out}")
-    print(f"classes:    {len(classes)} ({', '.join(classes)})")
-    print(f"examples:   {sum(len(c.training) for c in classes.values())} at {args.fps:g} Hz")
+    print(f"classes:    {len(library.classes)} ({', '.join(library.classes)})")
+    print(f"examples:   {sum(len(c.training) for c in library.classes.values())} at {args.fps:g} Hz")
     print(f"actors:     {len(actors)}")
-    for i, (name, cls) in enumerate(classes.items()):
-        print(f"{'tau:' if i == 0 else '':<11} {name} {_describe(cls.provenance)}")
+    if learned.calibrated is not None:
+        c = learned.calibrated
+        print(
+            f"folds:      {len(c.folds)} ({c.groups} left out); tau placed {c.position:g} of the way to the "
+            "next wrong detection"
+        )
+    for i, (name, cls) in enumerate(library.classes.items()):
+        print(f"{'classes:' if i == 0 else '':<11} {name}: {_mode(cls)}; tau {_describe(cls.provenance)}")
     print(f"learn time: {time.perf_counter() - began:.1f} s")
     return 0
 
 
-def learn_one(
-    examples: Examples,
-    name: str,
-    *,
-    tau: float = 0.1,
-    delta: float = 0.1,
-    keyframes: int = 3,
-    steps: Steps = "toolbox",
-    rate: float = DEFAULT_INDEX_RATE,
-    calibrate: bool = True,
-) -> tuple[ClassTemplate, ClassCalibration | None]:
-    """Class ``name`` of ``examples`` (every class's clips and their ``(frames, 39)`` features at
-    ``rate`` Hz, as :func:`daemon.recordings.read_examples` gives them) learned as ``mocapd learn``
-    learns it: τ and the keyframe generalisation by leave-one-actor-out over all classes
-    (:func:`daemon.calibration.calibrate_class`) when ``calibrate`` and the examples name at least
-    2 actors; with one actor ``tau`` given (and why) and the most general keyframes
-    (:data:`daemon.calibration.MOST_GENERAL`). Returns the class and its calibration (None with
-    ``calibrate`` False: τ given, the thesis' keyframes)."""
-    found: ClassCalibration | None = None
-    if not calibrate:
-        calibration, generalisation = given(tau, "--no-calibrate"), THESIS_KEYFRAMES
-    else:
-        actors = {clip.actor for items in examples.values() for clip, _ in items}
-        if len(actors) < 2:
-            why = f"{len(actors)} actor in the manifest: no leave-one-actor-out"
-            found = ClassCalibration(given(tau, why), MOST_GENERAL, ())
-        else:
-            labelled = {n: [(clip.actor, m) for clip, m in items] for n, items in examples.items()}
-            found = calibrate_class(
-                labelled, name, tau=tau, delta=delta, keyframes=keyframes, steps=steps, rate=rate
-            )
-        calibration, generalisation = found.calibration, found.keyframes
-    cls = learn_class(
-        name,
-        examples[name],
-        delta=delta,
-        tau=tau,
-        keyframes=keyframes,
-        steps=steps,
-        rate=rate,
-        calibration=calibration,
-        generalisation=generalisation,
-    )
-    return cls, found
-
-
-def _widened(g: Generalisation) -> str:
-    if g == THESIS_KEYFRAMES:
-        return ""
-    fixed = "all" if g.fixed is None else g.fixed
-    return (
-        f" (generalised: window {g.window}, gap margin {g.margin:g}, min gap {g.min_gap}, "
-        f"{fixed} fixed features)"
-    )
+def _mode(cls: ClassTemplate) -> str:
+    if cls.mode == GATED:
+        assert cls.keyframes is not None
+        return f"{len(cls.keyframes.keyframes)} keyframes gate it ({cls.mode_reason or cls.keyframe_source})"
+    return f"stream-wide DTW ({cls.mode_reason})" if cls.mode_reason else "stream-wide DTW"
 
 
 def _describe(c: Calibration) -> str:
@@ -186,7 +159,7 @@ def _describe(c: Calibration) -> str:
         return f"{c.tau:.4g} {c.method}"
     return (
         f"{c.tau:.4g} calibrated: recall {c.recall:.2f}, precision {c.precision:.2f} on {c.positives} "
-        f"positive and {c.negatives} negative left-out clips ({c.folds} folds)"
+        f"left-out motions and {c.negatives} wrong candidates ({c.folds} folds)"
     )
 
 

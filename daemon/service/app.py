@@ -143,6 +143,7 @@ class Service:
             max_gap_s=config.service.max_gap_s,
             max_gap_frame_s=config.recognizer.max_gap_s,
             compete=config.recognizer.compete,
+            hold_s=config.recognizer.hold_s,
             segmentation=config.segmentation.method,
             segmented=config.segmentation.streams,
         )

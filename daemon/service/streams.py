@@ -37,7 +37,8 @@ from daemon.behaviours import Boundary, JointRotations, PcaSegmenter, PpcaSegmen
 from daemon.behaviours import online_segmenter as make_segmenter
 from daemon.features import latency_frames
 from daemon.library import Library
-from daemon.recognizer import Detection, ring_size
+from daemon.recognizer import Detection, hold_frames, reach
+from daemon.types import DEFAULT_HOLD_S
 from protocols.messages import BoundaryMessage, DetectionMessage, PoseMessage, SkeletonMessage
 from replay import MocapFormatError, Skeleton, parse_asf
 from replay.amc import DEG
@@ -125,11 +126,14 @@ class StreamTable:
         max_gap_s: float = 0.25,
         max_gap_frame_s: float = 2.0,
         compete: bool = True,
+        hold_s: float = DEFAULT_HOLD_S,
         classes: Collection[str] | None = None,
         segmentation: Literal["none", "pca", "ppca"] = "none",
         segmented: Sequence[str] = ("*",),
     ) -> None:
-        self.bank = RecognizerBank(library, max_gap_s=max_gap_frame_s, classes=classes, compete=compete)
+        self.bank = RecognizerBank(
+            library, max_gap_s=max_gap_frame_s, classes=classes, compete=compete, hold_s=hold_s
+        )
         self.session = session
         self.queue_frames = queue_frames
         self.max_streams = max_streams
@@ -138,15 +142,15 @@ class StreamTable:
         self.streams: dict[str, _Stream] = {}
         self.counts: Counter[str] = Counter()
         """Refusals and drops by reason, and ``gaps``/``gap_frames``."""
-        self._window = ring_size(self.bank.plans)
+        self._window = reach(self.bank.plans, hold_frames(hold_s, library.rate))
         self.segmentation = segmentation
         self.segmented = tuple(segmented)
         self._queued = 0
         self._waiting: dict[str, _Stream] = {}  # the streams with queued poses, in arrival order
 
     def _horizon(self, rate: float) -> int:
-        """Native frames a detection at ``rate`` Hz reaches back at most: its widest window of
-        index-rate frames, the features' delay, and margin (offsets and source times are kept as
+        """Native frames a detection at ``rate`` Hz reaches back at most: the index-rate frames of
+        :func:`daemon.recognizer.reach`, the features' delay, and margin (offsets and source times are kept as
         long)."""
         step = max(1, round(rate / self.library.rate))
         return (self._window + 2) * step + latency_frames(rate) + 8
