@@ -513,6 +513,39 @@ def ref_column(c: list[int], t: int, kept: list[Column], steps: str, order: Orde
     return d, s
 
 
+def slow_minimum(d: list[int], thr: int, e: int, last: int) -> bool:
+    """Δ(e) is a local minimum at or below ``thr`` with frames ``0 .. last`` seen."""
+    before = d[e - 1] if e > 0 else INF
+    return d[e] < INF and d[e] <= thr and d[e] < before and (e == last or d[e] <= d[e + 1])
+
+
+def slow_blocks(
+    full: list[tuple[list[list[int]], list[list[int]], bool, int]],
+    cost: int,
+    start: int,
+    end: int,
+    j: int,
+    lo: int,
+    hi: int,
+) -> bool:
+    """:meth:`StreamDTW.blocks` read from its docstring over the full matrices (D, starts) of the
+    templates, their step kind and threshold."""
+    for d, s, toolbox, thr in full[lo:hi]:
+        m = len(d)
+        for r in (0, 1):
+            col = j - r
+            if col < 0:
+                continue
+            for i in range(m):
+                if d[i][col] >= cost or d[i][col] > thr or not 0 <= s[i][col] <= end:
+                    continue
+                e = max(j, col + (m - i) // 2 if toolbox else col)
+                shared = end - max(start, s[i][col]) + 1
+                if 2 * shared > min(end - start, e - s[i][col]) + 1:
+                    return True
+    return False
+
+
 def ref_spring(cost: FloatArray, tau: float, steps: str, order: Order = TIE_ORDER) -> list[Match]:
     """SPRING's disjoint-match rule, frame by frame: after column t, report the candidate once every
     live cell (kept columns) costs at least as much or starts after it ends, and drop the live paths

@@ -31,6 +31,8 @@ from tests.naive import (
     ref_spring,
     ref_subsequence,
     ref_suppress,
+    slow_blocks,
+    slow_minimum,
 )
 
 SETTINGS = settings(max_examples=300, deadline=None)
@@ -526,14 +528,15 @@ def test_tau_above_cell_cost_range() -> None:
 
 
 @settings(SETTINGS, max_examples=400)
-@given(st.integers(1, 4), st.integers(1, 40), st.integers(2, 12), st.data())
-def test_stream_dtw_equals_batch_and_beaten_reads_its_definition(
-    k: int, n: int, keep: int, data: st.DataObject
+@given(st.integers(1, 4), st.integers(1, 40), st.data())
+def test_stream_dtw_equals_batch_and_its_minima_and_blocks_read_their_definition(
+    k: int, n: int, data: st.DataObject
 ) -> None:
-    """:class:`StreamDTW` pushed frame by frame gives each template's Δ and starts of
-    :func:`subsequence_codes` over the whole stream; ``beaten`` is a brute-force reading of its
-    docstring over the kept frames (random ranges and costs, ties with Δ included)."""
-    f = 4  # few features: many equal costs, ties between Δ(e - 1), Δ(e), Δ(e + 1) and the cost
+    """:class:`StreamDTW` pushed frame by frame gives each template's Δ and starts of the cell-by-
+    cell recursion (the toolbox's steps keeping only cells within the threshold); each push returns
+    the local minima it completes and ``finish`` those at the last frame; ``blocks`` is a
+    brute-force reading of its docstring (few features: many ties)."""
+    f = 4
     templates = []
     for _ in range(k):
         m = data.draw(st.integers(1, 9))
@@ -548,54 +551,105 @@ def test_stream_dtw_equals_batch_and_beaten_reads_its_definition(
         [
             (tb.masks, tb.values, tb.tables, h, s == "toolbox")
             for (tb, s), h in zip(templates, thresholds, strict=True)
-        ],
-        keep,
-        data.draw(st.integers(1, 20)),
+        ]
     )
-    batch = [dtw.subsequence_codes(tb, codes, None, s) for tb, s in templates]
+    full = []
+    for (tb, s), thr in zip(templates, thresholds, strict=True):
+        d, starts = ref_subsequence([[int(v) for v in row] for row in dtw.retrieval_matrix(tb, codes)], s)
+        full.append((d, starts, s == "toolbox", thr))
     for j, code in enumerate(codes.tolist()):
-        stream.push(code)
-        for i, (delta, start) in enumerate(batch):
-            pruned = templates[i][1] == "toolbox"  # only cells within the threshold are kept
-            for e in range(max(0, j + 1 - keep), j + 1):
-                kept = not pruned or delta[e] <= thresholds[i]
-                assert stream.delta(i, e) == ((delta[e], start[e]) if kept else (INF, -1))
-        for _ in range(3):
-            first = data.draw(st.integers(max(0, j + 2 - keep), j)) if j + 2 - keep <= j else j
-            if first > 0 and first - 1 < j + 1 - keep:
-                continue
-            end = data.draw(st.integers(first, first + 6))
-            cost = data.draw(st.sampled_from([0, SCALE // 2, SCALE, 2 * SCALE, INF]))
-            skip = data.draw(st.integers(-1, k - 1))
-            expected = any(
-                delta[e] < cost
-                and delta[e] <= thresholds[i]
-                and delta[e] < (delta[e - 1] if e > 0 else INF)
-                and (e == j or delta[e] <= delta[e + 1])
-                and 2 * (min(end, e) - max(first, start[e]) + 1) > min(end - first, e - start[e]) + 1
-                for i, (delta, start) in enumerate(batch)
-                if i != skip
-                for e in range(first, j + 1)
+        found = stream.push(code) or []
+        expected = [
+            (i, s[-1][j - 1], j - 1, d[-1][j - 1])
+            for i, (d, s, _, thr) in enumerate(full)
+            if j >= 1 and slow_minimum(d[-1], thr, j - 1, j)
+        ]
+        assert found == expected
+        for i, (d, s, toolbox, thr) in enumerate(full):
+            for e in range(max(0, j - 2), j + 1):
+                kept = not toolbox or d[-1][e] <= thr
+                assert stream.delta(i, e) == ((d[-1][e], s[-1][e]) if kept and d[-1][e] < INF else (INF, -1))
+        for _ in range(3 if j >= 1 else 0):
+            end = data.draw(st.integers(max(0, j - 8), j - 1))
+            first = data.draw(st.integers(max(0, end - 8), end))
+            cost = data.draw(st.sampled_from([0, SCALE // 10, SCALE // 2, SCALE, 2 * SCALE]))
+            lo = data.draw(st.integers(0, k))
+            hi = data.draw(st.integers(lo, k))
+            assert stream.blocks(cost, first, end, lo, hi) == slow_blocks(
+                full, cost, first, end, j, lo, hi
             )
-            assert stream.beaten(skip, first, end, cost) == expected
+    last = len(codes) - 1
+    assert (stream.finish() or []) == [
+        (i, s[-1][last], last, d[-1][last])
+        for i, (d, s, _, thr) in enumerate(full)
+        if slow_minimum(d[-1], thr, last, last)
+    ]
     stream.reset()
     assert stream.n == 0
 
 
-def test_stream_dtw_refuses_frames_it_no_longer_keeps() -> None:
+@settings(SETTINGS, max_examples=300)
+@given(st.integers(1, 3), st.integers(2, 40), st.data())
+def test_a_range_not_blocked_is_never_beaten_later(k: int, n: int, data: st.DataObject) -> None:
+    """What ``blocks`` is for: when it says no at frame j, no template of the range has a local
+    minimum ending at j or later, at most its threshold and below the cost, whose match is the same
+    motion as the range (more than half of the shorter one's frames shared)."""
+    f = 3
+    templates = []
+    for _ in range(k):
+        m = data.draw(st.integers(1, 8))
+        tb = dtw.retrieval_tables(data.draw(ternary(f, m)), np.ones(m))
+        templates.append(
+            (
+                tb,
+                data.draw(st.sampled_from(dtw.STEPS)),
+                data.draw(st.sampled_from([SCALE // 4, SCALE, 3 * SCALE])),
+            )
+        )
+    codes = np.array(data.draw(st.lists(st.integers(0, 2**f - 1), min_size=n, max_size=n)), dtype=np.uint64)
+    stream = StreamDTW([(tb.masks, tb.values, tb.tables, h, s == "toolbox") for tb, s, h in templates])
+    batch = [dtw.subsequence_codes(tb, codes, None, s) for tb, s, _ in templates]
+    for j, code in enumerate(codes.tolist()):
+        stream.push(code)
+        if j == 0:
+            continue
+        end = data.draw(st.integers(max(0, j - 6), j - 1))
+        first = data.draw(st.integers(max(0, end - 6), end))
+        cost = data.draw(st.sampled_from([SCALE // 8, SCALE // 2, SCALE, 2 * SCALE]))
+        if stream.blocks(cost, first, end, 0, k):
+            continue
+        for (delta, start), (_, _, thr) in zip(batch, templates, strict=True):
+            for e in range(j, n):
+                d = [int(x) for x in delta]
+                if slow_minimum(d, thr, e, n - 1) and d[e] < cost:
+                    s = int(start[e])
+                    assert not 2 * (min(end, e) - max(first, s) + 1) > min(end - first, e - s) + 1
+
+
+def test_stream_dtw_refuses_what_it_cannot_answer() -> None:
     tb = dtw.retrieval_tables(np.array([[1.0, 0.0]]), np.ones(2))
-    stream = StreamDTW([(tb.masks, tb.values, tb.tables, SCALE, True)], 3)
+    stream = StreamDTW([(tb.masks, tb.values, tb.tables, SCALE, True)])
+    assert stream.finish() is None  # nothing pushed
     for code in (0, 1, 0, 1, 0):
         stream.push(code)
     with pytest.raises(IndexError, match="not among the last 3 of 5"):
         stream.delta(0, 1)
-    with pytest.raises(IndexError, match="not among the last 3 of 5"):
-        stream.beaten(-1, 2, 4, SCALE)  # frame 1 (before the start) is gone
-    assert stream.beaten(-1, 3, 4, INF) in (True, False)
+    with pytest.raises(ValueError, match="must end before the last frame pushed"):
+        stream.blocks(SCALE, 2, 4, 0, 1)
+    with pytest.raises(IndexError, match="templates"):
+        stream.blocks(SCALE, 2, 3, 0, 2)
     with pytest.raises(ValueError, match="needs templates"):
-        StreamDTW([], 3)
-    with pytest.raises(ValueError, match="a batch of at least 1"):
-        StreamDTW([(tb.masks, tb.values, tb.tables, SCALE, True)], 3, 0)
+        StreamDTW([])
+
+
+def test_compiled_accumulation_equals_the_row_scans() -> None:
+    rng = np.random.default_rng(7)
+    for _ in range(500):
+        m, n = (int(x) for x in rng.integers(1, 25, 2))
+        c = rng.integers(0, 40, (m, n)).astype(np.int64)
+        c[rng.random((m, n)) < 0.1] = INF
+        assert (dtw.accumulated(c) == dtw.accumulated_rows(c)).all()
+        assert dtw.accumulated(c)[-1, -1] == min(ref_full(c.tolist())[0][-1][-1], INF)
 
 
 @settings(SETTINGS, max_examples=300)

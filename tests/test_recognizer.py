@@ -11,16 +11,15 @@ from functools import cache
 from pathlib import Path
 
 import numpy as np
-import numpy.typing as npt
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from daemon.library import given as given_tau
-from daemon.dtw import Match, local_minima, retrieval_cost, subsequence_dtw, subsequence_matches
+from daemon.dtw import SCALE, pack, retrieval_matrix, retrieval_tables, threshold
 from daemon.features import SET_SLICES
 from daemon.keyframes import KeyframeQuery
-from daemon.library import ClassTemplate, Library, default_library_path, load_library
+from daemon.library import ClassTemplate, Library, Variant, default_library_path, load_library
+from daemon.library import given as given_tau
 from daemon.recognizer import (
     CodeRecognizer,
     Detection,
@@ -28,15 +27,14 @@ from daemon.recognizer import (
     Recognizer,
     detect,
     detect_positions,
-    keep_apart,
     plans,
 )
 from daemon.recordings import joint_positions, native_rate, read_recording
-from daemon.templates import MotionTemplate
+from daemon.templates import MotionTemplate, expand
 from daemon.types import FEATURE_SETS, N_FEATURES, FeatureSet
 from replay import JOINT_NAMES, Motion
 from tests.helpers import hdm05_clip, pair_id, recording_pairs, small_library, takes
-from tests.naive import keyframe_matches
+from tests.naive import keyframe_matches, ref_subsequence, slow_blocks, slow_minimum
 from tests.synth import LOW_BITS, queries, stream_codes, streams
 
 SESSION = "test"
@@ -102,13 +100,20 @@ def test_positions_in_any_joint_order(library: Library) -> None:
 
 
 def test_one_motion_one_detection_and_a_repetition_right_after(library: Library) -> None:
-    """A dg squat gives one squat detection per class variant; the same squat twice in a row gives
-    two, the second after the first."""
+    """A dg squat gives one squat detection: of the first of the two classes with the same template
+    when classes compete (the same cost, end and motion: the earlier template wins), of each on its
+    own; the same squat twice in a row gives two, the second after the first."""
     asf, amc = hdm05_clip("dg", "squat1Reps", takes("squat1Reps", "dg")[0])
     m = motion(asf, amc)
     rate = native_rate(m)
     once = [d for d in detect(m, library, rate, session=SESSION) if d.class_name.startswith("squat")]
-    assert sorted(d.class_name for d in once) == ["squat1Reps", "squat1Reps.published"]
+    assert [d.class_name for d in once] == ["squat1Reps"]
+    alone = [
+        d
+        for d in detect(m, library, rate, session=SESSION, compete=False)
+        if d.class_name.startswith("squat")
+    ]
+    assert sorted(d.class_name for d in alone) == ["squat1Reps", "squat1Reps.published"]
     n = len(m)
     twice = Motion(
         m.source, m.skeleton, m.header, np.arange(1, 2 * n + 1), np.concatenate([m.channels, m.channels])
@@ -117,15 +122,6 @@ def test_one_motion_one_detection_and_a_repetition_right_after(library: Library)
     assert len(found) == 2
     for d, (first, last) in zip(found, [(1, n), (n + 1, 2 * n)], strict=True):  # mostly in its copy
         assert 2 * (min(last, d.end_frame) - max(first, d.start_frame) + 1) > d.end_frame - d.start_frame + 1
-
-
-def test_keep_apart() -> None:
-    a, b, c = Match(0, 10, 0.05), Match(5, 15, 0.02), Match(9, 20, 0.04)
-    assert keep_apart([a, b], []) == [b]  # 6 of 11 frames shared: one motion, the cheaper kept
-    assert keep_apart([a, c], []) == [a, c]  # 2 frames shared: the next repetition
-    assert keep_apart([a, Match(10, 10, 0.01)], []) == [Match(10, 10, 0.01)]  # all of the shorter
-    assert keep_apart([a, c], [(4, 6)]) == [c]  # one already emitted stands
-    assert keep_apart([c, a, Match(30, 40, 0.09)], [(38, 50)]) == [a, c, Match(30, 40, 0.09)]
 
 
 # ------------------------------------------------------------------ candidates and confirmation
@@ -156,37 +152,22 @@ def random_class(name: str, query: KeyframeQuery, rng: np.random.Generator, tau:
     )
 
 
-def float_matches(cls: ClassTemplate, frames: npt.NDArray[np.float64], lo: int, hi: int) -> list[Match]:
-    """Float DTW of ``cls``'s expanded template over ``frames[:, lo..hi]``: the local minima at or below
-    its τ, suppressed, in stream frames."""
-    plan = plans(Library(30.0, {cls.name: cls}))[0]
-    cost = retrieval_cost(plan.values, plan.weights, frames[:, lo : hi + 1])
-    return [Match(m.start + lo, m.end + lo, m.cost) for m in subsequence_matches(cost, cls.tau, "toolbox")]
-
-
-def rival_minima(cls: ClassTemplate, frames: npt.NDArray[np.float64], last: int) -> list[Match]:
-    """Float DTW of ``cls``'s expanded template over the stream's ``frames[:, 0..last]``: every local
-    minimum at or below its τ, not suppressed."""
-    plan = plans(Library(30.0, {cls.name: cls}))[0]
-    sub = subsequence_dtw(retrieval_cost(plan.values, plan.weights, frames[:, : last + 1]), "toolbox")
-    return local_minima(sub.delta, sub.start, cls.tau)
-
-
-def reference(
-    codes: list[int], cls: ClassTemplate, max_gap: int, others: Sequence[ClassTemplate] = ()
-) -> list[tuple[str, int, int, float, int]]:
-    """The definition read slowly: every keyframe match by brute force (Def. 4.4-4.6, gaps capped),
-    its window R(M) widened by the plan's left and right frames, ending ``right`` frames after the
-    match's first complete frame and after every ``period`` frames more that its range reaches
-    (the last ``window`` frames; cut at the stream's end), the widest of those ending at one frame;
-    float DTW over each, local minima at or below τ suppressed, then by cost those that share at
-    most half of the shorter one's frames with every one kept before; of those, the ones no class of
-    ``others`` beats: its float subsequence DTW over the stream up to the frame the confirmation
-    comes out at has no local minimum (the last frame's compared with the one before only) ending
-    at or after the confirmation's start, at or below its τ and below the confirmation's cost,
-    whose match shares more than half of the shorter one's frames with it. Each as (class, start,
-    end, cost, frame it comes out at)."""
-    assert cls.keyframes is not None
+def slow_recognizer(
+    codes: list[int], classes: Sequence[ClassTemplate], max_gap: int, compete: bool, hold: int
+) -> list[tuple[str, int, int, int, int]]:
+    """:class:`CodeRecognizer`'s definition read slowly: each template's subsequence DTW cell by
+    cell over the whole stream (fixed point, :func:`tests.naive.ref_subsequence`); its local minima
+    within its τ, each found one frame after its end (the last frame's at the end); every keyframe
+    match by brute force (Def. 4.4-4.6, gaps capped), reported from the frame that completes it to
+    the last its range reaches; at each frame, the candidates found arrive in the order (cost, end,
+    template): one is dropped when a candidate that arrived before it comes before it in that order
+    and is the same motion (of its class, or of any class when competing) or when it is the same
+    motion as a published detection; else it is held, and drops the held ones it comes before. A
+    held candidate is final after ``hold`` frames or when :func:`tests.naive.slow_blocks` says no
+    template (of its class unless competing) can still end a cheaper match of its motion; the final
+    ones, by (end, start, class), are published unless their class is gated and no keyframe match
+    of it reported by then overlaps them. Each as (class, start, end, cost, frame it comes out at)."""
+    n = len(codes)
     sets = {
         fs: [
             (c >> SET_SLICES[fs].start) & ((1 << (SET_SLICES[fs].stop - SET_SLICES[fs].start)) - 1)
@@ -194,40 +175,61 @@ def reference(
         ]
         for fs in FEATURE_SETS
     }
-    plan = plans(Library(30.0, {cls.name: cls}), max_gap_s=max_gap / 30.0)[0]
-    frames = np.array(
-        [[(c >> i) & 1 for i in range(N_FEATURES)] for c in codes], dtype=np.float64
-    ).T  # (39, n)
-    n = len(codes)
-    starts: dict[int, int] = {}  # window end: its start, the widest of the windows ending there
-    for first, at, last in keyframe_matches(sets, cls.keyframes, max_gap):
-        for t in range(at, last + 1, plan.period):
-            a = max(0, first - plan.left, t + plan.right - plan.window + 1)
-            starts[t + plan.right] = min(a, starts.get(t + plan.right, a))
-    windows = sorted(starts.items())
-    kept: list[tuple[int, int]] = []
+    frames = np.array([[(c >> i) & 1 for i in range(N_FEATURES)] for c in codes], dtype=np.uint64)
+    owner: list[int] = []
+    full = []
+    for k, cls in enumerate(classes):
+        for template, tau in cls.members:
+            t = expand(template)
+            tables = retrieval_tables(t.values, t.weights)
+            d, s = ref_subsequence(
+                [[int(v) for v in row] for row in retrieval_matrix(tables, pack(frames))], "toolbox"
+            )
+            full.append((d, s, True, threshold(tau)))
+            owner.append(k)
+    found: dict[int, list[tuple[int, int, int, int]]] = {}  # frame -> (cost, end, template, start)
+    for u, (d, s, _, thr) in enumerate(full):
+        last = d[-1]
+        for e in range(n):
+            if slow_minimum(last, thr, e, n - 1 if e == n - 1 else e + 1):
+                found.setdefault(min(e + 1, n), []).append((last[e], e, u, s[-1][e]))
+    matches = {
+        k: keyframe_matches(sets, cls.keyframes, max_gap)
+        for k, cls in enumerate(classes)
+        if cls.mode == "keyframes" and cls.keyframes is not None
+    }
+
+    def same(x: tuple[int, int, int, int], y: tuple[int, int, int, int]) -> bool:
+        shared = set(range(x[3], x[1] + 1)) & set(range(y[3], y[1] + 1))
+        return (compete or owner[x[2]] == owner[y[2]]) and 2 * len(shared) > min(x[1] - x[3], y[1] - y[3]) + 1
+
+    arrived: list[tuple[int, int, int, int]] = []
+    held: list[tuple[int, int, int, int]] = []
+    published: list[tuple[int, int, int, int]] = []
     out = []
-
-    def one_motion(x: tuple[int, int], y: tuple[int, int]) -> bool:
-        shared = set(range(x[0], x[1] + 1)) & set(range(y[0], y[1] + 1))
-        return 2 * len(shared) > min(x[1] - x[0], y[1] - y[0]) + 1
-
-    for end, a in windows:
-        b = min(end, n - 1)
-        apart: list[tuple[int, int]] = []
-        confirmed = []
-        for m in sorted(float_matches(cls, frames, a, b), key=lambda m: (m.cost, m.start)):
-            if all(not one_motion((m.start, m.end), r) for r in kept + apart):
-                apart.append((m.start, m.end))
-                beaten = any(
-                    c.end >= m.start and c.cost < m.cost and one_motion((m.start, m.end), (c.start, c.end))
-                    for q in others
-                    for c in rival_minima(q, frames, b)
-                )
-                if not beaten:
-                    kept.append((m.start, m.end))
-                    confirmed.append((cls.name, m.start, m.end, m.cost, b))
-        out += sorted(confirmed, key=lambda c: c[1])
+    for j in range(n + 1):  # frame n: the flush
+        for y in sorted(found.get(j, [])):
+            beaten = any(x < y and same(x, y) for x in arrived) or any(same(y, p) for p in published)
+            arrived.append(y)
+            if not beaten:
+                held = [x for x in held if not (y < x and same(x, y))] + [y]
+        frame = min(j, n - 1)
+        final = []
+        for x in list(held):
+            k = owner[x[2]]
+            lo, hi = (0, len(full)) if compete else (owner.index(k), len(owner) - owner[::-1].index(k))
+            if j == n or j > x[1] + hold or not slow_blocks(full, x[0], x[3], x[1], j, lo, hi):
+                final.append(x)
+                held.remove(x)
+        for x in sorted(final, key=lambda x: (x[1], x[3], owner[x[2]])):
+            k = owner[x[2]]
+            if k in matches and not any(
+                first <= x[1] and max(min(last, frame), at) >= x[3] and at <= frame
+                for first, at, last in matches[k]
+            ):
+                continue
+            published.append(x)
+            out.append((classes[k].name, x[3], x[1], x[0], frame))
     return out
 
 
@@ -240,6 +242,9 @@ def reference(
     st.sampled_from([0.05, 0.2, 0.5]),
     st.integers(1, 8),
     st.booleans(),
+    st.integers(0, 6),
+    st.sampled_from(["keyframes", "dtw"]),
+    st.booleans(),
 )
 def test_confirmations_equal_the_definition(
     codes: dict[FeatureSet, list[int]],
@@ -249,17 +254,31 @@ def test_confirmations_equal_the_definition(
     tau: float,
     max_gap: int,
     compete: bool,
+    hold: int,
+    mode: str,
+    two: bool,
 ) -> None:
+    """Random code streams, two classes (one gated or not, one of them with two templates):
+    the recogniser equals :func:`slow_recognizer`; nothing comes out before its last frame."""
     rng = np.random.default_rng(seed)
-    classes = {n: random_class(n, q, rng, tau) for n, q in (("a", q1), ("b", q2))}
+    a = random_class("a", q1, rng, tau)
+    b = dataclasses.replace(random_class("b", q2, rng, tau), mode=mode)
+    if two:
+        other = random_class("a2", q1, rng, tau * 0.8)
+        a = dataclasses.replace(a, variants=(Variant(other.quantised, other.tau, other.provenance, (0,)),))
+    classes = [a, b]
     stream = stream_codes(codes)
-    class_plans = plans(Library(30.0, classes), max_gap_s=max_gap / 30.0)
-    recognizer = CodeRecognizer(class_plans, 30.0, compete=compete)
-    got = [(p.name, m.start, m.end, m.cost, j) for j, c in enumerate(stream) for p, m in recognizer.push(c)]
-    got += [(p.name, m.start, m.end, m.cost, len(stream) - 1) for p, m in recognizer.flush()]
-    for name, cls in classes.items():
-        others = [c for n, c in classes.items() if n != name] if compete else []
-        assert [g for g in got if g[0] == name] == reference(stream, cls, max_gap, others)
+    class_plans = plans(Library(30.0, {c.name: c for c in classes}), max_gap_s=max_gap / 30.0)
+    recognizer = CodeRecognizer(class_plans, 30.0, compete=compete, hold=hold)
+    got = [
+        (p.name, m.start, m.end, round(m.cost * SCALE), j)
+        for j, c in enumerate(stream)
+        for p, m, _ in recognizer.push(c)
+    ]
+    got += [
+        (p.name, m.start, m.end, round(m.cost * SCALE), len(stream) - 1) for p, m, _ in recognizer.flush()
+    ]
+    assert got == slow_recognizer(stream, classes, max_gap, compete, hold)
     for _, _, end, _, emitted in got:
         assert end <= emitted  # never before its last frame was seen
 
