@@ -354,7 +354,10 @@ def folds(
         owner = tuple(range(len(names)))
         out.append(make_fold(group, codes, truth, owner, candidates, frozenset(learned), trials))
         if progress is not None:
-            progress(f"fold {group} left out: {len(learned)} classes learned and run over its stream")
+            progress(
+                f"[fold {order.index(group) + 1}/{len(order)}] {group} left out: {len(learned)} classes learned "
+                f"from the others, run over its stream ({len(codes)} frames)"
+            )
     return out
 
 
@@ -795,7 +798,7 @@ def calibrate(
             members[k] = labels
             if progress is not None:
                 progress(
-                    f"class {name}: two templates (F1 over the folds {f1(*before):.2f} -> {f1(*after):.2f})"
+                    f"[class {k + 1}/{len(names)}] {name}: two styles, F1 over the folds {f1(*before):.2f} -> {f1(*after):.2f}"
                 )
     out = {}
     for k, name in enumerate(names):

@@ -125,5 +125,8 @@ def learn_library(
             )
         classes[name] = cls
         if progress is not None:
-            progress(f"class {name} learned")
+            progress(
+                f"[class {len(classes)}/{len(examples)}] {name}: {len(items)} examples, {len(cls.members)} "
+                f"template{'s' if len(cls.members) > 1 else ''} of {cls.quantised.length} columns, {cls.mode} mode"
+            )
     return Learned(Library(rate, classes), calibrated)

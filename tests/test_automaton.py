@@ -4,6 +4,7 @@ bound and its bounded state."""
 
 from __future__ import annotations
 
+import json
 import random
 from pathlib import Path
 
@@ -15,12 +16,13 @@ from hypothesis import strategies as st
 from daemon.automaton import Component, KeyframeAutomaton
 from daemon.features import SET_SLICES
 from daemon.index import index_from_codes
-from daemon.keyframes import Keyframe, KeyframeQuery, keyframe_search
+from daemon.keyframes import Keyframe, KeyframeQuery, keyframe_search, parse_keyframe_queries
 from daemon.library import default_library_path, load_library
 from daemon.recordings import motion_features, read_recording
 from daemon.segments import set_codes
+from daemon.shipped import HDM05_CLASSES
 from daemon.types import FEATURE_SETS, FeatureSet
-from tests.helpers import pair_id, recording_pairs
+from tests.helpers import KEYFRAMES, pair_id, recording_pairs
 from tests.naive import keyframe_brute_force, keyframe_matches
 from tests.synth import queries, stream_codes, streams
 
@@ -157,10 +159,13 @@ def test_state_stays_bounded_over_an_hour() -> None:
 
 @pytest.fixture(scope="module")
 def shipped() -> list[KeyframeQuery]:
-    """The keyframes of every class of the shipped library (learned or published)."""
-    queries = [c.keyframes for c in load_library(default_library_path()).classes.values()]
-    assert len(queries) == 18 and all(q is not None for q in queries)
-    return [q for q in queries if q is not None]
+    """Real keyframe queries: the toolbox's published ones (11 HDM05 classes) and those that gate a
+    class of the shipped library."""
+    learned = [c.keyframes for c in load_library(default_library_path()).classes.values()]
+    published = parse_keyframe_queries(json.loads(KEYFRAMES.read_text(encoding="utf-8")), KEYFRAMES)
+    queries = [*(published[c] for c in HDM05_CLASSES), *(q for q in learned if q is not None)]
+    assert len(queries) > len(HDM05_CLASSES)
+    return queries
 
 
 @pytest.mark.parametrize("pair", recording_pairs(), ids=pair_id)

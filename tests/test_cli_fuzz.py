@@ -43,7 +43,7 @@ from tests.helpers import (
 )
 
 CONTROL = re.compile(r"[\x00-\x1f\x7f-\x9f]")
-PROGRESS = re.compile(r"\[\d+/\d+\] .*|\[class \d+/\d+\] .*")
+PROGRESS = re.compile(r"\[(?:class |fold )?\d+/\d+\] .*")
 """The progress lines ``index build`` and ``learn`` print on stderr before a later input fails."""
 QUIET_WARNINGS = (DeprecationWarning, PendingDeprecationWarning, ImportWarning, ResourceWarning)
 """Warning categories Python does not print by default; any other warning is a line on stderr."""
@@ -115,7 +115,14 @@ def valid(tmp_path_factory: pytest.TempPathFactory) -> Valid:
     training = write_training(root / "clips.csv", training_rows(TRAINING_CLIPS))
     for argv in (
         ["index", "build", "--manifest", manifest, "--out", root / "idx"],
-        ["learn", "--manifest", training, "--out", root / "lib"],
+        [
+            "learn",
+            "--manifest",
+            training,
+            "--out",
+            root / "lib",
+            "--no-calibrate",
+        ],  # keyframes for every class
     ):
         assert cli.main([str(a) for a in argv]) == 0
     published = json.loads(KEYFRAMES.read_text(encoding="utf-8"))

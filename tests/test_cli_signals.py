@@ -52,7 +52,7 @@ STOPS = {
     signal.SIGINT: (130, "mocapd: interrupted\n"),
     signal.SIGTERM: (143, "mocapd: terminated\n"),
 }
-PROGRESS = re.compile(r"\[(?:class )?\d+/\d+\] .*\n")
+PROGRESS = re.compile(r"\[(?:class |fold )?\d+/\d+\] .*\n")
 """A progress line of ``index build`` or ``learn`` on stderr."""
 TIMING = ("build time:", "learn time:")
 

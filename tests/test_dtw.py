@@ -554,9 +554,9 @@ def test_stream_dtw_equals_batch_and_its_minima_and_blocks_read_their_definition
         ]
     )
     full = []
-    for (tb, s), thr in zip(templates, thresholds, strict=True):
-        d, starts = ref_subsequence([[int(v) for v in row] for row in dtw.retrieval_matrix(tb, codes)], s)
-        full.append((d, starts, s == "toolbox", thr))
+    for (tb, kind), thr in zip(templates, thresholds, strict=True):
+        d, starts = ref_subsequence([[int(v) for v in row] for row in dtw.retrieval_matrix(tb, codes)], kind)
+        full.append((d, starts, kind == "toolbox", thr))
     for j, code in enumerate(codes.tolist()):
         found = stream.push(code) or []
         expected = [
@@ -575,9 +575,7 @@ def test_stream_dtw_equals_batch_and_its_minima_and_blocks_read_their_definition
             cost = data.draw(st.sampled_from([0, SCALE // 10, SCALE // 2, SCALE, 2 * SCALE]))
             lo = data.draw(st.integers(0, k))
             hi = data.draw(st.integers(lo, k))
-            assert stream.blocks(cost, first, end, lo, hi) == slow_blocks(
-                full, cost, first, end, j, lo, hi
-            )
+            assert stream.blocks(cost, first, end, lo, hi) == slow_blocks(full, cost, first, end, j, lo, hi)
     last = len(codes) - 1
     assert (stream.finish() or []) == [
         (i, s[-1][last], last, d[-1][last])

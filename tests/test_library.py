@@ -21,11 +21,15 @@ from daemon.errors import FileAccessError
 from daemon.index_store import MotionIndex, index_from_matrices, read_document
 from daemon.keyframes import KeyframeQuery, parse_keyframe_queries
 from daemon.library import (
+    DTW,
+    GATED,
     LEARNED,
     PUBLISHED,
+    Calibration,
     ClassTemplate,
     Library,
     LibraryFormatError,
+    Variant,
     learn_class,
     load_library,
     save_library,
@@ -166,7 +170,7 @@ def test_library_keyframe_source_and_extra_files(library: Library, tmp_path: Pat
     save_library(Library(30.0, {**library.classes, "squat1Reps": squat}), lib, {"notes.csv": "a,b\n"})
     assert (lib / "notes.csv").read_text() == "a,b\n"
     meta = json.loads((lib / "library.json").read_text())
-    assert meta["version"] == 3 and meta["classes"]["squat1Reps"]["keyframe_source"] == "published"
+    assert meta["version"] == 4 and meta["classes"]["squat1Reps"]["keyframe_source"] == "published"
     # learned keyframes write no field: a version 3 library as it was before the field loads as learned
     assert "keyframe_source" not in meta["classes"]["hopBothLegs1hops"]
     loaded = load_library(lib)
@@ -189,7 +193,7 @@ def edit_json(lib: Path, change: dict[str, object]) -> None:
         *parents, key = path.split("/")
         node = meta
         for p in parents:
-            node = node[p]
+            node = node[int(p)] if isinstance(node, list) else node[p]
         node[key] = value
     (lib / "library.json").write_text(json.dumps(meta))
 
@@ -197,7 +201,7 @@ def edit_json(lib: Path, change: dict[str, object]) -> None:
 @pytest.mark.parametrize(
     ("change", "message"),
     [
-        ({"version": 1}, "library.json: version: this mocapd reads version 2, 3, got 1; learn it again"),
+        ({"version": 1}, "library.json: version: this mocapd reads version 2, 3, 4, got 1; learn it again"),
         ({"format": "x"}, "library.json: format: must be 'mocapd-templates', got 'x'"),
         ({"features": ["a"]}, "library.json: features: not the 39 features"),
         ({"classes/squat1Reps/tau": -1}, "classes.squat1Reps.tau: must be a positive number, got -1"),
@@ -255,6 +259,70 @@ def test_library_array_errors_name_file(library: Library, tmp_path: Path) -> Non
         load_library(lib)
     with pytest.raises(LibraryFormatError, match="not a mocapd template library"):
         load_library(tmp_path)
+
+
+def test_library_v4_modes_and_member_templates(library: Library, tmp_path: Path) -> None:
+    """Version 4 keeps how each class is recognised and why, and a class's other templates with
+    their own τ and calibration; damaged, they are refused naming the field or the array."""
+    squat, hop = library.classes["squat1Reps"], library.classes["hopBothLegs1hops"]
+    variant = Variant(hop.quantised, 0.07, Calibration(0.07, "two styles", 2, 5, 1, 0.8, 1.0), (1,))
+    two = dataclasses.replace(squat, mode=DTW, mode_reason="why not", keyframes=None, variants=(variant,))
+    assert [
+        (t is m, tau) for (t, tau), m in zip(two.members, (squat.quantised, hop.quantised), strict=True)
+    ] == [
+        (True, squat.tau),
+        (True, 0.07),
+    ]
+    lib = tmp_path / "lib"
+    save_library(Library(30.0, {"squat1Reps": two, "hopBothLegs1hops": hop}), lib)
+    loaded = load_library(lib)
+    got = loaded.classes["squat1Reps"]
+    assert (got.mode, got.mode_reason, got.keyframes) == (DTW, "why not", None)
+    (v,) = got.variants
+    assert (v.tau, v.calibration, v.examples) == (variant.tau, variant.calibration, variant.examples)
+    assert np.array_equal(v.quantised.values, hop.quantised.values)
+    assert np.array_equal(v.quantised.weights, hop.quantised.weights)
+    assert (
+        loaded.classes["hopBothLegs1hops"].mode == GATED and loaded.classes["hopBothLegs1hops"].variants == ()
+    )
+    for change, message in [
+        ({"classes/squat1Reps/mode": "fast"}, r"classes\.squat1Reps\.mode: must be one of keyframes, dtw"),
+        (
+            {"classes/squat1Reps/mode": "keyframes"},
+            r"classes\.squat1Reps\.mode: the keyframes mode needs keyframes",
+        ),
+        ({"classes/squat1Reps/members/0/examples": [0, 99]}, r"members\[0\]\.examples\[1\]: must be"),
+        ({"classes/squat1Reps/members/0/tau": -1}, r"members\[0\]\.tau: must be"),
+        ({"classes/squat1Reps/members": []}, r"sha256\.member1: unknown field"),
+    ]:
+        save_library(Library(30.0, {"squat1Reps": two, "hopBothLegs1hops": hop}), lib)
+        edit_json(lib, change)
+        with pytest.raises(LibraryFormatError, match=message):
+            load_library(lib)
+    save_library(Library(30.0, {"squat1Reps": two}), lib)
+    with np.load(lib / "squat1Reps.npz") as npz:
+        arrays = dict(npz)
+    np.savez(lib / "squat1Reps.npz", **{**arrays, "member1": arrays["quantised"]})
+    with pytest.raises(LibraryFormatError, match=r"squat1Reps\.npz: member1: SHA-256 differs"):
+        load_library(lib)
+    with pytest.raises(ValueError, match="the keyframes mode needs keyframes"):
+        dataclasses.replace(squat, keyframes=None, mode=GATED)
+
+
+def test_library_v3_loads_as_gated_by_its_keyframes(library: Library, tmp_path: Path) -> None:
+    """A version 3 library (no mode, no members) loads with every class gated by its keyframes, as
+    it was recognised."""
+    lib = tmp_path / "lib"
+    save_library(library, lib)
+    meta = json.loads((lib / "library.json").read_text())
+    meta["version"] = 3
+    for entry in meta["classes"].values():
+        for key in ("mode", "mode_reason", "members"):
+            del entry[key]
+    (lib / "library.json").write_text(json.dumps(meta))
+    loaded = load_library(lib)
+    for name, cls in loaded.classes.items():
+        assert cls.mode == GATED and cls.variants == () and cls.keyframes == library.classes[name].keyframes
 
 
 # --------------------------------------------------------------------------------------- retrieval

@@ -175,7 +175,7 @@ def slow_recognizer(
         ]
         for fs in FEATURE_SETS
     }
-    frames = np.array([[(c >> i) & 1 for i in range(N_FEATURES)] for c in codes], dtype=np.uint64)
+    frames = np.array([[(c >> i) & 1 for i in range(N_FEATURES)] for c in codes], dtype=bool)
     owner: list[int] = []
     full = []
     for k, cls in enumerate(classes):

@@ -27,6 +27,8 @@ def keyframes_option(text: str) -> int | Path:
     try:
         count = int(text)
     except ValueError:
+        if not text.strip():
+            raise argparse.ArgumentTypeError("must be a count of keyframes or a keyframe file") from None
         return Path(text)
     if count < 0:
         raise argparse.ArgumentTypeError(f"must not be negative, got {count}")
@@ -120,9 +122,7 @@ def _learn(args: argparse.Namespace, config: Config) -> int:
         rate=args.fps,
         calibrate_classes=args.calibrate,
         given_keyframes={n: given[n] for n in given if n in examples},
-        progress=lambda message: print(
-            f"[{time.perf_counter() - began:.1f} s] {message}", file=sys.stderr, flush=True
-        ),
+        progress=lambda message: print(message, file=sys.stderr, flush=True),
     )
     library = learned.library
     with together():  # an interrupted run leaves the previous library and pictures, all of them
