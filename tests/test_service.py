@@ -16,7 +16,7 @@ import numpy as np
 
 from daemon.behaviours import JointRotations, ppca_forward
 from daemon.library import default_library_path, load_library
-from daemon.recognizer import detect
+from daemon.recognizer import detect, same_motion
 from daemon.recordings import read_recording
 from replay import Motion
 from tests.helpers import (
@@ -80,6 +80,47 @@ def test_zeromq_replay_gives_the_detections_of_detect(tmp_path: Path) -> None:
     finally:
         collector.close()
         daemon.stop()
+
+
+def held(where: Path, hold: float) -> list[dict[str, Any]]:
+    """What a daemon with ``recognizer.hold_s`` = ``hold`` publishes over ZeroMQ for CMU 13_30,
+    checked against ``mocapd detect``'s with the same hold."""
+    where.mkdir()
+    config: dict[str, dict[str, object]] = {**BIG_QUEUE, "recognizer": {"hold_s": hold}}
+    daemon = Daemon(where, config=config).start()
+    collector = ZmqCollector(daemon.detections)
+    try:
+        finished(replay(*TRIAL, "zmq+" + daemon.poses, speed="max"))
+        want = [
+            d.as_json()
+            for d in detect(read_recording(*TRIAL), load_library(default_library_path()), 120.0, hold_s=hold)
+        ]
+        wait_for(lambda: daemon.metrics().get("mocapd_frames_in_total") == 2465, 30, "every pose received")
+        assert daemon.stop() == 0
+        wait_for(lambda: len(collector.detections()) >= len(want), 10, "the last detections")
+        assert detection_keys(collector.detections()) == detection_keys(want)
+        return collector.detections()
+    finally:
+        collector.close()
+        daemon.stop()
+
+
+def test_the_hold_end_to_end(tmp_path: Path) -> None:
+    """Through two real daemons over ZeroMQ, ``recognizer.hold_s`` 0 and 2: each publishes what
+    ``mocapd detect`` gives with the same hold; without a hold every detection comes out one index
+    frame after its last frame is seen (the features' delay, then the frame that shows Δ's
+    minimum), with one a detection is held while another template could still explain its motion
+    more cheaply, at most 2 s; in both, no two detections are the same motion. On CMU 13_30 the
+    hold changes what comes out: a cheaper match of a motion that comes later wins."""
+    got = {hold: held(tmp_path / f"hold{hold:g}", hold) for hold in (0.0, 2.0)}
+    for hold, detections in got.items():
+        bound = 16 + (round(hold * 30) + 2) * 4  # native frames: features, the minimum's frame, the hold
+        assert all(0 <= d["emitted_at_frame"] - d["end_frame"] <= bound for d in detections)
+        ranges = [(d["start_frame"], d["end_frame"]) for d in detections]
+        assert not any(same_motion(a, b) for i, a in enumerate(ranges) for b in ranges[i + 1 :])
+    assert max(d["emitted_at_frame"] - d["end_frame"] for d in got[0.0]) <= 16 + 4
+    assert max(d["emitted_at_frame"] - d["end_frame"] for d in got[2.0]) > 16 + 4
+    assert detection_keys(got[0.0]) != detection_keys(got[2.0])
 
 
 def test_mqtt_replay_gives_the_detections_of_detect(tmp_path: Path) -> None:
