@@ -332,7 +332,8 @@ def table(kind: str, results: Results, classes: Sequence[str]) -> None:
         r = t.found / t.motions if t.motions else math.nan
         modes = ", ".join(results.modes.get(kind, {}).get(name, []))
         print(
-            f"{name:30s} {p:5.2f} {r:5.2f} {t.right:5d}/{t.detections:<5d} {t.found:6d}/{t.motions:<7d}  {modes}"
+            f"{name:30s} {p:5.2f} {r:5.2f} {t.right:5d}/{t.detections:<5d} "
+            f"{t.found:6d}/{t.motions:<7d}  {modes}"
         )
         total.detections += t.detections
         total.right += t.right
@@ -341,7 +342,8 @@ def table(kind: str, results: Results, classes: Sequence[str]) -> None:
     p = total.right / total.detections if total.detections else math.nan
     r = total.found / total.motions if total.motions else math.nan
     print(
-        f"{'pooled':30s} {p:5.2f} {r:5.2f} {total.right:5d}/{total.detections:<5d} {total.found:6d}/{total.motions:<7d}"
+        f"{'pooled':30s} {p:5.2f} {r:5.2f} {total.right:5d}/{total.detections:<5d} "
+        f"{total.found:6d}/{total.motions:<7d}"
     )
     gated = [(n, t) for n, t in tallies.items() if t.gated]
     if gated:
@@ -407,7 +409,8 @@ def main() -> None:
     for key, frames in results.latency.items():
         print(f"  {key + ':':<32} {percentiles(frames, 120.0)}")
     print(
-        f"\nmocapd learn: {len(results.learn_s)} runs, {min(results.learn_s):.0f}-{max(results.learn_s):.0f} s each"
+        f"\nmocapd learn: {len(results.learn_s)} runs, "
+        f"{min(results.learn_s):.0f}-{max(results.learn_s):.0f} s each"
     )
     print(f"total {time.perf_counter() - began:.0f} s")
 

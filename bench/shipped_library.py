@@ -76,8 +76,7 @@ def print_classes(library: Library) -> None:
         taus = "/".join(f"{t:.3f}" for _, t in cls.members)
         print(
             f"{name:28s} {len(cls.training):5d} {actors:6d} {len(cls.members):4d} {cls.mode:>9s} {taus:>7s} "
-            f"{rates}  {cls.mode_reason if cls.mode == GATED or not c.calibrated else cls.mode_reason}"
-            + ("" if c.calibrated else f"; τ {c.method}")
+            f"{rates}  {cls.mode_reason}" + ("" if c.calibrated else f"; τ {c.method}")
         )
 
 
@@ -113,7 +112,8 @@ def main() -> None:
     if learned.calibrated is not None:
         c = learned.calibrated
         print(
-            f"folds: {len(c.folds)} ({c.groups}); τ placed {c.position:g} of the way (nested F1 {dict(c.position_f1)})"
+            f"folds: {len(c.folds)} ({c.groups}); τ placed {c.position:g} of the way "
+            f"(nested F1 {dict(c.position_f1)})"
         )
     print_classes(learned.library)
     save_library(learned.library, args.out, {MANIFEST: manifest})

@@ -355,7 +355,8 @@ def folds(
         out.append(make_fold(group, codes, truth, owner, candidates, frozenset(learned), trials))
         if progress is not None:
             progress(
-                f"[fold {order.index(group) + 1}/{len(order)}] {group} left out: {len(learned)} classes learned "
+                f"[fold {order.index(group) + 1}/{len(order)}] {group} left out: {len(learned)} classes "
+                "learned "
                 f"from the others, run over its stream ({len(codes)} frames)"
             )
     return out
@@ -798,7 +799,8 @@ def calibrate(
             members[k] = labels
             if progress is not None:
                 progress(
-                    f"[class {k + 1}/{len(names)}] {name}: two styles, F1 over the folds {f1(*before):.2f} -> {f1(*after):.2f}"
+                    f"[class {k + 1}/{len(names)}] {name}: two styles, F1 over the folds "
+                    f"{f1(*before):.2f} -> {f1(*after):.2f}"
                 )
     out = {}
     for k, name in enumerate(names):

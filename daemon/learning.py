@@ -127,6 +127,7 @@ def learn_library(
         if progress is not None:
             progress(
                 f"[class {len(classes)}/{len(examples)}] {name}: {len(items)} examples, {len(cls.members)} "
-                f"template{'s' if len(cls.members) > 1 else ''} of {cls.quantised.length} columns, {cls.mode} mode"
+                f"template{'s' if len(cls.members) > 1 else ''} of {cls.quantised.length} columns, "
+                f"{cls.mode} mode"
             )
     return Learned(Library(rate, classes), calibrated)

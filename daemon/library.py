@@ -3,14 +3,16 @@ readable without them.
 
 A library is a directory::
 
-    LIB/library.json      {"format": "mocapd-templates", "version": 3, "rate": 30.0,
+    LIB/library.json      {"format": "mocapd-templates", "version": 4, "rate": 30.0,
                            "features": [39 names, the row order of every template],
                            "classes": {name: {"file": "<name>.npz", "sha256": {array: hex},
                                               "tau", "calibration", "delta", "steps",
                                               "iterations", "training": [clip, ...],
                                               "keyframes": [keyframe, ...],
+                                              "mode", "mode_reason", "members": [member, ...],
                                               ["keyframe_source": "published"]}}}
     LIB/<name>.npz        soft, soft_weights, quantised, quantised_weights, hard, hard_weights
+                          [, member1, member1_weights, ...]
 
 Templates are ``(39, K)`` float64 matrices (features in :data:`daemon.features.FEATURE_NAMES` order,
 columns in frames at ``rate``) with weights ``(K,)``; the soft MT lies in [0, 1], the quantised and
@@ -18,29 +20,31 @@ hard MTs in {0, ½, 1}. A training clip is ``{"asf", "amc", "start_frame", "end_
 "actor"}`` (AMC frame numbers, inclusive; ``frames`` at ``rate``; ``actor`` the person). Keyframes
 use the entries of ``manual-keyframes.json`` (``set``, ``values``, ``position``,
 ``stiffness_to_next``), positions in template columns. ``tau`` is the class's retrieval threshold
-and ``calibration`` how it was obtained (:class:`daemon.calibration.Calibration` without its τ:
-``{"method", "folds", "positives", "negatives", "recall", "precision"}``; folds 0 and recall and
-precision null for a τ given, not calibrated), ``delta`` the quantisation threshold and ``steps``
-the DTW steps retrieval uses. ``sha256`` holds the SHA-256 of each array, checked on loading, so
-arrays damaged, swapped or edited are refused. A class's arrays are read only when the class is
-loaded, so a damaged class file does not keep the others from being used.
+and ``calibration`` how it was obtained (:class:`Calibration` without its τ: ``{"method", "folds",
+"positives", "negatives", "recall", "precision"}``; folds 0 and recall and precision null for a τ
+given, not calibrated), ``delta`` the quantisation threshold and ``steps`` the DTW steps retrieval
+uses. ``mode`` (:data:`MODES`) says how the live recogniser finds the class, ``mode_reason`` why;
+``members`` are the class's other templates (:class:`Variant`: ``{"tau", "calibration",
+"examples"}``, the array ``member<i>`` its quantised template). ``sha256`` holds the SHA-256 of each
+array, checked on loading, so arrays damaged, swapped or edited are refused. A class's arrays are
+read only when the class is loaded, so a damaged class file does not keep the others from being
+used.
 
-``keyframe_source`` (optional, version 3) says where the keyframes come from: absent or
-``"learned"``, the automatic keyframes learned with the templates; ``"published"``, the class's
-manual keyframes of the Bonn toolbox (``manual-keyframes.json``, positions in the columns of the
-published template at ``rate``), put in their place because they did better on the training data
-(``python -m bench.shipped_library``). :func:`save_library` writes it only for published keyframes,
-so a library with learned keyframes is exactly what earlier version 3 readers read. A library
-directory may hold other files beside its own (``extra`` of :func:`save_library`), which loading
-ignores.
+``keyframe_source`` (optional) says where the keyframes come from: absent or ``"learned"``, the
+automatic keyframes learned with the templates; ``"published"``, keyframes given to ``mocapd learn
+--keyframes FILE`` (e.g. the Bonn toolbox's ``manual-keyframes.json``, positions in the columns of
+the published template at ``rate``). A library directory may hold other files beside its own
+(``extra`` of :func:`save_library`), which loading ignores.
 
 **The shipped library.** :func:`default_library_path` is the library that ships inside the package
 (:data:`DEFAULT_LIBRARY`): 18 classes learned by ``python -m bench.shipped_library`` from the HDM05
 and CMU clips of ``../shared/data/mocap``, with the training manifest it used (``training.csv``,
 paths relative to the repository root), so recognising needs no training step.
 
-Version 2 (no ``calibration``, no ``actor``) still loads: its τ is marked given, not calibrated, and
-each clip's actor is its ASF path. Version 1 is refused with the advice to learn it again.
+Version 3 (no ``mode``, no ``members``) loads with every class gated by its keyframes, as it was
+recognised. Version 2 (no ``calibration``, no ``actor``) still loads: its τ is marked given, not
+calibrated, and each clip's actor is its ASF path. Version 1 is refused with the advice to learn it
+again.
 """
 
 from __future__ import annotations

@@ -3,36 +3,24 @@
 Per frame (DESIGN.md, the data flow): AMC-style channels go through forward kinematics (or joint
 positions arrive as they are), :class:`~daemon.features.FeatureStream` gives the 39 features,
 every k-th frame is kept for the library's rate (30 Hz from 120 Hz), and the frame's code (bit i =
-feature i) goes to every class's :class:`~daemon.automaton.KeyframeAutomaton`. Each keyframe
-*match* it completes (a hit of every keyframe within the stiffness windows, Alg. 4.1) is a
-candidate: its hit-relevant range R(M) (Def. 4.6), widened as
-:func:`daemon.retrieval.keyframe_extension` widens keyframe ranges for ranking (the template's
-columns before the first and after the last keyframe, times 1.5), is confirmed by subsequence DTW of the
-class's quantised motion template (thesis §3.4, the retrieval cost and steps of
-:func:`daemon.retrieval.template_search`) as soon as the window's last frame has arrived. Every local
-minimum at or below the class's τ, after the toolbox's suppression, is a confirmation; its range is
-the DTW match, not the keyframe range. Matches, not Ω^Z components, start confirmation: a component
-is final only Σ dmax frames after its end, and a long series of repetitions whose ranges touch is one
-component that would be confirmed only when the series ends.
+feature i) goes to :class:`CodeRecognizer`: every template of every class runs as a subsequence DTW
+over the whole stream (thesis Alg. 3.2 with free start; the retrieval cost and steps of
+:func:`daemon.retrieval.template_search`), its local minima within τ are candidates, a candidate
+beaten by a cheaper one of the same motion (:func:`same_motion`) is dropped, and one that is not is
+held until no template can still end a cheaper match of its motion (or ``hold_s``), then published
+unless its class is gated by keyframes (:class:`~daemon.automaton.KeyframeAutomaton`'s matches)
+and none overlaps it. Published detections are never taken back.
 
-One motion, one detection per class: two confirmations of a class that share more than half of the
-shorter one's frames are one motion (:func:`same_motion`). Among those confirmed together the
-cheaper is kept; one that is the same motion as a detection already emitted is dropped (that one
-was published and cannot be taken back). A repetition right after the last is reported, even if
-the two share the frame or two of the pose between them. One motion, one class (``compete``): a
-confirmation is dropped when another class's template fits the same motion more cheaply
-(:class:`CodeRecognizer`).
+Latency. A detection comes out one index frame after its last frame (the frame that shows Δ's
+minimum) once the features' delay (16 frames at 120 Hz) has passed, or later while it is held: at
+most :attr:`Recognizer.latency_frames` native frames after its last frame.
 
-Latency. A detection comes out when the index-rate frame ``right`` frames after its match's last
-keyframe has been pushed, i.e. at most :attr:`Recognizer.latency_frames` native frames after that
-keyframe (the features' delay of 16 frames at 120 Hz plus ``right`` index frames).
-
-Bounded state. The features keep 33 poses at 120 Hz, each automaton the query's span, and the
-stream one ring of its recent codes as long as the widest window (Σ dmax + left + right + 1); with
-``compete``, three DTW columns per class and each class's Δ over that ring.
+Bounded state. The features keep 33 poses at 120 Hz, each gating automaton the query's span, the DTW
+three columns per template, and the candidates and keyframe ranges of the last :func:`reach`
+frames.
 
 :func:`detect` is the batch twin: features of the whole recording in one vectorised pass, then the
-same candidate and confirmation logic; it equals pushing the frames one by one (tests).
+same class stage; it equals pushing the frames one by one (tests).
 """
 
 from __future__ import annotations

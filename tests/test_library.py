@@ -285,7 +285,7 @@ def test_library_v4_modes_and_member_templates(library: Library, tmp_path: Path)
     assert (
         loaded.classes["hopBothLegs1hops"].mode == GATED and loaded.classes["hopBothLegs1hops"].variants == ()
     )
-    for change, message in [
+    changes: list[tuple[dict[str, object], str]] = [
         ({"classes/squat1Reps/mode": "fast"}, r"classes\.squat1Reps\.mode: must be one of keyframes, dtw"),
         (
             {"classes/squat1Reps/mode": "keyframes"},
@@ -294,7 +294,8 @@ def test_library_v4_modes_and_member_templates(library: Library, tmp_path: Path)
         ({"classes/squat1Reps/members/0/examples": [0, 99]}, r"members\[0\]\.examples\[1\]: must be"),
         ({"classes/squat1Reps/members/0/tau": -1}, r"members\[0\]\.tau: must be"),
         ({"classes/squat1Reps/members": []}, r"sha256\.member1: unknown field"),
-    ]:
+    ]
+    for change, message in changes:
         save_library(Library(30.0, {"squat1Reps": two, "hopBothLegs1hops": hop}), lib)
         edit_json(lib, change)
         with pytest.raises(LibraryFormatError, match=message):
