@@ -35,7 +35,7 @@ from bench.common import DATA
 from bench.machine import describe
 from daemon.keyframes import KeyframeQuery, parse_keyframe_queries
 from daemon.learning import learn_library
-from daemon.library import GATED, Library, check_library_target, save_library
+from daemon.library import Library, check_library_target, save_library
 from daemon.recordings import Examples, read_example
 from daemon.shipped import RATE, manifest_csv, training_items, training_rows
 
