@@ -762,7 +762,12 @@ def calibrate(
     says why)."""
     names = list(examples)
     found = folds(examples, delta=delta, keyframes=keyframes, steps=steps, rate=rate, progress=progress)
-    position, position_f1 = choose_position(found, min_recall=min_recall, fallback=tau)
+    # nested folds over one person's takes measure how τ carries to another take of that person,
+    # not to another person: there the middle of the gap is taken
+    if groups_are == "actors":
+        position, position_f1 = choose_position(found, min_recall=min_recall, fallback=tau)
+    else:
+        position, position_f1 = DEFAULT_POSITION, {}
 
     def taus_of(folds_: Sequence[Fold]) -> list[float | None]:
         chosen = thresholds(folds_, position=position, min_recall=min_recall, fallback=tau)

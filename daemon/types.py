@@ -30,7 +30,7 @@ frames at 10 kHz), so an absurd rate (a typo, a damaged file) would exhaust memo
 DEFAULT_INDEX_RATE = 30.0
 """Hz at which indexes, templates and keyframes work (the toolbox's every 4th frame of 120 Hz)."""
 
-DEFAULT_HOLD_S = 2.0
+DEFAULT_HOLD_S = 5.0
 """Seconds the live recogniser may hold a detection while another template could still explain
 the same motion more cheaply (config ``recognizer.hold_s``)."""
 DEFAULT_MAX_GAP_S = 2.0

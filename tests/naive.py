@@ -9,6 +9,7 @@ from collections.abc import Iterator, Sequence
 from fractions import Fraction
 from itertools import pairwise, product
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 import numpy.typing as npt
@@ -19,8 +20,9 @@ from daemon.features import features, window_frames
 from daemon.index import SetIndex
 from daemon.keyframes import KeyframeQuery
 from daemon.library import ClassTemplate
+from daemon.recognizer import gate_ranges
 from daemon.segments import Segment
-from daemon.templates import expand
+from daemon.templates import Generalisation, expand
 from daemon.types import BoolArray, FeatureSet, FloatArray
 from replay import JOINT_NAMES, KinematicModel, read_amc, read_asf
 from tests.synth import ROT, SkeletonSpec
@@ -803,3 +805,177 @@ def slow_ppca_segment(
             return sorted(cuts)
         cuts |= found
         forward = not forward
+
+
+# ----------------------------------------------------------- calibration: the detections of a fold
+
+FoldCandidate = tuple[float, int, int, int]
+"""A candidate of a fold as plain values: (cost, end, template, start)."""
+
+
+def frames_shared(a: tuple[int, int], b: tuple[int, int]) -> int:
+    """How many frames two inclusive ranges have in common, counted as sets."""
+    return len(set(range(a[0], a[1] + 1)) & set(range(b[0], b[1] + 1)))
+
+
+def slow_same_motion(a: tuple[int, int], b: tuple[int, int]) -> bool:
+    """More than half of the shorter range's frames shared."""
+    shorter = min(a[1] - a[0] + 1, b[1] - b[0] + 1)
+    return 2 * frames_shared(a, b) > shorter
+
+
+def slow_survivors(
+    candidates: Sequence[FoldCandidate], owner: Sequence[int], taus: Sequence[float | None]
+) -> list[bool]:
+    """For each candidate of ``sorted(candidates)``: not beaten, i.e. no candidate before it in that
+    order is the same motion and of its class (``owner`` of their templates) or within its own
+    template's τ (a τ of None: none)."""
+    ordered = sorted(candidates)
+    out = []
+    for i, (_, end, template, start) in enumerate(ordered):
+        beaten = False
+        for cost2, end2, template2, start2 in ordered[:i]:
+            tau = taus[template2]
+            rival = owner[template2] == owner[template] or (tau is not None and cost2 <= tau)
+            if rival and slow_same_motion((start, end), (start2, end2)):
+                beaten = True
+        out.append(not beaten)
+    return out
+
+
+def slow_motion_of(
+    candidate: FoldCandidate, owner: Sequence[int], truth: Sequence[tuple[int, int, int]]
+) -> int | None:
+    """The first motion of ``truth`` (class, first, last) of the candidate's class that holds at
+    least half of the candidate's frames."""
+    _, end, template, start = candidate
+    for i, (k, first, last) in enumerate(truth):
+        if k == owner[template] and 2 * frames_shared((start, end), (first, last)) >= end - start + 1:
+            return i
+    return None
+
+
+def slow_outcomes(
+    candidates: Sequence[FoldCandidate],
+    owner: Sequence[int],
+    truth: Sequence[tuple[int, int, int]],
+    learned: set[int] | frozenset[int],
+    taus: Sequence[float | None],
+) -> tuple[list[list[float]], list[list[float]]]:
+    """Per template, its positives and negatives: the surviving candidates are the detections; each
+    motion of a learned class (in ``truth`` order) gives one positive, the cost of its cheapest right
+    detection (ties: the first in the order) to that detection's template, or ``inf`` to the class's
+    first template; each wrong detection is a negative of its template."""
+    ordered = sorted(candidates)
+    detections = [x for x, ok in zip(ordered, slow_survivors(candidates, owner, taus), strict=True) if ok]
+    positives: list[list[float]] = [[] for _ in owner]
+    negatives: list[list[float]] = [[] for _ in owner]
+    for x in detections:
+        if slow_motion_of(x, owner, truth) is None:
+            negatives[x[2]].append(x[0])
+    for i, (k, _, _) in enumerate(truth):
+        if k not in learned:
+            continue
+        right = [x for x in detections if slow_motion_of(x, owner, truth) == i]
+        if right:
+            best = min(right)
+            positives[best[2]].append(best[0])
+        else:
+            positives[owner.index(k)].append(math.inf)
+    return positives, negatives
+
+
+def slow_scored(
+    candidates: Sequence[FoldCandidate],
+    owner: Sequence[int],
+    truth: Sequence[tuple[int, int, int]],
+    learned: set[int] | frozenset[int],
+    taus: Sequence[float | None],
+    k: int | None = None,
+) -> tuple[int, int, int]:
+    """True positives, false positives, false negatives (of class ``k`` alone, if given): the
+    detections within their template's τ are kept (those of class ``k``); a motion of a learned
+    class (``k``) is found when one of them is right for it, each of them right for no motion is a
+    false positive."""
+    ordered = sorted(candidates)
+    survive = slow_survivors(candidates, owner, taus)
+    found: set[int] = set()
+    fp = 0
+    for x, ok in zip(ordered, survive, strict=True):
+        tau = taus[x[2]]
+        if not ok or tau is None or x[0] > tau or (k is not None and owner[x[2]] != k):
+            continue
+        i = slow_motion_of(x, owner, truth)
+        if i is None:
+            fp += 1
+        else:
+            found.add(i)
+    motions = [i for i, (c, _, _) in enumerate(truth) if c in learned and (k is None or c == k)]
+    tp = sum(i in found for i in motions)
+    return tp, fp, len(motions) - tp
+
+
+class GateFold(NamedTuple):
+    """A fold as plain values for :func:`slow_gate`: its candidates, the class of each template, its
+    motions, its stream's codes and, for the class gated, each keyframe trial as (generalisation,
+    query, left-out examples of the class kept, examples of other classes kept)."""
+
+    candidates: list[FoldCandidate]
+    owner: Sequence[int]
+    truth: Sequence[tuple[int, int, int]]
+    codes: list[int]
+    trials: list[tuple[Generalisation, KeyframeQuery, list[bool], int]]
+
+
+def slow_gate(
+    folds: Sequence[GateFold],
+    k: int,
+    taus: Sequence[float | None],
+    min_kept: float,
+    rate: float,
+    max_gap: int,
+) -> Generalisation | None:
+    """Class ``k``'s keyframe gate by its definition, or None: its detections (surviving, within
+    their template's τ) in every fold; none without a wrong one. A generalisation qualifies when in
+    every fold its keyframes keep at least ``min_kept`` of the left-out examples of the class and
+    the detections that share a frame with a range its gate opens (:func:`gate_ranges`) still find
+    at least ``min_kept`` of the motions found without it, and over all folds fewer wrong
+    detections are left. Of those: the fewest wrong detections, then the fewest examples of other
+    classes kept, then the first tried."""
+    detections = []
+    for f in folds:
+        alive = slow_survivors(f.candidates, f.owner, taus)
+        mine = []
+        for x, ok in zip(sorted(f.candidates), alive, strict=True):
+            tau = taus[x[2]]
+            if ok and f.owner[x[2]] == k and tau is not None and x[0] <= tau:
+                mine.append((x, slow_motion_of(x, f.owner, f.truth)))
+        detections.append(mine)
+    wrong = sum(i is None for mine in detections for _, i in mine)
+    if wrong == 0:
+        return None
+    tried: list[Generalisation] = []
+    for f in folds:
+        for g, _, _, _ in f.trials:
+            if g not in tried:
+                tried.append(g)
+    best: tuple[int, int, int] | None = None
+    chosen = None
+    for order, g in enumerate(tried):
+        qualifies, wrong_g, others = True, 0, 0
+        for f, mine in zip(folds, detections, strict=True):
+            for generalisation, query, kept_examples, negatives in f.trials:
+                if generalisation != g:
+                    continue
+                if kept_examples and sum(kept_examples) < min_kept * len(kept_examples):
+                    qualifies = False
+                ranges = gate_ranges(query, rate, max_gap, f.codes)
+                kept = [(x, i) for x, i in mine if any(a <= x[1] and x[3] <= b for a, b in ranges)]
+                motions = {i for _, i in mine if i is not None}
+                if len({i for _, i in kept if i is not None}) < min_kept * len(motions) - 1e-9:
+                    qualifies = False
+                wrong_g += sum(i is None for _, i in kept)
+                others += negatives
+        if qualifies and wrong_g < wrong and (best is None or (wrong_g, others, order) < best):
+            best, chosen = (wrong_g, others, order), g
+    return chosen

@@ -1,41 +1,76 @@
-"""Per-class calibration (issue 12): the τ choice on hand-made cost lists and as a property, the
-leave-one-actor-out folds on real HDM05 clips of three actors, the training manifest's ``actor``
-column, library version 3 and the loading of version 2, and ``mocapd learn`` / ``mocapd search
---library`` using the calibrated τ unless told otherwise."""
+"""Learning how each class is recognised (issue 20): the τ choice on hand-made cost lists and as a
+property (with its position towards the next wrong detection), the fold groups, the left-out
+streams, the detections of a fold (survivors, outcomes, scores) against slow references on random
+candidates, the thresholds found again with the rivals' τ, the position chosen by nested folds, two
+styles of a class, the keyframe gate, the whole calibration on real HDM05 clips of three actors
+(and of one), the training manifest's ``actor`` column, library version 4 and the loading of
+versions 2 and 3, and ``mocapd learn`` / ``mocapd search --library`` using the calibrated τ unless
+told otherwise."""
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import math
+import random
 import re
+from collections.abc import Sequence
+from itertools import pairwise
 from pathlib import Path
 
 import numpy as np
+import numpy.typing as npt
 import pytest
 from hypothesis import given as hypothesis_given
 from hypothesis import settings
 from hypothesis import strategies as st
 
 from daemon.calibration import (
+    CAP,
+    DEFAULT_POSITION,
     GENERALISATIONS,
-    GIVEN,
-    MOST_GENERAL,
-    Calibration,
-    calibrate_class,
-    choose_generalisation,
+    MIN_KEPT,
+    MIN_MEMBER,
+    POSITIONS,
+    ROUNDS,
+    TAKE_GROUPS,
+    Calibrated,
+    Candidate,
+    Choice,
+    Fold,
+    KeyframeTrial,
+    calibrate,
+    choose_gate,
+    choose_position,
     choose_tau,
     clip_costs,
     clip_sets,
+    fold_stream,
+    groups,
     keyframes_kept,
-    retention,
+    make_fold,
+    outcomes,
+    scored,
+    survivors,
+    thresholds,
+    two_clusters,
 )
-from daemon.dtw import fixed, retrieval_cost, subsequence_dtw
+from daemon.dtw import fixed, pack, retrieval_cost, subsequence_dtw
 from daemon.index_store import build_index, save_index
 from daemon.keyframes import gap_bounds
-from daemon.library import Library, LibraryFormatError, learn_class, load_library, save_library
+from daemon.library import (
+    DTW,
+    GATED,
+    GIVEN,
+    Calibration,
+    Library,
+    LibraryFormatError,
+    learn_class,
+    load_library,
+    save_library,
+)
 from daemon.recordings import ManifestError, read_examples, read_manifest, read_training_manifest
 from daemon.templates import Generalisation, automatic_keyframes, expand, learn, learn_hard
+from daemon.types import DEFAULT_INDEX_RATE, DEFAULT_MAX_GAP_S, BoolArray
 from tests.helpers import (
     HDM_AMC,
     HDM_ASF,
@@ -43,8 +78,18 @@ from tests.helpers import (
     hdm05_clip,
     hits_json,
     mocapd,
+    takes,
     write_manifest,
     write_training,
+)
+from tests.naive import (
+    FoldCandidate,
+    GateFold,
+    ref_local_minima,
+    slow_gate,
+    slow_outcomes,
+    slow_scored,
+    slow_survivors,
 )
 
 CLIPS = [
@@ -63,6 +108,8 @@ CLIPS = [
 ]
 """2 classes x 3 actors x 2 clips: small enough to learn every fold in a few seconds."""
 
+Labelled = dict[str, list[tuple[str, BoolArray]]]
+
 
 def actor_rows(clips: list[tuple[str, str, int]], actor: bool = True) -> list[str]:
     rows = []
@@ -76,9 +123,24 @@ def write_clips(path: Path, clips: list[tuple[str, str, int]] = CLIPS) -> Path:
     return write_training(path, actor_rows(clips), "class,asf,amc,actor")
 
 
+def by_actor(manifest: Path) -> Labelled:
+    return {name: [(clip.actor, m) for clip, m in items] for name, items in read_examples(manifest).items()}
+
+
 @pytest.fixture(scope="module")
 def manifest(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return write_clips(tmp_path_factory.mktemp("calibration") / "clips.csv")
+
+
+@pytest.fixture(scope="module")
+def labelled(manifest: Path) -> Labelled:
+    return by_actor(manifest)
+
+
+@pytest.fixture(scope="module")
+def calibrated(labelled: Labelled) -> Calibrated:
+    """Every class calibrated over the three actors (keyframes learned in every fold)."""
+    return calibrate(labelled, groups_are="actors")
 
 
 # ------------------------------------------------------------------------------------ choosing τ
@@ -91,6 +153,20 @@ def test_tau_at_the_best_f1_with_full_recall_midway_to_the_next_negative() -> No
     assert choice.tau == pytest.approx((0.09 + 0.12) / 2)
     assert (choice.recall, choice.precision) == (1.0, 0.8)
     assert choice.f1 == pytest.approx(2 * 4 / (2 * 4 + 1 + 0))
+
+
+def test_tau_position_moves_it_towards_the_next_negative() -> None:
+    for position in (0.0, 0.25, 0.75):
+        choice = choose_tau([0.02, 0.04, 0.05, 0.09], [0.03, 0.12, 0.5], fallback=0.1, position=position)
+        assert choice is not None and choice.tau == pytest.approx(0.09 + position * 0.03)
+        assert (choice.recall, choice.precision) == (1.0, 0.8)
+    # no negative above: the position does not matter, the fallback does
+    for position in (0.0, 0.9):
+        choice = choose_tau([0.02, 0.09], [0.01], fallback=0.1, position=position)
+        assert choice is not None and choice.tau == 0.1
+    for position in (1.0, -0.1, math.nan):
+        with pytest.raises(ValueError, match="position must lie in"):
+            choose_tau([0.02], [0.1], fallback=0.1, position=position)
 
 
 def test_tau_prefers_precision_when_the_recall_allows() -> None:
@@ -120,18 +196,19 @@ def test_tau_when_the_recall_is_out_of_reach_or_nothing_matches() -> None:
 
 
 costs = st.lists(st.integers(0, 40).map(lambda i: i / 40) | st.just(math.inf), max_size=30)
+positions = st.sampled_from([0.0, *POSITIONS]) | st.integers(0, 99).map(lambda i: i / 100)
 
 
 @settings(max_examples=300, deadline=None)
-@hypothesis_given(costs, costs, st.sampled_from([0.5, 0.8, 0.95, 1.0]))
+@hypothesis_given(costs, costs, st.sampled_from([0.5, 0.8, 0.95, 1.0]), positions)
 def test_tau_is_the_best_f1_subject_to_the_recall(
-    positives: list[float], negatives: list[float], min_recall: float
+    positives: list[float], negatives: list[float], min_recall: float, position: float
 ) -> None:
-    choice = choose_tau(positives, negatives, min_recall=min_recall, fallback=0.1)
+    choice = choose_tau(positives, negatives, min_recall=min_recall, fallback=0.1, position=position)
     if not any(math.isfinite(p) for p in positives):
         assert choice is None
         return
-    assert choice is not None and choice.tau > 0
+    assert choice is not None and choice.tau >= 0
 
     def score(t: float) -> tuple[float, float, float]:
         tp = sum(p <= t for p in positives)
@@ -147,16 +224,315 @@ def test_tau_is_the_best_f1_subject_to_the_recall(
         assert f1 >= max(score(t)[2] for t in feasible) - 1e-12
     else:
         assert choice.tau >= max(p for p in positives if math.isfinite(p))
+    # τ sits ``position`` of the way from the positive cost it needs to the next negative cost
+    cost = max(p for p in positives if p <= choice.tau)
+    above = [n for n in negatives if cost < n < math.inf]  # an unmatched negative is no limit
+    if above:
+        assert choice.tau == pytest.approx(cost + position * (min(above) - cost))
+        assert position == 0 or choice.tau > cost
+    else:
+        assert choice.tau == max(cost, 0.1)
 
 
-# ------------------------------------------------------------------------------- real clips, folds
+# ------------------------------------------------------------------------------------ the groups
 
 
-def test_clip_costs_are_the_best_subsequence_dtw_costs(manifest: Path) -> None:
-    examples = read_examples(manifest)
-    squats = [m for _, m in examples["squat1Reps"]]
+def test_groups_are_the_actors_when_there_are_two() -> None:
+    actors = ["bd", "bk", "bd", "bd"]
+    assert groups(actors, ["a", "a", "b", "a"]) == (actors, "actors")
+
+
+def test_groups_of_one_actor_deal_each_class_into_takes() -> None:
+    classes = ["a", "a", "b", "a", "a", "b", "c", "a"]
+    labels, what = groups(["bd"] * len(classes), classes)
+    assert labels == ["take 1", "take 2", "take 1", "take 3", "take 1", "take 2", "take 1", "take 2"]
+    assert "one actor" in what and f"at most {TAKE_GROUPS}" in what and "groups" in what
+    assert len(set(labels)) <= TAKE_GROUPS
+    # every group holds some of each class that has at least 3 examples
+    for group in set(labels):
+        assert "a" in [c for c, g in zip(classes, labels, strict=True) if g == group]
+
+
+# ------------------------------------------------------------------------------- a fold's stream
+
+
+def test_fold_stream_joins_the_group_in_an_order_shuffled_by_its_name() -> None:
+    rng = np.random.default_rng(7)
+    made: dict[str, list[tuple[str, BoolArray]]] = {}
+    for name, group_of in (("a", "xxyx"), ("b", "yx"), ("c", "yyyy"), ("d", "xxxx")):
+        made[name] = [(g, rng.random((int(rng.integers(3, 9)), 39)) < 0.5) for g in group_of]
+    for group in ("x", "y"):
+        codes, truth = fold_stream(made, group)
+        again = fold_stream(made, group)  # deterministic
+        assert again[0].tolist() == codes.tolist() and again[1] == truth
+        items = [(k, m) for k, name in enumerate(made) for g, m in made[name] if g == group]
+        expected = list(items)
+        random.Random(group).shuffle(expected)
+        assert [k for k, _, _ in truth] == [k for k, _ in expected]
+        assert truth[0][1] == 0 and truth[-1][2] == len(codes) - 1
+        for (_, _, last), (_, first, _) in pairwise(truth):
+            assert first == last + 1  # contiguous
+        for (k, first, last), (c, m) in zip(truth, expected, strict=True):
+            assert k == c and last - first + 1 == len(m)
+        np.testing.assert_array_equal(codes, pack(np.concatenate([m for _, m in expected])))
+        assert sorted(len(m) for _, m in expected) == sorted(b - a + 1 for _, a, b in truth)
+    # the shuffle depends on the group's name: the same examples under two names
+    same = {"a": [(g, m) for _, m in made["d"] for g in ("p", "q")]}
+    assert fold_stream(same, "p")[0].tolist() != fold_stream(same, "q")[0].tolist()
+    codes, truth = fold_stream(made, "z")
+    assert codes.shape == (0,) and codes.dtype == np.uint64 and truth == []
+
+
+# ------------------------------------------------------------------ the detections of a fold
+
+
+COSTS = (0.05, 0.1, 0.2, 0.3)
+TAUS = (0.05, 0.1, 0.15, 0.2, 0.3)
+
+FoldParts = tuple[list[FoldCandidate], list[int], list[tuple[int, int, int]], frozenset[int], int]
+
+
+@st.composite
+def fold_parts(draw: st.DrawFn, classes: int | None = None, owner: list[int] | None = None) -> FoldParts:
+    """Random candidates (costs from a small set, to force ties), templates owned by classes (every
+    class has one, some a second), a stream of contiguous motions and the classes learned."""
+    if owner is None:
+        n = draw(st.integers(1, 3)) if classes is None else classes
+        owner = list(range(n)) + draw(st.lists(st.integers(0, n - 1), max_size=2))
+    n = max(owner) + 1
+    length = draw(st.integers(1, 40))
+    cuts = sorted(draw(st.sets(st.integers(1, length - 1), max_size=5))) if length > 1 else []
+    bounds = [0, *cuts, length]
+    truth = [(draw(st.integers(0, n - 1)), a, b - 1) for a, b in pairwise(bounds)]
+    learned = frozenset(draw(st.sets(st.integers(0, n - 1))))
+    drawn = draw(
+        st.lists(
+            st.tuples(
+                st.sampled_from(COSTS),
+                st.integers(0, length - 1),
+                st.integers(0, len(owner) - 1),
+                st.integers(0, length - 1),
+            ),
+            max_size=25,
+        )
+    )
+    candidates = [(c, max(a, b), t, min(a, b)) for c, a, t, b in drawn]
+    return candidates, owner, truth, learned, length
+
+
+def taus_for(templates: int) -> st.SearchStrategy[list[float | None]]:
+    return st.lists(st.none() | st.sampled_from(TAUS), min_size=templates, max_size=templates)
+
+
+def as_fold(parts: FoldParts, group: str = "g") -> Fold:
+    candidates, owner, truth, learned, length = parts
+    return make_fold(
+        group,
+        np.zeros(length, dtype=np.uint64),
+        truth,
+        owner,
+        [Candidate(*c) for c in candidates],
+        learned,
+        {},
+    )
+
+
+@settings(max_examples=300, deadline=None)
+@hypothesis_given(st.data())
+def test_survivors_outcomes_and_scores_match_the_slow_references(data: st.DataObject) -> None:
+    parts = data.draw(fold_parts())
+    candidates, owner, truth, learned, _ = parts
+    taus = data.draw(taus_for(len(owner)))
+    fold = as_fold(parts)
+    assert list(fold.candidates) == sorted(candidates)
+    assert survivors(fold, taus).tolist() == slow_survivors(candidates, owner, taus)
+    assert outcomes(fold, taus) == slow_outcomes(candidates, owner, truth, learned, taus)
+    assert scored(fold, taus) == slow_scored(candidates, owner, truth, learned, taus)
+    for k in range(max(owner) + 1):
+        assert scored(fold, taus, k) == slow_scored(candidates, owner, truth, learned, taus, k)
+
+
+def fold_of(
+    group: str,
+    truth: list[tuple[int, int, int]],
+    candidates: list[FoldCandidate],
+    owner: Sequence[int] = (0, 1),
+    learned: frozenset[int] = frozenset({0, 1}),
+) -> Fold:
+    length = max([b for _, _, b in truth] + [c[1] for c in candidates]) + 1
+    return make_fold(
+        group,
+        np.zeros(length, dtype=np.uint64),
+        truth,
+        owner,
+        [Candidate(*c) for c in candidates],
+        learned,
+        {},
+    )
+
+
+def test_thresholds_without_rivals_are_each_templates_best_tau() -> None:
+    """No two candidates share a frame: every template's τ is :func:`choose_tau` on its costs."""
+    one = fold_of(
+        "one",
+        [(0, 0, 9), (1, 10, 19), (0, 20, 29)],
+        [(0.05, 9, 0, 0), (0.12, 19, 1, 10), (0.2, 39, 0, 30), (0.3, 49, 1, 40)],
+    )
+    two = fold_of("two", [(0, 0, 9), (1, 10, 19)], [(0.08, 9, 0, 0), (0.09, 19, 1, 10), (0.11, 29, 0, 20)])
+    for position in POSITIONS:
+        got = thresholds([one, two], position=position, fallback=0.1)
+        a = choose_tau([0.05, math.inf, 0.08], [0.2, 0.11], fallback=0.1, position=position)
+        b = choose_tau([0.12, 0.09], [0.3], fallback=0.1, position=position)
+        assert got == [a, b]
+        assert a is not None and not a.feasible  # one of A's three motions never matched
+        assert b is not None and b.tau == pytest.approx(0.12 + position * 0.18)
+
+
+def test_thresholds_are_found_again_with_the_rivals_tau() -> None:
+    """Class A's wrong candidate (0.1) lies on class B's motion, cheaper than B's right one (0.2). It
+    beats B's only once A's τ is known (0.15: A needs its 0.15 motion), so B's τ comes from the
+    rounds after the first: B then finds one of its two motions."""
+    fold = fold_of(
+        "g",
+        [(1, 0, 19), (0, 30, 49), (1, 60, 79), (0, 90, 109)],
+        [(0.05, 49, 0, 30), (0.15, 109, 0, 90), (0.1, 19, 0, 0), (0.2, 19, 1, 0), (0.08, 79, 1, 60)],
+    )
+    first = [choose_tau([0.05, 0.15], [0.1], fallback=0.1), choose_tau([0.2, 0.08], [], fallback=0.1)]
+    assert outcomes(fold, [None, None]) == ([[0.05, 0.15], [0.2, 0.08]], [[0.1], []])
+    assert first[0] is not None and first[0].tau == 0.15 and first[1] is not None and first[1].tau == 0.2
+    assert ROUNDS >= 2
+    got = thresholds([fold], fallback=0.1)
+    assert got == [first[0], choose_tau([math.inf, 0.08], [], fallback=0.1)]
+    assert got[1] is not None and (got[1].tau, got[1].recall, got[1].feasible) == (0.1, 0.5, False)
+
+
+@settings(max_examples=100, deadline=None)
+@hypothesis_given(st.data())
+def test_thresholds_are_rounds_of_choose_tau_on_the_slow_outcomes(data: st.DataObject) -> None:
+    first = data.draw(fold_parts())
+    owner = first[1]
+    parts = [first, *data.draw(st.lists(fold_parts(owner=owner), max_size=2))]
+    position = data.draw(st.sampled_from(POSITIONS))
+    taus: list[float | None] = [None] * len(owner)
+    expected: list[Choice | None] = []
+    for _ in range(ROUNDS):
+        pos: list[list[float]] = [[] for _ in owner]
+        neg: list[list[float]] = [[] for _ in owner]
+        for candidates, _, truth, learned, _ in parts:
+            p, q = slow_outcomes(candidates, owner, truth, learned, taus)
+            for t in range(len(owner)):
+                pos[t] += p[t]
+                neg[t] += q[t]
+        expected = [
+            choose_tau(pos[t], neg[t], fallback=0.1, position=position) if pos[t] else None
+            for t in range(len(owner))
+        ]
+        taus = [None if c is None else c.tau for c in expected]
+    assert thresholds([as_fold(p) for p in parts], position=position, fallback=0.1) == expected
+
+
+# ------------------------------------------------------------------------ the position of τ
+
+
+def slow_position(folds: list[FoldParts]) -> tuple[float, dict[float, float]]:
+    """Every position's F1 over the folds, each scored with the τ the other folds give, by loops."""
+    f1 = {}
+    for position in POSITIONS:
+        tp = fp = fn = 0
+        for i, (candidates, owner, truth, learned, _) in enumerate(folds):
+            rest = [as_fold(p) for j, p in enumerate(folds) if j != i]
+            taus = [None if c is None else c.tau for c in thresholds(rest, position=position, fallback=0.1)]
+            a, b, c = slow_scored(candidates, owner, truth, learned, taus)
+            tp, fp, fn = tp + a, fp + b, fn + c
+        f1[position] = 2 * tp / max(2 * tp + fp + fn, 1)
+    best = sorted(POSITIONS, key=lambda p: (-f1[p], abs(p - DEFAULT_POSITION)))[0]
+    return best, f1
+
+
+def one_class(motions: list[float], wrong: list[float]) -> FoldParts:
+    """A fold of one class: a motion every 10 frames matched at each of ``motions``' costs, then the
+    ``wrong`` candidates, each on frames of its own."""
+    candidates = [(c, 10 * i + 9, 0, 10 * i) for i, c in enumerate(motions)]
+    truth = [(0, 10 * i, 10 * i + 9) for i in range(len(motions))]
+    at = 10 * len(motions)
+    candidates += [(c, at + 10 * i + 9, 0, at + 10 * i) for i, c in enumerate(wrong)]
+    return candidates, [0], truth, frozenset({0}), at + 10 * len(wrong)
+
+
+@pytest.mark.parametrize(
+    ("held", "best"),
+    [
+        # a new person's motion costs more than the others': only τ far from their motions finds it
+        (one_class([0.24], [0.4]), 0.75),
+        # a new person's wrong detection just above the others' motions: only τ near them keeps it out
+        (one_class([0.12], [0.17]), 0.25),
+        # every position scores the same: the default
+        (one_class([0.1], [0.3]), DEFAULT_POSITION),
+    ],
+)
+def test_position_with_the_best_f1_on_folds_left_out(held: FoldParts, best: float) -> None:
+    folds = [one_class([0.1], [0.3]), one_class([0.1], [0.3]), held]
+    got = choose_position([as_fold(p) for p in folds], fallback=0.1)
+    assert got == slow_position(folds)
+    assert got[0] == best
+    assert (len(set(got[1].values())) == 1) == (best == DEFAULT_POSITION)
+
+
+def test_position_needs_two_folds() -> None:
+    assert choose_position([], fallback=0.1) == (DEFAULT_POSITION, {})
+    assert choose_position([as_fold(one_class([0.24], [0.4]))], fallback=0.1) == (DEFAULT_POSITION, {})
+
+
+@settings(max_examples=60, deadline=None)
+@hypothesis_given(st.data())
+def test_position_is_the_best_of_the_nested_folds(data: st.DataObject) -> None:
+    first = data.draw(fold_parts())
+    folds = [first, *data.draw(st.lists(fold_parts(owner=first[1]), min_size=1, max_size=2))]
+    assert choose_position([as_fold(p) for p in folds], fallback=0.1) == slow_position(folds)
+
+
+# -------------------------------------------------------------------------------- two styles
+
+
+def style(on: range, frames: int, rng: np.random.Generator, flips: int = 4) -> BoolArray:
+    """``frames`` frames with the features ``on`` set, a few entries flipped."""
+    m = np.zeros((frames, 39), dtype=bool)
+    m[:, list(on)] = True
+    for _ in range(flips):
+        m[rng.integers(frames), rng.integers(39)] ^= True
+    return m
+
+
+def test_two_clusters_split_two_styles() -> None:
+    rng = np.random.default_rng(3)
+    a, b = range(0, 20), range(19, 39)
+    order = "AABABBAB"
+    examples = [style(a if s == "A" else b, int(rng.integers(15, 25)), rng) for s in order]
+    assert two_clusters(examples) == tuple(int(s == "B") for s in order)
+    # the cluster of the first example is 0, whichever style it is
+    swapped = "BAABBAAB"
+    examples = [style(a if s == "A" else b, int(rng.integers(15, 25)), rng) for s in swapped]
+    assert two_clusters(examples) == tuple(int(s == "A") for s in swapped)
+
+
+def test_two_clusters_none_when_a_style_is_too_small() -> None:
+    rng = np.random.default_rng(4)
+    a, b = range(0, 20), range(19, 39)
+    assert MIN_MEMBER == 3
+    five = [style(a if i % 2 else b, 20, rng) for i in range(2 * MIN_MEMBER - 1)]
+    assert two_clusters(five) is None  # too few examples for two clusters of 3
+    lone = [style(a, 20, rng) for _ in range(6)] + [style(b, 20, rng)]
+    assert two_clusters(lone) is None  # the other style has one example
+    assert two_clusters(lone, smallest=1) == (0, 0, 0, 0, 0, 0, 1)
+
+
+# ---------------------------------------------------------------------------- real clips, folds
+
+
+def test_clip_costs_are_the_best_subsequence_dtw_costs(labelled: Labelled) -> None:
+    squats = [m for _, m in labelled["squat1Reps"]]
     template = learn(squats[:2], keyframes=0).quantised
-    clips = squats[2:] + [m for _, m in examples["hopBothLegs1hops"]] + [squats[0][:5]]
+    clips = squats[2:] + [m for _, m in labelled["hopBothLegs1hops"]] + [squats[0][:5]]
     got = clip_costs(template, clips, "toolbox")
     t = expand(template)
     for clip, cost in zip(clips, got, strict=True):
@@ -166,80 +542,135 @@ def test_clip_costs_are_the_best_subsequence_dtw_costs(manifest: Path) -> None:
     assert fixed(got[:-1]).max() > 0
 
 
-def test_calibration_leaves_each_actor_out(manifest: Path) -> None:
-    examples = read_examples(manifest)
-    labelled = {name: [(clip.actor, m) for clip, m in items] for name, items in examples.items()}
-    found = calibrate_class(labelled, "squat1Reps", tau=0.1)
-    c = found.calibration
-    assert [f.actor for f in found.folds] == ["bd", "bk", "dg"]
-    assert (c.folds, c.positives, c.negatives) == (3, 6, 6)
-    assert c.calibrated and c.method.startswith("leave-one-actor-out over 3 actors (3 folds): best F1")
-    assert c.recall is not None and c.recall >= 0.95 and c.precision is not None
-    pos = np.concatenate([f.positive_costs for f in found.folds])
-    neg = np.concatenate([f.negative_costs for f in found.folds])
-    choice = choose_tau(pos, neg, fallback=0.1)
-    assert choice is not None and (c.tau, c.recall, c.precision) == (
-        choice.tau,
-        choice.recall,
-        choice.precision,
+def unpack(codes: npt.NDArray[np.uint64]) -> BoolArray:
+    """Packed codes back to ``(N, 39)`` frames, bit by bit."""
+    return np.asarray([[(int(c) >> i) & 1 == 1 for i in range(39)] for c in codes], dtype=bool).reshape(
+        -1, 39
     )
-    # fold "dg": the template of the bd/bk squats, costed over dg's clips
-    dg = found.folds[2]
-    template = learn([m for a, m in labelled["squat1Reps"] if a != "dg"], keyframes=0).quantised
-    np.testing.assert_array_equal(
-        dg.positive_costs,
-        clip_costs(template, [m for a, m in labelled["squat1Reps"] if a == "dg"], "toolbox"),
-    )
-    assert [t.generalisation for t in dg.trials] == list(GENERALISATIONS)
-    assert all(t.positives.shape == (2,) and 0 <= t.negatives <= 2 for t in dg.trials)
-    # the keyframe generalisation chosen keeps >= 0.95 of the left-out clips in every fold if any
-    # does, with the fewest clips of other classes; else the most general one
-    kept = {g: min(retention(found.folds, g)) for g in GENERALISATIONS}
-    if max(kept.values()) >= 0.95:
-        others = {
-            g: sum(t.negatives for f in found.folds for t in f.trials if t.generalisation == g)
-            for g in GENERALISATIONS
-        }
-        assert kept[found.keyframes] >= 0.95
-        assert others[found.keyframes] == min(others[g] for g in GENERALISATIONS if kept[g] >= 0.95)
-    else:
-        assert found.keyframes == MOST_GENERAL
 
 
-def test_generalisation_when_the_folds_show_nothing(manifest: Path) -> None:
-    """No generalisation keeps enough of a left-out actor's clips (here: squats scored against
-    other classes' clips only): the most general is taken, not the thesis' exact rule."""
-    examples = read_examples(manifest)
-    labelled = {name: [(clip.actor, m) for clip, m in items] for name, items in examples.items()}
-    found = calibrate_class(labelled, "squat1Reps", tau=0.1)
-    empty = [
-        dataclasses.replace(
-            f,
-            trials=tuple(dataclasses.replace(t, positives=np.zeros_like(t.positives)) for t in f.trials),
+def test_calibration_leaves_each_actor_out(labelled: Labelled, calibrated: Calibrated) -> None:
+    names = list(labelled)
+    found = calibrated.folds
+    assert [f.group for f in found] == ["bd", "bk", "dg"] and calibrated.groups == "actors"
+    for f in found:
+        codes, truth = fold_stream(labelled, f.group)
+        np.testing.assert_array_equal(f.codes, codes)
+        assert f.truth == tuple(truth) and f.owner == (0, 1) and f.learned == {0, 1}
+        frames = unpack(f.codes)
+        for k, name in enumerate(names):
+            # the template of the other actors' examples, run over the stream independently
+            template = expand(learn([m for g, m in labelled[name] if g != f.group], keyframes=0).quantised)
+            dtw = subsequence_dtw(
+                retrieval_cost(template.values, template.weights, frames.T.astype(float)), "toolbox"
+            )
+            expected = [
+                Candidate(m.cost, m.end, k, m.start) for m in ref_local_minima(dtw.delta, dtw.start, CAP)
+            ]
+            assert [x for x in f.candidates if x.template == k] == sorted(expected)
+            assert expected, (f.group, name)
+            trials = f.trials[k]
+            assert [t.generalisation for t in trials] == list(GENERALISATIONS)
+            assert all(t.positives.shape == (2,) and 0 <= t.negatives <= 2 for t in trials)
+    # τ: the position by nested folds, the thresholds over all folds
+    assert (calibrated.position, dict(calibrated.position_f1)) == choose_position(found)
+    assert calibrated.position in POSITIONS and set(calibrated.position_f1) == set(POSITIONS)
+    choices = thresholds(found, position=calibrated.position)
+    taus = [None if c is None else c.tau for c in choices]
+    for k, name in enumerate(names):
+        cc = calibrated.classes[name]
+        c, choice = cc.calibration, choices[k]
+        assert choice is not None and cc.members is None and cc.second is None
+        assert (c.tau, c.recall, c.precision) == (choice.tau, choice.recall, choice.precision)
+        assert c.calibrated and c.folds == 3 and c.positives == 6
+        assert c.negatives == sum(len(outcomes(f, taus)[1][k]) for f in found)
+        assert (
+            c.recall is not None and 0 <= c.recall <= 1 and c.precision is not None and 0 <= c.precision <= 1
         )
-        for f in found.folds
-    ]
-    assert choose_generalisation(empty) == MOST_GENERAL
-    assert choose_generalisation([]) == MOST_GENERAL
-    assert MOST_GENERAL in GENERALISATIONS
+        assert c.method.startswith("left-out streams of 3 folds (actors): ")
+        assert f"{calibrated.position:g} of the way to the next wrong detection" in c.method
+        assert cc.keyframes is None or cc.keyframes in GENERALISATIONS
+        assert cc.reason
+        # no gate where the class makes no wrong detection at its τ
+        wrong = sum(slow_scored(list(f.candidates), f.owner, f.truth, f.learned, taus, k)[1] for f in found)
+        if wrong == 0:
+            assert (cc.keyframes, cc.reason) == (
+                None,
+                "no wrong detection in the folds to keep out: stream-wide DTW",
+            )
 
 
-def test_one_actor_keeps_the_given_tau(manifest: Path) -> None:
-    examples = read_examples(manifest)
-    labelled = {name: [("bd", m) for _, m in items] for name, items in examples.items()}
-    found = calibrate_class(labelled, "squat1Reps", tau=0.07)
-    assert found.folds == ()
-    assert found.calibration == Calibration(0.07, f"{GIVEN} (one actor: no leave-one-actor-out)")
-    assert not found.calibration.calibrated
-    assert found.keyframes == MOST_GENERAL  # nothing shows how a new person differs: be general
+def test_a_class_without_a_fold_keeps_the_given_tau(labelled: Labelled) -> None:
+    """One actor's examples only, grouped by actor: no fold, every τ given."""
+    one = {name: [("bd", m) for g, m in items if g == "bd"] for name, items in labelled.items()}
+    got = calibrate(one, tau=0.07, keyframes=0)
+    assert got.folds == () and (got.position, got.position_f1) == (DEFAULT_POSITION, {})
+    for cc in got.classes.values():
+        assert cc.calibration == Calibration(0.07, f"{GIVEN} (no fold: nothing to calibrate on)")
+        assert (cc.keyframes, cc.reason) == (None, "no keyframes asked for: stream-wide DTW")
+
+
+# ------------------------------------------------------------------------------ the keyframe gate
+
+
+def gate_of(found: Sequence[Fold], k: int, taus: Sequence[float | None]) -> Generalisation | None:
+    """:func:`slow_gate` of real folds, their parts as plain values."""
+    return slow_gate(
+        [
+            GateFold(
+                [(x.cost, x.end, x.template, x.start) for x in f.candidates],
+                f.owner,
+                f.truth,
+                f.codes.tolist(),
+                [(t.generalisation, t.query, t.positives.tolist(), t.negatives) for t in f.trials[k]],
+            )
+            for f in found
+        ],
+        k,
+        taus,
+        MIN_KEPT,
+        DEFAULT_INDEX_RATE,
+        max(1, round(DEFAULT_MAX_GAP_S * DEFAULT_INDEX_RATE)),
+    )
+
+
+@pytest.mark.parametrize(
+    ("k", "taus"), [(1, [None, 0.3]), (0, [0.3, None]), (1, [None, 0.2]), (0, [0.1, 0.1])]
+)
+def test_gate_against_its_definition_on_real_folds(
+    calibrated: Calibrated, k: int, taus: list[float | None]
+) -> None:
+    """With the other class's τ unknown its candidates beat none of this class's wrong ones: there
+    are wrong detections to keep out."""
+    gate, reason = choose_gate(calibrated.folds, k, taus)
+    assert gate == gate_of(calibrated.folds, k, taus)
+    if gate is None:
+        assert reason.endswith("stream-wide DTW")
+    else:
+        assert re.fullmatch(r"keyframes kept every motion found and \d+ of \d+ wrong detections out", reason)
+    if k == 1 and taus[0] is None:
+        assert gate is not None  # hops: some generalisation keeps the squats' frames out
+
+
+def test_no_gate_without_wrong_detections_or_keyframes() -> None:
+    fold = fold_of("g", [(0, 0, 9)], [(0.05, 9, 0, 0)], owner=(0,), learned=frozenset({0}))
+    assert choose_gate([fold], 0, [0.1]) == (None, "no fold to learn keyframes on: stream-wide DTW")
+    assert choose_gate([], 0, [0.1]) == (None, "no fold to learn keyframes on: stream-wide DTW")
+    trial = KeyframeTrial(GENERALISATIONS[0], None, np.ones(1, dtype=bool), 0)  # type: ignore[arg-type]
+    with_trials = make_fold(
+        "g", fold.codes, fold.truth, fold.owner, fold.candidates, fold.learned, {0: (trial,)}
+    )
+    assert choose_gate([with_trials], 0, [0.1]) == (
+        None,
+        "no wrong detection in the folds to keep out: stream-wide DTW",
+    )
 
 
 @pytest.mark.parametrize(
     "g", [GENERALISATIONS[0], Generalisation(2, 1.0, 2, 3), Generalisation(1, 0.5, 0, 1)]
 )
-def test_generalised_keyframes_keep_every_training_clip(manifest: Path, g: Generalisation) -> None:
-    examples = read_examples(manifest)
-    hops = [m for _, m in examples["hopBothLegs1hops"]]
+def test_generalised_keyframes_keep_every_training_clip(labelled: Labelled, g: Generalisation) -> None:
+    hops = [m for _, m in labelled["hopBothLegs1hops"]]
     hard = learn_hard(hops).template
     query = automatic_keyframes(hard, hops, 3, "hop", 30.0, g)
     assert keyframes_kept(query, clip_sets(hops), 30.0).all()
@@ -247,8 +678,8 @@ def test_generalised_keyframes_keep_every_training_clip(manifest: Path, g: Gener
     assert g.fixed is None or max(fixed) <= g.fixed
 
 
-def test_a_margin_widens_every_gap(manifest: Path) -> None:
-    hops = [m for _, m in read_examples(manifest)["hopBothLegs1hops"]]
+def test_a_margin_widens_every_gap(labelled: Labelled) -> None:
+    hops = [m for _, m in labelled["hopBothLegs1hops"]]
     hard = learn_hard(hops).template
     thesis = automatic_keyframes(hard, hops, 3, "hop", 30.0)
     wide = automatic_keyframes(hard, hops, 3, "hop", 30.0, Generalisation(margin=1.0))
@@ -314,26 +745,41 @@ def test_actor_column_errors_name_file_and_line(tmp_path: Path, cell: str, messa
 
 
 @pytest.fixture(scope="module")
-def library(manifest: Path) -> Library:
+def library(manifest: Path, calibrated: Calibrated) -> Library:
+    """squat1Reps as calibration learned it (stream-wide DTW, no keyframes), hopBothLegs1hops with
+    a τ given and keyframes (gated)."""
     examples = read_examples(manifest)
-    labelled = {name: [(clip.actor, m) for clip, m in items] for name, items in examples.items()}
-    squat = calibrate_class(labelled, "squat1Reps").calibration
+    squat = calibrated.classes["squat1Reps"]
     return Library(
         30.0,
         {
-            "squat1Reps": learn_class("squat1Reps", examples["squat1Reps"], calibration=squat),
+            "squat1Reps": learn_class(
+                "squat1Reps",
+                examples["squat1Reps"],
+                keyframes=0,
+                calibration=squat.calibration,
+                mode=DTW,
+                mode_reason=squat.reason,
+            ),
             "hopBothLegs1hops": learn_class("hopBothLegs1hops", examples["hopBothLegs1hops"], tau=0.08),
         },
     )
 
 
-def test_library_v3_keeps_the_calibration(library: Library, tmp_path: Path) -> None:
+def test_library_v4_keeps_the_calibration_and_mode(library: Library, tmp_path: Path) -> None:
     save_library(library, tmp_path / "lib")
     meta = json.loads((tmp_path / "lib" / "library.json").read_text())
-    assert meta["version"] == 3
-    squat = meta["classes"]["squat1Reps"]
+    assert meta["version"] == 4
+    squat, hop = meta["classes"]["squat1Reps"], meta["classes"]["hopBothLegs1hops"]
     assert squat["calibration"]["folds"] == 3 and squat["training"][2]["actor"] == "bk"
-    assert meta["classes"]["hopBothLegs1hops"]["calibration"] == {
+    assert (squat["mode"], squat["mode_reason"], squat["members"], squat["keyframes"]) == (
+        "dtw",
+        library.classes["squat1Reps"].mode_reason,
+        [],
+        [],
+    )
+    assert squat["mode_reason"] and hop["mode"] == "keyframes" and hop["keyframes"]
+    assert hop["calibration"] == {
         "method": GIVEN,
         "folds": 0,
         "positives": 0,
@@ -343,9 +789,41 @@ def test_library_v3_keeps_the_calibration(library: Library, tmp_path: Path) -> N
     }
     loaded = load_library(tmp_path / "lib")
     for name, cls in library.classes.items():
-        assert loaded.classes[name].calibration == cls.calibration == cls.provenance
-        assert loaded.classes[name].tau == cls.tau and loaded.classes[name].training == cls.training
-    assert loaded.classes["squat1Reps"].tau == loaded.classes["squat1Reps"].provenance.tau != 0.1
+        got = loaded.classes[name]
+        assert got.calibration == cls.calibration == cls.provenance
+        assert (got.tau, got.training, got.mode, got.mode_reason) == (
+            cls.tau,
+            cls.training,
+            cls.mode,
+            cls.mode_reason,
+        )
+        assert got.keyframes == cls.keyframes and got.variants == ()
+    assert loaded.classes["squat1Reps"].provenance.calibrated
+    assert loaded.classes["hopBothLegs1hops"].tau == 0.08
+
+
+def test_library_v3_loads_with_modes_resolved(library: Library, tmp_path: Path) -> None:
+    """A version 3 library has no mode: a class with keyframes is gated by them, one without is
+    found by the stream-wide DTW; fields of version 4 in it are refused."""
+    save_library(library, tmp_path / "lib")
+    path = tmp_path / "lib" / "library.json"
+    meta = json.loads(path.read_text())
+    meta["version"] = 3
+    for entry in meta["classes"].values():
+        for key in ("mode", "mode_reason", "members"):
+            del entry[key]
+    path.write_text(json.dumps(meta))
+    loaded = load_library(tmp_path / "lib")
+    squat, hop = loaded.classes["squat1Reps"], loaded.classes["hopBothLegs1hops"]
+    assert (hop.mode, hop.mode_reason) == (GATED, "") and hop.keyframes == library.classes[
+        "hopBothLegs1hops"
+    ].keyframes
+    assert (squat.mode, squat.keyframes) == (DTW, None)
+    assert squat.calibration == library.classes["squat1Reps"].calibration and squat.provenance.calibrated
+    meta["classes"]["squat1Reps"]["mode"] = "dtw"
+    path.write_text(json.dumps(meta))
+    with pytest.raises(LibraryFormatError, match=r"classes\.squat1Reps\.mode: unknown field"):
+        load_library(tmp_path / "lib")
 
 
 def test_library_v2_still_loads(library: Library, tmp_path: Path) -> None:
@@ -354,7 +832,8 @@ def test_library_v2_still_loads(library: Library, tmp_path: Path) -> None:
     meta = json.loads(path.read_text())
     meta["version"] = 2
     for entry in meta["classes"].values():
-        del entry["calibration"]
+        for key in ("calibration", "mode", "mode_reason", "members"):
+            del entry[key]
         for clip in entry["training"]:
             del clip["actor"]
     path.write_text(json.dumps(meta))
@@ -364,6 +843,7 @@ def test_library_v2_still_loads(library: Library, tmp_path: Path) -> None:
     assert squat.provenance == Calibration(squat.tau, f"{GIVEN} (a version 2 library)")
     assert [c.actor for c in squat.training] == [c.asf for c in squat.training]
     np.testing.assert_array_equal(squat.quantised.values, library.classes["squat1Reps"].quantised.values)
+    assert squat.mode == DTW and loaded.classes["hopBothLegs1hops"].mode == GATED
     # fields of version 3 in a version 2 library are refused, as unknown fields are
     meta["classes"]["squat1Reps"]["calibration"] = {}
     path.write_text(json.dumps(meta))
@@ -379,14 +859,17 @@ def test_library_v2_still_loads(library: Library, tmp_path: Path) -> None:
         ({"calibration/precision": 1.5}, "classes.squat1Reps.calibration.precision: must be"),
         ({"calibration/folds": -1}, "classes.squat1Reps.calibration.folds: must be"),
         ({"calibration/method": ""}, "classes.squat1Reps.calibration.method: must be a non-empty string"),
+        ({"mode_reason": 3}, "classes.squat1Reps.mode_reason: must be a string"),
+        ({"members": {}}, "classes.squat1Reps.members: must be a list"),
     ],
 )
-def test_library_v3_calibration_errors_name_the_field(
+def test_library_v4_calibration_errors_name_the_field(
     library: Library, tmp_path: Path, change: dict[str, object], message: str
 ) -> None:
     save_library(library, tmp_path / "lib")
     path = tmp_path / "lib" / "library.json"
     meta = json.loads(path.read_text())
+    assert meta["version"] == 4
     for key, value in change.items():
         node = meta["classes"]["squat1Reps"]
         *parents, last = key.split("/")
@@ -401,18 +884,36 @@ def test_library_v3_calibration_errors_name_the_field(
 # ------------------------------------------------------------------------------------------- CLI
 
 
-def test_learn_calibrates_and_search_uses_the_class_tau(manifest: Path, tmp_path: Path) -> None:
-    result = mocapd("learn", "--manifest", manifest, "--out", tmp_path / "lib", "--keyframes", "0")
+def test_learn_calibrates_and_search_uses_the_class_tau(
+    manifest: Path, labelled: Labelled, tmp_path: Path
+) -> None:
+    # with a given τ of 0.13, a class with no wrong detection above its positives keeps 0.13
+    learn_args: list[str | Path] = [
+        "learn",
+        "--manifest",
+        manifest,
+        "--out",
+        tmp_path / "lib",
+        "--keyframes",
+        "0",
+    ]
+    result = mocapd(*learn_args, "--tau", "0.13")
     assert result.returncode == 0, result.stderr
     library = load_library(tmp_path / "lib")
-    examples = read_examples(manifest)
-    labelled = {name: [(clip.actor, m) for clip, m in items] for name, items in examples.items()}
+    expected = calibrate(labelled, tau=0.13, keyframes=0)
     for name in ("squat1Reps", "hopBothLegs1hops"):
-        expected = calibrate_class(labelled, name, keyframes=0).calibration
-        assert library.classes[name].calibration == expected and library.classes[name].tau == expected.tau
+        cls, want = library.classes[name], expected.classes[name]
+        assert cls.calibration == want.calibration and cls.tau == want.calibration.tau
+        assert (cls.mode, cls.mode_reason, cls.keyframes) == (DTW, want.reason, None)
     squat = library.classes["squat1Reps"]
+    assert squat.provenance.calibrated and squat.tau != 0.1
     assert "actors:     3" in result.stdout
-    assert f"squat1Reps {squat.tau:.4g} calibrated: recall " in result.stdout
+    assert f"folds:      3 (actors left out); tau placed {expected.position:g} of the way" in result.stdout
+    assert (
+        f"squat1Reps: stream-wide DTW (no keyframes asked for: stream-wide DTW); tau {squat.tau:.4g} "
+        f"calibrated: recall {squat.provenance.recall:.2f}, precision {squat.provenance.precision:.2f} on 6 "
+        "left-out motions" in result.stdout
+    )
 
     db = write_manifest(tmp_path / "db.csv", [hdm05_clip("dg", "squat1Reps", 27)], extra=False)
     save_index(build_index(read_manifest(db)), tmp_path / "idx")
@@ -434,15 +935,41 @@ def test_learn_calibrates_and_search_uses_the_class_tau(manifest: Path, tmp_path
     default = hits_json(mocapd(*search, "--json").stdout)
     explicit = hits_json(mocapd(*search, "--json", "--tau", repr(squat.tau)).stdout)
     assert default == explicit and all(float(str(h["cost"])) <= squat.tau + 1e-6 for h in default)
+    assert default
 
-    result = mocapd(
-        "learn", "--manifest", manifest, "--out", tmp_path / "lib", "--keyframes", "0", "--no-calibrate"
-    )
+    result = mocapd(*learn_args, "--no-calibrate")
     assert result.returncode == 0, result.stderr
     library = load_library(tmp_path / "lib")
     assert all(
         c.provenance == Calibration(0.1, f"{GIVEN} (--no-calibrate)") for c in library.classes.values()
     )
-    assert "squat1Reps 0.1 given, not calibrated (--no-calibrate)" in result.stdout
+    assert "squat1Reps: stream-wide DTW; tau 0.1 given, not calibrated (--no-calibrate)" in result.stdout
+    assert "folds:" not in result.stdout
     given_run = mocapd(*search)
     assert "tau 0.1 given, toolbox steps" in given_run.stdout.splitlines()[0]
+
+
+def test_learn_with_one_actor_calibrates_on_groups_of_takes(tmp_path: Path) -> None:
+    clips = [(c, "bd", t) for c in ("squat1Reps", "hopBothLegs1hops") for t in takes(c, "bd")[:3]]
+    manifest = write_clips(tmp_path / "bd.csv", clips)
+    result = mocapd("learn", "--manifest", manifest, "--out", tmp_path / "lib")
+    assert result.returncode == 0, result.stderr
+    assert "actors:     1" in result.stdout
+    assert "folds:      3 (groups of one person's examples (one actor: at most 3) left out)" in result.stdout
+    examples = read_examples(manifest)
+    names = [n for n, items in examples.items() for _ in items]
+    labels, what = groups([clip.actor for items in examples.values() for clip, _ in items], names)
+    assert sorted(set(labels)) == ["take 1", "take 2", "take 3"]
+    it = iter(labels)
+    expected = calibrate(
+        {n: [(next(it), m) for _, m in items] for n, items in examples.items()}, groups_are=what
+    )
+    assert [f.group for f in expected.folds] == ["take 1", "take 2", "take 3"]
+    library = load_library(tmp_path / "lib")
+    for name, cls in library.classes.items():
+        c = cls.provenance
+        assert c.calibrated and c.folds == 3 and c.positives == 3
+        assert c.method.startswith("left-out streams of 3 folds (groups of one person's examples")
+        assert c == expected.classes[name].calibration
+        assert cls.mode_reason == expected.classes[name].reason
+        assert cls.mode == (DTW if expected.classes[name].keyframes is None else GATED)
