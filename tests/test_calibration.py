@@ -293,11 +293,11 @@ FoldParts = tuple[list[FoldCandidate], list[int], list[tuple[int, int, int]], fr
 
 
 @st.composite
-def fold_parts(draw: st.DrawFn, classes: int | None = None, owner: list[int] | None = None) -> FoldParts:
+def fold_parts(draw: st.DrawFn, owner: list[int] | None = None) -> FoldParts:
     """Random candidates (costs from a small set, to force ties), templates owned by classes (every
     class has one, some a second), a stream of contiguous motions and the classes learned."""
     if owner is None:
-        n = draw(st.integers(1, 3)) if classes is None else classes
+        n = draw(st.integers(1, 3))
         owner = list(range(n)) + draw(st.lists(st.integers(0, n - 1), max_size=2))
     n = max(owner) + 1
     length = draw(st.integers(1, 40))

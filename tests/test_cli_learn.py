@@ -1,7 +1,7 @@
 """``mocapd learn`` and ``mocapd search --library`` run for real in subprocesses on real HDM05 clips: the
-library they write is the library the code learns, the search prints the ranking the code computes
-(also with keyframe pre-selection), progress goes to stderr, PNGs are drawn, and bad input exits 2
-with one line naming the file and line or the option."""
+library they write is the library the code learns (also with keyframes given in a file, or none),
+the search prints the ranking the code computes (also with keyframe pre-selection), progress goes to
+stderr, PNGs are drawn, and bad input exits 2 with one line naming the file and line or the option."""
 
 from __future__ import annotations
 
@@ -11,10 +11,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from daemon.calibration import MOST_GENERAL
 from daemon.index_store import build_index, load_index, save_index
 from daemon.keyframes import parse_keyframe_queries
-from daemon.library import Library, learn_class, load_library, save_library
+from daemon.learning import learn_library
+from daemon.library import DTW, GATED, LEARNED, PUBLISHED, Library, load_library, save_library
 from daemon.recordings import read_examples, read_manifest
 from daemon.retrieval import template_search
 from tests.helpers import (
@@ -55,24 +55,155 @@ def learned(tmp_path_factory: pytest.TempPathFactory) -> Learned:
     return manifest, where, result.stdout, result.stderr
 
 
+def assert_same_library(got: Library, expected: Library) -> None:
+    """Every class's templates, keyframes, τ and its provenance, mode and training clips equal."""
+    assert list(got.classes) == list(expected.classes) and got.rate == expected.rate
+    for name, cls in expected.classes.items():
+        mine = got.classes[name]
+        for field in ("soft", "quantised", "hard"):
+            np.testing.assert_array_equal(getattr(mine, field).values, getattr(cls, field).values)
+            np.testing.assert_array_equal(getattr(mine, field).weights, getattr(cls, field).weights)
+        if cls.keyframes is None:
+            assert mine.keyframes is None
+        else:
+            assert mine.keyframes is not None and mine.keyframes.keyframes == cls.keyframes.keyframes
+        assert (mine.tau, mine.provenance, mine.training) == (cls.tau, cls.provenance, cls.training)
+        assert (mine.mode, mine.mode_reason, mine.keyframe_source) == (
+            cls.mode,
+            cls.mode_reason,
+            cls.keyframe_source,
+        )
+        assert len(mine.variants) == len(cls.variants)
+
+
 def test_learn_writes_the_library_the_code_learns(learned: Learned) -> None:
     manifest, where, stdout, stderr = learned
     library = load_library(where / "lib")
     examples = read_examples(manifest)
     assert list(library.classes) == list(examples) == ["hopBothLegs1hops", "squat1Reps"]
-    for name, items in examples.items():
-        # one actor (bd): τ given, keyframes as general as calibration would make them
-        expected = learn_class(name, items, generalisation=MOST_GENERAL)
-        got = library.classes[name]
-        np.testing.assert_array_equal(got.quantised.values, expected.quantised.values)
-        np.testing.assert_array_equal(got.hard.values, expected.hard.values)
-        assert got.keyframes == expected.keyframes and got.training == expected.training
+    # one actor (bd): calibrated on groups of its takes, as the code does it
+    code = learn_library(examples)
+    assert code.calibrated is not None and [f.group for f in code.calibrated.folds] == [
+        "take 1",
+        "take 2",
+        "take 3",
+    ]
+    assert_same_library(library, code.library)
+    for cls in library.classes.values():
+        c = cls.provenance
+        assert c.calibrated and c.method.startswith(
+            f"left-out streams of {c.folds} folds (groups of one person"
+        )
+        assert cls.mode in (DTW, GATED) and cls.mode_reason
+    assert library.classes["hopBothLegs1hops"].provenance.folds == 3  # 3 takes, one per group
+    assert library.classes["squat1Reps"].provenance.folds == 2  # 2 takes: the third group has none
     assert sorted(p.name for p in (where / "png").iterdir()) == ["hopBothLegs1hops.png", "squat1Reps.png"]
     assert all((where / "png" / p).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" for p in ("squat1Reps.png",))
     lines = stderr.splitlines()
     assert lines[0].startswith("[1/5] ") and lines[4].startswith("[5/5] ")
-    assert lines[5].startswith("[class 1/2] hopBothLegs1hops: 3 examples, soft MT ")
+    assert [line.split(" left out")[0] for line in lines[5:8]] == [
+        "[fold 1/3] take 1",
+        "[fold 2/3] take 2",
+        "[fold 3/3] take 3",
+    ]
+    hop = library.classes["hopBothLegs1hops"]
+    columns = hop.quantised.length
+    assert (
+        lines[8]
+        == f"[class 1/2] hopBothLegs1hops: 3 examples, 1 template of {columns} columns, {hop.mode} mode"
+    )
+    assert lines[9].startswith("[class 2/2] squat1Reps: 2 examples, ") and len(lines) == 10
     assert "classes:    2 (hopBothLegs1hops, squat1Reps)" in stdout
+    assert "actors:     1" in stdout
+    assert "folds:      3 (groups of one person's examples (one actor: at most 3) left out)" in stdout
+    for name, cls in library.classes.items():
+        c = cls.provenance
+        assert c.recall is not None and c.precision is not None
+        if cls.mode == DTW:
+            how = f"stream-wide DTW ({cls.mode_reason})"
+        else:
+            assert cls.keyframes is not None
+            how = f"{len(cls.keyframes.keyframes)} keyframes gate it ({cls.mode_reason})"
+        line = (
+            f"{name}: {how}; tau {c.tau:.4g} calibrated: recall {c.recall:.2f}, precision {c.precision:.2f} "
+            f"on {c.positives} left-out motions and {c.negatives} wrong candidates ({c.folds} folds)"
+        )
+        assert line in stdout
+
+
+def keyframe_file(path: Path, classes: list[str]) -> Path:
+    """The published keyframes of ``classes`` alone, in the schema of manual-keyframes.json."""
+    published = json.loads(KEYFRAMES.read_text(encoding="utf-8"))
+    published["classes"] = {name: published["classes"][name] for name in classes}
+    path.write_text(json.dumps(published), encoding="utf-8")
+    return path
+
+
+Published = tuple[Path, Path, str]  # keyframe file, library directory, learn's stdout
+
+
+@pytest.fixture(scope="module")
+def published(learned: Learned, tmp_path_factory: pytest.TempPathFactory) -> Published:
+    """The training clips learned with the published keyframes of squat1Reps given in a file."""
+    manifest = learned[0]
+    where = tmp_path_factory.mktemp("published")
+    file = keyframe_file(where / "squat.json", ["squat1Reps"])
+    result = mocapd("learn", "--manifest", manifest, "--out", where / "lib", "--keyframes", file)
+    assert result.returncode == 0, result.stderr
+    return file, where / "lib", result.stdout
+
+
+def test_learn_with_keyframes_given_in_a_file(learned: Learned, published: Published) -> None:
+    """The classes the file names are gated by its keyframes; the others are learned as without it."""
+    file, lib, stdout = published
+    library, plain = load_library(lib), load_library(learned[1] / "lib")
+    squat = library.classes["squat1Reps"]
+    given = parse_keyframe_queries(json.loads(file.read_text()), file)["squat1Reps"]
+    assert squat.keyframes is not None and squat.keyframes.keyframes == given.keyframes
+    assert (squat.keyframe_source, squat.mode, squat.mode_reason) == (
+        PUBLISHED,
+        GATED,
+        "keyframes given to mocapd learn",
+    )
+    np.testing.assert_array_equal(squat.quantised.values, plain.classes["squat1Reps"].quantised.values)
+    assert squat.provenance == plain.classes["squat1Reps"].provenance
+    hop = "hopBothLegs1hops"
+    assert_same_library(Library(30.0, {hop: library.classes[hop]}), Library(30.0, {hop: plain.classes[hop]}))
+    assert library.classes[hop].keyframe_source == LEARNED
+    meta = json.loads((lib / "library.json").read_text())["classes"]
+    assert (meta["squat1Reps"]["keyframe_source"], meta["squat1Reps"]["mode"]) == ("published", "keyframes")
+    assert len(meta["squat1Reps"]["keyframes"]) == len(given.keyframes) and "keyframe_source" not in meta[hop]
+    line = f"squat1Reps: {len(given.keyframes)} keyframes gate it (keyframes given to mocapd learn); tau "
+    assert line in stdout
+
+
+def test_learn_keyframes_for_a_class_the_manifest_lacks(learned: Learned, tmp_path: Path) -> None:
+    manifest, _, _, _ = learned
+    file = keyframe_file(tmp_path / "k.json", ["squat1Reps", "jumpDown", "clap1Reps"])
+    result = mocapd("learn", "--manifest", manifest, "--out", tmp_path / "lib", "--keyframes", file)
+    assert result.returncode == 2 and "Traceback" not in result.stderr and result.stdout == ""
+    last = result.stderr.splitlines()[-1]
+    assert last == f"mocapd: {file}: keyframes for classes the manifest lacks: clap1Reps, jumpDown"
+    assert not (tmp_path / "lib").exists()
+
+
+def test_learn_without_keyframes(learned: Learned, tmp_path: Path) -> None:
+    """``--keyframes 0``: every class found by the stream-wide DTW, no keyframes learned."""
+    manifest, where, _, _ = learned
+    result = mocapd("learn", "--manifest", manifest, "--out", tmp_path / "lib", "--keyframes", "0")
+    assert result.returncode == 0, result.stderr
+    library = load_library(tmp_path / "lib")
+    plain = load_library(where / "lib")
+    for name, cls in library.classes.items():
+        assert (cls.mode, cls.keyframes, cls.mode_reason) == (
+            DTW,
+            None,
+            "no keyframes asked for: stream-wide DTW",
+        )
+        np.testing.assert_array_equal(cls.quantised.values, plain.classes[name].quantised.values)
+        assert f"{name}: stream-wide DTW (no keyframes asked for: stream-wide DTW); tau " in result.stdout
+    meta = json.loads((tmp_path / "lib" / "library.json").read_text())["classes"]
+    assert all((m["mode"], m["keyframes"]) == ("dtw", []) for m in meta.values())
 
 
 @pytest.mark.parametrize("keyframes", [None, KEYFRAMES])
@@ -97,14 +228,24 @@ def test_search_library_prints_the_ranking(learned: Learned, keyframes: Path | N
     assert {h["document"] for h in expected[:2]} == {str(hdm05_clip(*c)[1]) for c in DATABASE[:2]}
 
 
-def test_search_library_text_and_own_keyframes(learned: Learned) -> None:
-    _, where, _, _ = learned
-    lib: list[str | Path] = ["--library", where / "lib", "--class", "squat1Reps", "--keyframes"]
-    result = mocapd("search", "--index", where / "idx", *lib, "--steps", "thesis", "--limit", "1")
+def test_search_library_text_and_own_keyframes(learned: Learned, published: Published) -> None:
+    """``--keyframes`` without a file: the class's own keyframes (here the published ones it was
+    learned with), as if their file were given; a class found by the stream-wide DTW has none."""
+    file, lib, _ = published
+    where = learned[1]
+    own: list[str | Path] = ["--library", lib, "--class", "squat1Reps", "--keyframes"]
+    result = mocapd("search", "--index", where / "idx", *own, "--steps", "thesis", "--limit", "1")
     assert_ok(result)
     first = result.stdout.splitlines()[0]
     assert first.startswith("motion template of squat1Reps (") and "thesis steps; keyframes kept" in first
     assert len(result.stdout.splitlines()) <= 2
+    mine = hits_json(mocapd("search", "--index", where / "idx", *own, "--json").stdout)
+    theirs = hits_json(mocapd("search", "--index", where / "idx", *own, file, "--json").stdout)
+    assert mine == theirs and mine
+    plain: list[str | Path] = ["--library", where / "lib", "--class", "squat1Reps", "--keyframes"]
+    if load_library(where / "lib").classes["squat1Reps"].keyframes is None:
+        line = assert_one_error_line(mocapd("search", "--index", where / "idx", *plain))
+        assert line == f"mocapd: {where / 'lib'}: class squat1Reps has no keyframes"
 
 
 @pytest.mark.parametrize(
@@ -151,7 +292,13 @@ def test_search_library_rate_mismatch(learned: Learned, tmp_path: Path) -> None:
         (["squat1Reps,{asf},{amc},x,"], [], "clips.csv:2: start_frame 'x' is not an integer"),
         (["squat1Reps,{asf},missing.amc.gz,,"], [], "clips.csv:2: amc file not found"),
         (["squat1Reps,{asf},{amc},,"], ["--delta", "0.5"], "--delta must lie in [0, 0.5), got 0.5"),
-        (["squat1Reps,{asf},{amc},,"], ["--keyframes", "-1"], "--keyframes must not be negative"),
+        (
+            ["squat1Reps,{asf},{amc},,"],
+            ["--keyframes", "-1"],
+            "argument --keyframes: must not be negative, got -1",
+        ),
+        (["squat1Reps,{asf},{amc},,"], ["--keyframes", " "], "a count of keyframes or a keyframe file"),
+        (["squat1Reps,{asf},{amc},,"], ["--keyframes", "missing.json"], "missing.json"),
     ],
 )
 def test_learn_errors(tmp_path: Path, rows: list[str], options: list[str], message: str) -> None:
