@@ -255,7 +255,7 @@ def stream_candidates(
         return []
     t = expand(template)
     delta, start = subsequence_codes(retrieval_tables(t.values, t.weights), codes, None, steps)
-    return [Candidate(m.cost, m.end, index, m.start) for m in local_minima(to_cost(delta), start, 0.3)]
+    return [Candidate(m.cost, m.end, index, m.start) for m in local_minima(to_cost(delta), start, CAP)]
 
 
 def clip_costs(template: MotionTemplate, clips: Sequence[BoolArray], steps: Steps) -> FloatArray:

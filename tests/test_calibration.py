@@ -9,6 +9,7 @@ told otherwise."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import random
@@ -50,6 +51,7 @@ from daemon.calibration import (
     make_fold,
     outcomes,
     scored,
+    stream_candidates,
     survivors,
     thresholds,
     two_clusters,
@@ -549,6 +551,23 @@ def unpack(codes: npt.NDArray[np.uint64]) -> BoolArray:
     )
 
 
+def test_stream_candidates_are_the_local_minima_up_to_the_cap(labelled: Labelled) -> None:
+    """A squat template over hops, random frames, inverted squats and squats: every local minimum
+    of its subsequence DTW (computed independently, float costs) at or below :data:`CAP`, none above."""
+    template = learn([m for g, m in labelled["squat1Reps"] if g != "dg"], keyframes=0).quantised
+    rng = np.random.default_rng(5)
+    squats = [m for g, m in labelled["squat1Reps"] if g == "dg"]
+    hops = [m for _, m in labelled["hopBothLegs1hops"]]
+    frames = np.concatenate([*hops, rng.random((80, 39)) < 0.5, *(~m for m in squats), *squats])
+    got = stream_candidates(template, pack(frames), "toolbox", 4)
+    t = expand(template)
+    dtw = subsequence_dtw(retrieval_cost(t.values, t.weights, frames.T.astype(float)), "toolbox")
+    minima = ref_local_minima(dtw.delta, dtw.start, math.inf)
+    assert got == [Candidate(m.cost, m.end, 4, m.start) for m in minima if m.cost <= CAP]
+    assert any(x.cost > 0.3 for x in got) and any(CAP < m.cost < math.inf for m in minima)
+    assert stream_candidates(template, np.zeros(0, dtype=np.uint64), "toolbox", 4) == []
+
+
 def test_calibration_leaves_each_actor_out(labelled: Labelled, calibrated: Calibrated) -> None:
     names = list(labelled)
     found = calibrated.folds
@@ -635,21 +654,55 @@ def gate_of(found: Sequence[Fold], k: int, taus: Sequence[float | None]) -> Gene
 
 
 @pytest.mark.parametrize(
-    ("k", "taus"), [(1, [None, 0.3]), (0, [0.3, None]), (1, [None, 0.2]), (0, [0.1, 0.1])]
+    ("held", "k", "taus", "reason"),
+    [
+        # with the other class's τ unknown its candidates beat none of this class's wrong ones
+        ((0, 1, 2), 1, [None, 0.3], r"keyframes kept every motion found and 5 of 9 wrong detections out"),
+        ((0, 1, 2), 0, [0.3, None], r"keyframes kept every motion found and 3 of 3 wrong detections out"),
+        ((0, 1, 2), 1, [None, 0.2], r"keyframes kept every motion found and \d+ of \d+ wrong detections out"),
+        # bd's one wrong hop lies where every gate that keeps bd's hops opens
+        (
+            (0,),
+            1,
+            [None, 0.15],
+            "no keyframes kept out any of 1 wrong detections without losing motions: stream-wide DTW",
+        ),
+        # the squats' candidates beat every wrong hop
+        ((0, 1, 2), 0, [0.1, 0.1], "no wrong detection in the folds to keep out: stream-wide DTW"),
+    ],
 )
 def test_gate_against_its_definition_on_real_folds(
-    calibrated: Calibrated, k: int, taus: list[float | None]
+    calibrated: Calibrated, held: tuple[int, ...], k: int, taus: list[float | None], reason: str
 ) -> None:
-    """With the other class's τ unknown its candidates beat none of this class's wrong ones: there
-    are wrong detections to keep out."""
-    gate, reason = choose_gate(calibrated.folds, k, taus)
-    assert gate == gate_of(calibrated.folds, k, taus)
-    if gate is None:
-        assert reason.endswith("stream-wide DTW")
-    else:
-        assert re.fullmatch(r"keyframes kept every motion found and \d+ of \d+ wrong detections out", reason)
-    if k == 1 and taus[0] is None:
-        assert gate is not None  # hops: some generalisation keeps the squats' frames out
+    found = [calibrated.folds[i] for i in held]
+    gate, why = choose_gate(found, k, taus)
+    assert gate == gate_of(found, k, taus)
+    assert re.fullmatch(reason, why), why
+    assert (gate is None) == why.endswith("stream-wide DTW")
+
+
+def test_gate_ties_go_to_the_fewest_examples_of_other_classes(calibrated: Calibrated) -> None:
+    """Many generalisations keep out as many of the hops' wrong detections; the first is taken
+    until its keyframes are said to hit more examples of other classes."""
+    taus: list[float | None] = [None, 0.3]
+    first, _ = choose_gate(calibrated.folds, 1, taus)
+    assert first is not None
+    costly = [
+        dataclasses.replace(
+            f,
+            trials={
+                **f.trials,
+                1: tuple(
+                    dataclasses.replace(t, negatives=2) if t.generalisation == first else t
+                    for t in f.trials[1]
+                ),
+            },
+        )
+        for f in calibrated.folds
+    ]
+    second, _ = choose_gate(costly, 1, taus)
+    assert second is not None and second != first and second == gate_of(costly, 1, taus)
+    assert GENERALISATIONS.index(second) > GENERALISATIONS.index(first)
 
 
 def test_no_gate_without_wrong_detections_or_keyframes() -> None:
@@ -965,6 +1018,9 @@ def test_learn_with_one_actor_calibrates_on_groups_of_takes(tmp_path: Path) -> N
         {n: [(next(it), m) for _, m in items] for n, items in examples.items()}, groups_are=what
     )
     assert [f.group for f in expected.folds] == ["take 1", "take 2", "take 3"]
+    # nested folds over one person's takes say nothing of a new person: τ in the middle of the gap
+    assert (expected.position, dict(expected.position_f1)) == (DEFAULT_POSITION, {})
+    assert f"tau placed {DEFAULT_POSITION:g} of the way" in result.stdout
     library = load_library(tmp_path / "lib")
     for name, cls in library.classes.items():
         c = cls.provenance
