@@ -17,7 +17,7 @@ from daemon.keyframes import KeyframeError, KeyframeQuery, parse_keyframe_querie
 from daemon.learning import learn_library
 from daemon.library import GATED, Calibration, ClassTemplate, check_library_target, save_library
 from daemon.plots import template_png
-from daemon.recordings import TrainingClip, read_examples
+from daemon.recordings import TrainingClip, read_examples, read_training_manifest
 from daemon.storage import together
 from daemon.types import DEFAULT_INDEX_RATE
 
@@ -91,6 +91,11 @@ def _learn(args: argparse.Namespace, config: Config) -> int:
         given = parse_keyframe_queries(read_structured(count, "json", KeyframeError), count)
         count = 3
     check_library_target(args.out)  # before the long part
+    unknown = sorted(set(given) - {row.name for row in read_training_manifest(args.manifest)})
+    if unknown:
+        raise UsageError(
+            f"keyframes for classes the manifest lacks: {', '.join(unknown)}", path=args.keyframes
+        )
     if args.png is not None:
         common.check_png_output(args.png, directory=True)
     began = time.perf_counter()
@@ -108,11 +113,6 @@ def _learn(args: argparse.Namespace, config: Config) -> int:
         progress=progress,
         default_native_rate=common.default_native_rate(args, config),
     )
-    unknown = sorted(set(given) - set(examples))
-    if unknown:
-        raise UsageError(
-            f"keyframes for classes the manifest lacks: {', '.join(unknown)}", path=args.keyframes
-        )
     learned = learn_library(
         examples,
         tau=args.tau,
