@@ -91,13 +91,15 @@ def _learn(args: argparse.Namespace, config: Config) -> int:
         given = parse_keyframe_queries(read_structured(count, "json", KeyframeError), count)
         count = 3
     check_library_target(args.out)  # before the long part
-    unknown = sorted(set(given) - {row.name for row in read_training_manifest(args.manifest)})
+    if args.png is not None:
+        common.check_png_output(args.png, directory=True)
+    unknown = (
+        sorted(set(given) - {row.name for row in read_training_manifest(args.manifest)}) if given else []
+    )
     if unknown:
         raise UsageError(
             f"keyframes for classes the manifest lacks: {', '.join(unknown)}", path=args.keyframes
         )
-    if args.png is not None:
-        common.check_png_output(args.png, directory=True)
     began = time.perf_counter()
 
     def progress(done: int, total: int, clip: TrainingClip) -> None:
