@@ -328,15 +328,7 @@ def taus_for(templates: int) -> st.SearchStrategy[list[float | None]]:
 
 def as_fold(parts: FoldParts, group: str = "g") -> Fold:
     candidates, owner, truth, learned, length = parts
-    return make_fold(
-        group,
-        np.zeros(length, dtype=np.uint64),
-        truth,
-        owner,
-        [Candidate(*c) for c in candidates],
-        learned,
-        {},
-    )
+    return fold_of(group, list(truth), list(candidates), owner, learned, length)
 
 
 @settings(max_examples=300, deadline=None)
@@ -360,8 +352,10 @@ def fold_of(
     candidates: list[FoldCandidate],
     owner: Sequence[int] = (0, 1),
     learned: frozenset[int] = frozenset({0, 1}),
+    length: int | None = None,
 ) -> Fold:
-    length = max([b for _, _, b in truth] + [c[1] for c in candidates]) + 1
+    if length is None:
+        length = max([b for _, _, b in truth] + [c[1] for c in candidates]) + 1
     return make_fold(
         group,
         np.zeros(length, dtype=np.uint64),
