@@ -94,7 +94,7 @@ def _detect(args: argparse.Namespace, config: Config) -> int:
             compete=config.recognizer.compete,
             hold_s=config.recognizer.hold_s,
         )
-    except ValueError as exc:  # a class without keyframes, a rate the library's does not divide
+    except ValueError as exc:  # a rate the library's does not divide
         raise UsageError(str(exc), field="--library") from None
     found: list[Detection] = []
 
