@@ -59,11 +59,19 @@ class Interrupted(KeyboardInterrupt):
     :func:`main` handled it."""
 
 
+_RECEIVED: list[int] = []
+"""The signals the handlers below received during this command: a signal's exception raised inside
+a C extension may come back as another error with no trace of it (pybind11 reports "incompatible
+function arguments" when one lands while it converts a call's arguments, as in matplotlib)."""
+
+
 def _terminate(signum: int, frame: FrameType | None) -> NoReturn:
+    _RECEIVED.append(signal.SIGTERM)
     raise Terminated
 
 
 def _interrupt(signum: int, frame: FrameType | None) -> NoReturn:
+    _RECEIVED.append(signal.SIGINT)
     raise Interrupted
 
 
@@ -145,6 +153,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     command by that signal instead of its status."""
     arguments = list(sys.argv[1:] if argv is None else argv)
     debug = "--debug" in arguments
+    _RECEIVED.clear()
     previous: dict[signal.Signals, Any] = {}
     try:
         if signal.getsignal(signal.SIGINT) is signal.default_int_handler:  # not ignored (``command &``)
@@ -177,8 +186,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         _say("terminated")
         return 128 + signal.SIGTERM
     except Exception as exc:
-        stopped = _signal_within(exc)
-        if stopped is not None:  # a signal that Python wrapped in another error on the way up
+        stopped = _signal_within(exc) or (_RECEIVED[-1] if _RECEIVED else None)
+        if stopped is not None:  # a signal that Python or an extension turned into another error
             _say("interrupted" if stopped == signal.SIGINT else "terminated")
             return 128 + stopped
         if debug:
