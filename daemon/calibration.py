@@ -13,7 +13,7 @@ pieces of other motions, as the live recogniser sees them. Each class's template
 subsequence DTW over the whole stream (thesis Alg. 3.2, free start and end; the retrieval cost and
 steps of :mod:`daemon.retrieval`), and its local minima are *candidates*, as in the live
 recogniser (:class:`daemon.recognizer.CodeRecognizer`): a candidate is *beaten* by a cheaper one
-(order cost, end, class) of the same motion (more than half of the shorter range shared) of its own
+(order cost, end, template) of the same motion (more than half of the shorter range shared) of its own
 class, or of another class whose τ it is within. What is not beaten is a detection; it is right
 when at least half of it lies inside a motion of its class (:func:`outcomes`).
 
@@ -26,7 +26,9 @@ the next negative cost. Whether another class's candidate counts as a rival depe
 the first without rivals). The ``position`` is chosen by nested folds (:func:`choose_position`):
 each fold's detections are scored with the τ the *other* folds give, for each of
 :data:`POSITIONS`, and the one with the best F1 over all classes and folds is taken, so τ is placed
-where it carried to a group the thresholds had not seen.
+where it carried to a person the thresholds had not seen (over one person's takes, which say
+nothing of another person, the middle). A class whose examples fall into two styles gets two
+templates, each with its own τ (:func:`two_clusters`, :func:`calibrate`).
 
 **Keyframes** (:func:`choose_gate`): the automaton is a gate that lets a stream-wide match of its
 class count only where a keyframe match overlaps it. In each fold the class's keyframes are learned
