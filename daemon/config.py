@@ -8,6 +8,7 @@ and errors name the variable."""
 
 from __future__ import annotations
 
+import re
 import types
 from collections.abc import Mapping
 from dataclasses import dataclass, field, fields
@@ -206,6 +207,15 @@ def environment_overrides(config: Config, environ: Mapping[str, str]) -> Config:
             value = text
         if _is_tuple(get_type_hints(known[section])[name]):
             value = [w for w in str(text).replace(",", " ").split()]
+        f = next(g for g in fields(known[section]) if g.name == name)
+        # checked alone first, so that an error names the variable
+        _field(
+            Checker(key, ConfigError),
+            f"{section}.{name}",
+            get_type_hints(known[section])[name],
+            f.metadata,
+            value,
+        )
         changes.setdefault(section, {})[name] = value
     if not changes:
         return config
@@ -280,7 +290,22 @@ def _field(check: Checker, where: str, kind: Any, meta: Mapping[str, Any], value
     raise TypeError(f"{where}: no check for {kind}")
 
 
+INSTANCE = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,63}")
+"""An instance name: one MQTT topic level and client id (no ``/``, ``+``, ``#``, spaces)."""
+
+
 def _cross_checks(check: Checker, config: Config) -> None:
+    if config.service.instance and not INSTANCE.fullmatch(config.service.instance):
+        check.fail(
+            "service.instance",
+            "letters, digits, '_', '.', '-' (at most 64, one topic level), "
+            f"got {config.service.instance!r:.70}",
+        )
+    for name in ("sources", "sinks"):
+        if not getattr(config.service, name):
+            check.fail(
+                f"service.{name}", "must name at least one transport (a daemon without one does nothing)"
+            )
     if config.metrics.stream_labels and config.service.max_streams > MAX_LABELLED_STREAMS:
         check.fail(
             "metrics.stream_labels",

@@ -21,6 +21,18 @@ from types import TracebackType
 from typing import Any, Protocol
 
 
+class StartupError(Exception):
+    """A transport cannot start because of its settings or its surroundings (an address in use, an
+    endpoint it cannot parse, a key file it cannot read): ``setting`` names the configuration field
+    (e.g. ``zmq.poses``), ``reason`` says what is wrong. Raised by entering a transport, before
+    anything is published."""
+
+    def __init__(self, setting: str, reason: str) -> None:
+        super().__init__(f"{setting}: {reason}")
+        self.setting = setting
+        self.reason = reason
+
+
 @dataclass(frozen=True)
 class Incoming:
     """A message received on ``topic`` at ``received`` (``time.time()``)."""

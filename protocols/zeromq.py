@@ -19,7 +19,7 @@ import zmq.asyncio
 import zmq.auth
 from zmq.auth.asyncio import AsyncioAuthenticator
 
-from protocols.transport import Incoming, Outgoing
+from protocols.transport import Incoming, Outgoing, StartupError
 
 PREFIX = b"mocap/"
 
@@ -46,10 +46,14 @@ def open_socket(
         if curve_server_public is not None:
             sock.setsockopt(zmq.CURVE_PUBLICKEY, curve_server_public)
         sock.setsockopt(zmq.CURVE_SERVER, 1)
-    if bind:
-        sock.bind(endpoint)
-    else:
-        sock.connect(endpoint)
+    try:
+        if bind:
+            sock.bind(endpoint)
+        else:
+            sock.connect(endpoint)
+    except BaseException:
+        sock.close(linger=0)  # an open socket would keep the context from terminating
+        raise
     return sock
 
 
@@ -98,35 +102,51 @@ class ZmqTransport:
         self._ctx = zmq.asyncio.Context()
         secret = public = None
         if self.curve_secret_key_file is not None:
-            public, secret = zmq.auth.load_certificate(self.curve_secret_key_file)
+            try:
+                public, secret = zmq.auth.load_certificate(self.curve_secret_key_file)
+            except (OSError, ValueError) as e:
+                self._ctx.term()
+                self._ctx = None
+                why = e.strerror if isinstance(e, OSError) and e.strerror else str(e)
+                raise StartupError(
+                    "zmq.curve_secret_key_file", f"{self.curve_secret_key_file}: {why}"
+                ) from None
             if secret is None:
-                raise ValueError(f"{self.curve_secret_key_file}: not a secret key file")
+                self._ctx.term()
+                self._ctx = None
+                raise StartupError(
+                    "zmq.curve_secret_key_file", f"{self.curve_secret_key_file}: not a secret key file"
+                )
             auth = AsyncioAuthenticator(self._ctx)
             auth.start()
             clients = self.curve_clients_dir
             auth.configure_curve(domain="*", location=clients if clients else zmq.auth.CURVE_ALLOW_ANY)
             self._auth = auth
 
-        def opened(kind: int, spec: str) -> zmq.asyncio.Socket:
+        def opened(kind: int, spec: str, setting: str) -> zmq.asyncio.Socket:
             assert self._ctx is not None
             endpoint, bind = split_endpoint(spec)
-            return open_socket(
-                self._ctx,
-                kind,
-                endpoint,
-                bind=bind,
-                hwm=self.hwm,
-                linger_ms=self.linger_ms,
-                curve_server_secret=secret,
-                curve_server_public=public,
-            )
+            try:
+                return open_socket(
+                    self._ctx,
+                    kind,
+                    endpoint,
+                    bind=bind,
+                    hwm=self.hwm,
+                    linger_ms=self.linger_ms,
+                    curve_server_secret=secret,
+                    curve_server_public=public,
+                )
+            except zmq.ZMQError as e:
+                why = zmq.strerror(e.errno).lower() if e.errno is not None else str(e)
+                raise StartupError(setting, f"{spec}: {why}") from None
 
         try:
             if self.poses is not None:
-                self._sub = opened(zmq.SUB, self.poses)
+                self._sub = opened(zmq.SUB, self.poses, "zmq.poses")
                 self._sub.setsockopt(zmq.SUBSCRIBE, PREFIX)
             if self.detections is not None:
-                self._pub = opened(zmq.PUB, self.detections)
+                self._pub = opened(zmq.PUB, self.detections, "zmq.detections")
         except BaseException:
             await self.__aexit__(None, None, None)
             raise

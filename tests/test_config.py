@@ -97,6 +97,13 @@ BAD = [
     ("units-other", "replay:\n  units: metres\n", "replay.units"),
     ("units-number", "replay:\n  units: 1\n", "replay.units"),
     ("units-list", "replay:\n  units: [cm]\n", "replay.units"),
+    # a daemon that could not be told apart on the bus, or would do nothing
+    ("instance-slash", "service:\n  instance: a/b\n", "service.instance: letters, digits"),
+    ("instance-plus", "service:\n  instance: a+\n", "service.instance: letters, digits"),
+    ("instance-hash", "service:\n  instance: '#'\n", "service.instance: letters, digits"),
+    ("instance-space", "service:\n  instance: a b\n", "service.instance: letters, digits"),
+    ("no-sources", "service:\n  sources: []\n", "service.sources: must name at least one transport"),
+    ("no-sinks", "service:\n  sinks: []\n", "service.sinks: must name at least one transport"),
     # non-mapping sections
     ("replay-number", "replay: 3\n", "replay: must be a mapping"),
     ("replay-list", "replay:\n  - frame_rate_hz: 60\n", "replay: must be a mapping"),
@@ -189,6 +196,16 @@ def test_cli_invalid_yaml_exits_2_with_one_line(tmp_path: Path) -> None:
     assert "Traceback" not in result.stderr
     assert re.match(rf"mocapd: {re.escape(str(path))}:[23]: not valid YAML: ", result.stderr), result.stderr
     assert result.stderr.count("\n") == 1, result.stderr
+
+
+def test_cli_run_takes_config_after_the_command(tmp_path: Path) -> None:
+    """``mocapd run --config C`` reads C as ``mocapd --config C run`` does (the README's table)."""
+    path = write(tmp_path, "service:\n  sinks: []\n", "bad.yaml")
+    for argv in (("run", "--config", path), ("--config", path, "run")):
+        result = mocapd(*argv)
+        assert result.returncode == 2
+        assert result.stderr.startswith(f"mocapd: {path}: service.sinks: must name at least one transport")
+        assert result.stderr.count("\n") == 1
 
 
 def test_cli_config_frame_rate(tmp_path: Path) -> None:

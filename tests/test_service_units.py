@@ -249,7 +249,12 @@ def test_environment_overrides() -> None:
     for env, message in (
         ({"MOCAPD_NOPE_X": "1"}, "MOCAPD_NOPE_X: no section 'nope'"),
         ({"MOCAPD_MQTT_PORT": "1"}, "MOCAPD_MQTT_PORT: mqtt has no field 'port'"),
-        ({"MOCAPD_SERVICE_IDLE_S": "soon"}, "environment: service.idle_s: must be a positive number"),
+        (
+            {"MOCAPD_SERVICE_IDLE_S": "soon"},
+            "MOCAPD_SERVICE_IDLE_S: service.idle_s: must be a positive number",
+        ),
+        ({"MOCAPD_SERVICE_MAX_STREAMS": "0"}, "MOCAPD_SERVICE_MAX_STREAMS: service.max_streams: must be"),
+        ({"MOCAPD_SERVICE_SINKS": ""}, "environment: service.sinks: must name at least one transport"),
     ):
         with pytest.raises(ConfigError, match=f"^{re.escape(message)}"):
             environment_overrides(Config(), env)

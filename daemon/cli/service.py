@@ -26,6 +26,12 @@ STANDARD_MQTT = "mqtt://127.0.0.1:1883"
 def register(sub: Any) -> None:
     run = sub.add_parser("run", help="the daemon: recognise motions on every stream of the bus")
     run.add_argument(
+        "--config",
+        type=Path,
+        default=argparse.SUPPRESS,  # ``mocapd --config C run`` sets it too
+        help="config.yaml to read (as mocapd --config C run)",
+    )
+    run.add_argument(
         "--mqtt",
         default=None,
         metavar="mqtt://HOST:PORT",

@@ -33,9 +33,9 @@ from collections.abc import Callable, Coroutine, Iterable
 from dataclasses import replace
 from typing import Any
 
-from daemon.config import Config
+from daemon.config import Config, ConfigError
 from daemon.library import Library
-from daemon.service.metrics import Metrics, serve_http
+from daemon.service.metrics import Metrics, open_http, serve_http
 from daemon.service.streams import Emitted, Refused, StreamTable
 from protocols.messages import (
     BoundaryMessage,
@@ -48,7 +48,7 @@ from protocols.messages import (
     parse_topic,
     topic,
 )
-from protocols.transport import Incoming, Outgoing, Transport, make
+from protocols.transport import Incoming, Outgoing, StartupError, Transport, make
 
 EVENTS = ("gaps", "gap_frames", "idle", "skeleton_changed")
 """Counts of the stream table that are neither refusals nor drops."""
@@ -295,7 +295,17 @@ class Service:
         (name, coroutine function) tasks for the group. True if everything was published within the
         grace."""
         clean = True
+        http = None
+        if self.config.metrics.port:
+            host, port = self.config.metrics.host, self.config.metrics.port
+            try:
+                http = await open_http(host, port, self.health, self.metrics)
+            except OSError as e:
+                why = os.strerror(e.errno).lower() if e.errno else str(e)
+                raise StartupError("metrics.port", f"{host}:{port}: {why}") from None
         async with contextlib.AsyncExitStack() as stack:
+            if http is not None:
+                stack.push_async_callback(_closed, http)
             for t in self.transports:
                 await stack.enter_async_context(t)
             self._entered = True
@@ -313,18 +323,8 @@ class Service:
                             intakes.append(group.create_task(self._intake(t), name=f"intake {t.name}"))
                     group.create_task(self._recognise(), name="recognise")
                     group.create_task(self._housekeeping(), name="housekeeping")
-                    if self.config.metrics.port:
-                        listening = asyncio.Event()
-                        group.create_task(
-                            serve_http(
-                                self.config.metrics.host,
-                                self.config.metrics.port,
-                                self.health,
-                                self.metrics,
-                                listening,
-                            ),
-                            name="http",
-                        )
+                    if http is not None:
+                        group.create_task(serve_http(http), name="http")
                     for name, factory in extra:
                         group.create_task(factory(), name=name)
                     group.create_task(self._shutdown(stop, intakes), name="shutdown")
@@ -362,6 +362,11 @@ class Service:
             if hasattr(t, "drain_s"):
                 t.drain_s = left
         raise _Stop
+
+
+async def _closed(server: asyncio.Server) -> None:
+    server.close()
+    await server.wait_closed()
 
 
 def message_type(message: object) -> str:
@@ -425,7 +430,9 @@ def serve(
     | None = None,
 ) -> int:
     """Run the service until SIGTERM/SIGINT (or ``extra``'s tasks set the stop event); the exit
-    status: 0 when everything was published within the grace, 1 otherwise."""
+    status: 0 when everything was published within the grace, 1 otherwise. A transport or the
+    metrics server that cannot start raises :class:`~daemon.config.ConfigError` naming the setting,
+    before "online" is published."""
     logger = configure_logging(config.logging.level)
     instance = instance_name(config)
 
@@ -454,4 +461,7 @@ def serve(
         gc.freeze()
         return await service.run(stop, extra(service, stop) if extra is not None else ())
 
-    return 0 if asyncio.run(main()) else 1
+    try:
+        return 0 if asyncio.run(main()) else 1
+    except StartupError as e:  # before anything was published: the setting, in one line
+        raise ConfigError(e.reason, field=e.setting) from None

@@ -147,11 +147,12 @@ class Metrics(Collector):
         yield e2e
 
 
-async def serve_http(
-    host: str, port: int, health: Callable[[], str | None], metrics: Metrics, started: asyncio.Event
-) -> None:
-    """``GET /healthz`` (200 ``ok`` while ``health()`` is None, else 503 with its reason) and
-    ``GET /metrics`` on ``host:port`` until cancelled; ``started`` is set once listening."""
+async def open_http(
+    host: str, port: int, health: Callable[[], str | None], metrics: Metrics
+) -> asyncio.Server:
+    """A server listening on ``host:port`` for ``GET /healthz`` (200 ``ok`` while ``health()`` is
+    None, else 503 with its reason) and ``GET /metrics``; serve it with :func:`serve_http`. OSError
+    if it cannot listen."""
 
     async def handle(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         try:
@@ -181,7 +182,10 @@ async def serve_http(
             with contextlib.suppress(ConnectionError):
                 await writer.wait_closed()
 
-    server = await asyncio.start_server(handle, host, port)
-    started.set()
+    return await asyncio.start_server(handle, host, port)
+
+
+async def serve_http(server: asyncio.Server) -> None:
+    """Serve ``server`` (:func:`open_http`) until cancelled, then close it."""
     async with server:
         await server.serve_forever()

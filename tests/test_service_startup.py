@@ -1,0 +1,82 @@
+"""``mocapd run`` that cannot start: a real daemon process, real sockets. Every startup failure ends
+with status 2 and one line naming the setting (``zmq.poses: ...: address already in use``) before
+"online" is published; none hangs or reports an internal error (issue 21)."""
+
+from __future__ import annotations
+
+import json
+import socket
+import subprocess
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from tests.helpers import MOCAPD_SCRIPT, free_port
+
+
+@pytest.fixture
+def taken() -> Iterator[int]:
+    """A loopback TCP port something else listens on."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        s.listen()
+        yield s.getsockname()[1]
+
+
+def run(tmp_path: Path, sections: dict[str, dict[str, object]]) -> subprocess.CompletedProcess[str]:
+    config: dict[str, dict[str, object]] = {
+        "zmq": {"poses": f"tcp://127.0.0.1:{free_port()}", "detections": f"tcp://127.0.0.1:{free_port()}"},
+        "metrics": {"port": 0},
+    }
+    for name, values in sections.items():
+        config.setdefault(name, {}).update(values)
+    path = tmp_path / "daemon.yaml"
+    path.write_text(json.dumps(config), encoding="utf-8")
+    return subprocess.run(
+        [str(MOCAPD_SCRIPT), "--config", str(path), "run"], capture_output=True, text=True, timeout=30
+    )
+
+
+def check_refused(result: subprocess.CompletedProcess[str], line: str) -> None:
+    """Status 2, the last stderr line exactly ``line``, and "online" never said or published."""
+    assert result.returncode == 2, result.stderr
+    assert result.stderr.splitlines()[-1] == line, result.stderr
+    assert "Traceback" not in result.stderr and "internal error" not in result.stderr
+    assert '"online"' not in result.stderr and '"online"' not in result.stdout
+
+
+def test_poses_address_in_use(tmp_path: Path, taken: int) -> None:
+    endpoint = f"tcp://127.0.0.1:{taken}"
+    check_refused(
+        run(tmp_path, {"zmq": {"poses": endpoint}}), f"mocapd: zmq.poses: {endpoint}: address already in use"
+    )
+
+
+def test_poses_and_detections_on_one_endpoint(tmp_path: Path) -> None:
+    endpoint = f"tcp://127.0.0.1:{free_port()}"
+    result = run(tmp_path, {"zmq": {"poses": endpoint, "detections": endpoint}})
+    check_refused(result, f"mocapd: zmq.detections: {endpoint}: address already in use")
+
+
+@pytest.mark.parametrize(
+    ("endpoint", "why"),
+    [
+        ("hello", "invalid argument"),
+        ("udp://127.0.0.1:5999", "the protocol is not compatible with the socket type"),
+    ],
+)
+def test_an_endpoint_zeromq_cannot_take(tmp_path: Path, endpoint: str, why: str) -> None:
+    check_refused(run(tmp_path, {"zmq": {"poses": endpoint}}), f"mocapd: zmq.poses: {endpoint}: {why}")
+
+
+def test_metrics_port_in_use(tmp_path: Path, taken: int) -> None:
+    result = run(tmp_path, {"metrics": {"port": taken}})
+    check_refused(result, f"mocapd: metrics.port: 127.0.0.1:{taken}: address already in use")
+
+
+def test_curve_key_file_missing(tmp_path: Path) -> None:
+    missing = tmp_path / "nope.key_secret"
+    result = run(tmp_path, {"zmq": {"curve_secret_key_file": str(missing)}})
+    assert result.stderr.splitlines()[-1].startswith(f"mocapd: zmq.curve_secret_key_file: {missing}: ")
+    check_refused(result, result.stderr.splitlines()[-1])
