@@ -38,6 +38,10 @@ Kind = Literal["skeleton", "pose", "detection", "boundary", "status"]
 
 STREAM_ID = re.compile(r"[A-Za-z0-9_.:@-]{1,128}")
 """A stream or instance id: one MQTT topic level (no ``/``, ``+``, ``#``), at most 128 characters."""
+EPOCH = re.compile(r"[A-Za-z0-9_.:@-]{1,64}")
+"""A run of a source (a random id it draws when it starts): letters, digits, ``_.:@-``, at most 64."""
+MAX_SEQ = (1 << 53) - 1
+"""The largest sequence number (exact in every JSON and float consumer)."""
 
 
 class WireError(ValueError):
@@ -54,7 +58,8 @@ class SkeletonMessage:
     """A stream's announcement. Positions streams: ``joints`` (names, in the order of every pose's
     coordinates; they must include mocapd's standard joints), ``up`` axis and length ``units``.
     Channel streams: ``asf``, the text of an ASF file; poses then carry AMC-style channels in its
-    channel order, angles in ``angle_unit``. ``rate``: frames per second."""
+    channel order, angles in ``angle_unit``. ``rate``: frames per second. ``epoch``: the run of the
+    source (None: not said), see :class:`PoseMessage`."""
 
     stream: str
     rate: float
@@ -63,6 +68,7 @@ class SkeletonMessage:
     units: Units = "cm"
     asf: str | None = None
     angle_unit: AngleUnit = "deg"
+    epoch: str | None = None
 
     @property
     def kind(self) -> Literal["positions", "channels"]:
@@ -71,15 +77,19 @@ class SkeletonMessage:
 
 @dataclass(frozen=True)
 class PoseMessage:
-    """One frame of ``stream``: its sequence number ``seq`` (consecutive from any start), the
-    source's timestamp ``time`` (seconds since the Unix epoch) and either ``positions`` ``(J, 3)``
-    (float32 on the wire) or ``channels`` ``(C,)`` (float64 on the wire)."""
+    """One frame of ``stream``: its sequence number ``seq`` (consecutive from any start, at most
+    :data:`MAX_SEQ`), the source's timestamp ``time`` (seconds since the Unix epoch) and either
+    ``positions`` ``(J, 3)`` (float32 on the wire) or ``channels`` ``(C,)`` (float64 on the wire).
+    ``epoch``: the run of the source that sent it (a random id drawn when the source starts, None:
+    not said), so that a restarted source, which numbers from its start again, is a new run and not
+    an old one going backwards."""
 
     stream: str
     seq: int
     time: float
     positions: npt.NDArray[np.float32] | None = None
     channels: npt.NDArray[np.float64] | None = None
+    epoch: str | None = None
 
 
 @dataclass(frozen=True)
@@ -159,6 +169,8 @@ def encode(message: Message) -> bytes:
     body: dict[str, Any] = {"v": VERSION}
     if isinstance(message, SkeletonMessage):
         body |= {"type": "skeleton", "stream": message.stream, "rate": float(message.rate)}
+        if message.epoch is not None:
+            body["epoch"] = message.epoch
         if message.asf is not None:
             body |= {"asf": message.asf, "angle_unit": message.angle_unit}
         else:
@@ -166,6 +178,8 @@ def encode(message: Message) -> bytes:
             body |= {"joints": list(message.joints), "up": message.up, "units": message.units}
     elif isinstance(message, PoseMessage):
         body |= {"type": "pose", "stream": message.stream, "seq": message.seq, "time": float(message.time)}
+        if message.epoch is not None:
+            body["epoch"] = message.epoch
         if message.positions is not None:
             body["positions"] = np.ascontiguousarray(message.positions, dtype="<f4").tobytes()
         else:
@@ -240,6 +254,8 @@ def decode(payload: bytes, max_bytes: int = DEFAULT_MAX_BYTES) -> Message:
 _POSE_KEYS = (
     {"v", "type", "stream", "seq", "time", "positions"},
     {"v", "type", "stream", "seq", "time", "channels"},
+    {"v", "type", "stream", "seq", "time", "positions", "epoch"},
+    {"v", "type", "stream", "seq", "time", "channels", "epoch"},
 )
 
 
@@ -252,15 +268,19 @@ def _plain_pose(body: dict[str, Any]) -> PoseMessage | None:
     """The pose in ``body`` if it is a valid one, checked in as few steps as the live path can
     afford; None for anything else, which the field-by-field reader then describes."""
     keys = body.keys()
-    positions = keys == _POSE_KEYS[0]
-    if not positions and keys != _POSE_KEYS[1]:
+    positions = keys == _POSE_KEYS[0] or keys == _POSE_KEYS[2]
+    if not positions and keys != _POSE_KEYS[1] and keys != _POSE_KEYS[3]:
         return None
     stream, seq, stamp = body["stream"], body["seq"], body["time"]
+    epoch = body.get("epoch")
+    if epoch is not None and (type(epoch) is not str or not EPOCH.fullmatch(epoch)):
+        return None
     data = body["positions" if positions else "channels"]
     if (
         type(stream) is not str
         or type(seq) is not int
         or seq < 0
+        or seq > MAX_SEQ
         or type(stamp) not in (float, int)
         or not math.isfinite(stamp)
         or type(data) is not bytes
@@ -273,8 +293,8 @@ def _plain_pose(body: dict[str, Any]) -> PoseMessage | None:
     if not math.isfinite(float(a.sum())) and not np.isfinite(a).all():  # one reduction if finite
         return None
     if positions:
-        return PoseMessage(stream, seq, float(stamp), positions=a.reshape(-1, 3))
-    return PoseMessage(stream, seq, float(stamp), channels=a)
+        return PoseMessage(stream, seq, float(stamp), positions=a.reshape(-1, 3), epoch=epoch)
+    return PoseMessage(stream, seq, float(stamp), channels=a, epoch=epoch)
 
 
 class _Fields:
@@ -304,12 +324,23 @@ class _Fields:
             raise self.fail(name, f"{value!r:.60} is not an id (letters, digits, _.:@-, at most 128)")
         return value
 
-    def integer(self, name: str, low: int | None = None) -> int:
+    def integer(self, name: str, low: int | None = None, high: int | None = None) -> int:
         value = self.take(name)
         if type(value) is not int:
             raise self.fail(name, f"must be an integer, got {type(value).__name__}")
         if low is not None and value < low:
             raise self.fail(name, f"must be at least {low}, got {value}")
+        if high is not None and value > high:
+            raise self.fail(name, f"must be at most {high}, got {value}")
+        return value
+
+    def epoch(self) -> str | None:
+        """The optional ``epoch``: None or an id."""
+        value = self.take("epoch", required=False)
+        if value is None:
+            return None
+        if not isinstance(value, str) or not EPOCH.fullmatch(value):
+            raise self.fail("epoch", f"{value!r:.60} is not an epoch (letters, digits, _.:@-, at most 64)")
         return value
 
     def number(self, name: str, *, positive: bool = False) -> float:
@@ -352,6 +383,7 @@ class _Fields:
 def _skeleton(f: _Fields) -> SkeletonMessage:
     stream = f.text("stream", STREAM_ID)
     rate = f.number("rate", positive=True)
+    epoch = f.epoch()
     asf = f.take("asf", required=False)
     joints = f.take("joints", required=False)
     if (asf is None) == (joints is None):
@@ -361,7 +393,7 @@ def _skeleton(f: _Fields) -> SkeletonMessage:
             raise f.fail("asf", "must be the text of an ASF file")
         unit = f.choice("angle_unit", get_args(AngleUnit), "deg")
         f.done()
-        return SkeletonMessage(stream, rate, asf=asf, angle_unit=unit)  # type: ignore[arg-type]
+        return SkeletonMessage(stream, rate, asf=asf, angle_unit=unit, epoch=epoch)  # type: ignore[arg-type]
     if not isinstance(joints, list) or not joints or not all(isinstance(j, str) and j for j in joints):
         raise f.fail("joints", "must be a non-empty list of joint names")
     if len(set(joints)) != len(joints):
@@ -369,23 +401,24 @@ def _skeleton(f: _Fields) -> SkeletonMessage:
     up = f.choice("up", get_args(Up), "y")
     units = f.choice("units", get_args(Units), "cm")
     f.done()
-    return SkeletonMessage(stream, rate, tuple(joints), up, units)  # type: ignore[arg-type]
+    return SkeletonMessage(stream, rate, tuple(joints), up, units, epoch=epoch)  # type: ignore[arg-type]
 
 
 def _pose(f: _Fields) -> PoseMessage:
     stream = f.text("stream", STREAM_ID)
-    seq = f.integer("seq", low=0)
+    seq = f.integer("seq", low=0, high=MAX_SEQ)
     time = f.number("time")
+    epoch = f.epoch()
     has_positions, has_channels = "positions" in f.body, "channels" in f.body
     if has_positions == has_channels:
         raise f.fail("positions", "a pose carries either 'positions' or 'channels'")
     if has_positions:
         positions = f.array("positions", "<f4", 3).reshape(-1, 3)
         f.done()
-        return PoseMessage(stream, seq, time, positions=positions)
+        return PoseMessage(stream, seq, time, positions=positions, epoch=epoch)
     channels = f.array("channels", "<f8", 1)
     f.done()
-    return PoseMessage(stream, seq, time, channels=channels)
+    return PoseMessage(stream, seq, time, channels=channels, epoch=epoch)
 
 
 def _detection(f: _Fields) -> DetectionMessage:

@@ -24,7 +24,7 @@ import select
 import socket
 import ssl
 import time
-from collections import deque
+from collections import OrderedDict, deque
 from collections.abc import AsyncIterator, Callable, Sequence
 from types import TracebackType
 from typing import Any
@@ -35,6 +35,12 @@ import aiomqtt
 from protocols.transport import Incoming, Outgoing
 
 LOG = logging.getLogger("mocapd.mqtt")
+
+
+ASK_EVERY_S = 5.0
+"""The shortest time between two requests for one stream's skeleton."""
+ASKED = 10_000
+"""Streams whose requests are remembered (the oldest forgotten first)."""
 
 
 def parse_url(url: str) -> tuple[str, int, bool]:
@@ -191,6 +197,9 @@ class MqttTransport:
         self._dropped_incoming = 0
         self._dropped_outbox = 0
         self.connects = 0
+        self._asked: OrderedDict[str, float] = OrderedDict()  # stream -> when its skeleton was asked for
+        self._to_ask: deque[str] = deque()
+        self._ask = asyncio.Event()
 
     def announce(self, online: Outgoing, offline: Outgoing) -> None:
         """Publish ``online`` on every connect; ``offline`` is the last will and is published before a
@@ -265,6 +274,7 @@ class MqttTransport:
                     async with asyncio.TaskGroup() as tasks:
                         tasks.create_task(self._sender(client), name="mqtt sender")
                         tasks.create_task(self._reader(client), name="mqtt reader")
+                        tasks.create_task(self._asker(client), name="mqtt skeleton requests")
             except* aiomqtt.MqttError as group:
                 self._problem = f"mqtt: {group.exceptions[0]} (reconnecting)"
                 LOG.warning(
@@ -273,6 +283,36 @@ class MqttTransport:
             self._connected.clear()
             await asyncio.sleep(delay)
             delay = min(2 * delay, self.reconnect[1])
+
+    def ask_skeleton(self, stream: str) -> None:
+        """Subscribe to ``stream``'s skeleton topic again, which makes the broker send its retained
+        skeleton (MQTT 3.1.1, 3.8.4); at most once per :data:`ASK_EVERY_S` per stream, the streams
+        remembered bounded (:data:`ASKED`)."""
+        now = time.monotonic()
+        last = self._asked.get(stream)
+        if last is not None and now - last < ASK_EVERY_S:
+            return
+        self._asked[stream] = now
+        self._asked.move_to_end(stream)
+        while len(self._asked) > ASKED:
+            self._asked.popitem(last=False)
+        if len(self._to_ask) < ASKED:
+            self._to_ask.append(stream)
+            self._ask.set()
+
+    async def _asker(self, client: aiomqtt.Client) -> None:
+        """Ask for the skeletons :meth:`ask_skeleton` queued: subscribe to each stream's skeleton
+        topic, and a moment later unsubscribe (the wildcard subscription keeps taking it)."""
+        while True:
+            while not self._to_ask:
+                self._ask.clear()
+                await self._ask.wait()
+            topics = [f"mocap/{self._to_ask.popleft()}/skeleton" for _ in range(len(self._to_ask))]
+            for t in topics:
+                await client.subscribe(t, qos=1)
+            await asyncio.sleep(1.0)
+            for t in topics:
+                await client.unsubscribe(t)
 
     async def _reader(self, client: aiomqtt.Client) -> None:
         async for _ in client.messages:  # nothing comes (see _Client); raises when the connection is lost

@@ -7,6 +7,12 @@ replay's first frames would be lost. The replay's socket is an XPUB, which recei
 subscription once the connection is up; the replay waits for it before the skeleton goes out, and
 its high-water mark is large enough that a replay as fast as possible is not dropped at the sender.
 On MQTT the skeleton is retained, so a daemon started later still learns it.
+
+A stream's life (``protocols/README.md``): every replay is a new run of its stream, with an epoch of
+its own in its skeleton and poses; the skeleton is announced again every :data:`ANNOUNCE_S` and at
+once when a daemon asks — a subscription reaching the XPUB socket (a daemon that started or
+restarted), an "online" status on MQTT — so a restarted daemon, or one that forgot a stream that was
+silent too long, learns it again within a second.
 """
 
 from __future__ import annotations
@@ -15,18 +21,21 @@ import asyncio
 import contextlib
 import os
 import time
+import uuid
 from collections.abc import Awaitable, Callable
 from urllib.parse import urlsplit
 
 import zmq
 import zmq.asyncio
 
-from protocols.messages import PoseMessage, encode, topic
+from protocols.messages import PoseMessage, StatusMessage, WireError, decode, encode, topic
 from protocols.transport import Outgoing
 from replay.amc import Motion
 from replay.publish import Items, due, messages
 
 SEND_HWM = 10_000_000
+ANNOUNCE_S = 1.0
+"""The longest a replay goes without announcing its skeleton."""
 
 
 async def replay_to(
@@ -44,7 +53,7 @@ async def replay_to(
     ``mqtt://HOST:PORT`` or ``mqtts://``: a broker) as ``stream``; the poses sent. ValueError for
     another URL; TimeoutError when no subscriber or broker answers within ``wait_s``."""
     scheme = urlsplit(url).scheme
-    items = messages(motion, asf_text, stream, rate, None if loop else 1)
+    items = messages(motion, asf_text, stream, rate, None if loop else 1, epoch=uuid.uuid4().hex[:16])
     if scheme.startswith("zmq+"):
         return await _to_zmq(url[len("zmq+") :], items, rate, speed, wait_s)
     if scheme in ("mqtt", "mqtts"):
@@ -57,11 +66,15 @@ async def _send_all(
     items: Items,
     rate: float,
     speed: float | None,
+    asked: Callable[[], bool] = lambda: False,
 ) -> int:
-    """Send every message through ``send(Outgoing)`` (awaited), poses on their due times."""
+    """Send every message through ``send(Outgoing)`` (awaited), poses on their due times; the
+    skeleton again every :data:`ANNOUNCE_S` and whenever ``asked()`` says a daemon asks for it."""
     sent = 0
     start = time.monotonic()
     i = 0
+    skeleton: Outgoing | None = None
+    announced = start
     for m in items:
         if isinstance(m, PoseMessage):
             wait = due(start, i, rate, speed) - time.monotonic()
@@ -69,12 +82,16 @@ async def _send_all(
                 await asyncio.sleep(wait)
             elif i % 256 == 0:
                 await asyncio.sleep(0)
-            m = PoseMessage(m.stream, m.seq, time.time(), channels=m.channels)
+            if skeleton is not None and (asked() or time.monotonic() - announced >= ANNOUNCE_S):
+                await send(skeleton)
+                announced = time.monotonic()
+            m = PoseMessage(m.stream, m.seq, time.time(), channels=m.channels, epoch=m.epoch)
             out = Outgoing(topic(m), encode(m))
             i += 1
             sent += 1
         else:
-            out = Outgoing(topic(m), encode(m), retain=True, reliable=True)
+            out = skeleton = Outgoing(topic(m), encode(m), retain=True, reliable=True)
+            announced = time.monotonic()
         await send(out)
     return sent
 
@@ -95,7 +112,19 @@ async def _to_zmq(endpoint: str, items: Items, rate: float, speed: float | None,
         async def send(out: Outgoing) -> None:
             await sock.send_multipart([out.topic.encode(), out.payload])
 
-        return await _send_all(send, items, rate, speed)
+        sync: zmq.Socket[bytes] = zmq.Socket.shadow(sock.underlying)
+
+        def asked() -> bool:
+            """A subscription reached the socket: a daemon (re)connected."""
+            found = False
+            while True:
+                try:
+                    event = sync.recv(zmq.NOBLOCK)
+                except zmq.Again:
+                    return found
+                found = found or event[:1] == b"\x01"
+
+        return await _send_all(send, items, rate, speed, asked)
     finally:
         sock.close(linger=10_000)
         ctx.term()
@@ -106,7 +135,13 @@ async def _to_mqtt(
 ) -> int:
     from protocols.mqtt import MqttTransport
 
-    client = MqttTransport(url=url, client_id=f"mocapd-replay-{stream}-{os.getpid()}", drain_s=60.0)
+    client = MqttTransport(
+        url=url,
+        client_id=f"mocapd-replay-{stream}-{os.getpid()}",
+        drain_s=60.0,
+        subscribe=[("mocapd/+/status", 1)],
+        queue=1000,
+    )
     async with client:
         await client.wait_connected(wait_s)
 
@@ -115,7 +150,26 @@ async def _to_mqtt(
                 await asyncio.sleep(0.001)
             await client.publish(out)
 
-        sent = await _send_all(send, items, rate, speed)
+        online = asyncio.Event()
+
+        async def watch() -> None:
+            """A daemon's "online" status (retained ones included) asks for the skeleton."""
+            async for incoming in client:
+                with contextlib.suppress(WireError):
+                    status = decode(incoming.payload)
+                    if isinstance(status, StatusMessage) and status.state == "online":
+                        online.set()
+
+        def asked() -> bool:
+            found = online.is_set()
+            online.clear()
+            return found
+
+        watcher = asyncio.create_task(watch(), name="replay status watch")
+        try:
+            sent = await _send_all(send, items, rate, speed, asked)
+        finally:
+            watcher.cancel()
         with contextlib.suppress(TimeoutError):
             async with asyncio.timeout(60):
                 while client.pending:

@@ -49,6 +49,9 @@ class StdoutTransport:
     def source(self) -> None:
         return None
 
+    def ask_skeleton(self, stream: str) -> None:
+        """Nothing: stdout takes nothing in."""
+
     def sink(self) -> StdoutTransport:
         return self
 

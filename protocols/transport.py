@@ -81,6 +81,10 @@ class Transport(Protocol):
 
     def sink(self) -> Sink | None: ...
 
+    def ask_skeleton(self, stream: str) -> None:
+        """Poses came for ``stream``, whose skeleton is unknown: have it sent again where the
+        transport can (MQTT: subscribe to its retained skeleton again); elsewhere nothing."""
+
     @property
     def problem(self) -> str | None: ...
 

@@ -176,6 +176,10 @@ class ZmqTransport:
     def sink(self) -> ZmqTransport | None:
         return None if self._pub is None else self
 
+    def ask_skeleton(self, stream: str) -> None:
+        """Nothing: a ZeroMQ publisher re-announces when the daemon's subscription reaches it, and
+        periodically (``protocols/README.md``, "A stream's life")."""
+
     async def publish(self, message: Outgoing) -> None:
         assert self._pub is not None
         try:

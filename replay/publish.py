@@ -4,7 +4,8 @@ the skeleton announced (the ASF text), then every frame's channels as a pose, an
 Pacing: frame i is due at t0 + i / (rate * speed), t0 the time the first frame went out; each frame
 waits for its own due time, so sleeping late never accumulates into drift over a long file
 (``speed`` None: as fast as the transport takes them). Sequence numbers are the AMC frame numbers,
-continued across passes with ``loop``; each pose carries the time it was sent. Pure: no sockets.
+continued across passes with ``loop``; each pose carries the time it was sent and the replay's
+epoch (one run of the source, ``protocols/README.md``, "A stream's life"). Pure: no sockets.
 """
 
 from __future__ import annotations
@@ -25,15 +26,18 @@ def due(start: float, i: int, rate: float, speed: float | None) -> float:
     return start if speed is None else start + i / (rate * speed)
 
 
-def messages(motion: Motion, asf_text: str, stream: str, rate: float, passes: int | None) -> Items:
+def messages(
+    motion: Motion, asf_text: str, stream: str, rate: float, passes: int | None, epoch: str | None = None
+) -> Items:
     """The skeleton, then one pose per frame (``passes`` times through the recording; None: for
-    ever), sequence numbers from the first AMC frame number on; ``time`` is filled when sent."""
-    yield SkeletonMessage(stream, rate, asf=asf_text, angle_unit="rad")
+    ever), sequence numbers from the first AMC frame number on, all of run ``epoch``; ``time`` is
+    filled when sent."""
+    yield SkeletonMessage(stream, rate, asf=asf_text, angle_unit="rad", epoch=epoch)
     first = int(motion.frames[0]) if len(motion) else 1
     seq = first
     done = 0
     while passes is None or done < passes:
         for row in motion.channels:
-            yield PoseMessage(stream, seq, 0.0, channels=np.ascontiguousarray(row))
+            yield PoseMessage(stream, seq, 0.0, channels=np.ascontiguousarray(row), epoch=epoch)
             seq += 1
         done += 1

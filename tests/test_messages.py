@@ -30,6 +30,7 @@ from replay import JOINT_NAMES
 from tests.helpers import DATA, REPO
 
 ids = st.from_regex(r"[A-Za-z0-9_.:@-]{1,20}", fullmatch=True)
+epochs = st.none() | st.from_regex(r"[A-Za-z0-9_.:@-]{1,64}", fullmatch=True)
 finite = st.floats(allow_nan=False, allow_infinity=False, width=64)
 times = st.floats(0, 4e9)
 
@@ -46,6 +47,7 @@ def messages(draw: st.DrawFn) -> Message:
             joints,
             draw(st.sampled_from(["y", "z"])),
             draw(st.sampled_from(["m", "cm", "asf"])),
+            epoch=draw(epochs),
         )
     if kind == "skeleton-c":
         return SkeletonMessage(
@@ -53,19 +55,27 @@ def messages(draw: st.DrawFn) -> Message:
             draw(st.floats(1, 1000)),
             asf=draw(st.text(min_size=1).filter(str.strip)),
             angle_unit=draw(st.sampled_from(["deg", "rad"])),
+            epoch=draw(epochs),
         )
     if kind == "pose-p":
         n = draw(st.integers(1, 40))
         values = draw(st.lists(st.floats(-1e6, 1e6, width=32), min_size=3 * n, max_size=3 * n))
         return PoseMessage(
             stream,
-            draw(st.integers(0, 2**62)),
+            draw(st.integers(0, 2**53 - 1)),
             draw(times),
             positions=np.array(values, dtype=np.float32).reshape(n, 3),
+            epoch=draw(epochs),
         )
     if kind == "pose-c":
         values = draw(st.lists(finite, min_size=1, max_size=70))
-        return PoseMessage(stream, draw(st.integers(0, 2**62)), draw(times), channels=np.array(values))
+        return PoseMessage(
+            stream,
+            draw(st.integers(0, 2**53 - 1)),
+            draw(times),
+            channels=np.array(values),
+            epoch=draw(epochs),
+        )
     if kind == "det":
         return DetectionMessage(
             draw(st.uuids()).hex,
@@ -191,6 +201,12 @@ POSE = {
         (raw({k: v for k, v in POSE.items() if k != "seq"}), "schema", "pose.seq: missing"),
         (raw({**POSE, "seq": -1}), "schema", "pose.seq"),
         (raw({**POSE, "seq": 1.0}), "schema", "pose.seq: must be an integer"),
+        (raw({**POSE, "seq": 2**53}), "schema", "pose.seq: must be at most 9007199254740991"),
+        (raw({**POSE, "seq": 2**64 - 1}), "schema", "pose.seq: must be at most"),
+        (raw({**POSE, "epoch": ""}), "schema", "pose.epoch"),
+        (raw({**POSE, "epoch": "a/b"}), "schema", "pose.epoch"),
+        (raw({**POSE, "epoch": 7}), "schema", "pose.epoch"),
+        (raw({**POSE, "epoch": "x" * 65}), "schema", "pose.epoch"),
         (raw({**POSE, "stream": "a/b"}), "schema", "pose.stream"),
         (raw({**POSE, "stream": ""}), "schema", "pose.stream"),
         (raw({**POSE, "time": float("nan")}), "non_finite", "pose.time"),

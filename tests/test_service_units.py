@@ -32,7 +32,7 @@ from daemon.config import (
 from daemon.library import Library
 from daemon.recognizer import Recognizer
 from daemon.recordings import joint_positions, read_recording
-from daemon.service.streams import Refused, StreamTable
+from daemon.service.streams import Emitted, Refused, StreamTable
 from protocols.messages import BoundaryMessage, DetectionMessage, PoseMessage, SkeletonMessage
 from replay import JOINT_NAMES, Motion
 from replay.amc import DEG
@@ -160,6 +160,93 @@ def test_refusals(library: Library) -> None:
     with pytest.raises(Refused) as caught:
         announce(small, "b")
     assert caught.value.reason == "too_many_streams"
+
+
+def detections(out: list[Emitted]) -> list[tuple[str, int, int, float]]:
+    return [
+        (e.message.class_name, e.message.start_frame, e.message.end_frame, e.message.cost)
+        for e in out
+        if isinstance(e.message, DetectionMessage)
+    ]
+
+
+def drain(t: StreamTable) -> list[Emitted]:
+    out = []
+    while t.queued:
+        out += t.tick()[0]
+    return out
+
+
+def alone(library: Library, frames: range) -> list[tuple[str, int, int, float]]:
+    """The recording's ``frames`` (indices) through a recogniser of their own, numbered from 1."""
+    m = motion()
+    r = Recognizer.for_skeleton(library, m.skeleton, 120.0, session="x")
+    found = [d for n, k in enumerate(frames, start=1) for d in r.push(n, m.channels[k])] + r.flush()
+    return [(d.class_name, d.start_frame, d.end_frame, d.cost) for d in found]
+
+
+@pytest.mark.parametrize("epochs", [("a1", "b2"), (None, None)], ids=["epochs", "no epochs"])
+def test_a_restarted_source_is_a_new_run(library: Library, epochs: tuple[str | None, str | None]) -> None:
+    """Two runs of one source back to back, each numbered from 1 (a replay started twice): each run
+    gives what it gives alone (before, the second was refused out_of_order to the end). With epochs
+    the second run's skeleton or first pose says so; without, the sequence number going back by more
+    than a second of frames does. Poses of a replaced epoch are refused."""
+    m = motion()
+    frames = range(len(m))  # longer than a second: numbering from 1 again is no reordering
+    t = table(library)
+    out: list[Emitted] = []
+    for epoch in epochs:
+        t.skeleton(SkeletonMessage("s", 120.0, asf=ASF.read_text(), angle_unit="rad", epoch=epoch), 0.0)
+        for n, k in enumerate(frames, start=1):
+            t.pose(PoseMessage("s", n, 0.0, channels=m.channels[k], epoch=epoch), n / 120)
+        out += drain(t)
+    if epochs[0] is not None:
+        with pytest.raises(Refused) as caught:
+            t.pose(PoseMessage("s", 99, 0.0, channels=m.channels[0], epoch="a1"), 1.0)
+        assert caught.value.reason == "stale_epoch"
+        with pytest.raises(Refused) as caught:
+            t.skeleton(SkeletonMessage("s", 120.0, asf=ASF.read_text(), angle_unit="rad", epoch="a1"), 1.0)
+        assert caught.value.reason == "stale_epoch"
+    out += t.flush_all()
+    assert alone(library, frames) and detections(out) == alone(library, frames) * 2
+    assert t.counts["restarts"] == 1 and t.counts["out_of_order"] == 0
+
+
+def test_a_new_epoch_in_a_pose_begins_a_run_without_a_skeleton(library: Library) -> None:
+    m = motion()
+    t = table(library)
+    t.skeleton(SkeletonMessage("s", 120.0, asf=ASF.read_text(), angle_unit="rad", epoch="a"), 0.0)
+    for epoch in ("a", "b"):
+        for n in range(1, 11):
+            t.pose(PoseMessage("s", n, 0.0, channels=m.channels[n], epoch=epoch), n / 120)
+        drain(t)
+    assert t.counts["restarts"] == 1 and t.counts["out_of_order"] == 0
+
+
+def test_sequence_numbers_a_source_cannot_have_sent_are_refused(library: Library) -> None:
+    """One pose numbered 1,000,000 among poses numbered 1, 2, ... is refused (implausible) and the
+    stream goes on as if it never came (before: 30 s of out_of_order, then evicted); a jump the
+    time since the last pose allows is a gap; one beyond is refused; a little going back is
+    out_of_order."""
+    m = motion()
+    t = table(library)
+    announce(t)
+    for n in range(1, 101):
+        t.pose(PoseMessage("s", n, 0.0, channels=m.channels[n]), n / 120)
+    with pytest.raises(Refused) as caught:
+        t.pose(PoseMessage("s", 1_000_000, 0.0, channels=m.channels[0]), 101 / 120)
+    assert caught.value.reason == "implausible"
+    t.pose(PoseMessage("s", 101, 0.0, channels=m.channels[101]), 101 / 120)  # goes on
+    later = 101 / 120 + 36  # a pause of 36 s: at most 2 x 36 s of frames + 1 s
+    with pytest.raises(Refused) as caught:
+        t.pose(PoseMessage("s", 101 + 73 * 120 + 200, 0.0, channels=m.channels[0]), later)
+    assert caught.value.reason == "implausible"
+    t.pose(PoseMessage("s", 101 + 36 * 120, 0.0, channels=m.channels[102]), later)
+    with pytest.raises(Refused) as caught:
+        t.pose(PoseMessage("s", 101 + 36 * 120 - 50, 0.0, channels=m.channels[0]), later)
+    assert caught.value.reason == "out_of_order"
+    drain(t)
+    assert t.counts["gaps"] == 1 and t.counts["restarts"] == 0
 
 
 def test_skeleton_change_repeat_and_eviction(library: Library) -> None:
@@ -292,9 +379,10 @@ def test_boundaries_are_the_online_methods_batch_cuts(
     seqs = [int(f) if k < cut else int(f) + 1200 for k, f in enumerate(m.frames)]
     positions = joint_positions(m)
     for k, (seq, c) in enumerate(zip(seqs, m.channels, strict=True)):
-        t.pose(PoseMessage("seg", seq, 0.0, channels=c), 0.0)
-        t.pose(PoseMessage("plain", seq, 0.0, channels=c), 0.0)
-        t.pose(PoseMessage("segpos", seq, 0.0, positions=positions[k].astype(np.float32)), 0.0)
+        now = seq / 120.0  # the poses arrive as they were taken (the gap is 10 s long)
+        t.pose(PoseMessage("seg", seq, 0.0, channels=c), now)
+        t.pose(PoseMessage("plain", seq, 0.0, channels=c), now)
+        t.pose(PoseMessage("segpos", seq, 0.0, positions=positions[k].astype(np.float32)), now)
     out = []
     while t.queued:
         out += t.tick()[0]

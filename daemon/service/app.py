@@ -50,7 +50,7 @@ from protocols.messages import (
 )
 from protocols.transport import Incoming, Outgoing, StartupError, Transport, make
 
-EVENTS = ("gaps", "gap_frames", "idle", "skeleton_changed")
+EVENTS = ("gaps", "gap_frames", "idle", "skeleton_changed", "restarts")
 """Counts of the stream table that are neither refusals nor drops."""
 DROPS = ("lagging",)
 YIELD_EVERY = 64
@@ -203,6 +203,9 @@ class Service:
         except Refused as e:
             self.rejects[e.reason] += 1
             self.events.warn(stream, e.reason, str(e))
+            if e.reason == "no_skeleton":
+                for t in self.transports:
+                    t.ask_skeleton(stream)
         finally:
             self.metrics.stage["decode"].observe(time.perf_counter() - started)
         return []

@@ -2,9 +2,18 @@
 
 A stream exists once its skeleton arrived: :meth:`StreamTable.skeleton` makes (or, for a changed
 skeleton, remakes) its recogniser in the :class:`~daemon.bank.RecognizerBank`; :meth:`StreamTable.pose`
-checks the sequence number (a repeat and anything older than the last pose are dropped) and queues
-the pose; :meth:`StreamTable.tick` takes one queued pose of every stream that has one into one bank
-push. Everything refused or dropped is counted by reason in :attr:`StreamTable.counts`.
+checks the sequence number and queues the pose; :meth:`StreamTable.tick` takes one queued pose of
+every stream that has one into one bank push. Everything refused or dropped is counted by reason in
+:attr:`StreamTable.counts`.
+
+A stream's life (``protocols/README.md``). A source that restarts numbers its poses from its start
+again: a new *run*. A run is told by the source's ``epoch`` (a random id in its skeleton and poses):
+a skeleton or pose with another epoch than the stream's begins a new run (the stream's motion ends,
+its recogniser starts anew at the run's first pose), and one of an epoch already replaced is refused
+(``stale_epoch``). A source that says no epoch begins a new run when its sequence number goes back by
+more than a second of frames; less is ``out_of_order``, the same ``duplicate``. A sequence number
+further ahead than the time since the stream's last pose allows (twice its rate, plus a second) is
+refused (``implausible``), not taken as a gap.
 
 Frame numbers. The recogniser needs consecutive frame numbers; a stream's sequence numbers may have
 gaps (poses lost on the way, or dropped here when its queue is full). A gap of at most
@@ -23,6 +32,7 @@ starts the segmenter anew, as it does the recogniser.
 
 from __future__ import annotations
 
+import dataclasses
 import fnmatch
 import uuid
 from collections import Counter, deque
@@ -99,6 +109,14 @@ class _Stream:
     seen: float = 0.0
     generation: int = 0
     segmenting: _Segmenting | None = None
+    epoch: str | None = None
+    """The source's run (its epoch) whose poses are taken."""
+    retired: deque[str] = field(default_factory=lambda: deque(maxlen=8))
+    """Epochs replaced by a later run: their poses are refused."""
+    posed: float = 0.0
+    """When the last pose was taken (for the plausibility of the next sequence number)."""
+    fed_epoch: str | None = None
+    """The epoch of the last pose fed to the recogniser."""
 
 
 @dataclass(frozen=True)
@@ -167,7 +185,11 @@ class StreamTable:
         old = self.streams.get(message.stream)
         if old is not None and old.announced == message:
             old.seen = now
-            return []  # a repeated (retained) announcement
+            return []  # a repeated (retained or periodic) announcement
+        if old is not None and dataclasses.replace(old.announced, epoch=message.epoch) == message:
+            self._new_run(old, message.epoch, now)  # the same stream, announced by a new run of its source
+            old.announced = message
+            return []
         if old is None and len(self.streams) >= self.max_streams:
             raise Refused("too_many_streams", f"the table holds {self.max_streams} streams")
         skeleton = angles = None
@@ -198,8 +220,20 @@ class StreamTable:
             seen=now,
             generation=(old.generation + 1) if old else 0,
             segmenting=self._segmenting(message, skeleton),
+            epoch=message.epoch,
         )
         return out
+
+    def _new_run(self, s: _Stream, epoch: str | None, now: float) -> None:
+        """Poses of ``s`` are of a new run of its source from now on (epoch ``epoch``); refused
+        (``stale_epoch``) if that run was replaced already."""
+        if epoch is not None and epoch in s.retired:
+            raise Refused("stale_epoch", f"epoch {epoch!r} was replaced by {s.epoch!r}")
+        if s.epoch is not None and s.epoch != epoch:
+            s.retired.append(s.epoch)
+        s.epoch = epoch
+        s.last_received = None
+        s.seen = now
 
     def _segmenting(self, message: SkeletonMessage, skeleton: Skeleton | None) -> _Segmenting | None:
         """A segmenter for a channel stream that the segmentation patterns name (None: none)."""
@@ -215,7 +249,7 @@ class StreamTable:
 
     def pose(self, message: PoseMessage, now: float) -> None:
         """Queue a pose, or :class:`Refused` (``no_skeleton``, ``duplicate``, ``out_of_order``,
-        ``shape``)."""
+        ``implausible``, ``stale_epoch``, ``shape``)."""
         s = self.streams.get(message.stream)
         if s is None:
             raise Refused("no_skeleton", f"stream {message.stream!r} has announced no skeleton")
@@ -230,14 +264,27 @@ class StreamTable:
         if got != width:
             what = "channels" if kind == "channels" else "joints"
             raise Refused("shape", f"{got} {what}, the skeleton announced {width}")
+        if message.epoch is not None and message.epoch != s.epoch:
+            if s.epoch is None:
+                s.epoch = message.epoch  # the source says its run from now on
+            else:
+                self._new_run(s, message.epoch, now)
         last = s.last_received
-        if last is not None and message.seq <= last:
+        seq = message.seq
+        rate = s.announced.rate
+        if last is not None and seq <= last:
+            if seq == last:
+                raise Refused("duplicate", f"seq {seq} after {last}")
+            if last - seq <= rate or message.epoch is not None:
+                raise Refused("out_of_order", f"seq {seq} after {last}")
+            self._new_run(s, s.epoch, now)  # numbered from its start again: a restarted source
+        elif last is not None and seq - last > 2 * rate * max(0.0, now - s.posed) + rate + 1:
             raise Refused(
-                "duplicate" if message.seq == last else "out_of_order", f"seq {message.seq} after {last}"
+                "implausible", f"seq {seq} after {last}: more frames than {now - s.posed:.2f} s hold"
             )
-        s.last_received = message.seq
+        s.last_received = seq
         s.received += 1
-        s.seen = now
+        s.seen = s.posed = now
         if len(s.queue) >= self.queue_frames:
             s.queue.popleft()
             self.counts["lagging"] += 1
@@ -258,6 +305,13 @@ class StreamTable:
             self._queued -= 1
             if not s.queue:
                 del self._waiting[name]
+            if s.last_fed is not None and (
+                pose.seq <= s.last_fed or (pose.epoch is not None and pose.epoch != s.fed_epoch)
+            ):  # the first pose of a new run of the source
+                self.counts["restarts"] += 1
+                out += self._restart(name, s)
+            if pose.epoch is not None:
+                s.fed_epoch = pose.epoch
             gap = 0 if s.last_fed is None else pose.seq - s.last_fed - 1
             if gap > round(self.max_gap_s * s.announced.rate):
                 self.counts["gaps"] += 1
