@@ -203,7 +203,8 @@ class MqttTransport:
 
     def announce(self, online: Outgoing, offline: Outgoing) -> None:
         """Publish ``online`` on every connect; ``offline`` is the last will and is published before a
-        planned close. Call before entering."""
+        planned close. Call before entering (the will is fixed then); again before leaving, it
+        changes what the planned close publishes."""
         self._online, self._offline = online, offline
 
     async def __aenter__(self) -> MqttTransport:

@@ -214,7 +214,7 @@ class _Source:
                 except zmq.Again:
                     break
                 if len(parts) != 2:
-                    yield Incoming("", b"", received)  # counted as undecodable by the service
+                    yield Incoming("", b"", received)  # no topic: counted as undecodable by the service
                     continue
                 yield Incoming(parts[0].decode("utf-8", "replace"), parts[1], received)
 

@@ -75,8 +75,9 @@ def test_zeromq_replay_gives_the_detections_of_detect(tmp_path: Path) -> None:
         wait_for(lambda: len(collector.detections()) >= len(want), 10, "the last detections")
         assert detection_keys(collector.detections()) == want
         assert detection_keys(daemon.detections_printed()) == want
-        statuses = [m["state"] for m in collector.messages if m.get("type") == "status"]
-        assert statuses[-1:] == ["offline"]
+        statuses = [m for m in collector.messages if m.get("type") == "status"]
+        assert [m["state"] for m in statuses[-1:]] == ["offline"]
+        assert statuses[-1]["streams"] == 1  # the streams it held when it stopped
     finally:
         collector.close()
         daemon.stop()

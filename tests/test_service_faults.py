@@ -55,6 +55,7 @@ def bad_messages() -> list[tuple[str, bytes, str]]:
         ("mocap/bad-a/pose", pose("bad-a", 100), ""),  # after the change: a new stream, any start
         ("mocap/bad-a/pose", pose("bad-a", 200), ""),  # a gap
         ("mocap/bad-c/skeleton", encode(SkeletonMessage("bad-c", 120.0, ("a", "b"))), "skeleton"),
+        ("mocap/bad-d/skeleton", b"", ""),  # MQTT's way to clear a retained skeleton: nothing refused
     ]
 
 
@@ -123,6 +124,10 @@ def test_bad_input_is_counted_and_spoils_nothing(tmp_path: Path, transport: str)
         for topic, payload, _ in bad_messages():
             sender.send(topic, payload)
         reasons = [r for _, _, r in bad_messages() if r and not (r == "topic" and transport == "mqtt")]
+        if isinstance(sender, ZmqSender):  # not [topic, payload]: undecodable, as the wire says
+            sender.sock.send_multipart([b"mocap/bad-a/pose"])
+            sender.sock.send_multipart([b"mocap/bad-a/pose", pose("bad-a", 300), b"more"])
+            reasons += ["undecodable", "undecodable"]
 
         def counted() -> dict[str, float]:
             m = daemon.metrics()
@@ -159,6 +164,7 @@ def test_bad_input_is_counted_and_spoils_nothing(tmp_path: Path, transport: str)
             [d.as_json() for d in detect(motion, load_library(default_library_path()), 120.0)]
         )
         assert detection_keys([d for d in daemon.detections_printed() if d["stream"] == "good"]) == want
+        assert not any(e.get("reason") == "undecodable" and e.get("stream") == "bad-d" for e in daemon.logs())
         refused = [e for e in daemon.logs() if e["event"] == "refused"]
         per = [(e["stream"], e["reason"]) for e in refused]
         assert per.count(("bad-a", "undecodable")) == 1  # logged once, then rate-limited
@@ -187,4 +193,24 @@ def test_a_lagging_stream_drops_its_oldest_poses_and_says_so(tmp_path: Path) -> 
         assert all(d["start_frame"] <= d["end_frame"] <= d["emitted_at_frame"] for d in printed)
         assert len(printed) >= published
     finally:
+        daemon.stop()
+
+
+def test_a_refused_skeleton_is_not_logged_as_taken(tmp_path: Path) -> None:
+    """With room for one stream, a second stream's skeleton is refused (too_many_streams) and
+    logged only as refused (before: first logged as a skeleton taken)."""
+    daemon = Daemon(tmp_path, sinks=["stdout"], config={"service": {"max_streams": 1}}).start()
+    sender = ZmqSender(daemon.poses)
+    try:
+        for stream in ("one", "two"):
+            sender.send(f"mocap/{stream}/skeleton", encode(SkeletonMessage(stream, 120.0, JOINT_NAMES)))
+        wait_for(
+            lambda: daemon.metrics().get('mocapd_rejects_total{reason="too_many_streams"}', 0) == 1,
+            10,
+            "the refusal",
+        )
+        taken = [e["stream"] for e in daemon.logs() if e["event"] == "skeleton"]
+        assert taken == ["one"]
+    finally:
+        sender.close()
         daemon.stop()

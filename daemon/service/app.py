@@ -177,8 +177,13 @@ class Service:
         parsed = parse_topic(incoming.topic)
         stream = parsed[0] if parsed else "?"
         try:
+            if not incoming.topic:  # what a transport received was not a [topic, payload] message
+                raise WireError("undecodable", "not a [topic, payload] message")
             if parsed is None or parsed[1] not in ("skeleton", "pose"):
                 raise Refused("topic", f"not a topic mocapd takes: {incoming.topic[:80]!r}")
+            if not incoming.payload and parsed[1] == "skeleton":
+                self.log.info("skeleton cleared", extra={"fields": {"stream": stream}})
+                return []  # MQTT's way to delete a retained skeleton: nothing to take in
             message = decode(incoming.payload, self.config.service.max_message_bytes)
             self.metrics.messages[message_type(message)] += 1
             if not isinstance(message, SkeletonMessage | PoseMessage):
@@ -193,10 +198,15 @@ class Service:
                 self.metrics.frame_in(stream)
                 self._work.set()
                 return []
-            self.log.info(
-                "skeleton", extra={"fields": {"stream": stream, "kind": message.kind, "rate": message.rate}}
-            )
-            return self.table.skeleton(message, now)
+            known = self.table.streams.get(stream)
+            before = None if known is None else known.announced
+            out = self.table.skeleton(message, now)
+            if before != message:  # not a repeated announcement
+                self.log.info(
+                    "skeleton",
+                    extra={"fields": {"stream": stream, "kind": message.kind, "rate": message.rate}},
+                )
+            return out
         except WireError as e:
             self.rejects[e.reason] += 1
             self.events.warn(stream, e.reason, e.detail)
@@ -357,6 +367,8 @@ class Service:
         )
         for task in intakes:
             task.cancel()
+        for t in self.transports:  # "offline" says how many streams it held
+            t.announce(self._status("online"), self._status("offline"))
         async with asyncio.timeout_at(deadline):
             for e in self.table.flush_all():
                 await self.publish(e)
