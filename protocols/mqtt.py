@@ -35,6 +35,10 @@ import aiomqtt
 from protocols.transport import Incoming, Outgoing
 
 LOG = logging.getLogger("mocapd.mqtt")
+CLIENT_LOG = logging.getLogger("mocapd.mqtt.client")
+"""aiomqtt's and paho's own logger: only errors (their warnings, e.g. "There are 66 pending publish
+calls" thousands of times in a fast replay, say nothing the outbox and /metrics do not)."""
+CLIENT_LOG.setLevel(logging.ERROR)
 
 
 ASK_EVERY_S = 5.0
@@ -231,6 +235,7 @@ class MqttTransport:
             max_inflight_messages=inflight_limit(self.inflight),
             timeout=10,
             socket_options=[(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)],  # no Nagle delay on small packets
+            logger=CLIENT_LOG,
         )
         self._runner = asyncio.create_task(self._run(), name=f"mqtt {self.host}:{self.port}")
         return self

@@ -4,6 +4,7 @@ grows, and the good stream keeps exactly its detections."""
 
 from __future__ import annotations
 
+import json
 import time
 from pathlib import Path
 from typing import Any
@@ -214,3 +215,30 @@ def test_a_refused_skeleton_is_not_logged_as_taken(tmp_path: Path) -> None:
     finally:
         sender.close()
         daemon.stop()
+
+
+def test_every_log_line_is_one_json_object(tmp_path: Path) -> None:
+    """The daemon's and a replay's stderr hold one JSON object per line: a pose of values near the
+    float32 maximum (numpy's overflow warning in the decoder's finiteness check) and a replay as
+    fast as possible over MQTT (aiomqtt's "There are N pending publish calls", thousands of times)
+    used to put bare lines in between."""
+    broker = Broker(tmp_path).start()
+    big: dict[str, dict[str, object]] = {"service": {"queue_frames": 100_000}, "mqtt": {"queue": 100_000}}
+    daemon = Daemon(tmp_path, sources=["mqtt"], sinks=["stdout"], mqtt=broker.url, config=big).start()
+    sender = MqttSender(broker.url)
+    try:
+        sender.send("mocap/huge/skeleton", encode(SkeletonMessage("huge", 120.0, JOINT_NAMES)))
+        sender.send("mocap/huge/pose", pose("huge", 1, np.full((26, 3), 3e38, np.float32)))
+        fast = replay(*GOOD, broker.url, stream="fast", speed="max")
+        out, err = fast.communicate(timeout=120)
+        assert fast.returncode == 0 and out.startswith("replayed "), err
+        wait_for(lambda: daemon.metrics().get("mocapd_queued_poses", 1) == 0, 30, "the poses recognised")
+        assert daemon.metrics().get('mocapd_rejects_total{reason="non_finite"}', 0) == 0  # huge, finite
+        assert daemon.stop() == 0
+        for name, text in (("daemon", daemon.stderr_path.read_text()), ("replay", err)):
+            for line in text.splitlines():
+                assert isinstance(json.loads(line), dict), (name, line)
+    finally:
+        sender.close()
+        daemon.stop()
+        broker.stop()

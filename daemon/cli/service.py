@@ -80,8 +80,10 @@ def stream_name(amc: Path) -> str:
 
 
 def _replay(args: argparse.Namespace, config: Config) -> int:
+    from daemon.service.app import configure_logging
     from protocols.replay import replay_to
 
+    configure_logging(config.logging.level)  # the MQTT client's log lines as JSON, like the daemon's
     motion = read_recording(args.asf, args.amc)
     rate = native_rate(motion, common.default_native_rate(args, config))
     asf_text = Path(args.asf).read_text(encoding="utf-8", errors="replace")

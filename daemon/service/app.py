@@ -33,6 +33,8 @@ from collections.abc import Callable, Coroutine, Iterable
 from dataclasses import replace
 from typing import Any
 
+import numpy as np
+
 from daemon.config import Config, ConfigError
 from daemon.library import Library
 from daemon.service.metrics import Metrics, open_http, serve_http
@@ -104,7 +106,11 @@ class JsonFormatter(logging.Formatter):
 
 
 def configure_logging(level: str) -> logging.Logger:
-    """The ``mocapd`` logger writing JSON lines to stderr at ``level`` (the service's edge)."""
+    """The ``mocapd`` logger writing JSON lines to stderr at ``level`` (the service's edge), and
+    everything else that would write to stderr on its own routed through it, so that stderr holds
+    one JSON object per line: Python's warnings (``logging.captureWarnings``) and any other logger
+    (the root's handler). Floating-point overflow in numpy is not warned about: the decoder's
+    one-sum finiteness check overflows on huge finite values before its exact check decides."""
     logger = logging.getLogger("mocapd")
     logger.handlers.clear()
     handler = logging.StreamHandler(sys.stderr)
@@ -112,6 +118,11 @@ def configure_logging(level: str) -> logging.Logger:
     logger.addHandler(handler)
     logger.setLevel(level.upper())
     logger.propagate = False
+    root = logging.getLogger()
+    root.handlers[:] = [handler]
+    root.setLevel(logging.WARNING)
+    logging.captureWarnings(True)
+    np.seterr(over="ignore")
     return logger
 
 
