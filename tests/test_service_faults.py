@@ -242,3 +242,47 @@ def test_every_log_line_is_one_json_object(tmp_path: Path) -> None:
         sender.close()
         daemon.stop()
         broker.stop()
+
+
+def test_state_and_logs_are_bounded_by_what_is_live(tmp_path: Path) -> None:
+    """50,000 poses of 50,000 stream ids that never announced a skeleton: a handful of log lines
+    (per reason, not per id) and memory flat (before: 50,000 warning lines, RSS +124 MB for good);
+    rounds of 600 streams that are then forgotten as idle: the memory they held is given back, so
+    a third round ends where the first did."""
+    daemon = Daemon(tmp_path, sinks=["stdout"], config={"service": {"idle_s": 1, "queue_frames": 4}}).start()
+    assert daemon.process is not None
+    sender = ZmqSender(daemon.poses)
+    try:
+        before = rss_kib(daemon.process.pid)
+        for k in range(50_000):
+            sender.send(f"mocap/ghost-{k}/pose", pose(f"ghost-{k}", 1))
+        wait_for(
+            lambda: daemon.metrics().get('mocapd_rejects_total{reason="no_skeleton"}', 0) == 50_000,
+            60,
+            "every ghost counted",
+        )
+        time.sleep(1.5)  # the housekeeping gives the memory back
+        assert rss_kib(daemon.process.pid) - before < 15_000  # KiB
+        ghosts = [e for e in daemon.logs() if e.get("reason") == "no_skeleton"]
+        assert 1 <= len(ghosts) <= 10
+
+        asf = GOOD[0].read_text()
+        after: list[int] = []
+        for r in range(3):
+            for k in range(600):
+                name = f"round{r}-{k}"
+                message = (
+                    SkeletonMessage(name, 120.0, asf=asf, angle_unit="rad")
+                    if k % 2
+                    else SkeletonMessage(name, 120.0, JOINT_NAMES)
+                )
+                sender.send(f"mocap/{name}/skeleton", encode(message))
+            wait_for(lambda: daemon.metrics().get("mocapd_streams", 0) == 600, 60, "the round's streams")
+            wait_for(lambda: daemon.metrics().get("mocapd_streams", 1) == 0, 60, "the round forgotten")
+            time.sleep(1.5)  # the housekeeping gives the memory back
+            after.append(rss_kib(daemon.process.pid))
+        assert after[2] < 1.1 * after[0], after
+        assert daemon.alive
+    finally:
+        sender.close()
+        daemon.stop()
