@@ -10,8 +10,9 @@ them; what was not acknowledged when the connection dropped is sent again after 
 (a consumer may see a repeat: detections carry an event id). With :meth:`MqttTransport.announce`,
 the "online" status is published retained on every connect, the "offline" one is the retained last
 will, and a planned close publishes "offline" itself before disconnecting (a clean disconnect
-suppresses the will). The incoming queue is bounded (``queue``): when it is full the oldest message
-is dropped (counted).
+suppresses the will). The incoming queue is bounded (``queue``) and fair between streams
+(:class:`~protocols.fair.FairQueue`): when it is full the oldest message of the stream holding the
+most is dropped (counted), so one stream's flood does not crowd out the others.
 """
 
 from __future__ import annotations
@@ -32,6 +33,7 @@ from urllib.parse import urlsplit
 
 import aiomqtt
 
+from protocols.fair import FairQueue
 from protocols.transport import Incoming, Outgoing
 
 LOG = logging.getLogger("mocapd.mqtt")
@@ -190,7 +192,7 @@ class MqttTransport:
         self._offline: Outgoing | None = None
         self._client: aiomqtt.Client | None = None
         self._runner: asyncio.Task[None] | None = None
-        self._incoming: deque[Incoming] = deque()
+        self._incoming = FairQueue(queue)
         self._arrived = asyncio.Event()
         self._outbox: dict[int, Outgoing] = {}  # by number, in order; left when acknowledged
         self._to_send: deque[int] = deque()  # outbox numbers not yet handed to this connection
@@ -357,10 +359,8 @@ class MqttTransport:
         await client.publish(m.topic, m.payload, qos=1 if m.reliable else 0, retain=m.retain)
 
     def _put(self, message: Incoming) -> None:
-        if len(self._incoming) >= self.queue:
-            self._incoming.popleft()
+        if self._incoming.put(message):
             self._dropped_incoming += 1
-        self._incoming.append(message)
         self._arrived.set()
 
     # ----------------------------------------------------------------------------- the interface
@@ -377,7 +377,9 @@ class MqttTransport:
             while not incoming:
                 self._arrived.clear()
                 await self._arrived.wait()
-            yield incoming.popleft()
+            message = incoming.take()
+            assert message is not None
+            yield message
 
     async def publish(self, message: Outgoing) -> None:
         """Queue ``message`` for sending (never waits for the network). An unreliable message while

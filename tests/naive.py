@@ -979,3 +979,37 @@ def slow_gate(
         if qualifies and wrong_g < wrong and (best is None or (wrong_g, others, order) < best):
             best, chosen = (wrong_g, others, order), g
     return chosen
+
+
+def slow_fair_queue(ops: list[tuple[str, str] | None], size: int) -> tuple[list[str], int]:
+    """:class:`protocols.fair.FairQueue` read literally, on a list: ``ops`` puts (key, label) or
+    takes (None); per key a list; the turn order a list of keys. Returns the labels taken and how
+    many puts dropped a message."""
+    queues: dict[str, list[str]] = {}
+    turns: list[str] = []
+    taken: list[str] = []
+    dropped = 0
+    for op in ops:
+        if op is None:
+            if turns:
+                key = turns.pop(0)
+                taken.append(queues[key].pop(0))
+                if queues[key]:
+                    turns.append(key)
+                else:
+                    del queues[key]
+            continue
+        if sum(len(q) for q in queues.values()) >= size:
+            most = max(len(q) for q in queues.values())
+            largest = next(k for k in queues if len(queues[k]) == most)  # the first such key held
+            queues[largest].pop(0)
+            dropped += 1
+            if not queues[largest]:
+                del queues[largest]
+                turns.remove(largest)
+        key, label = op
+        if key not in queues:
+            queues[key] = []
+            turns.append(key)
+        queues[key].append(label)
+    return taken, dropped

@@ -286,3 +286,31 @@ def test_state_and_logs_are_bounded_by_what_is_live(tmp_path: Path) -> None:
     finally:
         sender.close()
         daemon.stop()
+
+
+def test_a_flood_on_mqtt_does_not_crowd_out_a_good_stream(tmp_path: Path) -> None:
+    """50,000 garbage messages on one stream's topic while a good stream replays, with an incoming
+    queue of 2,000: the drops are the flood's, the good stream's detections are ``mocapd detect``'s
+    (before: the good stream's poses were dropped, mqtt_incoming_full)."""
+    broker = Broker(tmp_path).start()
+    config: dict[str, dict[str, object]] = {"service": {"queue_frames": 100_000}, "mqtt": {"queue": 2000}}
+    daemon = Daemon(tmp_path, sources=["mqtt"], sinks=["stdout"], mqtt=broker.url, config=config).start()
+    sender = MqttSender(broker.url)
+    try:
+        good = replay(*GOOD, broker.url, stream="good", speed="4")
+        for _ in range(50_000):  # QoS 0: as fast as the sender can, no acknowledgement to wait for
+            sender.client.publish("mocap/flood/pose", b"\xc1 garbage", qos=0)
+        finished(good, timeout=120)
+        assert daemon.metrics().get('mocapd_drops_total{reason="mqtt_incoming_full"}', 0) > 0
+        wait_for(
+            lambda: daemon.metrics().get("mocapd_queued_poses", 1) == 0, 30, "the good stream recognised"
+        )
+        assert daemon.stop() == 0
+        want = detection_keys(
+            [d.as_json() for d in detect(read_recording(*GOOD), load_library(default_library_path()), 120.0)]
+        )
+        assert detection_keys([d for d in daemon.detections_printed() if d["stream"] == "good"]) == want
+    finally:
+        sender.close()
+        daemon.stop()
+        broker.stop()
