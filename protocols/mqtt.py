@@ -25,6 +25,7 @@ import select
 import socket
 import ssl
 import time
+import uuid
 from collections import OrderedDict, deque
 from collections.abc import AsyncIterator, Callable, Sequence
 from types import TracebackType
@@ -34,7 +35,7 @@ from urllib.parse import urlsplit
 import aiomqtt
 
 from protocols.fair import FairQueue
-from protocols.transport import Incoming, Outgoing
+from protocols.transport import Incoming, Outgoing, StartupError
 
 LOG = logging.getLogger("mocapd.mqtt")
 CLIENT_LOG = logging.getLogger("mocapd.mqtt.client")
@@ -43,6 +44,8 @@ calls" thousands of times in a fast replay, say nothing the outbox and /metrics 
 CLIENT_LOG.setLevel(logging.ERROR)
 
 
+PROBE_S = 0.5
+"""How long a starting daemon waits for another live daemon of its instance to answer."""
 ASK_EVERY_S = 5.0
 """The shortest time between two requests for one stream's skeleton."""
 ASKED = 10_000
@@ -174,6 +177,7 @@ class MqttTransport:
         reconnect_max_s: float = 10.0,
         drain_s: float = 2.0,
         inflight: int = 100,
+        presence: str | None = None,
     ) -> None:
         self.host, self.port, tls = parse_url(url)
         self.url = url
@@ -203,6 +207,8 @@ class MqttTransport:
         self._dropped_incoming = 0
         self._dropped_outbox = 0
         self.connects = 0
+        self.presence = presence
+        self._ping = None if presence is None else f"mocapd/{presence}/ping"
         self._asked: OrderedDict[str, float] = OrderedDict()  # stream -> when its skeleton was asked for
         self._to_ask: deque[str] = deque()
         self._ask = asyncio.Event()
@@ -219,6 +225,8 @@ class MqttTransport:
             context = ssl.create_default_context(cafile=self.ca_file)
             if self.cert_file is not None:
                 context.load_cert_chain(self.cert_file, self.key_file)
+        if self.presence is not None:
+            await self._probe(context)
         will = None
         if self._offline is not None:
             will = aiomqtt.Will(self._offline.topic, self._offline.payload, qos=1, retain=True)
@@ -273,6 +281,8 @@ class MqttTransport:
                         await self._send(client, self._online)
                     for topic, qos in self.subscriptions:
                         await client.subscribe(topic, qos=qos)
+                    if self._ping is not None:
+                        await client.subscribe(self._ping, qos=0)
                     self._problem = None
                     self._connected.set()
                     LOG.info(
@@ -291,6 +301,43 @@ class MqttTransport:
             self._connected.clear()
             await asyncio.sleep(delay)
             delay = min(2 * delay, self.reconnect[1])
+
+    async def _probe(self, context: ssl.SSLContext | None) -> None:
+        """Before taking the client id: ask, with a client id of its own, whether a live daemon
+        already answers for ``presence`` (``mocapd/<presence>/ping``, answered on ``.../pong``
+        within :data:`PROBE_S`); StartupError if one does. A retained "online" cannot tell: a
+        daemon killed leaves it until the broker notices, but a dead daemon answers no ping. No
+        broker within the probe's time: nothing is known, the daemon goes on (and waits for it)."""
+        assert self.presence is not None and self._ping is not None
+        nonce = uuid.uuid4().hex
+        pong = f"mocapd/{self.presence}/pong"
+        try:
+            async with aiomqtt.Client(
+                self.host,
+                self.port,
+                identifier=f"{self.client_id}-probe-{nonce[:8]}",
+                clean_session=True,
+                username=self.username,
+                password=self.password,
+                tls_context=context,
+                timeout=PROBE_S,
+                logger=CLIENT_LOG,
+            ) as probe:
+                await probe.subscribe(pong, qos=0)
+                await probe.publish(self._ping, nonce.encode(), qos=0)
+                async with asyncio.timeout(PROBE_S):
+                    async for message in probe.messages:
+                        if str(message.topic) == pong and message.payload == nonce.encode():
+                            break
+                    else:
+                        return
+        except (aiomqtt.MqttError, TimeoutError, OSError):
+            return  # no answer, or no broker yet
+        raise StartupError(
+            "service.instance",
+            f"{self.presence!r} is served by a live daemon on {self.url} already (client id "
+            f"{self.client_id}); give each daemon an instance of its own",
+        )
 
     def ask_skeleton(self, stream: str) -> None:
         """Subscribe to ``stream``'s skeleton topic again, which makes the broker send its retained
@@ -327,6 +374,9 @@ class MqttTransport:
             pass
 
     def _deliver(self, topic: str, payload: bytes) -> None:
+        if topic == self._ping:  # another daemon's probe: this instance is alive
+            self._enqueue(Outgoing(f"mocapd/{self.presence}/pong", payload))
+            return
         self._put(Incoming(topic, payload, time.time()))
 
     async def _sender(self, client: aiomqtt.Client) -> None:
@@ -385,6 +435,9 @@ class MqttTransport:
         """Queue ``message`` for sending (never waits for the network). An unreliable message while
         disconnected is dropped; when the outbox is full the oldest unreliable one goes, or if there
         is none the message itself is dropped (counted)."""
+        self._enqueue(message)
+
+    def _enqueue(self, message: Outgoing) -> None:
         if not message.reliable and not self._connected.is_set():
             self._dropped_outbox += 1
             return

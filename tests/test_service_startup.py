@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.helpers import MOCAPD_SCRIPT, free_port
+from tests.helpers import MOCAPD_SCRIPT, Broker, Daemon, free_port
 
 
 @pytest.fixture
@@ -80,3 +80,36 @@ def test_curve_key_file_missing(tmp_path: Path) -> None:
     result = run(tmp_path, {"zmq": {"curve_secret_key_file": str(missing)}})
     assert result.stderr.splitlines()[-1].startswith(f"mocapd: zmq.curve_secret_key_file: {missing}: ")
     check_refused(result, result.stderr.splitlines()[-1])
+
+
+def test_a_second_daemon_of_one_instance_is_refused(tmp_path: Path) -> None:
+    """Two daemons with one instance name on one broker used to take each other's client id in
+    turn (30 reconnects each in 15 s, health flapping): the second is refused at start, with one
+    line, and the first serves on undisturbed; a daemon killed (its retained status still says
+    online) does not keep a new one out: a dead daemon answers no probe."""
+    broker = Broker(tmp_path).start()
+    config: dict[str, dict[str, object]] = {"service": {"instance": "twin"}}
+    places = [tmp_path / name for name in ("first", "second", "third")]
+    for p in places:
+        p.mkdir()
+    first, second, third = (
+        Daemon(p, sources=["mqtt"], sinks=["mqtt"], mqtt=broker.url, config=config) for p in places
+    )
+    try:
+        first.start()
+        second.start(wait=False)
+        assert second.wait(30) == 2
+        assert second.stderr_path.read_text().splitlines()[-1] == (
+            f"mocapd: service.instance: 'twin' is served by a live daemon on {broker.url} already "
+            "(client id mocapd-twin); give each daemon an instance of its own"
+        )
+        assert first.alive and first.health() == (200, "ok\n")
+        assert first.process is not None
+        first.process.kill()
+        first.wait(10)
+        third.start()  # at once: the broker may not have noticed the first is gone
+        assert third.health() == (200, "ok\n")
+    finally:
+        for d in (first, second, third):
+            d.stop()
+        broker.stop()

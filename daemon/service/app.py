@@ -446,6 +446,7 @@ def transports_of(config: Config, instance: str) -> list[Transport]:
                     "mqtt",
                     url=q.url,
                     client_id=q.client_id or f"mocapd-{instance}",
+                    presence=instance,
                     subscribe=[("mocap/+/skeleton", 1), ("mocap/+/pose", 0)] if source else [],
                     username=q.username,
                     password=q.password,
