@@ -89,8 +89,14 @@ def test_a_restarted_daemon_learns_a_running_replay_again(tmp_path: Path) -> Non
 
 def test_a_stream_silent_longer_than_idle_comes_back(tmp_path: Path) -> None:
     """The replay stopped for 3 s with ``service.idle_s`` 1: the daemon forgets the stream, and when
-    the replay goes on, its next announcement brings the stream back. Before: no_skeleton for ever."""
-    daemon = Daemon(tmp_path, config={"service": {"idle_s": 1}}).start()
+    the replay goes on, its next announcement brings the stream back. Before: no_skeleton for ever.
+    The stream's per-stream series go with it and come back with it (before: kept for ever)."""
+    config: dict[str, dict[str, object]] = {
+        "service": {"idle_s": 1, "max_streams": 10},
+        "metrics": {"stream_labels": True},
+    }
+    daemon = Daemon(tmp_path, config=config).start()
+    series = 'mocapd_frames_in_total{stream="pause"}'
     collector = ZmqCollector(daemon.detections)
     source = replay(*SQUAT, "zmq+" + daemon.poses, "--loop", stream="pause", speed="1")
     try:
@@ -99,10 +105,12 @@ def test_a_stream_silent_longer_than_idle_comes_back(tmp_path: Path) -> None:
         wait_for(
             lambda: daemon.metrics().get('mocapd_stream_events_total{event="idle"}', 0) >= 1, 10, "evicted"
         )
+        wait_for(lambda: series not in daemon.metrics(), 5, "the stream's series gone")
         source.send_signal(signal.SIGCONT)
         resumed = time.time()
         delay = first_detection_after(collector, resumed, 20)
         assert delay < 6.0, delay
+        assert daemon.metrics()[series] > 0
     finally:
         source.send_signal(signal.SIGCONT)
         source.terminate()

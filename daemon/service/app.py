@@ -298,6 +298,7 @@ class Service:
             await asyncio.sleep(1.0)
             for e in self.table.evict_idle(time.monotonic(), self.config.service.idle_s):
                 await self.publish(e)
+            self.metrics.keep(self.table.streams)
             release_memory()
 
     def _tallies(self) -> tuple[Counter[str], Counter[str], Counter[str]]:

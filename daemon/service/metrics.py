@@ -21,7 +21,7 @@ import asyncio
 import contextlib
 from bisect import bisect_left
 from collections import Counter
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Callable, Container, Iterable, Mapping
 from dataclasses import dataclass, field
 
 from prometheus_client import CollectorRegistry, generate_latest
@@ -86,6 +86,14 @@ class Metrics(Collector):
 
     def detection_out(self, stream: str) -> None:
         self.detections[stream if self.stream_labels else ""] += 1
+
+    def keep(self, live: Container[str]) -> None:
+        """Drop the per-stream series of streams no longer ``live``, so the label set is bounded by
+        what is live (a stream that comes back starts its series from 0: a counter reset)."""
+        if self.stream_labels:
+            for per_stream in (self.frames, self.detections):
+                for stream in [s for s in per_stream if s not in live]:
+                    del per_stream[stream]
 
     def exposition(self) -> bytes:
         out: bytes = generate_latest(self.registry)
