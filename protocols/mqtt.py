@@ -48,8 +48,9 @@ PROBE_S = 0.5
 """How long a starting daemon waits for another live daemon of its instance to answer."""
 ASK_EVERY_S = 5.0
 """The shortest time between two requests for one stream's skeleton."""
-ASKED = 10_000
-"""Streams whose requests are remembered (the oldest forgotten first)."""
+ASKED = 1_000
+"""Streams whose requests are remembered (the oldest forgotten first): as many as a daemon holds by
+default, since a flood of new ids must not grow it."""
 
 
 def parse_url(url: str) -> tuple[str, int, bool]:
