@@ -57,6 +57,7 @@ from protocols.transport import Incoming, Outgoing, StartupError, Transport, mak
 EVENTS = ("gaps", "gap_frames", "idle", "skeleton_changed", "restarts")
 """Counts of the stream table that are neither refusals nor drops."""
 DROPS = ("lagging",)
+"""Taken-in poses not recognised: a full queue; and ``recognizer_<problem>``, the recogniser's refusals."""
 YIELD_EVERY = 64
 """Messages an intake takes before it lets the other tasks run."""
 
@@ -112,8 +113,9 @@ def configure_logging(level: str) -> logging.Logger:
     """The ``mocapd`` logger writing JSON lines to stderr at ``level`` (the service's edge), and
     everything else that would write to stderr on its own routed through it, so that stderr holds
     one JSON object per line: Python's warnings (``logging.captureWarnings``) and any other logger
-    (the root's handler). Floating-point overflow in numpy is not warned about: the decoder's
-    one-sum finiteness check overflows on huge finite values before its exact check decides."""
+    (the root's handler). Floating-point overflow and invalid operations in numpy are not warned
+    about: the decoder's one-sum finiteness check overflows on huge finite values, and makes NaN of
+    infinities of both signs, before its exact check decides."""
     logger = logging.getLogger("mocapd")
     logger.handlers.clear()
     handler = logging.StreamHandler(sys.stderr)
@@ -125,7 +127,7 @@ def configure_logging(level: str) -> logging.Logger:
     root.handlers[:] = [handler]
     root.setLevel(logging.WARNING)
     logging.captureWarnings(True)
-    np.seterr(over="ignore")
+    np.seterr(over="ignore", invalid="ignore")
     return logger
 
 
@@ -197,9 +199,9 @@ class Service:
                 raise Refused("topic", f"not a topic mocapd takes: {incoming.topic[:80]!r}")
             if not incoming.payload and parsed[1] == "skeleton":
                 self.log.info("skeleton cleared", extra={"fields": {"stream": stream}})
+                self.metrics.messages["clear"] += 1
                 return []  # MQTT's way to delete a retained skeleton: nothing to take in
             message = decode(incoming.payload, self.config.service.max_message_bytes)
-            self.metrics.messages[message_type(message)] += 1
             if not isinstance(message, SkeletonMessage | PoseMessage):
                 raise Refused("type", f"a {type(message).__name__} is not taken in")
             if message.stream != stream or (parsed[1] == "pose") != isinstance(message, PoseMessage):
@@ -209,12 +211,14 @@ class Service:
             now = time.monotonic()
             if isinstance(message, PoseMessage):
                 self.table.pose(message, now)
+                self.metrics.messages["pose"] += 1  # taken in: a refused message counts in rejects only
                 self.metrics.frame_in(stream)
                 self._work.set()
                 return []
             known = self.table.streams.get(stream)
             before = None if known is None else known.announced
             out = self.table.skeleton(message, now)
+            self.metrics.messages["skeleton"] += 1
             if before != message:  # not a repeated announcement
                 self.log.info(
                     "skeleton",
@@ -304,8 +308,9 @@ class Service:
     def _tallies(self) -> tuple[Counter[str], Counter[str], Counter[str]]:
         """Rejects, drops and stream events by reason, for /metrics."""
         table = self.table.counts
-        rejects = self.rejects + Counter({k: v for k, v in table.items() if k not in EVENTS + DROPS})
-        drops = Counter({k: table.get(k, 0) for k in DROPS})
+        dropped = DROPS + tuple(k for k in table if k.startswith("recognizer_"))  # taken-in poses
+        rejects = self.rejects + Counter({k: v for k, v in table.items() if k not in EVENTS + dropped})
+        drops = Counter({k: table.get(k, 0) for k in dropped})
         for t in self.transports:
             drops.update(t.dropped())
         return rejects, drops, Counter({k: table.get(k, 0) for k in EVENTS})
@@ -411,10 +416,6 @@ def release_memory() -> None:
 async def _closed(server: asyncio.Server) -> None:
     server.close()
     await server.wait_closed()
-
-
-def message_type(message: object) -> str:
-    return type(message).__name__.removesuffix("Message").lower()
 
 
 def instance_name(config: Config) -> str:

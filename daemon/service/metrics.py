@@ -12,7 +12,9 @@ missing in them, evictions, skeleton changes), ``streams``, ``queued_poses``, ``
 25 µs to 50 ms with one at the 2 ms budget) and ``end_to_end_seconds`` (a pose's source timestamp
 to the publish of the detection it completed). ``frames_in`` and ``detections_out`` have a
 ``stream`` label only with ``metrics.stream_labels``, which config allows only for a bounded
-stream table.
+stream table. Every incoming message is counted once: in ``messages_in`` when taken in (a pose
+queued, a skeleton taken or repeated, an empty skeleton: a retained one cleared), in ``rejects``
+when refused, in ``drops{reason="mqtt_incoming_full"}`` when dropped before it was looked at.
 """
 
 from __future__ import annotations
@@ -112,7 +114,9 @@ class Metrics(Collector):
         yield CounterMetricFamily(
             "mocapd_boundaries_out", "Behaviour boundaries published", value=self.boundaries
         )
-        messages = CounterMetricFamily("mocapd_messages_in", "Messages decoded, by type", labels=["type"])
+        messages = CounterMetricFamily(
+            "mocapd_messages_in", "Messages taken in (pose, skeleton, clear), by type", labels=["type"]
+        )
         for kind, n in sorted(self.messages.items()):
             messages.add_metric([kind], n)
         yield messages

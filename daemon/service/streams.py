@@ -299,6 +299,7 @@ class StreamTable:
         """One queued pose of every stream that has one, through one bank push: the detections, and
         the poses the recognisers refused as (stream, problem, why)."""
         frames = []
+        before: dict[str, int | None] = {}  # each stream's last fed sequence number before this pose
         out: list[Emitted] = []
         for name, s in list(self._waiting.items()):
             pose = s.queue.popleft()
@@ -320,6 +321,7 @@ class StreamTable:
             elif gap > 0:
                 self.counts["gaps"] += 1
                 self.counts["gap_frames"] += gap
+            before[name] = s.last_fed
             if s.last_fed is None:  # a new motion: frame numbers are the sequence numbers
                 s.next_frame = pose.seq
                 s.offsets.clear()
@@ -338,8 +340,14 @@ class StreamTable:
             return out, []
         result = self.bank.push(frames)
         refused: list[tuple[str, str, str]] = []
+        numbers = {name: frame for name, frame, _ in frames}
         for name, error in result.errors:
-            self.counts[error.problem] += 1
+            # a taken-in pose the recogniser refused (e.g. positions beyond floating point after
+            # forward kinematics): dropped, and as if never fed, so that the next pose follows on
+            # (its frame number this one's) instead of every later one being refused as a jump
+            self.counts[f"recognizer_{error.problem}"] += 1
+            s = self.streams[name]
+            s.next_frame, s.last_fed = numbers[name], before[name]
             refused.append((name, error.problem, str(error)))
         out += [self._emitted(d) for d in result.detections]
         if self.segmentation != "none":

@@ -1,0 +1,1210 @@
+"""A fuzz run of the daemon over both transports (issue 21): a real ``mocapd run`` takes a stream of
+N fuzzed messages beside one good stream, and must not crash, must count every message it gets
+under exactly one reason, and must give the good stream exactly ``mocapd detect``'s detections.
+
+    python -m bench.fuzz [--messages 1000000] [--transport zmq|mqtt|both] [--seed N] [--speed X|auto]
+
+Per transport: the daemon (``mocapd --config C run``, its config in a temporary directory: sink
+stdout, ``service.max_streams`` 200, ``service.max_message_bytes`` 16 KiB, ``service.idle_s`` 10,
+logging at debug); over MQTT a mosquitto on a free loopback port that never drops
+(``max_queued_messages 0``; its ``$SYS`` count of dropped messages is checked). ``mocapd replay``
+sends CMU 13_30 (exercises) as stream ``good``, paced (``--speed auto``) to last about as long as
+the fuzzing; meanwhile this process sends the fuzzed messages, a seeded mix of
+
+* random bytes of random length (0 to 2 KiB, a few beyond ``max_message_bytes``);
+* structure-aware mutations of valid skeletons and poses (and the daemon's own message types):
+  fields removed, added, retyped; ``positions``/``channels`` of wrong lengths, NaN, infinity, huge
+  values; sequence numbers negative, huge, 2**64-1; wrong ``v`` and ``type``; odd stream ids (with
+  ``/``, ``+``, ``#``, unicode, 129+ characters); epochs of the wrong type; ASF texts cut, shuffled
+  or with garbage; truncated or bit-flipped msgpack, extra bytes, deep nesting, non-string keys;
+* valid messages on other streams: skeletons (positions and ASF, repeated, changed, new runs),
+  poses in order, repeated, out of order, after gaps, implausibly far ahead, of streams that
+  announced no skeleton; new streams beyond ``max_streams``;
+* messages on wrong topics: another stream's, the other message word, ``detections``, too many or
+  too few levels, odd stream ids, topics outside ``mocap/`` (ZeroMQ also: one or three frames).
+
+Nothing fuzzed is sent on the good stream's topics (a fuzzed body may claim to be ``good``, on
+another stream's topic). Over ZeroMQ the fuzz goes from an XPUB socket that never drops
+(``XPUB_NODROP``: a full queue waits) and the replay's messages pass through it, counted; over MQTT
+the replay publishes to the broker itself and a subscriber of its topics counts them. The sender
+keeps at most 20,000 messages ahead of what the daemon has counted.
+
+Checks (exit status 1 if one fails):
+
+* no crash: the daemon is alive throughout and exits 0 on SIGTERM; every line of its stderr is one
+  JSON object, none an error, a traceback or a Python warning;
+* every message counted once: the messages that reached the daemon (the fuzzed ones a ZeroMQ
+  subscription or an MQTT subscription lets through, and the good stream's) equal
+  ``mocapd_messages_in_total{type}`` (taken in) + ``mocapd_rejects_total{reason}`` (refused) +
+  ``mocapd_drops_total{reason="mqtt_incoming_full"}`` (dropped before being looked at); the other
+  drops (``lagging``, ``recognizer_<problem>``: taken-in poses not recognised; ``zmq_send_full``,
+  ``mqtt_outbox_full``: going out) count no incoming message;
+* the good stream's detections are ``mocapd detect``'s on the clip, exactly (all but the ids).
+
+Prints the machine, then per transport the table of reasons, messages a second, the wall time and
+the daemon's resident memory at the start and the end, and a summary.
+"""
+
+from __future__ import annotations
+
+import argparse
+import getpass
+import json
+import os
+import random
+import shutil
+import signal
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+import urllib.request
+from collections import Counter
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import msgpack
+import numpy as np
+import paho.mqtt.client as paho
+import zmq
+from paho.mqtt.enums import CallbackAPIVersion
+
+from bench.bench_service import free_port, metrics, wait_port
+from bench.common import DATA
+from bench.machine import describe
+from daemon.library import default_library_path, load_library
+from daemon.recognizer import detect
+from daemon.recordings import read_recording
+from protocols.messages import (
+    BoundaryMessage,
+    DetectionMessage,
+    Message,
+    PoseMessage,
+    SkeletonMessage,
+    StatusMessage,
+    encode,
+)
+from replay import JOINT_NAMES, parse_asf
+
+MOCAPD = Path(sys.executable).parent / "mocapd"
+GOOD_STREAM = "good"
+GOOD_CLIP = ("cmu/13/13.asf", "cmu/13/13_30.amc.gz")
+RATE = 120.0
+MAX_MESSAGE_BYTES = 16384
+MAX_STREAMS = 200
+AHEAD = 20_000
+"""The most messages the sender is ahead of what the daemon counted."""
+ESTIMATED_RATE = {"zmq": 18000.0, "mqtt": 11000.0}
+"""Fuzzed messages a second on 2 cores (measured), for ``--speed auto``."""
+INTAKE_DROPS = ("mqtt_incoming_full",)
+"""Drops of a message before the daemon looked at it (the others are of taken-in poses or going out)."""
+DETECTION_KEY = ("class", "start_frame", "end_frame", "cost", "tau", "emitted_at_frame")
+POOL = 40
+"""Streams with valid traffic (``fz-00`` ...), 12 of them channel streams."""
+GHOSTS = 200
+"""Streams whose poses come without a skeleton (``ghost-000`` ...)."""
+
+
+# ------------------------------------------------------------------------------------ the fuzzer
+
+
+@dataclass(frozen=True)
+class Fuzzed:
+    """One message: its kind (random, mutated, valid, topic), the topic's bytes, the frames after
+    the topic (one normally; ZeroMQ framing faults have none or two) and the MQTT QoS."""
+
+    kind: str
+    topic: bytes
+    payloads: tuple[bytes, ...]
+    qos: int = 0
+
+
+@dataclass
+class _Pooled:
+    """A pool stream as its source sees it: its announcement, width, last sequence number, epoch."""
+
+    name: str
+    skeleton: dict[str, Any]
+    width: int
+    channels: bool
+    seq: int = 0
+    epoch: str | None = None
+
+
+EDGE_INTS = (0, 1, -1, 2, 255, 2**31, 2**53 - 1, 2**53, 2**63 - 1, 2**64 - 1, -(2**63), -(2**31))
+EDGE_FLOATS = (
+    float("nan"),
+    float("inf"),
+    float("-inf"),
+    0.0,
+    -0.0,
+    1e308,
+    -1e308,
+    5e-324,
+    3.4e38,
+    1e-300,
+    1e300,
+    120.0,
+)
+ODD_IDS = (
+    "",
+    "a" * 129,
+    "a" * 128,
+    "b" * 10_000,
+    "with space",
+    "slash/inside",
+    "a/b/c",
+    "plus+",
+    "hash#",
+    "+",
+    "#",
+    "ünïcödé",
+    "流れ",
+    "😀",
+    "nul\x00inside",
+    "tab\tinside",
+    "a.b:c@d-e_f",
+    "..",
+    "-",
+    "$SYS",
+    "good",
+    "ghost-000",
+    "fz-00",
+    "é" * 200,
+)
+"""Stream ids for bodies and topics: invalid ones, and valid ones of the wrong stream."""
+MQTT_UNSAFE = set("+#") | {chr(c) for c in (*range(0x20), *range(0x7F, 0xA0))}
+"""Characters a publisher may not put in an MQTT topic (wildcards; mosquitto refuses control
+characters, and disconnects the client)."""
+
+
+NAN, INF = float("nan"), float("inf")
+BAD: dict[str, tuple[Any, ...]] = {
+    "v": (0, 2, -1, "1", 1.0, None, True, 2**64 - 1, [1]),
+    "type": ("posture", "", "POSE", 1, None, "detection", "boundary", "status", "skeleton", "pose"),
+    "seq": (-1, -(2**63), 2**53, 2**53 - 1, 2**64 - 1, 1.5, "1", None, True, 0, 10**15),
+    "time": (NAN, INF, -INF, "now", None, 2**64 - 1, -1e308, True, [], 0),
+    "epoch": (1, "", "x" * 65, "x" * 64, "bad epoch", None, ["a"], "é", b"bytes", 1.5),
+    "rate": (0, -1, NAN, INF, 1e-300, 1e300, 1e6, 10_000.0, 10_000.5, 9990.0, 30.0, 0.001, "120", True),
+    "up": ("x", "Y", 1, "", "z", None),
+    "units": ("furlong", "", "m", 2, "asf"),
+    "angle_unit": ("grad", "rad", "", 0, "deg"),
+    "joints": (
+        [],
+        [1, 2],
+        list(JOINT_NAMES[:10]),
+        list(JOINT_NAMES) * 2,
+        list(reversed(JOINT_NAMES)),
+        [""],
+        [f"j{k}" for k in range(3000)],
+        [*JOINT_NAMES, None],
+        "root",
+        [*JOINT_NAMES, "é" * 100],
+    ),
+    "asf": ("", " ", ":bonedata", "\n" * 1000, ":root\n order", ":version 1.10\n:units\n  mass"),
+    "asf word": ("nan", "inf", "-1", "1e400", "0", "x", "", "begin", "end", ":root", "99999999999", "ry"),
+    "huge": (3.4e38, -3.4e38, 1e308, 1e-45, 5e-324),
+}
+"""Values of each field at or past its edges (``asf word``: put in place of a word of an ASF line)."""
+RATES = (RATE, 60.0, 100.0, 240.0, 30.0, 90.0, 9990.0)
+"""A pool stream's rate when its skeleton changes (100 Hz cannot be recognised: refused)."""
+EXTRA_FIELDS = ("extra", "pad", "positions", "channels", "asf", "joints", "epoch", "seq", "")
+BAD_TIMESTAMPS = (b"\xd4\xff\x00", b"\xc7\x03\xff\x00\x00\x00", b"\x81\xa1v\xd4\xff\x01")
+
+
+def pack(body: Any) -> bytes:
+    out: bytes = msgpack.packb(body, use_bin_type=True)
+    return out
+
+
+def _mqtt_safe(text: str) -> bool:
+    return bool(text) and not (set(text) & MQTT_UNSAFE) and "\ufffe" not in text and "\uffff" not in text
+
+
+class Fuzzer:
+    """Fuzzed messages for the daemon from a seed (:meth:`messages`); ``mqtt``: only topics an MQTT
+    publisher may use, and only one payload per message."""
+
+    def __init__(self, seed: int, *, mqtt: bool) -> None:
+        self.rng = random.Random(seed)
+        self.np = np.random.default_rng(seed)
+        self.mqtt = mqtt
+        asf_path = DATA / GOOD_CLIP[0]
+        self.asf = asf_path.read_text(encoding="utf-8")
+        self.asf_lines = self.asf.splitlines()
+        self.channels = len(parse_asf(self.asf_lines, str(asf_path)).channel_names)
+        base = self.np.normal(0, 30, (len(JOINT_NAMES), 3))
+        self.position_blobs = [
+            (base + self.np.normal(0, 2, base.shape)).astype("<f4").tobytes() for _ in range(64)
+        ]
+        self.channel_blobs = [self.np.normal(0, 20, self.channels).astype("<f8").tobytes() for _ in range(64)]
+        self.positions = base.astype(np.float32)
+        self.good_channels = self.np.normal(0, 20, self.channels)
+        self.extra_blobs = {
+            n: [(self.np.normal(0, 30, (n, 3))).astype("<f4").tobytes() for _ in range(8)] for n in (27, 29)
+        }
+        self.new_streams = 0
+        self.runs = 0
+        self.pool = [self._pooled(k) for k in range(POOL)]
+        self.kinds: Counter[str] = Counter()
+
+    # --- the pool of streams with valid traffic
+
+    def _pooled(self, k: int) -> _Pooled:
+        name = f"fz-{k:02d}"
+        if k < 12:
+            skeleton: dict[str, Any] = {
+                "v": 1,
+                "type": "skeleton",
+                "stream": name,
+                "rate": RATE,
+                "asf": self.asf,
+                "angle_unit": "deg" if k % 2 else "rad",
+            }
+            width, channels = self.channels, True
+        else:
+            joints = list(JOINT_NAMES) + [f"extra{j}" for j in range(k % 3 if k % 3 != 2 else 3)]
+            self.rng.shuffle(joints)
+            skeleton = {
+                "v": 1,
+                "type": "skeleton",
+                "stream": name,
+                "rate": RATE if k % 5 else 60.0,
+                "joints": joints,
+                "up": "z" if k % 4 == 0 else "y",
+                "units": "cm",
+            }
+            width, channels = len(joints), False
+        stream = _Pooled(name, skeleton, width, channels, seq=self.rng.randrange(0, 10**6))
+        if k % 2:
+            self._new_epoch(stream)
+        return stream
+
+    def _new_epoch(self, s: _Pooled) -> None:
+        self.runs += 1
+        s.epoch = f"run{self.runs:x}-{self.rng.getrandbits(32):08x}"
+        s.skeleton["epoch"] = s.epoch
+
+    def _values(self, s: _Pooled) -> bytes:
+        if s.channels:
+            return self.rng.choice(self.channel_blobs)
+        if s.width == len(JOINT_NAMES):
+            return self.rng.choice(self.position_blobs)
+        blobs = self.extra_blobs.get(s.width)
+        if blobs is None:
+            blobs = self.extra_blobs[s.width] = [
+                self.np.normal(0, 30, (s.width, 3)).astype("<f4").tobytes() for _ in range(8)
+            ]
+        return self.rng.choice(blobs)
+
+    def _pose_body(self, s: _Pooled, seq: int) -> dict[str, Any]:
+        body: dict[str, Any] = {"v": 1, "type": "pose", "stream": s.name, "seq": seq, "time": time.time()}
+        body["channels" if s.channels else "positions"] = self._values(s)
+        if s.epoch is not None:
+            body["epoch"] = s.epoch
+        return body
+
+    # --- values
+
+    def _text(self) -> str:
+        r = self.rng.random()
+        if r < 0.3:
+            return self.rng.choice(ODD_IDS)
+        n = self.rng.choice((0, 1, 5, 40, 300))
+        return "".join(
+            chr(self.rng.choice((self.rng.randrange(32, 127), self.rng.randrange(0x80, 0x3000))))
+            for _ in range(n)
+        )
+
+    def junk(self, depth: int = 0) -> Any:
+        """A random msgpack value: scalars at their edges, strings, bytes, containers, ext types."""
+        r = self.rng.randrange(12 if depth < 3 else 8)
+        if r == 0:
+            return None
+        if r == 1:
+            return self.rng.random() < 0.5
+        if r == 2:
+            return (
+                self.rng.choice(EDGE_INTS) if self.rng.random() < 0.6 else self.rng.randrange(-(10**9), 10**9)
+            )
+        if r == 3:
+            return self.rng.choice(EDGE_FLOATS) if self.rng.random() < 0.6 else self.rng.uniform(-1e6, 1e6)
+        if r in (4, 5):
+            return self._text()
+        if r == 6:
+            return self.rng.randbytes(self.rng.choice((0, 1, 12, 78 * 4, 100)))
+        if r == 7:
+            if self.rng.random() < 0.5:
+                return msgpack.Timestamp(self.rng.randrange(-(2**33), 2**33), self.rng.randrange(10**9))
+            return msgpack.ExtType(
+                self.rng.randrange(128), self.rng.randbytes(self.rng.choice((0, 4, 8, 12, 3)))
+            )
+        if r in (8, 9):
+            return [self.junk(depth + 1) for _ in range(self.rng.randrange(4))]
+        return {self._text(): self.junk(depth + 1) for _ in range(self.rng.randrange(4))}
+
+    # --- the four kinds
+
+    def messages(self, n: int) -> Iterator[Fuzzed]:
+        """``n`` fuzzed messages."""
+        for _ in range(n):
+            r = self.rng.random()
+            if r < 0.20:
+                m = self.random_bytes()
+            elif r < 0.65:
+                m = self.mutated()
+            elif r < 0.90:
+                m = self.valid()
+            else:
+                m = self.wrong_topic()
+            assert _not_good(m.topic), m.topic
+            self.kinds[m.kind] += 1
+            yield m
+
+    def _topic(self, stream: str, word: str) -> bytes:
+        return f"mocap/{stream}/{word}".encode()
+
+    def _some_topic(self) -> bytes:
+        """Mostly a pool or ghost stream's pose or skeleton topic."""
+        r = self.rng.random()
+        word = "pose" if self.rng.random() < 0.7 else "skeleton"
+        if r < 0.8:
+            return self._topic(self.rng.choice(self.pool).name, word)
+        if r < 0.9:
+            return self._topic(f"ghost-{self.rng.randrange(GHOSTS):03d}", word)
+        return self.odd_topic()
+
+    def random_bytes(self) -> Fuzzed:
+        r = self.rng.random()
+        if r < 0.0005:
+            size = self.rng.randrange(MAX_MESSAGE_BYTES + 1, MAX_MESSAGE_BYTES + 4000)
+        elif r < 0.4:
+            size = self.rng.randrange(33)
+        elif r < 0.8:
+            size = self.rng.randrange(33, 513)
+        else:
+            size = self.rng.randrange(513, 2049)
+        payload = self.rng.randbytes(size)
+        if size and self.rng.random() < 0.2:  # a map's first byte: parsed a little further
+            payload = bytes([0x80 | self.rng.randrange(16)]) + payload[1:]
+        return Fuzzed("random", self._some_topic(), (payload,), self._qos())
+
+    def _qos(self) -> int:
+        return 1 if self.rng.random() < 0.2 else 0
+
+    def mutated(self) -> Fuzzed:
+        """A valid skeleton, pose or other message with one to three things wrong with it."""
+        s = self.rng.choice(self.pool)
+        r = self.rng.random()
+        word = "pose"
+        if r < 0.6:
+            body = self._pose_body(s, s.seq + 1)
+        elif r < 0.9:
+            body = dict(s.skeleton)
+            word = "skeleton"
+        else:
+            body = self._other_message(s.name)
+        for _ in range(self.rng.choice((1, 1, 1, 2, 3))):
+            self._mutate(body)
+        try:
+            payload = pack(body)
+        except (OverflowError, ValueError, TypeError):
+            payload = pack({"v": 1, "type": word, "stream": s.name, "x": repr(body)[:200]})
+        r = self.rng.random()
+        if r < 0.08 and payload:
+            payload = payload[: self.rng.randrange(len(payload))]  # truncated
+        elif r < 0.14 and payload:
+            flipped = bytearray(payload)
+            for _ in range(self.rng.randrange(1, 4)):
+                flipped[self.rng.randrange(len(flipped))] ^= 1 << self.rng.randrange(8)
+            payload = bytes(flipped)
+        elif r < 0.17:
+            payload += self.rng.randbytes(self.rng.randrange(1, 9))  # extra bytes after the map
+        elif r < 0.19:
+            payload = self._nested()
+        elif r < 0.195:
+            payload = self.rng.choice(BAD_TIMESTAMPS)
+        elif r < 0.21:
+            payload = msgpack.packb({1: 2, "v": 1}, strict_types=False)  # a key that is no string
+        elif r < 0.22:
+            payload = pack([body.get("v"), body.get("type")])  # not a map
+        topic = (
+            self._topic(s.name, word)
+            if self.rng.random() < 0.9
+            else self._topic(s.name, "skeleton" if word == "pose" else "pose")
+        )
+        return Fuzzed("mutated", topic, (payload,), 1 if word == "skeleton" else self._qos())
+
+    def _nested(self) -> bytes:
+        depth = self.rng.choice((10, 500, 1000, 2000, 5000))
+        opener = b"\x91" if self.rng.random() < 0.5 else b"\x81\xa1k"
+        return opener * depth + b"\xc0"
+
+    def _other_message(self, stream: str) -> dict[str, Any]:
+        """A valid message of a type the daemon publishes (detection, boundary, status), as a map."""
+        kind = self.rng.randrange(3)
+        if kind == 0:
+            message: Message = DetectionMessage("x", stream, "squat", 1, 2, 0.1, 0.2, 3, 1.0, 2.0)
+        elif kind == 1:
+            message = BoundaryMessage("x", stream, 4, "pca", 1.0, 1.0)
+        else:
+            message = StatusMessage("fuzz", "online", "0", 1, 1.0)
+        body: dict[str, Any] = msgpack.unpackb(encode(message))
+        return body
+
+    def _mutate(self, body: dict[str, Any]) -> None:
+        rng = self.rng
+        keys = list(body)
+        op = rng.randrange(14)
+        if op == 0 and keys:
+            del body[rng.choice(keys)]
+        elif op == 1:
+            body[rng.choice(EXTRA_FIELDS)] = self.junk()
+        elif op == 2 and keys:
+            body[rng.choice(keys)] = self.junk()
+        elif op in (3, 4, 6, 7, 8, 10, 11, 12):
+            name = {3: "v", 4: "type", 6: "seq", 7: "time", 8: "epoch", 10: "rate", 11: "joints"}.get(op)
+            name = name or rng.choice(("up", "units", "angle_unit"))
+            body[name] = rng.choice(BAD[name])
+        elif op == 5:
+            body["stream"] = rng.choice(ODD_IDS) if rng.random() < 0.8 else self.junk()
+        elif op == 9:
+            self._mutate_array(body)
+        else:
+            body["asf"] = self._mutated_asf()
+
+    def _mutate_array(self, body: dict[str, Any]) -> None:
+        rng = self.rng
+        name = "channels" if "channels" in body else "positions"
+        dtype = "<f8" if name == "channels" else "<f4"
+        width = self.channels if name == "channels" else len(JOINT_NAMES) * 3
+        r = rng.randrange(9)
+        if r == 0:
+            body[name] = rng.randbytes(rng.choice((0, 1, 7, 11, 13, 77)))  # no whole number of values
+        elif r == 1:
+            count = rng.choice((1, 3, 10, 25, 27, 100, 1000)) * (1 if name == "channels" else 3)
+            body[name] = self.np.normal(0, 30, count).astype(dtype).tobytes()  # another width
+        elif r in (2, 3):
+            a = self.np.normal(0, 30, width).astype(dtype)
+            a[rng.randrange(width)] = rng.choice((NAN, INF, -INF))
+            body[name] = a.tobytes()
+        elif r == 4:
+            with np.errstate(over="ignore", under="ignore"):  # 1e308 as float32: infinity
+                body[name] = np.full(width, rng.choice(BAD["huge"]), dtype).tobytes()
+        elif r == 5:
+            body[name] = self.np.normal(0, 30, width).astype(dtype).tolist()  # a list, not bytes
+        elif r == 6:
+            body[name] = "not bytes"
+        elif r == 7:
+            body["positions" if name == "channels" else "channels"] = body.pop(name, b"")  # the other kind
+        else:
+            body["positions"] = self.np.normal(0, 30, len(JOINT_NAMES) * 3).astype("<f4").tobytes()
+            body["channels"] = self.np.normal(0, 30, self.channels).astype("<f8").tobytes()  # both
+
+    def _mutated_asf(self) -> Any:
+        rng = self.rng
+        lines = list(self.asf_lines)
+        r = rng.randrange(9)
+        if r == 0:
+            return self.asf[: rng.randrange(len(self.asf))]
+        if r == 1:
+            for _ in range(rng.randrange(1, 20)):
+                del lines[rng.randrange(len(lines))]
+        elif r == 2:
+            k = rng.randrange(len(lines))
+            words = lines[k].split()
+            if words:
+                words[rng.randrange(len(words))] = rng.choice(BAD["asf word"])
+                lines[k] = " ".join(words)
+        elif r == 3:
+            rng.shuffle(lines)
+        elif r == 4:
+            k = rng.randrange(len(lines))
+            lines[k : k + 1] = [lines[k]] * rng.randrange(2, 50)
+        elif r == 5:
+            lines.insert(rng.randrange(len(lines)), self.rng.randbytes(40).decode("latin-1"))
+        elif r == 6:
+            return rng.choice((*BAD["asf"], self.asf.replace("dof", "dof rx ry rz tx ty tz l")))
+        elif r == 7:
+            start = rng.randrange(len(lines))
+            del lines[start : start + rng.randrange(1, 60)]
+        else:
+            return self.junk()
+        return "\n".join(lines)
+
+    def valid(self) -> Fuzzed:
+        """A valid message of another stream: announcements, poses in order and not."""
+        rng = self.rng
+        r = rng.random()
+        s = rng.choice(self.pool)
+        if r < 0.12:
+            q = rng.random()
+            if q < 0.3:
+                self._new_epoch(s)  # a new run of the source
+            elif q < 0.35:
+                s.skeleton["rate"] = rng.choice(RATES)  # a changed skeleton
+            return self._skeleton_of(s)
+        if r < 0.70:
+            s.seq += 1
+            return self._pose_of(s, s.seq)
+        if r < 0.74:
+            return self._pose_of(s, s.seq)  # the same again
+        if r < 0.78:
+            return self._pose_of(s, max(0, s.seq - rng.randrange(1, 100)))  # out of order
+        if r < 0.81:
+            s.seq += rng.randrange(2, 40)  # a gap
+            return self._pose_of(s, s.seq)
+        if r < 0.83:
+            return self._pose_of(s, min(s.seq + 10**7, 2**53 - 1))  # implausibly far ahead
+        if r < 0.84:
+            s.seq = rng.randrange(0, 100)  # numbered from its start again
+            return self._pose_of(s, s.seq)
+        if r < 0.93:
+            ghost = f"ghost-{rng.randrange(GHOSTS):03d}"
+            message = PoseMessage(ghost, rng.randrange(10**6), time.time(), positions=self.positions)
+            return Fuzzed("valid", self._topic(ghost, "pose"), (encode(message),), self._qos())
+        if r < 0.935:
+            self.new_streams += 1
+            name = f"new-{self.new_streams}"
+            skeleton = encode(SkeletonMessage(name, RATE, JOINT_NAMES))
+            return Fuzzed("valid", self._topic(name, "skeleton"), (skeleton,), 1)
+        if r < 0.96:
+            other = pack(self._other_message(s.name))
+            return Fuzzed("valid", self._topic(s.name, "pose"), (other,), self._qos())
+        s.seq += 1
+        return self._pose_of(s, s.seq)
+
+    def _skeleton_of(self, s: _Pooled) -> Fuzzed:
+        return Fuzzed("valid", self._topic(s.name, "skeleton"), (pack(s.skeleton),), 1)
+
+    def _pose_of(self, s: _Pooled, seq: int) -> Fuzzed:
+        payload = pack(self._pose_body(s, seq))
+        return Fuzzed("valid", self._topic(s.name, "pose"), (payload,), self._qos())
+
+    def odd_topic(self) -> bytes:
+        """A topic mocapd does not take, or one of a stream id that is no id."""
+        rng = self.rng
+        s = rng.choice(self.pool).name
+        options = [
+            f"mocap/{s}/detections",
+            f"mocap/{s}/boundaries",
+            f"mocap/{s}/Pose",
+            f"mocap/{s}/",
+            f"mocap/{s}",
+            f"mocap/{s}/pose/extra",
+            "mocap//pose",
+            "mocap//skeleton",
+            "mocap/" + "a" * 129 + "/pose",
+            "mocap/with space/pose",
+            "mocap/ünïcödé/skeleton",
+            "mocap/😀/pose",
+            "mocap/$x/pose",
+            f"mocapd/{s}/status",
+            "foo/bar",
+            "mocap",
+            f"MOCAP/{s}/pose",
+            f"/mocap/{s}/pose",
+            "mocap/" + rng.choice(ODD_IDS) + "/" + rng.choice(("pose", "skeleton")),
+        ]
+        if not self.mqtt:
+            options += [
+                "mocap/+/pose",
+                "mocap/#",
+                "mocap/a\x00b/pose",
+                f"mocap/{s}/pose\x00",
+                "",
+            ]
+        while True:
+            topic = rng.choice(options)
+            if self.mqtt and not _mqtt_safe(topic):
+                continue
+            encoded = topic.encode("utf-8", "surrogatepass")
+            if not self.mqtt and rng.random() < 0.1:
+                encoded = b"mocap/" + rng.randbytes(rng.randrange(1, 12)) + b"/pose"  # not UTF-8
+            if _not_good(encoded):
+                return encoded
+
+    def wrong_topic(self) -> Fuzzed:
+        """A valid message on a topic that does not fit it, or on a topic mocapd does not take."""
+        rng = self.rng
+        s, other = rng.sample(self.pool, 2)
+        pose = pack(self._pose_body(s, s.seq + 1))
+        r = rng.random()
+        if r < 0.25:
+            return Fuzzed("topic", self._topic(other.name, "pose"), (pose,), self._qos())  # another stream's
+        if r < 0.35:
+            good = PoseMessage(GOOD_STREAM, s.seq + 1, time.time(), channels=self.good_channels)
+            return Fuzzed("topic", self._topic(s.name, "pose"), (encode(good),), self._qos())
+        if r < 0.45:
+            return Fuzzed("topic", self._topic(s.name, "skeleton"), (pose,), 1)  # a pose as a skeleton
+        if r < 0.52:
+            skeleton = pack(s.skeleton)
+            return Fuzzed("topic", self._topic(s.name, "pose"), (skeleton,), 0)  # a skeleton as a pose
+        if r < 0.57:
+            return Fuzzed("topic", self._topic(other.name, "skeleton"), (pack(s.skeleton),), 1)
+        if r < 0.62:  # an empty skeleton: MQTT's way to clear a retained one
+            return Fuzzed("topic", self._topic(s.name, "skeleton"), (b"",), 1)
+        if not self.mqtt and r < 0.72:
+            frames = rng.choice(((), (pose, b"more"), (b"", b""), (pose, pose, pose)))
+            return Fuzzed("topic", self._topic(s.name, "pose"), frames)  # not [topic, payload]
+        return Fuzzed("topic", self.odd_topic(), (pose,), self._qos())
+
+
+def _not_good(topic: bytes) -> bool:
+    """Whether a topic stays off the good stream (its second level is not the good stream's id)."""
+    return topic.split(b"/")[1:2] != [GOOD_STREAM.encode()]
+
+
+def routed(m: Fuzzed, transport: str) -> bool:
+    """Whether a message reaches the daemon: over ZeroMQ what its subscription (``mocap/``) lets
+    through; over MQTT what its subscriptions (``mocap/+/skeleton``, ``mocap/+/pose``) match."""
+    if transport == "zmq":
+        return m.topic.startswith(b"mocap/")
+    levels = m.topic.decode().split("/")
+    return len(levels) == 3 and levels[0] == "mocap" and levels[2] in ("skeleton", "pose")
+
+
+# ---------------------------------------------------------------------------------- the senders
+
+
+class ZmqWire:
+    """The fuzz sender over ZeroMQ: an XPUB socket connected to the daemon that never drops (a full
+    queue waits), and a SUB socket the good replay sends to, whose messages it passes on (counted)
+    between the fuzzed ones."""
+
+    def __init__(self, poses: str) -> None:
+        self.ctx = zmq.Context()
+        self.pub = self.ctx.socket(zmq.XPUB)
+        self.pub.setsockopt(zmq.SNDHWM, 100_000)
+        self.pub.setsockopt(zmq.XPUB_NODROP, 1)
+        self.pub.setsockopt(zmq.LINGER, 10_000)
+        self.pub.connect(poses)
+        if not self.pub.poll(10_000):
+            raise RuntimeError("the daemon did not subscribe")
+        self.pub.recv()
+        self.relay = self.ctx.socket(zmq.SUB)
+        self.relay.setsockopt(zmq.RCVHWM, 0)
+        self.relay.setsockopt(zmq.LINGER, 0)
+        self.relay.setsockopt(zmq.SUBSCRIBE, b"")
+        port = free_port()
+        self.relay.bind(f"tcp://127.0.0.1:{port}")
+        self.good_url = f"zmq+tcp://127.0.0.1:{port}"
+        self.good = 0
+        self.problem: str | None = None
+
+    def _send(self, frames: list[bytes]) -> None:
+        while True:
+            try:
+                self.pub.send_multipart(frames, zmq.NOBLOCK)
+                return
+            except zmq.Again:
+                time.sleep(0.0005)  # the daemon's queue is full: wait, never drop
+
+    def send(self, m: Fuzzed) -> None:
+        self._send([m.topic, *m.payloads])
+
+    def pump(self) -> None:
+        """Pass on what the good replay sent."""
+        while True:
+            try:
+                frames = self.relay.recv_multipart(zmq.NOBLOCK)
+            except zmq.Again:
+                return
+            self._send(frames)
+            self.good += 1
+
+    def close(self) -> None:
+        self.relay.close()
+        self.pub.close()
+        self.ctx.term()
+
+
+class MqttWire:
+    """The fuzz sender over MQTT (paho, QoS 0 and 1 as :class:`Fuzzed` says), and a subscriber of
+    the good stream's topics that counts its messages and reads the broker's count of dropped
+    messages (``$SYS``)."""
+
+    def __init__(self, port: int, good_url: str) -> None:
+        self.good_url = good_url
+        self.good = 0
+        self.dropped: int | None = None
+        self.problem: str | None = None
+        self.client = paho.Client(CallbackAPIVersion.VERSION2, client_id=f"fuzz-{os.getpid()}")
+        self.client.max_queued_messages_set(0)
+        self.client.max_inflight_messages_set(1000)
+        self.client.on_disconnect = self._lost
+        self.client.connect("127.0.0.1", port)
+        self.client.loop_start()
+        self.counter = paho.Client(CallbackAPIVersion.VERSION2, client_id=f"fuzz-count-{os.getpid()}")
+        self.subscribed = threading.Event()
+        self.counter.on_message = self._counted
+        self.counter.on_subscribe = lambda *_: self.subscribed.set()
+        self.counter.connect("127.0.0.1", port)
+        self.counter.subscribe(
+            [
+                (f"mocap/{GOOD_STREAM}/skeleton", 1),
+                (f"mocap/{GOOD_STREAM}/pose", 1),
+                ("$SYS/broker/publish/messages/dropped", 0),
+            ]
+        )
+        self.counter.loop_start()
+        if not self.subscribed.wait(10):
+            raise RuntimeError("the counting subscriber did not subscribe")
+        self.last: paho.MQTTMessageInfo | None = None
+
+    def _lost(self, *args: Any) -> None:
+        self.problem = f"the fuzz sender was disconnected: {args[3]}"
+
+    def _counted(self, client: Any, userdata: Any, message: Any) -> None:
+        if message.topic.startswith("$SYS/"):
+            self.dropped = int(message.payload)
+        else:
+            self.good += 1
+
+    def send(self, m: Fuzzed) -> None:
+        info = self.client.publish(m.topic.decode(), m.payloads[0], qos=m.qos)
+        if info.rc != paho.MQTT_ERR_SUCCESS:
+            self.problem = f"publish failed: {paho.error_string(info.rc)}"
+        if m.qos:
+            self.last = info
+
+    def pump(self) -> None:
+        """Nothing: the good replay publishes to the broker itself."""
+
+    def close(self) -> None:
+        if self.last is not None:
+            self.last.wait_for_publish(30)
+        self.client.disconnect()
+        self.client.loop_stop()
+        self.counter.disconnect()
+        self.counter.loop_stop()
+
+
+# ------------------------------------------------------------------------------ the processes
+
+
+def start_broker(where: Path) -> tuple[subprocess.Popen[bytes], int]:
+    """A mosquitto on a free loopback port that queues without limit (it never drops a message to a
+    slow subscriber), no persistence, ``$SYS`` every second."""
+    port = free_port()
+    config = where / "mosquitto.conf"
+    config.write_text(
+        f"listener {port} 127.0.0.1\nallow_anonymous true\nset_tcp_nodelay true\nmax_queued_messages 0\n"
+        f"sys_interval 1\nlog_dest file {where}/mosquitto.log\nuser {getpass.getuser()}\n",
+        encoding="utf-8",
+    )
+    binary = shutil.which("mosquitto") or "/usr/sbin/mosquitto"
+    process = subprocess.Popen(
+        [binary, "-c", str(config)], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
+    )
+    wait_port(port)
+    return process, port
+
+
+class Daemon:
+    """``mocapd --config C run`` on free ports, its stdout (the detections) and stderr (the logs) in
+    files in ``where``."""
+
+    def __init__(self, where: Path, transport: str, broker_port: int | None) -> None:
+        self.where = where
+        self.metrics_port = free_port()
+        self.poses = f"tcp://127.0.0.1:{free_port()}"
+        config: dict[str, dict[str, Any]] = {
+            "service": {
+                "instance": f"fuzz-{self.metrics_port}",
+                "sources": [transport],
+                "sinks": ["stdout"],
+                "queue_frames": 100_000,
+                "max_streams": MAX_STREAMS,
+                "max_message_bytes": MAX_MESSAGE_BYTES,
+                "idle_s": 10,
+            },
+            "zmq": {"poses": self.poses, "detections": f"tcp://127.0.0.1:{free_port()}"},
+            "mqtt": {"url": f"mqtt://127.0.0.1:{broker_port}", "queue": 200_000, "reconnect_max_s": 0.5},
+            "metrics": {"port": self.metrics_port},
+            "logging": {"level": "debug"},
+        }
+        self.config = where / "daemon.yaml"
+        self.config.write_text(json.dumps(config, indent=1), encoding="utf-8")  # JSON is YAML
+        self.out, self.err = where / "daemon.out", where / "daemon.err"
+        with self.out.open("wb") as out, self.err.open("wb") as err:
+            self.process = subprocess.Popen(
+                [str(MOCAPD), "--config", str(self.config), "run"], stdout=out, stderr=err
+            )
+        deadline = time.monotonic() + 60
+        while not self._healthy():
+            if not self.alive or time.monotonic() > deadline:
+                raise RuntimeError(f"the daemon did not start: {self.err.read_text()[-2000:]}")
+            time.sleep(0.05)
+
+    def _healthy(self) -> bool:
+        try:
+            with urllib.request.urlopen(f"http://127.0.0.1:{self.metrics_port}/healthz", timeout=2) as r:
+                return bool(r.status == 200)
+        except OSError:
+            return False
+
+    @property
+    def alive(self) -> bool:
+        return self.process.poll() is None
+
+    def metrics(self) -> dict[str, float]:
+        """The /metrics samples (none if the daemon does not answer)."""
+        try:
+            return metrics(self.metrics_port)
+        except OSError:
+            return {}
+
+    def rss_kib(self) -> int:
+        for line in Path(f"/proc/{self.process.pid}/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1])
+        return 0
+
+    def stop(self) -> int:
+        if self.alive:
+            self.process.send_signal(signal.SIGTERM)
+        return self.process.wait(60)
+
+
+def counted(m: dict[str, float]) -> int:
+    """The incoming messages the daemon counted: taken in, refused, or dropped before being looked at."""
+    total = sum(
+        v for k, v in m.items() if k.startswith(("mocapd_messages_in_total{", "mocapd_rejects_total{"))
+    )
+    total += sum(m.get(f'mocapd_drops_total{{reason="{r}"}}', 0.0) for r in INTAKE_DROPS)
+    return round(total)
+
+
+def detection_keys(items: list[dict[str, Any]]) -> list[tuple[Any, ...]]:
+    """What must agree between a detection on the wire and ``mocapd detect``'s: all but the id."""
+    return [tuple(d[k] for k in DETECTION_KEY) for d in items]
+
+
+def good_detections() -> list[tuple[Any, ...]]:
+    """``mocapd detect``'s detections of the good clip (the shipped library), as :func:`detection_keys`."""
+    motion = read_recording(DATA / GOOD_CLIP[0], DATA / GOOD_CLIP[1])
+    return detection_keys([d.as_json() for d in detect(motion, load_library(default_library_path()), RATE)])
+
+
+# ------------------------------------------------------------------------------------- the run
+
+
+@dataclass
+class Result:
+    """What one transport's run gave; :attr:`failures` is empty when every check held."""
+
+    transport: str
+    messages: int
+    seed: int
+    speed: str
+    fuzz_routed: int = 0
+    fuzz_unrouted: int = 0
+    good: int = 0
+    kinds: Counter[str] = field(default_factory=Counter)
+    counted: int = 0
+    series: dict[str, float] = field(default_factory=dict)
+    send_s: float = 0.0
+    wall_s: float = 0.0
+    rss_start_kib: int = 0
+    rss_end_kib: int = 0
+    exit_code: int | None = None
+    crashed: bool = False
+    log_lines: int = 0
+    detections: int = 0
+    expected_detections: int = 0
+    broker_dropped: int | None = None
+    failures: list[str] = field(default_factory=list)
+
+    @property
+    def expected(self) -> int:
+        return self.fuzz_routed + self.good
+
+    @property
+    def rate(self) -> float:
+        return self.messages / self.send_s if self.send_s else 0.0
+
+
+def auto_speed(transport: str, messages: int, clip_s: float) -> float:
+    """A replay speed that makes the good clip last about 80 % of the fuzzing."""
+    fuzz_s = messages / ESTIMATED_RATE[transport]
+    return max(0.05, min(50.0, clip_s / (0.8 * fuzz_s)))
+
+
+def run(
+    transport: str,
+    messages: int,
+    seed: int,
+    speed: str = "auto",
+    where: Path | None = None,
+    expected_detections: list[tuple[Any, ...]] | None = None,
+    say: Callable[[str], None] = lambda line: None,
+) -> Result:
+    """One transport's fuzz run (see the module docstring); the working files in ``where`` (default:
+    a temporary directory, removed). ``expected_detections``: ``mocapd detect``'s on the clip, as
+    :func:`detection_keys` (computed if not given)."""
+    asf, amc = DATA / GOOD_CLIP[0], DATA / GOOD_CLIP[1]
+    want = good_detections() if expected_detections is None else expected_detections
+    clip_s = len(read_recording(asf, amc)) / RATE
+    pace = speed if speed != "auto" else f"{auto_speed(transport, messages, clip_s):.3g}"
+    result = Result(transport, messages, seed, pace, expected_detections=len(want))
+    work = Path(tempfile.mkdtemp(prefix=f"fuzz-{transport}-")) if where is None else where
+    broker: subprocess.Popen[bytes] | None = None
+    daemon: Daemon | None = None
+    wire: ZmqWire | MqttWire | None = None
+    replay: subprocess.Popen[str] | None = None
+    started = time.monotonic()
+    try:
+        broker_port = None
+        if transport == "mqtt":
+            broker, broker_port = start_broker(work)
+        daemon = Daemon(work, transport, broker_port)
+        result.rss_start_kib = daemon.rss_kib()
+        if transport == "zmq":
+            wire = ZmqWire(daemon.poses)
+        else:
+            wire = MqttWire(broker_port or 0, f"mqtt://127.0.0.1:{broker_port}")
+        command = [str(MOCAPD), "replay", "--asf", str(asf), "--amc", str(amc), "--to", wire.good_url]
+        command += ["--stream", GOOD_STREAM, "--speed", pace]
+        replay = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        # the good stream is in the daemon's table before anything could fill it
+        deadline = time.monotonic() + 30
+        while daemon.metrics().get("mocapd_streams", 0) < 1:
+            wire.pump()
+            if time.monotonic() > deadline or not daemon.alive:
+                raise RuntimeError("the good stream did not reach the daemon")
+            time.sleep(0.01)
+        say(f"{transport}: sending {messages:,} fuzzed messages (the good replay at speed {pace})")
+        _fuzz(Fuzzer(seed, mqtt=transport == "mqtt"), wire, daemon, result, say)
+        while replay.poll() is None:  # the rest of the good stream
+            wire.pump()
+            time.sleep(0.002)
+        for _ in range(50):
+            wire.pump()
+            time.sleep(0.01)
+        _, err = replay.communicate()
+        if replay.returncode != 0:
+            result.failures.append(f"the good replay failed ({replay.returncode}): {err[-500:]}")
+        _settle(wire, daemon, result)
+        result.wall_s = time.monotonic() - started
+        _check(result, daemon, want)
+    finally:
+        if replay is not None and replay.poll() is None:
+            replay.kill()
+            replay.wait()
+        if wire is not None:
+            wire.close()
+        if daemon is not None and daemon.alive:
+            daemon.process.kill()
+            daemon.process.wait()
+        if broker is not None:
+            broker.terminate()
+            broker.wait(10)
+        if where is None:
+            shutil.rmtree(work, ignore_errors=True)
+    return result
+
+
+def _fuzz(
+    fuzzer: Fuzzer, wire: ZmqWire | MqttWire, daemon: Daemon, result: Result, say: Callable[[str], None]
+) -> None:
+    """Send the fuzzed messages, passing the good stream's on between them, at most :data:`AHEAD`
+    ahead of what the daemon counted."""
+    start = checked = time.monotonic()
+    progress = 100_000
+    for i, message in enumerate(fuzzer.messages(result.messages)):
+        wire.send(message)
+        if routed(message, result.transport):
+            result.fuzz_routed += 1
+        else:
+            result.fuzz_unrouted += 1
+        if i % 16 == 0:
+            wire.pump()
+        if i % 1000 == 0 and time.monotonic() - checked > 0.5:
+            checked = time.monotonic()
+            while result.fuzz_routed + wire.good - counted(daemon.metrics()) > AHEAD and daemon.alive:
+                wire.pump()
+                time.sleep(0.005)
+            if not daemon.alive:
+                break
+        if i + 1 == progress:
+            say(f"  {progress:,} sent in {time.monotonic() - start:.0f} s")
+            progress += 100_000
+    result.send_s = time.monotonic() - start
+    result.kinds = fuzzer.kinds
+
+
+def _settle(wire: ZmqWire | MqttWire, daemon: Daemon, result: Result) -> None:
+    """Wait for every message to be counted and every pose recognised; read the counts, stop the
+    daemon."""
+    expected = result.fuzz_routed + wire.good
+    deadline = time.monotonic() + 120
+    while daemon.alive and time.monotonic() < deadline:
+        m = daemon.metrics()
+        if counted(m) >= expected and m.get("mocapd_queued_poses", 1) == 0:
+            break
+        time.sleep(0.1)
+    time.sleep(1.2 if isinstance(wire, MqttWire) else 0.3)  # the broker's $SYS count: every second
+    m = daemon.metrics()
+    result.good = wire.good
+    kinds = ("mocapd_messages_in_total{", "mocapd_rejects_total{", "mocapd_drops_total{")
+    result.series = {k: v for k, v in m.items() if k.startswith(kinds)}
+    result.counted = counted(m)
+    result.rss_end_kib = daemon.rss_kib() if daemon.alive else 0
+    if isinstance(wire, MqttWire):
+        result.broker_dropped = wire.dropped
+    if wire.problem is not None:
+        result.failures.append(wire.problem)
+    if not daemon.alive:
+        result.crashed = True
+        result.failures.append(f"the daemon died (exit status {daemon.process.returncode})")
+    result.exit_code = daemon.stop()
+    if result.exit_code != 0 and not result.crashed:
+        result.crashed = True
+        result.failures.append(f"the daemon exited {result.exit_code} on SIGTERM")
+
+
+def _strict(constant: str) -> Any:
+    raise ValueError(f"{constant} is not JSON")
+
+
+def _check(result: Result, daemon: Daemon, want: list[tuple[Any, ...]]) -> None:
+    """The accounting, the logs and the good stream's detections (the crash checks are made as the
+    run goes)."""
+    if result.counted != result.expected:
+        result.failures.append(
+            f"counted {result.counted:,} messages, {result.expected:,} reached the daemon "
+            f"({result.fuzz_routed:,} fuzzed + {result.good:,} good)"
+        )
+    if result.broker_dropped is None and result.transport == "mqtt":
+        result.failures.append("the broker's count of dropped messages never came")
+    elif result.broker_dropped:
+        result.failures.append(f"the broker dropped {result.broker_dropped} messages")
+    text = daemon.err.read_text(encoding="utf-8", errors="replace")
+    lines = text.splitlines()
+    result.log_lines = len(lines)
+    bad = []
+    for line in lines:
+        try:
+            entry = json.loads(line, parse_constant=_strict)
+        except ValueError:
+            bad.append(line)
+            continue
+        if (
+            not isinstance(entry, dict)
+            or entry.get("level") in ("error", "critical")
+            or "error" in entry
+            or "Warning: " in str(entry.get("event"))  # a Python warning, routed through the log
+        ):
+            bad.append(line)
+    if "Traceback" in text or "internal error" in text:
+        bad.append("a traceback or an internal error")
+    if bad:
+        result.failures.append(f"{len(bad)} bad log lines, the first: {bad[0][:300]}")
+    printed = []
+    for line in daemon.out.read_text(encoding="utf-8").splitlines():
+        if line.strip():
+            body = json.loads(line)
+            if body.get("type") == "detection" and body.get("stream") == GOOD_STREAM:
+                printed.append(body)
+    got = detection_keys(printed)
+    result.detections = len(got)
+    if got != want:
+        result.failures.append(
+            f"the good stream's detections differ: {len(got)} printed, {len(want)} expected"
+        )
+
+
+# ------------------------------------------------------------------------------------ reporting
+
+
+def report(r: Result) -> str:
+    """The table of one transport's run."""
+    out = [
+        f"\n== {r.transport}: {r.messages:,} fuzzed messages (seed {r.seed}), "
+        f"good stream: mocapd replay of CMU 13_30 at speed {r.speed}",
+        "kinds sent: " + ", ".join(f"{k} {n:,}" for k, n in sorted(r.kinds.items())),
+        f"reached the daemon: {r.fuzz_routed:,} fuzzed + {r.good:,} good = {r.expected:,}; "
+        f"not routed to it (no subscription matches the topic): {r.fuzz_unrouted:,}",
+        f"{'counted under':<52s} {'messages':>10s}",
+    ]
+    for key in sorted(r.series):
+        name = key.removeprefix("mocapd_").replace("_total{", "{")
+        intake = not key.startswith("mocapd_drops") or any(f'"{d}"' in key for d in INTAKE_DROPS)
+        note = "" if intake else "  (not an intake outcome)"
+        out.append(f"  {name:<50s} {r.series[key]:>10,.0f}{note}")
+    out.append(f"  {'total (taken in + refused + dropped at intake)':<50s} {r.counted:>10,}")
+    if r.broker_dropped is not None:
+        out.append(f"broker: {r.broker_dropped} messages dropped ($SYS/broker/publish/messages/dropped)")
+    out += [
+        f"sending: {r.rate:,.0f} fuzzed messages/s ({r.send_s:.1f} s); wall time {r.wall_s:.1f} s",
+        f"daemon RSS: {r.rss_start_kib / 1024:.1f} MiB at the start, "
+        f"{r.rss_end_kib / 1024:.1f} MiB at the end",
+        f"daemon log: {r.log_lines:,} lines, each one JSON object; exit status {r.exit_code} on SIGTERM",
+        f"good stream: {r.detections} detections, mocapd detect: {r.expected_detections}",
+        "checks: " + ("all hold" if not r.failures else "FAILED: " + "; ".join(r.failures)),
+    ]
+    return "\n".join(out)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--messages", type=int, default=1_000_000)
+    parser.add_argument("--transport", choices=("zmq", "mqtt", "both"), default="both")
+    parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument(
+        "--speed",
+        default="auto",
+        help="the good replay's speed (auto: it lasts about as long as the fuzzing)",
+    )
+    args = parser.parse_args()
+    print(describe(), flush=True)
+    want = good_detections()
+    transports = ("zmq", "mqtt") if args.transport == "both" else (args.transport,)
+    results = []
+    started = time.monotonic()
+    for t in transports:
+        r = run(
+            t,
+            args.messages,
+            args.seed,
+            args.speed,
+            expected_detections=want,
+            say=lambda s: print(s, flush=True),
+        )
+        print(report(r), flush=True)
+        results.append(r)
+    print("\n== summary")
+    head = ("transport", "fuzzed", "reached", "counted", "msg/s", "wall s", "RSS MiB", "crashes", "good")
+    widths = (9, 10, 10, 10, 7, 7, 11, 7, 6)
+    print(
+        f"{head[0]:<9s} "
+        + " ".join(f"{h:>{w}s}" for h, w in zip(head[1:], widths[1:], strict=True))
+        + "  checks"
+    )
+    for r in results:
+        row = (
+            r.transport,
+            f"{r.messages:,}",
+            f"{r.expected:,}",
+            f"{r.counted:,}",
+            f"{r.rate:,.0f}",
+            f"{r.wall_s:.1f}",
+            f"{r.rss_start_kib / 1024:.0f} -> {r.rss_end_kib / 1024:.0f}",
+            str(int(r.crashed)),
+            f"{r.detections}/{r.expected_detections}",
+        )
+        ok = "all hold" if not r.failures else "FAILED"
+        cells = " ".join(f"{v:>{w}s}" for v, w in zip(row[1:], widths[1:], strict=True))
+        print(f"{row[0]:<9s} {cells}  {ok}")
+    print(f"total wall time {time.monotonic() - started:.1f} s")
+    sys.exit(1 if any(r.failures for r in results) else 0)
+
+
+if __name__ == "__main__":
+    main()
