@@ -4,6 +4,7 @@ nothing here is shared with the code under test."""
 
 from __future__ import annotations
 
+import itertools
 import math
 from collections.abc import Iterator, Sequence
 from fractions import Fraction
@@ -983,9 +984,11 @@ def slow_gate(
 
 def slow_fair_queue(ops: list[tuple[str, str] | None], size: int) -> tuple[list[str], int]:
     """:class:`protocols.fair.FairQueue` read literally, on a list: ``ops`` puts (key, label) or
-    takes (None); per key a list; the turn order a list of keys. Returns the labels taken and how
-    many puts dropped a message."""
+    takes (None); per key a list, and when its length last changed; the turn order a list of keys.
+    Returns the labels taken and how many puts dropped a message."""
     queues: dict[str, list[str]] = {}
+    changed: dict[str, int] = {}
+    clock = itertools.count()
     turns: list[str] = []
     taken: list[str] = []
     dropped = 0
@@ -994,6 +997,7 @@ def slow_fair_queue(ops: list[tuple[str, str] | None], size: int) -> tuple[list[
             if turns:
                 key = turns.pop(0)
                 taken.append(queues[key].pop(0))
+                changed[key] = next(clock)
                 if queues[key]:
                     turns.append(key)
                 else:
@@ -1001,8 +1005,10 @@ def slow_fair_queue(ops: list[tuple[str, str] | None], size: int) -> tuple[list[
             continue
         if sum(len(q) for q in queues.values()) >= size:
             most = max(len(q) for q in queues.values())
-            largest = next(k for k in queues if len(queues[k]) == most)  # the first such key held
+            # of the keys holding the most, the one that came to hold that many first
+            largest = min((k for k in queues if len(queues[k]) == most), key=lambda k: changed[k])
             queues[largest].pop(0)
+            changed[largest] = next(clock)
             dropped += 1
             if not queues[largest]:
                 del queues[largest]
@@ -1012,4 +1018,5 @@ def slow_fair_queue(ops: list[tuple[str, str] | None], size: int) -> tuple[list[
             queues[key] = []
             turns.append(key)
         queues[key].append(label)
+        changed[key] = next(clock)
     return taken, dropped
