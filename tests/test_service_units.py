@@ -249,6 +249,33 @@ def test_sequence_numbers_a_source_cannot_have_sent_are_refused(library: Library
     assert t.counts["gaps"] == 1 and t.counts["restarts"] == 0
 
 
+def test_a_fast_source_after_a_gap_is_refused_once_then_followed(library: Library) -> None:
+    """A replay at 4x its announced 120 Hz loses 1 s of poses (a broker restart): the first pose
+    after the gap is further ahead than the time allows and is refused, the next follows it and
+    confirms the jump, and every later one is taken (before: each was refused as implausible, the
+    allowance growing at half the source's pace, for good). Corrupt numbers that do not follow each
+    other confirm nothing."""
+    m = motion()
+    t = table(library)
+    announce(t)
+    for n in range(1, 101):
+        t.pose(PoseMessage("s", n, 0.0, channels=m.channels[n]), n / 480)
+    resumed = 100 / 480 + 1.0
+    with pytest.raises(Refused) as caught:
+        t.pose(PoseMessage("s", 100 + 480, 0.0, channels=m.channels[0]), resumed)
+    assert caught.value.reason == "implausible"
+    for k in range(1, 400):
+        t.pose(PoseMessage("s", 100 + 480 + k, 0.0, channels=m.channels[k % 100]), resumed + k / 480)
+    for seq, when in ((20_000_000, 3.0), (10_000_000, 3.01)):
+        with pytest.raises(Refused) as caught:
+            t.pose(PoseMessage("s", seq, 0.0, channels=m.channels[0]), when)
+        assert caught.value.reason == "implausible"
+    t.pose(PoseMessage("s", 100 + 480 + 400, 0.0, channels=m.channels[0]), 3.02)
+    assert t.streams["s"].last_received == 980
+    drain(t)
+    assert t.counts["gaps"] == 1
+
+
 def test_skeleton_change_repeat_and_eviction(library: Library) -> None:
     t = table(library)
     m = motion()

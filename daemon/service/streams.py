@@ -13,7 +13,8 @@ its recogniser starts anew at the run's first pose), and one of an epoch already
 (``stale_epoch``). A source that says no epoch begins a new run when its sequence number goes back by
 more than a second of frames; less is ``out_of_order``, the same ``duplicate``. A sequence number
 further ahead than the time since the stream's last pose allows (twice its rate, plus a second) is
-refused (``implausible``), not taken as a gap.
+refused (``implausible``), not taken as a gap, unless the pose after it follows on from it (a real
+jump: a gap in a source faster than its announced rate), which is then taken after the gap.
 
 Frame numbers. The recogniser needs consecutive frame numbers; a stream's sequence numbers may have
 gaps (poses lost on the way, or dropped here when its queue is full). A gap of at most
@@ -115,6 +116,9 @@ class _Stream:
     """Epochs replaced by a later run: their poses are refused."""
     posed: float = 0.0
     """When the last pose was taken (for the plausibility of the next sequence number)."""
+    jump: tuple[int, float] | None = None
+    """The last pose refused as ``implausible`` (seq, when), if none was taken since: a pose that
+    follows it plausibly confirms the jump."""
     fed_epoch: str | None = None
     """The epoch of the last pose fed to the recogniser."""
 
@@ -126,6 +130,12 @@ class Emitted:
 
     message: DetectionMessage | BoundaryMessage
     source_time: float
+
+
+def _allowance(rate: float, seconds: float) -> float:
+    """The most sequence numbers a source announced at ``rate`` Hz can plausibly have advanced by in
+    ``seconds``: twice its rate, plus a second."""
+    return 2 * rate * max(0.0, seconds) + rate + 1
 
 
 class StreamTable:
@@ -278,10 +288,15 @@ class StreamTable:
             if last - seq <= rate or message.epoch is not None:
                 raise Refused("out_of_order", f"seq {seq} after {last}")
             self._new_run(s, s.epoch, now)  # numbered from its start again: a restarted source
-        elif last is not None and seq - last > 2 * rate * max(0.0, now - s.posed) + rate + 1:
-            raise Refused(
-                "implausible", f"seq {seq} after {last}: more frames than {now - s.posed:.2f} s hold"
-            )
+        elif last is not None and seq - last > _allowance(rate, now - s.posed):
+            jump, s.jump = s.jump, (seq, now)
+            if jump is None or not 0 < seq - jump[0] <= _allowance(rate, now - jump[1]):
+                raise Refused(
+                    "implausible", f"seq {seq} after {last}: more frames than {now - s.posed:.2f} s hold"
+                )
+            # the pose before it jumped as far and this one follows it: the source did jump (a
+            # gap, or a source faster than it said), so going on from here black-holes nothing
+        s.jump = None
         s.last_received = seq
         s.received += 1
         s.seen = s.posed = now
