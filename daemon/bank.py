@@ -104,10 +104,26 @@ class RecognizerBank:
         ValueError for a stream already in the bank, both or neither input, or a bad rate."""
         if stream in self._streams:
             raise ValueError(f"stream {stream!r} is already in the bank")
+        self._streams[stream] = self.recognizer(
+            stream, native_rate, skeleton=skeleton, joint_names=joint_names, session=session
+        )
+
+    def recognizer(
+        self,
+        stream: str,
+        native_rate: float,
+        *,
+        skeleton: Skeleton | None = None,
+        joint_names: Sequence[str] | None = None,
+        session: str | None = None,
+    ) -> Recognizer:
+        """The recogniser :meth:`add` would add, not added (ValueError as :meth:`add`'s, but for a
+        stream already in the bank): made before an old one is removed, nothing is lost when it
+        cannot be made. :meth:`put` adds it."""
         if (skeleton is None) == (joint_names is None):
             raise ValueError("give a skeleton (channels) or the joint names (positions), not both")
         check_native_rate(native_rate)
-        self._streams[stream] = Recognizer(
+        return Recognizer(
             self.library,
             float(native_rate),
             stream=stream,
@@ -119,6 +135,12 @@ class RecognizerBank:
             model=None if skeleton is None else skeleton_model(skeleton),
             joint_names=joint_names,
         )
+
+    def put(self, stream: str, recognizer: Recognizer) -> None:
+        """Add ``stream`` with a recogniser from :meth:`recognizer`; ValueError if it is in the bank."""
+        if stream in self._streams:
+            raise ValueError(f"stream {stream!r} is already in the bank")
+        self._streams[stream] = recognizer
 
     def remove(self, stream: str) -> list[Detection]:
         """Take ``stream`` out of the bank: its remaining detections (as :meth:`Recognizer.flush`).

@@ -293,6 +293,28 @@ def test_skeleton_change_repeat_and_eviction(library: Library) -> None:
     assert t.counts["idle"] == 1
 
 
+def test_a_refused_skeleton_change_leaves_the_stream_be(library: Library) -> None:
+    """A stream's skeleton replaced by one that cannot be recognised (two joints) is refused and the
+    stream goes on as it was, its motion's detections all still to come (before: the old stream was
+    taken out first, its last detections lost and its poses refused no_skeleton from then on)."""
+    m = motion()
+    t, whole = table(library), table(library)
+    for x in (t, whole):
+        announce(x)
+    early = []
+    for f, c in zip(m.frames.tolist(), m.channels, strict=True):
+        for x in (t, whole):
+            x.pose(PoseMessage("s", f, 0.0, channels=c), 1.0)
+        if f == int(m.frames[len(m) // 2]):
+            early = [e.message.id for e in drain(t)]
+            with pytest.raises(Refused) as caught:
+                t.skeleton(SkeletonMessage("s", 120.0, ("a", "b")), 1.0)
+            assert caught.value.reason == "skeleton"
+    keys = [[e.message.id for e in drain(x) + x.flush_all()] for x in (t, whole)]
+    assert early + keys[0] == keys[1] and keys[0]
+    assert t.counts["skeleton_changed"] == 0
+
+
 def test_wire_units_and_axes(library: Library) -> None:
     """Degrees on the wire are converted as the AMC reader converts them; z-up positions turned to
     y-up give the detections of y-up positions."""

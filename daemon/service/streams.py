@@ -210,9 +210,10 @@ class StreamTable:
                 raise Refused("skeleton", str(e)) from None
             if message.angle_unit == "deg":
                 angles = np.asarray(skeleton.angle_channels, dtype=np.intp)
-        out = self._remove(message.stream, "skeleton_changed") if old is not None else []
+        # everything that can refuse the new skeleton first: a refused one leaves the old stream be
+        segmenting = self._segmenting(message, skeleton)
         try:
-            self.bank.add(
+            recognizer = self.bank.recognizer(
                 message.stream,
                 message.rate,
                 skeleton=skeleton,
@@ -221,6 +222,8 @@ class StreamTable:
             )
         except (ValueError, MocapFormatError) as e:
             raise Refused("skeleton", str(e)) from None
+        out = self._remove(message.stream, "skeleton_changed") if old is not None else []
+        self.bank.put(message.stream, recognizer)
         self.streams[message.stream] = _Stream(
             message,
             skeleton,
@@ -229,7 +232,7 @@ class StreamTable:
             width=len(skeleton.channel_names) if skeleton is not None else len(message.joints or ()),
             seen=now,
             generation=(old.generation + 1) if old else 0,
-            segmenting=self._segmenting(message, skeleton),
+            segmenting=segmenting,
             epoch=message.epoch,
         )
         return out
