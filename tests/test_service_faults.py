@@ -282,6 +282,8 @@ def test_state_and_logs_are_bounded_by_what_is_live(tmp_path: Path) -> None:
             time.sleep(1.5)  # the housekeeping gives the memory back
             after.append(rss_kib(daemon.process.pid))
         assert after[2] < 1.1 * after[0], after
+        taken = [e for e in daemon.logs() if e["event"] == "skeleton"]
+        assert 20 <= len(taken) < 200  # not 1,800: 20 per 10 s, then one saying how many were not
         assert daemon.alive
     finally:
         sender.close()

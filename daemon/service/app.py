@@ -68,14 +68,17 @@ class _Stop(Exception):
 
 class EventLog:
     """Structured warnings, one JSON line per event; per reason the first is logged (with its
-    stream) and then at most one every ``every_s`` seconds, saying how many were not. Per reason,
-    not per stream: a flood of new stream ids must not grow the log or the memory."""
+    stream) and then at most one every ``every_s`` seconds, saying how many were not; informational
+    per-stream events likewise, ``burst`` at a time. Per reason or event, not per stream: a flood of
+    new stream ids must not grow the log or the memory."""
 
-    def __init__(self, logger: logging.Logger, every_s: float = 10.0) -> None:
+    def __init__(self, logger: logging.Logger, every_s: float = 10.0, burst: int = 20) -> None:
         self.logger = logger
         self.every_s = every_s
+        self.burst = burst
         self._last: dict[str, float] = {}
         self._quiet: Counter[str] = Counter()
+        self._window: dict[str, tuple[float, int]] = {}
 
     def warn(self, stream: str, reason: str, detail: str) -> None:
         key = reason
@@ -92,6 +95,21 @@ class EventLog:
                 "fields": {"stream": stream, "reason": reason, "detail": detail, "since_last": suppressed}
             },
         )
+
+    def info(self, event: str, fields: dict[str, Any]) -> None:
+        """An informational per-stream event (a skeleton taken, one cleared): per event at most
+        ``burst`` lines every ``every_s`` seconds, the next one saying how many were not logged, so
+        a few streams are logged in full and a flood of new ids is not."""
+        key, now = f"info {event}", time.monotonic()
+        start, n = self._window.get(key, (now, 0))
+        if now - start >= self.every_s:
+            start, n = now, 0
+        if n >= self.burst:
+            self._quiet[key] += 1
+            return
+        self._window[key] = (start, n + 1)
+        suppressed = self._quiet.pop(key, 0)
+        self.logger.info(event, extra={"fields": fields | ({"since_last": suppressed} if suppressed else {})})
 
 
 class JsonFormatter(logging.Formatter):
@@ -198,7 +216,7 @@ class Service:
             if parsed is None or parsed[1] not in ("skeleton", "pose"):
                 raise Refused("topic", f"not a topic mocapd takes: {incoming.topic[:80]!r}")
             if not incoming.payload and parsed[1] == "skeleton":
-                self.log.info("skeleton cleared", extra={"fields": {"stream": stream}})
+                self.events.info("skeleton cleared", {"stream": stream})
                 self.metrics.messages["clear"] += 1
                 return []  # MQTT's way to delete a retained skeleton: nothing to take in
             message = decode(incoming.payload, self.config.service.max_message_bytes)
@@ -220,10 +238,7 @@ class Service:
             out = self.table.skeleton(message, now)
             self.metrics.messages["skeleton"] += 1
             if before != message:  # not a repeated announcement
-                self.log.info(
-                    "skeleton",
-                    extra={"fields": {"stream": stream, "kind": message.kind, "rate": message.rate}},
-                )
+                self.events.info("skeleton", {"stream": stream, "kind": message.kind, "rate": message.rate})
             return out
         except WireError as e:
             self.rejects[e.reason] += 1
