@@ -28,7 +28,6 @@ import sys
 import tempfile
 import threading
 import time
-import urllib.request
 from collections.abc import Callable
 from pathlib import Path
 
@@ -40,39 +39,12 @@ from paho.mqtt.enums import CallbackAPIVersion
 
 from bench.common import DATA
 from bench.machine import describe
+from bench.processes import free_port, rss_kib, scrape, wait_port
 from daemon.recordings import read_recording
 from protocols.messages import PoseMessage, SkeletonMessage, encode
 from replay.catalog import CMU_SUBSTITUTES, recordings
 
 RATE = 120.0
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port: int = s.getsockname()[1]
-        return port
-
-
-def wait_port(port: int, timeout: float = 10) -> None:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        with socket.socket() as s:
-            if s.connect_ex(("127.0.0.1", port)) == 0:
-                return
-        time.sleep(0.05)
-    raise SystemExit(f"nothing listens on port {port}")
-
-
-def metrics(port: int) -> dict[str, float]:
-    with urllib.request.urlopen(f"http://127.0.0.1:{port}/metrics", timeout=5) as r:
-        text = r.read().decode()
-    out = {}
-    for line in text.splitlines():
-        if line and not line.startswith("#"):
-            name, value = line.rsplit(" ", 1)
-            out[name] = float(value)
-    return out
 
 
 def lost(m: dict[str, float]) -> float:
@@ -287,13 +259,13 @@ def main() -> None:
     held = 0
     try:
         for size in sizes:
-            before = metrics(metrics_port)
+            before = scrape(metrics_port)
             load.run(size, 2.0, f"w{size}-")  # warm-up: the recognisers made, the phases spread
             load.take_latencies()
-            warm = metrics(metrics_port)
+            warm = scrape(metrics_port)
             sent = load.run(size, args.seconds, f"w{size}-")
             time.sleep(0.5)
-            after = metrics(metrics_port)
+            after = scrape(metrics_port)
             received = after.get("mocapd_frames_in_total", 0) - warm.get("mocapd_frames_in_total", 0)
             behind = after.get("mocapd_queued_poses", 0)
             gone = lost(after) - lost(before) + max(0.0, sent - received)
@@ -308,7 +280,7 @@ def main() -> None:
             )
             time.sleep(1.0)
         print(f"largest size held with no drops: {held} streams of {RATE:g} Hz (aim: >= 100, p99 <= 20 ms)")
-        print(json.dumps({"daemon_rss_kib": _rss(daemon.pid)}))
+        print(json.dumps({"daemon_rss_kib": rss_kib(daemon.pid)}))
     finally:
         daemon.terminate()
         daemon.wait(30)
@@ -316,13 +288,6 @@ def main() -> None:
             broker.terminate()
             broker.wait(10)
         shutil.rmtree(work, ignore_errors=True)
-
-
-def _rss(pid: int) -> int:
-    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-        if line.startswith("VmRSS:"):
-            return int(line.split()[1])
-    return 0
 
 
 if __name__ == "__main__":

@@ -39,14 +39,12 @@ import getpass
 import math
 import shutil
 import signal
-import socket
 import statistics
 import subprocess
 import sys
 import tempfile
 import threading
 import time
-import urllib.request
 from collections import Counter, defaultdict
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -59,6 +57,7 @@ import numpy as np
 
 from bench.common import DATA
 from bench.machine import describe
+from bench.processes import free_port, listening, rss_kib, scrape
 from daemon.features import decimation_factor
 from daemon.library import Library, default_library_path, load_library
 from daemon.recognizer import detect_positions
@@ -170,13 +169,6 @@ class Outcome:
 # ------------------------------------------------------------------------------------ processes
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port: int = s.getsockname()[1]
-        return port
-
-
 def wait(condition: Callable[[], bool], timeout: float, step: float = 0.02) -> bool:
     deadline = time.monotonic() + timeout
     while not condition():
@@ -184,12 +176,6 @@ def wait(condition: Callable[[], bool], timeout: float, step: float = 0.02) -> b
             return False
         time.sleep(step)
     return True
-
-
-def listening(port: int) -> bool:
-    with socket.socket() as s:
-        s.settimeout(0.2)
-        return s.connect_ex(("127.0.0.1", port)) == 0
 
 
 def clip_files(data: Path, name: str) -> tuple[Path, Path]:
@@ -271,16 +257,7 @@ class DaemonProcess:
             self.process.wait(30)
 
     def metrics(self) -> dict[str, float]:
-        """The /metrics samples by name with labels."""
-        url = f"http://127.0.0.1:{self.metrics_port}/metrics"
-        with urllib.request.urlopen(url, timeout=10) as response:
-            text = response.read().decode()
-        out = {}
-        for line in text.splitlines():
-            if line and not line.startswith("#"):
-                name, value = line.rsplit(" ", 1)
-                out[name] = float(value)
-        return out
+        return scrape(self.metrics_port)
 
     def taken(self, stream: str) -> float:
         try:
@@ -290,10 +267,7 @@ class DaemonProcess:
 
     def rss_mib(self) -> float:
         assert self.process is not None
-        for line in Path(f"/proc/{self.process.pid}/status").read_text().splitlines():
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1]) / 1024
-        raise RuntimeError("no VmRSS")
+        return rss_kib(self.process.pid) / 1024
 
 
 def yaml_text(config: dict[str, Any]) -> str:

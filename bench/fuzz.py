@@ -72,9 +72,9 @@ import paho.mqtt.client as paho
 import zmq
 from paho.mqtt.enums import CallbackAPIVersion
 
-from bench.bench_service import free_port, metrics, wait_port
 from bench.common import DATA
 from bench.machine import describe
+from bench.processes import free_port, rss_kib, scrape, wait_port
 from daemon.library import default_library_path, load_library
 from daemon.recognizer import detect
 from daemon.recordings import read_recording
@@ -854,15 +854,12 @@ class Daemon:
     def metrics(self) -> dict[str, float]:
         """The /metrics samples (none if the daemon does not answer)."""
         try:
-            return metrics(self.metrics_port)
+            return scrape(self.metrics_port)
         except OSError:
             return {}
 
     def rss_kib(self) -> int:
-        for line in Path(f"/proc/{self.process.pid}/status").read_text().splitlines():
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1])
-        return 0
+        return rss_kib(self.process.pid)
 
     def stop(self) -> int:
         if self.alive:
