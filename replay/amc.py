@@ -212,7 +212,8 @@ class AmcStream:
                     where = "the file ends" if words is None else f"frame {words[0].decode('latin-1')} starts"
                     raise self._error(
                         f"frame {number} (line {start}) is incomplete when {where}: no line for "
-                        + ", ".join(missing),
+                        + ", ".join(missing)
+                        + f" (bones of {self.skeleton.source})",
                         self._line + 1 if words is None else None,
                     )
                 name = words[0]
@@ -222,7 +223,8 @@ class AmcStream:
                         continue
                     if name in layout.dofless:
                         raise self._error(
-                            f"bone '{name.decode('latin-1')}' has no dofs but {len(words) - 1} values"
+                            f"bone '{name.decode('latin-1')}' has no dofs in {self.skeleton.source} but "
+                            f"{len(words) - 1} values"
                         )
                     raise self._error(
                         f"bone '{name.decode('latin-1')}' is not defined in {self.skeleton.source}"
@@ -232,7 +234,8 @@ class AmcStream:
                 at, count = slot
                 if len(words) - 1 != count:
                     raise self._error(
-                        f"bone '{name.decode('latin-1')}' needs {count} values, got {len(words) - 1}"
+                        f"bone '{name.decode('latin-1')}' needs {count} values, got {len(words) - 1} "
+                        f"({count} dofs in {self.skeleton.source})"
                     )
                 for k in range(count):
                     try:

@@ -546,3 +546,22 @@ def test_asf_bad_bone_field(
     at = field_line(lines, "lfemur", field)
     set_words(lines, at, [field, *value])
     check_bad_asf(write(tmp_path / "field.asf", lines), at, *words)
+
+
+def test_an_amc_that_does_not_fit_its_skeleton_names_the_asf_too(tmp_path: Path) -> None:
+    """A damaged ASF can still parse: one bone lost a dof. Reading the (intact) AMC against it then
+    fails on that bone's first line, and the error names the ASF as well, the file that is wrong
+    (before: only the AMC, which the fuzz run of ``mocapd search`` took for a misattribution)."""
+    asf, amc = SOURCES["hdm05"]
+    text = asf.read_text(encoding="latin-1")
+    # rfemur's rz, and its limits with it
+    damaged = re.sub(
+        r"(name rfemur\b.*?dof rx ry) rz(.*?\(.*?\).*?\(.*?\))\s*\(.*?\)", r"\1\2", text, count=1, flags=re.S
+    )
+    assert damaged != text
+    path = tmp_path / "damaged.asf"
+    path.write_text(damaged, encoding="latin-1")
+    for read in (read_amc, lambda a, s: list(iter_amc(a, s))):
+        with pytest.raises(MocapFormatError) as caught:
+            read(amc, read_asf(path))
+        assert "rfemur" in caught.value.reason and str(path) in caught.value.reason, str(caught.value)
