@@ -654,7 +654,7 @@ class _PpcaRun:
         paper says (the square root is missing from Eq. 10 as our copy of the text renders it):
         a frame of the model's own distribution is about ``sqrt(D)`` away, so R = 15 is a clear
         change. The squared form runs at 10² to 10⁴ within one behaviour here and moves by more than 15
-        between two values of K, so nearly every bump of ``H`` became a cut (README)."""
+        between two values of K, so nearly every bump of ``H`` became a cut (docs/segmentation.md)."""
         eigenvalues, vectors = np.linalg.eigh(self.moments.scatter())
         eigenvalues = np.maximum(eigenvalues, 0.0)
         r = dimension(eigenvalues, self.p.tau)

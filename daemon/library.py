@@ -250,8 +250,8 @@ def learn_class(
     strategy 5) and its quantisation by ``delta``, hard MT (thesis §3.3.1) and ``keyframes`` automatic
     keyframes from it (thesis ch. 6; 0 = none). ``steps``: the DTW steps retrieval will use; the
     toolbox's (1,1), (1,2), (2,1) by default, whose slopes between ½ and 2 keep a template from
-    matching a much shorter or longer stretch (README: on HDM05 they raise precision at τ = 0.1 from
-    0.09-0.6 to 0.3-1 on the weakest classes at the same recall). ``calibration``: the class's
+    matching a much shorter or longer stretch (measured in docs/search-and-templates.md).
+    ``calibration``: the class's
     calibrated τ (:func:`daemon.calibration.calibrate`), which then replaces ``tau``; without it,
     ``tau`` is recorded as given. ``generalisation``: how far the keyframes reach beyond the training
     actors (:class:`daemon.templates.Generalisation`; calibration chooses it). ``mode`` and

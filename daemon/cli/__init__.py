@@ -43,8 +43,9 @@ COMMANDS = (
 EXIT_USAGE = 2
 EXIT_BUG = 70
 BUG_REPORT = (
-    "this is a bug in mocapd; please report it to the mocapd developers (README, 'Reporting bugs') "
-    "with the command line and the output of the same command with --debug"
+    "this is a bug in mocapd; please report it to the mocapd developers "
+    "(docs/command-line.md, 'Reporting bugs') with the command line and the output of the same "
+    "command with --debug"
 )
 
 
