@@ -3,6 +3,7 @@ listen, a daemon's /metrics samples and a process's resident memory."""
 
 from __future__ import annotations
 
+import random
 import socket
 import time
 import urllib.request
@@ -10,10 +11,22 @@ from pathlib import Path
 
 
 def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port: int = s.getsockname()[1]
-        return port
+    """A TCP port on loopback nobody listens on now, below the kernel's ephemeral range: a port the
+    kernel hands out (bind to 0) can be taken by any process's outgoing connection before the
+    daemon binds it (seen in CI: "address already in use" for a port just found free)."""
+    try:
+        low = int(Path("/proc/sys/net/ipv4/ip_local_port_range").read_text().split()[0])
+    except (OSError, ValueError, IndexError):
+        low = 32768
+    for _ in range(100):
+        port = random.randrange(max(1024, low - 12000), low)
+        with socket.socket() as s:
+            try:
+                s.bind(("127.0.0.1", port))
+            except OSError:
+                continue
+            return port
+    raise RuntimeError("no free loopback port below the ephemeral range")
 
 
 def listening(port: int) -> bool:

@@ -1,12 +1,31 @@
-"""Fixtures only; shared helpers are in :mod:`tests.helpers`, slow references in :mod:`tests.naive`."""
+"""Fixtures and the Hypothesis profiles; shared helpers are in :mod:`tests.helpers`, slow references
+in :mod:`tests.naive`.
+
+Hypothesis runs derandomized by default (profile ``fixed``: the same examples on every run, no
+example database), so CI fails only on what anyone can reproduce; ``HYPOTHESIS_PROFILE=random``
+draws fresh examples, keeping failures in a database under the system's temporary directory. A
+failure found that way is committed as an explicit ``@example`` or a named test."""
 
 from __future__ import annotations
 
+import os
+import tempfile
 from pathlib import Path
 
 import pytest
+from hypothesis import settings
+from hypothesis.database import DirectoryBasedExampleDatabase
 
 from tests.helpers import DATA, SHARED
+
+settings.register_profile("fixed", derandomize=True, database=None, print_blob=True)
+settings.register_profile(
+    "random",
+    derandomize=False,
+    print_blob=True,
+    database=DirectoryBasedExampleDatabase(Path(tempfile.gettempdir()) / "mocapd-hypothesis"),
+)
+settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "fixed"))
 
 
 @pytest.fixture(scope="session", autouse=True)

@@ -168,6 +168,7 @@ def shipped() -> list[KeyframeQuery]:
     return queries
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("pair", recording_pairs(), ids=pair_id)
 def test_automaton_equals_batch_on_real_recordings(
     pair: tuple[Path, Path], shipped: list[KeyframeQuery]

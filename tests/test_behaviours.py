@@ -309,6 +309,7 @@ def test_ppca_forward_pass_equals_the_paper_read_literally(
     assert np.allclose(got.h, [h for _, h in trace], rtol=1e-8)
 
 
+@pytest.mark.slow
 @settings(deadline=None, max_examples=3000)
 @given(st.lists(st.integers(0, 6), max_size=30), st.integers(0, 4), st.integers(0, 8))
 @example([0, 2, 2, 5, 1], 1, 0)  # no valley: H never fell
@@ -387,6 +388,7 @@ def test_the_ppca_stream_returns_a_cut_when_its_peak_is_confirmed() -> None:
 # ------------------------------------------------------------------------------- the real files
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("trial", REAL)
 def test_the_streams_equal_their_batch_twins_on_real_recordings(trial: str) -> None:
     x = frames(trial)
@@ -462,6 +464,7 @@ def test_a_recording_that_stands_still_has_no_cut() -> None:
     assert np.all(pca.error == 0.0) and np.all(ppca.h == 0.0)
 
 
+@pytest.mark.slow
 def test_standing_still_inside_a_recording_is_cut_where_it_ends() -> None:
     m = motion("86_01")
     channels = np.concatenate(

@@ -331,6 +331,7 @@ def as_fold(parts: FoldParts, group: str = "g") -> Fold:
     return fold_of(group, list(truth), list(candidates), owner, learned, length)
 
 
+@pytest.mark.slow
 @settings(max_examples=300, deadline=None)
 @hypothesis_given(st.data())
 def test_survivors_outcomes_and_scores_match_the_slow_references(data: st.DataObject) -> None:
@@ -402,6 +403,7 @@ def test_thresholds_are_found_again_with_the_rivals_tau() -> None:
     assert got[1] is not None and (got[1].tau, got[1].recall, got[1].feasible) == (0.1, 0.5, False)
 
 
+@pytest.mark.slow
 @settings(max_examples=100, deadline=None)
 @hypothesis_given(st.data())
 def test_thresholds_are_rounds_of_choose_tau_on_the_slow_outcomes(data: st.DataObject) -> None:
@@ -562,6 +564,7 @@ def test_stream_candidates_are_the_local_minima_up_to_the_cap(labelled: Labelled
     assert stream_candidates(template, np.zeros(0, dtype=np.uint64), "toolbox", 4) == []
 
 
+@pytest.mark.slow
 def test_calibration_leaves_each_actor_out(labelled: Labelled, calibrated: Calibrated) -> None:
     names = list(labelled)
     found = calibrated.folds
@@ -931,6 +934,7 @@ def test_library_v4_calibration_errors_name_the_field(
 # ------------------------------------------------------------------------------------------- CLI
 
 
+@pytest.mark.slow
 def test_learn_calibrates_and_search_uses_the_class_tau(
     manifest: Path, labelled: Labelled, tmp_path: Path
 ) -> None:
@@ -996,6 +1000,7 @@ def test_learn_calibrates_and_search_uses_the_class_tau(
     assert "tau 0.1 given, toolbox steps" in given_run.stdout.splitlines()[0]
 
 
+@pytest.mark.slow
 def test_learn_with_one_actor_calibrates_on_groups_of_takes(tmp_path: Path) -> None:
     clips = [(c, "bd", t) for c in ("squat1Reps", "hopBothLegs1hops") for t in takes(c, "bd")[:3]]
     manifest = write_clips(tmp_path / "bd.csv", clips)

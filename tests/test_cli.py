@@ -46,6 +46,7 @@ def info_fields(stdout: str) -> dict[str, str]:
 # info
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("script", [False, True], ids=["python-m-daemon", "mocapd-script"])
 def test_info_text(script: bool) -> None:
     assert MOCAPD_SCRIPT.is_file()
@@ -90,6 +91,7 @@ def test_info_json() -> None:
     assert (summary["angle_unit"], summary["length_unit"], summary["skeleton"]) == ("deg", 0.45, "VICON")
 
 
+@pytest.mark.slow
 def test_info_fps_60_doubles_the_duration() -> None:
     at_120, at_60 = info_json(), info_json("--native-fps", "60")
     assert at_60["frame_rate_hz"] == 60.0
@@ -221,6 +223,7 @@ def test_positions_stdout_closed_early() -> None:
 # bad input: exit status 2, one line on stderr naming the file (and the line)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("command", ["info", "positions"])
 @pytest.mark.parametrize("missing", ["asf", "amc"])
 def test_missing_file(tmp_path: Path, command: str, missing: str) -> None:
@@ -243,6 +246,7 @@ def malformed_amc(tmp_path: Path) -> tuple[Path, int]:
     return path, at
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("command", ["info", "positions"])
 def test_malformed_amc(tmp_path: Path, command: str) -> None:
     path, at = malformed_amc(tmp_path)
@@ -276,6 +280,7 @@ def test_malformed_asf(tmp_path: Path) -> None:
     assert line == f"mocapd: {path}:{at}: unknown dof 'rq'"
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("fps", ["0", "-60", "nan"])
 def test_info_bad_fps(fps: str) -> None:
     """A frame rate that is not a positive number is a bad option: exit 2, no traceback, no nonsense

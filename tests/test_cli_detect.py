@@ -63,6 +63,7 @@ def test_readable_lines_and_classes(library: tuple[Library, Path]) -> None:
     assert summary.startswith("1 detections in 179 frames (1.5 s at 120 Hz), 1 classes")
 
 
+@pytest.mark.slow
 def test_paced_by_the_clock(library: tuple[Library, Path]) -> None:
     """At twice real time, 179 frames at 120 Hz take at least 0.74 s; as fast as possible, the
     same detections."""
@@ -77,6 +78,7 @@ def test_paced_by_the_clock(library: tuple[Library, Path]) -> None:
     assert strip == [{**json.loads(line), "id": ""} for line in fast.stdout.splitlines()]
 
 
+@pytest.mark.slow
 def test_png_with_truth(library: tuple[Library, Path], tmp_path: Path) -> None:
     _, path = library
     truth = tmp_path / "truth.csv"
@@ -102,6 +104,7 @@ def test_png_with_truth(library: tuple[Library, Path], tmp_path: Path) -> None:
     assert out.read_bytes().startswith(b"\x89PNG")
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     ("extra", "message"),
     [

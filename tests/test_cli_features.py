@@ -109,6 +109,7 @@ def test_one_row_per_amc_frame_equal_to_the_library(
     assert table.matrix.any(axis=0).sum() >= 10
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("clip", sorted(ORACLE_CLIPS))
 def test_matches_the_toolbox_oracle(clip: str, tmp_path: Path) -> None:
     """Same header, frame numbers and 0/1 values as the original toolbox (120 Hz) on its 4 clips."""
@@ -137,6 +138,7 @@ def test_csv_to_stdout(cmu_csv: FeatureCsv) -> None:
 # --fps: decimation
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(("fps", "step"), [("120", 1), ("60", 2), ("30", 4), ("40", 3)])
 def test_fps_keeps_every_kth_frame_from_the_first(
     fps: str, step: int, tmp_path: Path, cmu_motion: Motion, cmu_batch: npt.NDArray[np.bool_]
@@ -159,6 +161,7 @@ def test_fps_keeps_every_kth_frame_from_the_first(
 # --png
 
 
+@pytest.mark.slow
 def test_png(tmp_path: Path, cmu_csv: FeatureCsv) -> None:
     """``--png`` writes a real PNG picture of the matrix, besides the unchanged CSV."""
     import matplotlib.image
@@ -184,6 +187,7 @@ def test_png(tmp_path: Path, cmu_csv: FeatureCsv) -> None:
 # bad input: exit status 2, one line on stderr naming the option or the file (and the line), no output
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("fps", ["50", "7", "240"])
 def test_fps_that_does_not_divide_the_native_rate(tmp_path: Path, fps: str) -> None:
     out = tmp_path / "out.csv"
@@ -195,6 +199,7 @@ def test_fps_that_does_not_divide_the_native_rate(tmp_path: Path, fps: str) -> N
     assert not out.exists()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("fps", ["0", "-30", "nan", "abc"])
 def test_fps_that_is_not_a_positive_number(tmp_path: Path, fps: str) -> None:
     out = tmp_path / "out.csv"
@@ -259,6 +264,7 @@ def test_amc_truncated_in_the_middle_of_a_frame(tmp_path: Path) -> None:
     assert "frame 17" in reason and "incomplete" in reason and "lfemur" in reason
 
 
+@pytest.mark.slow
 def test_amc_with_a_short_bone_line(tmp_path: Path) -> None:
     """Frame 100's ``rfemur`` line lost one of its 3 values: the error names that exact line."""
     lines = amc_lines()
@@ -268,7 +274,9 @@ def test_amc_with_a_short_bone_line(tmp_path: Path) -> None:
     lines[at - 1] = " ".join(words[:3]) + "\r"
     path = tmp_path / "short.amc"
     path.write_bytes("\n".join(lines).encode("latin-1"))
-    line, reason = check_format_error(tmp_path, path, r"bone 'rfemur' needs 3 values, got 2 \(3 dofs in .*\.asf\)$")
+    line, reason = check_format_error(
+        tmp_path, path, r"bone 'rfemur' needs 3 values, got 2 \(3 dofs in .*\.asf\)$"
+    )
     assert line == at
     assert "rfemur" in reason
 

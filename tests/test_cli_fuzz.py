@@ -445,6 +445,7 @@ def recording_argv(command: str, where: Path, asf: Path, amc: Path) -> list[str 
     return argv
 
 
+@pytest.mark.slow
 @given(
     command=st.sampled_from(["info", "positions", "features", "segment"]),
     damaged=st.sampled_from(["asf", "amc", "config"]).flatmap(
@@ -512,6 +513,7 @@ RECORDING_OPTIONS = {
 }
 
 
+@pytest.mark.slow
 @given(
     options=st.sampled_from(sorted(RECORDING_OPTIONS)).flatmap(
         lambda c: st.tuples(st.just(c), chosen(RECORDING_OPTIONS[c]))
@@ -532,6 +534,7 @@ def test_recording_commands_with_random_options(
         run(capsys, where, argv, option_names(given_options))
 
 
+@pytest.mark.slow
 @given(
     png=st.one_of(
         st.sampled_from(
@@ -563,6 +566,7 @@ def index_manifest(where: Path, recordings: Sequence[tuple[Path, Path]]) -> Path
     return write_manifest(where / "db.csv", recordings, extra=False)
 
 
+@pytest.mark.slow
 @given(
     damaged=st.sampled_from(["manifest", *(f"{k}{i}" for i in range(len(INDEXED)) for k in ("asf", "amc"))]),
     data=st.data(),
@@ -596,6 +600,7 @@ INDEX_BUILD_OPTIONS = [
 ]
 
 
+@pytest.mark.slow
 @given(options=chosen(INDEX_BUILD_OPTIONS))
 @fuzz(50)
 def test_index_build_with_random_options(
@@ -687,6 +692,7 @@ def prepare_search(valid: Valid, where: Path) -> None:
     shutil.copy(valid.keyframes, where / "keyframes.json")
 
 
+@pytest.mark.slow
 @given(
     command=st.sampled_from(["info", *SEARCHES]),
     file=st.sampled_from(INDEX_FILES),
@@ -747,6 +753,7 @@ def reseal_library(library: Path, name: str, arrays: dict[str, Any]) -> None:
     (library / "library.json").write_text(json.dumps(meta))
 
 
+@pytest.mark.slow
 @given(
     mode=st.sampled_from(SEARCHES),
     file=st.sampled_from(["keyframes.json", *LIBRARY_FILES, "example.asf", "example.amc"]),
@@ -820,6 +827,7 @@ SEARCH_OPTIONS = {
 }
 
 
+@pytest.mark.slow
 @given(options=st.sampled_from(SEARCHES).flatmap(lambda m: st.tuples(st.just(m), chosen(SEARCH_OPTIONS[m]))))
 @fuzz(150)
 def test_search_with_random_options(
@@ -847,6 +855,7 @@ def test_search_with_random_options(
 # ------------------------------------------------------------------------------------------ learn
 
 
+@pytest.mark.slow
 @given(
     damaged=st.sampled_from(
         ["manifest", *(f"{k}{i}" for i in range(len(TRAINING_CLIPS)) for k in ("asf", "amc"))]
@@ -889,6 +898,7 @@ LEARN_OPTIONS = [
 ]
 
 
+@pytest.mark.slow
 @given(options=chosen(LEARN_OPTIONS))
 @fuzz(60)
 def test_learn_with_random_options(
@@ -900,6 +910,7 @@ def test_learn_with_random_options(
         run_with_options(capsys, where, ["learn", "--manifest", manifest], options)
 
 
+@pytest.mark.slow
 @given(
     png=st.sampled_from(["png", "known.png", "new/dir", "no\x1b/x", ".", "png/squat1Reps.png"]),
     fps=st.sampled_from(["30", "7"]),
@@ -922,6 +933,7 @@ BINARY = b"{\n \x00\x01\x1b[31m\xff\xfe\x85 nan\r\n" + bytes(range(256))
 """Binary junk with control characters, bytes that are not UTF-8 and line breaks of every kind."""
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     "case", ["info-amc", "features-asf", "config", "index-build-amc", "index-info-npy", "search-keyframes",
              "search-npz", "learn-manifest"]
@@ -981,6 +993,7 @@ def test_damaged_inputs_in_a_real_process(valid: Valid, tmp_path: Path, case: st
     assert snapshot(tmp_path) == before
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     ("options", "status"),
     [

@@ -62,6 +62,7 @@ def test_build(built: tuple[Path, str, str], manifest: Path) -> None:
     assert sorted(os.listdir(out.parent)) == ["idx"]
 
 
+@pytest.mark.slow
 def test_build_at_60_hz_replaces_the_index(manifest: Path, tmp_path: Path) -> None:
     out = tmp_path / "idx"
     assert mocapd("index", "build", "--manifest", manifest, "--out", out).returncode == 0

@@ -76,6 +76,7 @@ def assert_same_library(got: Library, expected: Library) -> None:
         assert len(mine.variants) == len(cls.variants)
 
 
+@pytest.mark.slow
 def test_learn_writes_the_library_the_code_learns(learned: Learned) -> None:
     manifest, where, stdout, stderr = learned
     library = load_library(where / "lib")
@@ -153,6 +154,7 @@ def published(learned: Learned, tmp_path_factory: pytest.TempPathFactory) -> Pub
     return file, where / "lib", result.stdout
 
 
+@pytest.mark.slow
 def test_learn_with_keyframes_given_in_a_file(learned: Learned, published: Published) -> None:
     """The classes the file names are gated by its keyframes; the others are learned as without it."""
     file, lib, stdout = published
@@ -228,6 +230,7 @@ def test_search_library_prints_the_ranking(learned: Learned, keyframes: Path | N
     assert {h["document"] for h in expected[:2]} == {str(hdm05_clip(*c)[1]) for c in DATABASE[:2]}
 
 
+@pytest.mark.slow
 def test_search_library_text_and_own_keyframes(learned: Learned, published: Published) -> None:
     """``--keyframes`` without a file: the class's own keyframes (here the published ones it was
     learned with), as if their file were given; a class found by the stream-wide DTW has none."""
@@ -248,6 +251,7 @@ def test_search_library_text_and_own_keyframes(learned: Learned, published: Publ
         assert line == f"mocapd: {where / 'lib'}: class squat1Reps has no keyframes"
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     ("args", "message"),
     [
@@ -286,6 +290,7 @@ def test_search_library_rate_mismatch(learned: Learned, tmp_path: Path) -> None:
     assert "index.json: rate: 30 Hz" in line and "was learned at 60 Hz" in line
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     ("rows", "options", "message"),
     [

@@ -98,6 +98,7 @@ def without_matplotlib(tmp_path: Path) -> dict[str, str]:
 # --------------------------------------------------------------------------- tracebacks -> one line
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("damage", ["truncated", "bit-flipped"])
 def test_damaged_npz_names_it_and_spares_the_other_classes(copy: Path, damage: str) -> None:
     npz = copy / "lib" / "squat1Reps.npz"
@@ -152,6 +153,7 @@ def test_index_naming_a_document_out_of_range(copy: Path) -> None:
         assert line == f"mocapd: {index / 'mix.doc.npy'}: {reason}"
 
 
+@pytest.mark.slow
 def test_wrong_dtype_and_garbage_npy_are_one_plain_line(copy: Path) -> None:
     index = copy / "idx"
     code = index / "lower.code.npy"
@@ -199,6 +201,7 @@ def test_binary_amc_bytes_are_escaped(tmp_path: Path) -> None:
 # --------------------------------------------------------------------------- outputs: checked first
 
 
+@pytest.mark.slow
 def test_png_extension_checked_before_the_csv_is_written(tmp_path: Path) -> None:
     csv = tmp_path / "out.csv"
     csv.write_text("previous\n")
@@ -261,6 +264,7 @@ def test_device_output_errors_name_the_device() -> None:
     assert line == "mocapd: /dev/full: No space left on device"
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("command", ["positions", "index", "learn"])
 def test_unwritable_output_found_before_the_work(tmp_path: Path, command: str) -> None:
     """/sys cannot be written even by root: the target is refused at once, named as given (no
@@ -283,6 +287,7 @@ def test_unwritable_output_found_before_the_work(tmp_path: Path, command: str) -
 # --------------------------------------------------------------------------- silent wrong answers
 
 
+@pytest.mark.slow
 def test_example_outside_the_recording_is_refused(built: Path) -> None:
     for start, end in (("-20", "40"), ("0", "40"), ("100", "141"), ("40", "20")):
         result = mocapd(
@@ -305,6 +310,7 @@ def test_example_outside_the_recording_is_refused(built: Path) -> None:
 # --------------------------------------------------------------------------------- confusing output
 
 
+@pytest.mark.slow
 def test_library_search_reports_the_total_not_the_limit(built: Path) -> None:
     every = search_library(built, "squat1Reps", "--tau", "0.3", "--json")
     assert_ok(every)
@@ -325,6 +331,7 @@ def test_search_help_explains_adaptive_fuzzy_and_offers_plain() -> None:
     assert "--plain" in text and "a plain fuzzy query instead of an adaptive one" in text
 
 
+@pytest.mark.slow
 def test_document_paths_are_for_the_working_directory(built: Path) -> None:
     """The index's manifest lists relative paths: hits name each recording so that it opens from where
     the command runs (relative below the working directory, else absolute)."""
@@ -372,6 +379,7 @@ def test_version() -> None:
         assert result.stdout == f"mocapd {version('mocapd')}\n"
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     ("args", "message"),
     [
@@ -430,6 +438,7 @@ def test_internal_error_is_one_line_saying_it_is_a_bug(
     assert err.splitlines()[-1].startswith("mocapd: internal error: ZeroDivisionError")
 
 
+@pytest.mark.slow
 def test_learn_png_directory_is_checked_first_and_made_only_for_pictures(tmp_path: Path) -> None:
     bad = write_training(tmp_path / "clips.csv", ["squat1Reps,missing.asf,missing.amc,,"])
     line = assert_one_error_line(

@@ -60,6 +60,7 @@ def expected_keyframe_rows(index: MotionIndex, name: str, extend: tuple[int, int
     return rows
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ["squat1Reps", "kickLFront1Reps", "hopBothLegs1hops"])
 def test_keyframe_search_json(index_dir: Path, name: str) -> None:
     result = mocapd("search", "--index", index_dir, "--keyframes", KEYFRAMES, "--class", name, "--json")
@@ -75,6 +76,7 @@ def test_keyframe_search_json(index_dir: Path, name: str) -> None:
         assert doc.first_amc_frame <= r["start_frame"] <= r["end_frame"] <= doc.last_amc_frame
 
 
+@pytest.mark.slow
 def test_keyframe_search_extend_and_text(index_dir: Path) -> None:
     args: list[str | Path] = [
         "search",
@@ -147,6 +149,7 @@ def library_example_rows(
     return rows
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     ("example", "fuzzy", "plain", "mismatch"),
     [
@@ -191,6 +194,7 @@ def test_query_by_example_rows_equal_the_library(
     assert costs == sorted(costs)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     ("extra", "message"),
     [

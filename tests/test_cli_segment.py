@@ -26,6 +26,7 @@ def expected_cuts(method: bh.Method) -> list[int]:
     return [int(motion.frames[b.frame]) for b in bh.segment(x, native_rate(motion), method)]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("method", ["pca", "ppca", "gmm"])
 def test_json_lines_are_the_methods_cuts(method: bh.Method) -> None:
     result = mocapd("segment", "--asf", ASF, "--amc", AMC, "--method", method, "--json")
@@ -35,6 +36,7 @@ def test_json_lines_are_the_methods_cuts(method: bh.Method) -> None:
     assert [c["frame"] for c in got] == expected_cuts(method) != []
 
 
+@pytest.mark.slow
 def test_readable_lines_scored_against_the_truth_and_drawn(tmp_path: Path) -> None:
     png = tmp_path / "s.png"
     result = mocapd("segment", "--asf", ASF, "--amc", AMC, "--method", "pca", "--truth", CMU86, "--png", png)
@@ -51,6 +53,7 @@ def test_readable_lines_scored_against_the_truth_and_drawn(tmp_path: Path) -> No
     assert png.read_bytes().startswith(b"\x89PNG")
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     ("extra", "message"),
     [

@@ -294,6 +294,7 @@ def check_outcome(command: Command, result: Run, signum: signal.Signals, directo
 COMMANDS = ["positions", "features", "index", "learn"]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("signum", list(STOPS), ids=lambda s: s.name)
 @pytest.mark.parametrize("name", COMMANDS)
 def test_a_signal_at_any_moment_leaves_the_previous_output_or_the_new_one(
@@ -316,6 +317,7 @@ def test_a_signal_at_any_moment_leaves_the_previous_output_or_the_new_one(
     assert any(stopped), f"no run of {name} was stopped (run time {command.seconds:.2f} s)"
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", COMMANDS)
 def test_a_run_after_an_interrupted_one_writes_the_whole_output(
     commands: Commands, name: str, tmp_path: Path
@@ -332,6 +334,7 @@ def test_a_run_after_an_interrupted_one_writes_the_whole_output(
     assert not check_outcome(command, again, signal.SIGTERM, tmp_path)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("signum", list(STOPS), ids=lambda s: s.name)
 def test_a_signal_while_writing_to_stdout_exits_with_one_line(
     commands: Commands, signum: signal.Signals
@@ -363,6 +366,7 @@ def test_a_signal_while_writing_to_stdout_exits_with_one_line(
     assert len(first + stdout) < len(whole)
 
 
+@pytest.mark.slow
 def test_a_signal_inside_a_weakref_callback_is_not_lost() -> None:
     """Python cannot raise an exception out of a weak reference's callback: it prints "Exception
     ignored" and goes on. The CLI's unraisable hook sends such a signal again, so the command still

@@ -198,6 +198,7 @@ def test_cli_invalid_yaml_exits_2_with_one_line(tmp_path: Path) -> None:
     assert result.stderr.count("\n") == 1, result.stderr
 
 
+@pytest.mark.slow
 def test_cli_run_takes_config_after_the_command(tmp_path: Path) -> None:
     """``mocapd run --config C`` reads C as ``mocapd --config C run`` does (the README's table)."""
     path = write(tmp_path, "service:\n  sinks: []\n", "bad.yaml")
@@ -215,6 +216,7 @@ def test_cli_config_frame_rate(tmp_path: Path) -> None:
     assert "duration:   5.717 s at 60 Hz (assumed)" in result.stdout.splitlines()
 
 
+@pytest.mark.slow
 def test_cli_config_units_cm(tmp_path: Path) -> None:
     """``units: cm`` in the config makes ``positions`` write centimetres, as ``--cm`` does."""
     config = write(tmp_path, "replay:\n  units: cm\n")

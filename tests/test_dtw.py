@@ -200,6 +200,7 @@ def test_subsequence_tie_order_and_weights_toolbox() -> None:
     assert sub.delta.tolist() == [np.inf, 21.0, 10.0] and sub.start.tolist() == [-1, 0, 1]
 
 
+@pytest.mark.slow
 @SETTINGS
 @given(cost_matrices(), steps_kinds)
 def test_subsequence_equals_reference(cost: FloatArray, steps: Steps) -> None:
@@ -366,6 +367,7 @@ def check_matches(matches: list[Match], n: int, tau: float) -> None:
     assert all(b.start > a.end for a, b in pairwise(matches))
 
 
+@pytest.mark.slow
 @SETTINGS
 @given(cost_matrices(), steps_kinds, taus)
 def test_spring_batch_equals_reference(cost: FloatArray, steps: Steps, tau: float) -> None:
@@ -374,6 +376,7 @@ def test_spring_batch_equals_reference(cost: FloatArray, steps: Steps, tau: floa
     check_matches(expected, cost.shape[1], tau)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("steps", dtw.STEPS)
 @settings(SETTINGS, max_examples=150, phases=[Phase.explicit, Phase.reuse, Phase.generate])
 @given(cost=cost_matrices(), tau=taus)  # no shrinking: test_spring_stream_thesis_one_live_column is minimal
@@ -527,6 +530,7 @@ def test_tau_above_cell_cost_range() -> None:
 # ------------------------------------------------------------------- streaming DTW of many templates
 
 
+@pytest.mark.slow
 @settings(SETTINGS, max_examples=400)
 @given(st.integers(1, 4), st.integers(1, 40), st.data())
 def test_stream_dtw_equals_batch_and_its_minima_and_blocks_read_their_definition(
@@ -586,6 +590,7 @@ def test_stream_dtw_equals_batch_and_its_minima_and_blocks_read_their_definition
     assert stream.n == 0
 
 
+@pytest.mark.slow
 @settings(SETTINGS, max_examples=300)
 @given(st.integers(1, 3), st.integers(2, 40), st.data())
 def test_a_range_not_blocked_is_never_beaten_later(k: int, n: int, data: st.DataObject) -> None:
@@ -650,6 +655,7 @@ def test_compiled_accumulation_equals_the_row_scans() -> None:
         assert dtw.accumulated(c)[-1, -1] == min(ref_full(c.tolist())[0][-1][-1], INF)
 
 
+@pytest.mark.slow
 @settings(SETTINGS, max_examples=300)
 @given(st.integers(1, 6), st.integers(1, 60), st.sampled_from(dtw.STEPS), st.data())
 def test_subsequence_minima_are_the_local_minima_of_the_whole_pass(

@@ -13,6 +13,7 @@ from typing import Any
 
 import msgpack
 import numpy as np
+import pytest
 import zmq
 
 from daemon.library import default_library_path, load_library
@@ -36,6 +37,7 @@ def counted(m: dict[str, float]) -> float:
     )
 
 
+@pytest.mark.slow
 def test_every_message_is_counted_once_and_the_log_has_no_numpy_warning(tmp_path: Path) -> None:
     """Taken in (a pose, a skeleton, a clear) or refused (before or after decoding), each message
     once: messages_in + rejects = messages sent; no numpy warning for infinities of both signs."""

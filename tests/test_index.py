@@ -57,6 +57,7 @@ documents = st.lists(
 code_sets = st.sets(st.integers(0, (1 << BITS) - 1), min_size=1, max_size=4)
 
 
+@pytest.mark.slow
 @settings(max_examples=300, deadline=None)
 @given(documents, st.lists(code_sets, min_size=1, max_size=5))
 def test_fuzzy_query_equals_brute_force(docs: list[np.ndarray], query: list[set[int]]) -> None:
@@ -71,6 +72,7 @@ def test_exact_query_equals_brute_force(docs: list[np.ndarray], query: list[int]
     check_hits(index, exact_query(index, query), brute_fuzzy(index, [{c} for c in query]))
 
 
+@pytest.mark.slow
 @settings(max_examples=300, deadline=None)
 @given(documents, st.lists(code_sets, min_size=1, max_size=5), st.data())
 def test_mismatch_query_equals_brute_force(

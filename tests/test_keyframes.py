@@ -159,6 +159,7 @@ def test_keyframe_search_equals_brute_force(
         assert got == expected
 
 
+@pytest.mark.slow
 @settings(max_examples=200, deadline=None)
 @given(databases(), keyframe_queries())
 def test_unpruned_search_per_document(docs: dict[FeatureSet, list[list[int]]], query: KeyframeQuery) -> None:

@@ -25,6 +25,7 @@ def results(database: tuple[MotionIndex, list[str]]) -> list[ClassResult]:
     return evaluate(*database)
 
 
+@pytest.mark.slow
 def test_every_class_present_is_evaluated(
     results: list[ClassResult], database: tuple[MotionIndex, list[str]]
 ) -> None:

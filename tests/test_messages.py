@@ -126,6 +126,7 @@ def same(a: Message, b: Message) -> bool:
 
 
 # Huge finite values overflow the decoder's one-sum finiteness check before the exact check decides.
+@pytest.mark.slow
 @pytest.mark.filterwarnings("ignore:overflow encountered in reduce:RuntimeWarning")
 @settings(max_examples=300, deadline=None)
 @given(messages())

@@ -117,6 +117,7 @@ def test_reference_kinematics_sanity() -> None:
 # -------------------------------------------------------------------------------------- ASF
 
 
+@pytest.mark.slow
 @settings(BASE, max_examples=60)
 @given(skeletons(), st.booleans())
 def test_asf_reader_returns_the_generated_skeleton(asf: AsfFile, gzip_asf: bool) -> None:
@@ -157,6 +158,7 @@ def test_asf_reader_returns_the_generated_skeleton(asf: AsfFile, gzip_asf: bool)
 # -------------------------------------------------------------------------------------- AMC
 
 
+@pytest.mark.slow
 @settings(BASE, max_examples=60)
 @given(cases(wide=True))
 def test_amc_readers_agree_bitwise_and_return_the_written_values(case: tuple[AsfFile, AmcFile]) -> None:
@@ -277,6 +279,7 @@ def test_forward_kinematics_matches_a_slow_reference(case: tuple[AsfFile, AmcFil
 # ------------------------------------------------------------------------------ truncated files
 
 
+@pytest.mark.slow
 @settings(BASE, max_examples=100)
 @given(cases(body_noise=False, allow_gzip=False, max_bones=6, max_frames=6), st.data())
 def test_truncated_amc_yields_the_complete_frames_then_a_located_error(

@@ -20,6 +20,7 @@ def test_every_subject_and_actor_is_covered() -> None:
     assert all(asf.is_file() for asf, _ in recording_pairs())
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("pair", recording_pairs(), ids=pair_id)
 def test_recording(pair: tuple[Path, Path]) -> None:
     asf, amc = pair

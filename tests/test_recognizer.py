@@ -64,6 +64,7 @@ def shipped() -> Library:
     return load_library(default_library_path())
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("pair", recording_pairs(), ids=pair_id)
 def test_push_equals_detect(pair: tuple[Path, Path], shipped: Library) -> None:
     """With the shipped library's 18 classes (learned and published keyframes)."""

@@ -170,6 +170,7 @@ def cuts() -> dict[str, TrialCuts]:
     return {c.trial: c for _, c in cut_trials(DATA, read_segments(DATA / SEGMENTS), TRIALS)}
 
 
+@pytest.mark.slow
 def test_every_class_is_cut_at_one_phase(cuts: dict[str, TrialCuts]) -> None:
     """Every run of a class is cut where its features are nearest the class's first cut run's
     reference features, unless no such frame gives repetitions (then as if cut alone); cutting a

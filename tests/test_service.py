@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import pytest
 
 from daemon.behaviours import JointRotations, ppca_forward
 from daemon.library import default_library_path, load_library
@@ -64,6 +65,7 @@ BIG_QUEUE: dict[str, dict[str, object]] = {"service": {"queue_frames": 100_000}}
 """A replay as fast as possible outruns recognition; with a queue this long nothing is dropped."""
 
 
+@pytest.mark.slow
 def test_zeromq_replay_gives_the_detections_of_detect(tmp_path: Path) -> None:
     daemon = Daemon(tmp_path, config=BIG_QUEUE).start()
     collector = ZmqCollector(daemon.detections)
@@ -106,6 +108,7 @@ def held(where: Path, hold: float) -> list[dict[str, Any]]:
         daemon.stop()
 
 
+@pytest.mark.slow
 def test_the_hold_end_to_end(tmp_path: Path) -> None:
     """Through two real daemons over ZeroMQ, ``recognizer.hold_s`` 0 and 2: each publishes what
     ``mocapd detect`` gives with the same hold; without a hold every detection comes out one index
@@ -124,6 +127,7 @@ def test_the_hold_end_to_end(tmp_path: Path) -> None:
     assert detection_keys(got[0.0]) != detection_keys(got[2.0])
 
 
+@pytest.mark.slow
 def test_mqtt_replay_gives_the_detections_of_detect(tmp_path: Path) -> None:
     broker = Broker(tmp_path).start()
     daemon = Daemon(
@@ -146,6 +150,7 @@ def test_mqtt_replay_gives_the_detections_of_detect(tmp_path: Path) -> None:
         broker.stop()
 
 
+@pytest.mark.slow
 def test_mqtt_boundaries_of_a_segmented_stream(tmp_path: Path) -> None:
     """With segmentation on, the daemon publishes a replayed stream's behaviour boundaries on
     ``mocap/<stream>/boundaries``: the online method's cuts (PPCA's forward pass) of the recording,
@@ -174,6 +179,7 @@ def test_mqtt_boundaries_of_a_segmented_stream(tmp_path: Path) -> None:
         broker.stop()
 
 
+@pytest.mark.slow
 def test_eight_replays_at_once_are_eight_streams(tmp_path: Path) -> None:
     sources = [
         TRIAL,
@@ -209,6 +215,7 @@ def test_eight_replays_at_once_are_eight_streams(tmp_path: Path) -> None:
         daemon.stop()
 
 
+@pytest.mark.slow
 def test_sigterm_mid_stream_publishes_what_was_received_then_offline(tmp_path: Path) -> None:
     daemon = Daemon(tmp_path, config={"service": {"grace_s": 5}}).start()
     collector = ZmqCollector(daemon.detections)
@@ -235,6 +242,7 @@ def test_sigterm_mid_stream_publishes_what_was_received_then_offline(tmp_path: P
         daemon.stop()
 
 
+@pytest.mark.slow
 def test_broker_restart_mid_stream_loses_no_detection(tmp_path: Path) -> None:
     broker = Broker(tmp_path).start()
     daemon = Daemon(tmp_path, sources=["mqtt"], sinks=["mqtt", "stdout"], mqtt=broker.url).start()
@@ -264,6 +272,7 @@ def test_broker_restart_mid_stream_loses_no_detection(tmp_path: Path) -> None:
         broker.stop()
 
 
+@pytest.mark.slow
 def test_kill_9_leaves_the_will(tmp_path: Path) -> None:
     broker = Broker(tmp_path).start()
     daemon = Daemon(tmp_path, sources=["mqtt"], sinks=["mqtt"], mqtt=broker.url).start()

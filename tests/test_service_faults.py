@@ -107,6 +107,7 @@ def rss_kib(pid: int) -> int:
     raise AssertionError("no VmRSS")
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("transport", ["zmq", "mqtt"])
 def test_bad_input_is_counted_and_spoils_nothing(tmp_path: Path, transport: str) -> None:
     broker = Broker(tmp_path).start() if transport == "mqtt" else None
@@ -177,6 +178,7 @@ def test_bad_input_is_counted_and_spoils_nothing(tmp_path: Path, transport: str)
             broker.stop()
 
 
+@pytest.mark.slow
 def test_a_lagging_stream_drops_its_oldest_poses_and_says_so(tmp_path: Path) -> None:
     """A replay as fast as possible into a daemon with a short queue: poses are dropped (counted),
     detections never are, and the stream's frames still arrive in order."""
@@ -217,6 +219,7 @@ def test_a_refused_skeleton_is_not_logged_as_taken(tmp_path: Path) -> None:
         daemon.stop()
 
 
+@pytest.mark.slow
 def test_every_log_line_is_one_json_object(tmp_path: Path) -> None:
     """The daemon's and a replay's stderr hold one JSON object per line: a pose of values near the
     float32 maximum (numpy's overflow warning in the decoder's finiteness check) and a replay as
@@ -244,6 +247,7 @@ def test_every_log_line_is_one_json_object(tmp_path: Path) -> None:
         broker.stop()
 
 
+@pytest.mark.slow
 def test_state_and_logs_are_bounded_by_what_is_live(tmp_path: Path) -> None:
     """50,000 poses of 50,000 stream ids that never announced a skeleton: a handful of log lines
     (per reason, not per id) and memory flat (before: 50,000 warning lines, RSS +124 MB for good);
@@ -290,6 +294,7 @@ def test_state_and_logs_are_bounded_by_what_is_live(tmp_path: Path) -> None:
         daemon.stop()
 
 
+@pytest.mark.slow
 def test_a_flood_on_mqtt_does_not_crowd_out_a_good_stream(tmp_path: Path) -> None:
     """50,000 garbage messages on one stream's topic while a good stream replays, with an incoming
     queue of 2,000: the drops are the flood's, the good stream's detections are ``mocapd detect``'s

@@ -12,6 +12,7 @@ import pytest
 from bench import fuzz
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("transport", ["zmq", "mqtt"])
 def test_fuzzed_messages_are_counted_and_spoil_nothing(tmp_path: Path, transport: str) -> None:
     r = fuzz.run(transport, 20_000, seed=21, where=tmp_path)

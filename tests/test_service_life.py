@@ -10,6 +10,8 @@ import signal
 import time
 from pathlib import Path
 
+import pytest
+
 from daemon.library import default_library_path, load_library
 from daemon.recognizer import detect
 from daemon.recordings import read_recording
@@ -30,6 +32,7 @@ BIG_QUEUE: dict[str, dict[str, object]] = {"service": {"queue_frames": 100_000}}
 SQUAT = hdm05_clip("bd", "squat1Reps", takes("squat1Reps", "bd")[0])
 
 
+@pytest.mark.slow
 def test_a_replay_run_twice_is_two_runs_of_its_stream(tmp_path: Path) -> None:
     """Before: the second run was refused out_of_order to the end ("seq 1 after 2465")."""
     daemon = Daemon(tmp_path, config=BIG_QUEUE).start()
@@ -65,6 +68,7 @@ def first_detection_after(collector: ZmqCollector, since: float, timeout: float)
     return first - since
 
 
+@pytest.mark.slow
 def test_a_restarted_daemon_learns_a_running_replay_again(tmp_path: Path) -> None:
     """Restart the daemon under ``mocapd replay --loop`` (squats, in real time): the new daemon's
     subscription reaches the replay, which announces its skeleton again; squats are detected again
@@ -87,6 +91,7 @@ def test_a_restarted_daemon_learns_a_running_replay_again(tmp_path: Path) -> Non
         daemon.stop()
 
 
+@pytest.mark.slow
 def test_a_stream_silent_longer_than_idle_comes_back(tmp_path: Path) -> None:
     """The replay stopped for 3 s with ``service.idle_s`` 1: the daemon forgets the stream, and when
     the replay goes on, its next announcement brings the stream back. Before: no_skeleton for ever.

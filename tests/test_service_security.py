@@ -46,6 +46,7 @@ def curve_socket(
     return sock
 
 
+@pytest.mark.slow
 def test_zmq_curve_lets_in_only_known_clients(tmp_path: Path) -> None:
     keys, clients = tmp_path / "keys", tmp_path / "clients"
     keys.mkdir()
@@ -151,6 +152,7 @@ def certificates(where: Path) -> tuple[Path, Path, Path]:
     return ca, cert, key
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("password", ["right", "wrong"])
 def test_mqtt_over_tls_with_a_password(tmp_path: Path, password: str) -> None:
     ca, cert, key = certificates(tmp_path)

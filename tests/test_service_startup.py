@@ -59,6 +59,7 @@ def test_poses_and_detections_on_one_endpoint(tmp_path: Path) -> None:
     check_refused(result, f"mocapd: zmq.detections: {endpoint}: address already in use")
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     ("endpoint", "why"),
     [
@@ -82,6 +83,7 @@ def test_curve_key_file_missing(tmp_path: Path) -> None:
     check_refused(result, result.stderr.splitlines()[-1])
 
 
+@pytest.mark.slow
 def test_a_second_daemon_of_one_instance_is_refused(tmp_path: Path) -> None:
     """Two daemons with one instance name on one broker used to take each other's client id in
     turn (30 reconnects each in 15 s, health flapping): the second is refused at start, with one

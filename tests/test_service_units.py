@@ -409,6 +409,7 @@ def test_replay_clock_does_not_drift() -> None:
 SEGMENTED = (DATA / "cmu" / "13" / "13.asf", DATA / "cmu" / "13" / "13_30.amc.gz")
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("method", ["pca", "ppca"])
 def test_boundaries_are_the_online_methods_batch_cuts(
     library: Library, method: Literal["pca", "ppca"]

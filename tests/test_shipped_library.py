@@ -106,6 +106,7 @@ def test_every_class_has_a_mode_and_a_tau_with_provenance(shipped: Library) -> N
     assert len(shipped.classes["ToeTouchOneHand"].training) == 1  # one repetition of subject 13
 
 
+@pytest.mark.slow
 def test_training_clips_are_todays(
     shipped: Library, rows: list[Row], examples: dict[str, list[tuple[TrainingClip, BoolArray]]]
 ) -> None:
@@ -130,6 +131,7 @@ def test_keyframes_find_their_training_clips(
             assert keyframes_kept(query, clip_sets([m for _, m in items]), RATE).all(), name
 
 
+@pytest.mark.slow
 def test_every_class_is_detected_in_its_own_training_clips(shipped: Library, rows: list[Row]) -> None:
     """Every class is detectable: the live recogniser (its batch twin, all 18 classes competing)
     detects it in some of its training clips, each clip replayed on its own, and in most of them

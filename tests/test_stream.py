@@ -125,6 +125,7 @@ def test_latency() -> None:
     assert latency_frames(30.0) == FeatureStream(JOINT_NAMES, 30.0).latency == 5
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("pair", recording_pairs(), ids=pair_id)
 def test_recording_stream_equals_batch(pair: tuple[Path, Path]) -> None:
     positions = joints_cm(*pair)
@@ -202,6 +203,7 @@ rates = st.sampled_from(RATES)
 MOVING = ("drift", "noise", "window")
 
 
+@pytest.mark.slow
 @settings(BASE, max_examples=200)
 @given(motions(kinds=MOVING), rates)
 def test_stream_equals_batch(positions: FloatArray, frame_rate: float) -> None:
@@ -284,6 +286,7 @@ COMPARE: dict[str, Callable[[FloatArray, float], npt.NDArray[np.bool_]]] = {
 }
 
 
+@pytest.mark.slow
 @settings(BASE, max_examples=150)
 @given(
     motions(max_frames=50, kinds=MOVING),

@@ -229,6 +229,7 @@ def test_learn_soft_by_hand() -> None:
 # ------------------------------------------------------------------------------- Claim 3.1, real
 
 
+@pytest.mark.slow
 def test_hard_mts_have_dtw_distance_zero_to_every_training_clip(
     clips: Clips, hard: dict[str, LearnedTemplate]
 ) -> None:
