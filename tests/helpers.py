@@ -8,7 +8,6 @@ import dataclasses
 import getpass
 import json
 import os
-import random
 import shutil
 import signal
 import socket
@@ -24,6 +23,7 @@ from typing import Any
 
 import msgpack
 
+from bench.processes import free_port
 from daemon.keyframes import parse_keyframe_queries
 from daemon.library import ClassTemplate, Library, learn_class
 from daemon.recordings import joint_positions, read_examples, read_recording
@@ -192,25 +192,6 @@ def small_library(where: Path) -> Library:
 
 
 # ------------------------------------------------------------------------ the service's real parts
-
-
-def free_port() -> int:
-    """A TCP port on loopback nobody listens on now, below the kernel's ephemeral range: a port the
-    kernel hands out (bind to 0) can be taken by any process's outgoing connection before the
-    daemon binds it (seen in CI: "address already in use" for a port just found free)."""
-    try:
-        low = int(Path("/proc/sys/net/ipv4/ip_local_port_range").read_text().split()[0])
-    except (OSError, ValueError, IndexError):
-        low = 32768
-    for _ in range(100):
-        port = random.randrange(max(1024, low - 12000), low)
-        with socket.socket() as s:
-            try:
-                s.bind(("127.0.0.1", port))
-            except OSError:
-                continue
-            return port
-    raise RuntimeError("no free loopback port below the ephemeral range")
 
 
 def wait_for(condition: Callable[[], bool], timeout: float, what: str, step: float = 0.02) -> None:
