@@ -474,7 +474,7 @@ class PcaSegmenter:
     State: the moments (``D² + 2D`` floats), the spectra at the ``ℓ / step`` evaluations before
     ``r`` is known (``D`` floats each), then the last ``ℓ / step`` errors, and fewer than ``step``
     frames. Work: one ``eigvalsh`` of ``D x D`` per ``step`` frames from frame ``k - ℓ`` of a
-    segment on (with the paper's every frame, some 60 µs for ``D = 56``, 250 µs for ``D = 112``)."""
+    segment on (the paper's: every frame)."""
 
     def __init__(self, rate: float, *, params: PcaParams = PCA_PAPER) -> None:
         self.rate = _check_rate(rate)

@@ -1,6 +1,6 @@
 """Opening recordings: plain or gzip (told by the magic bytes, not the name), CRLF or LF.
 
-Whole files are inflated by ISA-L (``isal``), about 2.5x faster than zlib on these files.
+Whole files are inflated by ISA-L (``isal``), faster than zlib (docs/layout.md, Dependencies).
 """
 
 from __future__ import annotations

@@ -416,7 +416,7 @@ class Service:
 
 
 def release_memory() -> None:
-    """Give the heap's free pages back to the system (glibc's ``malloc_trim``, about 0.1 ms;
+    """Give the heap's free pages back to the system (glibc's ``malloc_trim``;
     elsewhere nothing), once a second: forgotten streams and bursts of messages leave memory free
     but mapped, and a daemon that once held many streams or took a flood would otherwise keep that
     much for good."""
