@@ -29,9 +29,8 @@ from bench.common import DATA
 from bench.eval_segmentation import METHODS, Outcome, _cuts, report
 from bench.machine import describe
 from daemon import behaviours as bh
-from daemon.behaviours import Band
 from daemon.recordings import read_recording
-from daemon.types import FloatArray
+from daemon.types import Band, FloatArray
 
 ACTORS = ("bd", "bk", "dg")
 RATE = 120.0

@@ -52,7 +52,7 @@ from typing import Literal, TypeVar
 import numpy as np
 import numpy.typing as npt
 
-from daemon.types import FloatArray, IntArray
+from daemon.types import Band, FloatArray, IntArray
 from replay.asf import ROTATION_DOFS, Skeleton
 from replay.kinematics import KinematicModel
 
@@ -1006,16 +1006,6 @@ def gmm_segment(frames: npt.ArrayLike, rate: float, *, params: GmmParams = GMM_P
 
 Params = PcaParams | PpcaParams | GmmParams
 _P = TypeVar("_P", PcaParams, PpcaParams, GmmParams)
-
-
-@dataclass(frozen=True)
-class Band:
-    """A true boundary: ``frame`` where the new behaviour starts, and the frames a cut may fall on
-    to find it (``lo .. hi``, inclusive). Any frame numbering, the cuts' the same."""
-
-    frame: int
-    lo: int
-    hi: int
 
 
 def match_boundaries(cuts: Sequence[int], bands: Sequence[Band]) -> int:

@@ -10,10 +10,10 @@ from typing import IO, Any
 import numpy as np
 import numpy.typing as npt
 
-from daemon.behaviours import Band, GmmResult, PcaResult, PpcaResult
+from daemon.behaviours import GmmResult, PcaResult, PpcaResult
 from daemon.errors import MocapdError
 from daemon.features import FEATURE_NAMES, SET_SLICES
-from daemon.types import N_FEATURES, BoolArray
+from daemon.types import N_FEATURES, Band, BoolArray
 
 Target = str | Path | IO[bytes]
 """Where a picture goes: a path, or a binary file open for writing (always PNG)."""

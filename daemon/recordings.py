@@ -25,11 +25,10 @@ from pathlib import Path
 
 import numpy as np
 
-from daemon.behaviours import Band
 from daemon.checks import csv_records, read_text
 from daemon.errors import MocapdError
 from daemon.features import decimate, decimation_factor, features
-from daemon.types import DEFAULT_INDEX_RATE, DEFAULT_NATIVE_RATE, BoolArray, FloatArray, IntArray
+from daemon.types import DEFAULT_INDEX_RATE, DEFAULT_NATIVE_RATE, Band, BoolArray, FloatArray, IntArray
 from replay import JOINT_NAMES, KinematicModel, Motion, read_amc, read_asf
 
 CLASS_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]*")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Literal, get_args
 
 import numpy as np
@@ -36,3 +37,13 @@ the same motion more cheaply (config ``recognizer.hold_s``)."""
 DEFAULT_MAX_GAP_S = 2.0
 """Seconds an unbounded keyframe gap (stiffness 0) may span in the live recogniser (config
 ``recognizer.max_gap_s``)."""
+
+
+@dataclass(frozen=True)
+class Band:
+    """A true boundary: ``frame`` where the new behaviour starts, and the frames a cut may fall on
+    to find it (``lo .. hi``, inclusive). Any frame numbering, the cuts' the same."""
+
+    frame: int
+    lo: int
+    hi: int

@@ -10,8 +10,9 @@ from pathlib import Path
 import pytest
 
 from daemon import behaviours as bh
-from daemon.behaviours import Band, match_boundaries
+from daemon.behaviours import match_boundaries
 from daemon.recordings import LabelError, native_rate, read_boundaries, read_recording
+from daemon.types import Band
 from tests.helpers import DATA, assert_one_error_line, mocapd
 
 ASF = DATA / "cmu" / "86" / "86.asf"

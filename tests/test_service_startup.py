@@ -12,7 +12,8 @@ from pathlib import Path
 
 import pytest
 
-from tests.helpers import MOCAPD_SCRIPT, Broker, Daemon, free_port
+from bench.processes import free_port
+from tests.helpers import MOCAPD_SCRIPT, Broker, Daemon
 
 
 @pytest.fixture
