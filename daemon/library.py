@@ -251,10 +251,10 @@ def learn_class(
     keyframes from it (thesis ch. 6; 0 = none). ``steps``: the DTW steps retrieval will use; the
     toolbox's (1,1), (1,2), (2,1) by default, whose slopes between ½ and 2 keep a template from
     matching a much shorter or longer stretch (measured in docs/search-and-templates.md).
-    ``calibration``: the class's
-    calibrated τ (:func:`daemon.calibration.calibrate`), which then replaces ``tau``; without it,
-    ``tau`` is recorded as given. ``generalisation``: how far the keyframes reach beyond the training
-    actors (:class:`daemon.templates.Generalisation`; calibration chooses it). ``mode`` and
+    ``calibration``: the class's calibrated τ (:func:`daemon.calibration.calibrate`), which then
+    replaces ``tau``; without it, ``tau`` is recorded as given. ``generalisation``: how far the
+    keyframes reach beyond the training actors (:class:`daemon.templates.Generalisation`;
+    calibration chooses it). ``mode`` and
     ``mode_reason``: how the live recogniser finds the class and why (:data:`MODES`; "": keyframes
     when there are any)."""
     learned = learn(
