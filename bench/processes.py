@@ -44,16 +44,20 @@ def wait_port(port: int, timeout: float = 10) -> None:
         time.sleep(0.05)
 
 
-def scrape(port: int, timeout: float = 10) -> dict[str, float]:
-    """The /metrics samples on ``port`` by name with labels, e.g. ``mocapd_rejects_total{reason="shape"}``."""
-    with urllib.request.urlopen(f"http://127.0.0.1:{port}/metrics", timeout=timeout) as response:
-        text = response.read().decode()
+def samples(text: str) -> dict[str, float]:
+    """A Prometheus exposition's samples by name with labels (``mocapd_rejects_total{reason="shape"}``)."""
     out = {}
     for line in text.splitlines():
         if line and not line.startswith("#"):
             name, value = line.rsplit(" ", 1)
             out[name] = float(value)
     return out
+
+
+def scrape(port: int, timeout: float = 10) -> dict[str, float]:
+    """The /metrics :func:`samples` on ``port``."""
+    with urllib.request.urlopen(f"http://127.0.0.1:{port}/metrics", timeout=timeout) as response:
+        return samples(response.read().decode())
 
 
 def rss_kib(pid: int) -> int:

@@ -23,7 +23,7 @@ from typing import Any
 
 import msgpack
 
-from bench.processes import free_port
+from bench.processes import free_port, samples
 from daemon.keyframes import parse_keyframe_queries
 from daemon.library import ClassTemplate, Library, learn_class
 from daemon.recordings import joint_positions, read_examples, read_recording
@@ -326,12 +326,7 @@ class Daemon:
     def metrics(self) -> dict[str, float]:
         """The /metrics samples by name with labels, e.g. ``mocapd_rejects_total{reason="shape"}``."""
         _, text = self.http("/metrics")
-        out = {}
-        for line in text.splitlines():
-            if line and not line.startswith("#"):
-                name, value = line.rsplit(" ", 1)
-                out[name] = float(value)
-        return out
+        return samples(text)
 
     def signal(self, sig: int) -> None:
         assert self.process is not None
