@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import re
 import types
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any, Literal, Union, get_args, get_origin, get_type_hints
@@ -19,7 +19,13 @@ import yaml
 
 from daemon.checks import Checker, read_structured
 from daemon.errors import MocapdError
-from daemon.types import DEFAULT_HOLD_S, DEFAULT_MAX_GAP_S, DEFAULT_NATIVE_RATE, MAX_NATIVE_RATE
+from daemon.types import (
+    DEFAULT_HOLD_S,
+    DEFAULT_MAX_GAP_S,
+    DEFAULT_NATIVE_RATE,
+    MAX_NATIVE_RATE,
+    RecognitionSettings,
+)
 
 Units = Literal["asf", "cm"]
 LogLevel = Literal["debug", "info", "warning", "error"]
@@ -60,6 +66,12 @@ class RecognizerConfig:
     max_gap_s: float = field(default=DEFAULT_MAX_GAP_S, metadata=_positive(3600))
     compete: bool = True
     hold_s: float = field(default=DEFAULT_HOLD_S, metadata=_range(0, 60))
+
+    def settings(self, classes: Sequence[str] | None = None) -> RecognitionSettings:
+        """These settings for the library's ``classes`` (None: all); ValueError for a class named twice."""
+        return RecognitionSettings(
+            None if classes is None else tuple(classes), self.max_gap_s, self.compete, self.hold_s
+        )
 
 
 @dataclass(frozen=True)

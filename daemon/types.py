@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Literal, get_args
 
@@ -37,6 +38,47 @@ the same motion more cheaply (config ``recognizer.hold_s``)."""
 DEFAULT_MAX_GAP_S = 2.0
 """Seconds an unbounded keyframe gap (stiffness 0) may span in the live recogniser (config
 ``recognizer.max_gap_s``)."""
+
+
+@dataclass(frozen=True)
+class RecognitionSettings:
+    """What the live recogniser does, the same for every stream it serves (config ``recognizer``,
+    :meth:`daemon.config.RecognizerConfig.settings`): the library's ``classes`` it recognises (None:
+    all, in the library's order), the seconds an unbounded keyframe gap (stiffness 0, thesis ch. 4)
+    may span (``max_gap_s``), whether classes ``compete`` for a motion (the cheaper template wins),
+    and the seconds a detection may be held while another template could still explain its motion
+    more cheaply (``hold_s``). ValueError for a value out of range."""
+
+    classes: tuple[str, ...] | None = None
+    max_gap_s: float = DEFAULT_MAX_GAP_S
+    compete: bool = True
+    hold_s: float = DEFAULT_HOLD_S
+
+    def __post_init__(self) -> None:
+        if self.classes is not None:
+            if not isinstance(self.classes, tuple) or not all(isinstance(c, str) and c for c in self.classes):
+                raise ValueError(f"classes must be a tuple of class names, got {self.classes!r}")
+            if len(set(self.classes)) != len(self.classes):
+                raise ValueError(f"a class is named twice in {self.classes!r}")
+        if not (_seconds(self.max_gap_s) and self.max_gap_s > 0):
+            raise ValueError(f"max_gap_s must be positive seconds, got {self.max_gap_s!r}")
+        if not isinstance(self.compete, bool):
+            raise ValueError(f"compete must be true or false, got {self.compete!r}")
+        if not (_seconds(self.hold_s) and self.hold_s >= 0):
+            raise ValueError(f"hold_s must be seconds >= 0, got {self.hold_s!r}")
+
+    def max_gap(self, rate: float) -> int:
+        """``max_gap_s`` in frames at ``rate`` Hz, at least 1."""
+        return max(1, round(self.max_gap_s * rate))
+
+    def hold(self, rate: float) -> int:
+        """``hold_s`` in frames at ``rate`` Hz."""
+        return round(self.hold_s * rate)
+
+
+def _seconds(value: object) -> bool:
+    """Whether ``value`` is a finite real number (not a bool)."""
+    return isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
 
 
 @dataclass(frozen=True)

@@ -3,14 +3,18 @@
 from __future__ import annotations
 
 import csv
+import dataclasses
+import math
 import re
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
 
 from daemon.config import Config, ConfigError, RecognizerConfig, ReplayConfig, load_config, parse_config
 from daemon.errors import FileAccessError, MocapdError
+from daemon.types import RecognitionSettings
 from replay import KinematicModel, read_amc, read_asf
 from tests.helpers import CMU_AMC, CMU_ASF, REPO, mocapd
 
@@ -57,6 +61,42 @@ def test_recognizer_section(tmp_path: Path) -> None:
     config = load_config(write(tmp_path, "recognizer:\n  max_gap_s: 1.5\n  compete: false\n"))
     assert config == Config(recognizer=RecognizerConfig(max_gap_s=1.5, compete=False))
     assert load_config(write(tmp_path, "recognizer: {}\n")).recognizer.compete
+
+
+def test_recognition_settings(tmp_path: Path) -> None:
+    """The recogniser's settings are built from the config once, frozen, and refuse values out of
+    range as the config does (and a class named twice)."""
+    config = load_config(write(tmp_path, "recognizer:\n  max_gap_s: 1.5\n  compete: false\n  hold_s: 0\n"))
+    settings = config.recognizer.settings(["squat1Reps", "kickLFront1Reps"])
+    assert settings == RecognitionSettings(("squat1Reps", "kickLFront1Reps"), 1.5, False, 0.0)
+    assert RecognizerConfig().settings() == RecognitionSettings()
+    assert (settings.max_gap(30.0), settings.hold(30.0)) == (45, 0)
+    assert (RecognitionSettings(max_gap_s=0.001).max_gap(30.0), RecognitionSettings().hold(30.0)) == (1, 150)
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        settings.compete = True  # type: ignore[misc]
+    assert hash(settings) == hash(dataclasses.replace(settings))
+    bad: list[tuple[dict[str, Any], str]] = [
+        ({"max_gap_s": 0.0}, "max_gap_s"),
+        ({"max_gap_s": -1.0}, "max_gap_s"),
+        ({"max_gap_s": math.nan}, "max_gap_s"),
+        ({"max_gap_s": math.inf}, "max_gap_s"),
+        ({"max_gap_s": "2"}, "max_gap_s"),
+        ({"max_gap_s": True}, "max_gap_s"),
+        ({"hold_s": -0.5}, "hold_s"),
+        ({"hold_s": math.nan}, "hold_s"),
+        ({"hold_s": math.inf}, "hold_s"),
+        ({"compete": "yes"}, "compete"),
+        ({"compete": 1}, "compete"),
+        ({"classes": ["squat1Reps"]}, "classes"),
+        ({"classes": ("squat1Reps", "")}, "classes"),
+        ({"classes": ("squat1Reps", 3)}, "classes"),
+        ({"classes": ("squat1Reps", "squat1Reps")}, "named twice"),
+    ]
+    for fields, message in bad:
+        with pytest.raises(ValueError, match=message):
+            RecognitionSettings(**fields)
+    with pytest.raises(ValueError, match="named twice"):
+        config.recognizer.settings(["a", "a"])
 
 
 # --------------------------------------------------------------------------------------------------
