@@ -1,0 +1,150 @@
+"""Frame numbers translated in one place (:mod:`daemon.frames`): the clock between a motion's frame
+numbers and its index frames against a slow enumeration of the frames (and against the feature
+stream's real delay), and a stream's renumbering of sequence numbers against a plain table of every
+pose fed; both round-trip."""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from daemon.features import FeatureStream, latency_frames
+from daemon.frames import FrameClock, Renumbering
+from daemon.recordings import joint_positions, read_recording
+from replay import JOINT_NAMES
+from tests.helpers import DATA
+
+# --------------------------------------------------------------------------------- the clock
+
+
+def test_clock_of_rates() -> None:
+    assert FrameClock.of(120.0, 30.0) == FrameClock(4, latency_frames(120.0)) == FrameClock(4, 16)
+    assert FrameClock.of(30.0, 30.0) == FrameClock(1, 5)
+    assert FrameClock.of(60.0, 30.0).step == 2
+    for native, index in ((100.0, 30.0), (math.nan, 30.0), (0.0, 30.0), (-120.0, 30.0), (1e6, 30.0)):
+        with pytest.raises(ValueError):
+            FrameClock.of(native, index)
+    for step, delay in ((0, 0), (1, -1)):
+        with pytest.raises(ValueError):
+            FrameClock(step, delay)
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.integers(1, 12), st.integers(0, 40), st.integers(-(10**6), 10**6), st.integers(1, 300))
+def test_clock_equals_an_enumeration_of_the_frames(step: int, delay: int, first: int, n: int) -> None:
+    """Frames ``first .. first + n - 1`` pushed one by one: every ``step``-th from the first is the
+    next index frame, its features come out ``delay`` pushes later or at the motion's end."""
+    clock = FrameClock(step, delay)
+    last = first + n - 1
+    starts: list[int] = []  # index frame j's frame number
+    of_frame: dict[int, int] = {}  # each frame's index frame
+    known: dict[int, int] = {}  # index frame j: the frame whose push gave its features
+    pending: deque[int] = deque()  # frames whose features are not out yet, oldest first
+    for number in range(first, last + 1):
+        if (number - first) % step == 0:
+            starts.append(number)
+        of_frame[number] = len(starts) - 1
+        pending.append(number)
+        if len(pending) > delay:
+            out = pending.popleft()
+            if out in starts:
+                known[starts.index(out)] = number
+    for out in pending:  # the flush
+        if out in starts:
+            known[starts.index(out)] = last
+    lowest = {j: min(f for f, k in of_frame.items() if k == j) for j in range(len(starts))}
+    highest = {j: max(f for f, k in of_frame.items() if k == j) for j in range(len(starts))}
+    for j, start in enumerate(starts):
+        assert clock.start(first, j) == start
+        assert clock.index(first, start) == j  # round trip
+        assert clock.known(first, j, last) == known[j]
+        for end in {*range(j, min(j + 4, len(starts))), len(starts) - 1}:
+            assert clock.span(first, j, end, last) == (lowest[j], highest[end]), (j, end)
+    for number, j in of_frame.items():
+        assert clock.index(first, number) == j
+        assert clock.start(first, j) <= number < clock.start(first, j + 1)  # round trip
+    assert clock.lag(3) == clock.known(first, 3, 10**9) - clock.start(first, 0)
+
+
+@pytest.mark.parametrize("every", [1, 2], ids=["120 Hz", "60 Hz"])
+def test_clock_agrees_with_the_features_delay(every: int) -> None:
+    """The frame whose push gives each index frame's features, as the live path's
+    :class:`~daemon.features.FeatureStream` gives them, is the clock's."""
+    m = read_recording(DATA / "cmu" / "02" / "02.asf", DATA / "cmu" / "02" / "02_01.amc.gz")
+    positions = joint_positions(m)[::every][:200]
+    rate = 120.0 / every
+    clock = FrameClock.of(rate, 30.0)
+    stream = FeatureStream(JOINT_NAMES, rate)
+    first = 1000
+    last = first + len(positions) - 1
+    gave: list[int] = []  # the frame whose push gave each vector, in order
+    for number, pose in enumerate(positions, start=first):
+        gave += [number] * len(stream.push(pose))
+    gave += [last] * len(stream.flush())
+    assert len(gave) == len(positions)
+    index_frames = gave[:: clock.step]
+    assert index_frames == [clock.known(first, j, last) for j in range(len(index_frames))]
+
+
+# ------------------------------------------------------------------------------ renumbering
+
+
+Op = tuple[str, int]
+
+
+POSE = st.tuples(st.just("pose"), st.integers(0, 3))  # a pose after a gap of so many
+REFUSED = st.tuples(st.just("refused"), st.integers(0, 3))  # a pose numbered, then refused
+MOTION = st.tuples(st.just("motion"), st.integers(-(10**6), 10**6))  # a new motion from seq
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    st.integers(0, 12),
+    st.integers(-1000, 10**6),
+    st.lists(st.one_of(POSE, POSE, POSE, POSE, REFUSED, MOTION), max_size=100),
+)
+def test_renumbering_equals_a_table_of_every_pose(horizon: int, start: int, ops: list[Op]) -> None:
+    """Consecutive frame numbers from a motion's first sequence number; every pose fed maps back
+    to its sequence number while it is within the horizon; a refused pose's number goes to the
+    next pose."""
+    r = Renumbering(horizon)
+    table: dict[int, int] = {}  # frame -> seq, this motion's poses fed
+    last_seq: int | None = None  # the last sequence number fed, None: a motion begins
+    next_frame: int | None = None
+    latest = start
+    for kind, value in ops:
+        if kind == "motion":
+            last_seq, latest = None, value
+            continue
+        first = last_seq is None
+        seq = latest if last_seq is None else max(latest, last_seq) + 1 + value
+        frame = r.frame(seq, first=first)
+        assert frame == (seq if first else next_frame)
+        if first:
+            table.clear()
+        if kind == "refused":
+            r.refused(frame)
+            next_frame, latest = frame, seq  # a later pose comes after the refused one
+        else:
+            table[frame] = seq
+            last_seq, next_frame, latest = seq, frame + 1, seq
+            assert r.seq(frame) == seq  # round trip
+        newest = frame
+        for f, s in table.items():
+            if f >= newest - horizon:
+                assert r.seq(f) == s, (f, s)
+
+
+def test_renumbering_is_bounded() -> None:
+    """A gap every other pose over a long stream keeps about horizon / 2 changes."""
+    r = Renumbering(100)
+    seq = 0
+    for k in range(10_000):
+        seq += 1 + k % 2
+        r.frame(seq, first=k == 0)
+    assert r.seq(r.frame(seq + 1, first=False)) == seq + 1
+    assert len(r) <= 52
