@@ -62,7 +62,7 @@ from daemon.features import decimation_factor
 from daemon.library import Library, default_library_path, load_library
 from daemon.recognizer import detect_positions
 from daemon.recordings import joint_positions, read_recording
-from daemon.types import DEFAULT_HOLD_S, FloatArray
+from daemon.types import DEFAULT_HOLD_S, FloatArray, RecognitionSettings
 from protocols.messages import PoseMessage, SkeletonMessage, encode
 from replay import JOINT_NAMES
 
@@ -407,7 +407,7 @@ def reference(
     lo -= (lo - phase) % step
     numbers = np.arange(lo, last + int((hold_s + CONTEXT_S) * RATE), dtype=np.int64)
     positions = clip.positions[(numbers - clip.first) % len(clip.positions)]
-    found = detect_positions(positions, numbers, library, RATE, hold_s=hold_s)
+    found = detect_positions(positions, numbers, library, RATE, settings=RecognitionSettings(hold_s=hold_s))
     return frozenset(
         (d.class_name, d.start_frame, d.end_frame)
         for d in found

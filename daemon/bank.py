@@ -4,11 +4,12 @@ by one frame each (DESIGN.md, "Scale").
 A stream is a :class:`~daemon.recognizer.Recognizer`; what made one Python call chain per stream too
 slow (forward kinematics, the feature program, the keyframe automata and the DTW confirmation on
 Python floats) runs in compiled code (:mod:`replay._kinematics`, :mod:`daemon._features`,
-:mod:`daemon._automaton`, :mod:`daemon._dtw`), a few microseconds per frame. What is left per
-stream is a handful of array operations; the bank does the one numpy function of the live path, the
-cosines and sines of the half angles of forward kinematics, for the channel frames of all streams
-in one pass, and checks each frame as the stream's recogniser does (a bad frame is reported as
-``(stream, FrameError)`` and changes nothing). So the detections equal those of one
+:mod:`daemon._automaton`, :mod:`daemon._dtw`), a few microseconds per frame. A push is the live
+path's one per-frame step, :meth:`~daemon.recognizer.Recognizer.push_many`, over one frame of each
+stream: the one numpy function of the live path, the cosines and sines of the half angles of
+forward kinematics, runs for the channel frames of all streams in one pass, and a bad frame is
+reported as ``(stream, FrameError)`` and changes nothing. A single recogniser's push is the same
+step over its one frame, so the detections equal those of one
 :class:`~daemon.recognizer.Recognizer` per stream bit for bit: the same objects do the same
 operations on the same values.
 
@@ -20,27 +21,14 @@ Pure: numpy in, dataclasses out; no I/O.
 
 from __future__ import annotations
 
-import math
-from collections.abc import Collection, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
-from itertools import accumulate
 
-import numpy as np
 import numpy.typing as npt
 
-from daemon._live import push_channels_many
 from daemon.library import Library
-from daemon.recognizer import (
-    ClassPlan,
-    Detection,
-    FrameError,
-    Recognizer,
-    check_native_rate,
-    non_finite_channels,
-    plans,
-    skeleton_model,
-)
-from daemon.types import DEFAULT_HOLD_S, DEFAULT_MAX_GAP_S, FloatArray
+from daemon.recognizer import DEFAULT_SETTINGS, ClassPlan, Detection, FrameError, Recognizer, plans
+from daemon.types import RecognitionSettings
 from replay import Skeleton
 
 Frame = tuple[str, int, npt.ArrayLike]
@@ -61,23 +49,12 @@ class RecognizerBank:
     """Recognisers of many streams, advanced together: :meth:`add` a stream (channels of a skeleton,
     or joint positions in a named order, at its native rate), :meth:`push` one frame of each of any
     number of streams, :meth:`remove` a stream (its last detections). Equal, stream by stream, to one
-    :class:`~daemon.recognizer.Recognizer` per stream with the same settings and session."""
+    :class:`~daemon.recognizer.Recognizer` per stream with the same ``settings`` and session."""
 
-    def __init__(
-        self,
-        library: Library,
-        *,
-        max_gap_s: float = DEFAULT_MAX_GAP_S,
-        classes: Collection[str] | None = None,
-        compete: bool = True,
-        hold_s: float = DEFAULT_HOLD_S,
-    ) -> None:
+    def __init__(self, library: Library, settings: RecognitionSettings = DEFAULT_SETTINGS) -> None:
         self.library = library
-        self._hold_s = hold_s
-        self._classes = None if classes is None else tuple(classes)
-        self._max_gap_s = max_gap_s
-        self._compete = compete
-        self._plans: tuple[ClassPlan, ...] = plans(library, classes, max_gap_s=max_gap_s)
+        self.settings = settings
+        self._plans: tuple[ClassPlan, ...] = plans(library, settings)
         self._streams: dict[str, Recognizer] = {}
 
     @property
@@ -122,18 +99,14 @@ class RecognizerBank:
         cannot be made. :meth:`put` adds it."""
         if (skeleton is None) == (joint_names is None):
             raise ValueError("give a skeleton (channels) or the joint names (positions), not both")
-        check_native_rate(native_rate)
-        return Recognizer(
-            self.library,
-            float(native_rate),
-            stream=stream,
-            session=session,
-            classes=self._classes,
-            max_gap_s=self._max_gap_s,
-            compete=self._compete,
-            hold_s=self._hold_s,
-            model=None if skeleton is None else skeleton_model(skeleton),
-            joint_names=joint_names,
+        rate, settings = float(native_rate), self.settings
+        if skeleton is not None:
+            return Recognizer.for_skeleton(
+                self.library, skeleton, rate, settings=settings, stream=stream, session=session
+            )
+        assert joint_names is not None
+        return Recognizer.for_positions(
+            self.library, joint_names, rate, settings=settings, stream=stream, session=session
         )
 
     def put(self, stream: str, recognizer: Recognizer) -> None:
@@ -154,46 +127,11 @@ class RecognizerBank:
         names = [f[0] for f in frames]
         if len(set(names)) != len(names):
             raise ValueError("at most one frame per stream in one push")
-        unknown = [n for n in names if n not in self._streams]
+        streams = self._streams
+        unknown = [n for n in names if n not in streams]
         if unknown:
             raise ValueError(f"streams not in the bank: {', '.join(map(repr, unknown))}")
-        errors: list[tuple[int, str, FrameError]] = []
-        checked: list[tuple[int, Recognizer, int, FloatArray]] = []
-        for i, (name, number, frame) in enumerate(frames):
-            r = self._streams[name]
-            try:
-                n, values = r._check(number, frame)
-            except FrameError as e:
-                errors.append((i, name, e))
-            else:
-                checked.append((i, r, n, values))
-        codes: dict[int, int] = {}
-        channels = [(i, r, n, values) for i, r, n, values in checked if r.model is not None]
-        if channels:  # every channel frame's finiteness, trigonometry and frame step in one pass each
-            flat = np.concatenate([values for _, _, _, values in channels])
-            starts = list(accumulate((len(values) for _, _, _, values in channels[:-1]), initial=0))
-            sums: list[float] = np.add.reduceat(flat, starts).tolist()
-            if not all(map(math.isfinite, sums)):
-                kept = []
-                for item, total in zip(channels, sums, strict=True):
-                    i, r, n, values = item
-                    if math.isfinite(total) or np.isfinite(values).all():
-                        kept.append(item)
-                    else:
-                        errors.append((i, r.stream, non_finite_channels(n, r.stream)))
-                channels = kept
-                flat = np.concatenate([values for _, _, _, values in channels]) if channels else flat[:0]
-            half = 0.5 * flat
-            found = push_channels_many([r._live for _, r, _, _ in channels], flat, np.cos(half), np.sin(half))
-            codes = {i: code for (i, _, _, _), code in zip(channels, found, strict=True)}
-        detections: list[Detection] = []
-        for i, r, n, values in checked:
-            code = codes.get(i) if r.model is not None else r._live.push_positions(values.reshape(-1))
-            if code is None:
-                continue  # refused above
-            try:
-                detections += r._after(n, code)
-            except FrameError as e:
-                errors.append((i, r.stream, e))
-        errors.sort(key=lambda e: e[0])
-        return BankResult(tuple(detections), tuple((name, e) for _, name, e in errors))
+        detections, errors = Recognizer.push_many(
+            [(streams[name], number, frame) for name, number, frame in frames]
+        )
+        return BankResult(tuple(detections), tuple((names[i], e) for i, e in errors))

@@ -19,8 +19,14 @@ Bounded state. The features keep 33 poses at 120 Hz, each gating automaton the q
 three columns per template, and the candidates and keyframe ranges of the last :func:`reach`
 frames.
 
-:func:`detect` is the batch twin: features of the whole recording in one vectorised pass, then the
-same class stage; it equals pushing the frames one by one (tests).
+One live path. :class:`Recognizer` is the one per-stream engine: its frame step (the checks, then
+compiled code) and its :class:`ClassStage` (the codes through :class:`CodeRecognizer`, then into the
+stream's frame numbers by its :class:`~daemon.frames.FrameClock`). :meth:`Recognizer.push_many`
+advances any number of recognisers by one frame each in one pass; :meth:`Recognizer.push` is that
+of one frame, :meth:`daemon.bank.RecognizerBank.push` that of its streams' frames. The settings
+shared by every stream are one :class:`~daemon.types.RecognitionSettings`. :func:`detect` is the
+batch twin: the features of the whole recording in one vectorised pass, then the same class stage
+and clock; it equals pushing the frames one by one (tests).
 """
 
 from __future__ import annotations
@@ -29,7 +35,7 @@ import math
 import uuid
 import weakref
 from collections import deque
-from collections.abc import Collection, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from itertools import accumulate
 from typing import Any, Literal, NamedTuple
@@ -39,23 +45,21 @@ import numpy.typing as npt
 
 from daemon._automaton import AutomatonSet
 from daemon._dtw import StreamDTW
-from daemon._live import NON_FINITE, LiveStream
+from daemon._live import NON_FINITE, NOTHING, LiveStream, push_channels_many
 from daemon.automaton import KeyframeAutomaton
 from daemon.dtw import SCALE, Match, RetrievalTables, Steps, pack, retrieval_tables, threshold
 from daemon.errors import MocapdError
-from daemon.features import FeatureStream, decimation_factor, features, latency_frames
+from daemon.features import FeatureStream, features
+from daemon.frames import FrameClock, check_native_rate
 from daemon.keyframes import KeyframeQuery
 from daemon.library import GATED, ClassTemplate, Library
 from daemon.recordings import joint_positions
 from daemon.templates import expand
-from daemon.types import (
-    DEFAULT_HOLD_S,
-    DEFAULT_MAX_GAP_S,
-    MAX_NATIVE_RATE,
-    FloatArray,
-    IntArray,
-)
+from daemon.types import FloatArray, IntArray, RecognitionSettings
 from replay import JOINT_NAMES, KinematicModel, Motion, Skeleton
+
+DEFAULT_SETTINGS = RecognitionSettings()
+"""``config.yaml``'s defaults, all classes."""
 
 FrameProblem = Literal["shape", "non_finite", "type", "repeat", "back", "jump"]
 
@@ -169,26 +173,21 @@ _PLANS: dict[tuple[int, tuple[str, ...] | None, float], tuple[weakref.ref[Librar
 _PLANS = {}
 
 
-def plans(
-    library: Library, classes: Collection[str] | None = None, *, max_gap_s: float = DEFAULT_MAX_GAP_S
-) -> tuple[ClassPlan, ...]:
-    """The plans of ``classes`` (None: all, in the library's order); ValueError for a gap cap out of
-    range. Made once per library object and settings (a stream joining a service costs no template
+def plans(library: Library, settings: RecognitionSettings = DEFAULT_SETTINGS) -> tuple[ClassPlan, ...]:
+    """The plans of the settings' classes (None: all, in the library's order) with their gap cap.
+    Made once per library object and settings (a stream joining a service costs no template
     preparation)."""
-    if not (math.isfinite(max_gap_s) and max_gap_s > 0):
-        raise ValueError(f"max_gap_s must be positive seconds, got {max_gap_s}")
-    names = list(library.classes) if classes is None else list(classes)
-    key = (id(library), None if classes is None else tuple(names), float(max_gap_s))
+    key = (id(library), settings.classes, float(settings.max_gap_s))
     held = _PLANS.get(key)
     if held is not None and held[0]() is library:
         return held[1]
-    made = _make_plans(library, names, max_gap_s)
+    names = list(library.classes) if settings.classes is None else list(settings.classes)
+    made = _make_plans(library, names, settings.max_gap(library.rate))
     _PLANS[key] = (weakref.ref(library, lambda _: _PLANS.pop(key, None)), made)
     return made
 
 
-def _make_plans(library: Library, names: Sequence[str], max_gap_s: float) -> tuple[ClassPlan, ...]:
-    rate = library.rate
+def _make_plans(library: Library, names: Sequence[str], max_gap: int) -> tuple[ClassPlan, ...]:
     out = []
     for name in names:
         cls = library.get(name)
@@ -196,7 +195,7 @@ def _make_plans(library: Library, names: Sequence[str], max_gap_s: float) -> tup
         for template, tau in cls.members:
             t = expand(template)
             members.append(MemberPlan(t.values, t.weights, retrieval_tables(t.values, t.weights), tau))
-        out.append(ClassPlan(cls, tuple(members), cls.mode == GATED, max(1, round(max_gap_s * rate))))
+        out.append(ClassPlan(cls, tuple(members), cls.mode == GATED, max_gap))
     return tuple(out)
 
 
@@ -260,14 +259,12 @@ class CodeRecognizer:
     time it is decided, shares a frame with it (:func:`gate_ranges`)."""
 
     def __init__(
-        self, class_plans: Sequence[ClassPlan], rate: float, *, compete: bool = True, hold: int = 0
+        self, class_plans: Sequence[ClassPlan], rate: float, settings: RecognitionSettings = DEFAULT_SETTINGS
     ) -> None:
-        if hold < 0:
-            raise ValueError(f"hold must not be negative, got {hold}")
         self.plans = tuple(class_plans)
         self.rate = rate
-        self.compete = compete
-        self.hold = hold
+        self.compete = compete = settings.compete
+        self.hold = hold = settings.hold(rate)
         self._owner = [k for k, p in enumerate(self.plans) for _ in p.members]
         first = list(accumulate((len(p.members) for p in self.plans), initial=0))
         # the templates a candidate's rivals come from: all, or its own class's
@@ -395,8 +392,76 @@ class CodeRecognizer:
                 w.popleft()
 
 
+NON_FINITE_CHANNELS = NON_FINITE - 1
+"""A channel frame's code when a channel is not finite (its compiled step was not run)."""
+
+Step = tuple[list[Detection], list[tuple[int, FrameError]]]
+"""What :meth:`Recognizer.push_many` gave: the detections, and the refused frames as (position
+among the frames pushed, :class:`FrameError`) in order."""
+
+
+class ClassStage:
+    """The live path after the features, for one stream: its index-rate codes in, detections in its
+    own frame numbers out. :class:`CodeRecognizer` finds the confirmations; the stream's
+    :class:`~daemon.frames.FrameClock` puts them in its frame numbers, and its ``session`` and
+    ``stream`` name make each detection's id. One motion at a time: :meth:`start` at its first
+    frame, :meth:`push` each code with the frame whose push gave it, :meth:`flush` at its end. Both
+    :class:`Recognizer` (codes from its compiled frame step) and :func:`detect` (codes from one
+    vectorised pass) go through it."""
+
+    def __init__(
+        self,
+        class_plans: Sequence[ClassPlan],
+        index_rate: float,
+        settings: RecognitionSettings,
+        clock: FrameClock,
+        *,
+        stream: str,
+        session: str,
+    ) -> None:
+        self.codes = CodeRecognizer(class_plans, index_rate, settings)
+        self.clock = clock
+        self.stream = stream
+        self.session = session
+        self.first: int | None = None
+        """The frame number of the motion's first frame (None: no motion under way)."""
+
+    def start(self, first: int) -> None:
+        """A motion begins at frame ``first``."""
+        self.first = first
+
+    def push(self, number: int, code: int) -> list[Detection]:
+        """The motion's next index-rate ``code``, given by the push of frame ``number``: the
+        detections it completed."""
+        found = self.codes.push(code)
+        return [self._detection(c, number) for c in found] if found else []
+
+    def flush(self, last: int | None, codes: Sequence[int] = ()) -> list[Detection]:
+        """The motion ends at frame ``last`` (None: it had no frame) with its last ``codes``: the
+        remaining detections; then no motion is under way."""
+        out = [d for code in codes for d in self.push(last or 0, code)]
+        found = self.codes.flush()
+        if last is not None:
+            out += [self._detection(c, last) for c in found]
+        self.first = None
+        return out
+
+    def _detection(self, found: Confirmation, number: int) -> Detection:
+        """A confirmation (index-rate frames) as a :class:`Detection` in the stream's frame numbers,
+        emitted at frame ``number``: :meth:`~daemon.frames.FrameClock.span` of its index frames."""
+        plan, m, tau = found
+        assert self.first is not None
+        start, end = self.clock.span(self.first, m.start, m.end, number)
+        key = f"{self.session}/{self.stream}/{plan.name}/{start}/{end}"
+        return Detection(
+            str(uuid.uuid5(uuid.NAMESPACE_URL, key)), self.stream, plan.name, start, end, m.cost, tau, number
+        )
+
+
 class Recognizer:
-    """Detections of the library's classes on one stream, one frame at a time.
+    """Detections of the library's classes on one stream, one frame at a time: the live path's one
+    per-stream engine (:class:`~daemon.bank.RecognizerBank` holds many, :func:`detect` shares its
+    :class:`ClassStage`).
 
     Make it with :meth:`for_skeleton` (frames are AMC-style channel vectors, shape ``(C,)`` in the
     skeleton's channel order, angles in radians as :mod:`replay` reads them) or
@@ -404,28 +469,26 @@ class Recognizer:
     any length unit: the features are scale-free). ``push(number, frame)`` takes the source's frame
     number (consecutive) and returns the detections that were emitted; ``flush()`` ends the stream,
     returns the rest and starts a new stream. Bad frames raise :class:`FrameError` and change
-    nothing."""
+    nothing. ``settings`` are those of every stream; ``stream`` and ``session`` (None: a new one)
+    name this one in its detections' ids."""
 
     def __init__(
         self,
         library: Library,
         native_rate: float,
         *,
+        settings: RecognitionSettings = DEFAULT_SETTINGS,
         stream: str = "",
-        classes: Collection[str] | None = None,
-        max_gap_s: float = DEFAULT_MAX_GAP_S,
-        compete: bool = True,
-        hold_s: float = DEFAULT_HOLD_S,
         session: str | None = None,
         model: KinematicModel | None = None,
         joint_names: Sequence[str] | None = None,
     ) -> None:
-        check_native_rate(native_rate)
+        self.clock = FrameClock.of(native_rate, library.rate)
         self.stream = stream
         self.library = library
         self.native_rate = native_rate
+        self.settings = settings
         self.session = uuid.uuid4().hex if session is None else session
-        self._step = decimation_factor(native_rate, library.rate)
         self.model = model
         if model is not None:
             self._width = len(model.skeleton.channel_names)
@@ -434,29 +497,27 @@ class Recognizer:
                 raise ValueError("give a kinematic model (channels) or the joint names (positions)")
             self._width = len(joint_names)
             self._joint_order = joint_order(joint_names)
-        self._plans = plans(library, classes, max_gap_s=max_gap_s)
+        self._plans = plans(library, settings)
         features = FeatureStream(JOINT_NAMES, native_rate)
-        self._features_latency = features.latency
+        step = self.clock.step
         if model is not None:
             self._shape: tuple[int, ...] = (self._width,)
             self._live = LiveStream(
-                model.frame_kinematics, features.core, features.thresholds_of, None, self._width, self._step
+                model.frame_kinematics, features.core, features.thresholds_of, None, self._width, step
             )
         else:
             self._shape = (self._width, 3)
             order = (3 * self._joint_order[:, None] + np.arange(3)).reshape(-1)
-            self._live = LiveStream(
-                None, features.core, features.thresholds_of, order, 3 * self._width, self._step
-            )
-        self._codes = CodeRecognizer(
-            self._plans, library.rate, compete=compete, hold=hold_frames(hold_s, library.rate)
+            self._live = LiveStream(None, features.core, features.thresholds_of, order, 3 * self._width, step)
+        self._stage = ClassStage(
+            self._plans, library.rate, settings, self.clock, stream=stream, session=self.session
         )
-        self._first: int | None = None  # native frame numbers of the stream's first and last frame
-        self._last: int | None = None
+        self._last: int | None = None  # the frame number of the stream's last frame
 
     @classmethod
     def for_skeleton(cls, library: Library, skeleton: Skeleton, native_rate: float, **kw: Any) -> Recognizer:
         """Frames of AMC-style channels of ``skeleton`` (forward kinematics per frame)."""
+        check_native_rate(native_rate)
         return cls(library, native_rate, model=skeleton_model(skeleton), **kw)
 
     @classmethod
@@ -472,35 +533,89 @@ class Recognizer:
         return self._plans
 
     @property
+    def reach(self) -> int:
+        """Index-rate frames before the one that emits it that a detection may start at, at most
+        (:func:`reach`)."""
+        return reach(self._plans, self._stage.codes.hold)
+
+    @property
     def latency_frames(self) -> int:
         """Native frames from a detection's last frame to its emission, at most: the features'
         delay, the frame after it that shows Δ's minimum, then the hold."""
-        return self._features_latency + (self._codes.hold + 2) * self._step
+        return self.clock.lag(self._stage.codes.hold + 2)
 
     def push(self, number: int, frame: npt.ArrayLike) -> list[Detection]:
-        """Add frame ``number``; the detections it completed."""
+        """Add frame ``number``; the detections it completed. The step of :meth:`push_many` for this
+        one frame."""
         n, values = self._check(number, frame)
         if self.model is None:
-            return self._after(n, self._live.push_positions(values.reshape(-1)))
-        if not math.isfinite(values.sum()) and not np.isfinite(values).all():  # one reduction if finite
-            raise non_finite_channels(n, self.stream)
-        half = 0.5 * values
-        return self._after(n, self._live.push_channels(values, np.cos(half), np.sin(half)))
+            return self._take(n, self._live.push_positions(values.reshape(-1)))
+        return self._take(n, Recognizer._channel_codes([self._live], [values])[0])
 
     def flush(self) -> list[Detection]:
         """End the stream: the remaining detections, then a fresh stream (frame numbers start anew)."""
-        last = self._last
-        out = [d for code in self._live.flush() for d in self._detections(self._codes.push(code), last or 0)]
-        found = self._codes.flush()
-        if last is not None:
-            out += self._detections(found, last)
-        self._first = self._last = None
-        return out
+        last, self._last = self._last, None
+        return self._stage.flush(last, self._live.flush())
+
+    @staticmethod
+    def push_many(frames: Sequence[tuple[Recognizer, object, npt.ArrayLike]]) -> Step:
+        """The live path's per-frame step: one frame ``(recogniser, number, values)`` of each of any
+        number of distinct recognisers. Each frame is checked (:meth:`_check`: number, type, shape);
+        the channel frames' finiteness, the cosines and sines of their half angles (forward
+        kinematics, :mod:`replay.kinematics`) and their compiled steps run in one pass each over all
+        of them (:meth:`_channel_codes`); each frame's code goes to its recogniser (:meth:`_take`:
+        a pose that is not finite after forward kinematics is refused, an index-rate code goes to
+        the :class:`ClassStage`). Returns the detections (in the order of the frames, each
+        recogniser's in its order) and the refused frames (each changed nothing)."""
+        errors: list[tuple[int, FrameError]] = []
+        taken: list[tuple[int, Recognizer, int, int | None]] = []  # (position, recogniser, number, code)
+        steps: list[LiveStream] = []  # the channel frames' (their codes None in taken, until stepped)
+        values: list[FloatArray] = []
+        for i, (r, number, frame) in enumerate(frames):
+            try:
+                n, v = r._check(number, frame)
+            except FrameError as e:
+                errors.append((i, e))
+                continue
+            if r.model is None:
+                taken.append((i, r, n, r._live.push_positions(v.reshape(-1))))
+            else:
+                taken.append((i, r, n, None))
+                steps.append(r._live)
+                values.append(v)
+        stepped = iter(Recognizer._channel_codes(steps, values) if steps else ())
+        detections: list[Detection] = []
+        for i, r, n, code in taken:
+            try:
+                detections += r._take(n, next(stepped) if code is None else code)
+            except FrameError as e:
+                errors.append((i, e))
+        if len(errors) > 1:
+            errors.sort(key=lambda e: e[0])
+        return detections, errors
+
+    @staticmethod
+    def _channel_codes(steps: list[LiveStream], values: list[FloatArray]) -> list[int]:
+        """The compiled steps of checked channel frames ``values`` (one per step), in one pass over
+        all: each frame's code, or :data:`NON_FINITE_CHANNELS` (not stepped) for one with a channel
+        that is not finite."""
+        flat = values[0] if len(values) == 1 else np.concatenate(values)
+        if not math.isfinite(flat.sum()):  # one reduction if all are finite
+            finite = [bool(np.isfinite(v).all()) for v in values]
+            if not all(finite):
+                kept = [k for k, ok in enumerate(finite) if ok]
+                found = iter(
+                    Recognizer._channel_codes([steps[k] for k in kept], [values[k] for k in kept])
+                    if kept
+                    else ()
+                )
+                return [next(found) if ok else NON_FINITE_CHANNELS for ok in finite]
+        half = 0.5 * flat
+        return push_channels_many(steps, flat, np.cos(half), np.sin(half))
 
     def _check(self, number: object, frame: npt.ArrayLike) -> tuple[int, FloatArray]:
         """The frame number and the frame's values (contiguous float64) if their number, type and
-        shape are right, else :class:`FrameError`. Channels' finiteness is checked by the caller
-        (the bank checks every stream's at once)."""
+        shape are right, else :class:`FrameError`."""
         last = self._last
         if type(number) is int and last is not None and number == last + 1:
             n = number  # the usual case, without the checks' calls
@@ -513,20 +628,16 @@ class Recognizer:
             check_positions(n, values, self._width, self.stream)
         return n, values
 
-    def _after(self, number: int, code: int) -> list[Detection]:
-        """What the compiled frame step gave for frame ``number``: an index-rate code for the classes,
-        nothing, or a refusal (the step changed nothing then)."""
-        if code == NON_FINITE:
-            raise non_finite_pose(number, self.stream)
-        if self._first is None:
-            self._first = number
+    def _take(self, number: int, code: int) -> list[Detection]:
+        """What the compiled step gave for frame ``number``: an index-rate code for the
+        :class:`ClassStage`, :data:`~daemon._live.NOTHING`, or a refusal (FrameError; the step
+        changed nothing)."""
+        if code < NOTHING:
+            raise (non_finite_pose if code == NON_FINITE else non_finite_channels)(number, self.stream)
+        if self._last is None:
+            self._stage.start(number)
         self._last = number
-        return [] if code < 0 else self._detections(self._codes.push(code), number)
-
-    def _detections(self, found: Sequence[Confirmation], number: int) -> list[Detection]:
-        first = self._first
-        assert first is not None
-        return [make_detection(self.session, self.stream, c, first, self._step, number) for c in found]
+        return [] if code == NOTHING else self._stage.push(number, code)
 
 
 def skeleton_model(skeleton: Skeleton) -> KinematicModel:
@@ -534,12 +645,6 @@ def skeleton_model(skeleton: Skeleton) -> KinematicModel:
     model = KinematicModel(skeleton)
     model.joints(np.zeros((len(skeleton.node_names), 3)))
     return model
-
-
-def check_native_rate(rate: float) -> None:
-    """ValueError unless ``rate`` (Hz) is one features are computed at."""
-    if not (math.isfinite(rate) and 0 < rate <= MAX_NATIVE_RATE):
-        raise ValueError(f"native rate must be in (0, {MAX_NATIVE_RATE:g}] Hz, got {rate}")
 
 
 def joint_order(joint_names: Sequence[str]) -> npt.NDArray[np.intp]:
@@ -597,7 +702,7 @@ def check_positions(number: int, values: FloatArray, width: int, stream: str) ->
 
 
 def non_finite_channels(number: int, stream: str) -> FrameError:
-    """The error :func:`check_channels` raises for non-finite channels."""
+    """The error for a channel frame with a value that is not finite."""
     return FrameError(f"frame {number}: a channel is not finite", "non_finite", stream=stream)
 
 
@@ -606,54 +711,25 @@ def non_finite_pose(number: int, stream: str) -> FrameError:
     return FrameError(f"frame {number}: a joint position is not finite", "non_finite", stream=stream)
 
 
-def hold_frames(hold_s: float, rate: float) -> int:
-    """The hold in frames at ``rate`` Hz; ValueError unless ``hold_s`` is seconds >= 0."""
-    if not (math.isfinite(hold_s) and hold_s >= 0):
-        raise ValueError(f"hold_s must be seconds >= 0, got {hold_s}")
-    return round(hold_s * rate)
-
-
-def make_detection(
-    session: str, stream: str, found: Confirmation, first: int, step: int, number: int
-) -> Detection:
-    """A confirmation (index-rate frames) as a :class:`Detection` in the source's frame numbers:
-    index frame j covers native frames ``first + j·step`` .. ``first + (j+1)·step - 1``, the end
-    capped by the frame ``number`` being pushed (the features' delay makes it later than every
-    covered frame but at the stream's end)."""
-    plan, m, tau = found
-    start = first + m.start * step
-    end = min(first + (m.end + 1) * step - 1, number)
-    key = f"{session}/{stream}/{plan.name}/{start}/{end}"
-    return Detection(
-        str(uuid.uuid5(uuid.NAMESPACE_URL, key)), stream, plan.name, start, end, m.cost, tau, number
-    )
-
-
 def detect(
     motion: Motion,
     library: Library,
     native_rate: float,
     *,
+    settings: RecognitionSettings = DEFAULT_SETTINGS,
     stream: str = "",
-    classes: Collection[str] | None = None,
-    max_gap_s: float = DEFAULT_MAX_GAP_S,
-    compete: bool = True,
-    hold_s: float = DEFAULT_HOLD_S,
     session: str = "",
 ) -> list[Detection]:
     """The batch twin of :class:`Recognizer`: every detection of ``motion`` (read at ``native_rate``
     Hz) in the order the recogniser emits them, equal to pushing its frames one by one with the same
-    ``session``. Features come from one vectorised pass over the whole recording."""
+    settings and ``session``."""
     return detect_positions(
         joint_positions(motion),
         motion.frames,
         library,
         native_rate,
+        settings=settings,
         stream=stream,
-        classes=classes,
-        max_gap_s=max_gap_s,
-        compete=compete,
-        hold_s=hold_s,
         session=session,
     )
 
@@ -664,33 +740,24 @@ def detect_positions(
     library: Library,
     native_rate: float,
     *,
+    settings: RecognitionSettings = DEFAULT_SETTINGS,
     stream: str = "",
-    classes: Collection[str] | None = None,
-    max_gap_s: float = DEFAULT_MAX_GAP_S,
-    compete: bool = True,
-    hold_s: float = DEFAULT_HOLD_S,
     session: str = "",
 ) -> list[Detection]:
     """:func:`detect` of standard joint positions shape ``(N, 26, 3)`` with frame numbers ``(N,)``
-    (consecutive)."""
-    n = len(positions)
-    if n == 0:
+    (consecutive). The features of all frames come from one vectorised pass
+    (:func:`daemon.features.features`, the batch twin of the live path's
+    :class:`~daemon.features.FeatureStream`), decimated by the live path's
+    :class:`~daemon.frames.FrameClock`; the codes go through the live path's :class:`ClassStage`,
+    each with the frame whose push would give it (:meth:`~daemon.frames.FrameClock.known`)."""
+    clock = FrameClock.of(native_rate, library.rate)
+    if len(positions) == 0:
         return []
-    step = decimation_factor(native_rate, library.rate)
-    matrix = features(positions, JOINT_NAMES, native_rate)[::step]  # (n_index, 39)
-    codes = pack(matrix).tolist()
-    recognizer = CodeRecognizer(
-        plans(library, classes, max_gap_s=max_gap_s),
-        library.rate,
-        compete=compete,
-        hold=hold_frames(hold_s, library.rate),
+    codes: list[int] = pack(features(positions, JOINT_NAMES, native_rate)[:: clock.step]).tolist()
+    stage = ClassStage(
+        plans(library, settings), library.rate, settings, clock, stream=stream, session=session
     )
     first, last = int(numbers[0]), int(numbers[-1])
-    delay = latency_frames(native_rate)
-    out = []
-    for j, code in enumerate(codes):
-        # index frame j's features come out when native frame j·step + delay is pushed
-        number = min(first + j * step + delay, last)
-        out += [make_detection(session, stream, c, first, step, number) for c in recognizer.push(code)]
-    out += [make_detection(session, stream, c, first, step, last) for c in recognizer.flush()]
-    return out
+    stage.start(first)
+    out = [d for j, code in enumerate(codes) for d in stage.push(clock.known(first, j, last), code)]
+    return out + stage.flush(last)

@@ -112,6 +112,7 @@ def test_png_with_truth(library: tuple[Library, Path], tmp_path: Path) -> None:
         (("--speed", "fast"), "--speed: must be 'max' or a positive factor"),
         (("--classes", "squat1Reps,nope"), "no class 'nope' in the library"),
         (("--classes", "squat1Reps,"), "--classes: an empty class name"),
+        (("--classes", "squat1Reps,squat1Reps"), "--classes: a class is named twice"),
         (("--truth", "x.csv"), "--truth: --truth is drawn in --png"),
         (("--png", "x.txt"), "does not end in .png"),
     ],

@@ -31,7 +31,7 @@ from daemon.recognizer import (
 )
 from daemon.recordings import joint_positions, native_rate, read_recording
 from daemon.templates import MotionTemplate, expand
-from daemon.types import FEATURE_SETS, N_FEATURES, FeatureSet
+from daemon.types import FEATURE_SETS, N_FEATURES, FeatureSet, RecognitionSettings
 from replay import JOINT_NAMES, Motion
 from tests.helpers import hdm05_clip, pair_id, recording_pairs, small_library, takes
 from tests.naive import keyframe_matches, ref_subsequence, slow_blocks, slow_minimum
@@ -111,7 +111,7 @@ def test_one_motion_one_detection_and_a_repetition_right_after(library: Library)
     assert [d.class_name for d in once] == ["squat1Reps"]
     alone = [
         d
-        for d in detect(m, library, rate, session=SESSION, compete=False)
+        for d in detect(m, library, rate, session=SESSION, settings=RecognitionSettings(compete=False))
         if d.class_name.startswith("squat")
     ]
     assert sorted(d.class_name for d in alone) == ["squat1Reps", "squat1Reps.published"]
@@ -269,8 +269,9 @@ def test_confirmations_equal_the_definition(
         a = dataclasses.replace(a, variants=(Variant(other.quantised, other.tau, other.provenance, (0,)),))
     classes = [a, b]
     stream = stream_codes(codes)
-    class_plans = plans(Library(30.0, {c.name: c for c in classes}), max_gap_s=max_gap / 30.0)
-    recognizer = CodeRecognizer(class_plans, 30.0, compete=compete, hold=hold)
+    settings = RecognitionSettings(max_gap_s=max_gap / 30.0, compete=compete, hold_s=hold / 30.0)
+    recognizer = CodeRecognizer(plans(Library(30.0, {c.name: c for c in classes}), settings), 30.0, settings)
+    assert (recognizer.hold, recognizer.plans[0].max_gap) == (hold, max_gap)
     got = [
         (p.name, m.start, m.end, round(m.cost * SCALE), j)
         for j, c in enumerate(stream)

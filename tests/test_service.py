@@ -19,6 +19,7 @@ from daemon.behaviours import JointRotations, ppca_forward
 from daemon.library import default_library_path, load_library
 from daemon.recognizer import detect, same_motion
 from daemon.recordings import read_recording
+from daemon.types import RecognitionSettings
 from replay import Motion
 from tests.helpers import (
     DATA,
@@ -96,7 +97,12 @@ def held(where: Path, hold: float) -> list[dict[str, Any]]:
         finished(replay(*TRIAL, "zmq+" + daemon.poses, speed="max"))
         want = [
             d.as_json()
-            for d in detect(read_recording(*TRIAL), load_library(default_library_path()), 120.0, hold_s=hold)
+            for d in detect(
+                read_recording(*TRIAL),
+                load_library(default_library_path()),
+                120.0,
+                settings=RecognitionSettings(hold_s=hold),
+            )
         ]
         wait_for(lambda: daemon.metrics().get("mocapd_frames_in_total") == 2465, 30, "every pose received")
         assert daemon.stop() == 0

@@ -84,16 +84,11 @@ def _detect(args: argparse.Namespace, config: Config) -> int:
     rate = native_rate(motion, common.default_native_rate(args, config))
     stream = trial if args.stream is None else args.stream
     try:
-        recognizer = Recognizer.for_skeleton(
-            library,
-            motion.skeleton,
-            rate,
-            stream=stream,
-            classes=classes,
-            max_gap_s=config.recognizer.max_gap_s,
-            compete=config.recognizer.compete,
-            hold_s=config.recognizer.hold_s,
-        )
+        settings = config.recognizer.settings(classes)
+    except ValueError as exc:
+        raise UsageError(str(exc), field="--classes") from None
+    try:
+        recognizer = Recognizer.for_skeleton(library, motion.skeleton, rate, settings=settings, stream=stream)
     except ValueError as exc:  # a rate the library's does not divide
         raise UsageError(str(exc), field="--library") from None
     found: list[Detection] = []

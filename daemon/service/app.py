@@ -175,9 +175,7 @@ class Service:
             queue_frames=config.service.queue_frames,
             max_streams=config.service.max_streams,
             max_gap_s=config.service.max_gap_s,
-            max_gap_frame_s=config.recognizer.max_gap_s,
-            compete=config.recognizer.compete,
-            hold_s=config.recognizer.hold_s,
+            recognition=config.recognizer.settings(),
             segmentation=config.segmentation.method,
             segmented=config.segmentation.streams,
         )

@@ -37,7 +37,7 @@ import dataclasses
 import fnmatch
 import uuid
 from collections import Counter, deque
-from collections.abc import Collection, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -46,10 +46,9 @@ import numpy as np
 from daemon.bank import RecognizerBank
 from daemon.behaviours import Boundary, JointRotations, PcaSegmenter, PpcaSegmenter
 from daemon.behaviours import online_segmenter as make_segmenter
-from daemon.features import latency_frames
 from daemon.library import Library
-from daemon.recognizer import Detection, hold_frames, reach
-from daemon.types import DEFAULT_HOLD_S
+from daemon.recognizer import DEFAULT_SETTINGS, Detection, Recognizer
+from daemon.types import RecognitionSettings
 from protocols.messages import BoundaryMessage, DetectionMessage, PoseMessage, SkeletonMessage
 from replay import MocapFormatError, Skeleton, parse_asf
 from replay.amc import DEG
@@ -142,7 +141,7 @@ class StreamTable:
     """The streams of one service instance (see the module docstring). ``session`` makes detection
     ids unique to this run; ``queue_frames`` bounds each stream's waiting poses (the oldest dropped),
     ``max_streams`` the table, ``max_gap_frames`` the bridged gaps (at 120 Hz; scaled by the
-    stream's rate)."""
+    stream's rate), ``recognition`` the settings of every stream's recogniser."""
 
     def __init__(
         self,
@@ -152,16 +151,11 @@ class StreamTable:
         queue_frames: int = 240,
         max_streams: int = 1000,
         max_gap_s: float = 0.25,
-        max_gap_frame_s: float = 2.0,
-        compete: bool = True,
-        hold_s: float = DEFAULT_HOLD_S,
-        classes: Collection[str] | None = None,
+        recognition: RecognitionSettings = DEFAULT_SETTINGS,
         segmentation: Literal["none", "pca", "ppca"] = "none",
         segmented: Sequence[str] = ("*",),
     ) -> None:
-        self.bank = RecognizerBank(
-            library, max_gap_s=max_gap_frame_s, classes=classes, compete=compete, hold_s=hold_s
-        )
+        self.bank = RecognizerBank(library, recognition)
         self.session = session
         self.queue_frames = queue_frames
         self.max_streams = max_streams
@@ -170,18 +164,17 @@ class StreamTable:
         self.streams: dict[str, _Stream] = {}
         self.counts: Counter[str] = Counter()
         """Refusals and drops by reason, and ``gaps``/``gap_frames``."""
-        self._window = reach(self.bank.plans, hold_frames(hold_s, library.rate))
         self.segmentation = segmentation
         self.segmented = tuple(segmented)
         self._queued = 0
         self._waiting: dict[str, _Stream] = {}  # the streams with queued poses, in arrival order
 
-    def _horizon(self, rate: float) -> int:
-        """Native frames a detection at ``rate`` Hz reaches back at most: the index-rate frames of
-        :func:`daemon.recognizer.reach`, the features' delay, and margin (offsets and source times are kept as
-        long)."""
-        step = max(1, round(rate / self.library.rate))
-        return (self._window + 2) * step + latency_frames(rate) + 8
+    @staticmethod
+    def _horizon(recognizer: Recognizer) -> int:
+        """Native frames a detection of ``recognizer`` reaches back at most: the index-rate frames of
+        :attr:`~daemon.recognizer.Recognizer.reach`, the features' delay, and margin (offsets and
+        source times are kept as long)."""
+        return recognizer.clock.lag(recognizer.reach + 2) + 8
 
     @property
     def queued(self) -> int:
@@ -228,7 +221,7 @@ class StreamTable:
             message,
             skeleton,
             angles,
-            times=np.zeros(self._horizon(message.rate)),
+            times=np.zeros(self._horizon(recognizer)),
             width=len(skeleton.channel_names) if skeleton is not None else len(message.joints or ()),
             seen=now,
             generation=(old.generation + 1) if old else 0,
