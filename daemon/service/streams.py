@@ -46,6 +46,7 @@ import numpy as np
 from daemon.bank import RecognizerBank
 from daemon.behaviours import Boundary, JointRotations, PcaSegmenter, PpcaSegmenter
 from daemon.behaviours import online_segmenter as make_segmenter
+from daemon.frames import Renumbering
 from daemon.library import Library
 from daemon.recognizer import DEFAULT_SETTINGS, Detection, Recognizer
 from daemon.types import RecognitionSettings
@@ -91,9 +92,8 @@ class _Segmenting:
 @dataclass
 class _Stream:
     """One stream: its announcement, the skeleton parsed from it (channel streams), the last
-    sequence number received and the last fed to the recogniser, the poses waiting, and the frame
-    number ↔ sequence number offsets (frame f has sequence number f + offset of the last change at
-    or before f)."""
+    sequence number received and the last fed to the recogniser, the poses waiting, and its frame
+    numbers for its sequence numbers (:class:`~daemon.frames.Renumbering`)."""
 
     announced: SkeletonMessage
     skeleton: Skeleton | None
@@ -101,9 +101,8 @@ class _Stream:
     last_received: int | None = None
     received: int = 0
     last_fed: int | None = None
-    next_frame: int = 0
     queue: deque[PoseMessage] = field(default_factory=deque)
-    offsets: deque[tuple[int, int]] = field(default_factory=deque)
+    numbers: Renumbering = field(default_factory=lambda: Renumbering(0))
     times: np.ndarray = field(default_factory=lambda: np.zeros(1))
     width: int = 0
     seen: float = 0.0
@@ -172,8 +171,8 @@ class StreamTable:
     @staticmethod
     def _horizon(recognizer: Recognizer) -> int:
         """Native frames a detection of ``recognizer`` reaches back at most: the index-rate frames of
-        :attr:`~daemon.recognizer.Recognizer.reach`, the features' delay, and margin (offsets and
-        source times are kept as long)."""
+        :attr:`~daemon.recognizer.Recognizer.reach`, the features' delay, and margin (the renumbering's
+        changes and source times are kept as long)."""
         return recognizer.clock.lag(recognizer.reach + 2) + 8
 
     @property
@@ -217,11 +216,13 @@ class StreamTable:
             raise Refused("skeleton", str(e)) from None
         out = self._remove(message.stream, "skeleton_changed") if old is not None else []
         self.bank.put(message.stream, recognizer)
+        horizon = self._horizon(recognizer)
         self.streams[message.stream] = _Stream(
             message,
             skeleton,
             angles,
-            times=np.zeros(self._horizon(recognizer)),
+            numbers=Renumbering(horizon),
+            times=np.zeros(horizon),
             width=len(skeleton.channel_names) if skeleton is not None else len(message.joints or ()),
             seen=now,
             generation=(old.generation + 1) if old else 0,
@@ -333,19 +334,9 @@ class StreamTable:
                 self.counts["gaps"] += 1
                 self.counts["gap_frames"] += gap
             before[name] = s.last_fed
-            if s.last_fed is None:  # a new motion: frame numbers are the sequence numbers
-                s.next_frame = pose.seq
-                s.offsets.clear()
-                s.offsets.append((pose.seq, 0))
-            elif gap > 0:
-                s.offsets.append((s.next_frame, pose.seq - s.next_frame))
-            frame = s.next_frame
-            s.next_frame += 1
+            frame = s.numbers.frame(pose.seq, first=s.last_fed is None)
             s.last_fed = pose.seq
-            horizon = len(s.times)
-            s.times[frame % horizon] = pose.time
-            while len(s.offsets) > 1 and s.offsets[1][0] < frame - horizon:
-                s.offsets.popleft()
+            s.times[frame % len(s.times)] = pose.time
             frames.append((name, frame, self._values(s, pose)))
         if not frames:
             return out, []
@@ -358,7 +349,8 @@ class StreamTable:
             # (its frame number this one's) instead of every later one being refused as a jump
             self.counts[f"recognizer_{error.problem}"] += 1
             s = self.streams[name]
-            s.next_frame, s.last_fed = numbers[name], before[name]
+            s.numbers.refused(numbers[name])
+            s.last_fed = before[name]
             refused.append((name, error.problem, str(error)))
         out += [self._emitted(d) for d in result.detections]
         if self.segmentation != "none":
@@ -430,28 +422,19 @@ class StreamTable:
             d.id,
             d.stream,
             d.class_name,
-            self._seq(s, d.start_frame),
-            self._seq(s, d.end_frame),
+            s.numbers.seq(d.start_frame),
+            s.numbers.seq(d.end_frame),
             d.cost,
             d.tau,
-            self._seq(s, d.emitted_at_frame),
+            s.numbers.seq(d.emitted_at_frame),
             source_time,
             0.0,
         )
         return Emitted(message, source_time)
 
     def _boundary(self, name: str, s: _Stream, frame: int, known: int, b: Boundary) -> Emitted:
-        seq = self._seq(s, frame)
+        seq = s.numbers.seq(frame)
         key = f"{self.session}/{s.generation}/{name}/boundary/{b.method}/{seq}"
         source_time = float(s.times[known % len(s.times)])
         message = BoundaryMessage(str(uuid.uuid5(uuid.NAMESPACE_URL, key)), name, seq, b.method, b.score, 0.0)
         return Emitted(message, source_time)
-
-    @staticmethod
-    def _seq(s: _Stream, frame: int) -> int:
-        offset = 0
-        for start, value in s.offsets:
-            if start > frame:
-                break
-            offset = value
-        return frame + offset
