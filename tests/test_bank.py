@@ -1,8 +1,9 @@
-"""The multi-stream bank equals one :class:`Recognizer` per stream, bit for bit: real recordings (CMU
-and HDM05; channels of two skeleton topologies, joint positions in another joint order, a stream at
-60 Hz) joining and leaving at random ticks, pushed in random interleavings with bad frames among
-them; detections (every field) and refused frames (problem and message) agree push by push. Streams
-join after others and leave at any time, and ids can come back."""
+"""The multi-stream bank equals one :class:`Recognizer` per stream (and the batch twin ``detect``), bit
+for bit: real recordings (CMU and HDM05; channels of two skeleton topologies, joint positions in
+another joint order, a stream at 60 Hz) joining and leaving at random ticks, pushed in random
+interleavings with bad frames among them; detections (every field) and refused frames (problem and
+message) agree push by push. Streams join after others and leave at any time, and ids can come
+back."""
 
 from __future__ import annotations
 
@@ -20,7 +21,7 @@ from hypothesis import strategies as st
 
 from daemon.bank import RecognizerBank
 from daemon.library import Library
-from daemon.recognizer import Detection, FrameError, Recognizer
+from daemon.recognizer import Detection, FrameError, Recognizer, detect
 from daemon.recordings import joint_positions, read_recording
 from daemon.types import FloatArray
 from replay import JOINT_NAMES, Bone, Motion, Skeleton
@@ -272,6 +273,10 @@ def test_join_leave_any_time(library: Library) -> None:
     got += bank.remove("a")
     assert got == want + reference.flush()
     assert len([d for d in got if d.class_name == "squat1Reps"]) >= 4
+    m = motion(*hdm05_clip("bd", "squat1Reps", takes("squat1Reps", "bd")[3]))
+    six = np.array([values for _, values in source.frames * 6])
+    renumbered = Motion(m.source, m.skeleton, m.header, np.arange(1, len(six) + 1), six)
+    assert got == detect(renumbered, library, 120.0, stream="a", session=SESSION)  # and its batch twin
     with pytest.raises(KeyError):
         bank.remove("a")
     # the id comes back as a new stream, frame numbers from 1 again
