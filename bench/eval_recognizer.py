@@ -54,13 +54,14 @@ from bench.common import DATA
 from bench.machine import describe
 from daemon import mocap6
 from daemon.dtw import local_minima, pack, retrieval_tables, subsequence_codes, to_cost
-from daemon.features import decimation_factor, features
+from daemon.features import features
+from daemon.frames import FrameClock
 from daemon.library import GATED, Library, load_library
 from daemon.recognizer import Detection, Recognizer, gate_ranges, same_motion
 from daemon.recordings import joint_positions, native_rate, read_recording
 from daemon.shipped import COLUMNS, HDM05_ACTORS, HDM05_CLASSES, Row, cmu_rows, hdm05_rows
 from daemon.templates import expand
-from daemon.types import DEFAULT_MAX_GAP_S, FloatArray
+from daemon.types import FloatArray, RecognitionSettings
 from replay import JOINT_NAMES, Motion
 
 REPO = Path(__file__).resolve().parents[1]
@@ -241,10 +242,10 @@ class Results:
 def why_missed(library: Library, s: Stream, seg: Segment, detections: Sequence[Detection]) -> str:
     """Why a motion of a class holds no right detection, read from the class's stream-wide DTW (the
     batch twin's features)."""
-    step = decimation_factor(s.rate, library.rate)
+    clock = FrameClock.of(s.rate, library.rate)
     first = int(s.motion.frames[0])
-    codes = pack(features(joint_positions(s.motion), JOINT_NAMES, s.rate)[::step])
-    lo, hi = (seg.start - first) // step, (seg.end - first) // step
+    codes = pack(features(joint_positions(s.motion), JOINT_NAMES, s.rate)[:: clock.step])
+    lo, hi = clock.index(first, seg.start), clock.index(first, seg.end)
     cls = library.classes[seg.name]
     best = math.inf
     mine = []
@@ -265,12 +266,12 @@ def why_missed(library: Library, s: Stream, seg: Segment, detections: Sequence[D
     if cls.mode == GATED:
         assert cls.keyframes is not None
         ranges = gate_ranges(
-            cls.keyframes, library.rate, max(1, round(DEFAULT_MAX_GAP_S * library.rate)), codes.tolist()
+            cls.keyframes, library.rate, RecognitionSettings().max_gap(library.rate), codes.tolist()
         )
         if not any(a <= m.end and m.start <= b for m, _ in mine for a, b in ranges):
             return "keyframe gate closed"
     for d in detections:
-        a, b = (d.start_frame - first) // step, (d.end_frame - first) // step
+        a, b = clock.index(first, d.start_frame), clock.index(first, d.end_frame)
         if any(same_motion((m.start, m.end), (a, b)) and d.cost < m.cost for m, _ in mine):
             return (
                 f"beaten by {d.class_name}" if d.class_name != seg.name else "taken by a detection across it"
@@ -286,7 +287,7 @@ def measure(library: Library, fold: Fold, results: Results) -> None:
             t = results.tally(kind, d.class_name)
             t.detections += 1
             t.right += any(inside(d.start_frame, d.end_frame, d.class_name, seg) for seg in s.truth)
-        step = decimation_factor(s.rate, library.rate)
+        clock = FrameClock.of(s.rate, library.rate)
         codes: list[int] | None = None
         for seg in s.truth:
             if seg.name not in library.classes:
@@ -304,11 +305,13 @@ def measure(library: Library, fold: Fold, results: Results) -> None:
             if cls.mode == GATED:
                 assert cls.keyframes is not None
                 if codes is None:
-                    codes = pack(features(joint_positions(s.motion), JOINT_NAMES, s.rate)[::step]).tolist()
+                    codes = pack(
+                        features(joint_positions(s.motion), JOINT_NAMES, s.rate)[:: clock.step]
+                    ).tolist()
                 first = int(s.motion.frames[0])
-                lo, hi = (seg.start - first) // step, (seg.end - first) // step
+                lo, hi = clock.index(first, seg.start), clock.index(first, seg.end)
                 ranges = gate_ranges(
-                    cls.keyframes, library.rate, max(1, round(DEFAULT_MAX_GAP_S * library.rate)), codes
+                    cls.keyframes, library.rate, RecognitionSettings().max_gap(library.rate), codes
                 )
                 t.gated += 1
                 t.gate_opened += any(a <= hi and lo <= b for a, b in ranges)
