@@ -515,18 +515,37 @@ class Recognizer:
         self._last: int | None = None  # the frame number of the stream's last frame
 
     @classmethod
-    def for_skeleton(cls, library: Library, skeleton: Skeleton, native_rate: float, **kw: Any) -> Recognizer:
+    def for_skeleton(
+        cls,
+        library: Library,
+        skeleton: Skeleton,
+        native_rate: float,
+        *,
+        settings: RecognitionSettings = DEFAULT_SETTINGS,
+        stream: str = "",
+        session: str | None = None,
+    ) -> Recognizer:
         """Frames of AMC-style channels of ``skeleton`` (forward kinematics per frame)."""
         check_native_rate(native_rate)
-        return cls(library, native_rate, model=skeleton_model(skeleton), **kw)
+        model = skeleton_model(skeleton)
+        return cls(library, native_rate, settings=settings, stream=stream, session=session, model=model)
 
     @classmethod
     def for_positions(
-        cls, library: Library, joint_names: Sequence[str], native_rate: float, **kw: Any
+        cls,
+        library: Library,
+        joint_names: Sequence[str],
+        native_rate: float,
+        *,
+        settings: RecognitionSettings = DEFAULT_SETTINGS,
+        stream: str = "",
+        session: str | None = None,
     ) -> Recognizer:
         """Frames of joint positions in the order ``joint_names``, which must name every standard
         joint (:data:`replay.JOINT_NAMES`; others are ignored)."""
-        return cls(library, native_rate, joint_names=joint_names, **kw)
+        return cls(
+            library, native_rate, settings=settings, stream=stream, session=session, joint_names=joint_names
+        )
 
     @property
     def plans(self) -> tuple[ClassPlan, ...]:
