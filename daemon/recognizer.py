@@ -5,7 +5,7 @@ positions arrive as they are), :class:`~daemon.features.FeatureStream` gives the
 every k-th frame is kept for the library's rate (30 Hz from 120 Hz), and the frame's code (bit i =
 feature i) goes to :class:`CodeRecognizer`: every template of every class runs as a subsequence DTW
 over the whole stream (thesis Alg. 3.2 with free start; the retrieval cost and steps of
-:func:`daemon.retrieval.template_search`), its local minima within τ are candidates, a candidate
+:func:`daemon.search.retrieval.template_search`), its local minima within τ are candidates, a candidate
 beaten by a cheaper one of the same motion (:func:`same_motion`) is dropped, and one that is not is
 held until no template can still end a cheaper match of its motion (or ``hold_s``), then published
 unless its class is gated by keyframes (:class:`~daemon.automaton.KeyframeAutomaton`'s matches)
@@ -46,7 +46,6 @@ from daemon.errors import MocapdError
 from daemon.features import FeatureStream, decimation_factor, features, latency_frames
 from daemon.keyframes import KeyframeQuery
 from daemon.library import GATED, ClassTemplate, Library
-from daemon.recordings import joint_positions
 from daemon.templates import expand
 from daemon.types import (
     DEFAULT_HOLD_S,
@@ -56,6 +55,7 @@ from daemon.types import (
     IntArray,
 )
 from replay import JOINT_NAMES, KinematicModel, Motion, Skeleton
+from replay.kinematics import joint_positions
 
 FrameProblem = Literal["shape", "non_finite", "type", "repeat", "back", "jump"]
 
@@ -238,7 +238,7 @@ class CodeRecognizer:
 
     *Candidates.* Every template of every class runs as a subsequence DTW over the whole stream, one
     column per frame (:class:`daemon._dtw.StreamDTW`; thesis Alg. 3.2 with free start, the retrieval
-    cost and steps of :func:`daemon.retrieval.template_search`). Each local minimum of a template's
+    cost and steps of :func:`daemon.search.retrieval.template_search`). Each local minimum of a template's
     Δ at or below its τ (below the frame before, not above the frame after) is a candidate, known
     one frame after its end.
 

@@ -1,6 +1,6 @@
 """A recording replayed onto a bus as a live stream (``mocapd replay``): the messages of
-:func:`replay.publish.messages` sent to the daemon's ZeroMQ poses socket or an MQTT broker, each pose
-on its due time (:func:`replay.publish.due`: paced by the clock, no drift over a long file).
+:func:`protocols.publish.messages` sent to the daemon's ZeroMQ poses socket or an MQTT broker, each pose
+on its due time (:func:`protocols.publish.due`: paced by the clock, no drift over a long file).
 
 ZeroMQ late joiners: a PUB socket sends nothing to a subscriber whose connection is not up yet, so a
 replay's first frames would be lost. The replay's socket is an XPUB, which receives the subscriber's
@@ -29,9 +29,9 @@ import zmq
 import zmq.asyncio
 
 from protocols.messages import PoseMessage, StatusMessage, WireError, decode, encode, topic
+from protocols.publish import Items, due, messages
 from protocols.transport import Outgoing
 from replay.amc import Motion
-from replay.publish import Items, due, messages
 
 SEND_HWM = 10_000_000
 ANNOUNCE_S = 1.0
@@ -175,3 +175,10 @@ async def _to_mqtt(
                 while client.pending:
                     await asyncio.sleep(0.005)
         return sent
+
+
+def replay(
+    url: str, motion: Motion, asf_text: str, *, stream: str, rate: float, speed: float | None, loop: bool
+) -> int:
+    """:func:`replay_to` run to its end on a fresh event loop (for callers outside asyncio)."""
+    return asyncio.run(replay_to(url, motion, asf_text, stream=stream, rate=rate, speed=speed, loop=loop))

@@ -25,10 +25,12 @@ import msgpack
 
 from bench.processes import free_port, samples
 from daemon.keyframes import parse_keyframe_queries
-from daemon.library import ClassTemplate, Library, learn_class
-from daemon.recordings import joint_positions, read_examples, read_recording
+from daemon.learn.library import learn_class
+from daemon.library import ClassTemplate, Library
+from daemon.recordings import read_examples, read_recording
 from daemon.types import FloatArray
 from replay.catalog import CMU_SUBSTITUTES, recordings
+from replay.kinematics import joint_positions
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / "shared"

@@ -28,9 +28,9 @@ from daemon.behaviours import (
     PpcaSegmenter,
     RotationStream,
 )
-from daemon.mocap6 import trial_recording
 from daemon.recordings import read_recording
 from daemon.stages import Stage, run
+from daemon.tools.mocap6 import trial_recording
 from daemon.types import FloatArray
 from replay import Motion
 from replay.asf import ROTATION_DOFS

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from daemon.index_store import ARRAYS, index_files, load_index
+from daemon.search.store import ARRAYS, index_files, load_index
 from daemon.types import FEATURE_SETS
 from tests.helpers import INDEX_PATHS as PATHS
 from tests.helpers import REPO, assert_ok, assert_one_error_line, mocapd, write_manifest

@@ -11,12 +11,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from daemon.index_store import build_index, load_index, save_index
 from daemon.keyframes import parse_keyframe_queries
-from daemon.learning import learn_library
-from daemon.library import DTW, GATED, LEARNED, PUBLISHED, Library, load_library, save_library
+from daemon.learn.library import learn_library, save_library
+from daemon.library import DTW, GATED, LEARNED, PUBLISHED, Library, load_library
 from daemon.recordings import read_examples, read_manifest
-from daemon.retrieval import template_search
+from daemon.search.retrieval import template_search
+from daemon.search.store import build_index, load_index, save_index
 from tests.helpers import (
     HDM_AMC,
     HDM_ASF,

@@ -20,9 +20,10 @@ import numpy as np
 import pytest
 
 from daemon import cli
-from daemon.index_store import build_index, save_index
-from daemon.library import Library, learn_class, save_library
+from daemon.learn.library import learn_class, save_library
+from daemon.library import Library
 from daemon.recordings import read_examples, read_manifest
+from daemon.search.store import build_index, save_index
 from tests.helpers import (
     CMU_AMC,
     CMU_ASF,

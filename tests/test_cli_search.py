@@ -9,7 +9,9 @@ from pathlib import Path
 
 import pytest
 
-from daemon.index import (
+from daemon.keyframes import parse_keyframe_queries
+from daemon.recordings import read_features, read_manifest
+from daemon.search.index import (
     adaptive_fuzzy_query,
     example_query,
     feature_selection,
@@ -17,9 +19,8 @@ from daemon.index import (
     mismatch_query,
     ranked,
 )
-from daemon.index_store import MotionIndex, build_index, load_index, save_index
-from daemon.keyframes import keyframe_search, parse_keyframe_queries
-from daemon.recordings import read_features, read_manifest
+from daemon.search.keyframes import keyframe_search
+from daemon.search.store import MotionIndex, build_index, load_index, save_index
 from tests.helpers import (
     KEYFRAMES,
     assert_ok,

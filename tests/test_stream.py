@@ -42,7 +42,7 @@ from daemon.features import (
     features,
     latency_frames,
 )
-from daemon.segments import Segment, Segmenter, segment, segment_codes, set_codes, vector_code
+from daemon.search.segments import Segment, Segmenter, segment, segment_codes, set_codes, vector_code
 from daemon.stages import run
 from daemon.types import BoolArray, FeatureSet, FloatArray
 from replay import JOINT_NAMES

@@ -15,7 +15,10 @@ from daemon.cli import common
 from daemon.config import Config
 from daemon.dtw import STEPS
 from daemon.errors import UsageError
-from daemon.index import (
+from daemon.keyframes import KeyframeError, KeyframeQuery, parse_keyframe_queries
+from daemon.library import load_library
+from daemon.recordings import RateError, display_path, read_features, read_manifest
+from daemon.search.index import (
     Hits,
     adaptive_fuzzy_query,
     example_query,
@@ -24,7 +27,9 @@ from daemon.index import (
     mismatch_query,
     ranked,
 )
-from daemon.index_store import (
+from daemon.search.keyframes import keyframe_search
+from daemon.search.retrieval import template_search
+from daemon.search.store import (
     INDEX_JSON,
     Document,
     MotionIndex,
@@ -34,10 +39,6 @@ from daemon.index_store import (
     load_index,
     save_index,
 )
-from daemon.keyframes import KeyframeError, KeyframeQuery, keyframe_search, parse_keyframe_queries
-from daemon.library import load_library
-from daemon.recordings import RateError, display_path, read_features, read_manifest
-from daemon.retrieval import template_search
 from daemon.types import DEFAULT_INDEX_RATE, FEATURE_SETS
 
 LIBRARY_KEYFRAMES = Path("<the library's keyframes>")

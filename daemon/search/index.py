@@ -7,7 +7,7 @@ integer shift; a hit must not cross a document boundary. The inverted list of a 
 array of the global numbers of the segments with that code (a CSR layout: ``offsets`` into one array),
 so the index is linear in the number of segments.
 
-Pure: numpy in, frozen dataclasses out; storing an index is :mod:`daemon.index_store`.
+Pure: numpy in, frozen dataclasses out; storing an index is :mod:`daemon.search.store`.
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ import numpy as np
 import numpy.typing as npt
 
 from daemon.features import FEATURE_NAMES, SET_SLICES
-from daemon.segments import segment_codes, set_codes
+from daemon.search.segments import segment_codes, set_codes
 from daemon.types import BoolArray, FeatureSet, IntArray
 
 CodeSet = Sequence[int] | IntArray  # the codes of a fuzzy set V
