@@ -1,4 +1,4 @@
-"""The on-disk motion index (daemon/index_store.py) on a handful of real HDM05 clips: manifests, the
+"""The on-disk motion index (daemon/search/store.py) on a handful of real HDM05 clips: manifests, the
 index against an independent segmentation of each clip, the directory format and its validation."""
 
 from __future__ import annotations
