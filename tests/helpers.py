@@ -8,6 +8,7 @@ import dataclasses
 import getpass
 import json
 import os
+import re
 import shutil
 import signal
 import socket
@@ -80,6 +81,12 @@ INDEX_PATHS = [hdm05_clip(a, c, t) for a, c, t, _ in INDEX_CLIPS]
 
 TRAINING = [("hopBothLegs1hops", "bd", t) for t in (1, 2, 3)] + [("squat1Reps", "bd", t) for t in (1, 2)]
 """(class, actor, take) of a small training set."""
+
+DG_CLIPS = [("dg", "squat1Reps", 25), ("dg", "squat1Reps", 26), ("dg", "hopBothLegs1hops", 22)]
+"""A small database of three dg clips (actor, class, take), for building an index."""
+
+CONTROL = re.compile(r"[\x00-\x1f\x7f-\x9f]")
+"""Control characters, which no error line may contain."""
 
 
 def recording_pairs() -> list[tuple[Path, Path]]:
