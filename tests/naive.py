@@ -76,7 +76,8 @@ def slow_runs(codes: Sequence[int]) -> list[Segment]:
 
 
 # The slow reference of the 14 velocity features: each test as (signal (N,), op, T1, T2, reference),
-# a feature is on in a track where all of its tests hold. Definitions: thesis Table 5.1 / features.py.
+# a feature is on in a track where all of its tests hold. Definitions: thesis Table 5.1 /
+# daemon/features/catalog.py.
 Check = tuple[FloatArray, str, float, float, str]
 
 

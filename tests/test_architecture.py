@@ -132,7 +132,7 @@ def imports(path: Path) -> list[tuple[int, str]]:
     for node in ast.walk(ast.parse(text)):
         if isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
             base = node.module
-            for a in node.names:  # `from daemon import mocap6` imports daemon.mocap6
+            for a in node.names:  # `from daemon.tools import mocap6` imports daemon.tools.mocap6
                 sub = f"{base}.{a.name}"
                 here = REPO / Path(*sub.split("."))
                 out.append((node.lineno, sub if here.with_suffix(".py").is_file() or here.is_dir() else base))
