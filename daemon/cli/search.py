@@ -20,6 +20,7 @@ from daemon.library import load_library
 from daemon.recordings import RateError, display_path, read_features, read_manifest
 from daemon.search.index import (
     Hits,
+    QueryError,
     adaptive_fuzzy_query,
     example_query,
     feature_selection,
@@ -360,8 +361,8 @@ def _search_example(args: argparse.Namespace, config: Config, index: MotionIndex
         raise UsageError("--example needs --features NAME,NAME,...")
     try:
         feature_set, mask = feature_selection([n.strip() for n in args.features.split(",") if n.strip()])
-    except ValueError as exc:
-        raise UsageError(str(exc), field="--features") from None
+    except QueryError as exc:
+        raise UsageError(exc.reason, field="--features") from None
     try:
         first, last = int(start_text), int(end_text)
     except ValueError:
@@ -390,8 +391,8 @@ def _search_example(args: argparse.Namespace, config: Config, index: MotionIndex
     if args.mismatch is not None:
         try:
             hits, kind = mismatch_query(set_index, sets, args.mismatch), f"{args.mismatch}-mismatch"
-        except ValueError as exc:
-            raise UsageError(str(exc), field="--mismatch") from None
+        except QueryError as exc:
+            raise UsageError(exc.reason, field="--mismatch") from None
     elif args.plain:
         hits, kind = fuzzy_query(set_index, sets), "fuzzy"
     else:
