@@ -28,6 +28,7 @@ from urllib.parse import urlsplit
 import zmq
 import zmq.asyncio
 
+from daemon.errors import MocapdError
 from protocols.messages import PoseMessage, StatusMessage, WireError, decode, encode, topic
 from protocols.publish import Items, due, messages
 from protocols.transport import Outgoing
@@ -36,6 +37,10 @@ from replay.amc import Motion
 SEND_HWM = 10_000_000
 ANNOUNCE_S = 1.0
 """The longest a replay goes without announcing its skeleton."""
+
+
+class TargetError(MocapdError, ValueError):
+    """A URL a replay cannot send to."""
 
 
 async def replay_to(
@@ -50,15 +55,16 @@ async def replay_to(
     wait_s: float = 10.0,
 ) -> int:
     """Replay ``motion`` onto ``url`` (``zmq+tcp://HOST:PORT``: the daemon's poses socket;
-    ``mqtt://HOST:PORT`` or ``mqtts://``: a broker) as ``stream``; the poses sent. ValueError for
-    another URL; TimeoutError when no subscriber or broker answers within ``wait_s``."""
+    ``mqtt://HOST:PORT`` or ``mqtts://``: a broker) as ``stream``; the poses sent. :class:`TargetError`
+    for another URL (a ValueError from :func:`protocols.mqtt.parse_url` for a bad MQTT one);
+    TimeoutError when no subscriber or broker answers within ``wait_s``."""
     scheme = urlsplit(url).scheme
     items = messages(motion, asf_text, stream, rate, None if loop else 1, epoch=uuid.uuid4().hex[:16])
     if scheme.startswith("zmq+"):
         return await _to_zmq(url[len("zmq+") :], items, rate, speed, wait_s)
     if scheme in ("mqtt", "mqtts"):
         return await _to_mqtt(url, items, stream, rate, speed, wait_s)
-    raise ValueError(f"--to must be zmq+tcp://HOST:PORT or mqtt://HOST:PORT, got {url!r}")
+    raise TargetError(f"must be zmq+tcp://HOST:PORT or mqtt://HOST:PORT, got {url!r}")
 
 
 async def _send_all(

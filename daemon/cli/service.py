@@ -78,7 +78,7 @@ def stream_name(amc: Path) -> str:
 
 def _replay(args: argparse.Namespace, config: Config) -> int:
     from daemon.service.app import configure_logging
-    from protocols.replay import replay
+    from protocols.replay import TargetError, replay
 
     configure_logging(config.logging.level)  # the MQTT client's log lines as JSON, like the daemon's
     motion = read_recording(args.asf, args.amc)
@@ -87,7 +87,9 @@ def _replay(args: argparse.Namespace, config: Config) -> int:
     stream = stream_name(args.amc) if args.stream is None else args.stream
     try:
         sent = replay(args.to, motion, asf_text, stream=stream, rate=rate, speed=args.speed, loop=args.loop)
-    except ValueError as e:
+    except TargetError as e:
+        raise UsageError(e.reason, field="--to") from None
+    except ValueError as e:  # an MQTT URL protocols.mqtt.parse_url refuses (not yet a MocapdError)
         raise UsageError(str(e), field="--to") from None
     except TimeoutError:
         raise UsageError(
