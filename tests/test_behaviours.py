@@ -28,6 +28,7 @@ from daemon.behaviours import (
     PpcaSegmenter,
     RotationStream,
 )
+from daemon.behaviours.ppca import _PpcaRun
 from daemon.mocap6 import trial_recording
 from daemon.recordings import read_recording
 from daemon.stages import Stage, run
@@ -321,7 +322,7 @@ def test_the_peak_test_follows_the_paper(hs: list[int], rise: int, shortest: int
     shorter than the shortest behaviour, on sequences with many ties (a plateau is no peak, and no
     valley where it starts)."""
     params = PpcaParams(window=1.5, delta=0.2, rise=float(rise), shortest=shortest / RATE)
-    run = bh._PpcaRun(params, params.frames(RATE))
+    run = _PpcaRun(params, params.frames(RATE))
     for i, h in enumerate(hs):
         run.moments.n = i  # K, the index here
         peak = run.observe(float(h))
