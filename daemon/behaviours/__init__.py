@@ -10,6 +10,7 @@ One subsystem per module, each importing only the ones listed before it:
   quaternions, batch and stream;
 * :mod:`~daemon.behaviours.moments`: a segment's incremental moments, their spectrum and Eq. 6's
   dimension;
+* :mod:`~daemon.behaviours.online`: what the online segmenters share;
 * :mod:`~daemon.behaviours.pca`: PCA (§3.1), online (:class:`PcaSegmenter`) with its batch twin
   :func:`pca_segment`;
 * :mod:`~daemon.behaviours.ppca`: PPCA (§3.2), the forward pass online (:class:`PpcaSegmenter`, batch

@@ -75,20 +75,3 @@ def check_frames(frames: npt.ArrayLike) -> FloatArray:
         raise ValueError(f"frames must have shape (N, D) with D >= 1, got {x.shape}")
     check_finite(x, "frames")
     return x
-
-
-class FrameCheck:
-    """Validates pushed frames: shape ``(D,)`` fixed by the first, finite; returns a copy."""
-
-    def __init__(self) -> None:
-        self.dims: int | None = None
-
-    def __call__(self, frame: npt.ArrayLike, index: int) -> FloatArray:
-        x = np.array(frame, dtype=np.float64)
-        if x.ndim != 1 or x.shape[0] < 1 or (self.dims is not None and x.shape[0] != self.dims):
-            want = f"({self.dims},)" if self.dims is not None else "(D,) with D >= 1"
-            raise ValueError(f"frame {index} must have shape {want}, got {x.shape}")
-        if not np.isfinite(x).all():
-            raise ValueError(f"frame {index} has a value that is not finite")
-        self.dims = x.shape[0]
-        return x

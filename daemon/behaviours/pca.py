@@ -12,15 +12,9 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from daemon.behaviours.common import (
-    Boundary,
-    FrameCheck,
-    check_fraction,
-    check_frames,
-    check_rate,
-    count_frames,
-)
+from daemon.behaviours.common import Boundary, check_fraction, check_frames, check_rate, count_frames
 from daemon.behaviours.moments import Moments, dimension, projection_error, spectrum
+from daemon.behaviours.online import OnlineSegmenter
 from daemon.types import FloatArray, IntArray
 
 
@@ -140,11 +134,12 @@ def _pca_boundary(point: _PcaPoint, start: int) -> Boundary | None:
     return Boundary(frame, "pca", point.score, frame)
 
 
-class PcaSegmenter:
-    """§3.1 online: push frame vectors ``(D,)`` (e.g. :class:`RotationStream`'s) at ``rate`` Hz;
-    each push returns the cut it found ([] or one :class:`Boundary`, at the frame just pushed, the
-    frame the paper assigns the cut to and restarts at). ``flush`` returns [] (a cut is never
-    pending) and starts a new stream.
+class PcaSegmenter(OnlineSegmenter[PcaParams, PcaFrames, _PcaRun]):
+    """§3.1 online: push frame vectors ``(D,)`` (e.g.
+    :class:`~daemon.behaviours.quaternions.RotationStream`'s) at ``rate`` Hz; each push returns the
+    cut it found ([] or one :class:`Boundary`, at the frame just pushed, the frame the paper assigns
+    the cut to and restarts at). ``flush`` returns [] (a cut is never pending) and starts a new
+    stream.
 
     For each segment (from the first frame, then from each cut, which is the new segment's first
     frame): ``r`` is the smallest dimension with ``E_r > τ`` over its first ``k`` frames (Eq. 6);
@@ -161,21 +156,14 @@ class PcaSegmenter:
     segment on (the paper's: every frame)."""
 
     def __init__(self, rate: float, *, params: PcaParams = PCA_PAPER) -> None:
-        self.rate = check_rate(rate)
-        self.params = params
-        self.frames = params.frames(rate)
-        self._reset()
+        super().__init__(rate, params, params.frames(rate), _PcaRun)
 
     def _reset(self) -> None:
-        self._check = FrameCheck()
-        self._t = 0
-        self._start = 0
-        self._run = _PcaRun(self.params, self.frames)
+        super()._reset()
         self._pending: list[FloatArray] = []
 
     def push(self, frame: npt.ArrayLike, /) -> list[Boundary]:
-        x = self._check(frame, self._t)
-        self._t += 1
+        x = self._take(frame)
         self._pending.append(x)
         if len(self._pending) < self.frames.step:
             return []
@@ -186,17 +174,12 @@ class PcaSegmenter:
         if cut is None:
             return []
         # The paper restarts at the cut frame: it is the new segment's first frame.
-        self._start = cut.frame
-        self._run = _PcaRun(self.params, self.frames)
+        self._restart(cut.frame)
         self._pending = [x]
         if self.frames.step == 1:
             self._run.feed(x[None])
             self._pending = []
         return [cut]
-
-    def flush(self) -> list[Boundary]:
-        self._reset()
-        return []
 
 
 @dataclass(frozen=True)

@@ -14,15 +14,9 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from daemon.behaviours.common import (
-    Boundary,
-    FrameCheck,
-    check_fraction,
-    check_frames,
-    check_rate,
-    count_frames,
-)
+from daemon.behaviours.common import Boundary, check_fraction, check_frames, check_rate, count_frames
 from daemon.behaviours.moments import Moments, dimension
+from daemon.behaviours.online import OnlineSegmenter
 from daemon.types import FloatArray, IntArray
 
 
@@ -179,7 +173,7 @@ def _ppca_pass(
     return out
 
 
-class PpcaSegmenter:
+class PpcaSegmenter(OnlineSegmenter[PpcaParams, PpcaFrames, _PpcaRun]):
     """§3.2's forward pass online: push frame vectors ``(D,)`` at ``rate`` Hz; a push returns the
     cut that became known ([] or one :class:`Boundary`). A cut at frame ``c`` (the first frame of the
     new behaviour, ``K`` frames after the segment's start, at the peak of ``H``) is known when the
@@ -193,18 +187,12 @@ class PpcaSegmenter:
     on (at most ``2T`` frames; ``K`` grows, the window of ``T`` frames slides)."""
 
     def __init__(self, rate: float, *, params: PpcaParams = PPCA_DEFAULT) -> None:
-        self.rate = check_rate(rate)
-        self.params = params
-        self.frames = params.frames(rate)
-        self._reset()
+        super().__init__(rate, params, params.frames(rate), _PpcaRun)
 
     def _reset(self) -> None:
-        self._check = FrameCheck()
-        self._t = 0
-        self._start = 0
+        super()._reset()
         self._base = 0  # the index of self._kept[0]
         self._kept: list[FloatArray] = []
-        self._run = _PpcaRun(self.params, self.frames)
 
     def _slice(self, a: int, b: int) -> FloatArray:
         return np.array(self._kept[a - self._base : b - self._base])
@@ -214,9 +202,7 @@ class PpcaSegmenter:
         self._base = a
 
     def push(self, frame: npt.ArrayLike, /) -> list[Boundary]:
-        x = self._check(frame, self._t)
-        self._t += 1
-        self._kept.append(x)
+        self._kept.append(self._take(frame))
         t, out = self.frames.window, []
         while True:
             run, start = self._run, self._start
@@ -234,17 +220,12 @@ class PpcaSegmenter:
             if peak is not None:
                 cut = start + peak[0]
                 out.append(Boundary(cut, "ppca", peak[1], start + k + t - 1))
-                self._start = cut
-                self._run = _PpcaRun(self.params, self.frames)
+                self._restart(cut)
                 self._drop_before(cut)
                 continue
             run.absorb(self._slice(start + k, start + k + self.frames.delta))
             self._drop_before(start + run.k - self.frames.delta)
         return out
-
-    def flush(self) -> list[Boundary]:
-        self._reset()
-        return []
 
 
 def ppca_forward(frames: npt.ArrayLike, rate: float, *, params: PpcaParams = PPCA_DEFAULT) -> list[Boundary]:
