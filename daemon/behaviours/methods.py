@@ -10,16 +10,9 @@ from typing import TypeVar
 import numpy.typing as npt
 
 from daemon.behaviours.common import Boundary, Method
-from daemon.behaviours.gmm import GMM_PAPER, GmmParams, GmmResult, gmm_analysis, gmm_segment
-from daemon.behaviours.pca import PCA_PAPER, PcaParams, PcaResult, PcaSegmenter, pca_analysis, pca_segment
-from daemon.behaviours.ppca import (
-    PPCA_DEFAULT,
-    PpcaParams,
-    PpcaResult,
-    PpcaSegmenter,
-    ppca_analysis,
-    ppca_segment,
-)
+from daemon.behaviours.gmm import GMM_PAPER, GmmParams, GmmResult, gmm_analysis
+from daemon.behaviours.pca import PCA_PAPER, PcaParams, PcaResult, PcaSegmenter, pca_analysis
+from daemon.behaviours.ppca import PPCA_DEFAULT, PpcaParams, PpcaResult, PpcaSegmenter, ppca_analysis
 
 Params = PcaParams | PpcaParams | GmmParams
 _P = TypeVar("_P", PcaParams, PpcaParams, GmmParams)
@@ -29,14 +22,9 @@ def segment(
     frames: npt.ArrayLike, rate: float, method: Method, *, params: Params | None = None
 ) -> list[Boundary]:
     """The cuts of ``frames`` shape ``(N, D)`` at ``rate`` Hz by ``method`` (batch; PPCA with all its
-    passes), with ``params`` (the method's parameter class; None: the paper's)."""
-    if method == "pca":
-        return pca_segment(frames, rate, params=_params(params, PcaParams, PCA_PAPER))
-    if method == "ppca":
-        return ppca_segment(frames, rate, params=_params(params, PpcaParams, PPCA_DEFAULT))
-    if method == "gmm":
-        return gmm_segment(frames, rate, params=_params(params, GmmParams, GMM_PAPER))
-    raise ValueError(f"unknown segmentation method {method!r}: pca, ppca or gmm")
+    passes), with ``params`` (the method's parameter class; None: the paper's): the boundaries of
+    :func:`analyse`."""
+    return analyse(frames, rate, method, params=params).boundaries
 
 
 def analyse(
