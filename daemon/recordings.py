@@ -392,7 +392,7 @@ def read_boundaries(
     tolerance_s: float = BOUNDARY_TOLERANCE_S,
 ) -> list[Band]:
     """The true behaviour boundaries of a labels CSV, in AMC frame numbers, each with the frames a
-    cut may fall on to find it (:class:`daemon.behaviours.Band`). Two layouts: with columns
+    cut may fall on to find it (:class:`daemon.types.Band`). Two layouts: with columns
     ``end_frame``, ``end_lo`` and ``end_hi`` (as ``cmu86_segments.csv``), a boundary after each
     segment but the last (the next behaviour starts at ``end_frame + 1``; found by a cut starting
     it at ``end_lo + 1 .. end_hi + 1``), segments in the order of a ``segment`` column if there is

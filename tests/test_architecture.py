@@ -5,6 +5,7 @@ preparation, and every module imports only from its own layer or those below it.
 from __future__ import annotations
 
 import ast
+import importlib
 import json
 import re
 import subprocess
@@ -76,6 +77,23 @@ RUNTIME = {
 }
 """What ``import daemon.recognizer`` loads (a package's own modules counted as the package)."""
 
+PACKAGE_ORDER = {
+    "daemon.features": ("language", "catalog", "velocity", "assembler", "compiler", "batch", "stream"),
+    "daemon.behaviours": (
+        "common",
+        "quaternions",
+        "moments",
+        "online",
+        "pca",
+        "ppca",
+        "gmm",
+        "scoring",
+        "methods",
+    ),
+}
+"""The modules of the packages that re-export one subsystem a module, bottom up: each imports only
+those before it."""
+
 
 def layer(module: str) -> int:
     best, at = "", -1
@@ -105,15 +123,23 @@ def test_the_live_recogniser_loads_only_the_runtime() -> None:
     assert loaded("import daemon.bank") == RUNTIME | {"daemon.bank"}
 
 
-@pytest.mark.parametrize("module", ["protocols", "protocols.messages", "protocols.mqtt", "protocols.zeromq"])
+WIRE = sorted(
+    f"protocols.{p.stem}"
+    for p in (REPO / "protocols").glob("*.py")
+    if p.stem not in ("__init__", "replay", "publish")
+)
+
+
+@pytest.mark.parametrize("module", ["protocols", *WIRE])
 def test_the_wire_loads_nothing_of_the_engine(module: str) -> None:
     """Of daemon, the wire loads only the error root (a refused message is a client's error)."""
     engine = {m for m in loaded(f"import {module}") if not m.startswith("protocols")}
     assert engine <= {"daemon", "daemon.errors"}
 
 
-def test_replaying_loads_the_readers_not_the_engine() -> None:
-    got = loaded("import protocols.replay")
+@pytest.mark.parametrize("module", ["protocols.publish", "protocols.replay"])
+def test_replaying_loads_the_readers_not_the_engine(module: str) -> None:
+    got = loaded(f"import {module}")
     assert {m for m in got if m.startswith("daemon")} <= {"daemon", "daemon.errors", "daemon.types"}
 
 
@@ -170,3 +196,24 @@ def test_asyncio_only_in_the_service_and_the_transports() -> None:
         and re.search(r"^\s*(import asyncio|from asyncio)", path.read_text(encoding="utf-8"), re.M)
     ]
     assert wrong == []
+
+
+@pytest.mark.parametrize("package", sorted(PACKAGE_ORDER))
+def test_a_packages_modules_import_only_those_below(package: str) -> None:
+    order = PACKAGE_ORDER[package]
+    directory = REPO / Path(*package.split("."))
+    assert sorted(p.stem for p in directory.glob("*.py") if p.stem != "__init__") == sorted(order)
+    for k, name in enumerate(order):
+        inside = {
+            m.removeprefix(package + ".")
+            for _, m in imports(directory / f"{name}.py")
+            if m.startswith(package + ".")
+        }
+        assert inside <= set(order[:k]), f"{package}.{name} imports {sorted(inside - set(order[:k]))}"
+
+
+@pytest.mark.parametrize("package", sorted(PACKAGE_ORDER))
+def test_all_names_what_a_package_re_exports(package: str) -> None:
+    module = importlib.import_module(package)
+    public = {name for name in vars(module) if not name.startswith("_")} - set(PACKAGE_ORDER[package])
+    assert sorted(module.__all__) == sorted(public)
