@@ -6,7 +6,7 @@ one core, and the subsequence pass against dtaidistance's C implementation.
 
 Inputs: the 39 features of every AMC file in ../shared/data/mocap at 30 Hz (computed once, not
 timed), the documents repeated to ``--frames`` database frames, each followed by two blocked columns
-as ranked retrieval lays them out (daemon.retrieval); random booleans with the real data's density
+as ranked retrieval lays them out (daemon.search.retrieval); random booleans with the real data's density
 if no recordings are found. The template is a real ``--template``-frame stretch of one document with
 ~30 % of its entries set to ½ (a quantised template over {0, ½, 1}) and weights in [1, 10].
 
@@ -52,7 +52,7 @@ from daemon.dtw import (
 from daemon.types import BoolArray, FloatArray
 
 N_FEATURES = 39
-SEPARATOR = 2  # blocked columns after each document, as daemon.retrieval lays out the database
+SEPARATOR = 2  # blocked columns after each document, as daemon.search.retrieval lays out the database
 HALF_SHARE = 0.3
 FRAME_120HZ_US = 1e6 / 120
 DENSITY = 0.21  # mean share of true features in the 30 Hz feature matrices of ../shared/data/mocap

@@ -15,7 +15,7 @@ import numpy as np
 from bench.common import arguments, best_of, load
 from bench.machine import describe
 from daemon.features import SET_SLICES, FeatureStream, decimate, features, latency_frames
-from daemon.segments import Segmenter, segment
+from daemon.search.segments import Segmenter, segment
 from replay import JOINT_NAMES
 
 

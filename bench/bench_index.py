@@ -28,9 +28,10 @@ import numpy as np
 from bench.common import Recordings, arguments, best_of, load
 from bench.machine import describe
 from daemon.features import features
-from daemon.index import SetIndex, adaptive_fuzzy_query, exact_query, fuzzy_query, matching_codes
-from daemon.index_store import Document, index_bytes, index_from_matrices, load_index, save_index
-from daemon.keyframes import keyframe_search, parse_keyframe_queries
+from daemon.keyframes import parse_keyframe_queries
+from daemon.search.index import SetIndex, adaptive_fuzzy_query, exact_query, fuzzy_query, matching_codes
+from daemon.search.keyframes import keyframe_search
+from daemon.search.store import Document, index_bytes, index_from_matrices, load_index, save_index
 from replay import JOINT_NAMES
 
 T = TypeVar("T")

@@ -33,9 +33,10 @@ from daemon.bank import RecognizerBank
 from daemon.errors import MocapdError
 from daemon.library import Library, default_library_path, load_library
 from daemon.recognizer import Recognizer
-from daemon.recordings import joint_positions, read_recording
+from daemon.recordings import read_recording
 from replay import JOINT_NAMES, Motion
 from replay.catalog import CMU_SUBSTITUTES, recordings
+from replay.kinematics import joint_positions
 
 SIZES = (1, 10, 50, 100, 200, 400)
 WARM = 80

@@ -26,8 +26,8 @@ from collections.abc import Callable
 from bench.common import arguments, best_of
 from bench.machine import describe
 from daemon import behaviours as bh
-from daemon.mocap6 import trial_recording
 from daemon.recordings import native_rate, read_recording
+from daemon.tools.mocap6 import trial_recording
 from daemon.types import FloatArray
 from replay import KinematicModel, Motion
 

@@ -24,10 +24,11 @@ from bench.bench_index import KEYFRAMES, repeated_documents, timed
 from bench.common import arguments, load
 from bench.eval_templates import hdm05_clips, training_sets
 from bench.machine import describe
-from daemon.index_store import MotionIndex, index_from_matrices
 from daemon.keyframes import KeyframeQuery, parse_keyframe_queries
-from daemon.library import ClassTemplate, learn_class
-from daemon.retrieval import frame_codes, template_search
+from daemon.learn.library import learn_class
+from daemon.library import ClassTemplate
+from daemon.search.retrieval import frame_codes, template_search
+from daemon.search.store import MotionIndex, index_from_matrices
 from daemon.templates import expand
 
 TAU = 0.1

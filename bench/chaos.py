@@ -61,10 +61,11 @@ from bench.processes import free_port, listening, rss_kib, scrape
 from daemon.features import decimation_factor
 from daemon.library import Library, default_library_path, load_library
 from daemon.recognizer import detect_positions
-from daemon.recordings import joint_positions, read_recording
+from daemon.recordings import read_recording
 from daemon.types import DEFAULT_HOLD_S, FloatArray, RecognitionSettings
 from protocols.messages import PoseMessage, SkeletonMessage, encode
 from replay import JOINT_NAMES
+from replay.kinematics import joint_positions
 
 MOCAPD = Path(sys.executable).parent / "mocapd"
 RATE = 120.0

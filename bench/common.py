@@ -10,10 +10,11 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
-from daemon.recordings import joint_positions, motion_features
+from daemon.recordings import motion_features
 from daemon.types import BoolArray, FloatArray
 from replay import KinematicModel, Motion, Skeleton, read_amc, read_asf
 from replay.catalog import CMU_SUBSTITUTES, recordings
+from replay.kinematics import joint_positions
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "mocap"
 

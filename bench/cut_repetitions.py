@@ -1,5 +1,5 @@
 """Single repetitions of the mocap6 exercise classes in CMU 13_29, 13_30 and 14_14 (14_14 read with
-13.asf: there is no 14.asf), cut by :mod:`daemon.repetitions`.
+13.asf: there is no 14.asf), cut by :mod:`daemon.tools.repetitions`.
 
     python -m bench.cut_repetitions OUT_DIR [--data DIR] [--rate 30]
 
@@ -21,7 +21,8 @@ from pathlib import Path
 import numpy as np
 
 from bench.common import DATA
-from daemon.mocap6 import (
+from daemon.plots import repetitions_png
+from daemon.tools.mocap6 import (
     SEGMENTS,
     TRIALS,
     RepetitionRow,
@@ -31,9 +32,8 @@ from daemon.mocap6 import (
     rows_csv,
     trial_recording,
 )
-from daemon.plots import repetitions_png
-from daemon.recordings import joint_positions
 from replay import JOINT_NAMES
+from replay.kinematics import joint_positions
 
 CURVES = ("lwrist", "rwrist", "lknee", "rknee", "headtop")
 

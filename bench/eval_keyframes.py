@@ -18,9 +18,10 @@ from pathlib import Path
 
 from bench.common import DATA
 from bench.machine import describe
-from daemon.index_store import MotionIndex, build_index
-from daemon.keyframes import keyframe_search, parse_keyframe_queries
+from daemon.keyframes import parse_keyframe_queries
 from daemon.recordings import ManifestRow
+from daemon.search.keyframes import keyframe_search
+from daemon.search.store import MotionIndex, build_index
 
 KEYFRAMES = Path(__file__).resolve().parents[1].parent / "shared" / "reference" / "manual-keyframes.json"
 

@@ -52,17 +52,18 @@ import numpy as np
 
 from bench.common import DATA
 from bench.machine import describe
-from daemon import mocap6
 from daemon.dtw import local_minima, pack, retrieval_tables, subsequence_codes, to_cost
 from daemon.features import features
 from daemon.frames import FrameClock
 from daemon.library import GATED, Library, load_library
 from daemon.recognizer import Detection, Recognizer, gate_ranges, same_motion
-from daemon.recordings import joint_positions, native_rate, read_recording
-from daemon.shipped import COLUMNS, HDM05_ACTORS, HDM05_CLASSES, Row, cmu_rows, hdm05_rows
+from daemon.recordings import native_rate, read_recording
 from daemon.templates import expand
+from daemon.tools import mocap6
+from daemon.tools.shipped import COLUMNS, HDM05_ACTORS, HDM05_CLASSES, Row, cmu_rows, hdm05_rows
 from daemon.types import FloatArray, RecognitionSettings
 from replay import JOINT_NAMES, Motion
+from replay.kinematics import joint_positions
 
 REPO = Path(__file__).resolve().parents[1]
 

@@ -35,9 +35,9 @@ from typing import Any
 from bench.common import DATA
 from bench.machine import describe
 from daemon import behaviours as bh
-from daemon.mocap6 import SEGMENTS, trial_recording
 from daemon.plots import segmentation_png
 from daemon.recordings import native_rate, read_boundaries, read_recording
+from daemon.tools.mocap6 import SEGMENTS, trial_recording
 from daemon.types import Band, FloatArray
 
 CMU86 = Path("annotations") / "cmu86_aca_haca" / "cmu86_segments.csv"

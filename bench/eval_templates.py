@@ -24,12 +24,12 @@ from bench.common import DATA
 from bench.eval_keyframes import KEYFRAMES, hdm05_rows
 from bench.machine import describe
 from daemon.dtw import Steps
-from daemon.index_store import Document, index_from_matrices, read_document
 from daemon.keyframes import KeyframeQuery, parse_keyframe_queries
-from daemon.library import ClassTemplate, learn_class
-from daemon.recordings import TrainingClip
-from daemon.retrieval import TemplateHits, frame_codes, template_search
-from daemon.types import BoolArray
+from daemon.learn.library import learn_class
+from daemon.library import ClassTemplate
+from daemon.search.retrieval import TemplateHits, frame_codes, template_search
+from daemon.search.store import Document, index_from_matrices, read_document
+from daemon.types import BoolArray, TrainingClip
 
 TAUS = (0.02, 0.04, 0.06, 0.08, 0.1)
 LIMIT = 500

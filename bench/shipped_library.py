@@ -6,11 +6,11 @@ no training step.
     python -m bench.shipped_library [--data ../shared/data/mocap] [--out daemon/data/library]
                                     [--keyframes FILE]
 
-1. The training set (:func:`daemon.shipped.training_rows`): every HDM05 cut clip of the 11 classes
-   by bd, bk and dg, and every repetition of the mocap6 runs cut by :mod:`daemon.mocap6`; the actor
+1. The training set (:func:`daemon.tools.shipped.training_rows`): every HDM05 cut clip of the 11 classes
+   by bd, bk and dg, and every repetition of the mocap6 runs cut by :mod:`daemon.tools.mocap6`; the actor
    is the HDM05 actor or the CMU subject (13_29 and 13_30 are both subject 13; 14_14 is read with
    13.asf, there being no 14.asf).
-2. Every class learned by :func:`daemon.learning.learn_library`, the code ``mocapd learn`` runs with
+2. Every class learned by :func:`daemon.learn.library.learn_library`, the code ``mocapd learn`` runs with
    its defaults: soft, quantised and hard MT at 30 Hz; τ, the number of templates and the keyframe
    gate (or the stream-wide DTW) from folds that leave each of the five people out. No published
    keyframes: ``--keyframes FILE`` (e.g. ``../shared/reference/manual-keyframes.json``) gates the
@@ -34,10 +34,10 @@ from pathlib import Path
 from bench.common import DATA
 from bench.machine import describe
 from daemon.keyframes import KeyframeQuery, parse_keyframe_queries
-from daemon.learning import learn_library
-from daemon.library import Library, check_library_target, save_library
+from daemon.learn.library import check_library_target, learn_library, save_library
+from daemon.library import Library
 from daemon.recordings import Examples, read_example
-from daemon.shipped import RATE, manifest_csv, training_items, training_rows
+from daemon.tools.shipped import RATE, manifest_csv, training_items, training_rows
 
 REPO = Path(__file__).resolve().parents[1]
 OUT = REPO / "daemon" / "data" / "library"

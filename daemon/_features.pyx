@@ -1,5 +1,5 @@
 # cython: language_level=3, boundscheck=False, wraparound=False, initializedcheck=False, cdivision=True
-"""The compiled feature program of daemon/features.py run on doubles: a register machine for the
+"""The compiled feature program of daemon.features run on doubles: a register machine for the
 straight-line arithmetic (one operation per instruction, in the program's order, IEEE doubles with
 numpy's semantics: x/0 gives inf or nan, minimum and maximum propagate nan), the threshold tests, and
 a stream's steady step (velocity points, telescoped window sums, hysteresis) over a ring of poses."""
@@ -10,7 +10,7 @@ from libc.stdint cimport int64_t, uint64_t
 
 import numpy as np
 
-# opcodes and comparisons (daemon.features._assemble writes them)
+# opcodes and comparisons (daemon.features.assembler writes them)
 cdef enum:
     OP_ADD = 0
     OP_SUB = 1
@@ -138,7 +138,7 @@ cdef class FeatureCore:
     f mod keep (its pose components, then its velocity points); ``n`` poses stored, the vectors of
     the first ``emitted`` frames emitted, ``previous`` the last emitted code (the hysteresis'
     memory); the stream's flat thresholds. A frame whose velocity windows reach past either end of
-    the stream has them mirrored there, as :func:`daemon.features._smooth` does."""
+    the stream has them mirrored there, as :func:`daemon.features.velocity.smooth` does."""
 
     def __init__(self, Bytecode code, Py_ssize_t keep, Py_ssize_t latency):
         self.code = code

@@ -1,6 +1,6 @@
 """The keyframe search of thesis ch. 4 run on a stream, one index-rate frame at a time.
 
-:class:`KeyframeAutomaton` is the streaming twin of :func:`daemon.keyframes.keyframe_search` over one
+:class:`KeyframeAutomaton` is the streaming twin of :func:`daemon.search.keyframes.keyframe_search` over one
 document: pushed the frames of a recording, then flushed, it emits exactly the Ω^Z components
 (Def. 4.7/4.8) the batch search returns for that recording, each as soon as no later frame can change
 it.
@@ -13,7 +13,7 @@ lo_j = max(s_j, lo_{j-1} + dmin) and hi_j = min(e_j, hi_{j-1} + dmax). The autom
 partial match at the first frame of the run inside the partial match's window — which is the frame
 being pushed, so lo_j is that frame — and a partial match of all K keyframes is a match M. Its
 hit-relevant range R(M) (Def. 4.6) is (first, hi_K) with first = max_j (lo_j - Σ_{i<j} dmax_i), the
-closed form of the backward pass of :func:`daemon.keyframes.match_ranges`; an open run's end is the
+closed form of the backward pass of :func:`daemon.search.keyframes.match_ranges`; an open run's end is the
 newest frame, which is also R's end for as long as it can still grow.
 
 When. After frame t, a partial match of keyframes 1..k can only be completed through frames after t,
@@ -63,7 +63,7 @@ class KeyframeAutomaton:
     """Ω^Z components of ``query`` over a stream of index-rate frames at ``rate`` Hz.
 
     ``push(code)`` takes one frame's 39 features as a code (bit i = feature i, the lower, upper and
-    mix sets side by side as in :func:`daemon.retrieval.frame_codes`) and returns the components that
+    mix sets side by side as in :func:`daemon.search.retrieval.frame_codes`) and returns the components that
     became final; ``flush()`` ends the stream, returns the rest and starts a new stream (frames
     counted from 0 again). ``max_gap``: the cap of unbounded gaps in frames (required when the
     query has one). The frame step runs in compiled code (:class:`daemon._automaton.AutomatonCore`,

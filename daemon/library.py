@@ -49,7 +49,7 @@ again.
 
 from __future__ import annotations
 
-from collections.abc import Collection, Mapping, Sequence
+from collections.abc import Collection, Mapping
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
@@ -62,10 +62,9 @@ from daemon.dtw import STEPS, Steps
 from daemon.errors import MocapdError
 from daemon.features import FEATURE_NAMES
 from daemon.keyframes import KeyframeQuery, parse_keyframes
-from daemon.recordings import CLASS_NAME, TrainingClip
-from daemon.storage import check_target, checksum, read_meta, replace_directory, sync, write_json
-from daemon.templates import THESIS_KEYFRAMES, Generalisation, MotionTemplate, learn
-from daemon.types import DEFAULT_INDEX_RATE, N_FEATURES, BoolArray
+from daemon.storage import checksum, read_meta
+from daemon.templates import MotionTemplate
+from daemon.types import CLASS_NAME, N_FEATURES, TrainingClip
 
 FORMAT = "mocapd-templates"
 VERSION = 4
@@ -74,7 +73,7 @@ LIBRARY_JSON = "library.json"
 WHAT = "a mocapd template library"
 ARRAYS = ("soft", "soft_weights", "quantised", "quantised_weights", "hard", "hard_weights")
 MAX_WEIGHT = 1.5
-"""Every weight of a learned template is below this (:func:`daemon.templates.balance`)."""
+"""Every weight of a learned template is below this (:func:`daemon.learn.templates.balance`)."""
 CLASS_KEYS_V2 = ("file", "sha256", "tau", "delta", "steps", "iterations", "training", "keyframes")
 CLASS_KEYS_V3 = (*CLASS_KEYS_V2, "calibration")
 CLASS_KEYS = (*CLASS_KEYS_V3, "mode", "mode_reason", "members")
@@ -177,7 +176,7 @@ class ClassTemplate:
     iterations: int
     training: tuple[TrainingClip, ...]
     calibration: Calibration | None = None
-    """How ``tau`` was obtained; None: given, not calibrated (as :func:`daemon.calibration.given`)."""
+    """How ``tau`` was obtained; None: given, not calibrated (as :func:`daemon.learn.calibration.given`)."""
     keyframe_source: str = LEARNED
     """Where ``keyframes`` come from, one of :data:`KEYFRAME_SOURCES`."""
     mode: str = ""
@@ -232,143 +231,7 @@ def _unknown(name: str, known: Collection[str], path: Path | None = None) -> Unk
     )
 
 
-def learn_class(
-    name: str,
-    examples: Sequence[tuple[TrainingClip, BoolArray]],
-    *,
-    delta: float = 0.1,
-    tau: float = 0.1,
-    keyframes: int = 3,
-    steps: Steps = "toolbox",
-    rate: float = DEFAULT_INDEX_RATE,
-    calibration: Calibration | None = None,
-    generalisation: Generalisation = THESIS_KEYFRAMES,
-    mode: str = "",
-    mode_reason: str = "",
-) -> ClassTemplate:
-    """A class learned from its examples' ``(frames, 39)`` matrices at ``rate`` Hz: soft MT (toolbox
-    strategy 5) and its quantisation by ``delta``, hard MT (thesis §3.3.1) and ``keyframes`` automatic
-    keyframes from it (thesis ch. 6; 0 = none). ``steps``: the DTW steps retrieval will use; the
-    toolbox's (1,1), (1,2), (2,1) by default, whose slopes between ½ and 2 keep a template from
-    matching a much shorter or longer stretch (measured in docs/search-and-templates.md).
-    ``calibration``: the class's calibrated τ (:func:`daemon.calibration.calibrate`), which then
-    replaces ``tau``; without it, ``tau`` is recorded as given. ``generalisation``: how far the
-    keyframes reach beyond the training actors (:class:`daemon.templates.Generalisation`;
-    calibration chooses it). ``mode`` and
-    ``mode_reason``: how the live recogniser finds the class and why (:data:`MODES`; "": keyframes
-    when there are any)."""
-    learned = learn(
-        [m for _, m in examples],
-        delta=delta,
-        keyframes=keyframes,
-        name=name,
-        rate=rate,
-        generalisation=generalisation,
-    )
-    return ClassTemplate(
-        name,
-        learned.soft.template,
-        learned.quantised,
-        learned.hard.template,
-        learned.keyframes,
-        tau if calibration is None else calibration.tau,
-        delta,
-        steps,
-        learned.soft.iterations,
-        tuple(clip for clip, _ in examples),
-        given(tau) if calibration is None else calibration,
-        mode=mode,
-        mode_reason=mode_reason,
-    )
-
-
 # -------------------------------------------------------------------------------------- the format
-
-
-def keyframe_entries(query: KeyframeQuery) -> list[dict[str, Any]]:
-    """A keyframe query as entries of ``manual-keyframes.json``."""
-    return [
-        {
-            "set": k.feature_set,
-            "values": [0.5 if v == 0.5 else int(v) for v in k.values],
-            "position": k.position,
-            "stiffness_to_next": k.stiffness_to_next,
-        }
-        for k in query.keyframes
-    ]
-
-
-def _arrays(c: ClassTemplate) -> dict[str, np.ndarray]:
-    arrays = {
-        "soft": c.soft.values,
-        "soft_weights": c.soft.weights,
-        "quantised": c.quantised.values,
-        "quantised_weights": c.quantised.weights,
-        "hard": c.hard.values,
-        "hard_weights": c.hard.weights,
-    }
-    for i, v in enumerate(c.variants, start=1):
-        arrays[f"member{i}"] = v.quantised.values
-        arrays[f"member{i}_weights"] = v.quantised.weights
-    return {k: np.ascontiguousarray(v, dtype=np.float64) for k, v in arrays.items()}
-
-
-def save_library(library: Library, path: str | Path, extra: Mapping[str, str] | None = None) -> None:
-    """Write ``library`` as the directory ``path`` (replacing an earlier library or an empty
-    directory; anything else raises :class:`~daemon.errors.FileAccessError`), never half written.
-    ``extra``: other text files to write into the directory with it (name -> UTF-8 text; plain
-    names, neither ``library.json`` nor ``*.npz``), e.g. the training manifest."""
-    arrays = {name: _arrays(c) for name, c in library.classes.items()}
-    extra = dict(extra or {})
-    for file in extra:
-        if Path(file).name != file or file in (LIBRARY_JSON, ".", "..") or file.endswith(".npz"):
-            raise ValueError(
-                f"an extra file of a library must be a plain name, not {LIBRARY_JSON} or *.npz: {file!r}"
-            )
-    meta: dict[str, Any] = {
-        "format": FORMAT,
-        "version": VERSION,
-        "rate": library.rate,
-        "features": list(FEATURE_NAMES),
-        "classes": {},
-    }
-    for name, c in library.classes.items():
-        meta["classes"][name] = {
-            "file": f"{name}.npz",
-            "sha256": {k: checksum(v) for k, v in arrays[name].items()},
-            "tau": c.tau,
-            "calibration": _calibration_entry(c.provenance),
-            "delta": c.delta,
-            "steps": c.steps,
-            "iterations": c.iterations,
-            "training": [vars(t) for t in c.training],
-            "keyframes": [] if c.keyframes is None else keyframe_entries(c.keyframes),
-            "mode": c.mode,
-            "mode_reason": c.mode_reason,
-            "members": [
-                {"tau": v.tau, "calibration": _calibration_entry(v.calibration), "examples": list(v.examples)}
-                for v in c.variants
-            ],
-        }
-        if c.keyframe_source != LEARNED:
-            meta["classes"][name]["keyframe_source"] = c.keyframe_source
-
-    def fill(temp: Path) -> None:
-        for name, values in arrays.items():
-            with open(temp / f"{name}.npz", "wb") as out:
-                np.savez(out, allow_pickle=False, **values)
-        write_json(temp / LIBRARY_JSON, meta)
-        for file, text in extra.items():
-            with open(temp / file, "w", encoding="utf-8", newline="") as out:
-                out.write(text)
-                sync(out)
-
-    replace_directory(path, LIBRARY_JSON, WHAT, fill)
-
-
-def check_library_target(path: str | Path) -> None:
-    """Raise :class:`~daemon.errors.FileAccessError` unless :func:`save_library` may write ``path``."""
-    check_target(path, LIBRARY_JSON, WHAT)
 
 
 def library_classes(path: str | Path) -> list[str]:
@@ -416,17 +279,6 @@ def load_library(path: str | Path, names: Collection[str] | None = None) -> Libr
             ),
         )
     return Library(rate, classes)
-
-
-def _calibration_entry(c: Calibration) -> dict[str, Any]:
-    return {
-        "method": c.method,
-        "folds": c.folds,
-        "positives": c.positives,
-        "negatives": c.negatives,
-        "recall": c.recall,
-        "precision": c.precision,
-    }
 
 
 def _calibration(check: Checker, value: object, where: str, tau: float) -> Calibration:

@@ -5,7 +5,7 @@ positions arrive as they are), :class:`~daemon.features.FeatureStream` gives the
 every k-th frame is kept for the library's rate (30 Hz from 120 Hz), and the frame's code (bit i =
 feature i) goes to :class:`CodeRecognizer`: every template of every class runs as a subsequence DTW
 over the whole stream (thesis Alg. 3.2 with free start; the retrieval cost and steps of
-:func:`daemon.retrieval.template_search`), its local minima within τ are candidates, a candidate
+:func:`daemon.search.retrieval.template_search`), its local minima within τ are candidates, a candidate
 beaten by a cheaper one of the same motion (:func:`same_motion`) is dropped, and one that is not is
 held until no template can still end a cheaper match of its motion (or ``hold_s``), then published
 unless its class is gated by keyframes (:class:`~daemon.automaton.KeyframeAutomaton`'s matches)
@@ -53,10 +53,10 @@ from daemon.features import FeatureStream, features
 from daemon.frames import FrameClock, check_native_rate
 from daemon.keyframes import KeyframeQuery
 from daemon.library import GATED, ClassTemplate, Library
-from daemon.recordings import joint_positions
 from daemon.templates import expand
 from daemon.types import FloatArray, IntArray, RecognitionSettings
 from replay import JOINT_NAMES, KinematicModel, Motion, Skeleton
+from replay.kinematics import joint_positions
 
 DEFAULT_SETTINGS = RecognitionSettings()
 """``config.yaml``'s defaults, all classes."""
@@ -237,7 +237,7 @@ class CodeRecognizer:
 
     *Candidates.* Every template of every class runs as a subsequence DTW over the whole stream, one
     column per frame (:class:`daemon._dtw.StreamDTW`; thesis Alg. 3.2 with free start, the retrieval
-    cost and steps of :func:`daemon.retrieval.template_search`). Each local minimum of a template's
+    cost and steps of :func:`daemon.search.retrieval.template_search`). Each local minimum of a template's
     Δ at or below its τ (below the frame before, not above the frame after) is a candidate, known
     one frame after its end.
 

@@ -18,7 +18,6 @@ from __future__ import annotations
 import csv
 import io
 import os
-import re
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -28,11 +27,18 @@ import numpy as np
 from daemon.checks import csv_records, read_text
 from daemon.errors import MocapdError
 from daemon.features import decimate, decimation_factor, features
-from daemon.types import DEFAULT_INDEX_RATE, DEFAULT_NATIVE_RATE, Band, BoolArray, FloatArray, IntArray
-from replay import JOINT_NAMES, KinematicModel, Motion, read_amc, read_asf
+from daemon.types import (
+    CLASS_NAME,
+    DEFAULT_INDEX_RATE,
+    DEFAULT_NATIVE_RATE,
+    Band,
+    BoolArray,
+    IntArray,
+    TrainingClip,
+)
+from replay import JOINT_NAMES, Motion, read_amc, read_asf
+from replay.kinematics import joint_positions
 
-CLASS_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]*")
-"""A class name: it names a file of a template library."""
 MAX_ACTOR = 200
 
 
@@ -61,13 +67,6 @@ def native_rate(motion: Motion, default: float = DEFAULT_NATIVE_RATE) -> float:
     """The rate a recording was captured at: its AMC's ``:SAMPLES-PER-SECOND``, else ``default``
     (``config.yaml``'s ``replay.frame_rate_hz``)."""
     return motion.header.frame_rate or default
-
-
-def joint_positions(motion: Motion, unit: str = "cm") -> FloatArray:
-    """The standard joints (:data:`replay.JOINT_NAMES`) of every frame, shape ``(N, 26, 3)``, in
-    centimetres or (``"asf"``) the skeleton's own units."""
-    model = KinematicModel(motion.skeleton)
-    return model.joints(model.positions(motion.channels, "cm" if unit == "cm" else "asf"))
 
 
 @dataclass(frozen=True)
@@ -285,24 +284,6 @@ def _actor(row: ManifestRow, path: str | Path) -> str:
 # ---------------------------------------------------------------------------------------- examples
 
 
-@dataclass(frozen=True)
-class TrainingClip:
-    """Where a training example came from: AMC frames ``start_frame .. end_frame`` of ``amc``
-    (paths as the manifest wrote them), ``frames`` of them at the library's rate, performed by
-    ``actor`` ("" when constructed without one: then the ASF path as written stands for the person)."""
-
-    asf: str
-    amc: str
-    start_frame: int
-    end_frame: int
-    frames: int
-    actor: str = ""
-
-    def __post_init__(self) -> None:
-        if not self.actor:
-            object.__setattr__(self, "actor", self.asf)
-
-
 def read_example(
     item: TrainingRow,
     source: str | Path,
@@ -411,7 +392,7 @@ def read_boundaries(
     tolerance_s: float = BOUNDARY_TOLERANCE_S,
 ) -> list[Band]:
     """The true behaviour boundaries of a labels CSV, in AMC frame numbers, each with the frames a
-    cut may fall on to find it (:class:`daemon.behaviours.Band`). Two layouts: with columns
+    cut may fall on to find it (:class:`daemon.types.Band`). Two layouts: with columns
     ``end_frame``, ``end_lo`` and ``end_hi`` (as ``cmu86_segments.csv``), a boundary after each
     segment but the last (the next behaviour starts at ``end_frame + 1``; found by a cut starting
     it at ``end_lo + 1 .. end_hi + 1``), segments in the order of a ``segment`` column if there is

@@ -4,7 +4,7 @@ A stage takes one item at a time and returns the items that became final (none, 
 at the end of a stream :meth:`Stage.flush` returns what is still pending and starts a new stream.
 Its state is bounded whatever the stream's length, and it has a batch twin (a function over the
 whole sequence) that gives the same output. :class:`~daemon.features.FeatureStream`,
-:class:`~daemon.features.Decimator`, :class:`~daemon.segments.Segmenter` and
+:class:`~daemon.features.Decimator`, :class:`~daemon.search.segments.Segmenter` and
 :class:`~daemon.dtw.SubsequenceStream` are stages.
 """
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import re
 from dataclasses import dataclass
 from typing import Literal, get_args
 
@@ -89,3 +90,25 @@ class Band:
     frame: int
     lo: int
     hi: int
+
+
+CLASS_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]*")
+"""A class name: it names a file of a template library."""
+
+
+@dataclass(frozen=True)
+class TrainingClip:
+    """Where a training example came from: AMC frames ``start_frame .. end_frame`` of ``amc``
+    (paths as the manifest wrote them), ``frames`` of them at the library's rate, performed by
+    ``actor`` ("" when constructed without one: then the ASF path as written stands for the person)."""
+
+    asf: str
+    amc: str
+    start_frame: int
+    end_frame: int
+    frames: int
+    actor: str = ""
+
+    def __post_init__(self) -> None:
+        if not self.actor:
+            object.__setattr__(self, "actor", self.asf)

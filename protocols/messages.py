@@ -24,6 +24,8 @@ import msgpack
 import numpy as np
 import numpy.typing as npt
 
+from daemon.errors import MocapdError, printable
+
 VERSION = 1
 DEFAULT_MAX_BYTES = 1 << 20
 """The largest message :func:`decode` accepts by default (1 MiB: an embedded ASF is ~20 KiB)."""
@@ -44,13 +46,18 @@ MAX_SEQ = (1 << 53) - 1
 """The largest sequence number (exact in every JSON and float consumer)."""
 
 
-class WireError(ValueError):
-    """A message that cannot be used: ``reason`` (one of :data:`REASONS`) and what was wrong."""
+class WireError(MocapdError, ValueError):
+    """A message that cannot be used: ``reason``, one of :data:`REASONS` (the reason code it is
+    counted under), and ``detail``, what was wrong; ``str``: ``reason: detail``."""
+
+    reason: Reason
 
     def __init__(self, reason: Reason, detail: str) -> None:
-        super().__init__(f"{reason}: {detail}")
-        self.reason = reason
+        super().__init__(reason)
         self.detail = detail
+
+    def _reason(self) -> str:
+        return printable(f"{self.reason}: {self.detail}")
 
 
 @dataclass(frozen=True)

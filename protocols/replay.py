@@ -1,6 +1,6 @@
 """A recording replayed onto a bus as a live stream (``mocapd replay``): the messages of
-:func:`replay.publish.messages` sent to the daemon's ZeroMQ poses socket or an MQTT broker, each pose
-on its due time (:func:`replay.publish.due`: paced by the clock, no drift over a long file).
+:func:`protocols.publish.messages` sent to the daemon's ZeroMQ poses socket or an MQTT broker, each pose
+on its due time (:func:`protocols.publish.due`: paced by the clock, no drift over a long file).
 
 ZeroMQ late joiners: a PUB socket sends nothing to a subscriber whose connection is not up yet, so a
 replay's first frames would be lost. The replay's socket is an XPUB, which receives the subscriber's
@@ -28,14 +28,19 @@ from urllib.parse import urlsplit
 import zmq
 import zmq.asyncio
 
+from daemon.errors import MocapdError
 from protocols.messages import PoseMessage, StatusMessage, WireError, decode, encode, topic
+from protocols.publish import Items, due, messages
 from protocols.transport import Outgoing
 from replay.amc import Motion
-from replay.publish import Items, due, messages
 
 SEND_HWM = 10_000_000
 ANNOUNCE_S = 1.0
 """The longest a replay goes without announcing its skeleton."""
+
+
+class TargetError(MocapdError, ValueError):
+    """A URL a replay cannot send to."""
 
 
 async def replay_to(
@@ -50,15 +55,16 @@ async def replay_to(
     wait_s: float = 10.0,
 ) -> int:
     """Replay ``motion`` onto ``url`` (``zmq+tcp://HOST:PORT``: the daemon's poses socket;
-    ``mqtt://HOST:PORT`` or ``mqtts://``: a broker) as ``stream``; the poses sent. ValueError for
-    another URL; TimeoutError when no subscriber or broker answers within ``wait_s``."""
+    ``mqtt://HOST:PORT`` or ``mqtts://``: a broker) as ``stream``; the poses sent. :class:`TargetError`
+    for another URL (a ValueError from :func:`protocols.mqtt.parse_url` for a bad MQTT one);
+    TimeoutError when no subscriber or broker answers within ``wait_s``."""
     scheme = urlsplit(url).scheme
     items = messages(motion, asf_text, stream, rate, None if loop else 1, epoch=uuid.uuid4().hex[:16])
     if scheme.startswith("zmq+"):
         return await _to_zmq(url[len("zmq+") :], items, rate, speed, wait_s)
     if scheme in ("mqtt", "mqtts"):
         return await _to_mqtt(url, items, stream, rate, speed, wait_s)
-    raise ValueError(f"--to must be zmq+tcp://HOST:PORT or mqtt://HOST:PORT, got {url!r}")
+    raise TargetError(f"must be zmq+tcp://HOST:PORT or mqtt://HOST:PORT, got {url!r}")
 
 
 async def _send_all(
@@ -175,3 +181,10 @@ async def _to_mqtt(
                 while client.pending:
                     await asyncio.sleep(0.005)
         return sent
+
+
+def replay(
+    url: str, motion: Motion, asf_text: str, *, stream: str, rate: float, speed: float | None, loop: bool
+) -> int:
+    """:func:`replay_to` run to its end on a fresh event loop (for callers outside asyncio)."""
+    return asyncio.run(replay_to(url, motion, asf_text, stream=stream, rate=rate, speed=speed, loop=loop))

@@ -20,17 +20,18 @@ from dataclasses import dataclass
 from types import TracebackType
 from typing import Any, Protocol
 
+from daemon.errors import MocapdError
 
-class StartupError(Exception):
+
+class StartupError(MocapdError):
     """A transport cannot start because of its settings or its surroundings (an address in use, an
-    endpoint it cannot parse, a key file it cannot read): ``setting`` names the configuration field
-    (e.g. ``zmq.poses``), ``reason`` says what is wrong. Raised by entering a transport, before
-    anything is published."""
+    endpoint it cannot parse, a key file it cannot read): ``setting`` (also ``field``) names the
+    configuration field (e.g. ``zmq.poses``), ``reason`` says what is wrong; ``str``: ``setting:
+    reason``. Raised by entering a transport, before anything is published."""
 
     def __init__(self, setting: str, reason: str) -> None:
-        super().__init__(f"{setting}: {reason}")
+        super().__init__(reason, field=setting)
         self.setting = setting
-        self.reason = reason
 
 
 @dataclass(frozen=True)

@@ -28,6 +28,7 @@ import numpy.typing as npt
 
 from daemon.types import FloatArray
 from replay._kinematics import FrameKinematics
+from replay.amc import Motion
 from replay.asf import ROTATION_DOFS, TRANSLATION_DOFS, Skeleton
 from replay.errors import MocapFormatError
 from replay.joints import JOINT_BONE_END, JOINT_NAMES
@@ -285,3 +286,10 @@ class KinematicModel:
             )
         joints: FloatArray = node_positions[..., self._joint_nodes, :]
         return joints
+
+
+def joint_positions(motion: Motion, unit: str = "cm") -> FloatArray:
+    """The standard joints (:data:`replay.JOINT_NAMES`) of every frame, shape ``(N, 26, 3)``, in
+    centimetres or (``"asf"``) the skeleton's own units."""
+    model = KinematicModel(motion.skeleton)
+    return model.joints(model.positions(motion.channels, "cm" if unit == "cm" else "asf"))

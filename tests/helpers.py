@@ -5,9 +5,11 @@ of manifests. The recordings are read in place from ../shared/data/mocap, never 
 from __future__ import annotations
 
 import dataclasses
+import functools
 import getpass
 import json
 import os
+import re
 import shutil
 import signal
 import socket
@@ -17,7 +19,7 @@ import threading
 import time
 import urllib.error
 import urllib.request
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -25,10 +27,13 @@ import msgpack
 
 from bench.processes import free_port, samples
 from daemon.keyframes import parse_keyframe_queries
-from daemon.library import ClassTemplate, Library, learn_class
-from daemon.recordings import joint_positions, read_examples, read_recording
-from daemon.types import FloatArray
+from daemon.learn.library import learn_class
+from daemon.library import ClassTemplate, Library
+from daemon.recordings import read_examples, read_recording
+from daemon.search.segments import Segment, Segmenter
+from daemon.types import BoolArray, FloatArray
 from replay.catalog import CMU_SUBSTITUTES, recordings
+from replay.kinematics import joint_positions
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / "shared"
@@ -79,6 +84,12 @@ INDEX_PATHS = [hdm05_clip(a, c, t) for a, c, t, _ in INDEX_CLIPS]
 TRAINING = [("hopBothLegs1hops", "bd", t) for t in (1, 2, 3)] + [("squat1Reps", "bd", t) for t in (1, 2)]
 """(class, actor, take) of a small training set."""
 
+DG_CLIPS = [("dg", "squat1Reps", 25), ("dg", "squat1Reps", 26), ("dg", "hopBothLegs1hops", 22)]
+"""A small database of three dg clips (actor, class, take), for building an index."""
+
+CONTROL = re.compile(r"[\x00-\x1f\x7f-\x9f]")
+"""Control characters, which no error line may contain."""
+
 
 def recording_pairs() -> list[tuple[Path, Path]]:
     """Every (ASF, AMC) pair in the shared data (none if it is missing: the ``shared_data`` fixture
@@ -94,6 +105,24 @@ def pair_id(pair: tuple[Path, Path]) -> str:
 def joints_cm(asf: Path, amc: Path) -> FloatArray:
     """The 26 standard joint positions of a recording in centimetres, shape ``(N, 26, 3)``."""
     return joint_positions(read_recording(asf, amc))
+
+
+@functools.cache
+def clip(name: str) -> FloatArray:
+    """Joint positions of the recording ``name`` (its :func:`pair_id`), computed once per run."""
+    matches = [pair for pair in recording_pairs() if pair_id(pair) == name]
+    assert len(matches) == 1, f"no single recording named {name}"
+    out = joints_cm(*matches[0])
+    out.setflags(write=False)
+    return out
+
+
+def run_segmenter(segmenter: Segmenter, vectors: Iterable[BoolArray]) -> list[Segment]:
+    """Every segment the segmenter closes on ``vectors`` (at most one a push), then the one its flush
+    closes."""
+    closed = [segmenter.push(v) for v in vectors] + [segmenter.flush()]
+    assert all(len(c) <= 1 for c in closed)
+    return [s for c in closed for s in c]
 
 
 # --------------------------------------------------------------------------------------- manifests

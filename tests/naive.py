@@ -18,12 +18,13 @@ import numpy.typing as npt
 from daemon import dtw
 from daemon.dtw import INF, SCALE, Match, local_minima, retrieval_cost, subsequence_dtw, suppress
 from daemon.features import features, window_frames
-from daemon.index import SetIndex
 from daemon.keyframes import KeyframeQuery
+from daemon.learn.templates import Generalisation
 from daemon.library import ClassTemplate
 from daemon.recognizer import gate_ranges
-from daemon.segments import Segment
-from daemon.templates import Generalisation, expand
+from daemon.search.index import SetIndex
+from daemon.search.segments import Segment
+from daemon.templates import expand
 from daemon.types import BoolArray, FeatureSet, FloatArray
 from replay import JOINT_NAMES, KinematicModel, read_amc, read_asf
 from tests.synth import ROT, SkeletonSpec
@@ -75,7 +76,8 @@ def slow_runs(codes: Sequence[int]) -> list[Segment]:
 
 
 # The slow reference of the 14 velocity features: each test as (signal (N,), op, T1, T2, reference),
-# a feature is on in a track where all of its tests hold. Definitions: thesis Table 5.1 / features.py.
+# a feature is on in a track where all of its tests hold. Definitions: thesis Table 5.1 /
+# daemon/features/catalog.py.
 Check = tuple[FloatArray, str, float, float, str]
 
 

@@ -15,12 +15,13 @@ from hypothesis import strategies as st
 
 from daemon.automaton import Component, KeyframeAutomaton
 from daemon.features import SET_SLICES
-from daemon.index import index_from_codes
-from daemon.keyframes import Keyframe, KeyframeQuery, keyframe_search, parse_keyframe_queries
+from daemon.keyframes import Keyframe, KeyframeQuery, parse_keyframe_queries
 from daemon.library import default_library_path, load_library
 from daemon.recordings import motion_features, read_recording
-from daemon.segments import set_codes
-from daemon.shipped import HDM05_CLASSES
+from daemon.search.index import index_from_codes
+from daemon.search.keyframes import keyframe_search
+from daemon.search.segments import set_codes
+from daemon.tools.shipped import HDM05_CLASSES
 from daemon.types import FEATURE_SETS, FeatureSet
 from tests.helpers import KEYFRAMES, pair_id, recording_pairs
 from tests.naive import keyframe_brute_force, keyframe_matches

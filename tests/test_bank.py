@@ -22,9 +22,10 @@ from hypothesis import strategies as st
 from daemon.bank import RecognizerBank
 from daemon.library import Library
 from daemon.recognizer import Detection, FrameError, Recognizer, detect
-from daemon.recordings import joint_positions, read_recording
+from daemon.recordings import read_recording
 from daemon.types import FloatArray
 from replay import JOINT_NAMES, Bone, Motion, Skeleton
+from replay.kinematics import joint_positions
 from tests.helpers import DATA, hdm05_clip, small_library, takes
 
 SESSION = "bank-test"

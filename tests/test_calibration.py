@@ -25,7 +25,9 @@ from hypothesis import given as hypothesis_given
 from hypothesis import settings
 from hypothesis import strategies as st
 
-from daemon.calibration import (
+from daemon.dtw import fixed, pack, retrieval_cost, subsequence_dtw
+from daemon.keyframes import gap_bounds
+from daemon.learn.calibration import (
     CAP,
     DEFAULT_POSITION,
     GENERALISATIONS,
@@ -56,22 +58,12 @@ from daemon.calibration import (
     thresholds,
     two_clusters,
 )
-from daemon.dtw import fixed, pack, retrieval_cost, subsequence_dtw
-from daemon.index_store import build_index, save_index
-from daemon.keyframes import gap_bounds
-from daemon.library import (
-    DTW,
-    GATED,
-    GIVEN,
-    Calibration,
-    Library,
-    LibraryFormatError,
-    learn_class,
-    load_library,
-    save_library,
-)
+from daemon.learn.library import learn_class, save_library
+from daemon.learn.templates import Generalisation, automatic_keyframes, learn, learn_hard
+from daemon.library import DTW, GATED, GIVEN, Calibration, Library, LibraryFormatError, load_library
 from daemon.recordings import ManifestError, read_examples, read_manifest, read_training_manifest
-from daemon.templates import Generalisation, automatic_keyframes, expand, learn, learn_hard
+from daemon.search.store import build_index, save_index
+from daemon.templates import expand
 from daemon.types import DEFAULT_INDEX_RATE, DEFAULT_MAX_GAP_S, BoolArray
 from tests.helpers import (
     HDM_AMC,

@@ -5,9 +5,11 @@ from __future__ import annotations
 import csv
 import gzip
 import json
+import os
 import re
 import subprocess
 import sys
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -15,18 +17,26 @@ import numpy as np
 import numpy.typing as npt
 import pytest
 
+from daemon import cli
 from replay import JOINT_NAMES, KinematicModel, MocapFormatError, Motion, read_amc, read_asf
 from tests.helpers import (
     CMU_AMC,
     CMU_ASF,
+    CONTROL,
+    DG_CLIPS,
     HDM_AMC,
     HDM_ASF,
     MOCAPD_SCRIPT,
     REPO,
+    TRAINING,
     assert_ok,
     assert_one_error_line,
     csv_written,
+    hdm05_clip,
     mocapd,
+    training_rows,
+    write_manifest,
+    write_training,
 )
 
 CM_PER_ASF_UNIT = 2.54 / 0.45
@@ -325,3 +335,179 @@ def test_positions_on_a_skeleton_without_a_joint_bone(tmp_path: Path) -> None:
     result = mocapd("positions", "--asf", asf, "--amc", amc, "--csv", tmp_path / "out.csv")
     line = assert_one_error_line(result)
     assert str(asf) in line and "lthumb" in line
+
+
+# ------------------------------------------------------------ found trying the commands as a new user would
+
+
+def test_binary_amc_bytes_are_escaped(tmp_path: Path) -> None:
+    """Bytes of a damaged AMC quoted in the message are escaped, not echoed to the terminal."""
+    lines = gzip.decompress(HDM_AMC.read_bytes()).split(b"\n")
+    at = next(i for i, line in enumerate(lines) if line.startswith(b"lowerback "))
+    lines[at] = b"lowerback \x1b[2J\x00\xff\x07 1 2"
+    amc = tmp_path / "binary.amc"
+    amc.write_bytes(b"\n".join(lines))
+    line = assert_one_error_line(mocapd("info", "--asf", HDM_ASF, "--amc", amc))
+    assert line.startswith(f"mocapd: {amc}:{at + 1}: ")
+    assert not CONTROL.search(line) and line.isascii()
+    assert "\\x1b[2J\\x00\\xff\\x07" in line
+
+
+def without_matplotlib(tmp_path: Path) -> dict[str, str]:
+    """An environment in which ``import matplotlib`` fails, as on a machine without the plot extra:
+    a package of that name that raises ImportError comes first on the path."""
+    fake = tmp_path / "no-matplotlib" / "matplotlib"
+    fake.mkdir(parents=True)
+    (fake / "__init__.py").write_text("raise ImportError(\"No module named 'matplotlib'\")\n")
+    return {**os.environ, "PYTHONPATH": str(fake.parent)}
+
+
+@pytest.mark.slow
+def test_png_extension_checked_before_the_csv_is_written(tmp_path: Path) -> None:
+    csv = tmp_path / "out.csv"
+    csv.write_text("previous\n")
+    for png in ("out.pdf", "out", "out.png.txt"):
+        line = assert_one_error_line(
+            mocapd("features", "--asf", CMU_ASF, "--amc", CMU_AMC, "--csv", csv, "--png", tmp_path / png)
+        )
+        assert line == f"mocapd: --png: '{tmp_path / png}' does not end in .png (only PNG is written)"
+    assert csv.read_text() == "previous\n"
+    assert sorted(os.listdir(tmp_path)) == ["out.csv"]
+
+
+def test_png_that_is_a_directory(tmp_path: Path) -> None:
+    (tmp_path / "pictures").mkdir()
+    csv = tmp_path / "out.csv"
+    result = mocapd(
+        "features", "--asf", CMU_ASF, "--amc", CMU_AMC, "--csv", csv, "--png", tmp_path / "pictures"
+    )
+    line = assert_one_error_line(result)
+    assert line == f"mocapd: {tmp_path / 'pictures'}: is a directory; --png names the PNG file to write"
+    assert sorted(os.listdir(tmp_path)) == ["pictures"]  # no pictures.png, no CSV
+
+
+@pytest.mark.parametrize("command", ["features", "learn"])
+def test_png_without_matplotlib_is_refused_before_the_work(tmp_path: Path, command: str) -> None:
+    env = without_matplotlib(tmp_path)
+    if command == "features":
+        args = [
+            "features",
+            "--asf",
+            CMU_ASF,
+            "--amc",
+            CMU_AMC,
+            "--csv",
+            tmp_path / "o.csv",
+            "--png",
+            tmp_path / "o.png",
+        ]
+    else:
+        manifest = write_training(tmp_path / "clips.csv", training_rows(TRAINING[:2]))
+        args = ["learn", "--manifest", manifest, "--out", tmp_path / "lib", "--png", tmp_path / "png"]
+    result = subprocess.run(
+        [sys.executable, "-m", "daemon", *map(str, args)],
+        cwd=REPO,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
+    )
+    line = assert_one_error_line(result)
+    assert line == "mocapd: writing PNG needs matplotlib: pip install 'mocapd[plot]'"
+    assert not (tmp_path / "o.csv").exists() and not (tmp_path / "lib").exists()
+
+
+def test_device_output_errors_name_the_device() -> None:
+    line = assert_one_error_line(
+        mocapd("positions", "--asf", HDM_ASF, "--amc", HDM_AMC, "--csv", "/dev/full")
+    )
+    assert line == "mocapd: /dev/full: No space left on device"
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("command", ["positions", "index", "learn"])
+def test_unwritable_output_found_before_the_work(tmp_path: Path, command: str) -> None:
+    """/sys cannot be written even by root: the target is refused at once, named as given (no
+    progress lines, no temporary name)."""
+    target = Path("/sys/mocapd-output")
+    if command == "positions":
+        result = mocapd("positions", "--asf", HDM_ASF, "--amc", HDM_AMC, "--csv", target)
+    elif command == "index":
+        manifest = write_manifest(tmp_path / "m.csv", [hdm05_clip(*c) for c in DG_CLIPS], extra=False)
+        result = mocapd("index", "build", "--manifest", manifest, "--out", target)
+    else:
+        manifest = write_training(tmp_path / "clips.csv", training_rows(TRAINING))
+        result = mocapd("learn", "--manifest", manifest, "--out", target)
+    line = assert_one_error_line(result)
+    assert re.fullmatch(
+        rf"mocapd: {target}: (Operation not permitted|Permission denied|Read-only file system)", line
+    )
+
+
+def test_version() -> None:
+    from importlib.metadata import version
+
+    for script in (False, True):
+        result = mocapd("--version", script=script)
+        assert_ok(result)
+        assert result.stdout == f"mocapd {version('mocapd')}\n"
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        ([], "the following arguments are required: COMMAND (see mocapd --help)"),
+        (["index"], "the following arguments are required: {build,info} (see mocapd index --help)"),
+        (
+            ["info", "--asf", "a", "--amc", "b", "--fps", "3"],
+            "unrecognized arguments: --fps 3 (see mocapd --help)",
+        ),
+        (
+            ["features", "--asf", "a", "--amc", "b", "--csv", "c", "--fps", "x"],
+            "argument --fps: must be a positive",
+        ),
+    ],
+)
+def test_usage_errors_are_one_line(args: list[str], message: str) -> None:
+    assert message in assert_one_error_line(mocapd(*args))
+
+
+def test_info_rate_option_says_what_it_is() -> None:
+    info = " ".join(mocapd("info", "--help").stdout.split())
+    features = " ".join(mocapd("features", "--help").stdout.split())
+    assert "--native-fps HZ the rate recordings were captured at when their AMC file states none" in info
+    assert "--fps" not in info.split("--native-fps")[0].split("options:")[-1]
+    assert "--fps HZ output rate" in features
+
+
+@pytest.fixture
+def broken_info(monkeypatch: pytest.MonkeyPatch) -> Iterator[None]:
+    """``mocapd info`` with a bug planted in its handler (the handler is looked up when the command
+    line is built, so the planted one runs)."""
+    import daemon.cli.recordings
+
+    def crash(*_: object) -> int:
+        return 1 // 0
+
+    monkeypatch.setattr(daemon.cli.recordings, "_info", crash)
+    yield
+
+
+def test_internal_error_is_one_line_saying_it_is_a_bug(
+    broken_info: None, capsys: pytest.CaptureFixture[str]
+) -> None:
+    status = cli.main(["info", "--asf", str(CMU_ASF), "--amc", str(CMU_AMC)])
+    out, err = capsys.readouterr()
+    assert status == cli.EXIT_BUG and out == ""
+    assert err.count("\n") == 1 and "Traceback" not in err
+    assert err.startswith(
+        "mocapd: internal error: ZeroDivisionError: integer division or modulo by zero (this is a bug"
+    )
+    assert "--debug" in err
+    status = cli.main(["--debug", "info", "--asf", str(CMU_ASF), "--amc", str(CMU_AMC)])
+    _, err = capsys.readouterr()
+    assert status == cli.EXIT_BUG
+    assert err.startswith("Traceback (most recent call last):") and "1 // 0" in err
+    assert err.splitlines()[-1].startswith("mocapd: internal error: ZeroDivisionError")

@@ -9,7 +9,8 @@ from pathlib import Path
 
 import pytest
 
-from daemon.library import Library, save_library
+from daemon.learn.library import save_library
+from daemon.library import Library
 from daemon.recognizer import detect
 from daemon.recordings import native_rate, read_recording
 from tests.helpers import (

@@ -11,10 +11,18 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from daemon.index_store import ARRAYS, index_files, load_index
+from daemon.search.store import ARRAYS, index_files, load_index
 from daemon.types import FEATURE_SETS
+from tests.helpers import (
+    DG_CLIPS,
+    REPO,
+    assert_ok,
+    assert_one_error_line,
+    hdm05_clip,
+    mocapd,
+    write_manifest,
+)
 from tests.helpers import INDEX_PATHS as PATHS
-from tests.helpers import REPO, assert_ok, assert_one_error_line, mocapd, write_manifest
 
 PROGRESS = re.compile(r"\[(\d+)/(\d+)\] (.+) \((\d+) frames at 30 Hz\)")
 
@@ -176,3 +184,15 @@ def test_info_on_a_damaged_index(built: tuple[Path, str, str], tmp_path: Path) -
 def test_index_needs_a_subcommand() -> None:
     result = mocapd("index")
     assert result.returncode == 2 and "build" in result.stderr and result.stdout == ""
+
+
+# ------------------------------------------------------------ found trying the commands as a new user would
+
+
+def test_index_progress_states_the_rate(tmp_path: Path) -> None:
+    manifest = write_manifest(tmp_path / "m.csv", [hdm05_clip(*c) for c in DG_CLIPS], extra=False)
+    result = mocapd("index", "build", "--manifest", manifest, "--out", tmp_path / "idx", "--fps", "60")
+    assert result.returncode == 0, result.stderr
+    assert all(
+        re.fullmatch(r"\[\d/3\] .+ \(\d+ frames at 60 Hz\)", line) for line in result.stderr.splitlines()
+    )

@@ -6,17 +6,18 @@ stderr, PNGs are drawn, and bad input exits 2 with one line naming the file and 
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from daemon.index_store import build_index, load_index, save_index
 from daemon.keyframes import parse_keyframe_queries
-from daemon.learning import learn_library
-from daemon.library import DTW, GATED, LEARNED, PUBLISHED, Library, load_library, save_library
+from daemon.learn.library import learn_library, save_library
+from daemon.library import DTW, GATED, LEARNED, PUBLISHED, Library, load_library
 from daemon.recordings import read_examples, read_manifest
-from daemon.retrieval import template_search
+from daemon.search.retrieval import template_search
+from daemon.search.store import build_index, load_index, save_index
 from tests.helpers import (
     HDM_AMC,
     HDM_ASF,
@@ -320,3 +321,31 @@ def test_learn_refuses_to_overwrite_other_files(tmp_path: Path) -> None:
     manifest = write_training(tmp_path / "clips.csv", [f"squat1Reps,{HDM_ASF},{HDM_AMC},,"])
     line = assert_one_error_line(mocapd("learn", "--manifest", manifest, "--out", tmp_path / "lib"))
     assert "exists and is not a mocapd template library" in line
+
+
+# ------------------------------------------------------------ found trying the commands as a new user would
+
+
+def test_learn_on_an_empty_manifest_names_learns_columns(tmp_path: Path) -> None:
+    empty = tmp_path / "clips.csv"
+    empty.write_text("\n")
+    line = assert_one_error_line(mocapd("learn", "--manifest", empty, "--out", tmp_path / "lib"))
+    assert line == (
+        f"mocapd: {empty}:1: empty manifest: no header line (it needs the columns asf, amc, class, "
+        "[start_frame], [end_frame], [actor])"
+    )
+
+
+@pytest.mark.slow
+def test_learn_png_directory_is_checked_first_and_made_only_for_pictures(tmp_path: Path) -> None:
+    bad = write_training(tmp_path / "clips.csv", ["squat1Reps,missing.asf,missing.amc,,"])
+    line = assert_one_error_line(
+        mocapd("learn", "--manifest", bad, "--out", tmp_path / "lib", "--png", tmp_path / "png" / "deep")
+    )
+    assert line.startswith(f"mocapd: {bad}:2: asf file not found")
+    assert sorted(os.listdir(tmp_path)) == ["clips.csv"]  # no picture directory made for nothing
+    (tmp_path / "file").write_text("keep")
+    line = assert_one_error_line(
+        mocapd("learn", "--manifest", bad, "--out", tmp_path / "lib", "--png", tmp_path / "file" / "png")
+    )
+    assert line == f"mocapd: {tmp_path / 'file'}: not a directory"

@@ -1,6 +1,6 @@
 """``mocapd segment`` in a real process: the cuts of :mod:`daemon.behaviours` in AMC frame numbers, as
 JSON lines or readable lines, scored against a truth file and drawn; bad options and files exit 2
-with one line. The truth readers and the matching of cuts to true boundaries."""
+with one line. The truth readers."""
 
 from __future__ import annotations
 
@@ -99,13 +99,3 @@ def test_boundaries_of_the_two_label_layouts(tmp_path: Path) -> None:
     shuffled.write_text("class,start_frame,end_frame\nb,50,9\n", encoding="utf-8")
     with pytest.raises(LabelError, match=r"t\.csv:2: start_frame 50 is after end_frame 9"):
         read_boundaries(shuffled)
-
-
-def test_each_cut_and_boundary_counts_once() -> None:
-    bands = [Band(100, 90, 110), Band(120, 110, 130)]
-    assert match_boundaries([], bands) == 0
-    assert match_boundaries([100, 101, 102], bands) == 1  # three cuts, one boundary in reach
-    assert match_boundaries([110], bands) == 1  # in both bands: one boundary found
-    assert match_boundaries([109, 111], bands) == 2  # each takes its own
-    assert match_boundaries([110, 119], bands) == 2  # 119 takes 120 first; 110 then takes 100
-    assert match_boundaries([89, 131], bands) == 0

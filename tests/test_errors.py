@@ -4,11 +4,17 @@ Every bad file here is derived from a real recording: the AMC text is decompress
 to ``tmp_path``. For each damaged AMC both readers are checked: the streaming reader must yield exactly
 the good frames before the bad one (with the values ``read_amc`` gives for the original file) and then
 raise; ``read_amc`` must raise the same error (same line, same reason).
+
+The last tests: every exception the project defines for what a user or a client can cause derives
+from the one root, :class:`daemon.errors.MocapdError`, wire refusals included.
 """
 
 from __future__ import annotations
 
 import gzip
+import importlib
+import inspect
+import pkgutil
 import re
 import zlib
 from collections.abc import Sequence
@@ -18,6 +24,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from daemon.errors import MocapdError
+from daemon.service.streams import Refused
+from protocols.messages import WireError
+from protocols.transport import StartupError
 from replay import AmcFrame, MocapFormatError, Motion, Skeleton, iter_amc, read_amc, read_asf
 from tests.helpers import DATA
 
@@ -565,3 +575,42 @@ def test_an_amc_that_does_not_fit_its_skeleton_names_the_asf_too(tmp_path: Path)
         with pytest.raises(MocapFormatError) as caught:
             read(amc, read_asf(path))
         assert "rfemur" in caught.value.reason and str(path) in caught.value.reason, str(caught.value)
+
+
+# ------------------------------------------------------------------------------- one error root
+
+NOT_USER_ERRORS = {
+    "daemon.service.app._Stop",  # the service's own signal to end its task group, never shown
+}
+"""Exceptions of the project that are not for a user or a client to cause, and why."""
+
+
+def project_modules() -> list[str]:
+    names = []
+    for package in ("daemon", "protocols", "replay"):
+        names.append(package)
+        found = pkgutil.walk_packages(importlib.import_module(package).__path__, f"{package}.")
+        names += [m.name for m in found if not m.name.endswith(".__main__")]  # __main__ runs the CLI
+    return names
+
+
+def test_every_user_error_derives_from_the_one_root() -> None:
+    defined = {
+        f"{name}.{cls.__qualname__}": cls
+        for name in project_modules()
+        for cls in vars(importlib.import_module(name)).values()
+        if inspect.isclass(cls) and cls.__module__ == name and issubclass(cls, Exception)
+    }
+    assert {"protocols.messages.WireError", "daemon.service.streams.Refused"} <= defined.keys()
+    assert {name for name, cls in defined.items() if not issubclass(cls, MocapdError)} == NOT_USER_ERRORS
+
+
+def test_refusals_keep_their_reason_codes_and_sentences() -> None:
+    wire = WireError("schema", "unknown field x")
+    assert isinstance(wire, ValueError) and (wire.reason, wire.detail) == ("schema", "unknown field x")
+    assert str(wire) == "schema: unknown field x"
+    refused = Refused("duplicate", "seq 5 after 5")
+    assert (refused.reason, refused.detail, str(refused)) == ("duplicate", "seq 5 after 5", "seq 5 after 5")
+    startup = StartupError("zmq.poses", "address in use")
+    assert (startup.setting, startup.reason) == ("zmq.poses", "address in use")
+    assert str(startup) == "zmq.poses: address in use"

@@ -14,8 +14,9 @@ from hypothesis import strategies as st
 
 from daemon.features import FeatureStream, latency_frames
 from daemon.frames import FrameClock, Renumbering
-from daemon.recordings import joint_positions, read_recording
+from daemon.recordings import read_recording
 from replay import JOINT_NAMES
+from replay.kinematics import joint_positions
 from tests.helpers import DATA
 
 # --------------------------------------------------------------------------------- the clock

@@ -13,19 +13,16 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from daemon.features import SET_SLICES
-from daemon.index import SetIndex, index_from_codes
 from daemon.keyframes import (
     Keyframe,
     KeyframeError,
     KeyframeQuery,
     gap_bounds,
-    keyframe_lists,
-    keyframe_search,
-    match_range,
     omega_z,
     parse_keyframe_queries,
-    search_document,
 )
+from daemon.search.index import SetIndex, index_from_codes
+from daemon.search.keyframes import keyframe_lists, keyframe_search, match_range, search_document
 from daemon.types import FeatureSet
 from tests.helpers import SHARED
 from tests.naive import Lists, hits_of_match, keyframe_brute_force

@@ -9,8 +9,9 @@ import json
 import pytest
 
 from bench.eval_keyframes import ClassResult, evaluate, hdm05_rows
-from daemon.index_store import MotionIndex, build_index
-from daemon.keyframes import keyframe_search, parse_keyframe_queries
+from daemon.keyframes import parse_keyframe_queries
+from daemon.search.keyframes import keyframe_search
+from daemon.search.store import MotionIndex, build_index
 from tests.helpers import DATA, SHARED
 
 

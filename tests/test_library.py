@@ -18,8 +18,8 @@ import pytest
 
 from daemon.dtw import pack
 from daemon.errors import FileAccessError
-from daemon.index_store import MotionIndex, index_from_matrices, read_document
 from daemon.keyframes import KeyframeQuery, parse_keyframe_queries
+from daemon.learn.library import learn_class, save_library
 from daemon.library import (
     DTW,
     GATED,
@@ -30,12 +30,11 @@ from daemon.library import (
     Library,
     LibraryFormatError,
     Variant,
-    learn_class,
     load_library,
-    save_library,
 )
 from daemon.recordings import ManifestError, ManifestRow, read_examples, read_training_manifest
-from daemon.retrieval import TemplateHits, frame_codes, template_search
+from daemon.search.retrieval import TemplateHits, frame_codes, template_search
+from daemon.search.store import MotionIndex, index_from_matrices, read_document
 from tests.helpers import HDM_AMC, HDM_ASF, KEYFRAMES, TRAINING, hdm05_clip, training_rows, write_training
 from tests.naive import template_brute_force
 

@@ -29,10 +29,11 @@ from daemon.recognizer import (
     detect_positions,
     plans,
 )
-from daemon.recordings import joint_positions, native_rate, read_recording
+from daemon.recordings import native_rate, read_recording
 from daemon.templates import MotionTemplate, expand
 from daemon.types import FEATURE_SETS, N_FEATURES, FeatureSet, RecognitionSettings
 from replay import JOINT_NAMES, Motion
+from replay.kinematics import joint_positions
 from tests.helpers import hdm05_clip, pair_id, recording_pairs, small_library, takes
 from tests.naive import keyframe_matches, ref_subsequence, slow_blocks, slow_minimum
 from tests.synth import LOW_BITS, queries, stream_codes, streams

@@ -1,5 +1,5 @@
-"""Cutting labelled runs into single repetitions (daemon.repetitions) and the mocap6 adapter
-(daemon.mocap6): synthetic periodic runs with tempo changes are cut at one phase into k ± 1 pieces,
+"""Cutting labelled runs into single repetitions (daemon.tools.repetitions) and the mocap6 adapter
+(daemon.tools.mocap6): synthetic periodic runs with tempo changes are cut at one phase into k ± 1 pieces,
 aperiodic ones are not cut, and the real mocap6 runs of 13_29, 13_30 and 14_14 give repetitions of
 plausible length and number."""
 
@@ -16,7 +16,9 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from daemon.errors import FileAccessError
-from daemon.mocap6 import (
+from daemon.plots import repetitions_png
+from daemon.recordings import read_recording, read_training_manifest
+from daemon.tools.mocap6 import (
     CLASSES,
     SEGMENTS,
     TRIALS,
@@ -29,11 +31,10 @@ from daemon.mocap6 import (
     rows_csv,
     trial_recording,
 )
-from daemon.plots import repetitions_png
-from daemon.recordings import joint_positions, read_recording, read_training_manifest
-from daemon.repetitions import cut_run, difference_function, estimate_period, run_signal
+from daemon.tools.repetitions import cut_run, difference_function, estimate_period, run_signal
 from daemon.types import BoolArray, FloatArray, IntArray
 from replay import JOINT_NAMES
+from replay.kinematics import joint_positions
 from tests.helpers import DATA
 
 RATE = 30.0

@@ -31,12 +31,13 @@ from daemon.config import (
 )
 from daemon.library import Library
 from daemon.recognizer import Recognizer
-from daemon.recordings import joint_positions, read_recording
+from daemon.recordings import read_recording
 from daemon.service.streams import Emitted, Refused, StreamTable
 from protocols.messages import BoundaryMessage, DetectionMessage, PoseMessage, SkeletonMessage
+from protocols.publish import due
 from replay import JOINT_NAMES, Motion
 from replay.amc import DEG
-from replay.publish import due
+from replay.kinematics import joint_positions
 from tests.helpers import DATA, hdm05_clip, small_library, takes
 
 ASF, AMC = hdm05_clip("bd", "squat1Reps", takes("squat1Reps", "bd")[1])

@@ -1,7 +1,7 @@
 """The library shipped inside mocapd (``daemon/data/library``, package data; built by ``python -m
 bench.shipped_library``): it loads from the package, holds the 18 classes, each with how it is
 recognised and a τ whose provenance it records, was learned from exactly the clips the training set
-of :mod:`daemon.shipped` gives from ../shared/data/mocap today (a stale library fails), a class's
+of :mod:`daemon.tools.shipped` gives from ../shared/data/mocap today (a stale library fails), a class's
 keyframe gate finds its own training clips, and the live recogniser detects nearly every class in
 its own training clips."""
 
@@ -13,7 +13,7 @@ from unittest import mock
 import pytest
 
 from daemon import recordings
-from daemon.calibration import clip_sets, keyframes_kept
+from daemon.learn.calibration import clip_sets, keyframes_kept
 from daemon.library import (
     GATED,
     LEARNED,
@@ -23,8 +23,8 @@ from daemon.library import (
     load_library,
 )
 from daemon.recognizer import detect_positions
-from daemon.recordings import TrainingClip, joint_positions, native_rate, read_example, read_recording
-from daemon.shipped import (
+from daemon.recordings import native_rate, read_example, read_recording
+from daemon.tools.shipped import (
     CLASSES,
     CMU_CLASSES,
     HDM05_CLASSES,
@@ -34,8 +34,9 @@ from daemon.shipped import (
     training_items,
     training_rows,
 )
-from daemon.types import BoolArray, FloatArray
+from daemon.types import BoolArray, FloatArray, TrainingClip
 from replay import Motion
+from replay.kinematics import joint_positions
 from tests.helpers import DATA, REPO
 
 

@@ -12,7 +12,7 @@ from hypothesis.extra import numpy as hnp
 
 from daemon.dtw import Match, SubsequenceStream, disjoint_matches
 from daemon.features import Decimator, FeatureStream, decimate, features
-from daemon.segments import Segment, Segmenter, segment
+from daemon.search.segments import Segment, Segmenter, segment
 from daemon.stages import Chain, Stage, run
 from daemon.types import FEATURE_SETS, BoolArray, FeatureSet, FloatArray
 from replay import JOINT_NAMES

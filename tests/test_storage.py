@@ -112,10 +112,10 @@ def test_uninterrupted_holds_signals_until_the_block_ends() -> None:
 
 
 def test_every_error_a_user_can_cause_is_a_mocapd_error() -> None:
-    from daemon.index_store import IndexFormatError
     from daemon.library import LibraryFormatError, UnknownClassError
     from daemon.plots import PlotUnavailable
     from daemon.recordings import ManifestError, RateError, RecordingError
+    from daemon.search.store import IndexFormatError
     from replay import MocapFormatError
 
     kinds = [

@@ -14,19 +14,15 @@ from hypothesis import strategies as st
 
 from daemon.dtw import and_cost, full_dtw, retrieval_cost, subsequence_dtw
 from daemon.features import SET_SLICES
-from daemon.index_store import Document, index_from_matrices, read_document
-from daemon.keyframes import gap_bounds, keyframe_search
-from daemon.recordings import ManifestRow
-from daemon.templates import (
+from daemon.keyframes import gap_bounds
+from daemon.learn.templates import (
     LearnedClass,
     LearnedTemplate,
-    MotionTemplate,
     aligned_frames,
     automatic_keyframes,
     average,
     balance,
     contract,
-    expand,
     gap_parameters,
     keyframe_columns,
     learn,
@@ -37,6 +33,10 @@ from daemon.templates import (
     quantise,
     warp,
 )
+from daemon.recordings import ManifestRow
+from daemon.search.keyframes import keyframe_search
+from daemon.search.store import Document, index_from_matrices, read_document
+from daemon.templates import MotionTemplate, expand
 from daemon.types import BoolArray
 from tests.helpers import DATA
 

@@ -14,12 +14,12 @@ from daemon.config import Config
 from daemon.dtw import STEPS
 from daemon.errors import UsageError
 from daemon.keyframes import KeyframeError, KeyframeQuery, parse_keyframe_queries
-from daemon.learning import learn_library
-from daemon.library import GATED, Calibration, ClassTemplate, check_library_target, save_library
+from daemon.learn.library import check_library_target, learn_library, save_library
+from daemon.library import GATED, Calibration, ClassTemplate
 from daemon.plots import template_png
-from daemon.recordings import TrainingClip, read_examples, read_training_manifest
+from daemon.recordings import read_examples, read_training_manifest
 from daemon.storage import together
-from daemon.types import DEFAULT_INDEX_RATE
+from daemon.types import DEFAULT_INDEX_RATE, TrainingClip
 
 
 def keyframes_option(text: str) -> int | Path:

@@ -14,10 +14,11 @@ from daemon.config import Config
 from daemon.errors import UsageError
 from daemon.features import FEATURE_NAMES
 from daemon.plots import feature_matrix_png
-from daemon.recordings import RateError, joint_positions, motion_features, native_rate, read_recording
+from daemon.recordings import RateError, motion_features, native_rate, read_recording
 from daemon.storage import together
 from daemon.types import BoolArray, FloatArray, IntArray
 from replay import JOINT_NAMES, KinematicModel
+from replay.kinematics import joint_positions
 
 
 def register(sub: Any) -> None:

@@ -15,8 +15,12 @@ from daemon.cli import common
 from daemon.config import Config
 from daemon.dtw import STEPS
 from daemon.errors import UsageError
-from daemon.index import (
+from daemon.keyframes import KeyframeError, KeyframeQuery, parse_keyframe_queries
+from daemon.library import load_library
+from daemon.recordings import RateError, display_path, read_features, read_manifest
+from daemon.search.index import (
     Hits,
+    QueryError,
     adaptive_fuzzy_query,
     example_query,
     feature_selection,
@@ -24,7 +28,9 @@ from daemon.index import (
     mismatch_query,
     ranked,
 )
-from daemon.index_store import (
+from daemon.search.keyframes import keyframe_search
+from daemon.search.retrieval import template_search
+from daemon.search.store import (
     INDEX_JSON,
     Document,
     MotionIndex,
@@ -34,10 +40,6 @@ from daemon.index_store import (
     load_index,
     save_index,
 )
-from daemon.keyframes import KeyframeError, KeyframeQuery, keyframe_search, parse_keyframe_queries
-from daemon.library import load_library
-from daemon.recordings import RateError, display_path, read_features, read_manifest
-from daemon.retrieval import template_search
 from daemon.types import DEFAULT_INDEX_RATE, FEATURE_SETS
 
 LIBRARY_KEYFRAMES = Path("<the library's keyframes>")
@@ -310,12 +312,9 @@ def _search_library(args: argparse.Namespace, index: MotionIndex) -> tuple[list[
     tau = cls.tau if args.tau is None else args.tau
     source = "--tau" if args.tau is not None else "calibrated" if cls.provenance.calibrated else "given"
     steps = cls.steps if args.steps is None else args.steps
-    try:
-        hits = template_search(
-            index, cls.quantised, tau=tau, steps=steps, keyframes=query, extend=_extension(args)
-        )
-    except ValueError as exc:
-        raise UsageError(f"class {cls.name}: {exc}") from None
+    hits = template_search(
+        index, cls.quantised, tau=tau, steps=steps, keyframes=query, extend=_extension(args)
+    )
     rows = [
         {**_hit_row(index, d, s, e), "cost": round(c, 6)}
         for d, s, e, c in zip(
@@ -337,10 +336,7 @@ def _search_keyframes(args: argparse.Namespace, index: MotionIndex) -> tuple[lis
     extend = _extension(args) or (0, 0)
     query = _keyframe_query(args.keyframes, args.class_name)
     frames = [d.frames for d in index.documents]
-    try:
-        hits = keyframe_search(index.sets, frames, query, index.rate, extend)
-    except ValueError as exc:
-        raise UsageError(f"class {args.class_name}: {exc}", path=args.keyframes) from None
+    hits = keyframe_search(index.sets, frames, query, index.rate, extend)
     rows = [
         _hit_row(index, d, s, e)
         for d, s, e in zip(hits.doc.tolist(), hits.start.tolist(), hits.end.tolist(), strict=True)
@@ -359,8 +355,8 @@ def _search_example(args: argparse.Namespace, config: Config, index: MotionIndex
         raise UsageError("--example needs --features NAME,NAME,...")
     try:
         feature_set, mask = feature_selection([n.strip() for n in args.features.split(",") if n.strip()])
-    except ValueError as exc:
-        raise UsageError(str(exc), field="--features") from None
+    except QueryError as exc:
+        raise UsageError(exc.reason, field="--features") from None
     try:
         first, last = int(start_text), int(end_text)
     except ValueError:
@@ -389,8 +385,8 @@ def _search_example(args: argparse.Namespace, config: Config, index: MotionIndex
     if args.mismatch is not None:
         try:
             hits, kind = mismatch_query(set_index, sets, args.mismatch), f"{args.mismatch}-mismatch"
-        except ValueError as exc:
-            raise UsageError(str(exc), field="--mismatch") from None
+        except QueryError as exc:
+            raise UsageError(exc.reason, field="--mismatch") from None
     elif args.plain:
         hits, kind = fuzzy_query(set_index, sets), "fuzzy"
     else:

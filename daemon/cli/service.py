@@ -3,10 +3,7 @@
 from __future__ import annotations
 
 import argparse
-import asyncio
 import dataclasses
-import time
-from collections.abc import Callable, Coroutine
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -18,7 +15,7 @@ from daemon.library import default_library_path, load_library
 from daemon.recordings import native_rate, read_recording
 
 if TYPE_CHECKING:
-    from daemon.service.app import Service
+    from daemon.service.replay import Tasks
 
 STANDARD_MQTT = "mqtt://127.0.0.1:1883"
 
@@ -81,7 +78,7 @@ def stream_name(amc: Path) -> str:
 
 def _replay(args: argparse.Namespace, config: Config) -> int:
     from daemon.service.app import configure_logging
-    from protocols.replay import replay_to
+    from protocols.replay import TargetError, replay
 
     configure_logging(config.logging.level)  # the MQTT client's log lines as JSON, like the daemon's
     motion = read_recording(args.asf, args.amc)
@@ -89,10 +86,10 @@ def _replay(args: argparse.Namespace, config: Config) -> int:
     asf_text = Path(args.asf).read_text(encoding="utf-8", errors="replace")
     stream = stream_name(args.amc) if args.stream is None else args.stream
     try:
-        sent = asyncio.run(
-            replay_to(args.to, motion, asf_text, stream=stream, rate=rate, speed=args.speed, loop=args.loop)
-        )
-    except ValueError as e:
+        sent = replay(args.to, motion, asf_text, stream=stream, rate=rate, speed=args.speed, loop=args.loop)
+    except TargetError as e:
+        raise UsageError(e.reason, field="--to") from None
+    except ValueError as e:  # an MQTT URL protocols.mqtt.parse_url refuses (not yet a MocapdError)
         raise UsageError(str(e), field="--to") from None
     except TimeoutError:
         raise UsageError(
@@ -112,37 +109,17 @@ def _run(args: argparse.Namespace, config: Config) -> int:
     return serve(config, library, version=package_version(), extra=extra)
 
 
-Task = tuple[str, Callable[[], Coroutine[Any, Any, None]]]
-Tasks = Callable[["Service", asyncio.Event], list[Task]]
-
-
 def _replay_into(args: argparse.Namespace, config: Config) -> Tasks:
     """``run --replay``'s task: once the daemon serves, the recording into its first source; when
     every pose sent has been received and recognised, the stop."""
-    from protocols.replay import replay_to
+    from daemon.service.replay import replay_then_stop
 
     asf, amc = args.replay
     motion = read_recording(asf, amc)
     rate = native_rate(motion, config.replay.frame_rate_hz)
     asf_text = asf.read_text(encoding="utf-8", errors="replace")
     stream = stream_name(amc) if args.stream is None else args.stream
-    url = _own_source(config)
-
-    def tasks(service: Service, stop: asyncio.Event) -> list[Task]:
-        async def replay_then_stop() -> None:
-            while service.health() is not None:
-                await asyncio.sleep(0.01)
-            await replay_to(url, motion, asf_text, stream=stream, rate=rate, speed=args.speed)
-            quiet = time.monotonic()
-            while time.monotonic() - quiet < 0.3:  # the last poses received, nothing queued
-                await asyncio.sleep(0.02)
-                if service.table.queued:
-                    quiet = time.monotonic()
-            stop.set()
-
-        return [("replay", replay_then_stop)]
-
-    return tasks
+    return replay_then_stop(_own_source(config), motion, asf_text, stream=stream, rate=rate, speed=args.speed)
 
 
 def _overridden(args: argparse.Namespace, config: Config) -> Config:

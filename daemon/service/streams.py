@@ -46,6 +46,7 @@ import numpy as np
 from daemon.bank import RecognizerBank
 from daemon.behaviours import Boundary, JointRotations, PcaSegmenter, PpcaSegmenter
 from daemon.behaviours import online_segmenter as make_segmenter
+from daemon.errors import MocapdError, printable
 from daemon.frames import Renumbering
 from daemon.library import Library
 from daemon.recognizer import DEFAULT_SETTINGS, Detection, Recognizer
@@ -55,12 +56,16 @@ from replay import MocapFormatError, Skeleton, parse_asf
 from replay.amc import DEG
 
 
-class Refused(Exception):
-    """A message the table does not take, with the counter ``reason`` and a sentence."""
+class Refused(MocapdError):
+    """A message the table does not take: ``reason``, the counter it is refused under, and
+    ``detail``, a sentence; ``str``: the sentence."""
 
     def __init__(self, reason: str, detail: str) -> None:
-        super().__init__(detail)
-        self.reason = reason
+        super().__init__(reason)
+        self.detail = detail
+
+    def _reason(self) -> str:
+        return printable(self.detail)
 
 
 class _Segmenting:

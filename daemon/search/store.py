@@ -1,4 +1,4 @@
-"""The motion index on disk: an I/O adapter around :mod:`daemon.index` (the pure inverted lists).
+"""The motion index on disk: an I/O adapter around :mod:`daemon.search.index` (the pure inverted lists).
 
 :func:`build_index` turns the recordings of a manifest into an index (each recording's features at
 the index rate from :func:`daemon.recordings.read_features`); :func:`save_index` writes a directory::
@@ -29,8 +29,8 @@ from numpy.lib import format as npy_format
 from daemon.checks import Checker
 from daemon.errors import MocapdError
 from daemon.features import SET_SLICES
-from daemon.index import SetIndex, build_set_index
 from daemon.recordings import ManifestRow, display_path, read_features
+from daemon.search.index import SetIndex, build_set_index
 from daemon.storage import check_target, checksum, read_meta, replace_directory, sync, write_json
 from daemon.types import (
     DEFAULT_INDEX_RATE,

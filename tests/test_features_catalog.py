@@ -1,4 +1,5 @@
-"""The features mean what they say: semantic checks on real clips (../shared/data/mocap).
+"""The catalog (daemon/features/catalog.py): its three sets, and the features mean what they say:
+semantic checks on real clips (../shared/data/mocap).
 
 Every expectation here comes from the motion itself (joint heights, ankle positions along the walking
 direction, wrist speeds, all computed below straight from the joint positions) or from the data's
@@ -28,6 +29,15 @@ Pair = tuple[Path, Path]
 
 FPS = 120.0
 UP = np.array([0.0, 1.0, 0.0])
+
+
+# --------------------------------------------------------------------------------------------------
+# the catalog
+
+
+def test_catalog_sets() -> None:
+    assert len(FEATURE_NAMES) == 39
+    assert [s.stop - s.start for s in SET_SLICES.values()] == [12, 14, 13]
 
 
 # --------------------------------------------------------------------------------------------------

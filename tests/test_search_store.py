@@ -1,4 +1,4 @@
-"""The on-disk motion index (daemon/index_store.py) on a handful of real HDM05 clips: manifests, the
+"""The on-disk motion index (daemon/search/store.py) on a handful of real HDM05 clips: manifests, the
 index against an independent segmentation of each clip, the directory format and its validation."""
 
 from __future__ import annotations
@@ -17,7 +17,9 @@ import numpy.typing as npt
 import pytest
 
 from daemon.errors import FileAccessError
-from daemon.index_store import (
+from daemon.recordings import ManifestError, ManifestRow, RateError, read_manifest
+from daemon.search.segments import segment
+from daemon.search.store import (
     ARRAYS,
     Document,
     IndexFormatError,
@@ -28,8 +30,6 @@ from daemon.index_store import (
     load_index,
     save_index,
 )
-from daemon.recordings import ManifestError, ManifestRow, RateError, read_manifest
-from daemon.segments import segment
 from daemon.types import FEATURE_SETS, FeatureSet
 from replay import MocapFormatError, read_amc, read_asf
 from tests.helpers import INDEX_CLIPS, INDEX_PATHS, write_manifest

@@ -19,9 +19,10 @@ import numpy as np
 
 from daemon.dtw import Match, Steps, local_minima, retrieval_tables, subsequence_codes, suppress, to_cost
 from daemon.features import SET_SLICES
-from daemon.index import concatenated_ranges
-from daemon.index_store import MotionIndex
-from daemon.keyframes import KeyframeHits, KeyframeQuery, keyframe_search
+from daemon.keyframes import KeyframeQuery
+from daemon.search.index import concatenated_ranges
+from daemon.search.keyframes import KeyframeHits, keyframe_search
+from daemon.search.store import MotionIndex
 from daemon.templates import MotionTemplate, expand
 from daemon.types import FEATURE_SETS, CodeArray, FloatArray, IntArray
 

@@ -1,10 +1,10 @@
 """The mocap6 exercise labels (Fox et al. 2014) of the CMU trials 13_29, 13_30 and 14_14 as training
-rows of single repetitions: the file adapter around :mod:`daemon.repetitions`.
+rows of single repetitions: the file adapter around :mod:`daemon.tools.repetitions`.
 
 ``segments_120hz.csv`` (``../shared/data/mocap/annotations/mocap6/per_frame_120hz/``) has the columns
 ``trial,start_frame,end_frame,label_id,label_name``: one labelled run per row, AMC frame numbers at
 120 Hz, inclusive. Each run of one of :data:`CLASSES` is cut into repetitions
-(:func:`daemon.repetitions.cut_run` on the run's features, computed over the whole recording so the
+(:func:`daemon.tools.repetitions.cut_run` on the run's features, computed over the whole recording so the
 velocities at a run's edges see their neighbours, and its joint positions), and every repetition
 becomes a :class:`RepetitionRow` ``(class, asf, amc, start_frame, end_frame, actor)``: a row of a
 ``mocapd learn`` manifest with the trial id as the actor, so a leave-one-out evaluation can treat the
@@ -25,17 +25,12 @@ from pathlib import Path
 
 from daemon.checks import csv_records
 from daemon.errors import MocapdError
-from daemon.recordings import (
-    RecordingFeatures,
-    joint_positions,
-    motion_features,
-    read_recording,
-    sample_index,
-)
-from daemon.repetitions import Cutting, cut_run
+from daemon.recordings import RecordingFeatures, motion_features, read_recording, sample_index
+from daemon.tools.repetitions import Cutting, cut_run
 from daemon.types import DEFAULT_INDEX_RATE, BoolArray, IntArray
 from replay import Motion
 from replay.catalog import CMU_SUBSTITUTES, find_skeleton
+from replay.kinematics import joint_positions
 
 CLASSES = ("JumpJack", "Twist", "ArmCircle", "ToeTouchOneHand", "KneeRaise", "Squat", "Jog")
 """The exercise classes taken from mocap6, spelled as mocap6 spells them."""
@@ -112,7 +107,7 @@ def trial_recording(data_root: str | Path, trial: str) -> tuple[Path, Path]:
 
 @dataclass(frozen=True)
 class RunCut:
-    """One labelled run of a trial and its :class:`daemon.repetitions.Cutting`; ``samples`` are the
+    """One labelled run of a trial and its :class:`daemon.tools.repetitions.Cutting`; ``samples`` are the
     rows of the trial's features inside the run, shape ``(n,)``."""
 
     segment: Segment
@@ -159,7 +154,7 @@ def cut_trial(
 ) -> TrialCuts:
     """Cut every run of ``trial`` in ``segments`` labelled with one of ``classes`` into repetitions,
     on ``motion``'s features and joint positions at ``rate`` Hz (None: the native rate), each at the
-    phase of its class's anchor if ``anchors`` has one (:func:`daemon.repetitions.cut_run`). Raises
+    phase of its class's anchor if ``anchors`` has one (:func:`daemon.tools.repetitions.cut_run`). Raises
     :class:`Mocap6Error` naming the labels file and line if a run lies outside the recording."""
     anchors = {} if anchors is None else anchors
     features = motion_features(motion, rate)

@@ -6,8 +6,8 @@ shipped library against (a library learned from other clips than today's data gi
 * **HDM05**: every cut clip of :data:`HDM05_CLASSES` by the actors :data:`HDM05_ACTORS`
   (``hdm05/cut/<class>/HDM_<actor>_<class>_<NNN>_120.amc.gz`` with ``hdm05/asf/HDM_<actor>.asf``,
   as ``bench.eval_templates.hdm05_clips`` finds them), whole clips; the actor is the HDM05 actor.
-* **CMU / mocap6**: the exercise classes :data:`daemon.mocap6.CLASSES` labelled in the trials
-  :data:`daemon.mocap6.TRIALS`, one row per single repetition as :func:`daemon.mocap6.cut_trial`
+* **CMU / mocap6**: the exercise classes :data:`daemon.tools.mocap6.CLASSES` labelled in the trials
+  :data:`daemon.tools.mocap6.TRIALS`, one row per single repetition as :func:`daemon.tools.mocap6.cut_trial`
   cuts it (at :data:`RATE` Hz); 14_14 is read with ``cmu/13/13.asf`` (there is no 14.asf). The
   actor is the CMU subject (``13`` or ``14``): 13_29 and 13_30 are the same person.
 
@@ -24,9 +24,9 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-from daemon import mocap6
 from daemon.errors import MocapdError
 from daemon.recordings import ManifestRow, TrainingRow
+from daemon.tools import mocap6
 from daemon.types import DEFAULT_INDEX_RATE
 
 HDM05_CLASSES = (
@@ -105,7 +105,7 @@ def cmu_rows(
     trials: Sequence[str] = mocap6.TRIALS,
 ) -> list[Row]:
     """One row per repetition of the mocap6 runs of :data:`CMU_CLASSES` in ``trials`` below ``data``
-    (cut by :func:`daemon.mocap6.cut_trials`: each class at the phase of its first run), the CMU
+    (cut by :func:`daemon.tools.mocap6.cut_trials`: each class at the phase of its first run), the CMU
     subject as the actor; ``progress(trial, repetitions)`` after each trial."""
     segments = mocap6.read_segments(data / mocap6.SEGMENTS)
     out = []

@@ -7,7 +7,7 @@ integer shift; a hit must not cross a document boundary. The inverted list of a 
 array of the global numbers of the segments with that code (a CSR layout: ``offsets`` into one array),
 so the index is linear in the number of segments.
 
-Pure: numpy in, frozen dataclasses out; storing an index is :mod:`daemon.index_store`.
+Pure: numpy in, frozen dataclasses out; storing an index is :mod:`daemon.search.store`.
 """
 
 from __future__ import annotations
@@ -19,11 +19,17 @@ from functools import cached_property
 import numpy as np
 import numpy.typing as npt
 
+from daemon.errors import MocapdError
 from daemon.features import FEATURE_NAMES, SET_SLICES
-from daemon.segments import segment_codes, set_codes
+from daemon.search.segments import segment_codes, set_codes
 from daemon.types import BoolArray, FeatureSet, IntArray
 
 CodeSet = Sequence[int] | IntArray  # the codes of a fuzzy set V
+
+
+class QueryError(MocapdError, ValueError):
+    """A query that cannot be run: no feature or an unknown one, features from several sets, more
+    mismatches than the query has positions."""
 
 
 @dataclass(frozen=True)
@@ -194,10 +200,10 @@ def exact_query(index: SetIndex, codes: Sequence[int]) -> Hits:
 def mismatch_query(index: SetIndex, query: Sequence[CodeSet], mismatches: int) -> Hits:
     """m-mismatch hits (MRC05 section 5.3): segments ``k`` where at most ``mismatches`` query
     positions ``i`` have ``code[k + i]`` outside ``V_i``, the ``K`` segments inside one document
-    (``mismatches < K``)."""
+    (``mismatches < K``, else :class:`QueryError`)."""
     k = len(query)
     if not 0 <= mismatches < k:
-        raise ValueError(f"mismatches must be in 0..{k - 1} for a {k}-position query, got {mismatches}")
+        raise QueryError(f"mismatches must be in 0..{k - 1} for a {k}-position query, got {mismatches}")
     shifted = np.concatenate([index.union(codes) - i for i, codes in enumerate(query)])
     shifted = shifted[shifted >= 0]
     starts, agree = np.unique(shifted, return_counts=True)
@@ -260,19 +266,19 @@ def matching_codes(bits: int, code: int, mask: int) -> IntArray:
 
 def feature_selection(names: Sequence[str]) -> tuple[FeatureSet, int]:
     """The feature set and bit mask of the features ``names`` (all from one set: each set has its own
-    index)."""
+    index); :class:`QueryError` for none, an unknown name or names from several sets."""
     if not names:
-        raise ValueError("select at least one feature")
+        raise QueryError("select at least one feature")
     chosen: dict[FeatureSet, int] = {}
     for name in names:
         if name not in FEATURE_NAMES:
-            raise ValueError(f"unknown feature '{name}' (known: {', '.join(FEATURE_NAMES)})")
+            raise QueryError(f"unknown feature '{name}' (known: {', '.join(FEATURE_NAMES)})")
         i = FEATURE_NAMES.index(name)
         fs = next(s for s, sl in SET_SLICES.items() if sl.start <= i < sl.stop)
         chosen[fs] = chosen.get(fs, 0) | 1 << (i - SET_SLICES[fs].start)
     if len(chosen) > 1:
         sets = ", ".join(f"{m.bit_count()} from {fs}" for fs, m in chosen.items())
-        raise ValueError(f"the features come from several sets ({sets}); a query uses one set's index")
+        raise QueryError(f"the features come from several sets ({sets}); a query uses one set's index")
     ((fs, mask),) = chosen.items()
     return fs, mask
 

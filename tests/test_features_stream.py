@@ -1,4 +1,4 @@
-"""The streaming stages against their batch twins, and the properties of the features and segments.
+"""FeatureStream against its batch twin, latency and decimation (daemon/features/stream.py).
 
 1. Every real recording: :class:`FeatureStream` (one pose at a time, then ``flush``) gives exactly
    :func:`features`, each vector ``latency`` frames after its pose; :class:`Segmenter` on the stream
@@ -8,20 +8,14 @@
    shorter than the latency (down to one frame), degenerate poses and huge coordinates; ``flush``
    starts a fresh stream; joint order does not matter; the 14 velocity features equal a slow,
    obviously-correct reference (:func:`slow_velocity`, a plain loop for the hysteresis).
-3. Segmentation: :func:`segment_codes` and :class:`Segmenter` equal a plain loop building runs;
-   segments tile the sequence; :func:`set_codes` bit ``i`` is feature ``i`` of the set;
-   :class:`Decimator` equals :func:`decimate`.
-4. Invariance on real motion: translating, rotating about the vertical axis and scaling the joint
-   positions leaves the 39-feature matrix unchanged, bit for bit.
-5. Errors: bad poses, non-finite positions, impossible decimation.
+3. Decimation: :class:`Decimator` equals :func:`decimate`.
+4. Errors: bad poses, impossible decimation.
 """
 
 from __future__ import annotations
 
-import functools
-import itertools
 import math
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -33,7 +27,6 @@ from hypothesis.extra import numpy as hnp
 
 from daemon.features import (
     FEATURE_NAMES,
-    SET_SLICES,
     Decimator,
     FeatureStream,
     decimate,
@@ -42,12 +35,12 @@ from daemon.features import (
     features,
     latency_frames,
 )
-from daemon.segments import Segment, Segmenter, segment, segment_codes, set_codes, vector_code
+from daemon.search.segments import Segmenter, segment
 from daemon.stages import run
 from daemon.types import BoolArray, FeatureSet, FloatArray
 from replay import JOINT_NAMES
-from tests.helpers import joints_cm, pair_id, recording_pairs
-from tests.naive import slow_hysteresis, slow_runs, slow_velocity_checks
+from tests.helpers import clip, joints_cm, pair_id, recording_pairs, run_segmenter
+from tests.naive import slow_hysteresis, slow_velocity_checks
 
 SETS: tuple[FeatureSet, ...] = ("lower", "upper", "mix")
 N_JOINTS = len(JOINT_NAMES)
@@ -59,16 +52,6 @@ BASE = settings(deadline=None, suppress_health_check=[HealthCheck.too_slow, Heal
 
 
 # ------------------------------------------------------------------------------------ helpers
-
-
-@functools.cache
-def clip(name: str) -> FloatArray:
-    """Joint positions of the recording ``name`` (its :func:`pair_id`), computed once per run."""
-    matches = [pair for pair in recording_pairs() if pair_id(pair) == name]
-    assert len(matches) == 1, f"no single recording named {name}"
-    out = joints_cm(*matches[0])
-    out.setflags(write=False)
-    return out
 
 
 def run_stream(stream: FeatureStream, positions: FloatArray) -> tuple[BoolArray, list[int], int]:
@@ -101,20 +84,6 @@ def assert_stream_equals_batch(positions: FloatArray, frame_rate: float) -> Bool
     assert streamed.shape == batch.shape
     assert np.array_equal(streamed, batch), np.argwhere(streamed != batch)[:10].tolist()
     return batch
-
-
-def run_segmenter(segmenter: Segmenter, vectors: Iterable[BoolArray]) -> list[Segment]:
-    """Every segment the segmenter closes on ``vectors`` (at most one a push), then the one its flush
-    closes."""
-    closed = [segmenter.push(v) for v in vectors] + [segmenter.flush()]
-    assert all(len(c) <= 1 for c in closed)
-    return [s for c in closed for s in c]
-
-
-def rotation_y(angle: float) -> FloatArray:
-    """Rotation by ``angle`` radians about the vertical y axis."""
-    c, s = math.cos(angle), math.sin(angle)
-    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
 
 
 # ------------------------------------------------------------------- 1. every real recording
@@ -330,84 +299,7 @@ def test_velocity_features_equal_a_slow_reference(positions: FloatArray, frame_r
     assert compared >= 12
 
 
-# --------------------------------------------------------------------------- 3. segmentation
-
-codes_lists = st.one_of(
-    st.lists(st.integers(0, 3), max_size=60),
-    st.lists(st.integers(0, 2**14 - 1), max_size=20),
-    st.lists(st.integers(-(2**63), 2**63 - 1), max_size=10),
-)
-
-
-def assert_tiles(segments: Sequence[Segment], codes: Sequence[int]) -> None:
-    """Segments cover ``0..N-1`` in order without gaps or overlap, each one constant, consecutive
-    codes different."""
-    assert [s.start for s in segments[:1]] == ([0] if codes else [])
-    assert [s.end for s in segments[-1:]] == ([len(codes) - 1] if codes else [])
-    for s in segments:
-        assert s.start <= s.end
-        assert all(codes[i] == s.code for i in range(s.start, s.end + 1))
-    for a, b in itertools.pairwise(segments):
-        assert b.start == a.end + 1
-        assert a.code != b.code
-
-
-@settings(max_examples=300, deadline=None)
-@given(codes_lists)
-def test_segment_codes_equal_slow_runs(codes: list[int]) -> None:
-    got = segment_codes(np.array(codes, dtype=np.int64))
-    assert got.start.dtype == got.end.dtype == got.code.dtype == np.int64
-    assert len(got) == len(slow_runs(codes))
-    assert list(got) == slow_runs(codes)
-    assert_tiles(list(got), codes)
-
-
-@st.composite
-def vector_sequences(draw: st.DrawFn) -> BoolArray:
-    """Feature vectors ``(N, 39)`` picked from a small palette, so that runs occur and different
-    vectors often share one set's code."""
-    palette = draw(hnp.arrays(np.bool_, (draw(st.integers(1, 4)), 39)))
-    picks = draw(st.lists(st.integers(0, len(palette) - 1), max_size=60))
-    out: BoolArray = palette[picks].reshape(len(picks), 39)
-    return out
-
-
-@settings(max_examples=200, deadline=None)
-@given(vector_sequences(), vector_sequences(), st.sampled_from(SETS))
-def test_segmenter_equals_slow_runs(first: BoolArray, second: BoolArray, feature_set: FeatureSet) -> None:
-    segmenter = Segmenter(feature_set)
-    for matrix in (first, second):  # the second after the flush: a fresh stream, frames from 0
-        codes = [vector_code(v, feature_set) for v in matrix]
-        got = run_segmenter(segmenter, matrix)
-        assert got == slow_runs(codes)
-        assert got == list(segment(matrix, feature_set))
-        assert_tiles(got, codes)
-    assert segmenter.flush() == []
-
-
-@settings(max_examples=200, deadline=None)
-@given(hnp.arrays(np.bool_, st.tuples(st.integers(0, 30), st.just(39))))
-def test_set_codes_bits_are_the_set_features(matrix: BoolArray) -> None:
-    for feature_set in SETS:
-        part = SET_SLICES[feature_set]
-        width = part.stop - part.start
-        codes = set_codes(matrix, feature_set)
-        assert codes.shape == (len(matrix),)
-        assert codes.dtype == np.int64
-        assert ((codes >= 0) & (codes < 2**width)).all()
-        for i in range(width):
-            assert np.array_equal((codes >> i) & 1 == 1, matrix[:, part.start + i])
-        assert [vector_code(v, feature_set) for v in matrix] == codes.tolist()
-
-
-def test_set_codes_lsb_is_the_first_feature_of_the_set() -> None:
-    for feature_set in SETS:
-        vector = np.zeros(39, dtype=bool)
-        vector[SET_SLICES[feature_set].start] = True
-        assert vector_code(vector, feature_set) == 1
-        assert set_codes(vector[None], feature_set).tolist() == [1]
-        others = [s for s in SETS if s != feature_set]
-        assert [vector_code(vector, s) for s in others] == [0, 0]
+# ---------------------------------------------------------------------------- 3. decimation
 
 
 @settings(max_examples=100, deadline=None)
@@ -424,73 +316,7 @@ def test_decimator_equals_decimate(matrix: BoolArray, factor: int) -> None:
         assert decimator.flush() == []
 
 
-# -------------------------------------------------------------------- 4. invariance, real motion
-
-# HDM_bk_grabHighR_006 holds the signal value closest to a threshold in the whole data, 02_07 the
-# one closest relative to what a transform changes (found by scanning every recording; see
-# assert_invariant).
-INVARIANCE_CLIPS = ("02_01", "13_29", "HDM_bk_grabHighR_006_120", "02_07")
-clips = st.sampled_from(INVARIANCE_CLIPS)
-translations = st.tuples(*[st.floats(-1000.0, 1000.0)] * 3)  # cm: anywhere in a 20 m room
-angles = st.floats(-math.pi, math.pi)
-scales = st.floats(0.25, 4.0)
-
-
-def assert_invariant(name: str, transformed: FloatArray) -> None:
-    """The feature matrix (and the loose and strict tracks) of the transformed clip are those of the
-    clip, bit for bit.
-
-    Exact equality is justified, not lucky. The transforms are exact in real arithmetic; their
-    rounding changes a signal by at most 2e-12 of its threshold's scale (the body length it is
-    measured in; 1 for cosines), the worst being the 1-frame velocities of *MoveApartRelRoot after
-    a translation. A scan of all 218 recordings (4 random transforms each: translation up to
-    10 m, any rotation about y, scale 0.5 to 2, all three) found no signal closer to a threshold
-    than 2.1e-7 of its scale (HDM_bk_grabHighR_006 frame 130, handRightRaisedRelSpine, T1 = 0),
-    and the smallest ratio of distance-to-threshold over the change the transform caused was 8e6
-    (02_07 frame 280, handLeftMoveApartRelRoot). No cell of f1, f2 or the output flipped."""
-    original = clip(name)
-    tracks = feature_tracks(original, JOINT_NAMES, 120.0)
-    moved = feature_tracks(transformed, JOINT_NAMES, 120.0)
-    for before, after in zip(tracks, moved, strict=True):
-        assert np.array_equal(before, after), np.argwhere(before != after)[:10].tolist()
-    assert np.array_equal(features(transformed, JOINT_NAMES), features(original, JOINT_NAMES))
-
-
-@settings(max_examples=12, deadline=None)
-@given(clips, translations)
-def test_translation_invariance(name: str, offset: tuple[float, float, float]) -> None:
-    assert_invariant(name, clip(name) + np.array(offset))
-
-
-@settings(max_examples=12, deadline=None)
-@given(clips, angles)
-def test_vertical_rotation_invariance(name: str, angle: float) -> None:
-    assert_invariant(name, clip(name) @ rotation_y(angle).T)
-
-
-@settings(max_examples=12, deadline=None)
-@given(clips, scales)
-def test_scale_invariance(name: str, scale: float) -> None:
-    assert_invariant(name, clip(name) * scale)
-
-
-@settings(max_examples=12, deadline=None)
-@given(clips, translations, angles, scales)
-def test_rigid_motion_and_scale_invariance(
-    name: str, offset: tuple[float, float, float], angle: float, scale: float
-) -> None:
-    assert_invariant(name, (clip(name) @ rotation_y(angle).T) * scale + np.array(offset))
-
-
-def test_invariance_clips_exercise_the_features() -> None:
-    """The clips are not trivial: between them every feature is on somewhere and off somewhere."""
-    matrices = np.concatenate([features(clip(name), JOINT_NAMES) for name in INVARIANCE_CLIPS])
-    on: list[bool] = np.asarray(matrices.any(axis=0)).tolist()
-    off: list[bool] = np.asarray((~matrices).any(axis=0)).tolist()
-    assert all(on) and all(off), [n for n, a, b in zip(FEATURE_NAMES, on, off, strict=True) if not (a and b)]
-
-
-# ------------------------------------------------------------------------------------ 5. errors
+# ------------------------------------------------------------------------------------ 4. errors
 
 
 @pytest.mark.parametrize("shape", [(N_JOINTS - 1, 3), (N_JOINTS,), (N_JOINTS, 2), (1, N_JOINTS, 3), ()])
@@ -524,21 +350,6 @@ def test_push_accepts_a_pose_whose_sum_overflows() -> None:
     pose = np.full((N_JOINTS, 3), 1.7e308)
     assert stream.push(pose) == []
     assert len(stream.flush()) == 1
-
-
-@pytest.mark.parametrize("value", [math.nan, math.inf, -math.inf])
-@pytest.mark.parametrize("frame", [0, 5, 39])
-def test_features_names_the_non_finite_frame(value: float, frame: int) -> None:
-    positions = np.array(clip("02_01")[:40])
-    positions[frame, 3, 2] = value
-    with pytest.raises(ValueError, match=rf"not finite at frame index {frame}$"):
-        features(positions, JOINT_NAMES)
-
-
-@pytest.mark.parametrize("shape", [(10, N_JOINTS - 1, 3), (10, N_JOINTS), (N_JOINTS, 3)])
-def test_features_rejects_a_wrong_shape(shape: tuple[int, ...]) -> None:
-    with pytest.raises(ValueError, match="positions must have shape"):
-        features(np.zeros(shape), JOINT_NAMES)
 
 
 @pytest.mark.parametrize(

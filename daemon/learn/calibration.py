@@ -6,12 +6,12 @@ that depends on the class, and exact keyframes miss a new person's motions; both
 from folds that leave a group out: the people (actors) when the training data names at least two,
 otherwise up to :data:`TAKE_GROUPS` groups of one person's examples (:func:`groups`).
 
-For each fold, every class is learned (:func:`daemon.templates.learn`) from the other groups'
+For each fold, every class is learned (:func:`daemon.learn.templates.learn`) from the other groups'
 examples, and the left-out group's examples of all classes, joined one after another in a
 shuffled order, become a stream (:func:`fold_stream`): motions, the transitions between them and
 pieces of other motions, as the live recogniser sees them. Each class's template runs as a
 subsequence DTW over the whole stream (thesis Alg. 3.2, free start and end; the retrieval cost and
-steps of :mod:`daemon.retrieval`), and its local minima are *candidates*, as in the live
+steps of :mod:`daemon.search.retrieval`), and its local minima are *candidates*, as in the live
 recogniser (:class:`daemon.recognizer.CodeRecognizer`): a candidate is *beaten* by a cheaper one
 (order cost, end, template) of the same motion (more than half of the shorter range shared) of its own
 class, or of another class whose τ it is within. What is not beaten is a detection; it is right
@@ -32,7 +32,7 @@ templates, each with its own τ (:func:`two_clusters`, :func:`calibrate`).
 
 **Keyframes** (:func:`choose_gate`): the automaton is a gate that lets a stream-wide match of its
 class count only where a keyframe match overlaps it. In each fold the class's keyframes are learned
-with each :class:`~daemon.templates.Generalisation` of :data:`GENERALISATIONS` and run over the
+with each :class:`~daemon.learn.templates.Generalisation` of :data:`GENERALISATIONS` and run over the
 fold's stream; a gate must keep at least :data:`MIN_KEPT` of the motions the class finds without
 it, in every fold, and keep out some of its wrong detections. A class that makes no wrong detection
 in the folds, or whose wrong detections no gate keeps out, is recognised from the stream-wide DTW
@@ -63,18 +63,13 @@ from daemon.dtw import (
     subsequence_codes,
     to_cost,
 )
-from daemon.index import SetIndex, build_set_index
-from daemon.keyframes import KeyframeQuery, keyframe_search
+from daemon.keyframes import KeyframeQuery
+from daemon.learn.templates import Generalisation, aligned_frames, automatic_keyframes, learn
 from daemon.library import Calibration, given
 from daemon.recognizer import gate_ranges
-from daemon.templates import (
-    Generalisation,
-    MotionTemplate,
-    aligned_frames,
-    automatic_keyframes,
-    expand,
-    learn,
-)
+from daemon.search.index import SetIndex, build_set_index
+from daemon.search.keyframes import keyframe_search
+from daemon.templates import MotionTemplate, expand
 from daemon.types import (
     DEFAULT_INDEX_RATE,
     DEFAULT_MAX_GAP_S,
@@ -642,7 +637,7 @@ def choose_gate(
     """The keyframe gate of class ``k``, or None (the stream-wide DTW alone), and why.
 
     In each fold, class ``k``'s detections at the thresholds ``taus`` are gated by the keyframes
-    learned in the fold with each :class:`~daemon.templates.Generalisation` tried
+    learned in the fold with each :class:`~daemon.learn.templates.Generalisation` tried
     (:func:`daemon.recognizer.gate_ranges` over the fold's stream, gap cap ``max_gap_s``): a
     generalisation qualifies when, in every fold, the gated detections still find at least
     ``min_kept`` of the motions the ungated ones find, and over all folds they make fewer wrong

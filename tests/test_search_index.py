@@ -8,7 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from daemon.features import FEATURE_NAMES
-from daemon.index import (
+from daemon.search.index import (
     ExampleQuery,
     Hits,
     SetIndex,
@@ -24,7 +24,7 @@ from daemon.index import (
     ranked,
     temporal_cost,
 )
-from daemon.segments import segment_codes, set_codes
+from daemon.search.segments import segment_codes, set_codes
 from tests.naive import brute_adaptive, brute_fuzzy
 
 BITS = 3

@@ -1,0 +1,134 @@
+"""The features one pose at a time (:class:`FeatureStream`, the incremental twin of
+:func:`daemon.features.batch.features`, bit for bit), their latency, and the change of frame rate
+by keeping every k-th frame (:class:`Decimator` and its batch twin :func:`decimate`).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import numpy as np
+
+from daemon._features import FeatureCore
+from daemon.features.compiler import compiled, unpack
+from daemon.features.language import body_lengths
+from daemon.types import BoolArray, FloatArray
+from replay.joints import JOINT_NAMES
+
+
+def latency_frames(frame_rate: float) -> int:
+    """How many frames after frame ``t`` arrives :class:`FeatureStream` can emit its vector: the
+    longest velocity window's look-ahead ``L - ceil(L/2) + 1`` (16 at 120 Hz, 5 at 30 Hz)."""
+    return compiled(JOINT_NAMES, frame_rate).lead
+
+
+class FeatureStream:
+    """The 39 features of a stream, one pose at a time: the incremental twin of :func:`features`.
+
+    ``push(pose)`` with ``pose`` shape ``(J, 3)`` returns the vectors that became final, each a bool
+    array shape ``(39,)``: the vector of frame ``t`` comes out when frame ``t + latency`` arrives
+    (``latency`` = :func:`latency_frames`, 16 frames = 133 ms at 120 Hz, because the 250 ms velocity
+    windows are centred), and :meth:`flush` returns the last ``latency`` vectors when the stream ends
+    (the windows are then mirrored at the end, exactly as in the batch) and makes the object ready
+    for a new stream. Body lengths are measured on the first pose. Memory is bounded: a ring of the
+    last ``latency + L/2 + 1`` poses. The output equals :func:`features` on the same frames bit for
+    bit: both run the same program and the same window sums, on arrays there and here in compiled
+    code (:class:`daemon._features.FeatureCore`: the program as register-machine code on doubles
+    with numpy's arithmetic)."""
+
+    def __init__(self, joint_names: Sequence[str], frame_rate: float = 120.0) -> None:
+        self._program = compiled(joint_names, frame_rate)
+        self.latency = self._program.lead
+        self._keep = self.latency + max((tr.h for tr in self._program.trajectories), default=1) + 1
+        self._core = FeatureCore(self._program.bytecode, self._keep, self.latency)
+
+    @property
+    def frames(self) -> int:
+        """Poses pushed since the stream began."""
+        return self._core.n
+
+    @property
+    def keep(self) -> int:
+        """Poses held: the last ``keep`` (``latency + L/2 + 1``)."""
+        return self._keep
+
+    @property
+    def core(self) -> FeatureCore:
+        """The compiled state (the live recogniser steps it directly)."""
+        return self._core
+
+    def thresholds_of(self, rows: FloatArray) -> FloatArray:
+        """The flat thresholds of a stream whose first pose is ``rows`` (flat, ``3j + c``)."""
+        return self._program.flat_thresholds(body_lengths(rows.reshape(-1, 3), self._program.joint_names))
+
+    def push(self, pose: FloatArray) -> list[BoolArray]:
+        """Add the next pose; return the vectors that became final (at most one)."""
+        program = self._program
+        p = np.ascontiguousarray(pose, dtype=np.float64)
+        if p.shape != (len(program.joint_names), 3):
+            raise ValueError(f"pose must have shape ({len(program.joint_names)}, 3), got {p.shape}")
+        rows = p.reshape(-1)
+        if not np.isfinite(rows).all():
+            raise ValueError(f"pose {self._core.n} is not finite")
+        return [] if (code := self.push_rows(rows)) is None else [unpack(code)]
+
+    def push_rows(self, rows: FloatArray) -> int | None:
+        """:meth:`push` of a pose already checked: finite, contiguous float64, flat (``3j + c``,
+        shape ``(3J,)``); the vector that became final as a code (bit k = feature k), or None."""
+        core = self._core
+        if core.n == 0:
+            core.set_thresholds(self.thresholds_of(rows))
+        code = core.push(rows)
+        return None if code < 0 else code
+
+    def flush(self) -> list[BoolArray]:
+        """End the stream: the vectors of its last frames, then a fresh state."""
+        return [unpack(code) for code in self.flush_codes()]
+
+    def flush_codes(self) -> list[int]:
+        """:meth:`flush` giving codes (bit k = feature k)."""
+        return self._core.flush()
+
+
+# ---------------------------------------------------------------------------------- frame rates
+
+
+def decimation_factor(native_hz: float, target_hz: float) -> int:
+    """How many native frames make one frame at ``target_hz`` (4 for 120 -> 30 Hz); the target must
+    divide the native rate."""
+    if not (math.isfinite(target_hz) and target_hz > 0):
+        raise ValueError(f"target frame rate must be a positive number, got {target_hz}")
+    ratio = native_hz / target_hz
+    factor = round(ratio) if math.isfinite(ratio) else 0  # a subnormal target overflows the ratio
+    if factor < 1 or not math.isclose(native_hz / factor, target_hz, rel_tol=1e-9):
+        raise ValueError(f"{target_hz:g} Hz is not the native {native_hz:g} Hz divided by a whole number")
+    return factor
+
+
+def decimate(matrix: BoolArray, factor: int) -> BoolArray:
+    """Every ``factor``-th row of ``matrix``, starting with the first (the toolbox's ``1:4:end``, no
+    filtering; reference facts, section 0). Batch twin of :class:`Decimator`."""
+    out: BoolArray = matrix[::factor]
+    return out
+
+
+class Decimator:
+    """``push(vector)`` passes on every ``factor``-th vector, starting with the first (a list of it, or
+    an empty list); :meth:`flush` has nothing pending and starts a new stream. The streaming twin of
+    :func:`decimate`. State: a frame counter."""
+
+    def __init__(self, factor: int) -> None:
+        if factor < 1:
+            raise ValueError(f"decimation factor must be at least 1, got {factor}")
+        self.factor = factor
+        self._n = 0
+
+    def push(self, vector: BoolArray) -> list[BoolArray]:
+        keep = self._n % self.factor == 0
+        self._n += 1
+        return [vector] if keep else []
+
+    def flush(self) -> list[BoolArray]:
+        self._n = 0
+        return []
