@@ -62,8 +62,9 @@ def announce(t: StreamTable, stream: str = "s") -> None:
 
 
 def run(t: StreamTable, poses: list[PoseMessage]) -> list[tuple[str, int, int, float]]:
+    """The detections of ``poses``, each taken at its own timestamp."""
     for p in poses:
-        t.pose(p, 0.0)
+        t.pose(p, p.time)
     out = []
     while t.queued:
         out += t.tick()[0]
@@ -114,9 +115,10 @@ def test_gaps_bridged_or_restarted_as_a_plain_reading_says(
     seqs = [1000 + k for k in kept]
     t = table(library, max_gap_s=bridge / 120)
     announce(t)
-    got = run(
-        t, [PoseMessage("s", s, 0.0, channels=motion().channels[k]) for s, k in zip(seqs, kept, strict=True)]
-    )
+    poses = [
+        PoseMessage("s", s, k / 120, channels=motion().channels[k]) for s, k in zip(seqs, kept, strict=True)
+    ]
+    got = run(t, poses)  # stamped at 120 Hz, so no gap is too long for the time it took (implausible)
     assert got == reference(library, kept, seqs, bridge)
     gapped = sum(1 for a, b in pairwise(seqs) if b - a > 1)
     assert t.counts["gaps"] == gapped
