@@ -20,6 +20,7 @@ import yaml
 from daemon.checks import Checker, read_structured
 from daemon.errors import MocapdError
 from daemon.types import DEFAULT_HOLD_S, DEFAULT_MAX_GAP_S, DEFAULT_NATIVE_RATE, MAX_NATIVE_RATE
+from protocols.urls import parse_mqtt_url
 
 Units = Literal["asf", "cm"]
 LogLevel = Literal["debug", "info", "warning", "error"]
@@ -316,9 +317,7 @@ def _cross_checks(check: Checker, config: Config) -> None:
         check.fail("mqtt.reconnect_min_s", "must not exceed mqtt.reconnect_max_s")
     if "mqtt" not in config.service.sources + config.service.sinks:
         return
-    from protocols.mqtt import parse_url  # the one place MQTT URLs are understood
-
     try:
-        parse_url(config.mqtt.url)
+        parse_mqtt_url(config.mqtt.url)
     except ValueError as e:
         check.fail("mqtt.url", str(e))

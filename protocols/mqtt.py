@@ -30,12 +30,12 @@ from collections import OrderedDict, deque
 from collections.abc import AsyncIterator, Callable, Sequence
 from types import TracebackType
 from typing import Any
-from urllib.parse import urlsplit
 
 import aiomqtt
 
 from protocols.fair import FairQueue
 from protocols.transport import Incoming, Outgoing, StartupError
+from protocols.urls import parse_mqtt_url
 
 LOG = logging.getLogger("mocapd.mqtt")
 CLIENT_LOG = logging.getLogger("mocapd.mqtt.client")
@@ -51,16 +51,6 @@ ASK_EVERY_S = 5.0
 ASKED = 1_000
 """Streams whose requests are remembered (the oldest forgotten first): as many as a daemon holds by
 default, since a flood of new ids must not grow it."""
-
-
-def parse_url(url: str) -> tuple[str, int, bool]:
-    """(host, port, tls) of ``mqtt://host:port`` or ``mqtts://host:port`` (ports 1883 / 8883 by
-    default); ValueError otherwise."""
-    parts = urlsplit(url)
-    if parts.scheme not in ("mqtt", "mqtts") or not parts.hostname:
-        raise ValueError(f"an MQTT broker is mqtt://HOST[:PORT] or mqtts://HOST[:PORT], got {url!r}")
-    tls = parts.scheme == "mqtts"
-    return parts.hostname, parts.port or (8883 if tls else 1883), tls
 
 
 class _Client(aiomqtt.Client):
@@ -180,7 +170,7 @@ class MqttTransport:
         inflight: int = 100,
         presence: str | None = None,
     ) -> None:
-        self.host, self.port, tls = parse_url(url)
+        self.host, self.port, tls = parse_mqtt_url(url)
         self.url = url
         self.client_id = client_id
         self.subscriptions = list(subscribe)

@@ -20,6 +20,7 @@ import zmq.auth
 from zmq.auth.asyncio import AsyncioAuthenticator
 
 from protocols.transport import Incoming, Outgoing, StartupError
+from protocols.urls import split_endpoint
 
 PREFIX = b"mocap/"
 
@@ -55,14 +56,6 @@ def open_socket(
         sock.close(linger=0)  # an open socket would keep the context from terminating
         raise
     return sock
-
-
-def split_endpoint(endpoint: str) -> tuple[str, bool]:
-    """``"connect tcp://h:p"`` → (``"tcp://h:p"``, False); a bare endpoint binds."""
-    words = endpoint.split()
-    if len(words) == 2 and words[0] in ("bind", "connect"):
-        return words[1], words[0] == "bind"
-    return endpoint, True
 
 
 class ZmqTransport:
