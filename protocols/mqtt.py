@@ -29,13 +29,16 @@ import uuid
 from collections import OrderedDict, deque
 from collections.abc import AsyncIterator, Callable, Sequence
 from types import TracebackType
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import aiomqtt
 
 from protocols.fair import FairQueue
 from protocols.transport import Incoming, Outgoing, StartupError
 from protocols.urls import parse_mqtt_url
+
+if TYPE_CHECKING:
+    from daemon.config import MqttConfig
 
 LOG = logging.getLogger("mocapd.mqtt")
 CLIENT_LOG = logging.getLogger("mocapd.mqtt.client")
@@ -44,6 +47,9 @@ calls" thousands of times in a fast replay, say nothing the outbox and /metrics 
 CLIENT_LOG.setLevel(logging.ERROR)
 
 
+SUBSCRIPTIONS = (("mocap/+/skeleton", 1), ("mocap/+/pose", 0))
+"""What a daemon taking poses in over MQTT subscribes to: skeletons reliably (they are retained),
+poses as they come."""
 PROBE_S = 0.5
 """How long a starting daemon waits for another live daemon of its instance to answer."""
 ASK_EVERY_S = 5.0
@@ -132,9 +138,11 @@ class _Buffered:
 READ_BYTES = 1 << 16
 
 
-def inflight_limit(inflight: int) -> int:
-    """paho's own limit of QoS 1 messages in flight (20 by default), raised to ours."""
-    return max(20, inflight)
+INFLIGHT = 100
+"""Reliable messages awaiting the broker's acknowledgement at once (one at a time would pay a round
+trip per detection)."""
+DRAIN_S = 2.0
+"""How long leaving waits for the outbox to empty, unless told otherwise (``drain_within``)."""
 
 
 DRAIN_PACKETS = 512
@@ -142,52 +150,39 @@ DRAIN_PACKETS = 512
 
 
 class MqttTransport:
-    """An MQTT connection to the broker at ``url``: ``subscribe`` (topic, QoS) pairs in, publications
-    out. ``client_id`` fixed (the persistent session is the broker's record of it); ``queue`` bounds
-    the incoming messages, ``outbox`` the reliable ones awaiting acknowledgement; ``reconnect_min_s``
-    doubling up to ``reconnect_max_s`` between attempts; ``username``/``password``; TLS with
-    ``mqtts://`` or ``ca_file`` (and ``cert_file``/``key_file`` for a client certificate)."""
+    """An MQTT connection to the broker of ``settings`` (``url``, credentials, TLS files, queue
+    bounds, keepalive, reconnect back-off; ``daemon.config.MqttConfig``): ``subscribe`` (topic, QoS)
+    pairs in, publications out, as ``client_id`` (fixed: the persistent session is the broker's
+    record of it). With ``presence`` (the instance name), a starting transport first makes sure no
+    live daemon of that instance is on the broker, and answers the next one's question itself."""
 
     name = "mqtt"
 
     def __init__(
         self,
+        settings: MqttConfig,
         *,
-        url: str = "mqtt://127.0.0.1:1883",
-        client_id: str = "mocapd",
-        subscribe: Sequence[tuple[str, int]] = (),
-        username: str | None = None,
-        password: str | None = None,
-        ca_file: str | None = None,
-        cert_file: str | None = None,
-        key_file: str | None = None,
-        queue: int = 10_000,
-        outbox: int = 100_000,
-        keepalive_s: int = 30,
-        reconnect_min_s: float = 0.25,
-        reconnect_max_s: float = 10.0,
-        drain_s: float = 2.0,
-        inflight: int = 100,
-        presence: str | None = None,
+        client_id: str,
+        subscribe: Sequence[tuple[str, int]],
+        presence: str | None,
     ) -> None:
-        self.host, self.port, tls = parse_mqtt_url(url)
-        self.url = url
+        self.host, self.port, tls = parse_mqtt_url(settings.url)
+        self.url = settings.url
         self.client_id = client_id
         self.subscriptions = list(subscribe)
-        self.username, self.password = username, password
-        self.tls = tls or ca_file is not None
-        self.ca_file, self.cert_file, self.key_file = ca_file, cert_file, key_file
-        self.queue = queue
-        self.outbox_size = outbox
-        self.keepalive_s = keepalive_s
-        self.reconnect = (reconnect_min_s, reconnect_max_s)
-        self.drain_s = drain_s
-        self.inflight = inflight
+        self.username, self.password = settings.username, settings.password
+        self.tls = tls or settings.ca_file is not None
+        self.ca_file, self.cert_file, self.key_file = settings.ca_file, settings.cert_file, settings.key_file
+        self.queue = settings.queue
+        self.outbox_size = settings.outbox
+        self.keepalive_s = settings.keepalive_s
+        self.reconnect = (settings.reconnect_min_s, settings.reconnect_max_s)
+        self.drain_s = DRAIN_S
         self._online: Outgoing | None = None
         self._offline: Outgoing | None = None
         self._client: aiomqtt.Client | None = None
         self._runner: asyncio.Task[None] | None = None
-        self._incoming = FairQueue(queue)
+        self._incoming = FairQueue(settings.queue)
         self._arrived = asyncio.Event()
         self._outbox: dict[int, Outgoing] = {}  # by number, in order; left when acknowledged
         self._to_send: deque[int] = deque()  # outbox numbers not yet handed to this connection
@@ -209,6 +204,10 @@ class MqttTransport:
         planned close. Call before entering (the will is fixed then); again before leaving, it
         changes what the planned close publishes."""
         self._online, self._offline = online, offline
+
+    def drain_within(self, seconds: float) -> None:
+        """Leaving waits at most ``seconds`` for the outbox to empty and "offline" to be acknowledged."""
+        self.drain_s = seconds
 
     async def __aenter__(self) -> MqttTransport:
         context = None
@@ -233,7 +232,7 @@ class MqttTransport:
             keepalive=self.keepalive_s,
             tls_context=context,
             deliver=self._deliver,
-            max_inflight_messages=inflight_limit(self.inflight),
+            max_inflight_messages=INFLIGHT,
             timeout=10,
             socket_options=[(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)],  # no Nagle delay on small packets
             logger=CLIENT_LOG,
@@ -371,11 +370,10 @@ class MqttTransport:
         self._put(Incoming(topic, payload, time.time()))
 
     async def _sender(self, client: aiomqtt.Client) -> None:
-        """Hand the outbox to the connection, up to ``inflight`` messages awaiting acknowledgement
-        at once (one at a time would pay a round trip per detection); after a reconnect, all of
-        it again."""
+        """Hand the outbox to the connection, up to :data:`INFLIGHT` messages awaiting
+        acknowledgement at once; after a reconnect, all of it again."""
         self._to_send = deque(self._outbox)
-        slots = asyncio.Semaphore(self.inflight)
+        slots = asyncio.Semaphore(INFLIGHT)
 
         async def one(number: int, message: Outgoing) -> None:
             try:
@@ -460,3 +458,15 @@ class MqttTransport:
             "mqtt_incoming_full": self._dropped_incoming,
             "mqtt_outbox_full": self._dropped_outbox,
         }
+
+
+def transport(settings: MqttConfig, *, instance: str, source: bool, sink: bool) -> MqttTransport:
+    """The daemon's MQTT transport (:class:`protocols.transport.Factory`): as ``mocapd-<instance>``
+    unless ``settings.client_id`` says otherwise, subscribed to :data:`SUBSCRIPTIONS` if it is a
+    source, and making sure it is the only live daemon of ``instance``."""
+    return MqttTransport(
+        settings,
+        client_id=settings.client_id or f"mocapd-{instance}",
+        subscribe=SUBSCRIPTIONS if source else (),
+        presence=instance,
+    )
