@@ -1,11 +1,11 @@
 """``config.yaml``, parsed once at the edge into frozen dataclasses; errors name the file and field.
 
-Each section is a frozen dataclass whose fields carry their defaults (here only: the transports
-take their sections, not values of their own) and their checks (``metadata``: a range, or the names
-a value must be one of); :func:`parse_config` reads them generically, so a field is declared once.
-A transport is a section too: its field in :class:`Config` names the module that makes it
-(:func:`transport_section`), which is all the registry there is, so adding a transport is adding
-its module and its section. Environment variables ``MOCAPD_<SECTION>_<FIELD>`` (e.g.
+Each section is a frozen dataclass whose fields carry their defaults (here only: the transports and
+the stream table take their sections, not values of their own) and their checks (``metadata``: a
+range, or the names a value must be one of); :func:`parse_config` reads them generically, so a field
+is declared once. A transport is a section too: its field in :class:`Config` names the module that
+makes it (:func:`transport_section`), which is all the registry there is, so adding a transport is
+adding its module and its section. Environment variables ``MOCAPD_<SECTION>_<FIELD>`` (e.g.
 ``MOCAPD_MQTT_URL``) override the file (:func:`environment_overrides`): the value is read as a YAML
 scalar, lists as comma-separated words, and errors name the variable."""
 
@@ -92,7 +92,7 @@ class ServiceConfig:
     queue_frames: int = field(default=240, metadata=_range(1, 1_000_000))
     max_streams: int = field(default=1000, metadata=_range(1, 1_000_000))
     max_message_bytes: int = field(default=1 << 20, metadata=_range(1024, 1 << 30))
-    max_gap_s: float = field(default=0.25, metadata=_range(0, 60))
+    bridge_s: float = field(default=0.25, metadata=_range(0, 60))
     grace_s: float = field(default=5.0, metadata=_positive(3600))
     tick_budget_ms: float = field(default=2.0, metadata=_positive(1000))
 
@@ -202,6 +202,13 @@ def transports_named(config: Config) -> list[TransportUse]:
     ]
 
 
+RENAMED = {
+    "service.max_gap_s": "renamed service.bridge_s (the longest run of lost poses bridged); "
+    "recognizer.max_gap_s is another setting, the longest keyframe gap of a match",
+}
+"""Fields that have another name now: what an old file or variable is told."""
+
+
 MAX_LABELLED_STREAMS = 100
 """``metrics.stream_labels`` needs ``service.max_streams`` at most this (a label per stream)."""
 
@@ -245,6 +252,8 @@ def environment_overrides(config: Config, environ: Mapping[str, str]) -> Config:
             raise ConfigError(f"no section {rest.split('_')[0]!r} (known: {', '.join(known)})", path=key)
         name = rest[len(section) + 1 :]
         names = {f.name for f in fields(known[section])}
+        if f"{section}.{name}" in RENAMED:
+            raise ConfigError(RENAMED[f"{section}.{name}"], path=key)
         if name not in names:
             raise ConfigError(
                 f"{section} has no field {name!r} (fields: {', '.join(sorted(names))})", path=key
@@ -291,6 +300,10 @@ def _is_tuple(kind: Any) -> bool:
 
 def _section(check: Checker, name: str, cls: type[Any], value: object) -> Any:
     hints = get_type_hints(cls)
+    if isinstance(value, dict):
+        for key in value:
+            if f"{name}.{key}" in RENAMED:
+                check.fail(f"{name}.{key}", RENAMED[f"{name}.{key}"])
     own = check.mapping(value, name, optional=[f.name for f in fields(cls)])
     kwargs = {}
     for f in fields(cls):

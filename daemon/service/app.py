@@ -172,14 +172,9 @@ class Service:
         self.table = StreamTable(
             library,
             session=f"{instance}/{self.started:.6f}",
-            queue_frames=config.service.queue_frames,
-            max_streams=config.service.max_streams,
-            max_gap_s=config.service.max_gap_s,
-            max_gap_frame_s=config.recognizer.max_gap_s,
-            compete=config.recognizer.compete,
-            hold_s=config.recognizer.hold_s,
-            segmentation=config.segmentation.method,
-            segmented=config.segmentation.streams,
+            service=config.service,
+            recognizer=config.recognizer,
+            segmentation=config.segmentation,
         )
         self.rejects: Counter[str] = Counter()
         self.metrics = Metrics(config.metrics.stream_labels, self._tallies, self._gauge_values)

@@ -18,10 +18,11 @@ jump: a gap in a source faster than its announced rate), which is then taken aft
 
 Frame numbers. The recogniser needs consecutive frame numbers; a stream's sequence numbers may have
 gaps (poses lost on the way, or dropped here when its queue is full). A gap of at most
-``max_gap_frames`` is bridged: the pose after it is given the next frame number, and detections
-report sequence numbers through the stream's table of (frame, sequence offset) changes. A longer gap
-ends the stream's motion: its recogniser is flushed and begins again at the new pose. With no gap,
-frame number = sequence number, so a replayed recording's detections are those of ``mocapd detect``.
+``service.bridge_s`` (in the stream's frames) is bridged: the pose after it is given the next frame
+number, and detections report sequence numbers through the stream's table of (frame, sequence
+offset) changes. A longer gap ends the stream's motion: its recogniser is flushed and begins again at
+the new pose. With no gap, frame number = sequence number, so a replayed recording's detections
+are those of ``mocapd detect``.
 
 Behaviour boundaries. With a segmentation method (``segmentation`` of the config), every channel
 stream whose id matches one of its patterns also goes through an online segmenter
@@ -37,7 +38,7 @@ import dataclasses
 import fnmatch
 import uuid
 from collections import Counter, deque
-from collections.abc import Collection, Sequence
+from collections.abc import Collection
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -46,10 +47,10 @@ import numpy as np
 from daemon.bank import RecognizerBank
 from daemon.behaviours import Boundary, JointRotations, PcaSegmenter, PpcaSegmenter
 from daemon.behaviours import online_segmenter as make_segmenter
+from daemon.config import RecognizerConfig, SegmentationConfig, ServiceConfig
 from daemon.features import latency_frames
 from daemon.library import Library
 from daemon.recognizer import Detection, hold_frames, reach
-from daemon.types import DEFAULT_HOLD_S
 from protocols.messages import BoundaryMessage, DetectionMessage, PoseMessage, SkeletonMessage
 from replay import MocapFormatError, Skeleton, parse_asf
 from replay.amc import DEG
@@ -140,39 +141,42 @@ def _allowance(rate: float, seconds: float) -> float:
 
 class StreamTable:
     """The streams of one service instance (see the module docstring). ``session`` makes detection
-    ids unique to this run; ``queue_frames`` bounds each stream's waiting poses (the oldest dropped),
-    ``max_streams`` the table, ``max_gap_frames`` the bridged gaps (at 120 Hz; scaled by the
-    stream's rate)."""
+    ids unique to this run. As the sections of the configuration say (their defaults if not given):
+    ``service`` bounds each stream's waiting poses (``queue_frames``, the oldest dropped) and the
+    table (``max_streams``) and sets the bridged gaps (``bridge_s``); ``recognizer`` and
+    ``classes`` make the bank; ``segmentation`` the behaviour boundaries."""
 
     def __init__(
         self,
         library: Library,
         *,
         session: str,
-        queue_frames: int = 240,
-        max_streams: int = 1000,
-        max_gap_s: float = 0.25,
-        max_gap_frame_s: float = 2.0,
-        compete: bool = True,
-        hold_s: float = DEFAULT_HOLD_S,
+        service: ServiceConfig | None = None,
+        recognizer: RecognizerConfig | None = None,
+        segmentation: SegmentationConfig | None = None,
         classes: Collection[str] | None = None,
-        segmentation: Literal["none", "pca", "ppca"] = "none",
-        segmented: Sequence[str] = ("*",),
     ) -> None:
+        service = ServiceConfig() if service is None else service
+        recognizer = RecognizerConfig() if recognizer is None else recognizer
+        segmentation = SegmentationConfig() if segmentation is None else segmentation
         self.bank = RecognizerBank(
-            library, max_gap_s=max_gap_frame_s, classes=classes, compete=compete, hold_s=hold_s
+            library,
+            max_gap_s=recognizer.max_gap_s,
+            classes=classes,
+            compete=recognizer.compete,
+            hold_s=recognizer.hold_s,
         )
         self.session = session
-        self.queue_frames = queue_frames
-        self.max_streams = max_streams
-        self.max_gap_s = max_gap_s
+        self.queue_frames = service.queue_frames
+        self.max_streams = service.max_streams
+        self.bridge_s = service.bridge_s
         self.library = library
         self.streams: dict[str, _Stream] = {}
         self.counts: Counter[str] = Counter()
         """Refusals and drops by reason, and ``gaps``/``gap_frames``."""
-        self._window = reach(self.bank.plans, hold_frames(hold_s, library.rate))
-        self.segmentation = segmentation
-        self.segmented = tuple(segmented)
+        self._window = reach(self.bank.plans, hold_frames(recognizer.hold_s, library.rate))
+        self.segmentation = segmentation.method
+        self.segmented = segmentation.streams
         self._queued = 0
         self._waiting: dict[str, _Stream] = {}  # the streams with queued poses, in arrival order
 
@@ -332,7 +336,7 @@ class StreamTable:
             if pose.epoch is not None:
                 s.fed_epoch = pose.epoch
             gap = 0 if s.last_fed is None else pose.seq - s.last_fed - 1
-            if gap > round(self.max_gap_s * s.announced.rate):
+            if gap > round(self.bridge_s * s.announced.rate):
                 self.counts["gaps"] += 1
                 self.counts["gap_frames"] += gap
                 out += self._restart(name, s)
