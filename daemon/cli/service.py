@@ -166,6 +166,8 @@ def _own_source(config: Config) -> str:
     first = config.service.sources[0]
     if first == "mqtt":
         return config.mqtt.url
+    if first != "zmq":  # a transport mocapd replay does not speak
+        raise UsageError(f"replays over zmq or mqtt, and the first source is {first}", field="--replay")
     from protocols.urls import split_endpoint
 
     endpoint, _ = split_endpoint(config.zmq.poses)
