@@ -39,7 +39,7 @@ from paho.mqtt.enums import CallbackAPIVersion
 
 from bench.common import DATA
 from bench.machine import describe
-from bench.processes import free_port, rss_kib, scrape, wait_port
+from bench.processes import free_port, rss_kib, scrape, wait_healthy, wait_port
 from daemon.recordings import read_recording
 from protocols.messages import PoseMessage, SkeletonMessage, encode
 from replay.catalog import CMU_SUBSTITUTES, recordings
@@ -235,6 +235,7 @@ def main() -> None:
     with open(work / "daemon.err", "wb") as err:
         daemon = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=err, env=env)
     wait_port(metrics_port, 30)
+    wait_healthy(metrics_port)  # subscribed: a skeleton published before that would be lost
     if hasattr(os, "sched_setaffinity"):
         os.sched_setaffinity(0, load_cores)
     pairs = recordings(args.data, CMU_SUBSTITUTES)

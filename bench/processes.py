@@ -1,11 +1,13 @@
 """What the benchmarks that run real processes share: free loopback ports, waiting for one to
-listen, a daemon's /metrics samples and a process's resident memory."""
+listen and for a daemon to be healthy, a daemon's /metrics samples and a process's resident
+memory."""
 
 from __future__ import annotations
 
 import random
 import socket
 import time
+import urllib.error
 import urllib.request
 from pathlib import Path
 
@@ -41,6 +43,22 @@ def wait_port(port: int, timeout: float = 10) -> None:
     while not listening(port):
         if time.monotonic() > deadline:
             raise SystemExit(f"nothing listens on port {port}")
+        time.sleep(0.05)
+
+
+def wait_healthy(port: int, timeout: float = 30) -> None:
+    """Return once the daemon whose /healthz is on ``port`` answers 200 (its transports connected
+    and subscribed); SystemExit after ``timeout`` seconds."""
+    deadline = time.monotonic() + timeout
+    while True:
+        try:
+            with urllib.request.urlopen(f"http://127.0.0.1:{port}/healthz", timeout=2) as response:
+                if response.status == 200:
+                    return
+        except (urllib.error.URLError, OSError):
+            pass  # 503 (an HTTPError) while starting, or not listening yet
+        if time.monotonic() > deadline:
+            raise SystemExit(f"the daemon on port {port} did not become healthy")
         time.sleep(0.05)
 
 

@@ -1,10 +1,13 @@
 """``config.yaml``, parsed once at the edge into frozen dataclasses; errors name the file and field.
 
-Each section is a frozen dataclass whose fields carry their checks (``metadata``: a range, or the
-registry a name must be in); :func:`parse_config` reads them generically, so a field is declared
-once. Environment variables ``MOCAPD_<SECTION>_<FIELD>`` (e.g. ``MOCAPD_MQTT_URL``) override the file
-(:func:`environment_overrides`): the value is read as a YAML scalar, lists as comma-separated words,
-and errors name the variable."""
+Each section is a frozen dataclass whose fields carry their defaults (here only: the transports and
+the stream table take their sections, not values of their own) and their checks (``metadata``: a
+range, or the names a value must be one of); :func:`parse_config` reads them generically, so a field
+is declared once. A transport is a section too: its field in :class:`Config` names the module that
+makes it (:func:`transport_section`), which is all the registry there is, so adding a transport is
+adding its module and its section. Environment variables ``MOCAPD_<SECTION>_<FIELD>`` (e.g.
+``MOCAPD_MQTT_URL``) override the file (:func:`environment_overrides`): the value is read as a YAML
+scalar, lists as comma-separated words, and errors name the variable."""
 
 from __future__ import annotations
 
@@ -13,7 +16,7 @@ import types
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, fields
 from pathlib import Path
-from typing import Any, Literal, Union, get_args, get_origin, get_type_hints
+from typing import Any, Literal, NamedTuple, Union, get_args, get_origin, get_type_hints
 
 import yaml
 
@@ -26,13 +29,12 @@ from daemon.types import (
     MAX_NATIVE_RATE,
     RecognitionSettings,
 )
+from protocols.urls import parse_mqtt_url
 
 Units = Literal["asf", "cm"]
 LogLevel = Literal["debug", "info", "warning", "error"]
 StdoutFormat = Literal["json", "text"]
 SegmentationMethod = Literal["none", "pca", "ppca"]
-TRANSPORTS = ("zmq", "mqtt", "stdout")
-SOURCES = ("zmq", "mqtt")
 
 
 class ConfigError(MocapdError, ValueError):
@@ -45,6 +47,13 @@ def _range(low: float | None = None, high: float | None = None, *, open_low: boo
 
 def _positive(high: float | None = None) -> dict[str, Any]:
     return _range(0, high, open_low=True)
+
+
+def transport_section(module: str, *, source: bool) -> dict[str, Any]:
+    """The metadata of a transport's section in :class:`Config`: ``module`` makes the transport of
+    the section (its ``transport`` function, :class:`protocols.transport.Factory`; imported only
+    when the transport is named), which can take poses in if ``source``."""
+    return {"transport": module, "source": source}
 
 
 @dataclass(frozen=True)
@@ -89,13 +98,13 @@ class ServiceConfig:
     and detections go out on, and the limits of the stream table (see config.yaml)."""
 
     instance: str = ""
-    sources: tuple[str, ...] = field(default=("zmq",), metadata={"choices": SOURCES})
-    sinks: tuple[str, ...] = field(default=("zmq", "stdout"), metadata={"choices": TRANSPORTS})
+    sources: tuple[str, ...] = field(default=("zmq",), metadata={"choices": lambda: SOURCES})
+    sinks: tuple[str, ...] = field(default=("zmq", "stdout"), metadata={"choices": lambda: TRANSPORTS})
     idle_s: float = field(default=30.0, metadata=_positive())
     queue_frames: int = field(default=240, metadata=_range(1, 1_000_000))
     max_streams: int = field(default=1000, metadata=_range(1, 1_000_000))
     max_message_bytes: int = field(default=1 << 20, metadata=_range(1024, 1 << 30))
-    max_gap_s: float = field(default=0.25, metadata=_range(0, 60))
+    bridge_s: float = field(default=0.25, metadata=_range(0, 60))
     grace_s: float = field(default=5.0, metadata=_positive(3600))
     tick_budget_ms: float = field(default=2.0, metadata=_positive(1000))
 
@@ -159,11 +168,57 @@ class Config:
     recognizer: RecognizerConfig = field(default_factory=RecognizerConfig)
     segmentation: SegmentationConfig = field(default_factory=SegmentationConfig)
     service: ServiceConfig = field(default_factory=ServiceConfig)
-    zmq: ZmqConfig = field(default_factory=ZmqConfig)
-    mqtt: MqttConfig = field(default_factory=MqttConfig)
-    stdout: StdoutConfig = field(default_factory=StdoutConfig)
+    zmq: ZmqConfig = field(
+        default_factory=ZmqConfig, metadata=transport_section("protocols.zeromq", source=True)
+    )
+    mqtt: MqttConfig = field(
+        default_factory=MqttConfig, metadata=transport_section("protocols.mqtt", source=True)
+    )
+    stdout: StdoutConfig = field(
+        default_factory=StdoutConfig, metadata=transport_section("protocols.stdout", source=False)
+    )
     metrics: MetricsConfig = field(default_factory=MetricsConfig)
     logging: LoggingConfig = field(default_factory=LoggingConfig)
+
+
+TRANSPORTS: tuple[str, ...] = tuple(f.name for f in fields(Config) if "transport" in f.metadata)
+"""The transports, by the names of their sections."""
+SOURCES: tuple[str, ...] = tuple(f.name for f in fields(Config) if f.metadata.get("source"))
+"""The transports that can take poses in."""
+
+
+class TransportUse(NamedTuple):
+    """A transport a configuration names: its name, the module that makes it, its section, and
+    whether it is a source and a sink of the service."""
+
+    name: str
+    module: str
+    settings: Any
+    source: bool
+    sink: bool
+
+
+def transports_named(config: Config) -> list[TransportUse]:
+    """The transports ``config`` names as sources and sinks, each once, sources first."""
+    service = config.service
+    kinds = {f.name: f for f in fields(Config)}
+    return [
+        TransportUse(
+            name,
+            kinds[name].metadata["transport"],
+            getattr(config, name),
+            name in service.sources,
+            name in service.sinks,
+        )
+        for name in dict.fromkeys(service.sources + service.sinks)
+    ]
+
+
+RENAMED = {
+    "service.max_gap_s": "renamed service.bridge_s (the longest run of lost poses bridged); "
+    "recognizer.max_gap_s is another setting, the longest keyframe gap of a match",
+}
+"""Fields that have another name now: what an old file or variable is told."""
 
 
 MAX_LABELLED_STREAMS = 100
@@ -209,6 +264,8 @@ def environment_overrides(config: Config, environ: Mapping[str, str]) -> Config:
             raise ConfigError(f"no section {rest.split('_')[0]!r} (known: {', '.join(known)})", path=key)
         name = rest[len(section) + 1 :]
         names = {f.name for f in fields(known[section])}
+        if f"{section}.{name}" in RENAMED:
+            raise ConfigError(RENAMED[f"{section}.{name}"], path=key)
         if name not in names:
             raise ConfigError(
                 f"{section} has no field {name!r} (fields: {', '.join(sorted(names))})", path=key
@@ -255,6 +312,10 @@ def _is_tuple(kind: Any) -> bool:
 
 def _section(check: Checker, name: str, cls: type[Any], value: object) -> Any:
     hints = get_type_hints(cls)
+    if isinstance(value, dict):
+        for key in value:
+            if f"{name}.{key}" in RENAMED:
+                check.fail(f"{name}.{key}", RENAMED[f"{name}.{key}"])
     own = check.mapping(value, name, optional=[f.name for f in fields(cls)])
     kwargs = {}
     for f in fields(cls):
@@ -276,6 +337,7 @@ def _field(check: Checker, where: str, kind: Any, meta: Mapping[str, Any], value
     if origin is tuple:
         items = check.listing(value, where)
         choices = meta.get("choices")
+        choices = choices() if callable(choices) else choices
         out = []
         for i, item in enumerate(items):
             word = check.string(item, f"{where}[{i}]")
@@ -328,9 +390,7 @@ def _cross_checks(check: Checker, config: Config) -> None:
         check.fail("mqtt.reconnect_min_s", "must not exceed mqtt.reconnect_max_s")
     if "mqtt" not in config.service.sources + config.service.sinks:
         return
-    from protocols.mqtt import parse_url  # the one place MQTT URLs are understood
-
     try:
-        parse_url(config.mqtt.url)
+        parse_mqtt_url(config.mqtt.url)
     except ValueError as e:
         check.fail("mqtt.url", str(e))

@@ -1,7 +1,23 @@
-"""MQTT through aiomqtt (2.x): subscriptions in, publications out, over one connection that mends
-itself.
+"""MQTT: subscriptions in, publications out, over one connection that mends itself; built on
+paho-mqtt's documented external-loop API.
 
-The connection follows aiomqtt's documented reconnect loop: one client, re-entered after every loss
+Why paho's own API and not aiomqtt's: aiomqtt (2.x; it is built on paho) reads one packet per
+readable event and hands every message on through an asyncio.Queue, awaited per message; its public
+API has no way to read more per event or to take a message without its queue, and that costs about
+twice the CPU per message of what is here, more than the daemon can spare at a hundred 120 Hz
+streams (``bench/bench_mqtt_intake.py``; docs/benchmarks.md, "MQTT intake"). What the daemon once
+did instead, replacing aiomqtt's socket callback and paho's private ``_sock_recv`` and
+``_handle_on_message``, was at the mercy of any patch release. paho's external-loop API is the
+documented seam aiomqtt itself uses: the event loop watches the client's socket (``on_socket_open``,
+``on_socket_close``, ``on_socket_register_write``, ``on_socket_unregister_write``) and calls
+``loop_read``, ``loop_write`` and ``loop_misc``; messages come through ``on_message``
+(``message.topic``, ``message.payload``), acknowledgements through ``on_publish``,
+``on_subscribe`` and ``on_unsubscribe``. A readable event reads packets for as long as they keep
+coming (the socket is level-triggered: what is left wakes the loop again), so a burst costs one
+event, and each message goes straight into the fair queue. (paho still reads a packet with a few
+small ``recv`` calls, its type byte, its length and the rest; no public API changes that.)
+
+The connection: one paho client per connection (:class:`_Connection`), made again after every loss
 with a capped exponential back-off, subscribing again on every connect. The session is persistent
 (``clean_session=False`` with a fixed client id), so the broker keeps the subscriptions and queued
 QoS 1 messages across the daemon's reconnects and, with persistence on, its own restarts. Reliable
@@ -10,7 +26,7 @@ them; what was not acknowledged when the connection dropped is sent again after 
 (a consumer may see a repeat: detections carry an event id). With :meth:`MqttTransport.announce`,
 the "online" status is published retained on every connect, the "offline" one is the retained last
 will, and a planned close publishes "offline" itself before disconnecting (a clean disconnect
-suppresses the will). The incoming queue is bounded (``queue``) and fair between streams
+suppresses the will). The incoming queue is bounded (``mqtt.queue``) and fair between streams
 (:class:`~protocols.fair.FairQueue`): when it is full the oldest message of the stream holding the
 most is dropped (counted), so one stream's flood does not crowd out the others.
 """
@@ -21,29 +37,38 @@ import asyncio
 import contextlib
 import itertools
 import logging
-import select
 import socket
 import ssl
+import threading
 import time
 import uuid
 from collections import OrderedDict, deque
 from collections.abc import AsyncIterator, Callable, Sequence
 from types import TracebackType
-from typing import Any
-from urllib.parse import urlsplit
+from typing import TYPE_CHECKING, Any
 
-import aiomqtt
+import paho.mqtt.client as paho
+from paho.mqtt.enums import CallbackAPIVersion, MQTTErrorCode
+from paho.mqtt.properties import Properties
+from paho.mqtt.reasoncodes import ReasonCode
 
 from protocols.fair import FairQueue
 from protocols.transport import Incoming, Outgoing, StartupError
+from protocols.urls import parse_mqtt_url
+
+if TYPE_CHECKING:
+    from daemon.config import MqttConfig
 
 LOG = logging.getLogger("mocapd.mqtt")
 CLIENT_LOG = logging.getLogger("mocapd.mqtt.client")
-"""aiomqtt's and paho's own logger: only errors (their warnings, e.g. "There are 66 pending publish
-calls" thousands of times in a fast replay, say nothing the outbox and /metrics do not)."""
+"""paho's own logger: only errors (its debug and warning lines say nothing the outbox and /metrics
+do not)."""
 CLIENT_LOG.setLevel(logging.ERROR)
 
 
+SUBSCRIPTIONS = (("mocap/+/skeleton", 1), ("mocap/+/pose", 0))
+"""What a daemon taking poses in over MQTT subscribes to: skeletons reliably (they are retained),
+poses as they come."""
 PROBE_S = 0.5
 """How long a starting daemon waits for another live daemon of its instance to answer."""
 ASK_EVERY_S = 5.0
@@ -51,153 +76,372 @@ ASK_EVERY_S = 5.0
 ASKED = 1_000
 """Streams whose requests are remembered (the oldest forgotten first): as many as a daemon holds by
 default, since a flood of new ids must not grow it."""
-
-
-def parse_url(url: str) -> tuple[str, int, bool]:
-    """(host, port, tls) of ``mqtt://host:port`` or ``mqtts://host:port`` (ports 1883 / 8883 by
-    default); ValueError otherwise."""
-    parts = urlsplit(url)
-    if parts.scheme not in ("mqtt", "mqtts") or not parts.hostname:
-        raise ValueError(f"an MQTT broker is mqtt://HOST[:PORT] or mqtts://HOST[:PORT], got {url!r}")
-    tls = parts.scheme == "mqtts"
-    return parts.hostname, parts.port or (8883 if tls else 1883), tls
-
-
-class _Client(aiomqtt.Client):
-    """aiomqtt's client reading every packet the socket holds when it becomes readable, not one:
-    at thousands of poses a second, one packet per event-loop turn falls behind. (The same
-    callback as aiomqtt's ``_on_socket_open``, looping while the socket has data.) Each message
-    paho parsed goes straight to ``deliver(topic, payload)``: paho's dispatch (two locks and a
-    topic-filter search per message, for per-topic callbacks this client never registers) and
-    aiomqtt's Message and queue cost a sixth of the daemon at a hundred streams. paho reads a
-    packet with three or four ``recv`` calls (the type byte, each byte of its length, the rest);
-    here they are served from one large read of the socket (paho's own ``_sock_recv``, so TLS and
-    its errors are as paho handles them)."""
-
-    def __init__(self, *args: Any, deliver: Callable[[str, bytes], None], **kwargs: Any) -> None:
-        super().__init__(*args, **kwargs)
-        self._read = _Buffered(self._client._sock_recv)
-        self._client._sock_recv = self._read.recv  # type: ignore[method-assign,assignment]
-
-        def handle(message: Any) -> None:  # paho's MQTTMessage
-            try:
-                topic = message._topic.decode()
-            except UnicodeDecodeError:  # paho drops such a message's topic callbacks too
-                return
-            payload = message.payload
-            deliver(topic, payload if isinstance(payload, bytes) else bytes(payload))
-
-        self._client._handle_on_message = handle  # type: ignore[method-assign]
-
-    def _on_socket_open(self, client: Any, userdata: Any, sock: Any) -> None:
-        read = self._read
-        read.clear()  # a new connection: nothing of the last one is left to parse
-
-        def callback() -> None:
-            try:
-                for _ in range(DRAIN_PACKETS):
-                    client.loop_read()
-                    s = client.socket()
-                    if s is None:
-                        return
-                    if read.pending() or (hasattr(s, "pending") and s.pending() > 0):
-                        continue
-                    if not select.select([s], [], [], 0)[0]:
-                        return
-                if read.pending():  # the socket may have nothing more to say: come back for these
-                    self._loop.call_soon(callback)
-            except Exception as exc:  # aiomqtt's rule: any read error ends the connection
-                if not self._disconnected.done():
-                    self._disconnected.set_exception(exc)
-
-        def create_misc_task() -> None:
-            self._misc_task = self._loop.create_task(self._misc_loop())
-
-        self._loop.call_soon_threadsafe(self._loop.add_reader, sock.fileno(), callback)
-        self._loop.call_soon_threadsafe(create_misc_task)
-
-
-class _Buffered:
-    """``recv(n)`` served from reads of ``read(READ_BYTES)`` (which raises as a socket does)."""
-
-    def __init__(self, read: Callable[[int], bytes]) -> None:
-        self._fill = read
-        self._data = b""
-        self._at = 0
-
-    def recv(self, size: int) -> bytes:
-        if self._at >= len(self._data):
-            self._data, self._at = self._fill(READ_BYTES), 0  # b"": the connection closed
-        out = self._data[self._at : self._at + size]
-        self._at += len(out)
-        return out
-
-    def pending(self) -> int:
-        return len(self._data) - self._at
-
-    def clear(self) -> None:
-        self._data, self._at = b"", 0
-
-
-READ_BYTES = 1 << 16
-
-
-def inflight_limit(inflight: int) -> int:
-    """paho's own limit of QoS 1 messages in flight (20 by default), raised to ours."""
-    return max(20, inflight)
-
-
-DRAIN_PACKETS = 512
+TIMEOUT_S = 10.0
+"""The longest a connection waits for the broker to accept it (once TCP and TLS are up: paho's own
+connect timeout) and to answer a subscription or the "online" status; past it the connection is
+dropped and made again."""
+INFLIGHT = 100
+"""Reliable messages awaiting the broker's acknowledgement at once (one at a time would pay a round
+trip per detection)."""
+DRAIN_S = 2.0
+"""How long leaving waits for the outbox to empty, unless told otherwise (``drain_within``)."""
+CLOSE_S = 1.0
+"""How long a clean disconnect waits for the DISCONNECT packet to leave."""
+READ_PACKETS = 512
 """The most packets one readable event takes, so that reading yields to the other tasks."""
+MISC_EVERY_S = 1.0
+"""How often paho's ``loop_misc`` runs (keepalive pings, and noticing a broker that stopped
+answering them)."""
+
+
+class MqttLost(Exception):
+    """A connection could not be made, or ended (the message says why); the transport makes
+    another."""
+
+
+class _Connection:
+    """One connection to the broker, from connect to its end: a paho client driven by the running
+    event loop through paho's external-loop API. Enter it to connect (MqttLost if that fails),
+    leave it to disconnect cleanly; :attr:`lost` is done when the connection ended (with MqttLost
+    saying why, unless it was this side's clean disconnect). ``deliver(topic, payload)`` takes
+    every message received, on the event loop."""
+
+    def __init__(
+        self,
+        host: str,
+        port: int,
+        *,
+        client_id: str,
+        clean_session: bool,
+        keepalive_s: int,
+        username: str | None,
+        password: str | None,
+        tls: ssl.SSLContext | None,
+        will: Outgoing | None,
+        deliver: Callable[[str, bytes], None],
+        timeout_s: float,
+    ) -> None:
+        self._loop = asyncio.get_running_loop()
+        self._thread = threading.get_ident()
+        self._address = (host, port, keepalive_s)
+        self._deliver = deliver
+        self.timeout_s = timeout_s
+        self._connected: asyncio.Future[None] = self._loop.create_future()
+        self.lost: asyncio.Future[None] = self._loop.create_future()
+        for future in (self._connected, self.lost):
+            future.add_done_callback(_retrieved)
+        self._waiting: dict[int, asyncio.Future[None]] = {}  # message id -> its acknowledgement
+        self._fd = -1
+        self._closed = False
+        self._progress = 0  # packets that did something, for the read loop to tell when to stop
+        mqtt = paho.Client(
+            CallbackAPIVersion.VERSION2,
+            client_id=client_id,
+            clean_session=clean_session,
+            protocol=paho.MQTTv311,
+            reconnect_on_failure=False,
+        )
+        mqtt.enable_logger(CLIENT_LOG)
+        mqtt.max_inflight_messages_set(INFLIGHT)
+        if username is not None:
+            mqtt.username_pw_set(username, password)
+        if tls is not None:
+            mqtt.tls_set_context(tls)
+        if will is not None:
+            mqtt.will_set(will.topic, will.payload, qos=1 if will.reliable else 0, retain=will.retain)
+        mqtt.on_connect = self._on_connect
+        mqtt.on_disconnect = self._on_disconnect
+        mqtt.on_message = self._on_message
+        mqtt.on_publish = self._on_acknowledged
+        mqtt.on_subscribe = self._on_subscribed
+        mqtt.on_unsubscribe = self._on_subscribed
+        mqtt.on_socket_open = self._on_socket_open
+        mqtt.on_socket_close = self._on_socket_close
+        mqtt.on_socket_register_write = self._on_register_write
+        mqtt.on_socket_unregister_write = self._on_unregister_write
+        self.mqtt = mqtt
+
+    async def __aenter__(self) -> _Connection:
+        connecting = self._loop.run_in_executor(None, self._connect)  # DNS, TCP and TLS block
+        try:
+            await asyncio.shield(connecting)
+        except asyncio.CancelledError:
+            connecting.add_done_callback(self._closed_after)  # whatever it opens is closed
+            raise
+        except (OSError, ValueError) as e:  # ValueError: a certificate that does not match, a bad host
+            raise MqttLost(str(e) or type(e).__name__) from None
+        try:
+            async with asyncio.timeout(self.timeout_s):
+                await asyncio.shield(self._connected)
+        except (TimeoutError, MqttLost) as e:
+            self._close()
+            if isinstance(e, MqttLost):
+                raise
+            raise MqttLost("the broker did not answer the connect") from None
+        except asyncio.CancelledError:
+            self._close()
+            raise
+        return self
+
+    async def __aexit__(
+        self, kind: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        """A clean disconnect (the broker does not publish the will) if the connection is still up."""
+        try:
+            if not self.lost.done() and self.mqtt.disconnect() == MQTTErrorCode.MQTT_ERR_SUCCESS:
+                await asyncio.wait([self.lost], timeout=CLOSE_S)
+        finally:
+            self._close()
+
+    def _connect(self) -> None:
+        host, port, keepalive = self._address
+        self.mqtt.connect(host, port, keepalive)
+
+    def _closed_after(self, connecting: asyncio.Future[None]) -> None:
+        _retrieved(connecting)
+        self._close()
+
+    def _close(self) -> None:
+        """The socket closed, whatever state the connection is in (once; nothing if paho closed
+        it)."""
+        if self._closed:
+            return
+        self._closed = True
+        if self.mqtt.socket() is not None:
+            with contextlib.suppress(Exception):
+                self.mqtt.disconnect()
+                self.mqtt.loop_write()  # sends the DISCONNECT and closes the socket, or finds it dead
+        sock = self.mqtt.socket()
+        if sock is not None:  # could not even write that: let it go
+            self._forget_socket()
+            sock.close()
+        self._end(MqttLost("closed"))
+
+    # ----------------------------------------------------------------------- the socket, on the loop
+
+    def _soon(self, call: Callable[..., object], *args: Any) -> None:
+        """``call(*args)`` on the event loop: now if this is its thread, else as soon as it can
+        (paho opens the socket, and queues CONNECT, in the thread that connects)."""
+        if threading.get_ident() == self._thread:
+            call(*args)
+        else:
+            self._loop.call_soon_threadsafe(call, *args)
+
+    def _on_socket_open(self, client: paho.Client, userdata: Any, sock: paho.SocketLike) -> None:
+        if isinstance(sock, socket.socket):
+            sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)  # no Nagle delay on small packets
+        self._fd = sock.fileno()
+        self._soon(self._loop.add_reader, self._fd, self._readable)
+
+    def _on_socket_close(self, client: paho.Client, userdata: Any, sock: paho.SocketLike) -> None:
+        self._soon(self._forget_socket)
+
+    def _forget_socket(self) -> None:
+        if self._fd >= 0:
+            self._loop.remove_reader(self._fd)
+            self._loop.remove_writer(self._fd)
+            self._fd = -1
+
+    def _on_register_write(self, client: paho.Client, userdata: Any, sock: paho.SocketLike) -> None:
+        self._soon(self._watch_writable, sock.fileno())
+
+    def _watch_writable(self, fd: int) -> None:
+        if fd >= 0 and fd == self._fd:  # not a socket closed since
+            self._loop.add_writer(fd, self._writable)
+
+    def _on_unregister_write(self, client: paho.Client, userdata: Any, sock: paho.SocketLike) -> None:
+        self._soon(self._unwatch_writable)
+
+    def _unwatch_writable(self) -> None:
+        if self._fd >= 0:
+            self._loop.remove_writer(self._fd)
+
+    def _readable(self) -> None:
+        """Read packets while they keep doing something (paho reads one or a few per
+        ``loop_read``), at most :data:`READ_PACKETS`. A TLS socket may hold decrypted bytes its file
+        descriptor no longer says are there: those are read too, or come back for."""
+        mqtt = self.mqtt
+        try:
+            for _ in range(READ_PACKETS):
+                before = self._progress
+                if mqtt.loop_read() != MQTTErrorCode.MQTT_ERR_SUCCESS:
+                    return  # the connection ended: paho closed it and said why (on_disconnect)
+                sock = mqtt.socket()
+                buffered = isinstance(sock, ssl.SSLSocket) and sock.pending() > 0
+                if sock is None or (self._progress == before and not buffered):
+                    return  # nothing more for now; what comes wakes the loop again
+            sock = mqtt.socket()
+            if isinstance(sock, ssl.SSLSocket) and sock.pending() > 0:
+                self._loop.call_soon(self._readable)
+        except Exception as e:  # any failure to read ends the connection
+            self._fail(f"reading: {e}")
+
+    def _writable(self) -> None:
+        try:
+            self.mqtt.loop_write()
+        except Exception as e:
+            self._fail(f"writing: {e}")
+
+    def _fail(self, why: str) -> None:
+        """The connection is over for this side (leaving closes the socket): not watched any more."""
+        self._forget_socket()
+        self._end(MqttLost(why))
+
+    async def serve(self) -> None:
+        """Keep the connection alive (``loop_misc``: keepalive pings, and giving up on a broker
+        that stopped answering them) until it ends; raises MqttLost saying why."""
+        while not self.lost.done():
+            rc = self.mqtt.loop_misc()
+            if rc != MQTTErrorCode.MQTT_ERR_SUCCESS:
+                self._end(MqttLost(paho.error_string(rc)))
+                break
+            await asyncio.wait([self.lost], timeout=MISC_EVERY_S)
+        await self.lost  # raises MqttLost saying why
+        raise MqttLost("disconnected")
+
+    # --------------------------------------------------------------------------------- requests
+
+    def publish(self, message: Outgoing) -> asyncio.Future[None]:
+        """Hand ``message`` to the connection; the future is done when the broker acknowledged it
+        (reliable: QoS 1) or it was written (QoS 0), and fails with MqttLost if the connection ends
+        first."""
+        done = self._loop.create_future()
+        qos = 1 if message.reliable else 0
+        info = self.mqtt.publish(message.topic, message.payload, qos=qos, retain=message.retain)
+        if info.rc != MQTTErrorCode.MQTT_ERR_SUCCESS:
+            done.set_exception(MqttLost(f"publishing: {paho.error_string(info.rc)}"))
+        elif info.is_published():
+            done.set_result(None)
+        else:
+            self._waiting[info.mid] = done
+        return done
+
+    @property
+    def in_flight(self) -> int:
+        return len(self._waiting)
+
+    async def subscribe(self, topic: str, qos: int) -> None:
+        rc, mid = self.mqtt.subscribe(topic, qos)
+        await self._answered(rc, mid, f"subscribing to {topic}")
+
+    async def unsubscribe(self, topic: str) -> None:
+        rc, mid = self.mqtt.unsubscribe(topic)
+        await self._answered(rc, mid, f"unsubscribing from {topic}")
+
+    async def _answered(self, rc: MQTTErrorCode, mid: int | None, what: str) -> None:
+        """Wait for the broker to answer request ``mid`` (at most :attr:`timeout_s`)."""
+        if rc != MQTTErrorCode.MQTT_ERR_SUCCESS or mid is None:
+            raise MqttLost(f"{what}: {paho.error_string(rc)}")
+        done = self._waiting[mid] = self._loop.create_future()
+        try:
+            async with asyncio.timeout(self.timeout_s):
+                await done
+        except TimeoutError:
+            raise MqttLost(f"{what}: the broker did not answer") from None
+
+    # -------------------------------------------------------------------------- paho's callbacks
+
+    def _on_connect(
+        self,
+        client: paho.Client,
+        userdata: Any,
+        flags: paho.ConnectFlags,
+        reason: ReasonCode,
+        properties: Properties | None,
+    ) -> None:
+        self._progress += 1
+        if self._connected.done():
+            return
+        if reason.is_failure:
+            self._connected.set_exception(MqttLost(f"the broker refused the connection: {reason}"))
+        else:
+            self._connected.set_result(None)
+
+    def _on_disconnect(
+        self,
+        client: paho.Client,
+        userdata: Any,
+        flags: paho.DisconnectFlags,
+        reason: ReasonCode,
+        properties: Properties | None,
+    ) -> None:
+        self._end(None if reason == 0 else MqttLost(f"connection lost ({reason})"))
+
+    def _end(self, why: MqttLost | None) -> None:
+        """The connection is over: everything waiting on it fails (``why``, or MqttLost)."""
+        failure = why or MqttLost("disconnected")
+        if not self._connected.done():
+            self._connected.set_exception(failure)
+        if not self.lost.done():
+            if why is None:
+                self.lost.set_result(None)
+            else:
+                self.lost.set_exception(why)
+        waiting, self._waiting = self._waiting, {}
+        for done in waiting.values():
+            if not done.done():
+                done.set_exception(failure)
+
+    def _on_message(self, client: paho.Client, userdata: Any, message: paho.MQTTMessage) -> None:
+        self._progress += 1
+        try:
+            topic = message.topic
+        except UnicodeDecodeError:  # not a topic mocapd could have subscribed to
+            return
+        payload = message.payload
+        self._deliver(topic, payload if isinstance(payload, bytes) else bytes(payload))
+
+    def _on_acknowledged(
+        self, client: paho.Client, userdata: Any, mid: int, reason: ReasonCode, properties: Properties
+    ) -> None:
+        self._progress += 1
+        done = self._waiting.pop(mid, None)
+        if done is not None and not done.done():
+            done.set_result(None)
+
+    def _on_subscribed(
+        self,
+        client: paho.Client,
+        userdata: Any,
+        mid: int,
+        reasons: list[ReasonCode],
+        properties: Properties | None,
+    ) -> None:
+        self._progress += 1
+        done = self._waiting.pop(mid, None)
+        if done is not None and not done.done():
+            done.set_result(None)
 
 
 class MqttTransport:
-    """An MQTT connection to the broker at ``url``: ``subscribe`` (topic, QoS) pairs in, publications
-    out. ``client_id`` fixed (the persistent session is the broker's record of it); ``queue`` bounds
-    the incoming messages, ``outbox`` the reliable ones awaiting acknowledgement; ``reconnect_min_s``
-    doubling up to ``reconnect_max_s`` between attempts; ``username``/``password``; TLS with
-    ``mqtts://`` or ``ca_file`` (and ``cert_file``/``key_file`` for a client certificate)."""
+    """An MQTT connection to the broker of ``settings`` (``url``, credentials, TLS files, queue
+    bounds, keepalive, reconnect back-off; ``daemon.config.MqttConfig``): ``subscribe`` (topic, QoS)
+    pairs in, publications out, as ``client_id`` (fixed: the persistent session is the broker's
+    record of it). With ``presence`` (the instance name), a starting transport first makes sure no
+    live daemon of that instance is on the broker, and answers the next one's question itself."""
 
     name = "mqtt"
 
     def __init__(
         self,
+        settings: MqttConfig,
         *,
-        url: str = "mqtt://127.0.0.1:1883",
-        client_id: str = "mocapd",
-        subscribe: Sequence[tuple[str, int]] = (),
-        username: str | None = None,
-        password: str | None = None,
-        ca_file: str | None = None,
-        cert_file: str | None = None,
-        key_file: str | None = None,
-        queue: int = 10_000,
-        outbox: int = 100_000,
-        keepalive_s: int = 30,
-        reconnect_min_s: float = 0.25,
-        reconnect_max_s: float = 10.0,
-        drain_s: float = 2.0,
-        inflight: int = 100,
-        presence: str | None = None,
+        client_id: str,
+        subscribe: Sequence[tuple[str, int]],
+        presence: str | None,
     ) -> None:
-        self.host, self.port, tls = parse_url(url)
-        self.url = url
+        self.host, self.port, tls = parse_mqtt_url(settings.url)
+        self.url = settings.url
+        self.settings = settings
         self.client_id = client_id
         self.subscriptions = list(subscribe)
-        self.username, self.password = username, password
-        self.tls = tls or ca_file is not None
-        self.ca_file, self.cert_file, self.key_file = ca_file, cert_file, key_file
-        self.queue = queue
-        self.outbox_size = outbox
-        self.keepalive_s = keepalive_s
-        self.reconnect = (reconnect_min_s, reconnect_max_s)
-        self.drain_s = drain_s
-        self.inflight = inflight
+        self.tls = tls or settings.ca_file is not None
+        self.drain_s = DRAIN_S
         self._online: Outgoing | None = None
         self._offline: Outgoing | None = None
-        self._client: aiomqtt.Client | None = None
+        self._connection: _Connection | None = None
         self._runner: asyncio.Task[None] | None = None
-        self._incoming = FairQueue(queue)
+        self._incoming = FairQueue(settings.queue)
         self._arrived = asyncio.Event()
         self._outbox: dict[int, Outgoing] = {}  # by number, in order; left when acknowledged
         self._to_send: deque[int] = deque()  # outbox numbers not yet handed to this connection
@@ -220,35 +464,48 @@ class MqttTransport:
         changes what the planned close publishes."""
         self._online, self._offline = online, offline
 
-    async def __aenter__(self) -> MqttTransport:
-        context = None
-        if self.tls:
-            context = ssl.create_default_context(cafile=self.ca_file)
-            if self.cert_file is not None:
-                context.load_cert_chain(self.cert_file, self.key_file)
-        if self.presence is not None:
-            await self._probe(context)
-        will = None
-        if self._offline is not None:
-            will = aiomqtt.Will(self._offline.topic, self._offline.payload, qos=1, retain=True)
+    def drain_within(self, seconds: float) -> None:
+        """Leaving waits at most ``seconds`` for the outbox to empty and "offline" to be acknowledged."""
+        self.drain_s = seconds
 
-        self._client = _Client(
+    def _tls_context(self) -> ssl.SSLContext | None:
+        if not self.tls:
+            return None
+        context = ssl.create_default_context(cafile=self.settings.ca_file)
+        if self.settings.cert_file is not None:
+            context.load_cert_chain(self.settings.cert_file, self.settings.key_file)
+        return context
+
+    def _connection_to(
+        self,
+        context: ssl.SSLContext | None,
+        *,
+        client_id: str,
+        clean_session: bool,
+        will: Outgoing | None,
+        deliver: Callable[[str, bytes], None],
+        timeout_s: float,
+    ) -> _Connection:
+        s = self.settings
+        return _Connection(
             self.host,
             self.port,
-            identifier=self.client_id,
-            clean_session=False,
-            username=self.username,
-            password=self.password,
+            client_id=client_id,
+            clean_session=clean_session,
+            keepalive_s=s.keepalive_s,
+            username=s.username,
+            password=s.password,
+            tls=context,
             will=will,
-            keepalive=self.keepalive_s,
-            tls_context=context,
-            deliver=self._deliver,
-            max_inflight_messages=inflight_limit(self.inflight),
-            timeout=10,
-            socket_options=[(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)],  # no Nagle delay on small packets
-            logger=CLIENT_LOG,
+            deliver=deliver,
+            timeout_s=timeout_s,
         )
-        self._runner = asyncio.create_task(self._run(), name=f"mqtt {self.host}:{self.port}")
+
+    async def __aenter__(self) -> MqttTransport:
+        context = self._tls_context()
+        if self.presence is not None:
+            await self._probe(context)
+        self._runner = asyncio.create_task(self._run(context), name=f"mqtt {self.host}:{self.port}")
         return self
 
     async def __aexit__(
@@ -258,50 +515,67 @@ class MqttTransport:
         deadline = time.monotonic() + self.drain_s
         while self._outbox and self._connected.is_set() and time.monotonic() < deadline:
             await asyncio.sleep(0.01)
-        client = self._client
-        if self._offline is not None and client is not None and self._connected.is_set():
-            with contextlib.suppress(aiomqtt.MqttError, asyncio.TimeoutError):
+        connection = self._connection
+        if self._offline is not None and connection is not None and self._connected.is_set():
+            with contextlib.suppress(MqttLost, TimeoutError):
                 await asyncio.wait_for(
-                    self._send(client, self._offline), max(0.1, deadline - time.monotonic())
+                    connection.publish(self._offline), max(0.1, deadline - time.monotonic())
                 )
         if self._runner is not None:
-            self._runner.cancel()
-            with contextlib.suppress(asyncio.CancelledError, aiomqtt.MqttError):
+            self._runner.cancel()  # leaving the connection disconnects it cleanly
+            with contextlib.suppress(asyncio.CancelledError):
                 await self._runner
         self._runner = None
 
-    async def _run(self) -> None:
-        assert self._client is not None
-        client = self._client
-        delay = self.reconnect[0]
+    async def _run(self, context: ssl.SSLContext | None) -> None:
+        delay = self.settings.reconnect_min_s
         while True:
+            connection = self._connection_to(
+                context,
+                client_id=self.client_id,
+                clean_session=False,
+                will=self._offline,
+                deliver=self._deliver,
+                timeout_s=TIMEOUT_S,
+            )
             try:
-                async with client:
+                async with connection:
+                    self._connection = connection
                     self.connects += 1
                     if self._online is not None:
-                        await self._send(client, self._online)
+                        await self._settled(connection, connection.publish(self._online))
                     for topic, qos in self.subscriptions:
-                        await client.subscribe(topic, qos=qos)
+                        await connection.subscribe(topic, qos)
                     if self._ping is not None:
-                        await client.subscribe(self._ping, qos=0)
+                        await connection.subscribe(self._ping, 0)
                     self._problem = None
                     self._connected.set()
                     LOG.info(
                         "mqtt connected", extra={"fields": {"broker": self.url, "connects": self.connects}}
                     )
-                    delay = self.reconnect[0]
+                    delay = self.settings.reconnect_min_s
                     async with asyncio.TaskGroup() as tasks:
-                        tasks.create_task(self._sender(client), name="mqtt sender")
-                        tasks.create_task(self._reader(client), name="mqtt reader")
-                        tasks.create_task(self._asker(client), name="mqtt skeleton requests")
-            except* aiomqtt.MqttError as group:
+                        tasks.create_task(connection.serve(), name="mqtt connection")
+                        tasks.create_task(self._sender(connection), name="mqtt sender")
+                        tasks.create_task(self._asker(connection), name="mqtt skeleton requests")
+            except* MqttLost as group:
                 self._problem = f"mqtt: {group.exceptions[0]} (reconnecting)"
                 LOG.warning(
                     "mqtt lost", extra={"fields": {"broker": self.url, "error": str(group.exceptions[0])}}
                 )
-            self._connected.clear()
+            finally:
+                self._connected.clear()
+                self._connection = None
             await asyncio.sleep(delay)
-            delay = min(2 * delay, self.reconnect[1])
+            delay = min(2 * delay, self.settings.reconnect_max_s)
+
+    @staticmethod
+    async def _settled(connection: _Connection, done: asyncio.Future[None]) -> None:
+        try:
+            async with asyncio.timeout(connection.timeout_s):
+                await done
+        except TimeoutError:
+            raise MqttLost("the broker did not acknowledge") from None
 
     async def _probe(self, context: ssl.SSLContext | None) -> None:
         """Before taking the client id: ask, with a client id of its own, whether a live daemon
@@ -310,29 +584,29 @@ class MqttTransport:
         daemon killed leaves it until the broker notices, but a dead daemon answers no ping. No
         broker within the probe's time: nothing is known, the daemon goes on (and waits for it)."""
         assert self.presence is not None and self._ping is not None
-        nonce = uuid.uuid4().hex
+        nonce = uuid.uuid4().hex.encode()
         pong = f"mocapd/{self.presence}/pong"
+        answered = asyncio.Event()
+
+        def deliver(topic: str, payload: bytes) -> None:
+            if topic == pong and payload == nonce:
+                answered.set()
+
+        probe = self._connection_to(
+            context,
+            client_id=f"{self.client_id}-probe-{nonce[:8].decode()}",
+            clean_session=True,
+            will=None,
+            deliver=deliver,
+            timeout_s=PROBE_S,
+        )
         try:
-            async with aiomqtt.Client(
-                self.host,
-                self.port,
-                identifier=f"{self.client_id}-probe-{nonce[:8]}",
-                clean_session=True,
-                username=self.username,
-                password=self.password,
-                tls_context=context,
-                timeout=PROBE_S,
-                logger=CLIENT_LOG,
-            ) as probe:
-                await probe.subscribe(pong, qos=0)
-                await probe.publish(self._ping, nonce.encode(), qos=0)
+            async with probe:
+                await probe.subscribe(pong, 0)
+                probe.publish(Outgoing(self._ping, nonce)).add_done_callback(_retrieved)
                 async with asyncio.timeout(PROBE_S):
-                    async for message in probe.messages:
-                        if str(message.topic) == pong and message.payload == nonce.encode():
-                            break
-                    else:
-                        return
-        except (aiomqtt.MqttError, TimeoutError, OSError):
+                    await answered.wait()
+        except (MqttLost, TimeoutError):
             return  # no answer, or no broker yet
         raise StartupError(
             "service.instance",
@@ -356,7 +630,7 @@ class MqttTransport:
             self._to_ask.append(stream)
             self._ask.set()
 
-    async def _asker(self, client: aiomqtt.Client) -> None:
+    async def _asker(self, connection: _Connection) -> None:
         """Ask for the skeletons :meth:`ask_skeleton` queued: subscribe to each stream's skeleton
         topic, and a moment later unsubscribe (the wildcard subscription keeps taking it)."""
         while True:
@@ -365,54 +639,40 @@ class MqttTransport:
                 await self._ask.wait()
             topics = [f"mocap/{self._to_ask.popleft()}/skeleton" for _ in range(len(self._to_ask))]
             for t in topics:
-                await client.subscribe(t, qos=1)
+                await connection.subscribe(t, 1)
             await asyncio.sleep(1.0)
             for t in topics:
-                await client.unsubscribe(t)
-
-    async def _reader(self, client: aiomqtt.Client) -> None:
-        async for _ in client.messages:  # nothing comes (see _Client); raises when the connection is lost
-            pass
+                await connection.unsubscribe(t)
 
     def _deliver(self, topic: str, payload: bytes) -> None:
         if topic == self._ping:  # another daemon's probe: this instance is alive
             self._enqueue(Outgoing(f"mocapd/{self.presence}/pong", payload))
             return
-        self._put(Incoming(topic, payload, time.time()))
-
-    async def _sender(self, client: aiomqtt.Client) -> None:
-        """Hand the outbox to the connection, up to ``inflight`` messages awaiting acknowledgement
-        at once (one at a time would pay a round trip per detection); after a reconnect, all of
-        it again."""
-        self._to_send = deque(self._outbox)
-        slots = asyncio.Semaphore(self.inflight)
-
-        async def one(number: int, message: Outgoing) -> None:
-            try:
-                await self._send(client, message)  # MqttError: kept, sent again after the reconnect
-                self._outbox.pop(number, None)
-            finally:
-                slots.release()
-
-        async with asyncio.TaskGroup() as flights:
-            while True:
-                while not self._to_send:
-                    self._wake.clear()
-                    await self._wake.wait()
-                number = self._to_send.popleft()
-                message = self._outbox.get(number)
-                if message is None:
-                    continue
-                await slots.acquire()
-                flights.create_task(one(number, message))
-
-    async def _send(self, client: aiomqtt.Client, m: Outgoing) -> None:
-        await client.publish(m.topic, m.payload, qos=1 if m.reliable else 0, retain=m.retain)
-
-    def _put(self, message: Incoming) -> None:
-        if self._incoming.put(message):
+        if self._incoming.put(Incoming(topic, payload, time.time())):
             self._dropped_incoming += 1
         self._arrived.set()
+
+    async def _sender(self, connection: _Connection) -> None:
+        """Hand the outbox to the connection, up to :data:`INFLIGHT` messages awaiting
+        acknowledgement at once; after a reconnect, all of it again."""
+        self._to_send = deque(self._outbox)
+
+        def landed(number: int) -> Callable[[asyncio.Future[None]], None]:
+            def done(future: asyncio.Future[None]) -> None:
+                if not future.cancelled() and future.exception() is None:
+                    self._outbox.pop(number, None)
+                self._wake.set()  # a slot is free
+
+            return done
+
+        while True:
+            while not self._to_send or connection.in_flight >= INFLIGHT:
+                self._wake.clear()
+                await self._wake.wait()
+            number = self._to_send.popleft()
+            message = self._outbox.get(number)
+            if message is not None:
+                connection.publish(message).add_done_callback(landed(number))
 
     # ----------------------------------------------------------------------------- the interface
 
@@ -442,7 +702,7 @@ class MqttTransport:
         if not message.reliable and not self._connected.is_set():
             self._dropped_outbox += 1
             return
-        if len(self._outbox) >= self.outbox_size:
+        if len(self._outbox) >= self.settings.outbox:
             unreliable = next((n for n, queued in self._outbox.items() if not queued.reliable), None)
             if unreliable is None:
                 self._dropped_outbox += 1
@@ -470,3 +730,21 @@ class MqttTransport:
             "mqtt_incoming_full": self._dropped_incoming,
             "mqtt_outbox_full": self._dropped_outbox,
         }
+
+
+def _retrieved(future: asyncio.Future[None]) -> None:
+    """A done callback for a future nobody awaits: its failure is taken, not reported as lost."""
+    if not future.cancelled():
+        future.exception()
+
+
+def transport(settings: MqttConfig, *, instance: str, source: bool, sink: bool) -> MqttTransport:
+    """The daemon's MQTT transport (:class:`protocols.transport.Factory`): as ``mocapd-<instance>``
+    unless ``settings.client_id`` says otherwise, subscribed to :data:`SUBSCRIPTIONS` if it is a
+    source, and making sure it is the only live daemon of ``instance``."""
+    return MqttTransport(
+        settings,
+        client_id=settings.client_id or f"mocapd-{instance}",
+        subscribe=SUBSCRIPTIONS if source else (),
+        presence=instance,
+    )

@@ -139,15 +139,16 @@ async def _to_zmq(endpoint: str, items: Items, rate: float, speed: float | None,
 async def _to_mqtt(
     url: str, items: Items, stream: str, rate: float, speed: float | None, wait_s: float
 ) -> int:
+    from daemon.config import MqttConfig
     from protocols.mqtt import MqttTransport
 
     client = MqttTransport(
-        url=url,
+        MqttConfig(url=url, queue=1000),
         client_id=f"mocapd-replay-{stream}-{os.getpid()}",
-        drain_s=60.0,
         subscribe=[("mocapd/+/status", 1)],
-        queue=1000,
+        presence=None,
     )
+    client.drain_within(60.0)
     async with client:
         await client.wait_connected(wait_s)
 

@@ -7,11 +7,14 @@ from __future__ import annotations
 import json
 import sys
 from types import TracebackType
-from typing import Any, TextIO
+from typing import TYPE_CHECKING, Any, TextIO
 
 import msgpack
 
 from protocols.transport import Outgoing
+
+if TYPE_CHECKING:
+    from daemon.config import StdoutConfig
 
 
 def _plain(value: Any) -> Any:
@@ -19,14 +22,13 @@ def _plain(value: Any) -> Any:
 
 
 class StdoutTransport:
-    """A sink writing to ``stream`` (default ``sys.stdout``) in ``format`` ``json`` or ``text``."""
+    """A sink writing to ``stream`` (None: ``sys.stdout``) in the ``format`` of ``settings``
+    (``daemon.config.StdoutConfig``: ``json`` or ``text``)."""
 
     name = "stdout"
 
-    def __init__(self, *, format: str = "json", stream: TextIO | None = None) -> None:
-        if format not in ("json", "text"):
-            raise ValueError(f"stdout format must be json or text, got {format!r}")
-        self.format = format
+    def __init__(self, settings: StdoutConfig, stream: TextIO | None = None) -> None:
+        self.format = settings.format
         self.stream = stream
         self._status: tuple[Outgoing, Outgoing] | None = None
 
@@ -55,6 +57,13 @@ class StdoutTransport:
     def sink(self) -> StdoutTransport:
         return self
 
+    def drain_within(self, seconds: float) -> None:
+        """Nothing: every line is written when it is published."""
+
+    @property
+    def pending(self) -> int:
+        return 0
+
     async def publish(self, message: Outgoing) -> None:
         body = msgpack.unpackb(message.payload, raw=False)
         out = self.stream or sys.stdout
@@ -82,3 +91,8 @@ class StdoutTransport:
 
     def dropped(self) -> dict[str, int]:
         return {}
+
+
+def transport(settings: StdoutConfig, *, instance: str, source: bool, sink: bool) -> StdoutTransport:
+    """The daemon's stdout sink (:class:`protocols.transport.Factory`; never a source)."""
+    return StdoutTransport(settings)

@@ -7,15 +7,17 @@ blocks the caller for long: a transport that cannot send drops (ZeroMQ at its hi
 queues (MQTT, bounded) and says so in :meth:`Transport.dropped`. :attr:`Transport.problem` is None
 while the transport is connected and serving, else why not (``/healthz`` reports it).
 
-The implementations are in :mod:`protocols.zeromq`, :mod:`protocols.mqtt` and :mod:`protocols.stdout`,
-chosen by name from the explicit :data:`REGISTRY` (:func:`make`); each is the only code that touches
-its sockets.
+The implementations are in :mod:`protocols.zeromq`, :mod:`protocols.mqtt` and :mod:`protocols.stdout`;
+each is the only code that touches its sockets, and makes its transport of its configuration section
+with a module-level ``transport`` function (a :class:`Factory`). The configuration names the module
+of each section (``daemon.config.Config``); :func:`make` imports it only when the transport is used,
+so an unused transport's library is not.
 """
 
 from __future__ import annotations
 
 import importlib
-from collections.abc import AsyncIterator, Callable
+from collections.abc import AsyncIterator
 from dataclasses import dataclass
 from types import TracebackType
 from typing import Any, Protocol
@@ -86,25 +88,30 @@ class Transport(Protocol):
         """Poses came for ``stream``, whose skeleton is unknown: have it sent again where the
         transport can (MQTT: subscribe to its retained skeleton again); elsewhere nothing."""
 
+    def drain_within(self, seconds: float) -> None:
+        """Leaving (``__aexit__``) may take at most ``seconds`` to deliver what is queued (MQTT: the
+        outbox and "offline"; ZeroMQ: the linger)."""
+
     @property
     def problem(self) -> str | None: ...
+
+    @property
+    def pending(self) -> int:
+        """Messages published but not yet delivered (MQTT: the outbox); 0 for a transport that
+        holds none."""
 
     def dropped(self) -> dict[str, int]: ...
 
 
-REGISTRY: dict[str, tuple[str, str]] = {
-    "zmq": ("protocols.zeromq", "ZmqTransport"),
-    "mqtt": ("protocols.mqtt", "MqttTransport"),
-    "stdout": ("protocols.stdout", "StdoutTransport"),
-}
-"""Transport name → (module, class); imported when named, so an unused transport's library is not."""
+class Factory(Protocol):
+    """A transport module's ``transport`` function: the transport of its configuration section
+    (``settings``) for the daemon ``instance``, taking poses in if ``source`` and publishing if
+    ``sink``."""
+
+    def __call__(self, settings: Any, *, instance: str, source: bool, sink: bool) -> Transport: ...
 
 
-def make(name: str, **settings: Any) -> Transport:
-    """The transport ``name`` of :data:`REGISTRY` made with ``settings``; KeyError naming the known
-    ones."""
-    if name not in REGISTRY:
-        raise KeyError(f"no transport {name!r} (known: {', '.join(sorted(REGISTRY))})")
-    module, cls = REGISTRY[name]
-    factory: Callable[..., Transport] = getattr(importlib.import_module(module), cls)
-    return factory(**settings)
+def make(module: str, settings: Any, *, instance: str, source: bool, sink: bool) -> Transport:
+    """The transport that ``module`` (e.g. ``protocols.mqtt``) makes of ``settings``."""
+    factory: Factory = importlib.import_module(module).transport
+    return factory(settings, instance=instance, source=source, sink=sink)

@@ -13,6 +13,7 @@ import time
 from collections.abc import AsyncIterator
 from pathlib import Path
 from types import TracebackType
+from typing import TYPE_CHECKING
 
 import zmq
 import zmq.asyncio
@@ -20,6 +21,10 @@ import zmq.auth
 from zmq.auth.asyncio import AsyncioAuthenticator
 
 from protocols.transport import Incoming, Outgoing, StartupError
+from protocols.urls import split_endpoint
+
+if TYPE_CHECKING:
+    from daemon.config import ZmqConfig
 
 PREFIX = b"mocap/"
 
@@ -57,36 +62,20 @@ def open_socket(
     return sock
 
 
-def split_endpoint(endpoint: str) -> tuple[str, bool]:
-    """``"connect tcp://h:p"`` → (``"tcp://h:p"``, False); a bare endpoint binds."""
-    words = endpoint.split()
-    if len(words) == 2 and words[0] in ("bind", "connect"):
-        return words[1], words[0] == "bind"
-    return endpoint, True
-
-
 class ZmqTransport:
-    """The daemon's ZeroMQ side: ``poses`` (SUB) and ``detections`` (PUB) endpoints (None: that
-    side is off), ``hwm`` messages queued per socket, ``linger_ms`` at close."""
+    """The daemon's ZeroMQ side, as ``settings`` say (``daemon.config.ZmqConfig``): the ``poses``
+    (SUB) socket if ``source``, the ``detections`` (PUB) socket if ``sink``, ``hwm`` messages queued
+    per socket, ``linger_ms`` at close, CURVE."""
 
     name = "zmq"
 
-    def __init__(
-        self,
-        *,
-        poses: str | None = "tcp://127.0.0.1:5555",
-        detections: str | None = "tcp://127.0.0.1:5556",
-        hwm: int = 100_000,
-        linger_ms: int = 1000,
-        curve_secret_key_file: str | None = None,
-        curve_clients_dir: str | None = None,
-    ) -> None:
-        self.poses = poses
-        self.detections = detections
-        self.hwm = hwm
-        self.linger_ms = linger_ms
-        self.curve_secret_key_file = curve_secret_key_file
-        self.curve_clients_dir = curve_clients_dir
+    def __init__(self, settings: ZmqConfig, *, source: bool, sink: bool) -> None:
+        self.poses = settings.poses if source else None
+        self.detections = settings.detections if sink else None
+        self.hwm = settings.hwm
+        self.linger_ms = settings.linger_ms
+        self.curve_secret_key_file = settings.curve_secret_key_file
+        self.curve_clients_dir = settings.curve_clients_dir
         self._ctx: zmq.asyncio.Context | None = None
         self._sub: zmq.asyncio.Socket | None = None
         self._pub: zmq.asyncio.Socket | None = None
@@ -180,6 +169,15 @@ class ZmqTransport:
         """Nothing: a ZeroMQ publisher re-announces when the daemon's subscription reaches it, and
         periodically (``protocols/README.md``, "A stream's life")."""
 
+    def drain_within(self, seconds: float) -> None:
+        """Linger at most ``seconds`` (and at most ``linger_ms``) at close."""
+        self.linger_ms = min(self.linger_ms, max(0, round(seconds * 1000)))
+
+    @property
+    def pending(self) -> int:
+        """0: what ZeroMQ queues is its own (and dropped at the high-water mark, counted)."""
+        return 0
+
     async def publish(self, message: Outgoing) -> None:
         assert self._pub is not None
         try:
@@ -221,6 +219,11 @@ class _Source:
 
 DRAIN_MESSAGES = 512
 """The most messages taken per wakeup, so that receiving yields to the other tasks."""
+
+
+def transport(settings: ZmqConfig, *, instance: str, source: bool, sink: bool) -> ZmqTransport:
+    """The daemon's ZeroMQ transport (:class:`protocols.transport.Factory`)."""
+    return ZmqTransport(settings, source=source, sink=sink)
 
 
 def curve_keys(directory: str | Path, name: str) -> tuple[Path, Path]:

@@ -43,7 +43,7 @@ LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("segmentation", ("daemon.behaviours",)),
     ("learning", ("daemon.learn",)),
     ("tools", ("daemon.tools", "daemon.plots")),
-    ("config", ("daemon.config",)),
+    ("config", ("daemon.config", "protocols.urls")),
     ("wire", ("protocols",)),
     ("service", ("daemon.service",)),
     ("cli", ("daemon.cli", "daemon.__main__")),

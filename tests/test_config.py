@@ -11,6 +11,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+import yaml
 
 from daemon.config import Config, ConfigError, RecognizerConfig, ReplayConfig, load_config, parse_config
 from daemon.errors import FileAccessError, MocapdError
@@ -35,6 +36,16 @@ def test_shipped_config_is_the_defaults() -> None:
     assert load_config(SHIPPED) == Config()
     assert Config() == Config(replay=ReplayConfig(frame_rate_hz=120.0, units="asf"))
     assert load_config(None) == Config()
+
+
+def test_shipped_config_shows_every_field() -> None:
+    """config.yaml writes out every field of every section (with the defaults' values, above): the
+    dataclasses are where the defaults are, the file shows them all."""
+    shipped = yaml.safe_load(SHIPPED.read_text(encoding="utf-8"))
+    sections = {f.name: getattr(Config(), f.name) for f in dataclasses.fields(Config)}
+    assert {name: list(fields) for name, fields in shipped.items()} == {
+        name: [f.name for f in dataclasses.fields(section)] for name, section in sections.items()
+    }
 
 
 @pytest.mark.parametrize("text", ["", "# nothing\n", "---\n...\n", "replay: {}\n"])

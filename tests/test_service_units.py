@@ -24,6 +24,7 @@ from daemon.config import (
     Config,
     ConfigError,
     MqttConfig,
+    SegmentationConfig,
     ServiceConfig,
     environment_overrides,
     load_config,
@@ -54,7 +55,7 @@ def motion() -> Motion:
 
 
 def table(library: Library, **kw: float) -> StreamTable:
-    return StreamTable(library, session="t", queue_frames=100_000, **kw)  # type: ignore[arg-type]
+    return StreamTable(library, session="t", service=ServiceConfig(queue_frames=100_000, **kw))  # type: ignore[arg-type]
 
 
 def announce(t: StreamTable, stream: str = "s") -> None:
@@ -113,7 +114,7 @@ def test_gaps_bridged_or_restarted_as_a_plain_reading_says(
     lost = {k for at, size in gaps for k in range(at, min(n, at + size))}
     kept = [k for k in range(n) if k not in lost]
     seqs = [1000 + k for k in kept]
-    t = table(library, max_gap_s=bridge / 120)
+    t = table(library, bridge_s=bridge / 120)
     announce(t)
     poses = [
         PoseMessage("s", s, k / 120, channels=motion().channels[k]) for s, k in zip(seqs, kept, strict=True)
@@ -158,7 +159,7 @@ def test_refusals(library: Library) -> None:
     with pytest.raises(Refused) as caught:
         t.skeleton(SkeletonMessage("x", 120.0, asf=":root\n  order TX\n:bonedata\n  begin\n"), 0.0)
     assert caught.value.reason == "skeleton"
-    small = StreamTable(library, session="t", max_streams=1)
+    small = StreamTable(library, session="t", service=ServiceConfig(max_streams=1))
     announce(small, "a")
     with pytest.raises(Refused) as caught:
         announce(small, "b")
@@ -362,6 +363,7 @@ def test_service_sections_and_their_errors(tmp_path: Path) -> None:
         "service:\n  sources: [mqtt]\nmqtt:\n  url: http://x\n": "mqtt.url: an MQTT broker is",
         "mqtt:\n  reconnect_min_s: 20\n": "mqtt.reconnect_min_s: must not exceed",
         "zmq:\n  hwm: -1\n": "zmq.hwm",
+        "service:\n  max_gap_s: 0.5\n": "service.max_gap_s: renamed service.bridge_s",
         "logging:\n  level: loud\n": "logging.level: must be one of debug, info, warning, error",
     }
     for text, message in bad.items():
@@ -394,6 +396,7 @@ def test_environment_overrides() -> None:
         ),
         ({"MOCAPD_SERVICE_MAX_STREAMS": "0"}, "MOCAPD_SERVICE_MAX_STREAMS: service.max_streams: must be"),
         ({"MOCAPD_SERVICE_SINKS": ""}, "environment: service.sinks: must name at least one transport"),
+        ({"MOCAPD_SERVICE_MAX_GAP_S": "0.5"}, "MOCAPD_SERVICE_MAX_GAP_S: renamed service.bridge_s"),
     ):
         with pytest.raises(ConfigError, match=f"^{re.escape(message)}"):
             environment_overrides(Config(), env)
@@ -423,7 +426,12 @@ def test_boundaries_are_the_online_methods_batch_cuts(
     m = read_recording(*SEGMENTED)
     x = JointRotations(m.skeleton)(m.channels)
     batch = bh.pca_segment if method == "pca" else bh.ppca_forward
-    t = StreamTable(library, session="t", queue_frames=100_000, segmentation=method, segmented=["seg*"])
+    t = StreamTable(
+        library,
+        session="t",
+        service=ServiceConfig(queue_frames=100_000),
+        segmentation=SegmentationConfig(method, ("seg*",)),
+    )
     asf = SEGMENTED[0].read_text()
     for name in ("seg", "plain"):
         t.skeleton(SkeletonMessage(name, 120.0, asf=asf, angle_unit="rad"), 0.0)

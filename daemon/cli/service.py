@@ -17,8 +17,6 @@ from daemon.recordings import native_rate, read_recording
 if TYPE_CHECKING:
     from daemon.service.replay import Tasks
 
-STANDARD_MQTT = "mqtt://127.0.0.1:1883"
-
 
 def register(sub: Any) -> None:
     run = sub.add_parser("run", help="the daemon: recognise motions on every stream of the bus")
@@ -125,10 +123,10 @@ def _replay_into(args: argparse.Namespace, config: Config) -> Tasks:
 def _overridden(args: argparse.Namespace, config: Config) -> Config:
     service, metrics, mqtt = config.service, config.metrics, config.mqtt
     if args.mqtt is not None:
-        from protocols.mqtt import parse_url
+        from protocols.urls import parse_mqtt_url
 
         try:
-            parse_url(args.mqtt)
+            parse_mqtt_url(args.mqtt)
         except ValueError as e:
             raise UsageError(str(e), field="--mqtt") from None
         service = dataclasses.replace(service, sources=("mqtt",), sinks=("mqtt",))
@@ -145,7 +143,9 @@ def _own_source(config: Config) -> str:
     first = config.service.sources[0]
     if first == "mqtt":
         return config.mqtt.url
-    from protocols.zeromq import split_endpoint
+    if first != "zmq":  # a transport mocapd replay does not speak
+        raise UsageError(f"replays over zmq or mqtt, and the first source is {first}", field="--replay")
+    from protocols.urls import split_endpoint
 
     endpoint, _ = split_endpoint(config.zmq.poses)
     return "zmq+" + endpoint.replace("://*:", "://127.0.0.1:").replace("://0.0.0.0:", "://127.0.0.1:")

@@ -37,7 +37,7 @@ from typing import Any
 
 import numpy as np
 
-from daemon.config import Config, ConfigError
+from daemon.config import Config, ConfigError, transports_named
 from daemon.library import Library
 from daemon.service.metrics import Metrics, open_http, serve_http
 from daemon.service.streams import Emitted, Refused, StreamTable
@@ -172,12 +172,9 @@ class Service:
         self.table = StreamTable(
             library,
             session=f"{instance}/{self.started:.6f}",
-            queue_frames=config.service.queue_frames,
-            max_streams=config.service.max_streams,
-            max_gap_s=config.service.max_gap_s,
-            recognition=config.recognizer.settings(),
-            segmentation=config.segmentation.method,
-            segmented=config.segmentation.streams,
+            service=config.service,
+            recognizer=config.recognizer,
+            segmentation=config.segmentation,
         )
         self.rejects: Counter[str] = Counter()
         self.metrics = Metrics(config.metrics.stream_labels, self._tallies, self._gauge_values)
@@ -329,7 +326,7 @@ class Service:
         return rejects, drops, Counter({k: table.get(k, 0) for k in EVENTS})
 
     def _gauge_values(self) -> tuple[int, int, int, dict[str, bool]]:
-        outbox = sum(getattr(t, "pending", 0) for t in self.transports)
+        outbox = sum(t.pending for t in self.transports)
         up = {t.name: t.problem is None for t in self.transports}
         return len(self.table.streams), self.table.queued, outbox, up
 
@@ -408,8 +405,7 @@ class Service:
                 await self.publish(e)
         left = max(0.1, deadline - asyncio.get_running_loop().time())
         for t in self.transports:
-            if hasattr(t, "drain_s"):
-                t.drain_s = left
+            t.drain_within(left)
         raise _Stop
 
 
@@ -437,47 +433,10 @@ def instance_name(config: Config) -> str:
 
 def transports_of(config: Config, instance: str) -> list[Transport]:
     """The transports config names (sources and sinks, each made once), in that order."""
-    names = list(dict.fromkeys(config.service.sources + config.service.sinks))
-    out: list[Transport] = []
-    for name in names:
-        source, sink = name in config.service.sources, name in config.service.sinks
-        if name == "zmq":
-            z = config.zmq
-            out.append(
-                make(
-                    "zmq",
-                    poses=z.poses if source else None,
-                    detections=z.detections if sink else None,
-                    hwm=z.hwm,
-                    linger_ms=z.linger_ms,
-                    curve_secret_key_file=z.curve_secret_key_file,
-                    curve_clients_dir=z.curve_clients_dir,
-                )
-            )
-        elif name == "mqtt":
-            q = config.mqtt
-            out.append(
-                make(
-                    "mqtt",
-                    url=q.url,
-                    client_id=q.client_id or f"mocapd-{instance}",
-                    presence=instance,
-                    subscribe=[("mocap/+/skeleton", 1), ("mocap/+/pose", 0)] if source else [],
-                    username=q.username,
-                    password=q.password,
-                    ca_file=q.ca_file,
-                    cert_file=q.cert_file,
-                    key_file=q.key_file,
-                    queue=q.queue,
-                    outbox=q.outbox,
-                    keepalive_s=q.keepalive_s,
-                    reconnect_min_s=q.reconnect_min_s,
-                    reconnect_max_s=q.reconnect_max_s,
-                )
-            )
-        else:
-            out.append(make("stdout", format=config.stdout.format))
-    return out
+    return [
+        make(use.module, use.settings, instance=instance, source=use.source, sink=use.sink)
+        for use in transports_named(config)
+    ]
 
 
 def serve(

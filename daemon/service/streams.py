@@ -18,10 +18,11 @@ jump: a gap in a source faster than its announced rate), which is then taken aft
 
 Frame numbers. The recogniser needs consecutive frame numbers; a stream's sequence numbers may have
 gaps (poses lost on the way, or dropped here when its queue is full). A gap of at most
-``max_gap_frames`` is bridged: the pose after it is given the next frame number, and detections
-report sequence numbers through the stream's table of (frame, sequence offset) changes. A longer gap
-ends the stream's motion: its recogniser is flushed and begins again at the new pose. With no gap,
-frame number = sequence number, so a replayed recording's detections are those of ``mocapd detect``.
+``service.bridge_s`` (in the stream's frames) is bridged: the pose after it is given the next frame
+number, and detections report sequence numbers through the stream's table of (frame, sequence
+offset) changes. A longer gap ends the stream's motion: its recogniser is flushed and begins again at
+the new pose. With no gap, frame number = sequence number, so a replayed recording's detections
+are those of ``mocapd detect``.
 
 Behaviour boundaries. With a segmentation method (``segmentation`` of the config), every channel
 stream whose id matches one of its patterns also goes through an online segmenter
@@ -37,7 +38,6 @@ import dataclasses
 import fnmatch
 import uuid
 from collections import Counter, deque
-from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -46,11 +46,11 @@ import numpy as np
 from daemon.bank import RecognizerBank
 from daemon.behaviours import Boundary, JointRotations, PcaSegmenter, PpcaSegmenter
 from daemon.behaviours import online_segmenter as make_segmenter
+from daemon.config import RecognizerConfig, SegmentationConfig, ServiceConfig
 from daemon.errors import MocapdError, printable
 from daemon.frames import Renumbering
 from daemon.library import Library
-from daemon.recognizer import DEFAULT_SETTINGS, Detection, Recognizer
-from daemon.types import RecognitionSettings
+from daemon.recognizer import Detection, Recognizer
 from protocols.messages import BoundaryMessage, DetectionMessage, PoseMessage, SkeletonMessage
 from replay import MocapFormatError, Skeleton, parse_asf
 from replay.amc import DEG
@@ -143,33 +143,34 @@ def _allowance(rate: float, seconds: float) -> float:
 
 class StreamTable:
     """The streams of one service instance (see the module docstring). ``session`` makes detection
-    ids unique to this run; ``queue_frames`` bounds each stream's waiting poses (the oldest dropped),
-    ``max_streams`` the table, ``max_gap_frames`` the bridged gaps (at 120 Hz; scaled by the
-    stream's rate), ``recognition`` the settings of every stream's recogniser."""
+    ids unique to this run. As the sections of the configuration say (their defaults if not given):
+    ``service`` bounds each stream's waiting poses (``queue_frames``, the oldest dropped) and the
+    table (``max_streams``) and sets the bridged gaps (``bridge_s``); ``recognizer`` makes the bank,
+    ``segmentation`` the behaviour boundaries."""
 
     def __init__(
         self,
         library: Library,
         *,
         session: str,
-        queue_frames: int = 240,
-        max_streams: int = 1000,
-        max_gap_s: float = 0.25,
-        recognition: RecognitionSettings = DEFAULT_SETTINGS,
-        segmentation: Literal["none", "pca", "ppca"] = "none",
-        segmented: Sequence[str] = ("*",),
+        service: ServiceConfig | None = None,
+        recognizer: RecognizerConfig | None = None,
+        segmentation: SegmentationConfig | None = None,
     ) -> None:
-        self.bank = RecognizerBank(library, recognition)
+        service = ServiceConfig() if service is None else service
+        recognizer = RecognizerConfig() if recognizer is None else recognizer
+        segmentation = SegmentationConfig() if segmentation is None else segmentation
+        self.bank = RecognizerBank(library, recognizer.settings())
         self.session = session
-        self.queue_frames = queue_frames
-        self.max_streams = max_streams
-        self.max_gap_s = max_gap_s
+        self.queue_frames = service.queue_frames
+        self.max_streams = service.max_streams
+        self.bridge_s = service.bridge_s
         self.library = library
         self.streams: dict[str, _Stream] = {}
         self.counts: Counter[str] = Counter()
         """Refusals and drops by reason, and ``gaps``/``gap_frames``."""
-        self.segmentation = segmentation
-        self.segmented = tuple(segmented)
+        self.segmentation = segmentation.method
+        self.segmented = segmentation.streams
         self._queued = 0
         self._waiting: dict[str, _Stream] = {}  # the streams with queued poses, in arrival order
 
@@ -331,7 +332,7 @@ class StreamTable:
             if pose.epoch is not None:
                 s.fed_epoch = pose.epoch
             gap = 0 if s.last_fed is None else pose.seq - s.last_fed - 1
-            if gap > round(self.max_gap_s * s.announced.rate):
+            if gap > round(self.bridge_s * s.announced.rate):
                 self.counts["gaps"] += 1
                 self.counts["gap_frames"] += gap
                 out += self._restart(name, s)

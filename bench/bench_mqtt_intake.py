@@ -1,0 +1,144 @@
+"""The MQTT intake's cost per message: the receiving process's CPU time from its first message to its
+last, through a real mosquitto on loopback, for S streams of pose-sized messages (1.5 kB) at 120 Hz,
+each tick's messages in one write (as ``bench_service``'s load).
+
+    python -m bench.bench_mqtt_intake [--streams 200] [--seconds 5]
+
+Two receivers, each a process of its own on the first core (the load on the other): ``transport``,
+the daemon's :class:`protocols.mqtt.MqttTransport` (paho's external-loop API, into the fair queue,
+taken from it), and ``aiomqtt``, aiomqtt's public API (``Client.messages``, into the same fair queue
+and taken): why the transport is built on paho's API and not on aiomqtt's (``protocols/mqtt.py``).
+CPU time, not latency, so that a machine shared with other work still gives a fair comparison.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from bench.bench_service import RATE, RawPublisher
+from bench.machine import describe
+from bench.processes import free_port, wait_port
+
+PAYLOAD_BYTES = 1500
+
+
+async def receive(kind: str, url: str, total: int) -> dict[str, float]:
+    """Take ``total`` messages through ``kind``; its CPU time for them."""
+    from daemon.config import MqttConfig
+    from protocols.fair import FairQueue
+    from protocols.mqtt import MqttTransport
+    from protocols.transport import Incoming
+
+    n, started = 0, 0.0
+    if kind == "transport":
+        transport = MqttTransport(
+            MqttConfig(url=url, queue=10 * total),
+            client_id="bench-intake",
+            subscribe=[("mocap/+/pose", 0)],
+            presence=None,
+        )
+        async with transport:
+            await transport.wait_connected(10)
+            print("ready", flush=True)
+            async for _ in transport:
+                started = started or time.process_time()
+                n += 1
+                if n == total:
+                    break
+    else:
+        import aiomqtt
+
+        queue = FairQueue(10 * total)
+        host, port = url.removeprefix("mqtt://").split(":")
+        async with aiomqtt.Client(host, int(port), identifier="bench-intake") as client:
+            await client.subscribe("mocap/+/pose", qos=0)
+            print("ready", flush=True)
+            async for message in client.messages:
+                started = started or time.process_time()
+                payload = message.payload
+                assert isinstance(payload, bytes)
+                queue.put(Incoming(str(message.topic), payload, time.time()))
+                queue.take()
+                n += 1
+                if n == total:
+                    break
+    cpu = time.process_time() - started
+    return {"messages": n, "cpu_s": round(cpu, 3), "us_per_message": round(1e6 * cpu / n, 2)}
+
+
+def load(port: int, streams: int, seconds: float) -> None:
+    publisher = RawPublisher(port, f"bench-intake-load-{os.getpid()}")
+    payload = os.urandom(PAYLOAD_BYTES)
+    tick = [RawPublisher.packet(f"mocap/s{k}/pose", payload) for k in range(streams)]
+    start = time.monotonic()
+    for k in range(int(seconds * RATE)):
+        wait = start + k / RATE - time.monotonic()
+        if wait > 0:
+            time.sleep(wait)
+        publisher.send(tick)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--streams", type=int, default=200)
+    parser.add_argument("--seconds", type=float, default=5.0)
+    parser.add_argument("--receive", choices=("transport", "aiomqtt"), help=argparse.SUPPRESS)
+    parser.add_argument("--url", help=argparse.SUPPRESS)
+    parser.add_argument("--total", type=int, help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.receive is not None:  # the receiving process
+        print(json.dumps(asyncio.run(receive(args.receive, args.url, args.total))), flush=True)
+        return
+    print(describe())
+    total = int(args.seconds * RATE) * args.streams
+    print(
+        f"{args.streams} streams x {RATE:g} Hz x {args.seconds:g} s = {total:,} messages of "
+        f"{PAYLOAD_BYTES} B through mosquitto on loopback; receiver on core 0, load on core 1"
+    )
+    work = Path(tempfile.mkdtemp(prefix="bench-intake-"))
+    port = free_port()
+    (work / "m.conf").write_text(
+        f"listener {port} 127.0.0.1\nallow_anonymous true\nset_tcp_nodelay true\n"
+        "max_queued_messages 10000000\n"
+    )
+    mosquitto = shutil.which("mosquitto") or "/usr/sbin/mosquitto"
+    broker = subprocess.Popen([mosquitto, "-c", str(work / "m.conf")], stderr=subprocess.DEVNULL)
+    cores = sorted(os.sched_getaffinity(0))
+    try:
+        wait_port(port)
+        for kind in ("transport", "aiomqtt"):
+            command = [sys.executable, "-m", "bench.bench_mqtt_intake", "--receive", kind]
+            command += ["--url", f"mqtt://127.0.0.1:{port}", "--total", str(total)]
+            receiver = subprocess.Popen(
+                ["taskset", "-c", str(cores[0]), *command], stdout=subprocess.PIPE, text=True
+            )
+            assert receiver.stdout is not None
+            if receiver.stdout.readline().strip() != "ready":
+                raise SystemExit(f"the {kind} receiver did not start")
+            os.sched_setaffinity(0, set(cores[1:] or cores))
+            load(port, args.streams, args.seconds)
+            out, _ = receiver.communicate(timeout=120)
+            result = json.loads(out)
+            print(
+                f"{kind:>10s}: {result['us_per_message']:6.1f} us of CPU per message "
+                f"({result['messages']:,} taken)"
+            )
+    finally:
+        broker.terminate()
+        broker.wait(10)
+        shutil.rmtree(work, ignore_errors=True)
+
+
+if __name__ == "__main__":
+    main()

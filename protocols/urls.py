@@ -1,0 +1,25 @@
+"""The addresses transports are configured with, understood in one place and without a transport's
+library: the configuration checks them (:mod:`daemon.config`), the transports use them."""
+
+from __future__ import annotations
+
+from urllib.parse import urlsplit
+
+
+def parse_mqtt_url(url: str) -> tuple[str, int, bool]:
+    """(host, port, tls) of ``mqtt://host:port`` or ``mqtts://host:port`` (ports 1883 / 8883 by
+    default); ValueError otherwise."""
+    parts = urlsplit(url)
+    if parts.scheme not in ("mqtt", "mqtts") or not parts.hostname:
+        raise ValueError(f"an MQTT broker is mqtt://HOST[:PORT] or mqtts://HOST[:PORT], got {url!r}")
+    tls = parts.scheme == "mqtts"
+    return parts.hostname, parts.port or (8883 if tls else 1883), tls
+
+
+def split_endpoint(endpoint: str) -> tuple[str, bool]:
+    """A ZeroMQ endpoint setting: ``"connect tcp://h:p"`` → (``"tcp://h:p"``, False); a bare endpoint
+    binds."""
+    words = endpoint.split()
+    if len(words) == 2 and words[0] in ("bind", "connect"):
+        return words[1], words[0] == "bind"
+    return endpoint, True
