@@ -62,6 +62,10 @@ class RecognizerBank:
         """The streams in the bank, in the order they were added."""
         return tuple(self._streams)
 
+    def __getitem__(self, stream: str) -> Recognizer:
+        """The recogniser of ``stream``; KeyError if it is not in the bank."""
+        return self._streams[stream]
+
     @property
     def plans(self) -> tuple[ClassPlan, ...]:
         return self._plans
@@ -119,6 +123,15 @@ class RecognizerBank:
         """Take ``stream`` out of the bank: its remaining detections (as :meth:`Recognizer.flush`).
         KeyError if it is not in the bank."""
         return self._streams.pop(stream).flush()
+
+    def restart(self, stream: str, session: str | None = None) -> list[Detection]:
+        """End ``stream``'s motion: its remaining detections (as :meth:`remove`), and a fresh
+        recogniser of it under ``session`` (:meth:`Recognizer.fresh`). KeyError if it is not in the
+        bank."""
+        old = self._streams[stream]
+        out = old.flush()
+        self._streams[stream] = old.fresh(session)
+        return out
 
     def push(self, frames: Sequence[Frame]) -> BankResult:
         """Advance each stream named in ``frames`` by its frame: the detections and the refused frames

@@ -490,6 +490,7 @@ class Recognizer:
         self.settings = settings
         self.session = uuid.uuid4().hex if session is None else session
         self.model = model
+        self.joint_names = None if model is not None or joint_names is None else tuple(joint_names)
         if model is not None:
             self._width = len(model.skeleton.channel_names)
         else:
@@ -529,6 +530,19 @@ class Recognizer:
         check_native_rate(native_rate)
         model = skeleton_model(skeleton)
         return cls(library, native_rate, settings=settings, stream=stream, session=session, model=model)
+
+    def fresh(self, session: str | None = None) -> Recognizer:
+        """A new recogniser of the same stream and input (its kinematic model shared, not made
+        again), under ``session`` (None: a new one)."""
+        return Recognizer(
+            self.library,
+            self.native_rate,
+            settings=self.settings,
+            stream=self.stream,
+            session=session,
+            model=self.model,
+            joint_names=self.joint_names,
+        )
 
     @classmethod
     def for_positions(

@@ -283,3 +283,29 @@ def test_join_leave_any_time(library: Library) -> None:
     # the id comes back as a new stream, frame numbers from 1 again
     source.add_to(bank, "a", "another")
     assert bank.push([("a", 1, source.frames[0][1])]).errors == ()
+
+
+@pytest.mark.parametrize("name", ["bd-squat", "cmu13-positions"])
+def test_a_restart_is_a_flush_then_a_fresh_recogniser(library: Library, name: str) -> None:
+    """``restart`` gives what ``remove`` gives, then the stream goes on as one added anew under the
+    new session would, on the same kinematic model (not made again)."""
+    source = sources()[name]
+    half = len(source.frames) // 2
+    bank, reference = RecognizerBank(library), RecognizerBank(library)
+    source.add_to(bank, "a", SESSION)
+    source.add_to(reference, "a", SESSION)
+    for number, values in source.frames[:half]:
+        assert bank.push([("a", number, values)]) == reference.push([("a", number, values)])
+    model = bank["a"].model
+    assert bank.restart("a", "again") == reference.remove("a")
+    assert bank["a"].model is model
+    source.add_to(reference, "a", "again")
+    seen: list[Detection] = []
+    for number, (_, values) in enumerate(source.frames[half:] + source.frames, start=source.frames[half][0]):
+        got = bank.push([("a", number, values)])
+        assert got == reference.push([("a", number, values)])
+        seen += got.detections
+    last = bank.remove("a")
+    assert last == reference.remove("a")
+    if name == "bd-squat":  # the squat is found again after the restart
+        assert [d.class_name for d in seen + last].count("squat1Reps") >= 1

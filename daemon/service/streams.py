@@ -413,11 +413,9 @@ class StreamTable:
 
     def _restart(self, name: str, s: _Stream) -> list[Emitted]:
         """End the stream's motion at a long gap: its detections so far, then a fresh recogniser."""
-        out = [self._emitted(d) for d in self.bank.remove(name)] + self._segments_end(name, s)
-        a = s.announced
         s.generation += 1
-        session = f"{self.session}/{s.generation}"
-        self.bank.add(name, a.rate, skeleton=s.skeleton, joint_names=a.joints, session=session)
+        detections = self.bank.restart(name, session=f"{self.session}/{s.generation}")
+        out = [self._emitted(d) for d in detections] + self._segments_end(name, s)
         s.last_fed = None
         return out
 
