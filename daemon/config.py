@@ -21,7 +21,7 @@ from typing import Any, Literal, NamedTuple, Union, get_args, get_origin, get_ty
 import yaml
 
 from daemon.checks import Checker, read_structured
-from daemon.errors import MocapdError
+from daemon.errors import InputError, MocapdError
 from daemon.types import (
     DEFAULT_HOLD_S,
     DEFAULT_MAX_GAP_S,
@@ -392,5 +392,5 @@ def _cross_checks(check: Checker, config: Config) -> None:
         return
     try:
         parse_mqtt_url(config.mqtt.url)
-    except ValueError as e:
+    except InputError as e:
         check.fail("mqtt.url", str(e))

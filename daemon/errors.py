@@ -50,6 +50,11 @@ class MocapdError(Exception):
         return f"{where}: {self._reason()}" if where else self._reason()
 
 
+class InputError(MocapdError, ValueError):
+    """A value an algorithm cannot work with (a rate, a window, a skeleton, a setting, an address),
+    raised by the pure modules; the caller names where it came from."""
+
+
 class UsageError(MocapdError, ValueError):
     """Options that do not fit each other or the input; ``path`` names the option."""
 

@@ -19,6 +19,7 @@ import math
 from collections import deque
 from dataclasses import dataclass
 
+from daemon.errors import InputError
 from daemon.features import decimation_factor, latency_frames
 from daemon.types import MAX_NATIVE_RATE
 
@@ -26,7 +27,7 @@ from daemon.types import MAX_NATIVE_RATE
 def check_native_rate(rate: float) -> None:
     """ValueError unless ``rate`` (Hz) is one features are computed at."""
     if not (math.isfinite(rate) and 0 < rate <= MAX_NATIVE_RATE):
-        raise ValueError(f"native rate must be in (0, {MAX_NATIVE_RATE:g}] Hz, got {rate}")
+        raise InputError(f"native rate must be in (0, {MAX_NATIVE_RATE:g}] Hz, got {rate}")
 
 
 @dataclass(frozen=True)

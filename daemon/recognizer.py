@@ -48,7 +48,7 @@ from daemon._dtw import StreamDTW
 from daemon._live import NON_FINITE, NOTHING, LiveStream, push_channels_many
 from daemon.automaton import KeyframeAutomaton
 from daemon.dtw import SCALE, Match, RetrievalTables, Steps, pack, retrieval_tables, threshold
-from daemon.errors import MocapdError
+from daemon.errors import InputError, MocapdError
 from daemon.features import FeatureStream, features
 from daemon.frames import FrameClock, check_native_rate
 from daemon.keyframes import KeyframeQuery
@@ -686,9 +686,9 @@ def joint_order(joint_names: Sequence[str]) -> npt.NDArray[np.intp]:
     names = list(joint_names)
     missing = [j for j in JOINT_NAMES if j not in names]
     if missing:
-        raise ValueError(f"the joints must include {', '.join(missing)}")
+        raise InputError(f"the joints must include {', '.join(missing)}")
     if len(set(names)) != len(names):
-        raise ValueError("a joint is named twice")
+        raise InputError("a joint is named twice")
     return np.array([names.index(j) for j in JOINT_NAMES], dtype=np.intp)
 
 

@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from daemon.checks import csv_records, read_text
-from daemon.errors import MocapdError
+from daemon.errors import InputError, MocapdError
 from daemon.features import decimate, decimation_factor, features
 from daemon.types import (
     CLASS_NAME,
@@ -96,7 +96,7 @@ def sampling_step(
         return 1
     try:
         return decimation_factor(native_rate(motion, default_native_rate), rate)
-    except ValueError as exc:
+    except InputError as exc:
         raise RateError(str(exc), path=motion.source) from None
 
 
@@ -109,7 +109,7 @@ def motion_features(
     native = native_rate(motion, default_native_rate)
     try:
         matrix = decimate(features(joint_positions(motion), JOINT_NAMES, native), step)
-    except ValueError as exc:
+    except InputError as exc:
         raise RecordingError(str(exc), path=motion.source) from None
     return RecordingFeatures(
         matrix, motion.frames[::step], native, step, int(motion.frames[0]), int(motion.frames[-1])

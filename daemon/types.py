@@ -10,6 +10,8 @@ from typing import Literal, get_args
 import numpy as np
 import numpy.typing as npt
 
+from daemon.errors import InputError
+
 FloatArray = npt.NDArray[np.float64]
 BoolArray = npt.NDArray[np.bool_]
 IntArray = npt.NDArray[np.int64]
@@ -58,15 +60,15 @@ class RecognitionSettings:
     def __post_init__(self) -> None:
         if self.classes is not None:
             if not isinstance(self.classes, tuple) or not all(isinstance(c, str) and c for c in self.classes):
-                raise ValueError(f"classes must be a tuple of class names, got {self.classes!r}")
+                raise InputError(f"classes must be a tuple of class names, got {self.classes!r}")
             if len(set(self.classes)) != len(self.classes):
-                raise ValueError(f"a class is named twice in {self.classes!r}")
+                raise InputError(f"a class is named twice in {self.classes!r}")
         if not (_seconds(self.max_gap_s) and self.max_gap_s > 0):
-            raise ValueError(f"max_gap_s must be positive seconds, got {self.max_gap_s!r}")
+            raise InputError(f"max_gap_s must be positive seconds, got {self.max_gap_s!r}")
         if not isinstance(self.compete, bool):
-            raise ValueError(f"compete must be true or false, got {self.compete!r}")
+            raise InputError(f"compete must be true or false, got {self.compete!r}")
         if not (_seconds(self.hold_s) and self.hold_s >= 0):
-            raise ValueError(f"hold_s must be seconds >= 0, got {self.hold_s!r}")
+            raise InputError(f"hold_s must be seconds >= 0, got {self.hold_s!r}")
 
     def max_gap(self, rate: float) -> int:
         """``max_gap_s`` in frames at ``rate`` Hz, at least 1."""

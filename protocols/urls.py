@@ -5,13 +5,15 @@ from __future__ import annotations
 
 from urllib.parse import urlsplit
 
+from daemon.errors import InputError
+
 
 def parse_mqtt_url(url: str) -> tuple[str, int, bool]:
     """(host, port, tls) of ``mqtt://host:port`` or ``mqtts://host:port`` (ports 1883 / 8883 by
     default); ValueError otherwise."""
     parts = urlsplit(url)
     if parts.scheme not in ("mqtt", "mqtts") or not parts.hostname:
-        raise ValueError(f"an MQTT broker is mqtt://HOST[:PORT] or mqtts://HOST[:PORT], got {url!r}")
+        raise InputError(f"an MQTT broker is mqtt://HOST[:PORT] or mqtts://HOST[:PORT], got {url!r}")
     tls = parts.scheme == "mqtts"
     return parts.hostname, parts.port or (8883 if tls else 1883), tls
 

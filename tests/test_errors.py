@@ -17,17 +17,23 @@ import inspect
 import pkgutil
 import re
 import zlib
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from daemon.errors import MocapdError
+from daemon import behaviours as bh
+from daemon.errors import InputError, MocapdError
+from daemon.features import decimation_factor
+from daemon.frames import FrameClock
+from daemon.recognizer import joint_order
 from daemon.service.streams import Refused
+from daemon.types import RecognitionSettings
 from protocols.messages import WireError
 from protocols.transport import StartupError
+from protocols.urls import parse_mqtt_url
 from replay import AmcFrame, MocapFormatError, Motion, Skeleton, iter_amc, read_amc, read_asf
 from tests.helpers import DATA
 
@@ -615,3 +621,24 @@ def test_refusals_keep_their_reason_codes_and_sentences() -> None:
     startup = StartupError("zmq.poses", "address in use")
     assert (startup.setting, startup.reason) == ("zmq.poses", "address in use")
     assert str(startup) == "zmq.poses: address in use"
+
+
+@pytest.mark.parametrize(
+    ("call", "says"),
+    [
+        (lambda: decimation_factor(120.0, 7.0), "divided"),
+        (lambda: RecognitionSettings(("a", "a")), "twice"),
+        (lambda: parse_mqtt_url("http://h"), "mqtt://"),
+        (lambda: joint_order(["root"]), "must include"),
+        (lambda: FrameClock.of(0.0, 30.0), "native rate"),
+        (lambda: bh.PcaSegmenter(120.0, params=bh.PcaParams(k=0.001)), "frames at 120 Hz"),
+    ],
+)
+def test_what_a_pure_module_refuses_of_its_input_is_a_user_error(
+    call: Callable[[], object], says: str
+) -> None:
+    """A rate, a setting, an address or a window that a caller passes on from a user: the pure
+    module raises InputError (a MocapdError and, for its older callers, a ValueError), which the
+    caller completes with where the value came from."""
+    with pytest.raises(InputError, match=says):
+        call()

@@ -15,6 +15,7 @@ from typing import Literal
 import numpy as np
 import numpy.typing as npt
 
+from daemon.errors import InputError
 from daemon.types import FloatArray
 
 Method = Literal["pca", "ppca", "gmm"]
@@ -40,24 +41,24 @@ class Boundary:
 def count_frames(seconds: float, rate: float, name: str, minimum: int = 1) -> int:
     """``round(seconds * rate)``, the window ``name`` in frames; ``ValueError`` below ``minimum``."""
     if not math.isfinite(seconds):
-        raise ValueError(f"{name} must be a finite number of seconds, got {seconds}")
+        raise InputError(f"{name} must be a finite number of seconds, got {seconds}")
     frames = round(seconds * rate)
     if frames < minimum:
-        raise ValueError(f"{name} = {seconds:g} s is {frames} frames at {rate:g} Hz; it must be >= {minimum}")
+        raise InputError(f"{name} = {seconds:g} s is {frames} frames at {rate:g} Hz; it must be >= {minimum}")
     return frames
 
 
 def check_rate(rate: float) -> float:
     """``rate`` (frames per second) as a float; ``ValueError`` unless positive and finite."""
     if not (math.isfinite(rate) and rate > 0):
-        raise ValueError(f"rate must be a positive number of frames per second, got {rate}")
+        raise InputError(f"rate must be a positive number of frames per second, got {rate}")
     return float(rate)
 
 
 def check_fraction(value: float, name: str) -> None:
     """``ValueError`` unless ``0 < value < 1`` (a share of variance such as τ)."""
     if not 0.0 < value < 1.0:
-        raise ValueError(f"{name} must lie strictly between 0 and 1, got {value}")
+        raise InputError(f"{name} must lie strictly between 0 and 1, got {value}")
 
 
 def check_finite(values: FloatArray, what: str) -> None:
@@ -65,13 +66,13 @@ def check_finite(values: FloatArray, what: str) -> None:
     if values.size and not np.isfinite(values).all():
         bad = np.argwhere(~np.isfinite(values))[0]
         where = f"frame {int(bad[0])}" if values.ndim > 1 else "the frame"
-        raise ValueError(f"{what}: {where} has a value that is not finite ({values[tuple(bad)]})")
+        raise InputError(f"{what}: {where} has a value that is not finite ({values[tuple(bad)]})")
 
 
 def check_frames(frames: npt.ArrayLike) -> FloatArray:
     """A batch method's input as a contiguous float64 array of shape ``(N, D)``, ``D >= 1``, finite."""
     x = np.ascontiguousarray(frames, dtype=np.float64)
     if x.ndim != 2 or x.shape[1] < 1:
-        raise ValueError(f"frames must have shape (N, D) with D >= 1, got {x.shape}")
+        raise InputError(f"frames must have shape (N, D) with D >= 1, got {x.shape}")
     check_finite(x, "frames")
     return x

@@ -13,6 +13,7 @@ import numpy.typing as npt
 
 from daemon.behaviours.common import Boundary, check_frames, check_rate, count_frames
 from daemon.behaviours.moments import dimension
+from daemon.errors import InputError
 from daemon.types import FloatArray, IntArray
 
 
@@ -38,11 +39,11 @@ class GmmParams:
         """The minimum length in frames at ``rate`` Hz; ``ValueError`` if a parameter is unusable."""
         rate = check_rate(rate)
         if not 0.0 < self.variance <= 1.0:
-            raise ValueError(f"variance must lie in (0, 1], got {self.variance}")
+            raise InputError(f"variance must lie in (0, 1], got {self.variance}")
         if self.clusters < 1 or self.max_iterations < 1:
-            raise ValueError("clusters and max_iterations must be at least 1")
+            raise InputError("clusters and max_iterations must be at least 1")
         if not (self.regularizer > 0 and self.tolerance >= 0):
-            raise ValueError("regularizer must be positive and tolerance non-negative")
+            raise InputError("regularizer must be positive and tolerance non-negative")
         return count_frames(self.min_length, rate, "min_length", 0)
 
 

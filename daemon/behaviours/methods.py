@@ -13,6 +13,7 @@ from daemon.behaviours.common import Boundary, Method
 from daemon.behaviours.gmm import GMM_PAPER, GmmParams, GmmResult, gmm_analysis
 from daemon.behaviours.pca import PCA_PAPER, PcaParams, PcaResult, PcaSegmenter, pca_analysis
 from daemon.behaviours.ppca import PPCA_DEFAULT, PpcaParams, PpcaResult, PpcaSegmenter, ppca_analysis
+from daemon.errors import InputError
 
 Params = PcaParams | PpcaParams | GmmParams
 _P = TypeVar("_P", PcaParams, PpcaParams, GmmParams)
@@ -38,7 +39,7 @@ def analyse(
         return ppca_analysis(frames, rate, params=_params(params, PpcaParams, PPCA_DEFAULT))
     if method == "gmm":
         return gmm_analysis(frames, rate, params=_params(params, GmmParams, GMM_PAPER))
-    raise ValueError(f"unknown segmentation method {method!r}: pca, ppca or gmm")
+    raise InputError(f"unknown segmentation method {method!r}: pca, ppca or gmm")
 
 
 def online_segmenter(
@@ -50,12 +51,12 @@ def online_segmenter(
         return PcaSegmenter(rate, params=_params(params, PcaParams, PCA_PAPER))
     if method == "ppca":
         return PpcaSegmenter(rate, params=_params(params, PpcaParams, PPCA_DEFAULT))
-    raise ValueError(f"segmentation method {method!r} has no online form (pca and ppca do)")
+    raise InputError(f"segmentation method {method!r} has no online form (pca and ppca do)")
 
 
 def _params(given: Params | None, kind: type[_P], default: _P) -> _P:
     if given is None:
         return default
     if not isinstance(given, kind):
-        raise ValueError(f"parameters {type(given).__name__} do not fit {kind.__name__}")
+        raise InputError(f"parameters {type(given).__name__} do not fit {kind.__name__}")
     return given

@@ -13,6 +13,7 @@ import numpy as np
 import numpy.typing as npt
 
 from daemon.behaviours.common import Boundary, check_rate
+from daemon.errors import InputError
 from daemon.types import FloatArray
 
 P = TypeVar("P")
@@ -30,9 +31,9 @@ class FrameCheck:
         x = np.array(frame, dtype=np.float64)
         if x.ndim != 1 or x.shape[0] < 1 or (self.dims is not None and x.shape[0] != self.dims):
             want = f"({self.dims},)" if self.dims is not None else "(D,) with D >= 1"
-            raise ValueError(f"frame {index} must have shape {want}, got {x.shape}")
+            raise InputError(f"frame {index} must have shape {want}, got {x.shape}")
         if not np.isfinite(x).all():
-            raise ValueError(f"frame {index} has a value that is not finite")
+            raise InputError(f"frame {index} has a value that is not finite")
         self.dims = x.shape[0]
         return x
 

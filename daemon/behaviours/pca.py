@@ -15,6 +15,7 @@ import numpy.typing as npt
 from daemon.behaviours.common import Boundary, check_fraction, check_frames, check_rate, count_frames
 from daemon.behaviours.moments import Moments, dimension, projection_error, spectrum
 from daemon.behaviours.online import OnlineSegmenter
+from daemon.errors import InputError
 from daemon.types import FloatArray, IntArray
 
 
@@ -53,13 +54,13 @@ class PcaParams:
         rate = check_rate(rate)
         check_fraction(self.tau, "tau")
         if not (math.isfinite(self.k_sigma) and self.k_sigma >= 0):
-            raise ValueError(f"k_sigma must be a non-negative number, got {self.k_sigma}")
+            raise InputError(f"k_sigma must be a non-negative number, got {self.k_sigma}")
         ell = count_frames(self.ell, rate, "ell")
         k = count_frames(self.k, rate, "k", ell + 1)
         i0 = count_frames(self.i0, rate, "i0", 0)
         step = 1 if self.step is None else count_frames(self.step, rate, "step")
         if k % step or ell % step:
-            raise ValueError(f"step ({step} frames) must divide k ({k}) and ell ({ell})")
+            raise InputError(f"step ({step} frames) must divide k ({k}) and ell ({ell})")
         return PcaFrames(k, ell, i0, step)
 
 

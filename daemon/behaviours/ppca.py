@@ -17,6 +17,7 @@ import numpy.typing as npt
 from daemon.behaviours.common import Boundary, check_fraction, check_frames, check_rate, count_frames
 from daemon.behaviours.moments import Moments, dimension
 from daemon.behaviours.online import OnlineSegmenter
+from daemon.errors import InputError
 from daemon.types import FloatArray, IntArray
 
 
@@ -59,13 +60,13 @@ class PpcaParams:
         rate = check_rate(rate)
         check_fraction(self.tau, "tau")
         if not (math.isfinite(self.rise) and self.rise >= 0):
-            raise ValueError(f"rise must be a non-negative number, got {self.rise}")
+            raise InputError(f"rise must be a non-negative number, got {self.rise}")
         if not (math.isfinite(self.min_variance) and self.min_variance > 0):
-            raise ValueError(f"min_variance must be a positive number, got {self.min_variance}")
+            raise InputError(f"min_variance must be a positive number, got {self.min_variance}")
         window = count_frames(self.window, rate, "window", 2)
         delta = count_frames(self.delta, rate, "delta")
         if delta > window:
-            raise ValueError(f"delta ({delta} frames) must not exceed window ({window} frames)")
+            raise InputError(f"delta ({delta} frames) must not exceed window ({window} frames)")
         shortest = 2 * window if self.shortest is None else count_frames(self.shortest, rate, "shortest", 0)
         return PpcaFrames(window, delta, shortest)
 

@@ -27,6 +27,7 @@ import numpy as np
 import numpy.typing as npt
 
 from daemon.behaviours.common import check_finite
+from daemon.errors import InputError
 from daemon.types import FloatArray
 from replay.asf import ROTATION_DOFS, Skeleton
 from replay.kinematics import KinematicModel
@@ -108,11 +109,11 @@ class JointRotations:
         if bones is not None:
             missing = [b for b in bones if b not in [names[k] for k in rotating]]
             if missing:
-                raise ValueError(f"{skeleton.source}: no rotating bone {', '.join(missing)}")
+                raise InputError(f"{skeleton.source}: no rotating bone {', '.join(missing)}")
             rotating = [k for k in rotating if names[k] in bones]
         self.nodes: tuple[int, ...] = tuple(rotating)
         if not self.nodes:
-            raise ValueError(f"{skeleton.source}: the skeleton has no bone with a rotation dof")
+            raise InputError(f"{skeleton.source}: the skeleton has no bone with a rotation dof")
         self.bones: tuple[str, ...] = tuple(skeleton.node_names[k] for k in self.nodes)
         self.dims = 4 * len(self.nodes)
         self.width = len(skeleton.channel_names)
@@ -124,7 +125,7 @@ class JointRotations:
         ``(N, J, 4)``. ``ValueError`` on a wrong shape or a value that is not finite."""
         c = np.asarray(channels, dtype=np.float64)
         if c.ndim != 2 or c.shape[1] != self.width:
-            raise ValueError(f"channels must have shape (N, {self.width}), got {c.shape}")
+            raise InputError(f"channels must have shape (N, {self.width}), got {c.shape}")
         check_finite(c, "channels")
         out: FloatArray = self.model.local_rotations(c)[:, self.index]
         return out
@@ -156,11 +157,11 @@ class RotationStream:
         unchanged) on a wrong shape or a value that is not finite."""
         row = np.asarray(channels, dtype=np.float64)
         if row.shape != (self.rotations.width,):
-            raise ValueError(
+            raise InputError(
                 f"frame {self._t}: channels must have shape ({self.rotations.width},), got {row.shape}"
             )
         if not np.isfinite(row).all():
-            raise ValueError(f"frame {self._t}: channels have a value that is not finite")
+            raise InputError(f"frame {self._t}: channels have a value that is not finite")
         self._t += 1
         q = self.rotations.model.local_rotations_frame(row, self._local)[self.rotations.index]
         if self._previous is None or self._signs is None:

@@ -11,7 +11,7 @@ from typing import Any
 
 from daemon.cli import common
 from daemon.config import Config
-from daemon.errors import UsageError
+from daemon.errors import InputError, UsageError
 from daemon.library import default_library_path, load_library
 from daemon.plots import timeline_png
 from daemon.recognizer import Detection, Recognizer
@@ -85,11 +85,11 @@ def _detect(args: argparse.Namespace, config: Config) -> int:
     stream = trial if args.stream is None else args.stream
     try:
         settings = config.recognizer.settings(classes)
-    except ValueError as exc:
+    except InputError as exc:
         raise UsageError(str(exc), field="--classes") from None
     try:
         recognizer = Recognizer.for_skeleton(library, motion.skeleton, rate, settings=settings, stream=stream)
-    except ValueError as exc:  # a rate the library's does not divide
+    except InputError as exc:  # a rate the library's does not divide
         raise UsageError(str(exc), field="--library") from None
     found: list[Detection] = []
 

@@ -12,7 +12,7 @@ from typing import Any
 from daemon import behaviours as bh
 from daemon.cli import common
 from daemon.config import Config
-from daemon.errors import UsageError
+from daemon.errors import InputError, UsageError
 from daemon.plots import segmentation_png
 from daemon.recordings import native_rate, read_boundaries, read_recording
 
@@ -124,7 +124,7 @@ def _segment(args: argparse.Namespace, config: Config) -> int:
     rotations = bh.JointRotations(motion.skeleton)
     try:
         result = bh.analyse(rotations(motion.channels), rate, args.method, params=params(args))
-    except ValueError as exc:  # a window too short or long for the rate, a share out of range, ...
+    except InputError as exc:  # a window too short or long for the rate, a share out of range, ...
         raise UsageError(str(exc), field=f"--method {args.method}") from None
     took = time.perf_counter() - began
     frames = motion.frames.tolist()

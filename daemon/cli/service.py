@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING, Any
 from daemon.cli import common
 from daemon.cli.detect import speed
 from daemon.config import Config
-from daemon.errors import UsageError
+from daemon.errors import InputError, UsageError
 from daemon.library import default_library_path, load_library
 from daemon.recordings import native_rate, read_recording
 
@@ -87,7 +87,7 @@ def _replay(args: argparse.Namespace, config: Config) -> int:
         sent = replay(args.to, motion, asf_text, stream=stream, rate=rate, speed=args.speed, loop=args.loop)
     except TargetError as e:
         raise UsageError(e.reason, field="--to") from None
-    except ValueError as e:  # an MQTT URL protocols.mqtt.parse_url refuses (not yet a MocapdError)
+    except InputError as e:  # an MQTT URL protocols.urls.parse_mqtt_url refuses
         raise UsageError(str(e), field="--to") from None
     except TimeoutError:
         raise UsageError(
@@ -127,7 +127,7 @@ def _overridden(args: argparse.Namespace, config: Config) -> Config:
 
         try:
             parse_mqtt_url(args.mqtt)
-        except ValueError as e:
+        except InputError as e:
             raise UsageError(str(e), field="--mqtt") from None
         service = dataclasses.replace(service, sources=("mqtt",), sinks=("mqtt",))
         mqtt = dataclasses.replace(mqtt, url=args.mqtt)

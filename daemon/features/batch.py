@@ -10,6 +10,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from daemon.errors import InputError
 from daemon.features.compiler import compiled, unpack
 from daemon.features.language import BodyLengths, body_lengths
 from daemon.features.velocity import smooth
@@ -36,10 +37,10 @@ def hysteresis(f1: BoolArray, f2: BoolArray) -> BoolArray:
 def _check_positions(positions: FloatArray, n_joints: int) -> FloatArray:
     p = np.asarray(positions, dtype=np.float64)
     if p.ndim != 3 or p.shape[1:] != (n_joints, 3):
-        raise ValueError(f"positions must have shape (N, {n_joints}, 3), got {p.shape}")
+        raise InputError(f"positions must have shape (N, {n_joints}, 3), got {p.shape}")
     if not np.isfinite(p).all():
         bad = int(np.argwhere(~np.isfinite(p))[0][0])
-        raise ValueError(f"positions are not finite at frame index {bad}")
+        raise InputError(f"positions are not finite at frame index {bad}")
     return p
 
 

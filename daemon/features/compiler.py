@@ -18,6 +18,7 @@ from typing import Any
 
 import numpy as np
 
+from daemon.errors import InputError
 from daemon.features.assembler import assemble, unsupported
 from daemon.features.catalog import CATALOG, catalog_joints, velocity_signals
 from daemon.features.language import (
@@ -122,13 +123,13 @@ class Program:
 
     def __init__(self, joint_names: tuple[str, ...], frame_rate: float) -> None:
         if not (math.isfinite(frame_rate) and 0 < frame_rate <= MAX_NATIVE_RATE):
-            raise ValueError(
+            raise InputError(
                 f"frame rate must be a positive number up to {MAX_NATIVE_RATE:g} Hz, got {frame_rate:g}"
             )
         index = {name: i for i, name in enumerate(joint_names)}
         missing = sorted(j for j in catalog_joints() if j not in index)
         if missing:
-            raise ValueError(f"joint positions lack the joints {', '.join(missing)}")
+            raise InputError(f"joint positions lack the joints {', '.join(missing)}")
         self.joint_names = joint_names
         self.frame_rate = frame_rate
         self.index = index

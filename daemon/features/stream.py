@@ -11,6 +11,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from daemon._features import FeatureCore
+from daemon.errors import InputError
 from daemon.features.compiler import compiled, unpack
 from daemon.features.language import body_lengths
 from daemon.types import BoolArray, FloatArray
@@ -67,10 +68,10 @@ class FeatureStream:
         program = self._program
         p = np.ascontiguousarray(pose, dtype=np.float64)
         if p.shape != (len(program.joint_names), 3):
-            raise ValueError(f"pose must have shape ({len(program.joint_names)}, 3), got {p.shape}")
+            raise InputError(f"pose must have shape ({len(program.joint_names)}, 3), got {p.shape}")
         rows = p.reshape(-1)
         if not np.isfinite(rows).all():
-            raise ValueError(f"pose {self._core.n} is not finite")
+            raise InputError(f"pose {self._core.n} is not finite")
         return [] if (code := self.push_rows(rows)) is None else [unpack(code)]
 
     def push_rows(self, rows: FloatArray) -> int | None:
@@ -98,11 +99,11 @@ def decimation_factor(native_hz: float, target_hz: float) -> int:
     """How many native frames make one frame at ``target_hz`` (4 for 120 -> 30 Hz); the target must
     divide the native rate."""
     if not (math.isfinite(target_hz) and target_hz > 0):
-        raise ValueError(f"target frame rate must be a positive number, got {target_hz}")
+        raise InputError(f"target frame rate must be a positive number, got {target_hz}")
     ratio = native_hz / target_hz
     factor = round(ratio) if math.isfinite(ratio) else 0  # a subnormal target overflows the ratio
     if factor < 1 or not math.isclose(native_hz / factor, target_hz, rel_tol=1e-9):
-        raise ValueError(f"{target_hz:g} Hz is not the native {native_hz:g} Hz divided by a whole number")
+        raise InputError(f"{target_hz:g} Hz is not the native {native_hz:g} Hz divided by a whole number")
     return factor
 
 
@@ -120,7 +121,7 @@ class Decimator:
 
     def __init__(self, factor: int) -> None:
         if factor < 1:
-            raise ValueError(f"decimation factor must be at least 1, got {factor}")
+            raise InputError(f"decimation factor must be at least 1, got {factor}")
         self.factor = factor
         self._n = 0
 

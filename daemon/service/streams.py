@@ -47,7 +47,7 @@ from daemon.bank import RecognizerBank
 from daemon.behaviours import Boundary, JointRotations, PcaSegmenter, PpcaSegmenter
 from daemon.behaviours import online_segmenter as make_segmenter
 from daemon.config import RecognizerConfig, SegmentationConfig, ServiceConfig
-from daemon.errors import MocapdError, printable
+from daemon.errors import InputError, MocapdError, printable
 from daemon.frames import Renumbering
 from daemon.library import Library
 from daemon.recognizer import Detection, Recognizer
@@ -218,7 +218,7 @@ class StreamTable:
                 joint_names=message.joints,
                 session=f"{self.session}/{(old.generation + 1) if old else 0}",  # ids unique per run
             )
-        except (ValueError, MocapFormatError) as e:
+        except (InputError, MocapFormatError) as e:
             raise Refused("skeleton", str(e)) from None
         out = self._remove(message.stream, "skeleton_changed") if old is not None else []
         self.bank.put(message.stream, recognizer)
@@ -257,7 +257,7 @@ class StreamTable:
             return None
         try:
             return _Segmenting(JointRotations(skeleton), method, message.rate)
-        except ValueError as e:  # a skeleton without rotating bones, windows that do not fit the rate
+        except InputError as e:  # a skeleton without rotating bones, windows that do not fit the rate
             raise Refused("skeleton", f"segmentation: {e}") from None
 
     def pose(self, message: PoseMessage, now: float) -> None:
