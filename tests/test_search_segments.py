@@ -1,4 +1,4 @@
-"""F-segmentation (daemon/segments.py) against a plain loop building runs: :func:`segment_codes` and
+"""F-segmentation (daemon/search/segments.py) against a plain loop building runs: :func:`segment_codes` and
 :class:`Segmenter` equal it, segments tile the sequence, :func:`set_codes` bit ``i`` is feature
 ``i`` of the set.
 """
