@@ -458,3 +458,14 @@ def test_boundaries_are_the_online_methods_batch_cuts(
     assert got == want != []
     ids = [e.message.id for e in out if isinstance(e.message, BoundaryMessage)]
     assert len(set(ids)) == len(ids)
+
+
+def test_streams_of_one_skeleton_share_its_tables(library: Library) -> None:
+    """Streams announcing the same ASF text are parsed once and share the forward kinematics, yet
+    each stream's skeleton is named after it."""
+    t = table(library)
+    for stream in ("a", "b"):
+        announce(t, stream)
+    assert t.bank["a"].model is t.bank["b"].model is not None
+    sources = [s.skeleton.source if s.skeleton else None for s in (t.streams["a"], t.streams["b"])]
+    assert sources == ["<skeleton of a>", "<skeleton of b>"]

@@ -55,6 +55,9 @@ from protocols.messages import BoundaryMessage, DetectionMessage, PoseMessage, S
 from replay import MocapFormatError, Skeleton, parse_asf
 from replay.amc import DEG
 
+SKELETONS_KEPT = 64
+"""How many announced ASF texts the table keeps parsed."""
+
 
 class Refused(MocapdError):
     """A message the table does not take: ``reason``, the counter it is refused under, and
@@ -172,6 +175,7 @@ class StreamTable:
         self.segmentation = segmentation.method
         self.segmented = segmentation.streams
         self._queued = 0
+        self._skeletons: dict[str, Skeleton] = {}  # by ASF text, least recently announced first
         self._waiting: dict[str, _Stream] = {}  # the streams with queued poses, in arrival order
 
     @staticmethod
@@ -203,7 +207,7 @@ class StreamTable:
         skeleton = angles = None
         if message.asf is not None:
             try:
-                skeleton = parse_asf(message.asf.splitlines(), f"<skeleton of {message.stream}>")
+                skeleton = self._parsed(message.asf, f"<skeleton of {message.stream}>")
             except MocapFormatError as e:
                 raise Refused("skeleton", str(e)) from None
             if message.angle_unit == "deg":
@@ -247,6 +251,17 @@ class StreamTable:
         s.epoch = epoch
         s.last_received = None
         s.seen = now
+
+    def _parsed(self, asf: str, source: str) -> Skeleton:
+        """``asf`` parsed, named ``source``: parsed once for the last :data:`SKELETONS_KEPT` texts
+        (many streams announce the same skeleton, and every stream again after a restart)."""
+        skeleton = self._skeletons.pop(asf, None)
+        if skeleton is None:
+            skeleton = parse_asf(asf.splitlines(), source)
+        self._skeletons[asf] = skeleton
+        if len(self._skeletons) > SKELETONS_KEPT:
+            self._skeletons.pop(next(iter(self._skeletons)))
+        return dataclasses.replace(skeleton, source=source)
 
     def _segmenting(self, message: SkeletonMessage, skeleton: Skeleton | None) -> _Segmenting | None:
         """A segmenter for a channel stream that the segmentation patterns name (None: none)."""
