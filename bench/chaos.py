@@ -322,16 +322,16 @@ class Listener:
             CallbackAPIVersion.VERSION2, client_id="chaos-listener", clean_session=False
         )
         self.client.reconnect_delay_set(1, 1)
-        self.client.on_connect = self._on_connect
-        self.client.on_message = self._on_message
+        self.client.on_connect = self._connect_answered
+        self.client.on_message = self._message_arrived
         self.client.connect(host, int(port))
         self.client.loop_start()
 
     @staticmethod
-    def _on_connect(client: Any, userdata: Any, flags: Any, reason: Any, properties: Any) -> None:
+    def _connect_answered(client: Any, userdata: Any, flags: Any, reason: Any, properties: Any) -> None:
         client.subscribe([("mocap/+/detections", 1), ("mocap/+/skeleton", 1)])
 
-    def _on_message(self, client: Any, userdata: Any, message: Any) -> None:
+    def _message_arrived(self, client: Any, userdata: Any, message: Any) -> None:
         now = time.time()
         if not message.payload:
             return

@@ -6,16 +6,16 @@ readable event and hands every message on through an asyncio.Queue, awaited per 
 API has no way to read more per event or to take a message without its queue, and that costs about
 twice the CPU per message of what is here, more than the daemon can spare at a hundred 120 Hz
 streams (``bench/bench_mqtt_intake.py``; docs/benchmarks.md, "MQTT intake"). What the daemon once
-did instead, replacing aiomqtt's socket callback and paho's private ``_sock_recv`` and
-``_handle_on_message``, was at the mercy of any patch release. paho's external-loop API is the
-documented seam aiomqtt itself uses: the event loop watches the client's socket (``on_socket_open``,
-``on_socket_close``, ``on_socket_register_write``, ``on_socket_unregister_write``) and calls
-``loop_read``, ``loop_write`` and ``loop_misc``; messages come through ``on_message``
-(``message.topic``, ``message.payload``), acknowledgements through ``on_publish``,
-``on_subscribe`` and ``on_unsubscribe``. A readable event reads packets for as long as they keep
-coming (the socket is level-triggered: what is left wakes the loop again), so a burst costs one
-event, and each message goes straight into the fair queue. (paho still reads a packet with a few
-small ``recv`` calls, its type byte, its length and the rest; no public API changes that.)
+did instead, replacing a socket callback of aiomqtt's and two private methods of paho's, was at the
+mercy of any patch release. paho's external-loop API is the documented seam aiomqtt itself uses: the
+event loop watches the client's socket (``on_socket_open``, ``on_socket_close``,
+``on_socket_register_write``, ``on_socket_unregister_write``) and calls ``loop_read``,
+``loop_write`` and ``loop_misc``; messages come through ``on_message`` (``message.topic``,
+``message.payload``), acknowledgements through ``on_publish``, ``on_subscribe`` and
+``on_unsubscribe``. A readable event reads packets for as long as they keep coming (the socket is
+level-triggered: what is left wakes the loop again), so a burst costs one event, and each message
+goes straight into the fair queue. (paho still reads a packet with a few small ``recv`` calls, its
+type byte, its length and the rest; no public API changes that.)
 
 The connection: one paho client per connection (:class:`_Connection`), made again after every loss
 with a capped exponential back-off, subscribing again on every connect. The session is persistent
@@ -149,16 +149,16 @@ class _Connection:
             mqtt.tls_set_context(tls)
         if will is not None:
             mqtt.will_set(will.topic, will.payload, qos=1 if will.reliable else 0, retain=will.retain)
-        mqtt.on_connect = self._on_connect
-        mqtt.on_disconnect = self._on_disconnect
-        mqtt.on_message = self._on_message
-        mqtt.on_publish = self._on_acknowledged
-        mqtt.on_subscribe = self._on_subscribed
-        mqtt.on_unsubscribe = self._on_subscribed
-        mqtt.on_socket_open = self._on_socket_open
-        mqtt.on_socket_close = self._on_socket_close
-        mqtt.on_socket_register_write = self._on_register_write
-        mqtt.on_socket_unregister_write = self._on_unregister_write
+        mqtt.on_connect = self._connect_answered
+        mqtt.on_disconnect = self._connection_ended
+        mqtt.on_message = self._message_arrived
+        mqtt.on_publish = self._acknowledged
+        mqtt.on_subscribe = self._subscription_answered
+        mqtt.on_unsubscribe = self._subscription_answered
+        mqtt.on_socket_open = self._socket_opened
+        mqtt.on_socket_close = self._socket_closed
+        mqtt.on_socket_register_write = self._write_wanted
+        mqtt.on_socket_unregister_write = self._write_done
         self.mqtt = mqtt
 
     async def __aenter__(self) -> _Connection:
@@ -227,13 +227,13 @@ class _Connection:
         else:
             self._loop.call_soon_threadsafe(call, *args)
 
-    def _on_socket_open(self, client: paho.Client, userdata: Any, sock: paho.SocketLike) -> None:
+    def _socket_opened(self, client: paho.Client, userdata: Any, sock: paho.SocketLike) -> None:
         if isinstance(sock, socket.socket):
             sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)  # no Nagle delay on small packets
         self._fd = sock.fileno()
         self._soon(self._loop.add_reader, self._fd, self._readable)
 
-    def _on_socket_close(self, client: paho.Client, userdata: Any, sock: paho.SocketLike) -> None:
+    def _socket_closed(self, client: paho.Client, userdata: Any, sock: paho.SocketLike) -> None:
         self._soon(self._forget_socket)
 
     def _forget_socket(self) -> None:
@@ -242,14 +242,14 @@ class _Connection:
             self._loop.remove_writer(self._fd)
             self._fd = -1
 
-    def _on_register_write(self, client: paho.Client, userdata: Any, sock: paho.SocketLike) -> None:
+    def _write_wanted(self, client: paho.Client, userdata: Any, sock: paho.SocketLike) -> None:
         self._soon(self._watch_writable, sock.fileno())
 
     def _watch_writable(self, fd: int) -> None:
         if fd >= 0 and fd == self._fd:  # not a socket closed since
             self._loop.add_writer(fd, self._writable)
 
-    def _on_unregister_write(self, client: paho.Client, userdata: Any, sock: paho.SocketLike) -> None:
+    def _write_done(self, client: paho.Client, userdata: Any, sock: paho.SocketLike) -> None:
         self._soon(self._unwatch_writable)
 
     def _unwatch_writable(self) -> None:
@@ -341,7 +341,7 @@ class _Connection:
 
     # -------------------------------------------------------------------------- paho's callbacks
 
-    def _on_connect(
+    def _connect_answered(
         self,
         client: paho.Client,
         userdata: Any,
@@ -357,7 +357,7 @@ class _Connection:
         else:
             self._connected.set_result(None)
 
-    def _on_disconnect(
+    def _connection_ended(
         self,
         client: paho.Client,
         userdata: Any,
@@ -382,7 +382,7 @@ class _Connection:
             if not done.done():
                 done.set_exception(failure)
 
-    def _on_message(self, client: paho.Client, userdata: Any, message: paho.MQTTMessage) -> None:
+    def _message_arrived(self, client: paho.Client, userdata: Any, message: paho.MQTTMessage) -> None:
         self._progress += 1
         try:
             topic = message.topic
@@ -391,7 +391,7 @@ class _Connection:
         payload = message.payload
         self._deliver(topic, payload if isinstance(payload, bytes) else bytes(payload))
 
-    def _on_acknowledged(
+    def _acknowledged(
         self, client: paho.Client, userdata: Any, mid: int, reason: ReasonCode, properties: Properties
     ) -> None:
         self._progress += 1
@@ -399,7 +399,7 @@ class _Connection:
         if done is not None and not done.done():
             done.set_result(None)
 
-    def _on_subscribed(
+    def _subscription_answered(
         self,
         client: paho.Client,
         userdata: Any,
