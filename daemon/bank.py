@@ -21,15 +21,28 @@ Pure: numpy in, dataclasses out; no I/O.
 
 from __future__ import annotations
 
+import dataclasses
+from collections import OrderedDict
 from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy.typing as npt
 
 from daemon.library import Library
-from daemon.recognizer import DEFAULT_SETTINGS, ClassPlan, Detection, FrameError, Recognizer, plans
+from daemon.recognizer import (
+    DEFAULT_SETTINGS,
+    ClassPlan,
+    Detection,
+    FrameError,
+    Recognizer,
+    plans,
+    skeleton_model,
+)
 from daemon.types import RecognitionSettings
-from replay import Skeleton
+from replay import KinematicModel, Skeleton
+
+MODELS_KEPT = 64
+"""How many skeletons' forward kinematics a bank keeps for new streams."""
 
 Frame = tuple[str, int, npt.ArrayLike]
 """One stream's next frame: (stream, frame number, channels ``(C,)`` or joint positions ``(J, 3)``)."""
@@ -56,6 +69,7 @@ class RecognizerBank:
         self.settings = settings
         self._plans: tuple[ClassPlan, ...] = plans(library, settings)
         self._streams: dict[str, Recognizer] = {}
+        self._models: OrderedDict[Skeleton, KinematicModel] = OrderedDict()  # least recently used first
 
     @property
     def streams(self) -> tuple[str, ...]:
@@ -105,13 +119,30 @@ class RecognizerBank:
             raise ValueError("give a skeleton (channels) or the joint names (positions), not both")
         rate, settings = float(native_rate), self.settings
         if skeleton is not None:
-            return Recognizer.for_skeleton(
-                self.library, skeleton, rate, settings=settings, stream=stream, session=session
+            return Recognizer(
+                self.library,
+                rate,
+                settings=settings,
+                stream=stream,
+                session=session,
+                model=self._model(skeleton),
             )
         assert joint_names is not None
         return Recognizer.for_positions(
             self.library, joint_names, rate, settings=settings, stream=stream, session=session
         )
+
+    def _model(self, skeleton: Skeleton) -> KinematicModel:
+        """The forward kinematics of ``skeleton`` (:func:`~daemon.recognizer.skeleton_model`), made
+        once for the bank's streams of skeletons equal but for their source (the last
+        :data:`MODELS_KEPT`): the streams of one studio share a handful of skeletons, and the tables
+        take milliseconds to make."""
+        key = dataclasses.replace(skeleton, source="")
+        model = self._models.pop(key, None) or skeleton_model(skeleton)
+        self._models[key] = model
+        if len(self._models) > MODELS_KEPT:
+            self._models.popitem(last=False)
+        return model
 
     def put(self, stream: str, recognizer: Recognizer) -> None:
         """Add ``stream`` with a recogniser from :meth:`recognizer`; ValueError if it is in the bank."""

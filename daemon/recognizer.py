@@ -31,11 +31,10 @@ and clock; it equals pushing the frames one by one (tests).
 
 from __future__ import annotations
 
-import dataclasses
 import math
 import uuid
 import weakref
-from collections import OrderedDict, deque
+from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass
 from itertools import accumulate
@@ -674,25 +673,10 @@ class Recognizer:
         return [] if code == NOTHING else self._stage.push(number, code)
 
 
-MODELS_KEPT = 64
-"""How many skeletons' forward kinematics :func:`skeleton_model` keeps, the least recently asked
-for dropped first."""
-_MODELS: OrderedDict[Skeleton, KinematicModel] = OrderedDict()
-
-
 def skeleton_model(skeleton: Skeleton) -> KinematicModel:
-    """The forward kinematics of ``skeleton``; an error naming the bones the standard joints lack.
-    Made once for skeletons equal but for their source: the streams of one studio share a handful
-    of skeletons, and their tables take milliseconds to make."""
-    key = dataclasses.replace(skeleton, source="")
-    model = _MODELS.get(key)
-    if model is None:
-        model = KinematicModel(skeleton)
-        model.joints(np.zeros((len(skeleton.node_names), 3)))
-    _MODELS[key] = model
-    _MODELS.move_to_end(key)
-    if len(_MODELS) > MODELS_KEPT:
-        _MODELS.popitem(last=False)
+    """The forward kinematics of ``skeleton``; an error naming the bones the standard joints lack."""
+    model = KinematicModel(skeleton)
+    model.joints(np.zeros((len(skeleton.node_names), 3)))
     return model
 
 
