@@ -147,6 +147,22 @@ class StdoutConfig:
 
 
 @dataclass(frozen=True)
+class ClusterConfig:
+    """Cluster mode (``docs/cluster.md``): the NATS server carrying poses and detections, the etcd
+    holding the membership, the number of partitions (the NATS config's ``partition(P, ...)``
+    mappings must say the same), this member's lease, the seconds each partition's JetStream buffer
+    keeps (0: computed from the lease and the library's reach, :func:`buffer_seconds`), and this
+    member's name (empty: host name and process id)."""
+
+    nats: str = "nats://127.0.0.1:4222"
+    coordinator: str = "etcd://127.0.0.1:2379"
+    partitions: int = field(default=16, metadata=_range(1, 1024))
+    lease_s: float = field(default=2.0, metadata=_range(0.5, 60))
+    buffer_s: float = field(default=0.0, metadata=_range(0, 3600))
+    member: str = ""
+
+
+@dataclass(frozen=True)
 class MetricsConfig:
     """``/healthz`` and ``/metrics`` (port 0: off); per-stream labels only with a bounded stream table."""
 
@@ -176,6 +192,9 @@ class Config:
     )
     stdout: StdoutConfig = field(
         default_factory=StdoutConfig, metadata=transport_section("protocols.stdout", source=False)
+    )
+    cluster: ClusterConfig = field(
+        default_factory=ClusterConfig, metadata=transport_section("protocols.nats", source=True)
     )
     metrics: MetricsConfig = field(default_factory=MetricsConfig)
     logging: LoggingConfig = field(default_factory=LoggingConfig)
@@ -388,6 +407,15 @@ def _cross_checks(check: Checker, config: Config) -> None:
         )
     if config.mqtt.reconnect_min_s > config.mqtt.reconnect_max_s:
         check.fail("mqtt.reconnect_min_s", "must not exceed mqtt.reconnect_max_s")
+    cluster = config.cluster
+    if not re.fullmatch(r"nats://[^/\s]+:\d+", cluster.nats):
+        check.fail("cluster.nats", f"must be nats://HOST:PORT, got {cluster.nats!r:.70}")
+    if not re.fullmatch(r"etcd://[^/\s]+", cluster.coordinator):
+        check.fail("cluster.coordinator", f"must be etcd://HOST[:PORT], got {cluster.coordinator!r:.70}")
+    if cluster.member and not INSTANCE.fullmatch(cluster.member):
+        check.fail(
+            "cluster.member", f"letters, digits, '_', '.', '-' (at most 64), got {cluster.member!r:.70}"
+        )
     if "mqtt" not in config.service.sources + config.service.sinks:
         return
     try:

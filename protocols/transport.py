@@ -49,12 +49,14 @@ class Incoming:
 class Outgoing:
     """A message to publish: ``retain`` (MQTT: the broker keeps the last one for late subscribers)
     and ``reliable`` (MQTT: QoS 1, kept until the broker acknowledges it, resent after a
-    reconnect)."""
+    reconnect); ``key``: the message's id (a detection's or boundary's), on which a transport that
+    can de-duplicates (cluster: a key already published by any worker is not published again)."""
 
     topic: str
     payload: bytes
     retain: bool = False
     reliable: bool = False
+    key: str | None = None
 
 
 class Source(Protocol):

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import re
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -31,6 +32,18 @@ def register(sub: Any) -> None:
         default=None,
         metavar="mqtt://HOST:PORT",
         help="use this MQTT broker as the only source and sink (overrides service.sources/sinks, mqtt.url)",
+    )
+    run.add_argument(
+        "--cluster",
+        default=None,
+        metavar="nats://HOST:PORT",
+        help="cluster mode: a worker on this NATS server, the only source and sink (docs/cluster.md)",
+    )
+    run.add_argument(
+        "--coordinator",
+        default=None,
+        metavar="etcd://HOST:PORT",
+        help="cluster mode: the etcd holding the membership (cluster.coordinator)",
     )
     run.add_argument(
         "--metrics-port", type=int, default=None, metavar="N", help="port of /healthz and /metrics (0: off)"
@@ -121,7 +134,21 @@ def _replay_into(args: argparse.Namespace, config: Config) -> Tasks:
 
 
 def _overridden(args: argparse.Namespace, config: Config) -> Config:
-    service, metrics, mqtt = config.service, config.metrics, config.mqtt
+    service, metrics, mqtt, cluster = config.service, config.metrics, config.mqtt, config.cluster
+    if args.cluster is not None or args.coordinator is not None:
+        if args.mqtt is not None:
+            raise UsageError("--mqtt and --cluster exclude each other", field="--cluster")
+        if args.cluster is not None:
+            if not re.fullmatch(r"nats://[^/\s]+:\d+", args.cluster):
+                raise UsageError(f"must be nats://HOST:PORT, got {args.cluster!r}", field="--cluster")
+            cluster = dataclasses.replace(cluster, nats=args.cluster)
+        if args.coordinator is not None:
+            if not re.fullmatch(r"etcd://[^/\s]+", args.coordinator):
+                raise UsageError(
+                    f"must be etcd://HOST[:PORT], got {args.coordinator!r}", field="--coordinator"
+                )
+            cluster = dataclasses.replace(cluster, coordinator=args.coordinator)
+        service = dataclasses.replace(service, sources=("cluster",), sinks=("cluster",))
     if args.mqtt is not None:
         from protocols.urls import parse_mqtt_url
 
@@ -135,7 +162,7 @@ def _overridden(args: argparse.Namespace, config: Config) -> Config:
         if not 0 <= args.metrics_port <= 65535:
             raise UsageError(f"must be a port in 0..65535, got {args.metrics_port}", field="--metrics-port")
         metrics = dataclasses.replace(metrics, port=args.metrics_port)
-    return dataclasses.replace(config, service=service, metrics=metrics, mqtt=mqtt)
+    return dataclasses.replace(config, service=service, metrics=metrics, mqtt=mqtt, cluster=cluster)
 
 
 def _own_source(config: Config) -> str:

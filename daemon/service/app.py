@@ -33,7 +33,7 @@ import time
 from collections import Counter
 from collections.abc import Callable, Coroutine, Iterable
 from dataclasses import replace
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -54,7 +54,19 @@ from protocols.messages import (
 )
 from protocols.transport import Incoming, Outgoing, StartupError, Transport, make
 
-EVENTS = ("gaps", "gap_frames", "idle", "skeleton_changed", "restarts")
+if TYPE_CHECKING:
+    from daemon.service.cluster import Cluster
+
+EVENTS = (
+    "gaps",
+    "gap_frames",
+    "idle",
+    "skeleton_changed",
+    "restarts",
+    "aligning",
+    "handed_over",
+    "warmup_suppressed",
+)
 """Counts of the stream table that are neither refusals nor drops."""
 DROPS = ("lagging",)
 """Taken-in poses not recognised: a full queue; and ``recognizer_<problem>``, the recogniser's refusals."""
@@ -161,8 +173,10 @@ class Service:
         instance: str,
         version: str,
         logger: logging.Logger,
+        cluster: Cluster | None = None,
     ) -> None:
         self.config = config
+        self.cluster = cluster
         self.instance = instance
         self.version = version
         self.log = logger
@@ -171,17 +185,22 @@ class Service:
         self.started = time.time()
         self.table = StreamTable(
             library,
-            session=f"{instance}/{self.started:.6f}",
+            # in cluster mode every worker computes a stream's detection ids alike (per its epoch)
+            session="cluster" if cluster is not None else f"{instance}/{self.started:.6f}",
             service=config.service,
             recognizer=config.recognizer,
             segmentation=config.segmentation,
+            cluster=cluster is not None,
         )
         self.rejects: Counter[str] = Counter()
         self.metrics = Metrics(config.metrics.stream_labels, self._tallies, self._gauge_values)
         self.stopping = False
         self.published = 0
         self._work = asyncio.Event()
+        self._room = asyncio.Event()
         self._entered = False
+        if cluster is not None:
+            self.metrics.cluster = self._cluster_series
         for t in transports:
             t.announce(self._status("online"), self._status("offline"))
 
@@ -195,6 +214,8 @@ class Service:
             return "stopping"
         if not self._entered:
             return "starting"
+        if self.cluster is not None and (problem := self.cluster.problem) is not None:
+            return f"cluster: {problem}"
         return next((p for t in self.transports if (p := t.problem) is not None), None)
 
     # ---------------------------------------------------------------------------------- intake
@@ -231,6 +252,8 @@ class Service:
             known = self.table.streams.get(stream)
             before = None if known is None else known.announced
             out = self.table.skeleton(message, now)
+            if known is None and self.cluster is not None and self.cluster.transport.partial(stream):
+                self.table.warm_up(stream)  # taken over from a buffer that lost the run's start
             self.metrics.messages["skeleton"] += 1
             if before != message:  # not a repeated announcement
                 self.events.info("skeleton", {"stream": stream, "kind": message.kind, "rate": message.rate})
@@ -252,11 +275,18 @@ class Service:
         source = transport.source()
         assert source is not None
         n = 0
+        paced = self.cluster is not None
+        limit = max(1, self.config.service.queue_frames // 2)
         async for incoming in source:
             for e in self.receive(incoming):
                 await self.publish(e)
             n += 1
-            if n % YIELD_EVERY == 0:
+            if paced and self.table.queued >= limit:
+                # a replayed buffer arrives faster than recognition: wait rather than drop (no stream
+                # can queue more than ``limit`` poses, each tick takes one of every stream)
+                self._room.clear()
+                await self._room.wait()
+            elif n % YIELD_EVERY == 0:
                 await asyncio.sleep(0)
 
     # ------------------------------------------------------------------------------ recognition
@@ -277,6 +307,7 @@ class Service:
                 stage.observe(done - started)
                 for e in emitted:
                     await self.publish(e)
+                self._room.set()
                 if done > deadline:
                     await asyncio.sleep(0)
                     deadline = time.perf_counter() + budget
@@ -284,7 +315,7 @@ class Service:
     async def publish(self, e: Emitted) -> None:
         started = time.perf_counter()
         message = replace(e.message, emit_time=time.time())
-        out = Outgoing(topic(message), encode(message), reliable=True)
+        out = Outgoing(topic(message), encode(message), reliable=True, key=message.id)
         for t in self.transports:
             sink = t.sink()
             if sink is not None:
@@ -325,6 +356,30 @@ class Service:
             drops.update(t.dropped())
         return rejects, drops, Counter({k: table.get(k, 0) for k in EVENTS})
 
+    def _lag(self) -> float:
+        """Seconds the oldest queued pose of any stream has waited (0: none queued)."""
+        oldest = min((s.queue[0].time for s in self.table.streams.values() if s.queue), default=None)
+        return 0.0 if oldest is None else round(max(0.0, time.time() - oldest), 3)
+
+    def _cluster_series(self) -> list[tuple[str, str, str, float]]:
+        c = self.cluster
+        assert c is not None
+        t, counts = c.transport, self.table.counts
+        series = [
+            ("partitions", "Partitions this worker owns", "gauge", len(t.owned)),
+            ("members", "Live members of the cluster as this worker sees them", "gauge", len(c.members)),
+            ("takeovers", "Partitions taken over after the first assignment", "counter", c.takeovers),
+            ("replayed_poses", "Messages read from a partition's buffer on taking it", "counter", t.replayed),
+            ("duplicates_suppressed", "Detections another worker had published", "counter", t.duplicates),
+            (
+                "warmup_suppressed",
+                "Detections suppressed in a taken-over stream's warm-up",
+                "counter",
+                counts.get("warmup_suppressed", 0),
+            ),
+        ]
+        return [(f"mocapd_cluster_{name}", doc, kind, value) for name, doc, kind, value in series]
+
     def _gauge_values(self) -> tuple[int, int, int, dict[str, bool]]:
         outbox = sum(t.pending for t in self.transports)
         up = {t.name: t.problem is None for t in self.transports}
@@ -352,6 +407,8 @@ class Service:
                 stack.push_async_callback(_closed, http)
             for t in self.transports:
                 await stack.enter_async_context(t)
+            if self.cluster is not None:
+                await stack.enter_async_context(self.cluster)  # left before the transports close
             self._entered = True
             self.log.info(
                 "online",
@@ -369,6 +426,9 @@ class Service:
                     group.create_task(self._housekeeping(), name="housekeeping")
                     if http is not None:
                         group.create_task(serve_http(http), name="http")
+                    if self.cluster is not None:
+                        group.create_task(self.cluster.follow(self.table), name="cluster membership")
+                        group.create_task(self.cluster.report(self.table, self._lag), name="cluster status")
                     for name, factory in extra:
                         group.create_task(factory(), name=name)
                     group.create_task(self._shutdown(stop, intakes), name="shutdown")
@@ -396,6 +456,14 @@ class Service:
                 }
             },
         )
+        if self.cluster is not None:
+            # leave first (the lease revoked: the others take over at once), then publish nothing:
+            # a flush would publish end-of-motion detections the continuing streams do not give
+            await self.cluster.leave()
+            for task in intakes:
+                task.cancel()
+            self.table.counts["handed_over"] += len(self.table.streams)
+            raise _Stop
         for task in intakes:
             task.cancel()
         for t in self.transports:  # "offline" says how many streams it held
@@ -452,6 +520,17 @@ def serve(
     metrics server that cannot start raises :class:`~daemon.config.ConfigError` naming the setting,
     before "online" is published."""
     logger = configure_logging(config.logging.level)
+    clustered = "cluster" in config.service.sources + config.service.sinks
+    member = ""
+    if clustered:
+        from daemon.service.cluster import buffer_seconds, member_name
+
+        member = member_name(config.cluster)
+        buffer_s = buffer_seconds(config.cluster, library, config)
+        config = replace(config, cluster=replace(config.cluster, buffer_s=buffer_s))
+        if not config.service.instance:
+            config = replace(config, service=replace(config.service, instance=member))
+        logger.info("cluster", extra={"fields": {"member": member, "buffer_s": buffer_s}})
     instance = instance_name(config)
 
     async def main() -> bool:
@@ -466,13 +545,21 @@ def serve(
 
         for signum in (signal.SIGTERM, signal.SIGINT):
             loop.add_signal_handler(signum, on_signal, signum)
+        transports = transports_of(config, instance)
+        cluster = None
+        if clustered:
+            from daemon.service.cluster import Cluster
+
+            (nats,) = [t for t in transports if t.name == "cluster"]
+            cluster = Cluster(config.cluster, member, nats, logger)  # type: ignore[arg-type]
         service = Service(
             config,
             library,
-            transports_of(config, instance),
+            transports,
             instance=instance,
             version=version,
             logger=logger,
+            cluster=cluster,
         )
         # the library, the plans and the modules are there for good: keep the collector off them
         gc.collect()

@@ -80,6 +80,8 @@ class Metrics(Collector):
         self.end_to_end = Histogram(END_TO_END_BUCKETS)
         self._tallies = tallies
         self._gauges = gauges
+        self.cluster: Callable[[], list[tuple[str, str, str, float]]] | None = None
+        """Cluster mode's series as (name, help, "gauge" or "counter", value), when scraped."""
         self.registry = CollectorRegistry()
         self.registry.register(self)
 
@@ -157,6 +159,10 @@ class Metrics(Collector):
         )
         e2e.add_metric([], self.end_to_end.buckets(), self.end_to_end.total)
         yield e2e
+        if self.cluster is not None:
+            for name, doc, kind, value in self.cluster():
+                family = GaugeMetricFamily if kind == "gauge" else CounterMetricFamily
+                yield family(name, doc, value=value)
 
 
 async def open_http(

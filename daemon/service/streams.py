@@ -127,6 +127,16 @@ class _Stream:
     follows it plausibly confirms the jump."""
     fed_epoch: str | None = None
     """The epoch of the last pose fed to the recogniser."""
+    step: int = 1
+    """Native frames per index frame (cluster mode begins a motion at a multiple of it)."""
+    warmup: int = 0
+    """Native frames a recogniser that starts mid-motion may get wrong: a detection's reach and the
+    features' delay."""
+    warming: bool = False
+    """Whether the stream's history is truncated (taken over from a partial buffer): detections that
+    start within :attr:`warmup` frames of its first fed pose are suppressed."""
+    suppress_before: int | None = None
+    """Detections starting before this sequence number are suppressed (see :attr:`warming`)."""
 
 
 @dataclass(frozen=True)
@@ -149,7 +159,14 @@ class StreamTable:
     ids unique to this run. As the sections of the configuration say (their defaults if not given):
     ``service`` bounds each stream's waiting poses (``queue_frames``, the oldest dropped) and the
     table (``max_streams``) and sets the bridged gaps (``bridge_s``); ``recognizer`` makes the bank,
-    ``segmentation`` the behaviour boundaries."""
+    ``segmentation`` the behaviour boundaries.
+
+    ``cluster``: cluster mode (``docs/cluster.md``), where any worker computing a stream must give
+    the same detections with the same ids: a detection's session is ``session/<epoch>`` (the
+    source's run), not a count of this table's restarts; a motion begins only at a pose whose
+    sequence number is a multiple of the decimation step (so every owner takes the same index
+    frames); a stream marked :meth:`warm_up` suppresses the detections its truncated history could
+    get wrong."""
 
     def __init__(
         self,
@@ -159,6 +176,7 @@ class StreamTable:
         service: ServiceConfig | None = None,
         recognizer: RecognizerConfig | None = None,
         segmentation: SegmentationConfig | None = None,
+        cluster: bool = False,
     ) -> None:
         service = ServiceConfig() if service is None else service
         recognizer = RecognizerConfig() if recognizer is None else recognizer
@@ -177,6 +195,12 @@ class StreamTable:
         self._queued = 0
         self._skeletons: dict[str, Skeleton] = {}  # by ASF text, least recently announced first
         self._waiting: dict[str, _Stream] = {}  # the streams with queued poses, in arrival order
+        self.cluster = cluster
+
+    def _session(self, generation: int, epoch: str | None) -> str:
+        """The session of a stream's detections: per run of the source in cluster mode (every
+        worker alike), else per restart in this table."""
+        return f"{self.session}/{epoch or '-'}" if self.cluster else f"{self.session}/{generation}"
 
     @staticmethod
     def _horizon(recognizer: Recognizer) -> int:
@@ -220,7 +244,7 @@ class StreamTable:
                 message.rate,
                 skeleton=skeleton,
                 joint_names=message.joints,
-                session=f"{self.session}/{(old.generation + 1) if old else 0}",  # ids unique per run
+                session=self._session((old.generation + 1) if old else 0, message.epoch),  # unique per run
             )
         except (InputError, MocapFormatError) as e:
             raise Refused("skeleton", str(e)) from None
@@ -238,8 +262,23 @@ class StreamTable:
             generation=(old.generation + 1) if old else 0,
             segmenting=segmenting,
             epoch=message.epoch,
+            step=recognizer.clock.step,
+            warmup=recognizer.clock.lag(recognizer.reach),
         )
         return out
+
+    def warm_up(self, name: str) -> None:
+        """``name``'s history here is truncated (cluster mode: taken over from a buffer that lost
+        its start): suppress the detections that start within its warm-up of its first fed pose."""
+        s = self.streams.get(name)
+        if s is not None and s.last_fed is None:
+            s.warming = True
+
+    def forget(self, name: str) -> None:
+        """Drop ``name`` without publishing anything (cluster mode: another worker owns it now)."""
+        if name in self.streams:
+            self.counts["handed_over"] += 1
+            self._remove(name, None)
 
     def _new_run(self, s: _Stream, epoch: str | None, now: float) -> None:
         """Poses of ``s`` are of a new run of its source from now on (epoch ``epoch``); refused
@@ -343,17 +382,24 @@ class StreamTable:
                 pose.seq <= s.last_fed or (pose.epoch is not None and pose.epoch != s.fed_epoch)
             ):  # the first pose of a new run of the source
                 self.counts["restarts"] += 1
-                out += self._restart(name, s)
+                out += self._restart(name, s, pose.epoch)
             if pose.epoch is not None:
                 s.fed_epoch = pose.epoch
             gap = 0 if s.last_fed is None else pose.seq - s.last_fed - 1
             if gap > round(self.bridge_s * s.announced.rate):
                 self.counts["gaps"] += 1
                 self.counts["gap_frames"] += gap
-                out += self._restart(name, s)
+                out += self._restart(name, s, pose.epoch)
             elif gap > 0:
                 self.counts["gaps"] += 1
                 self.counts["gap_frames"] += gap
+            if self.cluster and s.last_fed is None:
+                if pose.seq % s.step:  # every owner begins a motion at the same index frames
+                    self.counts["aligning"] += 1
+                    continue
+                if s.warming:
+                    s.warming = False
+                    s.suppress_before = pose.seq + s.warmup
             before[name] = s.last_fed
             frame = s.numbers.frame(pose.seq, first=s.last_fed is None)
             s.last_fed = pose.seq
@@ -373,7 +419,7 @@ class StreamTable:
             s.numbers.refused(numbers[name])
             s.last_fed = before[name]
             refused.append((name, error.problem, str(error)))
-        out += [self._emitted(d) for d in result.detections]
+        out += self._kept([self._emitted(d) for d in result.detections])
         if self.segmentation != "none":
             taken = {name for name, _ in result.errors}
             for name, frame, values in frames:
@@ -420,18 +466,34 @@ class StreamTable:
         self._waiting.pop(name, None)
         if reason is not None:
             self.counts[reason] += 1
-        return [self._emitted(d, s) for d in self.bank.remove(name)] + self._segments_end(name, s)
+        return self._kept([self._emitted(d, s) for d in self.bank.remove(name)], s) + self._segments_end(
+            name, s
+        )
 
     def _segments_end(self, name: str, s: _Stream) -> list[Emitted]:
         """The boundaries the end of a stream's motion gives (its segmenter starts anew)."""
         return [] if s.segmenting is None else [self._boundary(name, s, *c) for c in s.segmenting.restart()]
 
-    def _restart(self, name: str, s: _Stream) -> list[Emitted]:
-        """End the stream's motion at a long gap: its detections so far, then a fresh recogniser."""
+    def _restart(self, name: str, s: _Stream, epoch: str | None) -> list[Emitted]:
+        """End the stream's motion at a long gap or a new run (``epoch``): its detections so far,
+        then a fresh recogniser."""
         s.generation += 1
-        detections = self.bank.restart(name, session=f"{self.session}/{s.generation}")
-        out = [self._emitted(d) for d in detections] + self._segments_end(name, s)
+        detections = self.bank.restart(name, session=self._session(s.generation, epoch))
+        out = self._kept([self._emitted(d) for d in detections]) + self._segments_end(name, s)
         s.last_fed = None
+        return out
+
+    def _kept(self, emitted: list[Emitted], s: _Stream | None = None) -> list[Emitted]:
+        """``emitted`` less the detections of a warming stream (:meth:`warm_up`) that start too early."""
+        out = []
+        for e in emitted:
+            m = e.message
+            t = s if s is not None else self.streams.get(m.stream)
+            limit = None if t is None else t.suppress_before
+            if limit is not None and isinstance(m, DetectionMessage) and m.start_frame < limit:
+                self.counts["warmup_suppressed"] += 1
+                continue
+            out.append(e)
         return out
 
     def _emitted(self, d: Detection, s: _Stream | None = None) -> Emitted:

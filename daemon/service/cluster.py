@@ -1,0 +1,168 @@
+"""Cluster mode's worker side (``docs/cluster.md``): membership in etcd, the partitions this worker
+owns, status reports, and leaving.
+
+:class:`Cluster` is entered with the service's transports (joining fails fast, naming
+``cluster.coordinator``, when etcd does not answer). Its :meth:`Cluster.follow` task takes each
+change of the live members from :class:`~daemon.cluster.membership.Membership` and has the
+transport consume exactly the partitions :func:`~daemon.cluster.ring.owned` gives this member;
+streams of a partition given up are dropped from the stream table without publishing anything (the
+new owner publishes their detections). :meth:`Cluster.report` writes this worker's status about once
+a second. :meth:`Cluster.leave` (SIGTERM) revokes the lease first, so the others take over within
+milliseconds, and flushes nothing.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import os
+import socket
+import time
+from types import TracebackType
+from typing import TYPE_CHECKING, Any
+
+from daemon.cluster.membership import Membership
+from daemon.cluster.ring import owned
+from daemon.config import ClusterConfig
+from daemon.library import Library
+from daemon.recognizer import Recognizer
+from replay import JOINT_NAMES
+
+if TYPE_CHECKING:
+    from daemon.service.streams import StreamTable
+    from protocols.nats import NatsTransport
+
+REPORT_S = 1.0
+SKELETON_PERIOD_S = 1.0
+"""How often publishers announce their skeletons at least (``protocols/README.md``)."""
+MARGIN_S = 1.0
+
+
+def reach_seconds(library: Library, config: Any) -> float:
+    """Seconds before the pose that emits it that a detection may start at, at most, with the
+    library and the ``recognizer`` settings of ``config`` (:attr:`Recognizer.reach`)."""
+    r = Recognizer(library, library.rate * 4, settings=config.recognizer.settings(), joint_names=JOINT_NAMES)
+    return r.reach / library.rate
+
+
+def buffer_seconds(cluster: ClusterConfig, library: Library, config: Any) -> float:
+    """``cluster.buffer_s``, or when 0 the buffer a takeover needs: the lease (the old owner's last
+    pose to the new owner's start), a skeleton announcement (its first usable pose), twice the
+    library's reach (the warm-up whose detections are suppressed, then the reach of the old owner's
+    last unpublished detection) and a margin."""
+    if cluster.buffer_s:
+        return cluster.buffer_s
+    return round(cluster.lease_s + SKELETON_PERIOD_S + 2 * reach_seconds(library, config) + MARGIN_S, 1)
+
+
+def member_name(cluster: ClusterConfig) -> str:
+    return cluster.member or f"{socket.gethostname().split('.')[0] or 'mocapd'}-{os.getpid()}"
+
+
+class Cluster:
+    """This worker in the cluster of ``settings`` as ``member``, reading through ``transport``."""
+
+    def __init__(
+        self, settings: ClusterConfig, member: str, transport: NatsTransport, log: logging.Logger
+    ) -> None:
+        self.settings = settings
+        self.member = member
+        self.transport = transport
+        self.log = log
+        self.members: frozenset[str] = frozenset()
+        self.takeovers = 0
+        """Partitions taken after this worker's first assignment (from a member that left or died,
+        or given up to one that joined: counted by the taker)."""
+        self.changes = 0
+        self._membership: Membership | None = None
+        self._assigned = False
+        self._left = False
+
+    async def __aenter__(self) -> Cluster:
+        s = self.settings
+        self._membership = await Membership(s.coordinator, self.member, lease_s=s.lease_s).__aenter__()
+        self.log.info("joined", extra={"fields": {"member": self.member, "coordinator": s.coordinator}})
+        return self
+
+    async def __aexit__(
+        self, kind: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        await self.leave()
+
+    async def leave(self) -> None:
+        """Leave the cluster (revoke the lease) and stop consuming; idempotent."""
+        if self._left or self._membership is None:
+            return
+        self._left = True
+        started = time.monotonic()
+        await self._membership.__aexit__(None, None, None)
+        await self.transport.own(frozenset())
+        self.log.info(
+            "left", extra={"fields": {"member": self.member, "took_s": round(time.monotonic() - started, 4)}}
+        )
+
+    @property
+    def problem(self) -> str | None:
+        m = self._membership
+        if self._left:
+            return "left the cluster"
+        return None if m is None else m.problem
+
+    async def follow(self, table: StreamTable) -> None:
+        """Own what the ring gives this member among the live members, at every change."""
+        m = self._membership
+        assert m is not None
+        async for members in m.changes():
+            if self._left:
+                return
+            mine = owned(self.member, members, self.settings.partitions)
+            before = self.transport.owned
+            gained = mine - before
+            if self._assigned:
+                self.takeovers += len(gained)
+            self._assigned = True
+            self.members = members
+            self.changes += 1
+            lost = await self.transport.own(mine)
+            for stream in lost:
+                table.forget(stream)
+            self.log.info(
+                "partitions",
+                extra={
+                    "fields": {
+                        "members": sorted(members),
+                        "owned": sorted(mine),
+                        "gained": sorted(gained),
+                        "lost": sorted(before - mine),
+                        "problem": m.problem,
+                    }
+                },
+            )
+
+    async def report(self, table: StreamTable, lag: Any) -> None:
+        """This worker's status in etcd about once a second: partitions, streams per partition,
+        queued poses."""
+        m = self._membership
+        assert m is not None
+        while not self._left:
+            await asyncio.sleep(REPORT_S)
+            self.transport.forget(set(table.streams))
+            per: dict[str, int] = {}
+            for stream in table.streams:
+                p = self.transport.partition(stream)
+                if p is not None:
+                    per[str(p)] = per.get(str(p), 0) + 1
+            with contextlib.suppress(ValueError):
+                await m.report(
+                    {
+                        "partitions": sorted(self.transport.owned),
+                        "streams": per,
+                        "queued": table.queued,
+                        "lag_s": lag(),
+                        "takeovers": self.takeovers,
+                        "replayed": self.transport.replayed,
+                        "duplicates": self.transport.duplicates,
+                        "time": time.time(),
+                    }
+                )

@@ -1,0 +1,348 @@
+"""Cluster mode's transport: NATS with JetStream (``docs/cluster.md``; nats-py's documented API).
+
+Subjects. A publisher's ``mocap/<stream>/pose`` (MQTT, through the server's MQTT listener) is NATS
+subject ``mocap.<stream>.pose``, which the server maps (``deploy/nats/nats.conf``) to
+``mocap.p.<partition>.<stream>.pose``, the partition a hash of the stream id; skeletons likewise.
+Each partition's messages are captured by its own JetStream stream ``MOCAPD_BUF_<p>`` (memory,
+``cluster.buffer_s`` long): the buffer a new owner rebuilds the partition's streams from. A worker
+owns some partitions (:meth:`NatsTransport.own`, told by the membership) and reads each owned one
+with an ordered consumer that starts at the first buffered message: the buffer replayed, then live,
+one sequence without a seam. Messages of a partition given up are dropped, even those already
+queued.
+
+Detections and boundaries are stored first in ``MOCAPD_OUT`` (subjects ``mocap.d.<stream>.<word>``)
+with header ``Nats-Msg-Id`` = their id: within the stream's duplicate window the server keeps only the
+first copy and acknowledges a repeat as a duplicate. Only a first copy is then published on
+``mocap.<stream>.<word>``, where NATS and MQTT subscribers (``mocap/+/detections``) receive it, so a
+detection that two workers compute across a takeover reaches clients once. (The stream's RePublish
+would deliver stored messages to ``mocap.<stream>.<word>`` by itself, but nats-server 2.9.10 does
+not deliver republished messages to MQTT subscribers: verified, ``docs/cluster.md``.) A worker
+killed between the store and the publish loses that detection; the window is one local write.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import time
+from collections.abc import AsyncIterator
+from types import TracebackType
+from typing import TYPE_CHECKING
+
+import nats
+from nats.errors import Error as NatsError
+from nats.js.api import DeliverPolicy, DiscardPolicy, RetentionPolicy, StorageType, StreamConfig
+from nats.js.errors import Error as JetStreamError
+
+from protocols.transport import Incoming, Outgoing, StartupError
+
+if TYPE_CHECKING:
+    from nats.aio.client import Client
+    from nats.aio.msg import Msg
+    from nats.js.client import JetStreamContext
+
+    from daemon.config import ClusterConfig
+
+log = logging.getLogger("mocapd.cluster")
+
+BUFFER = "MOCAPD_BUF_{}"
+"""The JetStream stream buffering partition ``p``'s skeletons and poses."""
+OUT = "MOCAPD_OUT"
+"""The JetStream stream of published detections and boundaries (de-duplicated by id)."""
+QUEUE = 1 << 20
+"""Messages received and not yet taken in, at most (then the consumers wait: JetStream's flow
+control holds the rest on the server)."""
+PUBLISH_TIMEOUT_S = 2.0
+
+
+def buffer_subject(partition: int) -> str:
+    return f"mocap.p.{partition}.>"
+
+
+def out_window(buffer_s: float) -> float:
+    """Seconds ``MOCAPD_OUT`` keeps ids (its duplicate window): longer than any detection a new
+    owner recomputes from the buffer can be old."""
+    return max(60.0, 2 * buffer_s)
+
+
+class NatsTransport:
+    """Poses and skeletons of the owned partitions in, detections out (module docstring);
+    ``settings``: :class:`daemon.config.ClusterConfig`, ``buffer_s`` the buffers' length in seconds
+    (computed by the service when the config says 0)."""
+
+    name = "cluster"
+
+    def __init__(self, settings: ClusterConfig, *, instance: str, source: bool, sink: bool) -> None:
+        self.settings = settings
+        self.instance = instance
+        self.buffer_s = settings.buffer_s or 60.0
+        self._source = source
+        self._sink = sink
+        self._nc: Client | None = None
+        self._js: JetStreamContext | None = None
+        self._status: tuple[Outgoing, Outgoing] | None = None
+        self._queue: asyncio.Queue[tuple[int, Incoming]] = asyncio.Queue(QUEUE)
+        self._consumers: dict[int, asyncio.Task[None]] = {}
+        self._streams: dict[int, set[str]] = {}
+        self._partial: set[int] = set()
+        self._partition_of: dict[str, int] = {}
+        self._drain_s = 1.0
+        self._connected = False
+        self.replayed = 0
+        """Messages read from a buffer that were there before its consumer started."""
+        self.duplicates = 0
+        """Detections and boundaries not published because a worker had published them already."""
+        self.publish_errors = 0
+
+    # ------------------------------------------------------------------------------ the connection
+
+    def announce(self, online: Outgoing, offline: Outgoing) -> None:
+        self._status = (online, offline)
+
+    async def __aenter__(self) -> NatsTransport:
+        url = self.settings.nats
+        try:
+            self._nc = await nats.connect(
+                url,
+                name=self.instance,
+                connect_timeout=2,
+                max_reconnect_attempts=-1,
+                reconnect_time_wait=0.25,
+                disconnected_cb=self._disconnected,
+                reconnected_cb=self._reconnected,
+                error_cb=self._error,
+            )
+        except (OSError, NatsError, TimeoutError) as e:
+            raise StartupError("cluster.nats", f"{url}: cannot connect ({type(e).__name__})") from None
+        self._connected = True
+        self._js = self._nc.jetstream()
+        try:
+            await self._ensure_streams()
+        except (NatsError, TimeoutError) as e:
+            await self._nc.close()
+            raise StartupError("cluster.nats", f"{url}: JetStream unavailable or refused: {e}") from None
+        if self._status is not None:
+            await self._plain(self._status[0])
+        return self
+
+    async def __aexit__(
+        self, kind: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        await self.own(frozenset())
+        nc = self._nc
+        if nc is None:
+            return
+        with contextlib.suppress(NatsError, TimeoutError, OSError):
+            async with asyncio.timeout(self._drain_s):
+                if self._status is not None:
+                    await self._plain(self._status[1])
+                await nc.flush()
+        with contextlib.suppress(NatsError, TimeoutError, OSError):
+            await nc.close()
+        self._nc = None
+
+    async def _disconnected(self) -> None:
+        self._connected = False
+
+    async def _reconnected(self) -> None:
+        self._connected = True
+
+    async def _error(self, e: Exception) -> None:
+        log.warning("nats error", extra={"fields": {"error": f"{type(e).__name__}: {e}"}})
+
+    async def _ensure_streams(self) -> None:
+        """The partitions' buffers and the detections' stream, made or brought to these settings."""
+        assert self._js is not None
+        configs = [
+            StreamConfig(
+                name=BUFFER.format(p),
+                subjects=[buffer_subject(p)],
+                retention=RetentionPolicy.LIMITS,
+                storage=StorageType.MEMORY,
+                discard=DiscardPolicy.OLD,
+                max_age=self.buffer_s,
+                num_replicas=1,
+            )
+            for p in range(self.settings.partitions)
+        ]
+        window = out_window(self.buffer_s)
+        configs.append(
+            StreamConfig(
+                name=OUT,
+                subjects=["mocap.d.>"],
+                retention=RetentionPolicy.LIMITS,
+                storage=StorageType.MEMORY,
+                discard=DiscardPolicy.OLD,
+                max_age=window,
+                duplicate_window=window,
+                num_replicas=1,
+            )
+        )
+        for config in configs:
+            try:
+                await self._js.add_stream(config)
+            except JetStreamError:  # there already, made by another worker with other settings
+                await self._js.update_stream(config)
+
+    @property
+    def problem(self) -> str | None:
+        if self._nc is None:
+            return "not connected"
+        return None if self._connected else f"disconnected from {self.settings.nats}"
+
+    @property
+    def pending(self) -> int:
+        return 0
+
+    def dropped(self) -> dict[str, int]:
+        return {}
+
+    def drain_within(self, seconds: float) -> None:
+        self._drain_s = seconds
+
+    def ask_skeleton(self, stream: str) -> None:
+        """Nothing: publishers announce their skeletons at least once a second, and the buffer holds
+        the last ones."""
+
+    # ------------------------------------------------------------------------------- ownership
+
+    @property
+    def owned(self) -> frozenset[int]:
+        return frozenset(self._consumers)
+
+    def partial(self, stream: str) -> bool:
+        """Whether ``stream``'s partition was taken with a buffer that had already lost messages to
+        its age limit, so that its replay may begin mid-motion (the service then suppresses what a
+        truncated history could get wrong)."""
+        p = self._partition_of.get(stream)
+        return p is not None and p in self._partial
+
+    async def own(self, partitions: frozenset[int]) -> list[str]:
+        """Consume exactly ``partitions`` from now on; the streams seen in the partitions given up."""
+        lost: list[str] = []
+        for p in sorted(set(self._consumers) - partitions):
+            task = self._consumers.pop(p)
+            task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await task
+            self._partial.discard(p)
+            for stream in self._streams.pop(p, set()):
+                self._partition_of.pop(stream, None)
+                lost.append(stream)
+        for p in sorted(partitions - set(self._consumers)):
+            self._consumers[p] = asyncio.create_task(self._consume(p), name=f"partition {p}")
+        return lost
+
+    def partition(self, stream: str) -> int | None:
+        """The owned partition ``stream`` came in on (None: none seen)."""
+        return self._partition_of.get(stream)
+
+    def forget(self, keep: set[str]) -> None:
+        """Forget the streams not in ``keep`` (those the service no longer holds)."""
+        for streams in self._streams.values():
+            gone = streams - keep
+            streams -= gone
+            for s in gone:
+                self._partition_of.pop(s, None)
+
+    async def _consume(self, p: int) -> None:
+        assert self._js is not None
+        js = self._js
+        taken = time.time()
+        info = await js.stream_info(BUFFER.format(p))
+        state = info.state
+        last = state.last_seq
+        if state.first_seq > 1:
+            self._partial.add(p)
+        log.info(
+            "partition taken",
+            extra={"fields": {"partition": p, "buffered": state.messages, "partial": state.first_seq > 1}},
+        )
+        sub = await js.subscribe(
+            buffer_subject(p),
+            stream=BUFFER.format(p),
+            ordered_consumer=True,
+            deliver_policy=DeliverPolicy.ALL,
+            pending_msgs_limit=QUEUE,
+            pending_bytes_limit=1 << 30,
+        )
+        live = False
+        streams = self._streams.setdefault(p, set())
+        try:
+            async for msg in sub.messages:
+                if not live:
+                    if msg.metadata.sequence.stream > last:
+                        live = True
+                        log.info(
+                            "partition live",
+                            extra={"fields": {"partition": p, "since_taken": round(time.time() - taken, 4)}},
+                        )
+                    else:
+                        self.replayed += 1
+                incoming = self._incoming(msg, streams, p)
+                if incoming is not None:
+                    await self._queue.put((p, incoming))
+        finally:
+            with contextlib.suppress(NatsError, TimeoutError, OSError):
+                await sub.unsubscribe()
+
+    def _incoming(self, msg: Msg, streams: set[str], p: int) -> Incoming | None:
+        tokens = msg.subject.split(".")
+        if len(tokens) < 5:
+            return None
+        stream = ".".join(tokens[3:-1])
+        if stream not in streams:
+            streams.add(stream)
+            self._partition_of[stream] = p
+        return Incoming(f"mocap/{stream}/{tokens[-1]}", msg.data, time.time())
+
+    # --------------------------------------------------------------------------- source and sink
+
+    def source(self) -> NatsTransport | None:
+        return self if self._source else None
+
+    def __aiter__(self) -> AsyncIterator[Incoming]:
+        return self._messages()
+
+    async def _messages(self) -> AsyncIterator[Incoming]:
+        while True:
+            p, incoming = await self._queue.get()
+            if p in self._consumers:  # not of a partition given up since
+                yield incoming
+
+    def sink(self) -> NatsTransport | None:
+        return self if self._sink else None
+
+    async def publish(self, message: Outgoing) -> None:
+        if message.key is None:
+            await self._plain(message)
+            return
+        assert self._js is not None
+        parts = message.topic.split("/")
+        try:
+            ack = await self._js.publish(
+                f"mocap.d.{parts[1]}.{parts[2]}",
+                message.payload,
+                timeout=PUBLISH_TIMEOUT_S,
+                headers={"Nats-Msg-Id": message.key},
+            )
+        except (NatsError, TimeoutError) as e:  # unknown whether stored: published (at least once)
+            self.publish_errors += 1
+            log.warning("detection not stored", extra={"fields": {"id": message.key, "error": repr(e)}})
+        else:
+            if ack.duplicate:
+                self.duplicates += 1
+                log.debug("duplicate", extra={"fields": {"id": message.key}})
+                return
+        await self._plain(message)
+
+    async def _plain(self, message: Outgoing) -> None:
+        if self._nc is None:
+            return
+        with contextlib.suppress(NatsError):
+            await self._nc.publish(message.topic.replace("/", "."), message.payload)
+
+
+def transport(settings: ClusterConfig, *, instance: str, source: bool, sink: bool) -> NatsTransport:
+    return NatsTransport(settings, instance=instance, source=source, sink=sink)
