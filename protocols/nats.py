@@ -54,6 +54,8 @@ QUEUE = 1 << 20
 """Messages received and not yet taken in, at most (then the consumers wait: JetStream's flow
 control holds the rest on the server)."""
 PUBLISH_TIMEOUT_S = 2.0
+CATCH_UP_S = 2.0
+"""The longest recognition waits for a taken partition's buffer to be read."""
 
 
 def buffer_subject(partition: int) -> str:
@@ -87,6 +89,7 @@ class NatsTransport:
         self._streams: dict[int, set[str]] = {}
         self._partial: set[int] = set()
         self._partition_of: dict[str, int] = {}
+        self._behind: dict[int, float] = {}  # partitions still reading their buffer: since when
         self._drain_s = 1.0
         self._connected = False
         self.replayed = 0
@@ -227,12 +230,20 @@ class NatsTransport:
             with contextlib.suppress(asyncio.CancelledError):
                 await task
             self._partial.discard(p)
+            self._behind.pop(p, None)
             for stream in self._streams.pop(p, set()):
                 self._partition_of.pop(stream, None)
                 lost.append(stream)
         for p in sorted(partitions - set(self._consumers)):
             self._consumers[p] = asyncio.create_task(self._consume(p), name=f"partition {p}")
         return lost
+
+    @property
+    def catching_up(self) -> bool:
+        """Whether a partition taken less than :data:`CATCH_UP_S` ago is still reading what its
+        buffer held (the service recognises after it: the partition is live sooner)."""
+        now = time.monotonic()
+        return any(now - since < CATCH_UP_S for since in self._behind.values())
 
     def partition(self, stream: str) -> int | None:
         """The owned partition ``stream`` came in on (None: none seen)."""
@@ -255,6 +266,8 @@ class NatsTransport:
         last = state.last_seq
         if state.first_seq > 1:
             self._partial.add(p)
+        if state.messages:
+            self._behind[p] = time.monotonic()
         log.info(
             "partition taken",
             extra={"fields": {"partition": p, "buffered": state.messages, "partial": state.first_seq > 1}},
@@ -272,7 +285,10 @@ class NatsTransport:
         try:
             async for msg in sub.messages:
                 if not live:
-                    if msg.metadata.sequence.stream > last:
+                    seq = msg.metadata.sequence.stream
+                    if seq >= last:
+                        self._behind.pop(p, None)
+                    if seq > last:
                         live = True
                         log.info(
                             "partition live",
@@ -281,7 +297,11 @@ class NatsTransport:
                     else:
                         self.replayed += 1
                 incoming = self._incoming(msg, streams, p)
-                if incoming is not None:
+                if incoming is None:
+                    continue
+                try:
+                    self._queue.put_nowait((p, incoming))
+                except asyncio.QueueFull:
                     await self._queue.put((p, incoming))
         finally:
             with contextlib.suppress(NatsError, TimeoutError, OSError):

@@ -22,7 +22,9 @@ START_S = 15.0
 def nats_binary() -> str:
     binary = shutil.which("nats-server") or "/usr/bin/nats-server"
     if not Path(binary).exists():
-        raise AssertionError("nats-server is not installed (.ci/run installs it: apt-get install nats-server)")
+        raise AssertionError(
+            "nats-server is not installed (.ci/run installs it: apt-get install nats-server)"
+        )
     return binary
 
 

@@ -72,6 +72,8 @@ DROPS = ("lagging",)
 """Taken-in poses not recognised: a full queue; and ``recognizer_<problem>``, the recogniser's refusals."""
 YIELD_EVERY = 64
 """Messages an intake takes before it lets the other tasks run."""
+CATCH_UP_POLL_S = 0.005
+"""How often recognition looks whether the cluster transport has read a taken partition's buffer."""
 
 
 class _Stop(Exception):
@@ -299,6 +301,9 @@ class Service:
             self._work.clear()
             deadline = time.perf_counter() + budget
             while self.table.queued:
+                while self.cluster is not None and self.cluster.transport.catching_up:
+                    # a partition just taken: read its buffer first, so that it is live sooner
+                    await asyncio.sleep(CATCH_UP_POLL_S)
                 started = time.perf_counter()
                 emitted, refused = self.table.tick()
                 for stream, problem, why in refused:
