@@ -191,7 +191,7 @@ def test_takeovers_lose_and_repeat_no_detection(tmp_path: Path) -> None:
             cwd=REPO,
             env={**os.environ, "PYTHONPATH": str(REPO)},
         )
-        w1, w2, w3 = workers
+        w1, w2, _ = workers
         time.sleep(8)
         killed_owned, killed_at = w1.owned(), time.time()
         w1.stop(signal.SIGKILL)

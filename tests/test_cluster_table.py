@@ -1,0 +1,98 @@
+"""The stream table's cluster rules (``docs/cluster.md``, "Takeover"), on a real recording: a worker
+that takes a stream over mid-run, from a buffer that lost the run's start, publishes exactly the
+detections a worker that saw the whole run publishes from its warm-up on, with the same ids, and
+nothing else; motions begin at a multiple of the decimation step; ids depend on the source's run,
+not on the process."""
+
+from __future__ import annotations
+
+import uuid
+from functools import cache
+
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from daemon.config import RecognizerConfig, ServiceConfig
+from daemon.library import Library, default_library_path, load_library
+from daemon.recordings import read_recording
+from daemon.service.streams import StreamTable
+from protocols.messages import DetectionMessage, PoseMessage, SkeletonMessage
+from tests.helpers import DATA
+
+ASF, AMC = DATA / "cmu" / "13" / "13.asf", DATA / "cmu" / "13" / "13_30.amc.gz"
+PASSES = 2
+HOLD_S = 1.0
+"""A shorter hold than the default's 5 s: a shorter reach, so the warm-up leaves more to compare."""
+
+
+@cache
+def library() -> Library:
+    return load_library(default_library_path())
+
+
+@cache
+def channels() -> np.ndarray:
+    """The recording looped ``PASSES`` times, shape ``(N, channels)``."""
+    return np.concatenate([read_recording(ASF, AMC).channels] * PASSES)
+
+
+def table() -> StreamTable:
+    return StreamTable(
+        library(),
+        session="cluster",
+        service=ServiceConfig(queue_frames=100_000),
+        recognizer=RecognizerConfig(hold_s=HOLD_S),
+        cluster=True,
+    )
+
+
+def run(first: int, *, warm: bool) -> tuple[list[DetectionMessage], StreamTable, int | None]:
+    """A cluster table's detections of the stream from sequence number ``first`` on (``warm``: as a
+    worker that took it over from a partial buffer), the stream's end flushed; the table, and the
+    sequence number before which its detections were suppressed."""
+    t = table()
+    t.skeleton(SkeletonMessage("s", 120.0, asf=ASF.read_text(), angle_unit="rad", epoch="run1"), 0.0)
+    if warm:
+        t.warm_up("s")
+    out = []
+    frames = channels()
+    for seq in range(first, len(frames)):
+        t.pose(PoseMessage("s", seq, seq / 120, channels=frames[seq], epoch="run1"), seq / 120)
+        out += t.tick()[0]
+    limit = t.streams["s"].suppress_before
+    out += t.flush_all()
+    return [e.message for e in out if isinstance(e.message, DetectionMessage)], t, limit
+
+
+@cache
+def whole() -> list[DetectionMessage]:
+    return run(0, warm=False)[0]
+
+
+def key(d: DetectionMessage) -> tuple[object, ...]:
+    return (d.id, d.class_name, d.start_frame, d.end_frame, d.cost, d.tau, d.emitted_at_frame)
+
+
+def test_ids_are_the_runs_not_the_processes() -> None:
+    found = whole()
+    assert len(found) > 10
+    for d in found:
+        name = f"cluster/run1/s/{d.class_name}/{d.start_frame}/{d.end_frame}"
+        assert d.id == str(uuid.uuid5(uuid.NAMESPACE_URL, name))
+
+
+@settings(max_examples=8, deadline=None)
+@given(st.integers(1, 2400))
+def test_a_takeover_mid_run_gives_the_whole_runs_detections_after_its_warm_up(first: int) -> None:
+    mine, t, limit = run(first, warm=True)
+    begun = first + (-first % 4)  # the first multiple of the decimation step
+    assert t.counts["aligning"] == begun - first
+    assert limit is not None and limit > begun
+    reference = whole()
+    after = [key(d) for d in reference if d.start_frame >= limit]
+    assert after, "nothing left after the warm-up to compare"
+    # from its warm-up on it publishes what the whole run's worker publishes, ids and all, and
+    # nothing else (what it suppressed, the old owner had published: docs/cluster.md)
+    assert [key(d) for d in mine] == after
+    assert t.counts["warmup_suppressed"] > 0
