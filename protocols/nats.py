@@ -30,7 +30,7 @@ from collections.abc import AsyncIterator
 from types import TracebackType
 from typing import TYPE_CHECKING
 
-import nats
+from nats.aio.client import Client as NATS
 from nats.errors import Error as NatsError
 from nats.js.api import DeliverPolicy, DiscardPolicy, RetentionPolicy, StorageType, StreamConfig
 from nats.js.errors import Error as JetStreamError
@@ -38,7 +38,6 @@ from nats.js.errors import Error as JetStreamError
 from protocols.transport import Incoming, Outgoing, StartupError
 
 if TYPE_CHECKING:
-    from nats.aio.client import Client
     from nats.aio.msg import Msg
     from nats.js.client import JetStreamContext
 
@@ -54,6 +53,8 @@ QUEUE = 1 << 20
 """Messages received and not yet taken in, at most (then the consumers wait: JetStream's flow
 control holds the rest on the server)."""
 PUBLISH_TIMEOUT_S = 2.0
+STARTUP_S = 3.0
+"""Entering fails when the server has not answered within this many seconds."""
 CATCH_UP_S = 2.0
 """The longest recognition waits for a taken partition's buffer to be read."""
 
@@ -81,7 +82,7 @@ class NatsTransport:
         self.buffer_s = settings.buffer_s or 60.0
         self._source = source
         self._sink = sink
-        self._nc: Client | None = None
+        self._nc: NATS | None = None
         self._js: JetStreamContext | None = None
         self._status: tuple[Outgoing, Outgoing] | None = None
         self._queue: asyncio.Queue[tuple[int, Incoming]] = asyncio.Queue(QUEUE)
@@ -105,25 +106,31 @@ class NatsTransport:
 
     async def __aenter__(self) -> NatsTransport:
         url = self.settings.nats
+        nc = NATS()
         try:
-            self._nc = await nats.connect(
-                url,
-                name=self.instance,
-                connect_timeout=2,
-                max_reconnect_attempts=-1,
-                reconnect_time_wait=0.25,
-                disconnected_cb=self._disconnected,
-                reconnected_cb=self._reconnected,
-                error_cb=self._error,
-            )
+            async with asyncio.timeout(STARTUP_S):  # the client itself would try for ever
+                await nc.connect(
+                    url,
+                    name=self.instance,
+                    connect_timeout=min(2.0, STARTUP_S),
+                    max_reconnect_attempts=-1,
+                    reconnect_time_wait=0.25,
+                    disconnected_cb=self._disconnected,
+                    reconnected_cb=self._reconnected,
+                    error_cb=self._error,
+                )
         except (OSError, NatsError, TimeoutError) as e:
-            raise StartupError("cluster.nats", f"{url}: cannot connect ({type(e).__name__})") from None
+            with contextlib.suppress(NatsError, TimeoutError, OSError):
+                await nc.close()
+            why = "no answer in time" if isinstance(e, TimeoutError) else str(e) or type(e).__name__
+            raise StartupError("cluster.nats", f"cannot connect to NATS at {url}: {why}") from None
+        self._nc = nc
         self._connected = True
-        self._js = self._nc.jetstream()
+        self._js = nc.jetstream()
         try:
             await self._ensure_streams()
         except (NatsError, TimeoutError) as e:
-            await self._nc.close()
+            await nc.close()
             raise StartupError("cluster.nats", f"{url}: JetStream unavailable or refused: {e}") from None
         if self._status is not None:
             await self._plain(self._status[0])

@@ -119,7 +119,7 @@ BAD = [
     (
         "unknown-top",
         "replay: {}\nextra: 1\n",
-        "extra: unknown field (allowed: logging, metrics, mqtt, recognizer",
+        "extra: unknown field (allowed: cluster, logging, metrics, mqtt, recognizer",
     ),
     (
         "unknown-recognizer",
