@@ -2,7 +2,7 @@
 only its ports, monitoring address and JetStream directory replaced, so the configuration that ships
 (JetStream, the MQTT listener, the partitioning subject mappings) is the one tested.
 
-nats-server is Debian's ``nats-server`` (2.9, ``/usr/bin/nats-server``; ``.ci/run`` installs it)."""
+nats-server is Debian's ``nats-server`` (2.9, ``/usr/sbin/nats-server``; ``.ci/run`` installs it)."""
 
 from __future__ import annotations
 
@@ -20,7 +20,7 @@ START_S = 15.0
 
 
 def nats_binary() -> str:
-    binary = shutil.which("nats-server") or "/usr/bin/nats-server"
+    binary = shutil.which("nats-server") or "/usr/sbin/nats-server"
     if not Path(binary).exists():
         raise AssertionError(
             "nats-server is not installed (.ci/run installs it: apt-get install nats-server)"
