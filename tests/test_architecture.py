@@ -212,7 +212,10 @@ def test_asyncio_only_in_the_service_the_transports_and_the_cluster_adapters() -
 def test_the_ring_is_pure() -> None:
     """Which member owns which partition loads nothing but the error root: no asyncio, no etcd
     client, no engine."""
-    code = "import sys, daemon.cluster.ring; print(sorted(m for m in ('asyncio', 'aetcd', 'grpc', 'numpy') if m in sys.modules))"
+    code = (
+        "import sys, daemon.cluster.ring\n"
+        "print(sorted(m for m in ('asyncio', 'aetcd', 'grpc', 'numpy') if m in sys.modules))"
+    )
     out = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "[]"
     assert loaded("import daemon.cluster.ring") == {"daemon", "daemon.errors", "daemon.cluster"}

@@ -330,7 +330,12 @@ class Membership:
         """Put ``{prefix}status/{member}`` = ``status`` as JSON under the member's lease (it goes when
         the member goes). Best effort: while :attr:`problem` is set, or when etcd does not answer
         within a keep-alive interval, nothing is written and :attr:`report_problem` says why.
-        ValueError for a status JSON cannot hold (NaN, infinities, objects)."""
+        ValueError for a status JSON cannot hold (NaN, infinities, objects).
+
+        ``mocapd cluster status`` reads these keys of it (others are shown as they are):
+        ``partitions`` (the partitions the worker owns now, a list of ints), ``streams`` (streams
+        per partition: an object from the partition's number as a string to a count) and ``lag_s``
+        (how far behind the worker is, in seconds)."""
         payload = json.dumps(dict(status), allow_nan=False, separators=(",", ":")).encode()
         if self.problem is not None or self._lease is None:
             self._report_problem = f"not reported: {self.problem or 'no lease'}"
@@ -377,6 +382,11 @@ def _json_object(raw: bytes) -> dict[str, Any] | None:
     except ValueError:
         return None
     return value if isinstance(value, dict) else None
+
+
+def read_cluster(coordinator: str, prefix: str = "/mocapd/") -> ClusterStatus:
+    """:func:`cluster_status` for a caller without an event loop (the command line)."""
+    return asyncio.run(cluster_status(coordinator, prefix))
 
 
 async def cluster_status(coordinator: str, prefix: str = "/mocapd/") -> ClusterStatus:
