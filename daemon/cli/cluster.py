@@ -66,6 +66,17 @@ def _ints(value: Any) -> list[int] | None:
     return None
 
 
+def _counts(value: Any) -> dict[int, int]:
+    """The streams per partition of a report: ``{"3": 4}`` → ``{3: 4}``; what is not that, left out."""
+    if not isinstance(value, dict):
+        return {}
+    return {
+        int(k): c
+        for k, c in value.items()
+        if str(k).isdigit() and isinstance(c, int) and not isinstance(c, bool)
+    }
+
+
 def summary(status: ClusterStatus, partitions: int) -> dict[str, Any]:
     """The cluster as ``--json`` prints it: per member the ring's partitions and the reported ones,
     per partition its owner, who reports it and its streams, and the disagreements."""
@@ -79,10 +90,9 @@ def summary(status: ClusterStatus, partitions: int) -> dict[str, Any]:
     for m in status.members:
         report = m.status or {}
         reported = _ints(report.get("partitions"))
-        counts = report.get("streams") if isinstance(report.get("streams"), dict) else {}
-        for key, count in counts.items():
-            if str(key).isdigit() and isinstance(count, int):
-                streams[int(key)] = streams.get(int(key), 0) + count
+        counts = _counts(report.get("streams"))
+        for p, count in counts.items():
+            streams[p] = streams.get(p, 0) + count
         expected = sorted(ring[m.name])
         if m.status is None:
             disagreements.append(f"{m.name} has not reported")
@@ -105,7 +115,7 @@ def summary(status: ClusterStatus, partitions: int) -> dict[str, Any]:
                 "ring": expected,
                 "reported": reported,
                 "agrees": reported == expected,
-                "streams": sum(c for c in counts.values() if isinstance(c, int)),
+                "streams": sum(counts.values()),
                 "lag_s": lag if isinstance(lag, int | float) and not isinstance(lag, bool) else None,
                 "status": m.status,
                 "about": m.about,
