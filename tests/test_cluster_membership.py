@@ -210,3 +210,20 @@ async def test_a_member_whose_keep_alives_go_unanswered_fences_itself_and_comes_
         await until(lambda: w.problem is None, w.lease_ttl + 1, "w to be back")
         await until(lambda: seen[-1][1] == {"w"}, 1, "changes() to yield w back")
     follower.cancel()
+
+
+@pytest.mark.slow
+async def test_the_watch_comes_back_after_etcd_restarts(etcd: Etcd) -> None:
+    """etcd killed and started again on its ports and data: the members keep their leases (etcd
+    restores them and extends them when it leads again), their problem clears, and a join after the
+    restart is seen."""
+    async with Membership(etcd.url, "a") as a, Membership(etcd.url, "b") as b:
+        etcd.kill()
+        await until(lambda: a.problem is not None and b.problem is not None, 5, "both to notice")
+        assert "watching the members" in (a.problem or "") or "keep-alive" in (a.problem or "")
+        await asyncio.to_thread(etcd.start, True)
+        await until(lambda: a.problem is None and b.problem is None, 15, "both to be back")
+        assert a.members == b.members == {"a", "b"}
+        async with Membership(etcd.url, "c"):
+            await until(lambda: a.members == {"a", "b", "c"}, 5, "a to see c join after the restart")
+        await until(lambda: a.members == {"a", "b"}, 5, "a to see c leave")
