@@ -124,9 +124,20 @@ class Membership:
 
     @property
     def problem(self) -> str | None:
-        """None while this member surely holds its lease and sees the others; else why not. The
-        worker must then own no partition (see the module's "Fencing"; :attr:`members` already
-        leaves this member out)."""
+        """None while this member surely holds its lease and sees the others; else why not.
+
+        The worker fences itself by this: while it is set the worker owns no partition — it stops
+        taking in and publishing for every stream and drops its subscriptions — and it owns again
+        only what the ring gives it once it clears. Both follow from taking the partitions from
+        :meth:`changes` (:attr:`members` leaves this member out while ``problem`` is set, and a
+        change is yielded when it becomes set, two thirds of a TTL after the last answered
+        keep-alive: a third of a TTL before etcd could let another member take over)::
+
+            async for members in membership.changes():
+                mine = ring.owned(membership.member, members, partitions)  # empty while fenced
+
+        and, for work already under way, checking ``problem is None`` before publishing each
+        batch. See the module's "Fencing"."""
         if self._closed:
             return "left the cluster"
         if self._runner is not None and self._runner.done():
