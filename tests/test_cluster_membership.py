@@ -16,10 +16,10 @@ import subprocess
 import sys
 import time
 from collections.abc import Callable
-from pathlib import Path
 
 import pytest
 
+from bench.processes import free_port
 from daemon.cluster.membership import STARTUP_S, Membership, cluster_status
 from daemon.errors import InputError
 from protocols.transport import StartupError
@@ -79,9 +79,7 @@ async def test_a_duplicate_member_name_is_refused(etcd: Etcd) -> None:
         assert again.members == {"w1"}
 
 
-async def test_an_unreachable_etcd_fails_fast_naming_the_coordinator(tmp_path: Path) -> None:
-    from bench.processes import free_port
-
+async def test_an_unreachable_etcd_fails_fast_naming_the_coordinator() -> None:
     started = time.monotonic()
     with pytest.raises(StartupError, match="cannot join through etcd") as refused:
         async with Membership(f"etcd://127.0.0.1:{free_port()}", "w"):
