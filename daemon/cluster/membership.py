@@ -140,6 +140,8 @@ class Membership:
         batch. See the module's "Fencing"."""
         if self._closed:
             return "left the cluster"
+        if self._runner is None:
+            return "not joined"
         if self._runner is not None and self._runner.done():
             failed = None if self._runner.cancelled() else self._runner.exception()
             return f"the membership's tasks ended: {failed!r}"
@@ -264,7 +266,9 @@ class Membership:
 
     async def _list_and_watch(self) -> None:
         listing = await self._client.get_prefix(self._members_prefix)
-        self._seen = {bytes(kv.key)[len(self._members_prefix) :].decode(): kv.lease for kv in listing}
+        self._seen = {
+            bytes(kv.key)[len(self._members_prefix) :].decode(errors="replace"): kv.lease for kv in listing
+        }
         self._watch = await self._client.watch_prefix(
             self._members_prefix, start_revision=listing.header.revision + 1
         )
@@ -288,6 +292,8 @@ class Membership:
                         answered = await self._rejoin()
                     else:
                         reply = await self._lease.refresh()
+                        if reply is None:  # the keep-alive stream closed without an answer
+                            raise aetcd.ClientError("the keep-alive stream closed without an answer")
                         answered = reply.TTL > 0
                         if not answered:
                             self._lease_problem = f"etcd says the lease of {self.member!r} expired"
@@ -320,7 +326,7 @@ class Membership:
                     async with asyncio.timeout(max(self.interval, RETRY_S)):
                         await self._list_and_watch()
                 async for event in self._watch:
-                    name = bytes(event.kv.key)[len(self._members_prefix) :].decode()
+                    name = bytes(event.kv.key)[len(self._members_prefix) :].decode(errors="replace")
                     if event.kind == aetcd.EventKind.DELETE:
                         self._seen.pop(name, None)
                     else:
@@ -410,12 +416,12 @@ async def cluster_status(coordinator: str, prefix: str = "/mocapd/") -> ClusterS
         async with asyncio.timeout(STARTUP_S):
             listing = await client.get_prefix(members_prefix)
             statuses = {
-                bytes(kv.key)[len(status_prefix) :].decode(): _json_object(kv.value)
+                bytes(kv.key)[len(status_prefix) :].decode(errors="replace"): _json_object(kv.value)
                 for kv in await client.get_prefix(status_prefix)
             }
             members = []
             for kv in listing:
-                name = bytes(kv.key)[len(members_prefix) :].decode()
+                name = bytes(kv.key)[len(members_prefix) :].decode(errors="replace")
                 left = (await client.get_lease_info(kv.lease, keys=False)).TTL if kv.lease else -1
                 members.append(
                     MemberStatus(
