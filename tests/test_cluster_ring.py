@@ -95,11 +95,13 @@ def test_a_negative_partition_count_is_refused() -> None:
 def multinomial_at_least(n: int, k: int, threshold: int) -> float:
     """P(the largest of k equal-chance counts of n throws is ≥ threshold), for k = 3 exactly."""
     assert k == 3
-    return sum(
-        comb(n, a) * comb(n - a, b) / 3**n
-        for a in range(n + 1)
-        for b in range(n + 1 - a)
-        if max(a, b, n - a - b) >= threshold
+    return float(
+        sum(
+            comb(n, a) * comb(n - a, b) / 3**n
+            for a in range(n + 1)
+            for b in range(n + 1 - a)
+            if max(a, b, n - a - b) >= threshold
+        )
     )
 
 

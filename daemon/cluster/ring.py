@@ -7,7 +7,7 @@ and a change of the set moves the fewest partitions possible: when a member leav
 partitions move (each to the member ranked next for it), and when one joins only the partitions it
 now ranks highest for move, all to it. Grafana Mimir's hash ring gives the same guarantees with
 tokens on a circle; with a few members and tens of partitions the direct ranking is as cheap
-(``partitions × members`` hashes) and needs no tokens.
+(``partitions * members`` hashes) and needs no tokens.
 
 Balance is that of throwing each partition to a uniformly random member: the loads follow a
 multinomial distribution. With 16 partitions and 3 members a member owns 5.3 on average, and the
@@ -22,6 +22,8 @@ from __future__ import annotations
 
 import hashlib
 from collections.abc import Iterable
+
+from daemon.errors import InputError
 
 _SEPARATOR = b"\xff"  # never in UTF-8: the member's bytes end unambiguously before the partition's
 
@@ -49,7 +51,7 @@ def owner(partition: int, members: Iterable[str]) -> str | None:
 
 def _check(partitions: int) -> None:
     if partitions < 0:
-        raise ValueError(f"partitions must be 0 or more, got {partitions}")
+        raise InputError(f"partitions must be 0 or more, got {partitions}")
 
 
 def assignment(members: Iterable[str], partitions: int) -> dict[str, frozenset[int]]:
