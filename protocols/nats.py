@@ -88,7 +88,8 @@ class NatsTransport:
         self._queue: asyncio.Queue[tuple[int, Incoming]] = asyncio.Queue(QUEUE)
         self._consumers: dict[int, asyncio.Task[None]] = {}
         self._streams: dict[int, set[str]] = {}
-        self._partial: set[int] = set()
+        self._partial: set[int] = set()  # partitions taken from a buffer that had lost messages
+        self._truncated: set[str] = set()  # streams first seen in the replay of such a buffer
         self._partition_of: dict[str, int] = {}
         self._behind: dict[int, float] = {}  # partitions still reading their buffer: since when
         self._drain_s = 1.0
@@ -222,11 +223,11 @@ class NatsTransport:
         return frozenset(self._consumers)
 
     def partial(self, stream: str) -> bool:
-        """Whether ``stream``'s partition was taken with a buffer that had already lost messages to
-        its age limit, so that its replay may begin mid-motion (the service then suppresses what a
-        truncated history could get wrong)."""
-        p = self._partition_of.get(stream)
-        return p is not None and p in self._partial
+        """Whether ``stream`` was first seen in the replay of a buffer that had already lost
+        messages (to its age limit), so that its history here may begin mid-motion (the service then
+        suppresses what a truncated history could get wrong). A stream first seen live, or in a
+        buffer that holds the partition's whole history, is seen from its start."""
+        return stream in self._truncated
 
     async def own(self, partitions: frozenset[int]) -> list[str]:
         """Consume exactly ``partitions`` from now on; the streams seen in the partitions given up."""
@@ -240,6 +241,7 @@ class NatsTransport:
             self._behind.pop(p, None)
             for stream in self._streams.pop(p, set()):
                 self._partition_of.pop(stream, None)
+                self._truncated.discard(stream)
                 lost.append(stream)
         for p in sorted(partitions - set(self._consumers)):
             self._consumers[p] = asyncio.create_task(self._consume(p), name=f"partition {p}")
@@ -263,6 +265,7 @@ class NatsTransport:
             streams -= gone
             for s in gone:
                 self._partition_of.pop(s, None)
+                self._truncated.discard(s)
 
     async def _consume(self, p: int) -> None:
         assert self._js is not None
@@ -303,7 +306,7 @@ class NatsTransport:
                         )
                     else:
                         self.replayed += 1
-                incoming = self._incoming(msg, streams, p)
+                incoming = self._incoming(msg, streams, p, truncated=not live and p in self._partial)
                 if incoming is None:
                     continue
                 try:
@@ -314,7 +317,9 @@ class NatsTransport:
             with contextlib.suppress(NatsError, TimeoutError, OSError):
                 await sub.unsubscribe()
 
-    def _incoming(self, msg: Msg, streams: set[str], p: int) -> Incoming | None:
+    def _incoming(self, msg: Msg, streams: set[str], p: int, *, truncated: bool) -> Incoming | None:
+        """The message as the service takes it in; a stream seen for the first time is noted, and
+        noted as ``truncated`` if its first message came from the replay of a partial buffer."""
         tokens = msg.subject.split(".")
         if len(tokens) < 5:
             return None
@@ -322,6 +327,8 @@ class NatsTransport:
         if stream not in streams:
             streams.add(stream)
             self._partition_of[stream] = p
+            if truncated:
+                self._truncated.add(stream)
         return Incoming(f"mocap/{stream}/{tokens[-1]}", msg.data, time.time())
 
     # --------------------------------------------------------------------------- source and sink

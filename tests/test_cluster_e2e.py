@@ -26,6 +26,7 @@ import msgpack
 import numpy as np
 import pytest
 
+from bench.processes import free_port, scrape
 from daemon.library import default_library_path, load_library
 from daemon.recognizer import detect
 from daemon.recordings import read_recording
@@ -82,13 +83,14 @@ class Worker:
     def __init__(self, where: Path, name: str, nats: str, etcd: str) -> None:
         self.name = name
         self.err = where / f"{name}.err"
-        config = where / "worker.yaml"
+        self.metrics_port = free_port()
+        config = where / f"{name}.yaml"
         config.write_text(
             json.dumps(
                 {
                     "service": {"idle_s": 3},
                     "cluster": {"partitions": partitions(), "lease_s": LEASE_S},
-                    "metrics": {"port": 0},
+                    "metrics": {"port": self.metrics_port},
                     "logging": {"level": "debug"},
                 }
             ),
@@ -126,6 +128,9 @@ class Worker:
     def sees(self, members: int) -> bool:
         last = self.events("partitions")
         return bool(last) and len(last[-1]["members"]) == members
+
+    def metrics(self) -> dict[str, float]:
+        return scrape(self.metrics_port)
 
     def stop(self, sig: int = signal.SIGTERM) -> None:
         if self.process.poll() is None:
@@ -229,6 +234,15 @@ def test_takeovers_lose_and_repeat_no_detection(tmp_path: Path) -> None:
         # the killed worker's streams were recognised again from their buffers: what it had
         # published already was computed again, with the same ids, and not published twice
         assert sum(len(w.events("duplicate")) for w in workers) > 0
+        # the survivors' /metrics say so too
+        m = [w.metrics() for w in (workers[2], workers[3])]
+        assert [x["mocapd_cluster_members"] for x in m] == [2, 2]
+        assert sum(x["mocapd_cluster_partitions"] for x in m) == partitions()
+        assert sum(x["mocapd_cluster_takeovers_total"] for x in m) > 0
+        assert sum(x["mocapd_cluster_replayed_poses_total"] for x in m) > 0
+        assert sum(x["mocapd_cluster_duplicates_suppressed_total"] for x in m) == sum(
+            len(w.events("duplicate")) for w in workers[2:]
+        )
     finally:
         if load is not None and load.poll() is None:
             load.kill()
