@@ -113,9 +113,9 @@ class NatsTransport:
                 await nc.connect(
                     url,
                     name=self.instance,
-                    connect_timeout=min(2.0, STARTUP_S),
+                    connect_timeout=2,
                     max_reconnect_attempts=-1,
-                    reconnect_time_wait=0.25,
+                    reconnect_time_wait=0.25,  # type: ignore[arg-type]  # seconds, a float (the stub says int)
                     disconnected_cb=self._disconnected,
                     reconnected_cb=self._reconnected,
                     error_cb=self._error,

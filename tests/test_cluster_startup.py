@@ -38,3 +38,14 @@ def test_an_unreachable_bus_or_coordinator_is_named(tmp_path: Path) -> None:
         )
     finally:
         server.stop()
+
+
+def test_bad_cluster_settings_are_named(tmp_path: Path) -> None:
+    result = mocapd("run", "--cluster", "http://127.0.0.1:4222", "--coordinator", "etcd://127.0.0.1:2379")
+    assert result.returncode == 2
+    assert "--cluster: must be nats://HOST:PORT" in result.stderr.splitlines()[-1]
+    config = tmp_path / "c.yaml"
+    config.write_text("cluster:\n  coordinator: zk://127.0.0.1:2181\n", encoding="utf-8")
+    result = mocapd("--config", config, "run")
+    assert result.returncode == 2
+    assert "cluster.coordinator: must be etcd://HOST[:PORT]" in result.stderr.splitlines()[-1]

@@ -161,8 +161,10 @@ class Metrics(Collector):
         yield e2e
         if self.cluster is not None:
             for name, doc, kind, value in self.cluster():
-                family = GaugeMetricFamily if kind == "gauge" else CounterMetricFamily
-                yield family(name, doc, value=value)
+                if kind == "gauge":
+                    yield GaugeMetricFamily(name, doc, value=value)
+                else:
+                    yield CounterMetricFamily(name, doc, value=value)
 
 
 async def open_http(
