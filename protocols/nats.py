@@ -6,8 +6,8 @@ subject ``mocap.<stream>.pose``, which the server maps (``deploy/nats/nats.conf`
 Each partition's messages are captured by its own JetStream stream ``MOCAPD_BUF_<p>`` (memory,
 ``cluster.buffer_s`` long): the buffer a new owner rebuilds the partition's streams from. A worker
 owns some partitions (:meth:`NatsTransport.own`, told by the membership) and reads each owned one
-with an ordered consumer that starts at the first buffered message: the buffer replayed, then live,
-one sequence without a seam. Messages of a partition given up are dropped, even those already
+with a push consumer (no acknowledgements, flow control) that starts at the first buffered message,
+read through a core subscription: the buffer replayed, then live, one sequence without a seam. Messages of a partition given up are dropped, even those already
 queued.
 
 Detections and boundaries are stored first in ``MOCAPD_OUT`` (subjects ``mocap.d.<stream>.<word>``)
@@ -32,7 +32,15 @@ from typing import TYPE_CHECKING
 
 from nats.aio.client import Client as NATS
 from nats.errors import Error as NatsError
-from nats.js.api import DeliverPolicy, DiscardPolicy, RetentionPolicy, StorageType, StreamConfig
+from nats.js.api import (
+    AckPolicy,
+    ConsumerConfig,
+    DeliverPolicy,
+    DiscardPolicy,
+    RetentionPolicy,
+    StorageType,
+    StreamConfig,
+)
 from nats.js.errors import Error as JetStreamError
 
 from protocols.transport import Incoming, Outgoing, StartupError
@@ -99,6 +107,8 @@ class NatsTransport:
         self.duplicates = 0
         """Detections and boundaries not published because a worker had published them already."""
         self.publish_errors = 0
+        self.gaps = 0
+        """Buffered messages a consumer skipped (none on a healthy server)."""
 
     # ------------------------------------------------------------------------------ the connection
 
@@ -282,40 +292,71 @@ class NatsTransport:
             "partition taken",
             extra={"fields": {"partition": p, "buffered": state.messages, "partial": state.first_seq > 1}},
         )
-        sub = await js.subscribe(
-            buffer_subject(p),
-            stream=BUFFER.format(p),
-            ordered_consumer=True,
-            deliver_policy=DeliverPolicy.ALL,
-            pending_msgs_limit=QUEUE,
-            pending_bytes_limit=1 << 30,
-        )
+        nc = self._nc
+        assert nc is not None
         live = False
+        expected = 1  # the consumer's next delivery sequence
         streams = self._streams.setdefault(p, set())
+
+        async def got(msg: Msg) -> None:
+            nonlocal live, expected
+            headers = msg.headers
+            if headers and headers.get("Status") == "100":  # flow control, or a heartbeat
+                reply = msg.reply or headers.get("Nats-Consumer-Stalled")
+                if reply:
+                    await nc.publish(reply, b"")
+                return
+            meta = msg.metadata
+            if meta.sequence.consumer != expected:  # lost on the way (never on one server)
+                self.gaps += meta.sequence.consumer - expected
+                log.warning("buffer gap", extra={"fields": {"partition": p, "expected": expected}})
+            expected = meta.sequence.consumer + 1
+            if not live:
+                seq = meta.sequence.stream
+                if seq >= last:
+                    self._behind.pop(p, None)
+                if seq > last:
+                    live = True
+                    log.info(
+                        "partition live",
+                        extra={"fields": {"partition": p, "since_taken": round(time.time() - taken, 4)}},
+                    )
+                else:
+                    self.replayed += 1
+            incoming = self._incoming(msg, streams, p, truncated=not live and p in self._partial)
+            if incoming is None:
+                return
+            try:
+                self._queue.put_nowait((p, incoming))
+            except asyncio.QueueFull:
+                await self._queue.put((p, incoming))
+
+        # A push consumer read by a core subscription, flow control answered here: nats-py's ordered
+        # consumer does the same with its own checks per message, at a fifth of the rate (a taken
+        # partition's buffer is read this much sooner).
+        inbox = nc.new_inbox()
+        sub = await nc.subscribe(inbox, cb=got, pending_msgs_limit=QUEUE, pending_bytes_limit=1 << 30)
+        consumer = None
         try:
-            async for msg in sub.messages:
-                if not live:
-                    seq = msg.metadata.sequence.stream
-                    if seq >= last:
-                        self._behind.pop(p, None)
-                    if seq > last:
-                        live = True
-                        log.info(
-                            "partition live",
-                            extra={"fields": {"partition": p, "since_taken": round(time.time() - taken, 4)}},
-                        )
-                    else:
-                        self.replayed += 1
-                incoming = self._incoming(msg, streams, p, truncated=not live and p in self._partial)
-                if incoming is None:
-                    continue
-                try:
-                    self._queue.put_nowait((p, incoming))
-                except asyncio.QueueFull:
-                    await self._queue.put((p, incoming))
+            consumer = await js.add_consumer(
+                BUFFER.format(p),
+                ConsumerConfig(
+                    deliver_subject=inbox,
+                    deliver_policy=DeliverPolicy.ALL,
+                    ack_policy=AckPolicy.NONE,
+                    filter_subject=buffer_subject(p),
+                    flow_control=True,
+                    idle_heartbeat=5.0,
+                    inactive_threshold=30.0,
+                ),
+            )
+            await asyncio.Event().wait()  # until the partition is given up (cancelled)
         finally:
             with contextlib.suppress(NatsError, TimeoutError, OSError):
                 await sub.unsubscribe()
+            if consumer is not None:
+                with contextlib.suppress(NatsError, TimeoutError, OSError):
+                    await js.delete_consumer(BUFFER.format(p), consumer.name)
 
     def _incoming(self, msg: Msg, streams: set[str], p: int, *, truncated: bool) -> Incoming | None:
         """The message as the service takes it in; a stream seen for the first time is noted, and
