@@ -7,8 +7,8 @@ Each partition's messages are captured by its own JetStream stream ``MOCAPD_BUF_
 ``cluster.buffer_s`` long): the buffer a new owner rebuilds the partition's streams from. A worker
 owns some partitions (:meth:`NatsTransport.own`, told by the membership) and reads each owned one
 with a push consumer (no acknowledgements, flow control) that starts at the first buffered message,
-read through a core subscription: the buffer replayed, then live, one sequence without a seam. Messages of a partition given up are dropped, even those already
-queued.
+read through a core subscription: the buffer replayed, then live, one sequence without a seam.
+Messages of a partition given up are dropped, even those already queued.
 
 Detections and boundaries are stored first in ``MOCAPD_OUT`` (subjects ``mocap.d.<stream>.<word>``)
 with header ``Nats-Msg-Id`` = their id: within the stream's duplicate window the server keeps only the
@@ -65,6 +65,8 @@ STARTUP_S = 3.0
 """Entering fails when the server has not answered within this many seconds."""
 CATCH_UP_S = 2.0
 """The longest recognition waits for a taken partition's buffer to be read."""
+RETRY_S = 0.5
+"""How soon a partition's consumer that could not be made is tried again."""
 
 
 def buffer_subject(partition: int) -> str:
@@ -99,6 +101,8 @@ class NatsTransport:
         self._partial: set[int] = set()  # partitions taken from a buffer that had lost messages
         self._truncated: set[str] = set()  # streams first seen in the replay of such a buffer
         self._partition_of: dict[str, int] = {}
+        self._position: dict[int, int] = {}  # the last buffer sequence read, per partition
+        self._consumer_names: dict[int, str] = {}
         self._behind: dict[int, float] = {}  # partitions still reading their buffer: since when
         self._drain_s = 1.0
         self._connected = False
@@ -167,7 +171,25 @@ class NatsTransport:
         self._connected = False
 
     async def _reconnected(self) -> None:
+        """Back after a disconnection. A server that restarted lost its memory streams and their
+        consumers: make the streams again and every owned partition's consumer anew (what the table
+        already took is refused again by its sequence numbers)."""
         self._connected = True
+        js = self._js
+        if js is None:
+            return
+        with contextlib.suppress(NatsError, TimeoutError, OSError):
+            await self._ensure_streams()
+        for p in list(self._consumers):
+            name = self._consumer_names.get(p)
+            if name is not None:
+                try:
+                    await js.consumer_info(BUFFER.format(p), name)
+                    continue  # still there: it goes on where it was
+                except (NatsError, TimeoutError, OSError):
+                    pass
+            self._consumers[p].cancel()
+            self._consumers[p] = asyncio.create_task(self._consume(p), name=f"partition {p}")
 
     async def _error(self, e: Exception) -> None:
         log.warning("nats error", extra={"fields": {"error": f"{type(e).__name__}: {e}"}})
@@ -249,6 +271,8 @@ class NatsTransport:
                 await task
             self._partial.discard(p)
             self._behind.pop(p, None)
+            self._position.pop(p, None)
+            self._consumer_names.pop(p, None)
             for stream in self._streams.pop(p, set()):
                 self._partition_of.pop(stream, None)
                 self._truncated.discard(stream)
@@ -278,12 +302,25 @@ class NatsTransport:
                 self._truncated.discard(s)
 
     async def _consume(self, p: int) -> None:
+        """Read partition ``p`` until cancelled; a consumer that cannot be made (the server away) is
+        tried again every :data:`RETRY_S`."""
+        while True:
+            try:
+                await self._read(p)
+            except (NatsError, TimeoutError, OSError) as e:
+                log.warning("partition not read", extra={"fields": {"partition": p, "error": repr(e)}})
+                await asyncio.sleep(RETRY_S)
+
+    async def _read(self, p: int) -> None:
         assert self._js is not None
         js = self._js
         taken = time.time()
         info = await js.stream_info(BUFFER.format(p))
         state = info.state
         last = state.last_seq
+        position = self._position.get(p)
+        if position is not None and position > last:
+            position = None  # the server lost the buffer (a restart): from its start again
         if state.first_seq > 1:
             self._partial.add(p)
         if state.messages:
@@ -311,6 +348,7 @@ class NatsTransport:
                 self.gaps += meta.sequence.consumer - expected
                 log.warning("buffer gap", extra={"fields": {"partition": p, "expected": expected}})
             expected = meta.sequence.consumer + 1
+            self._position[p] = meta.sequence.stream
             if not live:
                 seq = meta.sequence.stream
                 if seq >= last:
@@ -342,7 +380,9 @@ class NatsTransport:
                 BUFFER.format(p),
                 ConsumerConfig(
                     deliver_subject=inbox,
-                    deliver_policy=DeliverPolicy.ALL,
+                    # from the first buffered message, or after the last read (a consumer made anew)
+                    deliver_policy=DeliverPolicy.ALL if position is None else DeliverPolicy.BY_START_SEQUENCE,
+                    opt_start_seq=None if position is None else position + 1,
                     ack_policy=AckPolicy.NONE,
                     filter_subject=buffer_subject(p),
                     flow_control=True,
@@ -350,6 +390,7 @@ class NatsTransport:
                     inactive_threshold=30.0,
                 ),
             )
+            self._consumer_names[p] = consumer.name
             await asyncio.Event().wait()  # until the partition is given up (cancelled)
         finally:
             with contextlib.suppress(NatsError, TimeoutError, OSError):
