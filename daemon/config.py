@@ -151,11 +151,12 @@ class ClusterConfig:
     """Cluster mode (``docs/cluster.md``): the NATS server carrying poses and detections, the etcd
     holding the membership, the number of partitions (the NATS config's ``partition(P, ...)``
     mappings must say the same), this member's lease, the seconds each partition's JetStream buffer
-    keeps (0: computed from the lease and the library's reach, :func:`buffer_seconds`), and this
-    member's name (empty: host name and process id)."""
+    keeps (0: computed from the lease and the library's reach,
+    :func:`daemon.service.cluster.buffer_seconds`), and this member's name (empty: host name and
+    process id). The coordinator has no default: a worker must be told where the others are."""
 
     nats: str = "nats://127.0.0.1:4222"
-    coordinator: str = "etcd://127.0.0.1:2379"
+    coordinator: str = ""
     partitions: int = field(default=16, metadata=_range(1, 1024))
     lease_s: float = field(default=2.0, metadata=_range(0.5, 60))
     buffer_s: float = field(default=0.0, metadata=_range(0, 3600))
@@ -410,7 +411,8 @@ def _cross_checks(check: Checker, config: Config) -> None:
     cluster = config.cluster
     if not re.fullmatch(r"nats://[^/\s]+:\d+", cluster.nats):
         check.fail("cluster.nats", f"must be nats://HOST:PORT, got {cluster.nats!r:.70}")
-    if not re.fullmatch(r"etcd://[^/\s]+", cluster.coordinator):
+    clustered = "cluster" in config.service.sources + config.service.sinks
+    if (cluster.coordinator or clustered) and not re.fullmatch(r"etcd://[^/\s]+", cluster.coordinator):
         check.fail("cluster.coordinator", f"must be etcd://HOST[:PORT], got {cluster.coordinator!r:.70}")
     if cluster.member and not INSTANCE.fullmatch(cluster.member):
         check.fail(

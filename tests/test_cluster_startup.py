@@ -44,6 +44,9 @@ def test_bad_cluster_settings_are_named(tmp_path: Path) -> None:
     result = mocapd("run", "--cluster", "http://127.0.0.1:4222", "--coordinator", "etcd://127.0.0.1:2379")
     assert result.returncode == 2
     assert "--cluster: must be nats://HOST:PORT" in result.stderr.splitlines()[-1]
+    result = mocapd("run", "--cluster", "nats://127.0.0.1:4222")
+    assert result.returncode == 2
+    assert "--coordinator: give --coordinator etcd://HOST[:PORT]" in result.stderr.splitlines()[-1]
     config = tmp_path / "c.yaml"
     config.write_text("cluster:\n  coordinator: zk://127.0.0.1:2181\n", encoding="utf-8")
     result = mocapd("--config", config, "run")

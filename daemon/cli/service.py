@@ -148,6 +148,11 @@ def _overridden(args: argparse.Namespace, config: Config) -> Config:
                     f"must be etcd://HOST[:PORT], got {args.coordinator!r}", field="--coordinator"
                 )
             cluster = dataclasses.replace(cluster, coordinator=args.coordinator)
+        if not cluster.coordinator:
+            raise UsageError(
+                "give --coordinator etcd://HOST[:PORT] (or cluster.coordinator in the configuration)",
+                field="--coordinator",
+            )
         service = dataclasses.replace(service, sources=("cluster",), sinks=("cluster",))
     if args.mqtt is not None:
         from protocols.urls import parse_mqtt_url
