@@ -528,10 +528,16 @@ def serve(
     clustered = "cluster" in config.service.sources + config.service.sinks
     member = ""
     if clustered:
-        from daemon.service.cluster import buffer_seconds, member_name
+        from daemon.service.cluster import member_name, needed_seconds
 
         member = member_name(config.cluster)
-        buffer_s = buffer_seconds(config.cluster, library, config)
+        needed = needed_seconds(config.cluster, library, config)
+        buffer_s = config.cluster.buffer_s or needed
+        if buffer_s < needed:  # allowed (memory is the operator's), but a takeover may lose detections
+            logger.warning(
+                "buffer too short",
+                extra={"fields": {"field": "cluster.buffer_s", "buffer_s": buffer_s, "needed_s": needed}},
+            )
         config = replace(config, cluster=replace(config.cluster, buffer_s=buffer_s))
         if not config.service.instance:
             config = replace(config, service=replace(config.service, instance=member))

@@ -46,14 +46,17 @@ def reach_seconds(library: Library, config: Any) -> float:
     return r.reach / library.rate
 
 
-def buffer_seconds(cluster: ClusterConfig, library: Library, config: Any) -> float:
-    """``cluster.buffer_s``, or when 0 the buffer a takeover needs: the lease (the old owner's last
-    pose to the new owner's start), a skeleton announcement (its first usable pose), twice the
-    library's reach (the warm-up whose detections are suppressed, then the reach of the old owner's
-    last unpublished detection) and a margin."""
-    if cluster.buffer_s:
-        return cluster.buffer_s
+def needed_seconds(cluster: ClusterConfig, library: Library, config: Any) -> float:
+    """The buffer a takeover needs: the lease (the old owner's last pose to the new owner's start),
+    a skeleton announcement (its first usable pose), twice the library's reach (the warm-up whose
+    detections are suppressed, then the reach of the old owner's last unpublished detection) and a
+    margin."""
     return round(cluster.lease_s + SKELETON_PERIOD_S + 2 * reach_seconds(library, config) + MARGIN_S, 1)
+
+
+def buffer_seconds(cluster: ClusterConfig, library: Library, config: Any) -> float:
+    """``cluster.buffer_s``, or when 0 :func:`needed_seconds`."""
+    return cluster.buffer_s or needed_seconds(cluster, library, config)
 
 
 def member_name(cluster: ClusterConfig) -> str:
