@@ -66,6 +66,8 @@ STARTUP_S = 3.0
 CATCH_UP_S = 2.0
 """The longest recognition waits for a taken partition's buffer to be read."""
 RETRY_S = 0.5
+STOP_S = 2.0
+"""The longest giving partitions up waits for their consumers to be deleted."""
 """How soon a partition's consumer that could not be made is tried again."""
 
 
@@ -264,11 +266,17 @@ class NatsTransport:
     async def own(self, partitions: frozenset[int]) -> list[str]:
         """Consume exactly ``partitions`` from now on; the streams seen in the partitions given up."""
         lost: list[str] = []
-        for p in sorted(set(self._consumers) - partitions):
-            task = self._consumers.pop(p)
+        gone = sorted(set(self._consumers) - partitions)
+        tasks = [self._consumers.pop(p) for p in gone]
+        for task in tasks:
             task.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
-                await task
+        if tasks:
+            # their consumers are deleted on the way out; a server that does not answer must not
+            # hold up the membership (the consumers then lapse by their inactivity threshold)
+            _, late = await asyncio.wait(tasks, timeout=STOP_S)
+            if late:
+                log.warning("partition consumers slow to stop", extra={"fields": {"count": len(late)}})
+        for p in gone:
             self._partial.discard(p)
             self._behind.pop(p, None)
             self._position.pop(p, None)

@@ -40,6 +40,7 @@ def test_an_unreachable_bus_or_coordinator_is_named(tmp_path: Path) -> None:
         server.stop()
 
 
+@pytest.mark.slow
 def test_bad_cluster_settings_are_named(tmp_path: Path) -> None:
     result = mocapd("run", "--cluster", "http://127.0.0.1:4222", "--coordinator", "etcd://127.0.0.1:2379")
     assert result.returncode == 2
