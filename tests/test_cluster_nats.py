@@ -1,0 +1,108 @@
+"""The facts about nats-server that cluster mode is built on (docs/cluster.md, "What was verified"),
+on the shipped config: the partitioning mappings apply to what is published over MQTT and over
+NATS; MQTT subscribers get what workers publish on ``mocap.<s>.detections``; JetStream answers a
+repeated ``Nats-Msg-Id`` as a duplicate. And the two limits of 2.9 the design works around: an MQTT
+topic with ``.`` in a level is refused, and a stream's RePublish does not reach MQTT subscribers (if
+a newer server delivers it, this test says so: the workers could then leave publishing to it)."""
+
+from __future__ import annotations
+
+import asyncio
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import paho.mqtt.client as paho
+import pytest
+from paho.mqtt.enums import CallbackAPIVersion
+
+from tests.helpers import wait_for
+from tests.nats_server import NatsServer, partitions
+
+
+class Mqtt:
+    def __init__(self, port: int, name: str, topics: list[str]) -> None:
+        self.got: list[tuple[str, bytes]] = []
+        self.subscribed = threading.Event()
+        self.client = paho.Client(CallbackAPIVersion.VERSION2, client_id=name)
+        self.client.on_message = lambda c, u, m: self.got.append((m.topic, bytes(m.payload)))
+        self.client.on_subscribe = lambda *a: self.subscribed.set()
+        self.client.connect("127.0.0.1", port)
+        self.client.loop_start()
+        if topics:
+            self.client.subscribe([(t, 1) for t in topics])
+            assert self.subscribed.wait(10)
+
+    def close(self) -> None:
+        self.client.loop_stop()
+        self.client.disconnect()
+
+
+@pytest.mark.slow
+def test_what_cluster_mode_relies_on(tmp_path: Path) -> None:
+    import nats
+    from nats.js.api import RePublish, StorageType, StreamConfig
+
+    server = NatsServer(tmp_path).start()
+    seen: list[tuple[str, bytes]] = []
+    results: dict[str, Any] = {}
+    sub = pub = None
+    try:
+        sub = Mqtt(server.mqtt_port, "facts-sub", ["mocap/+/detections", "mocap/+/republished"])
+        pub = Mqtt(server.mqtt_port, "facts-pub", [])
+
+        async def main() -> None:
+            nc = await nats.connect(server.url)
+            js = nc.jetstream()
+
+            async def got(msg: Any) -> None:
+                seen.append((msg.subject, msg.data))
+
+            await nc.subscribe("mocap.p.>", cb=got)
+            await nc.subscribe("mocap.*.republished", cb=got)
+            await nc.flush()
+            pub.client.publish("mocap/s1/pose", b"over mqtt", qos=0)
+            await nc.publish("mocap.s2.pose", b"over nats")
+            await js.add_stream(StreamConfig(name="DEDUP", subjects=["dedup.>"], storage=StorageType.MEMORY))
+            acks = [await js.publish("dedup.x", b"d", headers={"Nats-Msg-Id": "same"}) for _ in range(2)]
+            results["duplicate"] = [a.duplicate for a in acks]
+            await js.add_stream(
+                StreamConfig(
+                    name="REPUB",
+                    subjects=["repub.*"],
+                    storage=StorageType.MEMORY,
+                    republish=RePublish(src="repub.*", dest="mocap.{{wildcard(1)}}.republished"),
+                )
+            )
+            await js.publish("repub.s3", b"stored")
+            await nc.publish("mocap.s4.detections", b"plain", headers={"Nats-Msg-Id": "x"})
+            await nc.flush()
+            await asyncio.sleep(1.0)
+            await nc.close()
+
+        asyncio.run(main())
+        wait_for(lambda: len(seen) >= 3, 5, "the mapped poses and the republished message")
+        by_payload = {data: subject for subject, data in seen}
+        assert by_payload[b"stored"] == "mocap.s3.republished"  # RePublish works, for NATS subscribers
+        for payload, stream in ((b"over mqtt", "s1"), (b"over nats", "s2")):  # mapped to a partition
+            p, name, word = by_payload[payload].split(".")[2:]
+            assert (name, word) == (stream, "pose") and 0 <= int(p) < partitions()
+        assert results["duplicate"] == [None, True]
+        wait_for(lambda: ("mocap/s4/detections", b"plain") in sub.got, 5, "a worker's detection over MQTT")
+        time.sleep(0.5)
+        assert not [t for t, _ in sub.got if t.endswith("/republished")], "RePublish reaches MQTT now"
+        # a topic level with '.': the server closes the publisher's connection
+        pub.client.publish("mocap/a.b/pose", b"x", qos=0)
+        wait_for(
+            lambda: (
+                "not supported for MQTT topics" in server.log.read_text(encoding="utf-8", errors="replace")
+            ),
+            5,
+            "the refusal",
+        )
+    finally:
+        for client in (sub, pub):
+            if client is not None:
+                client.close()
+        server.stop()
