@@ -18,6 +18,19 @@ def parse_mqtt_url(url: str) -> tuple[str, int, bool]:
     return parts.hostname, parts.port or (8883 if tls else 1883), tls
 
 
+def parse_etcd_url(url: str) -> tuple[str, int]:
+    """(host, port) of the cluster's coordinator ``etcd://host[:port]`` (port 2379 by default);
+    InputError otherwise."""
+    try:
+        parts = urlsplit(url)
+        port = parts.port
+    except ValueError as exc:  # a port that is not a number, or out of range
+        raise InputError(f"an etcd coordinator is etcd://HOST[:PORT], got {url!r}: {exc}") from None
+    if parts.scheme != "etcd" or not parts.hostname or parts.path not in ("", "/") or parts.query:
+        raise InputError(f"an etcd coordinator is etcd://HOST[:PORT], got {url!r}")
+    return parts.hostname, port or 2379
+
+
 def split_endpoint(endpoint: str) -> tuple[str, bool]:
     """A ZeroMQ endpoint setting: ``"connect tcp://h:p"`` → (``"tcp://h:p"``, False); a bare endpoint
     binds."""

@@ -16,6 +16,7 @@ import pytest
 from hypothesis import settings
 from hypothesis.database import DirectoryBasedExampleDatabase
 
+from tests.etcd_server import etcd  # noqa: F401  (the fixture, for every test module)
 from tests.helpers import DATA, SHARED
 
 settings.register_profile("fixed", derandomize=True, database=None, print_blob=True)

@@ -1022,3 +1022,16 @@ def slow_fair_queue(ops: list[tuple[str, str] | None], size: int) -> tuple[list[
         queues[key].append(label)
         changed[key] = next(clock)
     return taken, dropped
+
+
+def slow_rendezvous(members: Sequence[str], partitions: int) -> dict[str, set[int]]:
+    """Rendezvous hashing by its definition: each partition to the first of the members sorted by
+    descending score, then name (``daemon.cluster.ring``'s :func:`score` is the hash itself)."""
+    from daemon.cluster.ring import score
+
+    out: dict[str, set[int]] = {m: set() for m in members}
+    for p in range(partitions):
+        if members:
+            ranked = sorted(set(members), key=lambda m: (-score(m, p), m))
+            out[ranked[0]].add(p)
+    return out

@@ -45,6 +45,7 @@ LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("tools", ("daemon.tools", "daemon.plots")),
     ("config", ("daemon.config", "protocols.urls")),
     ("wire", ("protocols",)),
+    ("cluster", ("daemon.cluster",)),
     ("service", ("daemon.service",)),
     ("cli", ("daemon.cli", "daemon.__main__")),
 )
@@ -189,15 +190,35 @@ def test_imports_go_only_downward() -> None:
     assert wrong == []
 
 
-def test_asyncio_only_in_the_service_and_the_transports() -> None:
-    """DESIGN: daemon/service/ is the only place besides the transports that imports asyncio."""
+ASYNC = ("daemon.service", "protocols", "daemon.cluster")
+"""Where asyncio may be imported: the service, the transports, and the cluster's adapters (the
+membership in etcd and the workers on NATS talk to their servers the way the transports do)."""
+PURE = ("daemon.cluster.ring",)
+"""Pure modules inside those packages: no asyncio, no I/O."""
+
+
+def test_asyncio_only_in_the_service_the_transports_and_the_cluster_adapters() -> None:
+    """DESIGN: daemon/service/ is the only place besides the transports (and the cluster's adapters
+    to etcd and NATS) that imports asyncio."""
     wrong = [
         str(path.relative_to(REPO))
         for path in sources()
-        if not module_name(path).startswith(("daemon.service", "protocols"))
+        if (not module_name(path).startswith(ASYNC) or module_name(path) in PURE)
         and re.search(r"^\s*(import asyncio|from asyncio)", path.read_text(encoding="utf-8"), re.M)
     ]
     assert wrong == []
+
+
+def test_the_ring_is_pure() -> None:
+    """Which member owns which partition loads nothing but the error root: no asyncio, no etcd
+    client, no engine."""
+    code = (
+        "import sys, daemon.cluster.ring\n"
+        "print(sorted(m for m in ('asyncio', 'aetcd', 'grpc', 'numpy') if m in sys.modules))"
+    )
+    out = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]"
+    assert loaded("import daemon.cluster.ring") == {"daemon", "daemon.errors", "daemon.cluster"}
 
 
 @pytest.mark.parametrize("package", sorted(PACKAGE_ORDER))

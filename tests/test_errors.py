@@ -25,6 +25,7 @@ import numpy as np
 import pytest
 
 from daemon import behaviours as bh
+from daemon.cluster.ring import assignment
 from daemon.errors import InputError, MocapdError
 from daemon.features import decimation_factor
 from daemon.frames import FrameClock
@@ -33,7 +34,7 @@ from daemon.service.streams import Refused
 from daemon.types import RecognitionSettings
 from protocols.messages import WireError
 from protocols.transport import StartupError
-from protocols.urls import parse_mqtt_url
+from protocols.urls import parse_etcd_url, parse_mqtt_url
 from replay import AmcFrame, MocapFormatError, Motion, Skeleton, iter_amc, read_amc, read_asf
 from tests.helpers import DATA
 
@@ -629,6 +630,9 @@ def test_refusals_keep_their_reason_codes_and_sentences() -> None:
         (lambda: decimation_factor(120.0, 7.0), "divided"),
         (lambda: RecognitionSettings(("a", "a")), "twice"),
         (lambda: parse_mqtt_url("http://h"), "mqtt://"),
+        (lambda: parse_etcd_url("http://h:2379"), "etcd://"),
+        (lambda: parse_etcd_url("etcd://h:port"), "etcd://"),
+        (lambda: assignment(["a"], -1), "partitions"),
         (lambda: joint_order(["root"]), "must include"),
         (lambda: FrameClock.of(0.0, 30.0), "native rate"),
         (lambda: bh.PcaSegmenter(120.0, params=bh.PcaParams(k=0.001)), "frames at 120 Hz"),

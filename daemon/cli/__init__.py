@@ -37,6 +37,7 @@ COMMANDS = (
     "daemon.cli.detect",
     "daemon.cli.segment",
     "daemon.cli.service",
+    "daemon.cli.cluster",
 )
 """The command groups, in the order ``--help`` lists them; each has ``register(subparsers)``."""
 

@@ -1,0 +1,439 @@
+"""Who is in the cluster, kept in etcd: each worker holds a lease and a key under it; everyone
+watches the keys.
+
+A :class:`Membership` joins by granting a lease, putting ``{prefix}members/{member}`` under it (only
+if no live worker has that name: a transaction on the key's creation revision) and keeping the
+lease alive every third of its TTL; it watches ``{prefix}members/`` from the revision it listed, so
+it misses no join or leave. Leaving revokes the lease: etcd deletes the member's keys at once and
+every watcher sees the delete within milliseconds. A worker that dies without leaving (SIGKILL, a
+power cut) stops keeping its lease alive; etcd deletes its keys when the lease expires, between TTL
+and TTL + 0.5 s after the last keep-alive (etcd's lessor looks for expired leases every 500 ms).
+
+Leases are whole seconds, and etcd grants no TTL below ``ceil(1.5 * election-timeout)`` seconds: 2 s
+with its default Raft timing (heartbeat 100 ms, election timeout 1000 ms; ``deploy/etcd``'s config).
+A ``lease_s`` of 2.0 asks for 2 s and gets 2 s; 0.5 or 1.0 is rounded up to 1 s, which etcd raises
+to 2 s; 2.5 asks for 3 s. :attr:`Membership.lease_ttl` is what etcd granted.
+
+Fencing (how a worker never owns a partition that another worker owns): etcd may give away a
+member's partitions (delete its key) no earlier than TTL after the member *sent* its last answered
+keep-alive. :attr:`Membership.problem` becomes non-None two thirds of a TTL after that moment when no
+newer keep-alive has been answered (at once when etcd says the lease is gone), and
+:attr:`Membership.members` then leaves this member out, so ``ring.owned(member, members, P)`` is
+empty: a worker that takes its partitions from :meth:`Membership.changes` (or checks ``problem``
+before each batch) stops owning anything a third of a TTL (0.67 s by default) before any other
+worker can take over. Keep-alives go on being tried; when one is answered again the member is back,
+and when the lease did expire the member joins again with a new lease (unless another worker took its
+name meanwhile: ``problem`` says so until it leaves).
+
+The same holds for the watch: while it is broken (etcd restarting) the view of the others may be
+stale, so ``problem`` is set and this member owns nothing until it has listed and watched again.
+
+etcd's client is ``aetcd`` (asyncio, gRPC; its public API: ``Client``, leases, ``get_prefix``,
+``transaction``, ``watch_prefix``). :func:`cluster_status` reads the members, their reported statuses
+and their leases' TTLs left, for ``mocapd cluster status``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import math
+import os
+import socket
+import time
+from collections.abc import AsyncIterator, Mapping
+from dataclasses import dataclass
+from types import TracebackType
+from typing import Any
+
+import aetcd
+
+from daemon.errors import InputError
+from protocols.transport import StartupError
+from protocols.urls import parse_etcd_url
+
+FIELD = "cluster.coordinator"
+"""The configuration field every failure to reach or join etcd names."""
+STARTUP_S = 3.0
+"""Entering (and :func:`cluster_status`) fails when etcd has not answered within this many seconds."""
+LEAVE_S = 1.0
+"""Leaving waits at most this long for etcd to revoke the lease."""
+RETRY_S = 0.2
+"""How soon a failed keep-alive or a broken watch is tried again (at most a third of a TTL)."""
+
+
+def _address(coordinator: str) -> tuple[str, int]:
+    """(host, port) of ``etcd://HOST:PORT``, the host bracketed for gRPC if it is IPv6."""
+    try:
+        host, port = parse_etcd_url(coordinator)
+    except InputError as exc:
+        raise StartupError(FIELD, exc.reason) from None
+    return (f"[{host}]" if ":" in host else host), port
+
+
+def _why(exc: BaseException) -> str:
+    if isinstance(exc, TimeoutError):
+        return "no answer in time"
+    return str(exc) or type(exc).__name__
+
+
+class Membership:
+    """This worker's place in the cluster at ``coordinator`` (``etcd://HOST:PORT``) as ``member``:
+    ``async with Membership(...) as m:`` joins, leaving the block leaves. Construction checks the
+    values only (StartupError naming ``cluster.coordinator`` for a bad address; InputError for an
+    empty name or a ``lease_s`` that is not a positive number); entering talks to etcd."""
+
+    def __init__(
+        self, coordinator: str, member: str, *, lease_s: float = 2.0, prefix: str = "/mocapd/"
+    ) -> None:
+        self.coordinator = coordinator
+        self.host, self.port = _address(coordinator)
+        if not member:
+            raise InputError("a member name must not be empty")
+        if not (math.isfinite(lease_s) and lease_s > 0):
+            raise InputError(f"lease_s must be a positive number of seconds, got {lease_s!r}")
+        self.member = member
+        self.prefix = prefix
+        self.requested_ttl = max(1, math.ceil(lease_s))
+        self.lease_ttl = 0
+        """The TTL etcd granted, in whole seconds (0 before entering)."""
+        self._members_prefix = f"{prefix}members/".encode()
+        self._key = self._members_prefix + member.encode()
+        self._status_key = f"{prefix}status/{member}".encode()
+        self._client: Any = None
+        self._lease: Any = None
+        self._seen: dict[str, int] = {}  # member -> its lease id, as the watch last said
+        self._fence_at = 0.0  # monotonic: the member owns nothing from then on, unless kept alive
+        self._expires_at = 0.0  # monotonic: the earliest the lease may expire at etcd
+        self._next_keep = 0.0
+        self._lease_problem: str | None = None
+        self._watch_problem: str | None = None
+        self._report_problem: str | None = None
+        self._watch: Any = None
+        self._changed = asyncio.Event()
+        self._closed = False
+        self._runner: asyncio.Task[None] | None = None
+
+    # ------------------------------------------------------------------------------- what it tells
+
+    @property
+    def interval(self) -> float:
+        """Seconds between keep-alives: a third of the granted TTL."""
+        return self.lease_ttl / 3
+
+    @property
+    def problem(self) -> str | None:
+        """None while this member surely holds its lease and sees the others; else why not.
+
+        The worker fences itself by this: while it is set the worker owns no partition — it stops
+        taking in and publishing for every stream and drops its subscriptions — and it owns again
+        only what the ring gives it once it clears. Both follow from taking the partitions from
+        :meth:`changes` (:attr:`members` leaves this member out while ``problem`` is set, and a
+        change is yielded when it becomes set, two thirds of a TTL after the last answered
+        keep-alive: a third of a TTL before etcd could let another member take over)::
+
+            async for members in membership.changes():
+                mine = ring.owned(membership.member, members, partitions)  # empty while fenced
+
+        and, for work already under way, checking ``problem is None`` before publishing each
+        batch. See the module's "Fencing"."""
+        if self._closed:
+            return "left the cluster"
+        if self._runner is None:
+            return "not joined"
+        if self._runner is not None and self._runner.done():
+            failed = None if self._runner.cancelled() else self._runner.exception()
+            return f"the membership's tasks ended: {failed!r}"
+        if self._watch_problem is not None:
+            return self._watch_problem
+        now = time.monotonic()
+        if now >= self._fence_at:
+            if self._lease_problem is not None:
+                return self._lease_problem
+            return f"no keep-alive answered for {now - self._fence_at + 2 * self.interval:.1f} s"
+        return None
+
+    @property
+    def members(self) -> frozenset[str]:
+        """The live members as last seen, this one included while :attr:`problem` is None."""
+        seen = frozenset(self._seen)
+        return seen if self.problem is None else seen - {self.member}
+
+    async def changes(self) -> AsyncIterator[frozenset[str]]:
+        """The current :attr:`members` first, then each new set whenever it changes: joins, leaves,
+        expiries, and this member dropping out or coming back (a consumer slower than the changes
+        gets the latest set, not every one between). Ends when the membership is left."""
+        last: frozenset[str] | None = None
+        while not self._closed:
+            current = self.members
+            if current != last:
+                last = current
+                yield current
+                continue
+            changed = self._changed
+            wait = self._fence_at - time.monotonic() if self.member in current else None
+            with contextlib.suppress(TimeoutError):
+                async with asyncio.timeout(None if wait is None else max(wait, 0.001)):
+                    await changed.wait()
+
+    @property
+    def report_problem(self) -> str | None:
+        """Why the last :meth:`report` was not written (None if it was)."""
+        return self._report_problem
+
+    def _notify(self) -> None:
+        self._changed.set()
+        self._changed = asyncio.Event()
+
+    # ---------------------------------------------------------------------------- joining, leaving
+
+    async def __aenter__(self) -> Membership:
+        """Join: StartupError naming ``cluster.coordinator`` within :data:`STARTUP_S` seconds if
+        etcd does not answer or the member's name is already live."""
+        self._client = aetcd.Client(self.host, self.port)
+        try:
+            async with asyncio.timeout(STARTUP_S):
+                if not await self._join():
+                    raise StartupError(
+                        FIELD,
+                        f"a member named {self.member!r} is already live at {self.coordinator} "
+                        f"(its key {self._key.decode()} is held by another worker's lease)",
+                    )
+                await self._list_and_watch()
+        except (aetcd.ClientError, TimeoutError, OSError) as exc:
+            await self._close()
+            raise StartupError(
+                FIELD, f"cannot join through etcd at {self.coordinator}: {_why(exc)}"
+            ) from None
+        except BaseException:
+            await self._close()
+            raise
+        self._runner = asyncio.create_task(self._run(), name=f"membership {self.member}")
+        return self
+
+    async def __aexit__(
+        self, kind: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        """Leave at once: revoke the lease (the others see this member go within milliseconds)."""
+        self._closed = True
+        self._notify()
+        if self._runner is not None:
+            self._runner.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await self._runner
+        if self._lease is not None:
+            with contextlib.suppress(aetcd.ClientError, TimeoutError, OSError):
+                async with asyncio.timeout(LEAVE_S):
+                    await self._lease.revoke()
+        await self._close()
+
+    async def _close(self) -> None:
+        if self._client is not None:
+            with contextlib.suppress(aetcd.ClientError, TimeoutError, OSError):
+                async with asyncio.timeout(LEAVE_S):
+                    await self._client.close()
+        self._client = None
+
+    async def _join(self) -> bool:
+        """Grant a lease and put the member's key under it if no one holds that key; False if
+        someone does (the new lease revoked again)."""
+        client = self._client
+        sent = time.monotonic()  # the lease lasts at least TTL from here
+        lease = await client.lease(self.requested_ttl)
+        about = {"host": socket.gethostname(), "pid": os.getpid(), "joined": time.time()}
+        taken, _ = await client.transaction(
+            compare=[client.transactions.create(self._key) == 0],
+            success=[client.transactions.put(self._key, json.dumps(about).encode(), lease=lease)],
+            failure=[],
+        )
+        if not taken:
+            with contextlib.suppress(aetcd.ClientError):
+                await lease.revoke()
+            return False
+        self._lease = lease
+        self.lease_ttl = int(lease.ttl)
+        self._kept(sent)
+        self._seen[self.member] = lease.id
+        return True
+
+    def _kept(self, sent: float) -> None:
+        """A keep-alive (or the grant) sent at ``sent`` was answered."""
+        self._expires_at = sent + self.lease_ttl
+        self._fence_at = sent + 2 * self.interval
+        self._next_keep = sent + self.interval
+        self._lease_problem = None
+
+    async def _list_and_watch(self) -> None:
+        listing = await self._client.get_prefix(self._members_prefix)
+        self._seen = {
+            bytes(kv.key)[len(self._members_prefix) :].decode(errors="replace"): kv.lease for kv in listing
+        }
+        self._watch = await self._client.watch_prefix(
+            self._members_prefix, start_revision=listing.header.revision + 1
+        )
+        self._watch_problem = None
+        self._notify()
+
+    async def _run(self) -> None:
+        async with asyncio.TaskGroup() as tasks:
+            tasks.create_task(self._keep_alive(), name=f"etcd keep-alive {self.member}")
+            tasks.create_task(self._follow(), name=f"etcd watch {self.member}")
+
+    async def _keep_alive(self) -> None:
+        while True:
+            await asyncio.sleep(max(0.0, self._next_keep - time.monotonic()))
+            sent = time.monotonic()
+            was = self.problem
+            answered = False
+            try:
+                async with asyncio.timeout(self.interval):
+                    if sent >= self._expires_at or self._lease is None:
+                        answered = await self._rejoin()
+                    else:
+                        reply = await self._lease.refresh()
+                        if reply is None:  # the keep-alive stream closed without an answer
+                            raise aetcd.ClientError("the keep-alive stream closed without an answer")
+                        answered = reply.TTL > 0
+                        if not answered:
+                            self._lease_problem = f"etcd says the lease of {self.member!r} expired"
+                            self._fence_at = self._expires_at = 0.0
+                if answered:
+                    self._kept(sent)
+            except (aetcd.ClientError, TimeoutError, OSError) as exc:
+                self._lease_problem = f"keep-alive to etcd at {self.coordinator} failed: {_why(exc)}"
+            if not answered:
+                self._next_keep = time.monotonic() + min(RETRY_S, self.interval)
+            if self.problem != was:
+                self._notify()
+
+    async def _rejoin(self) -> bool:
+        """The lease may have expired at etcd: join again with a new one."""
+        if self._lease is not None:
+            with contextlib.suppress(aetcd.ClientError):
+                await self._lease.revoke()
+            self._lease = None
+        if await self._join():
+            return True
+        self._lease_problem = f"a member named {self.member!r} is live again, under another worker's lease"
+        return False
+
+    async def _follow(self) -> None:
+        """Apply the watch's events to the members seen; list and watch again when it breaks."""
+        while True:
+            try:
+                if self._watch is None:
+                    async with asyncio.timeout(max(self.interval, RETRY_S)):
+                        await self._list_and_watch()
+                async for event in self._watch:
+                    name = bytes(event.kv.key)[len(self._members_prefix) :].decode(errors="replace")
+                    if event.kind == aetcd.EventKind.DELETE:
+                        self._seen.pop(name, None)
+                    else:
+                        self._seen[name] = event.kv.lease
+                    self._notify()
+                self._watch_problem = "the watch of etcd's members ended (watching again)"
+            except (aetcd.ClientError, TimeoutError, OSError) as exc:
+                self._watch_problem = (
+                    f"watching the members in etcd at {self.coordinator} failed: {_why(exc)}"
+                )
+            self._watch = None
+            self._notify()
+            await asyncio.sleep(RETRY_S)
+
+    # ---------------------------------------------------------------------------------- reporting
+
+    async def report(self, status: Mapping[str, Any]) -> None:
+        """Put ``{prefix}status/{member}`` = ``status`` as JSON under the member's lease (it goes when
+        the member goes). Best effort: while :attr:`problem` is set, or when etcd does not answer
+        within a keep-alive interval, nothing is written and :attr:`report_problem` says why.
+        ValueError for a status JSON cannot hold (NaN, infinities, objects).
+
+        ``mocapd cluster status`` reads these keys of it (others are shown as they are):
+        ``partitions`` (the partitions the worker owns now, a list of ints), ``streams`` (streams
+        per partition: an object from the partition's number as a string to a count) and ``lag_s``
+        (how far behind the worker is, in seconds)."""
+        payload = json.dumps(dict(status), allow_nan=False, separators=(",", ":")).encode()
+        if self.problem is not None or self._lease is None:
+            self._report_problem = f"not reported: {self.problem or 'no lease'}"
+            return
+        try:
+            async with asyncio.timeout(self.interval):
+                await self._client.put(self._status_key, payload, lease=self._lease)
+            self._report_problem = None
+        except (aetcd.ClientError, TimeoutError, OSError) as exc:
+            self._report_problem = f"not reported: {_why(exc)}"
+
+
+# -------------------------------------------------------------------------------- cluster status
+
+
+@dataclass(frozen=True)
+class MemberStatus:
+    """One live member: ``status`` as it last reported it (None if it has not, or not as a JSON
+    object), ``lease_left_s`` the whole seconds its lease has left (etcd's count; None if the lease
+    ended while being read), ``about`` what it wrote when it joined (host, pid, joined)."""
+
+    name: str
+    status: dict[str, Any] | None
+    lease_left_s: int | None
+    about: dict[str, Any]
+
+
+@dataclass(frozen=True)
+class ClusterStatus:
+    """The members live at ``coordinator`` under ``prefix``, by name."""
+
+    coordinator: str
+    prefix: str
+    members: tuple[MemberStatus, ...]
+
+    @property
+    def names(self) -> frozenset[str]:
+        return frozenset(m.name for m in self.members)
+
+
+def _json_object(raw: bytes) -> dict[str, Any] | None:
+    try:
+        value = json.loads(raw)
+    except ValueError:
+        return None
+    return value if isinstance(value, dict) else None
+
+
+def read_cluster(coordinator: str, prefix: str = "/mocapd/") -> ClusterStatus:
+    """:func:`cluster_status` for a caller without an event loop (the command line)."""
+    return asyncio.run(cluster_status(coordinator, prefix))
+
+
+async def cluster_status(coordinator: str, prefix: str = "/mocapd/") -> ClusterStatus:
+    """The live members at ``coordinator``, their reported statuses and their leases' TTLs left;
+    StartupError naming ``cluster.coordinator`` if etcd does not answer within :data:`STARTUP_S`."""
+    host, port = _address(coordinator)
+    members_prefix, status_prefix = f"{prefix}members/".encode(), f"{prefix}status/".encode()
+    client = aetcd.Client(host, port)
+    try:
+        async with asyncio.timeout(STARTUP_S):
+            listing = await client.get_prefix(members_prefix)
+            statuses = {
+                bytes(kv.key)[len(status_prefix) :].decode(errors="replace"): _json_object(kv.value)
+                for kv in await client.get_prefix(status_prefix)
+            }
+            members = []
+            for kv in listing:
+                name = bytes(kv.key)[len(members_prefix) :].decode(errors="replace")
+                left = (await client.get_lease_info(kv.lease, keys=False)).TTL if kv.lease else -1
+                members.append(
+                    MemberStatus(
+                        name, statuses.get(name), left if left >= 0 else None, _json_object(kv.value) or {}
+                    )
+                )
+    except (aetcd.ClientError, TimeoutError, OSError) as exc:
+        raise StartupError(
+            FIELD, f"cannot read the cluster from etcd at {coordinator}: {_why(exc)}"
+        ) from None
+    finally:
+        with contextlib.suppress(aetcd.ClientError, TimeoutError, OSError):
+            async with asyncio.timeout(LEAVE_S):
+                await client.close()
+    return ClusterStatus(coordinator, prefix, tuple(sorted(members, key=lambda m: m.name)))

@@ -1,0 +1,132 @@
+"""A real etcd for the tests, started from the shipped config (``deploy/etcd/etcd.conf.yml``) with
+only its data directory, ports and log file replaced, so the configuration that ships is the one
+tested.
+
+:class:`Etcd` is one server on free loopback ports (:meth:`Etcd.start`, :meth:`Etcd.stop`,
+:meth:`Etcd.kill`); :func:`running` is it as a context manager and :func:`etcd` as a pytest fixture
+(``tests/conftest.py`` makes it available to every test module). etcd is Debian's ``etcd-server``
+(3.4, ``/usr/bin/etcd``; ``.ci/run`` installs it)."""
+
+from __future__ import annotations
+
+import contextlib
+import shutil
+import signal
+import subprocess
+import time
+import urllib.error
+import urllib.request
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+import yaml
+
+from bench.processes import free_port
+
+REPO = Path(__file__).resolve().parents[1]
+CONFIG = REPO / "deploy" / "etcd" / "etcd.conf.yml"
+START_S = 15.0
+"""How long etcd may take to be healthy: about 0.7 s here (one election), more on a loaded CI."""
+
+
+def etcd_binary() -> str:
+    binary = shutil.which("etcd") or "/usr/bin/etcd"
+    if not Path(binary).exists():
+        raise AssertionError("etcd is not installed (.ci/run installs it: apt-get install etcd-server)")
+    return binary
+
+
+class Etcd:
+    """One etcd on free loopback ports, its data and ``etcd.log`` in ``where``."""
+
+    def __init__(self, where: Path, config: Path = CONFIG) -> None:
+        self.where = where
+        self.shipped = config
+        self.config = where / "etcd.conf.yml"
+        self.log = where / "etcd.log"
+        self.client_port = 0
+        self.peer_port = 0
+        self.process: subprocess.Popen[bytes] | None = None
+
+    @property
+    def url(self) -> str:
+        """The coordinator's address as mocapd takes it (``cluster.coordinator``)."""
+        return f"etcd://127.0.0.1:{self.client_port}"
+
+    def settings(self) -> dict[str, Any]:
+        """The shipped config with this server's data directory, ports and log file."""
+        settings: dict[str, Any] = yaml.safe_load(self.shipped.read_text(encoding="utf-8"))
+        client = f"http://127.0.0.1:{self.client_port}"
+        peer = f"http://127.0.0.1:{self.peer_port}"
+        settings |= {
+            "data-dir": str(self.where / "data"),
+            "listen-client-urls": client,
+            "advertise-client-urls": client,
+            "listen-peer-urls": peer,
+            "initial-advertise-peer-urls": peer,
+            "initial-cluster": f"{settings['name']}={peer}",
+            "log-outputs": [str(self.log)],
+        }
+        return settings
+
+    def healthy(self) -> bool:
+        try:
+            with urllib.request.urlopen(f"http://127.0.0.1:{self.client_port}/health", timeout=1) as r:
+                return b'"true"' in r.read()
+        except (OSError, urllib.error.URLError):
+            return False
+
+    def start(self, same_ports: bool = False) -> Etcd:
+        """Start on free ports (``same_ports``: those of the last start, for a restart) and wait
+        until healthy; new ports again if one was taken meanwhile."""
+        binary = etcd_binary()
+        for _ in range(1 if same_ports else 3):
+            if not same_ports:
+                self.client_port, self.peer_port = free_port(), free_port()
+            self.config.write_text(yaml.safe_dump(self.settings()), encoding="utf-8")
+            self.process = subprocess.Popen(
+                [binary, "--config-file", str(self.config)],
+                stdout=subprocess.DEVNULL,
+                stderr=subprocess.DEVNULL,
+                cwd=self.where,
+            )
+            deadline = time.monotonic() + START_S
+            while self.process.poll() is None and time.monotonic() < deadline:
+                if self.healthy():
+                    return self
+                time.sleep(0.02)
+            self.kill()
+            log = self.log.read_text(encoding="utf-8", errors="replace") if self.log.exists() else ""
+            if "address already in use" not in log:
+                raise AssertionError(f"etcd did not become healthy within {START_S:g} s:\n{log[-3000:]}")
+        raise AssertionError("etcd could not listen on its ports")
+
+    def stop(self, sig: int = signal.SIGTERM) -> None:
+        if self.process is not None and self.process.poll() is None:
+            self.process.send_signal(sig)
+            self.process.wait(10)
+        self.process = None
+
+    def kill(self) -> None:
+        self.stop(signal.SIGKILL)
+
+
+@contextlib.contextmanager
+def running(where: Path) -> Iterator[Etcd]:
+    """An etcd started in ``where`` for the ``with`` block, stopped after it."""
+    server = Etcd(where)
+    try:
+        yield server.start()
+    finally:
+        server.stop()
+
+
+@pytest.fixture
+def etcd(tmp_path: Path) -> Iterator[Etcd]:
+    """A fresh etcd for one test."""
+    where = tmp_path / "etcd"
+    where.mkdir()
+    with running(where) as server:
+        yield server

@@ -1,0 +1,227 @@
+"""Cluster membership against a real etcd (started from deploy/etcd/etcd.conf.yml on free loopback
+ports): joins and leaves seen by the others, a killed worker's lease expiring, a duplicate name
+refused, an unreachable etcd failing fast, reported statuses read back, and the fence while etcd
+does not answer.
+
+The deadlines asserted are the issue's protocol: a member that leaves (SIGTERM) hands its
+partitions over within 1 s, so the others must see it go (and come) in well under that; a member
+killed is gone within its lease's TTL + 1 s, and not before the TTL less a keep-alive interval."""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+
+import pytest
+
+from bench.processes import free_port
+from daemon.cluster.membership import STARTUP_S, Membership, cluster_status
+from daemon.errors import InputError
+from protocols.transport import StartupError
+from tests.etcd_server import Etcd
+from tests.helpers import REPO
+
+SEEN_S = 0.5
+"""A join or leave must reach the others within this (the handover's whole budget is 1 s)."""
+
+
+async def until(condition: Callable[[], bool], timeout: float, what: str) -> float:
+    """Seconds until ``condition`` held; AssertionError after ``timeout``."""
+    start = time.monotonic()
+    while not condition():
+        if time.monotonic() - start > timeout:
+            raise AssertionError(f"timed out after {timeout:g} s waiting for {what}")
+        await asyncio.sleep(0.005)
+    return time.monotonic() - start
+
+
+async def test_joins_and_leaves_are_seen_by_the_others_at_once(etcd: Etcd) -> None:
+    async with Membership(etcd.url, "a") as a:
+        assert a.members == {"a"} and a.problem is None
+        assert a.lease_ttl == 2 and a.interval == pytest.approx(2 / 3)
+        seen: list[frozenset[str]] = []
+
+        async def follow() -> None:
+            async for members in a.changes():
+                seen.append(members)
+
+        follower = asyncio.create_task(follow(), name="follow a's changes")
+        await until(lambda: seen == [frozenset({"a"})], 1, "the current set first")
+        b = Membership(etcd.url, "b")
+        await b.__aenter__()
+        assert b.members == {"a", "b"}  # entering lists the others
+        joined = await until(lambda: a.members == {"a", "b"}, 5, "a to see b join")
+        await until(lambda: seen[-1] == {"a", "b"}, 1, "changes() to yield the join")
+        started = time.monotonic()
+        await b.__aexit__(None, None, None)
+        await until(lambda: a.members == {"a"}, 5, "a to see b leave")
+        left = time.monotonic() - started
+        await until(lambda: seen[-1] == {"a"}, 1, "changes() to yield the leave")
+        assert joined < SEEN_S and left < SEEN_S, (joined, left)
+        assert b.problem == "left the cluster" and b.members == {"a"}
+    await asyncio.wait_for(follower, 1)  # changes() ends when the membership is left
+    assert seen == [{"a"}, {"a", "b"}, {"a"}]
+
+
+async def test_a_duplicate_member_name_is_refused(etcd: Etcd) -> None:
+    async with Membership(etcd.url, "w1") as first:
+        with pytest.raises(StartupError, match="'w1' is already live") as refused:
+            async with Membership(etcd.url, "w1"):
+                pass
+        assert refused.value.field == "cluster.coordinator"
+        assert first.members == {"w1"} and first.problem is None  # the first keeps its place
+    async with Membership(etcd.url, "w1") as again:  # once it left, the name is free
+        assert again.members == {"w1"}
+
+
+async def test_an_unreachable_etcd_fails_fast_naming_the_coordinator() -> None:
+    started = time.monotonic()
+    with pytest.raises(StartupError, match="cannot join through etcd") as refused:
+        async with Membership(f"etcd://127.0.0.1:{free_port()}", "w"):
+            pass
+    assert refused.value.field == "cluster.coordinator"
+    assert time.monotonic() - started < STARTUP_S + 1  # "fail fast"
+    with pytest.raises(StartupError, match="cannot read the cluster"):
+        await cluster_status(f"etcd://127.0.0.1:{free_port()}")
+
+
+def test_bad_settings_are_refused_before_anything_is_contacted() -> None:
+    for coordinator in ("http://127.0.0.1:2379", "etcd://h:port", "127.0.0.1:2379"):
+        with pytest.raises(StartupError, match=r"etcd://HOST\[:PORT\]") as refused:
+            Membership(coordinator, "w")
+        assert str(refused.value).startswith("cluster.coordinator: ")
+    with pytest.raises(InputError, match="empty"):
+        Membership("etcd://127.0.0.1:2379", "")
+    with pytest.raises(InputError, match="lease_s"):
+        Membership("etcd://127.0.0.1:2379", "w", lease_s=float("nan"))
+
+
+async def test_etcd_grants_no_lease_shorter_than_its_minimum(etcd: Etcd) -> None:
+    """TTLs are whole seconds; with the shipped Raft timing (election timeout 1 s) etcd's minimum is
+    ceil(1.5 * 1 s) = 2 s."""
+    for lease_s, granted in ((0.5, 2), (1.0, 2), (2.0, 2), (2.5, 3)):
+        async with Membership(etcd.url, f"w{lease_s}", lease_s=lease_s) as m:
+            assert (m.requested_ttl, m.lease_ttl) == (max(1, int(-(-lease_s // 1))), granted)
+
+
+async def test_reported_statuses_and_leases_are_read_back(etcd: Etcd) -> None:
+    async with Membership(etcd.url, "w1") as w1, Membership(etcd.url, "w2") as w2:
+        await w1.report({"partitions": [0, 3], "streams": {"0": 4, "3": 1}, "lag_s": 0.25})
+        assert w1.report_problem is None
+        status = await cluster_status(etcd.url)
+        assert status.names == {"w1", "w2"}
+        one, two = status.members
+        assert one.name == "w1" and one.status == {
+            "partitions": [0, 3],
+            "streams": {"0": 4, "3": 1},
+            "lag_s": 0.25,
+        }
+        assert two.name == "w2" and two.status is None  # it has not reported
+        for m in status.members:
+            assert m.lease_left_s is not None and 0 <= m.lease_left_s <= 2
+            assert m.about["pid"] == os.getpid()
+        with pytest.raises(ValueError, match="Out of range float"):
+            await w2.report({"lag_s": float("nan")})
+    assert (await cluster_status(etcd.url)).members == ()  # leaving took the statuses with it
+
+
+VICTIM = """
+import asyncio, sys
+from daemon.cluster.membership import Membership
+
+async def main() -> None:
+    async with Membership(sys.argv[1], "victim") as m:
+        await m.report({"partitions": [1]})
+        print("joined", flush=True)
+        await asyncio.sleep(3600)
+
+asyncio.run(main())
+"""
+
+
+@pytest.mark.slow
+async def test_a_killed_member_is_gone_when_its_lease_expires_and_not_before(etcd: Etcd) -> None:
+    victim = subprocess.Popen(
+        [sys.executable, "-c", VICTIM, etcd.url],
+        cwd=REPO,
+        env={**os.environ, "PYTHONPATH": str(REPO)},
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        assert victim.stdout is not None
+        line = await asyncio.wait_for(asyncio.to_thread(victim.stdout.readline), 30)
+        assert line == "joined\n"
+        async with Membership(etcd.url, "observer") as observer:
+            assert observer.members == {"observer", "victim"}
+            await asyncio.sleep(1.0)  # a few keep-alives of the victim's
+            victim.send_signal(signal.SIGKILL)
+            victim.wait(5)
+            killed = time.monotonic()
+            ttl, interval = observer.lease_ttl, observer.interval  # the victim's are the same
+            # the victim's last keep-alive was sent at most an interval before it died
+            still = ttl - interval - 0.3
+            await asyncio.sleep(still)
+            present = "victim" in observer.members and time.monotonic() - killed < ttl - interval
+            gone = await until(
+                lambda: "victim" not in observer.members, ttl + 1, "the victim's lease to expire"
+            )
+            assert present, f"the victim was gone {still:.2f} s after SIGKILL"
+            assert still + gone < ttl + 1
+            assert (await cluster_status(etcd.url)).names == {"observer"}
+    finally:
+        victim.kill()
+        victim.wait(5)
+
+
+@pytest.mark.slow
+async def test_a_member_whose_keep_alives_go_unanswered_fences_itself_and_comes_back(etcd: Etcd) -> None:
+    """etcd frozen (SIGSTOP): the member drops itself from its members (owns nothing) two thirds of
+    a TTL after its last answered keep-alive, before the lease could expire; etcd thawed before the
+    TTL ran out: the lease was kept, the member is back."""
+    assert etcd.process is not None
+    async with Membership(etcd.url, "w") as w:
+        seen: list[tuple[float, frozenset[str]]] = []
+
+        async def follow() -> None:
+            async for members in w.changes():
+                seen.append((time.monotonic(), members))
+
+        follower = asyncio.create_task(follow(), name="follow w's changes")
+        await until(lambda: len(seen) == 1, 1, "the current set")
+        etcd.process.send_signal(signal.SIGSTOP)
+        frozen = time.monotonic()
+        try:
+            await until(lambda: w.problem is not None, w.lease_ttl, "the fence")
+            fenced = time.monotonic() - frozen
+            assert w.members == frozenset() and "keep-alive" in (w.problem or "")
+            await until(lambda: len(seen) == 2, 1, "changes() to yield the fence")
+            assert seen[1][1] == frozenset()
+            assert fenced < 2 * w.interval + 0.05  # from the last answer (before frozen): ≤ 2/3 TTL
+        finally:
+            etcd.process.send_signal(signal.SIGCONT)
+        await until(lambda: w.problem is None, w.lease_ttl + 1, "w to be back")
+        await until(lambda: seen[-1][1] == {"w"}, 1, "changes() to yield w back")
+    follower.cancel()
+
+
+@pytest.mark.slow
+async def test_the_watch_comes_back_after_etcd_restarts(etcd: Etcd) -> None:
+    """etcd killed and started again on its ports and data: the members keep their leases (etcd
+    restores them and extends them when it leads again), their problem clears, and a join after the
+    restart is seen."""
+    async with Membership(etcd.url, "a") as a, Membership(etcd.url, "b") as b:
+        etcd.kill()
+        await until(lambda: a.problem is not None and b.problem is not None, 5, "both to notice")
+        assert "watching the members" in (a.problem or "") or "keep-alive" in (a.problem or "")
+        await asyncio.to_thread(etcd.start, True)
+        await until(lambda: a.problem is None and b.problem is None, 15, "both to be back")
+        assert a.members == b.members == {"a", "b"}
+        async with Membership(etcd.url, "c"):
+            await until(lambda: a.members == {"a", "b", "c"}, 5, "a to see c join after the restart")
+        await until(lambda: a.members == {"a", "b"}, 5, "a to see c leave")
