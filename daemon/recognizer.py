@@ -34,17 +34,16 @@ from __future__ import annotations
 import math
 import uuid
 import weakref
-from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass
 from itertools import accumulate
-from typing import Any, Literal, NamedTuple
+from typing import Any, Literal
 
 import numpy as np
 import numpy.typing as npt
 
 from daemon._automaton import AutomatonSet
-from daemon._dtw import StreamDTW
+from daemon._dtw import Competition, StreamDTW
 from daemon._live import NON_FINITE, NOTHING, LiveStream, push_channels_many
 from daemon.automaton import KeyframeAutomaton
 from daemon.dtw import SCALE, Match, RetrievalTables, Steps, pack, retrieval_tables, threshold
@@ -215,17 +214,6 @@ def same_motion(a: tuple[int, int], b: tuple[int, int]) -> bool:
     return 2 * shared > min(a[1] - a[0], b[1] - b[0]) + 1
 
 
-class _Candidate(NamedTuple):
-    """A local minimum of one template's stream-wide Δ: fixed-point ``cost``, ``end``, the template
-    (``member``, numbered over all classes' templates) and ``start``; ordered by (cost, end,
-    member), the order in which candidates beat each other."""
-
-    cost: int
-    end: int
-    member: int
-    start: int
-
-
 Confirmation = tuple[ClassPlan, Match, float]
 """A detection in index-rate frames: its class, its match and the τ of the template that made it."""
 
@@ -270,7 +258,7 @@ class CodeRecognizer:
         # the templates a candidate's rivals come from: all, or its own class's
         self._rivals = [(0, len(self._owner)) if compete else (first[k], first[k + 1]) for k in self._owner]
         self._taus = [m.tau for p in self.plans for m in p.members]
-        self._dtw = (
+        dtw = (
             StreamDTW(
                 [
                     (m.tables.masks, m.tables.values, m.tables.tables, threshold(m.tau), p.steps == "toolbox")
@@ -281,115 +269,53 @@ class CodeRecognizer:
             if self.plans
             else None
         )
-        self._gated = [k for k, p in enumerate(self.plans) if p.gated]
-        self._automata = (
-            AutomatonSet([self.plans[k].automaton(rate).core for k in self._gated]) if self._gated else None
+        gated = [k for k, p in enumerate(self.plans) if p.gated]
+        automata = AutomatonSet([self.plans[k].automaton(rate).core for k in gated]) if gated else None
+        self._core = (
+            Competition(
+                dtw,
+                self._owner,
+                [lo for lo, _ in self._rivals],
+                [hi for _, hi in self._rivals],
+                compete,
+                hold,
+                reach(self.plans, hold),
+                automata,
+                gated,
+            )
+            if dtw is not None
+            else None
         )
-        self._windows: dict[int, deque[tuple[int, int]]] = {k: deque() for k in self._gated}
-        self._memory = reach(self.plans, hold)
-        self._held: list[_Candidate] = []
-        self._recent: deque[_Candidate] = deque()
-        self._published: deque[tuple[int, int, int]] = deque()  # (start, end, class)
         self._n = 0
 
     @property
     def frames(self) -> int:
         """Index-rate frames pushed since the stream began."""
-        return self._n
+        return self._n if self._core is None else self._core.n
+
+    @property
+    def core(self) -> Competition | None:
+        """The compiled competition (None without classes): what :meth:`push` runs."""
+        return self._core
 
     def push(self, code: int) -> list[Confirmation]:
-        j = self._n
-        if self._dtw is None:
+        if self._core is None:
             self._n += 1
             return []
-        found = self._dtw.push(code)
-        self._n += 1
-        if self._automata is not None:
-            for i, reached in self._automata.push(code):
-                w = self._windows[self._gated[i]]
-                for first, _ in reached:
-                    if w and w[-1] == (first, j - 1):  # the same match, its range grown by a frame
-                        w[-1] = (first, j)
-                    else:
-                        w.append((first, j))
-        if found is not None:
-            for c in sorted(_Candidate(d, e, u, s) for u, s, e, d in found):
-                self._arrive(c)
-        out = self._decide(j, False) if self._held else []
-        self._forget(j)
-        return out
+        found = self._core.push(code)
+        return self.confirmations(found) if found else []
 
     def flush(self) -> list[Confirmation]:
-        out: list[Confirmation] = []
-        if self._dtw is not None and self._n:
-            found = self._dtw.finish()
-            if found is not None:
-                for c in sorted(_Candidate(d, e, u, s) for u, s, e, d in found):
-                    self._arrive(c)
-            out = self._decide(self._n - 1, True)
-            self._dtw.reset()
-        if self._automata is not None:
-            self._automata.flush()
-        for w in self._windows.values():
-            w.clear()
-        self._held.clear()
-        self._recent.clear()
-        self._published.clear()
-        self._n = 0
-        return out
+        if self._core is None:
+            self._n = 0
+            return []
+        found = self._core.flush()
+        return self.confirmations(found) if found else []
 
-    def _rival(self, x: _Candidate, y: _Candidate) -> bool:
-        """Whether ``x`` and ``y`` may beat one another: the same motion, of one class or competing."""
-        return (self.compete or self._owner[x.member] == self._owner[y.member]) and same_motion(
-            (x.start, x.end), (y.start, y.end)
-        )
-
-    def _arrive(self, y: _Candidate) -> None:
-        """A new candidate: remembered as a rival; held unless something before it beats it or it is
-        a motion already published; a held one it beats is dropped."""
-        beaten = any(x < y and self._rival(x, y) for x in self._recent)
-        self._recent.append(y)
-        k = self._owner[y.member]
-        if beaten or any(
-            (self.compete or c == k) and same_motion((y.start, y.end), (a, b)) for a, b, c in self._published
-        ):
-            return
-        self._held = [x for x in self._held if not (y < x and self._rival(x, y))]
-        self._held.append(y)
-
-    def _decide(self, j: int, ended: bool) -> list[Confirmation]:
-        """The held candidates that frame ``j`` (the stream's last, if it ``ended``) makes final:
-        those published, in the order (end, start, class)."""
-        assert self._dtw is not None
-        final, keep = [], []
-        for x in self._held:
-            lo, hi = self._rivals[x.member]
-            if ended or j > x.end + self.hold or not self._dtw.blocks(x.cost, x.start, x.end, lo, hi):
-                final.append(x)
-            else:
-                keep.append(x)
-        self._held = keep
-        out = []
-        for x in sorted(final, key=lambda x: (x.end, x.start, self._owner[x.member])):
-            k = self._owner[x.member]
-            if k in self._windows and not any(a <= x.end and x.start <= b for a, b in self._windows[k]):
-                continue
-            self._published.append((x.start, x.end, k))
-            out.append((self.plans[k], Match(x.start, x.end, x.cost / SCALE), self._taus[x.member]))
-        return out
-
-    def _forget(self, j: int) -> None:
-        """Drop what no candidate after frame ``j`` can be compared with: rivals and published
-        detections that end more than :func:`reach` frames back (a later candidate cannot overlap
-        them), and keyframe matches as long."""
-        forget = j - self._memory
-        while self._recent and self._recent[0].end < forget:
-            self._recent.popleft()
-        while self._published and self._published[0][1] < forget:
-            self._published.popleft()
-        for w in self._windows.values():
-            while w and w[0][1] < forget:
-                w.popleft()
+    def confirmations(self, found: Sequence[tuple[int, int, int, int, int]]) -> list[Confirmation]:
+        """The compiled competition's confirmations (class, start, end, fixed-point cost, template)
+        as :data:`Confirmation`."""
+        return [(self.plans[k], Match(s, e, cost / SCALE), self._taus[u]) for k, s, e, cost, u in found]
 
 
 NON_FINITE_CHANNELS = NON_FINITE - 1
