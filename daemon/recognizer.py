@@ -44,7 +44,7 @@ import numpy.typing as npt
 
 from daemon._automaton import AutomatonSet
 from daemon._dtw import Competition, StreamDTW
-from daemon._live import NON_FINITE, NOTHING, LiveStream, push_channels_many
+from daemon._live import NON_FINITE, NON_FINITE_CHANNELS, LiveStream, push_many
 from daemon.automaton import KeyframeAutomaton
 from daemon.dtw import SCALE, Match, RetrievalTables, Steps, pack, retrieval_tables, threshold
 from daemon.errors import InputError, MocapdError
@@ -318,9 +318,6 @@ class CodeRecognizer:
         return [(self.plans[k], Match(s, e, cost / SCALE), self._taus[u]) for k, s, e, cost, u in found]
 
 
-NON_FINITE_CHANNELS = NON_FINITE - 1
-"""A channel frame's code when a channel is not finite (its compiled step was not run)."""
-
 Step = tuple[list[Detection], list[tuple[int, FrameError]]]
 """What :meth:`Recognizer.push_many` gave: the detections, and the refused frames as (position
 among the frames pushed, :class:`FrameError`) in order."""
@@ -361,6 +358,11 @@ class ClassStage:
         detections it completed."""
         found = self.codes.push(code)
         return [self._detection(c, number) for c in found] if found else []
+
+    def found(self, number: int, found: Sequence[tuple[int, int, int, int, int]]) -> list[Detection]:
+        """The detections of what the compiled competition (:attr:`CodeRecognizer.core`) confirmed at
+        the push of frame ``number`` (:func:`daemon._live.push_many` pushes to it directly)."""
+        return [self._detection(c, number) for c in self.codes.confirmations(found)]
 
     def flush(self, last: int | None, codes: Sequence[int] = ()) -> list[Detection]:
         """The motion ends at frame ``last`` (None: it had no frame) with its last ``codes``: the
@@ -439,7 +441,12 @@ class Recognizer:
         self._stage = ClassStage(
             self._plans, library.rate, settings, self.clock, stream=stream, session=self.session
         )
-        self._last: int | None = None  # the frame number of the stream's last frame
+        self._live.attach(self._stage, self._stage.codes.core)
+
+    @property
+    def _last(self) -> int | None:
+        """The frame number of the stream's last frame (None: no frame since it began)."""
+        return self._live.last if self._live.started else None
 
     @classmethod
     def for_skeleton(
@@ -506,71 +513,34 @@ class Recognizer:
     def push(self, number: int, frame: npt.ArrayLike) -> list[Detection]:
         """Add frame ``number``; the detections it completed. The step of :meth:`push_many` for this
         one frame."""
-        n, values = self._check(number, frame)
-        if self.model is None:
-            return self._take(n, self._live.push_positions(values.reshape(-1)))
-        return self._take(n, Recognizer._channel_codes([self._live], [values])[0])
+        detections, errors = push_many([(self, number, frame)], FrameError)
+        if errors:
+            raise errors[0][1]
+        return detections
 
     def flush(self) -> list[Detection]:
         """End the stream: the remaining detections, then a fresh stream (frame numbers start anew)."""
-        last, self._last = self._last, None
+        last = self._last
+        self._live.started = False
         return self._stage.flush(last, self._live.flush())
 
     @staticmethod
     def push_many(frames: Sequence[tuple[Recognizer, object, npt.ArrayLike]]) -> Step:
         """The live path's per-frame step: one frame ``(recogniser, number, values)`` of each of any
-        number of distinct recognisers. Each frame is checked (:meth:`_check`: number, type, shape);
-        the channel frames' finiteness, the cosines and sines of their half angles (forward
-        kinematics, :mod:`replay.kinematics`) and their compiled steps run in one pass each over all
-        of them (:meth:`_channel_codes`); each frame's code goes to its recogniser (:meth:`_take`:
-        a pose that is not finite after forward kinematics is refused, an index-rate code goes to
-        the :class:`ClassStage`). Returns the detections (in the order of the frames, each
+        number of distinct recognisers, in one compiled call (:func:`daemon._live.push_many`): each
+        frame is checked (number, type, shape; :meth:`_check` for all but the usual frame), the
+        channel frames' finiteness checked and the cosines and sines of their half angles (forward
+        kinematics, :mod:`replay.kinematics`) taken in one numpy call each over all of them, every
+        frame's compiled step run (a pose that is not finite after forward kinematics is refused:
+        :meth:`_refusal`) and its index-rate code pushed to its recogniser's compiled competition
+        (:attr:`CodeRecognizer.core`). Returns the detections (in the order of the frames, each
         recogniser's in its order) and the refused frames (each changed nothing)."""
-        errors: list[tuple[int, FrameError]] = []
-        taken: list[tuple[int, Recognizer, int, int | None]] = []  # (position, recogniser, number, code)
-        steps: list[LiveStream] = []  # the channel frames' (their codes None in taken, until stepped)
-        values: list[FloatArray] = []
-        for i, (r, number, frame) in enumerate(frames):
-            try:
-                n, v = r._check(number, frame)
-            except FrameError as e:
-                errors.append((i, e))
-                continue
-            if r.model is None:
-                taken.append((i, r, n, r._live.push_positions(v.reshape(-1))))
-            else:
-                taken.append((i, r, n, None))
-                steps.append(r._live)
-                values.append(v)
-        stepped = iter(Recognizer._channel_codes(steps, values) if steps else ())
-        detections: list[Detection] = []
-        for i, r, n, code in taken:
-            try:
-                detections += r._take(n, next(stepped) if code is None else code)
-            except FrameError as e:
-                errors.append((i, e))
-        if len(errors) > 1:
-            errors.sort(key=lambda e: e[0])
-        return detections, errors
+        return push_many(frames if isinstance(frames, list) else list(frames), FrameError)
 
-    @staticmethod
-    def _channel_codes(steps: list[LiveStream], values: list[FloatArray]) -> list[int]:
-        """The compiled steps of checked channel frames ``values`` (one per step), in one pass over
-        all: each frame's code, or :data:`NON_FINITE_CHANNELS` (not stepped) for one with a channel
-        that is not finite."""
-        flat = values[0] if len(values) == 1 else np.concatenate(values)
-        if not math.isfinite(flat.sum()):  # one reduction if all are finite
-            finite = [bool(np.isfinite(v).all()) for v in values]
-            if not all(finite):
-                kept = [k for k, ok in enumerate(finite) if ok]
-                found = iter(
-                    Recognizer._channel_codes([steps[k] for k in kept], [values[k] for k in kept])
-                    if kept
-                    else ()
-                )
-                return [next(found) if ok else NON_FINITE_CHANNELS for ok in finite]
-        half = 0.5 * flat
-        return push_channels_many(steps, flat, np.cos(half), np.sin(half))
+    def _refusal(self, number: int, code: int) -> FrameError:
+        """The refusal of frame ``number`` whose compiled step gave ``code`` (below
+        :data:`~daemon._live.NOTHING`): a channel or a joint position that is not finite."""
+        return (non_finite_pose if code == NON_FINITE else non_finite_channels)(number, self.stream)
 
     def _check(self, number: object, frame: npt.ArrayLike) -> tuple[int, FloatArray]:
         """The frame number and the frame's values (contiguous float64) if their number, type and
@@ -586,17 +556,6 @@ class Recognizer:
                 check_channels(n, values, self._width, self.stream)
             check_positions(n, values, self._width, self.stream)
         return n, values
-
-    def _take(self, number: int, code: int) -> list[Detection]:
-        """What the compiled step gave for frame ``number``: an index-rate code for the
-        :class:`ClassStage`, :data:`~daemon._live.NOTHING`, or a refusal (FrameError; the step
-        changed nothing)."""
-        if code < NOTHING:
-            raise (non_finite_pose if code == NON_FINITE else non_finite_channels)(number, self.stream)
-        if self._last is None:
-            self._stage.start(number)
-        self._last = number
-        return [] if code == NOTHING else self._stage.push(number, code)
 
 
 def skeleton_model(skeleton: Skeleton) -> KinematicModel:
