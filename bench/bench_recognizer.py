@@ -38,7 +38,7 @@ from replay import JOINT_NAMES, Motion
 from replay.catalog import CMU_SUBSTITUTES, recordings
 from replay.kinematics import joint_positions
 
-SIZES = (1, 10, 50, 100, 200, 400)
+SIZES = (1, 10, 50, 100, 200, 250, 300, 400)
 WARM = 80
 JOIN = 40
 BUDGET_MS = 2.0

@@ -5,7 +5,8 @@ automata take: forward kinematics (or the announced joint order), the features a
 many streams (the bank)."""
 
 from cpython.buffer cimport PyBUF_C_CONTIGUOUS, PyBUF_FORMAT, PyBuffer_Release, PyObject_GetBuffer
-from cpython.mem cimport PyMem_Free, PyMem_Malloc
+from cpython.mem cimport PyMem_Free, PyMem_Malloc, PyMem_Realloc
+from cpython.ref cimport PyObject
 from libc.math cimport isfinite
 from libc.stdint cimport int64_t, uint64_t
 from libc.string cimport memcpy
@@ -13,7 +14,7 @@ from libc.string cimport memcpy
 import numpy as np
 
 from daemon._dtw cimport Competition
-from daemon._features cimport FeatureCore
+from daemon._features cimport Bytecode, FeatureCore
 from replay._kinematics cimport FrameKinematics
 
 NOTHING = -1
@@ -95,12 +96,17 @@ cdef class LiveStream:
         return out
 
     cdef int64_t _channels(self, const double *channels, const double *cos, const double *sin):
-        cdef bint finite
-        with nogil:
-            finite = self._kinematics.joints_into(channels, cos, sin, &self.rows[0])
-        return self._advance() if finite else NON_FINITE
+        return self._advance() if self._pose_channels(channels, cos, sin) else NON_FINITE
 
     cdef int64_t _positions(self, const double *positions):
+        return self._advance() if self._pose_positions(positions) else NON_FINITE
+
+    cdef bint _pose_channels(self, const double *channels, const double *cos, const double *sin):
+        """Forward kinematics of a channel frame into ``rows``: whether every joint is finite."""
+        return self._kinematics.joints_into(channels, cos, sin, &self.rows[0])
+
+    cdef bint _pose_positions(self, const double *positions):
+        """A positions frame's standard joints into ``rows``: whether every one is finite."""
         cdef Py_ssize_t i
         cdef double v
         cdef bint finite = True
@@ -109,16 +115,25 @@ cdef class LiveStream:
             self.rows[i] = v
             if not isfinite(v):
                 finite = False
-        return self._advance() if finite else NON_FINITE
+        return finite
+
+    cdef int64_t _prepare(self):
+        """The pose in ``rows`` to the features up to their program (:meth:`FeatureCore.prepare`):
+        the frame that becomes final (-1: none)."""
+        if self.features.n == 0:
+            self.features.set_thresholds(self.lengths(self.rows_array))
+        return self.features.prepare(&self.rows[0])
+
+    cdef int64_t _decimate(self, int64_t code):
+        """A final frame's code: passed on if it is a kept frame, else :data:`NOTHING`."""
+        self.seen += 1
+        return code if (self.seen - 1) % self.step == 0 else NOTHING
 
     cdef int64_t _advance(self):
         if self.features.n == 0:
             self.features.set_thresholds(self.lengths(self.rows_array))
         cdef int64_t code = self.features.push_ptr(&self.rows[0])
-        if code < 0:
-            return NOTHING
-        self.seen += 1
-        return code if (self.seen - 1) % self.step == 0 else NOTHING
+        return NOTHING if code < 0 else self._decimate(code)
 
 
 cdef inline bint fast_values(object frame, LiveStream s, Py_buffer *view):
@@ -139,47 +154,80 @@ cdef inline bint fast_values(object frame, LiveStream s, Py_buffer *view):
     return ok
 
 
+cdef enum:
+    BLOCK = 32  # frames per run of the feature program over many (its registers: 32 x ~6 KB)
+
+cdef double *_registers = NULL  # the register block of run_many, grown as needed (the GIL guards it)
+cdef Py_ssize_t _registers_size = 0
+
+
+cdef double *registers(Py_ssize_t size) except NULL:
+    global _registers, _registers_size
+    cdef double *grown
+    if size > _registers_size:
+        grown = <double *> PyMem_Realloc(_registers, size * sizeof(double))
+        if grown == NULL:
+            raise MemoryError()
+        _registers = grown
+        _registers_size = size
+    return _registers
+
+
 def push_many(list frames, refused):
     """The live path's per-frame step of one frame ``(recogniser, number, values)`` each of distinct
     :class:`daemon.recognizer.Recognizer` s (their ``_live`` a :class:`LiveStream` with its stage
-    attached): the frames checked (a consecutive int number and C-contiguous doubles of the
-    stream's shape here, anything else by the recogniser's ``_check``, which refuses or converts),
-    the channel frames gathered side by side and the cosines and sines of their half angles taken in
-    one numpy call each, each frame stepped (forward kinematics, features, decimation) and its
-    index-rate code pushed to its compiled competition. Python runs per frame only for a refusal,
-    a stream's first frame and a confirmation. ``refused``: the exception class ``_check`` raises
-    for a frame it refuses. Returns (detections, [(position, the refusal)])."""
-    cdef Py_ssize_t n = len(frames), i, k, taken = 0, total = 0, at
+    attached), in passes over all of them: (1) the checks (a consecutive int number and
+    C-contiguous doubles of the stream's shape here, anything else by the recogniser's ``_check``,
+    which refuses or converts), the channel frames gathered side by side; (2) the cosines and sines
+    of their half angles in one numpy call each; (3) each pose (forward kinematics, or the announced
+    joints) into its features' ring, with the smoothed velocities of the frame that became final;
+    (4) the feature program over those frames, :data:`BLOCK` at a time, each instruction over all
+    of them (:meth:`Bytecode.run_many`); (5) each frame's hysteresis, decimation and, for an
+    index-rate code, its compiled competition. Python runs per frame only for a refusal, a
+    stream's first frame and a confirmation. ``refused``: the exception class ``_check`` raises for
+    a frame it refuses. Returns (detections, [(position, the refusal)])."""
+    cdef Py_ssize_t n = len(frames), i, k, j, taken = 0, total = 0, at, pending = 0, block, first
     cdef Py_ssize_t *pos = <Py_ssize_t *> PyMem_Malloc((n + 1) * sizeof(Py_ssize_t))
     cdef int64_t *nums = <int64_t *> PyMem_Malloc((n + 1) * sizeof(int64_t))
     cdef int64_t *codes = <int64_t *> PyMem_Malloc((n + 1) * sizeof(int64_t))
+    cdef int64_t *ts = <int64_t *> PyMem_Malloc((n + 1) * sizeof(int64_t))
     cdef Py_ssize_t *offs = <Py_ssize_t *> PyMem_Malloc((n + 1) * sizeof(Py_ssize_t))
+    cdef Py_ssize_t *waiting = <Py_ssize_t *> PyMem_Malloc((n + 1) * sizeof(Py_ssize_t))
+    cdef uint64_t *f1 = <uint64_t *> PyMem_Malloc((n + 1) * sizeof(uint64_t))
+    cdef uint64_t *f2 = <uint64_t *> PyMem_Malloc((n + 1) * sizeof(uint64_t))
+    cdef PyObject **lives = <PyObject **> PyMem_Malloc((n + 1) * sizeof(PyObject *))
+    cdef const double *P[BLOCK]
+    cdef const double *S[BLOCK]
+    cdef const double *T[BLOCK]
+    cdef uint64_t g1[BLOCK]
+    cdef uint64_t g2[BLOCK]
+    cdef Py_ssize_t which[BLOCK]
     cdef Py_buffer view
     cdef LiveStream s
+    cdef FeatureCore features
+    cdef Bytecode program
     cdef bint fast, finite
-    cdef int64_t num = 0, code
+    cdef int64_t num = 0, code, t
     cdef const double *src
     cdef double[::1] flat, cos, sin
-    cdef list errors = [], detections = [], kept = []
-    if pos == NULL or nums == NULL or codes == NULL or offs == NULL:
-        PyMem_Free(pos)
-        PyMem_Free(nums)
-        PyMem_Free(codes)
-        PyMem_Free(offs)
-        raise MemoryError()
+    cdef list errors = [], detections = []
     try:
+        if (pos == NULL or nums == NULL or codes == NULL or ts == NULL or offs == NULL or waiting == NULL
+                or f1 == NULL or f2 == NULL or lives == NULL):
+            raise MemoryError()
         for i in range(n):
             r, number, frame = <tuple> frames[i]
-            s = <LiveStream> r._live
+            s = <LiveStream?> r._live
+            lives[i] = <PyObject *> s  # borrowed: the frames' recognisers hold them
             if s._kinematics is not None:
                 total += s.width
         flat_array = np.empty(max(1, total))
         flat = flat_array
         total = 0
-        # the checks; the positions frames stepped, the channel frames gathered
+        # (1) the checks; the channel frames gathered, the positions frames' joints taken
         for i in range(n):
             r, number, frame = <tuple> frames[i]
-            s = <LiveStream> r._live
+            s = <LiveStream> lives[i]
             fast = False
             if s.started and type(number) is int:
                 try:
@@ -204,7 +252,7 @@ def push_many(list frames, refused):
                     raise AssertionError("a checked frame is C-contiguous doubles of the stream's shape")
             src = <const double *> view.buf
             if s._kinematics is None:
-                code = s._positions(src)
+                code = NOTHING if s._pose_positions(src) else NON_FINITE
             else:
                 finite = True
                 for k in range(s.width):
@@ -221,27 +269,67 @@ def push_many(list frames, refused):
             nums[taken] = num
             codes[taken] = code
             taken += 1
+        # (2) the half angles' cosines and sines, numpy's (the batch's) functions
         if total:
             half = np.multiply(flat_array[:total], 0.5)
             cos = np.cos(half)
             sin = np.sin(half)
-        # the channel frames stepped; each frame's code to its stage, in the order of the frames
+        # (3) the poses into the features
+        for k in range(taken):
+            ts[k] = -1
+            if codes[k] != NOTHING:
+                continue
+            s = <LiveStream> lives[pos[k]]
+            if s._kinematics is not None:
+                at = offs[k]
+                if not s._pose_channels(&flat[at], &cos[at], &sin[at]):
+                    codes[k] = NON_FINITE
+                    continue
+            ts[k] = s._prepare()
+            if ts[k] >= 0:
+                waiting[pending] = k
+                pending += 1
+        # (4) the feature program over the frames that became final, BLOCK at a time, by program
+        first = 0
+        while first < pending:
+            program = (<LiveStream> lives[pos[waiting[first]]]).features.code
+            block = 0
+            j = first
+            while j < pending and block < BLOCK:
+                k = waiting[j]
+                if k >= 0:
+                    features = (<LiveStream> lives[pos[k]]).features
+                    if features.code is program:
+                        P[block] = features.pose(ts[k])
+                        S[block] = features.smoothed()
+                        T[block] = features.thresholds()
+                        which[block] = k
+                        block += 1
+                        waiting[j] = -1
+                j += 1
+            program.run_many(block, P, S, T, registers(program.registers * block), g1, g2)
+            for j in range(block):
+                f1[which[j]] = g1[j]
+                f2[which[j]] = g2[j]
+            while first < pending and waiting[first] < 0:
+                first += 1
+        # (5) each frame's code to its stage, in the order of the frames
         for k in range(taken):
             i = pos[k]
-            r = (<tuple> frames[i])[0]
-            s = <LiveStream> r._live
+            s = <LiveStream> lives[i]
             code = codes[k]
-            if s._kinematics is not None and code == NOTHING:
-                at = offs[k]
-                code = s._channels(&flat[at], &cos[at], &sin[at])
             num = nums[k]
             if code < NOTHING:
-                errors.append((i, r._refusal(num, code)))
+                errors.append((i, (<tuple> frames[i])[0]._refusal(num, code)))
                 continue
             if not s.started:
                 s.stage.start(num)
                 s.started = True
             s.last = num
+            t = ts[k]
+            if t < 0:
+                continue
+            code = s._decimate(s.features.finish(t, f1[k], f2[k]))
             if code == NOTHING:
                 continue
             if s.competition is not None:
@@ -254,7 +342,12 @@ def push_many(list frames, refused):
         PyMem_Free(pos)
         PyMem_Free(nums)
         PyMem_Free(codes)
+        PyMem_Free(ts)
         PyMem_Free(offs)
+        PyMem_Free(waiting)
+        PyMem_Free(f1)
+        PyMem_Free(f2)
+        PyMem_Free(lives)
     if len(errors) > 1:
         errors.sort(key=_position)
     return detections, errors
