@@ -6,9 +6,11 @@ from setuptools import Extension, setup
 # No -ffast-math and no FMA contraction: the kernels must give the same floating-point bits as the
 # numpy batch paths they are tested against.
 FLAGS = ["-O2", "-ffp-contract=off", "-mpopcnt"]
-# The feature program's instructions run over a block of frames (Bytecode.run_many): vectorised loops
-# of IEEE adds, multiplies, divisions and square roots give the bits the scalar ones give.
-EXTRA = {"daemon._features": ["-ftree-vectorize", "-fvect-cost-model=dynamic"]}
+# The feature program's instructions and forward kinematics' steps run over a block of frames
+# (Bytecode.run_many, FrameKinematics.joints_many): vectorised loops of IEEE adds, multiplies,
+# divisions and square roots give the bits the scalar ones give.
+VECTORISED = ["-ftree-vectorize", "-fvect-cost-model=dynamic"]
+EXTRA = {"daemon._features": VECTORISED, "replay._kinematics": VECTORISED}
 
 setup(
     ext_modules=cythonize(

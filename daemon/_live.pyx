@@ -155,7 +155,7 @@ cdef inline bint fast_values(object frame, LiveStream s, Py_buffer *view):
 
 
 cdef enum:
-    BLOCK = 32  # frames per run of the feature program over many (its registers: 32 x ~6 KB)
+    BLOCK = 32  # frames per block of forward kinematics or of the feature program (registers: 32 x ~6 KB)
 
 cdef double *_registers = NULL  # the register block of run_many, grown as needed (the GIL guards it)
 cdef Py_ssize_t _registers_size = 0
@@ -178,12 +178,14 @@ def push_many(list frames, refused):
     :class:`daemon.recognizer.Recognizer` s (their ``_live`` a :class:`LiveStream` with its stage
     attached), in passes over all of them: (1) the checks (a consecutive int number and
     C-contiguous doubles of the stream's shape here, anything else by the recogniser's ``_check``,
-    which refuses or converts), the channel frames gathered side by side; (2) the cosines and sines
-    of their half angles in one numpy call each; (3) each pose (forward kinematics, or the announced
-    joints) into its features' ring, with the smoothed velocities of the frame that became final;
-    (4) the feature program over those frames, :data:`BLOCK` at a time, each instruction over all
-    of them (:meth:`Bytecode.run_many`); (5) each frame's hysteresis, decimation and, for an
-    index-rate code, its compiled competition. Python runs per frame only for a refusal, a
+    which refuses or converts), the channel frames gathered side by side, the positions frames'
+    standard joints taken; (2) the cosines and sines of the channels' half angles in one numpy call
+    each; (3) forward kinematics, up to :data:`BLOCK` frames of one skeleton at a time, each step
+    over all of them (:meth:`FrameKinematics.joints_many`); (4) each pose into its features' ring,
+    with the smoothed velocities of the frame that became final; (5) the feature program over those
+    frames, by blocks of one program, each instruction over all of them
+    (:meth:`Bytecode.run_many`); (6) each frame's hysteresis, decimation and, for an index-rate
+    code, its compiled competition. Python runs per frame only for a refusal, a
     stream's first frame and a confirmation. ``refused``: the exception class ``_check`` raises for
     a frame it refuses. Returns (detections, [(position, the refusal)])."""
     cdef Py_ssize_t n = len(frames), i, k, j, taken = 0, total = 0, at, pending = 0, block, first
@@ -202,6 +204,12 @@ def push_many(list frames, refused):
     cdef uint64_t g1[BLOCK]
     cdef uint64_t g2[BLOCK]
     cdef Py_ssize_t which[BLOCK]
+    cdef const double *C[BLOCK]
+    cdef const double *CO[BLOCK]
+    cdef const double *SI[BLOCK]
+    cdef double *OUT[BLOCK]
+    cdef bint fine[BLOCK]
+    cdef FrameKinematics kinematics
     cdef Py_buffer view
     cdef LiveStream s
     cdef FeatureCore features
@@ -274,22 +282,47 @@ def push_many(list frames, refused):
             half = np.multiply(flat_array[:total], 0.5)
             cos = np.cos(half)
             sin = np.sin(half)
-        # (3) the poses into the features
+        # (3) the channel frames' forward kinematics, BLOCK frames of one skeleton at a time
+        for k in range(taken):
+            if codes[k] == NOTHING and (<LiveStream> lives[pos[k]])._kinematics is not None:
+                waiting[pending] = k
+                pending += 1
+        first = 0
+        while first < pending:
+            kinematics = (<LiveStream> lives[pos[waiting[first]]])._kinematics
+            block = 0
+            j = first
+            while j < pending and block < BLOCK:
+                k = waiting[j]
+                if k >= 0:
+                    s = <LiveStream> lives[pos[k]]
+                    if s._kinematics is kinematics:
+                        at = offs[k]
+                        C[block] = &flat[at]
+                        CO[block] = &cos[at]
+                        SI[block] = &sin[at]
+                        OUT[block] = &s.rows[0]
+                        which[block] = k
+                        block += 1
+                        waiting[j] = -1
+                j += 1
+            kinematics.joints_many(block, C, CO, SI, OUT, fine, registers(7 * kinematics.n_nodes * block))
+            for j in range(block):
+                if not fine[j]:
+                    codes[which[j]] = NON_FINITE
+            while first < pending and waiting[first] < 0:
+                first += 1
+        # (4) the poses into the features
+        pending = 0
         for k in range(taken):
             ts[k] = -1
             if codes[k] != NOTHING:
                 continue
-            s = <LiveStream> lives[pos[k]]
-            if s._kinematics is not None:
-                at = offs[k]
-                if not s._pose_channels(&flat[at], &cos[at], &sin[at]):
-                    codes[k] = NON_FINITE
-                    continue
-            ts[k] = s._prepare()
+            ts[k] = (<LiveStream> lives[pos[k]])._prepare()
             if ts[k] >= 0:
                 waiting[pending] = k
                 pending += 1
-        # (4) the feature program over the frames that became final, BLOCK at a time, by program
+        # (5) the feature program over the frames that became final, BLOCK at a time, by program
         first = 0
         while first < pending:
             program = (<LiveStream> lives[pos[waiting[first]]]).features.code
@@ -313,7 +346,7 @@ def push_many(list frames, refused):
                 f2[which[j]] = g2[j]
             while first < pending and waiting[first] < 0:
                 first += 1
-        # (5) each frame's code to its stage, in the order of the frames
+        # (6) each frame's code to its stage, in the order of the frames
         for k in range(taken):
             i = pos[k]
             s = <LiveStream> lives[i]
