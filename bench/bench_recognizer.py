@@ -90,11 +90,8 @@ def one_size(
     joins = [int(rng.integers(JOIN)) for _ in range(size)]
     names = [f"s{k}" for k in range(size)]
 
-    def frame(k: int, t: int) -> np.ndarray:
-        m = picks[k]
-        row: np.ndarray = m.channels[(starts[k] + t - joins[k]) % len(m)]
-        return row
-
+    rows = [m.channels for m in picks]
+    lengths = [len(m) for m in picks]
     bank = RecognizerBank(library)
     added: list[int] = []
 
@@ -103,7 +100,12 @@ def one_size(
             if joins[k] == t:
                 bank.add(names[k], 120.0, skeleton=picks[k].skeleton, session="bench")
                 added.append(k)
-        bank.push([(names[k], t - joins[k] + 1, frame(k, t)) for k in added])
+        bank.push(
+            [
+                (names[k], t - joins[k] + 1, rows[k][(starts[k] + t - joins[k]) % lengths[k]])
+                for k in added
+            ]
+        )
 
     recognizers: dict[int, Recognizer] = {}
 
@@ -112,7 +114,7 @@ def one_size(
             if joins[k] == t:
                 recognizers[k] = Recognizer.for_skeleton(library, picks[k].skeleton, 120.0, session="bench")
         for k, r in recognizers.items():
-            r.push(t - joins[k] + 1, frame(k, t))
+            r.push(t - joins[k] + 1, rows[k][(starts[k] + t - joins[k]) % lengths[k]])
 
     return tick_times(bank_step, ticks), tick_times(baseline_step, ticks)
 

@@ -41,6 +41,7 @@ cdef class LiveStream:
     cdef readonly Py_ssize_t width
     cdef readonly int64_t step, seen
     cdef public bint started  # whether the stream has had a frame (then ``last`` is its number)
+    cdef int64_t mark  # the last push_many call with a frame of the stream
     cdef public int64_t last
     cdef object stage
     cdef Competition competition
@@ -60,6 +61,7 @@ cdef class LiveStream:
         self.seen = 0
         self.started = False
         self.last = 0
+        self.mark = 0
         self.stage = None
         self.competition = None
 
@@ -157,6 +159,7 @@ cdef inline bint fast_values(object frame, LiveStream s, Py_buffer *view):
 cdef enum:
     BLOCK = 32  # frames per block of forward kinematics or of the feature program (registers: 32 x ~6 KB)
 
+cdef int64_t _tick = 0  # push_many's calls: a stream marked with this one has a frame in it
 cdef double *_registers = NULL  # the register block of run_many, grown as needed (the GIL guards it)
 cdef Py_ssize_t _registers_size = 0
 
@@ -173,7 +176,7 @@ cdef double *registers(Py_ssize_t size) except NULL:
     return _registers
 
 
-def push_many(list frames, refused):
+def push_many(list frames, refused, dict streams=None):
     """The live path's per-frame step of one frame ``(recogniser, number, values)`` each of distinct
     :class:`daemon.recognizer.Recognizer` s (their ``_live`` a :class:`LiveStream` with its stage
     attached), in passes over all of them: (1) the checks (a consecutive int number and
@@ -187,7 +190,9 @@ def push_many(list frames, refused):
     (:meth:`Bytecode.run_many`); (6) each frame's hysteresis, decimation and, for an index-rate
     code, its compiled competition. Python runs per frame only for a refusal, a
     stream's first frame and a confirmation. ``refused``: the exception class ``_check`` raises for
-    a frame it refuses. Returns (detections, [(position, the refusal)])."""
+    a frame it refuses. With ``streams`` (name to recogniser) the frames are ``(name, number,
+    values)``. ValueError, before anything is done, for a recogniser (or name) with two frames or a
+    name not in ``streams``. Returns (detections, [(position, the refusal)])."""
     cdef Py_ssize_t n = len(frames), i, k, j, taken = 0, total = 0, at, pending = 0, block, first
     cdef Py_ssize_t *pos = <Py_ssize_t *> PyMem_Malloc((n + 1) * sizeof(Py_ssize_t))
     cdef int64_t *nums = <int64_t *> PyMem_Malloc((n + 1) * sizeof(int64_t))
@@ -218,23 +223,43 @@ def push_many(list frames, refused):
     cdef int64_t num = 0, code, t
     cdef const double *src
     cdef double[::1] flat, cos, sin
-    cdef list errors = [], detections = []
+    cdef list errors = [], detections = [], recognisers = [None] * n, unknown = None
+    cdef bint twice = False
+    global _tick
     try:
         if (pos == NULL or nums == NULL or codes == NULL or ts == NULL or offs == NULL or waiting == NULL
                 or f1 == NULL or f2 == NULL or lives == NULL):
             raise MemoryError()
+        # (0) the recognisers, each once
+        _tick += 1
         for i in range(n):
-            r, number, frame = <tuple> frames[i]
+            r = (<tuple> frames[i])[0]
+            if streams is not None:
+                r = streams.get(r)
+                if r is None:
+                    if unknown is None:
+                        unknown = []
+                    unknown.append((<tuple> frames[i])[0])
+                    continue
+            recognisers[i] = r
             s = <LiveStream?> r._live
-            lives[i] = <PyObject *> s  # borrowed: the frames' recognisers hold them
+            lives[i] = <PyObject *> s  # borrowed: ``recognisers`` holds them
+            if s.mark == _tick:
+                twice = True
+            s.mark = _tick
             if s._kinematics is not None:
                 total += s.width
+        if twice or (unknown is not None and len(set(unknown)) != len(unknown)):
+            raise ValueError("at most one frame per stream in one push")
+        if unknown is not None:
+            raise ValueError(f"streams not in the bank: {', '.join(map(repr, unknown))}")
         flat_array = np.empty(max(1, total))
         flat = flat_array
         total = 0
         # (1) the checks; the channel frames gathered, the positions frames' joints taken
         for i in range(n):
-            r, number, frame = <tuple> frames[i]
+            _, number, frame = <tuple> frames[i]
+            r = recognisers[i]
             s = <LiveStream> lives[i]
             fast = False
             if s.started and type(number) is int:
@@ -353,7 +378,7 @@ def push_many(list frames, refused):
             code = codes[k]
             num = nums[k]
             if code < NOTHING:
-                errors.append((i, (<tuple> frames[i])[0]._refusal(num, code)))
+                errors.append((i, recognisers[i]._refusal(num, code)))
                 continue
             if not s.started:
                 s.stage.start(num)

@@ -28,6 +28,7 @@ from dataclasses import dataclass
 
 import numpy.typing as npt
 
+from daemon._live import push_many
 from daemon.library import Library
 from daemon.recognizer import (
     DEFAULT_SETTINGS,
@@ -168,14 +169,5 @@ class RecognizerBank:
         """Advance each stream named in ``frames`` by its frame: the detections and the refused frames
         (a refused frame changes nothing). ValueError (nothing done) if a stream is not in the bank or
         has more than one frame."""
-        names = [f[0] for f in frames]
-        if len(set(names)) != len(names):
-            raise ValueError("at most one frame per stream in one push")
-        streams = self._streams
-        unknown = [n for n in names if n not in streams]
-        if unknown:
-            raise ValueError(f"streams not in the bank: {', '.join(map(repr, unknown))}")
-        detections, errors = Recognizer.push_many(
-            [(streams[name], number, frame) for name, number, frame in frames]
-        )
-        return BankResult(tuple(detections), tuple((names[i], e) for i, e in errors))
+        detections, errors = push_many(frames if isinstance(frames, list) else list(frames), FrameError, self._streams)
+        return BankResult(tuple(detections), tuple((frames[i][0], e) for i, e in errors))
