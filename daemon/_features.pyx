@@ -137,8 +137,10 @@ cdef class Bytecode:
         cdef double *d
         cdef const double *a
         cdef const double *b
-        cdef bint ok
         cdef uint64_t bit
+        cdef uint64_t *fail
+        cdef Py_ssize_t slot
+        cdef const int64_t *args = &self.args[0] if self.args.shape[0] else NULL
         for j in range(n):
             for i in range(rows):
                 r[i * n + j] = P[j][i]
@@ -171,17 +173,17 @@ cdef class Bytecode:
                     d[j] = fabs(a[j])
             elif o.op == OP_MIN:
                 for j in range(n):
-                    x = r[self.args[o.a] * n + j]
+                    x = r[args[o.a] * n + j]
                     for k in range(1, o.b):
-                        y = r[self.args[o.a + k] * n + j]
+                        y = r[args[o.a + k] * n + j]
                         if not (x < y or isnan(x)):
                             x = y
                     d[j] = x
             elif o.op == OP_MAX:
                 for j in range(n):
-                    x = r[self.args[o.a] * n + j]
+                    x = r[args[o.a] * n + j]
                     for k in range(1, o.b):
-                        y = r[self.args[o.a + k] * n + j]
+                        y = r[args[o.a + k] * n + j]
                         if not (x > y or isnan(x)):
                             x = y
                     d[j] = x
@@ -193,22 +195,24 @@ cdef class Bytecode:
             t = self.tests_[i]
             a = &r[t.register * n]
             bit = (<uint64_t>1) << t.bit
-            for j in range(n):
-                x = a[j]
-                y = T[j][t.slot]
-                if t.cmp == CMP_LT:
-                    ok = x < y
-                elif t.cmp == CMP_LE:
-                    ok = x <= y
-                elif t.cmp == CMP_GT:
-                    ok = x > y
-                else:
-                    ok = x >= y
-                if not ok:
-                    if t.track == 0:
-                        f1[j] |= bit
-                    else:
-                        f2[j] |= bit
+            fail = f1 if t.track == 0 else f2
+            slot = t.slot
+            if t.cmp == CMP_LT:
+                for j in range(n):
+                    if not (a[j] < T[j][slot]):
+                        fail[j] |= bit
+            elif t.cmp == CMP_LE:
+                for j in range(n):
+                    if not (a[j] <= T[j][slot]):
+                        fail[j] |= bit
+            elif t.cmp == CMP_GT:
+                for j in range(n):
+                    if not (a[j] > T[j][slot]):
+                        fail[j] |= bit
+            else:
+                for j in range(n):
+                    if not (a[j] >= T[j][slot]):
+                        fail[j] |= bit
         for j in range(n):
             f1[j] = self.present[0] & ~f1[j]
             f2[j] = self.present[1] & ~f2[j]
