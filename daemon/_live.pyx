@@ -17,11 +17,16 @@ from daemon._dtw cimport Competition
 from daemon._features cimport Bytecode, FeatureCore
 from replay._kinematics cimport FrameKinematics
 
-NOTHING = -1
+cdef enum:
+    C_NOTHING = -1
+    C_NON_FINITE = -2
+    C_NON_FINITE_CHANNELS = -3
+
+NOTHING = C_NOTHING
 """No index-rate code this frame (the features' delay, or a frame the decimation skips)."""
-NON_FINITE = -2
+NON_FINITE = C_NON_FINITE
 """A standard joint is not finite (after forward kinematics)."""
-NON_FINITE_CHANNELS = -3
+NON_FINITE_CHANNELS = C_NON_FINITE_CHANNELS
 """A channel is not finite (the frame was not stepped)."""
 
 
@@ -98,10 +103,10 @@ cdef class LiveStream:
         return out
 
     cdef int64_t _channels(self, const double *channels, const double *cos, const double *sin):
-        return self._advance() if self._pose_channels(channels, cos, sin) else NON_FINITE
+        return self._advance() if self._pose_channels(channels, cos, sin) else C_NON_FINITE
 
     cdef int64_t _positions(self, const double *positions):
-        return self._advance() if self._pose_positions(positions) else NON_FINITE
+        return self._advance() if self._pose_positions(positions) else C_NON_FINITE
 
     cdef bint _pose_channels(self, const double *channels, const double *cos, const double *sin):
         """Forward kinematics of a channel frame into ``rows``: whether every joint is finite."""
@@ -129,13 +134,13 @@ cdef class LiveStream:
     cdef int64_t _decimate(self, int64_t code):
         """A final frame's code: passed on if it is a kept frame, else :data:`NOTHING`."""
         self.seen += 1
-        return code if (self.seen - 1) % self.step == 0 else NOTHING
+        return code if (self.seen - 1) % self.step == 0 else C_NOTHING
 
     cdef int64_t _advance(self):
         if self.features.n == 0:
             self.features.set_thresholds(self.lengths(self.rows_array))
         cdef int64_t code = self.features.push_ptr(&self.rows[0])
-        return NOTHING if code < 0 else self._decimate(code)
+        return C_NOTHING if code < 0 else self._decimate(code)
 
 
 cdef inline bint fast_values(object frame, LiveStream s, Py_buffer *view):
@@ -285,14 +290,14 @@ def push_many(list frames, refused, dict streams=None):
                     raise AssertionError("a checked frame is C-contiguous doubles of the stream's shape")
             src = <const double *> view.buf
             if s._kinematics is None:
-                code = NOTHING if s._pose_positions(src) else NON_FINITE
+                code = C_NOTHING if s._pose_positions(src) else C_NON_FINITE
             else:
                 finite = True
                 for k in range(s.width):
                     if not isfinite(src[k]):
                         finite = False
                         break
-                code = NOTHING if finite else NON_FINITE - 1
+                code = C_NOTHING if finite else C_NON_FINITE_CHANNELS
                 if finite:
                     memcpy(&flat[total], src, s.width * sizeof(double))
                 offs[taken] = total
@@ -309,7 +314,7 @@ def push_many(list frames, refused, dict streams=None):
             sin = np.sin(half)
         # (3) the channel frames' forward kinematics, BLOCK frames of one skeleton at a time
         for k in range(taken):
-            if codes[k] == NOTHING and (<LiveStream> lives[pos[k]])._kinematics is not None:
+            if codes[k] == C_NOTHING and (<LiveStream> lives[pos[k]])._kinematics is not None:
                 waiting[pending] = k
                 pending += 1
         first = 0
@@ -334,14 +339,14 @@ def push_many(list frames, refused, dict streams=None):
             kinematics.joints_many(block, C, CO, SI, OUT, fine, registers(7 * kinematics.n_nodes * block))
             for j in range(block):
                 if not fine[j]:
-                    codes[which[j]] = NON_FINITE
+                    codes[which[j]] = C_NON_FINITE
             while first < pending and waiting[first] < 0:
                 first += 1
         # (4) the poses into the features
         pending = 0
         for k in range(taken):
             ts[k] = -1
-            if codes[k] != NOTHING:
+            if codes[k] != C_NOTHING:
                 continue
             ts[k] = (<LiveStream> lives[pos[k]])._prepare()
             if ts[k] >= 0:
@@ -377,7 +382,7 @@ def push_many(list frames, refused, dict streams=None):
             s = <LiveStream> lives[i]
             code = codes[k]
             num = nums[k]
-            if code < NOTHING:
+            if code < C_NOTHING:
                 errors.append((i, recognisers[i]._refusal(num, code)))
                 continue
             if not s.started:
@@ -388,7 +393,7 @@ def push_many(list frames, refused, dict streams=None):
             if t < 0:
                 continue
             code = s._decimate(s.features.finish(t, f1[k], f2[k]))
-            if code == NOTHING:
+            if code == C_NOTHING:
                 continue
             if s.competition is not None:
                 found = s.competition.push_c(<uint64_t> code)

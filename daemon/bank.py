@@ -169,5 +169,7 @@ class RecognizerBank:
         """Advance each stream named in ``frames`` by its frame: the detections and the refused frames
         (a refused frame changes nothing). ValueError (nothing done) if a stream is not in the bank or
         has more than one frame."""
-        detections, errors = push_many(frames if isinstance(frames, list) else list(frames), FrameError, self._streams)
+        detections, errors = push_many(
+            frames if isinstance(frames, list) else list(frames), FrameError, self._streams
+        )
         return BankResult(tuple(detections), tuple((frames[i][0], e) for i, e in errors))

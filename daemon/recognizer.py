@@ -31,7 +31,6 @@ and clock; it equals pushing the frames one by one (tests).
 
 from __future__ import annotations
 
-import math
 import uuid
 import weakref
 from collections.abc import Sequence
@@ -44,7 +43,7 @@ import numpy.typing as npt
 
 from daemon._automaton import AutomatonSet
 from daemon._dtw import Competition, StreamDTW
-from daemon._live import NON_FINITE, NON_FINITE_CHANNELS, LiveStream, push_many
+from daemon._live import NON_FINITE, LiveStream, push_many
 from daemon.automaton import KeyframeAutomaton
 from daemon.dtw import SCALE, Match, RetrievalTables, Steps, pack, retrieval_tables, threshold
 from daemon.errors import InputError, MocapdError
