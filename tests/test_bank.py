@@ -319,7 +319,8 @@ def as_given(values: FloatArray, k: int) -> npt.ArrayLike:
     order (the last three through the recogniser's own checks, not the compiled fast path)."""
     form = k % 4
     if form == 1:
-        return values.tolist()
+        listed: npt.ArrayLike = values.tolist()
+        return listed
     if form == 2:
         return np.repeat(values, 2, axis=0)[::2]
     if form == 3:
