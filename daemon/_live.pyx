@@ -336,7 +336,7 @@ def push_many(list frames, refused, dict streams=None):
                         block += 1
                         waiting[j] = -1
                 j += 1
-            kinematics.joints_many(block, C, CO, SI, OUT, fine, registers(7 * kinematics.n_nodes * block))
+            kinematics.joints_many(block, C, CO, SI, OUT, fine, registers((7 * kinematics.n_nodes + 2 * kinematics.width) * block))
             for j in range(block):
                 if not fine[j]:
                     codes[which[j]] = C_NON_FINITE

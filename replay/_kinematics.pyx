@@ -93,27 +93,35 @@ cdef class FrameKinematics:
                           const double **sin, double **out, bint *finite, double *scratch) noexcept nogil:
         """:meth:`joints_into` of ``n`` frames of this skeleton at once (frame s: ``channels[s]``,
         ``cos[s]``, ``sin[s]``, its joints into ``out[s]``, whether all are finite into
-        ``finite[s]``), every step of :meth:`local` and :meth:`forward` over all of them: component
-        c of node k of frame s in ``scratch[(4k + c) n + s]`` (rotations), then after ``4 nodes n``
-        ``[(3k + c) n + s]`` (positions): ``7 nodes n`` doubles. Each frame's operations are those
-        of :meth:`joints_into` in its order, so its bits are the same."""
+        ``finite[s]``), every step of :meth:`local` and :meth:`forward` over all of them, frame s of
+        a quantity at ``[q n + s]`` in ``scratch``: the node rotations (``4 nodes n`` doubles), the
+        positions (``3 nodes n``), the cosines and sines (``2 width n``). Each frame's operations
+        are those of :meth:`joints_into` in its order, so its bits are the same."""
         cdef Py_ssize_t e, k, p, c, i, a, j, jj, m = self.nodes.shape[0], nodes_n = self.n_nodes
         cdef Py_ssize_t n_pairs = self.pairs.shape[0], n_trans = self.translation.shape[0]
-        cdef Py_ssize_t n_joints = self.joint_nodes.shape[0]
-        cdef double s, ax, ay, az, w, x, y, z, vx, vy, vz, tx, ty, tz, v, scale = self.scale
-        cdef double q[4]
+        cdef Py_ssize_t n_joints = self.joint_nodes.shape[0], width = self.width
+        cdef double s, ax, ay, az, aw, bw, bx, by, bz, w, x, y, z, vx, vy, vz, tx, ty, tz, v
+        cdef double scale = self.scale
         cdef double *rot = scratch
         cdef double *pos = &scratch[4 * nodes_n * n]
+        cdef double *cs = &scratch[7 * nodes_n * n]  # the cosines, channel c of frame j at [c n + j]
+        cdef double *sn = &cs[width * n]
         cdef double *r0
         cdef double *r1
         cdef double *r2
         cdef double *r3
+        cdef double *q0
+        cdef double *q1
+        cdef double *q2
+        cdef double *q3
         cdef double *p0
         cdef double *p1
         cdef double *p2
         cdef double *o0
         cdef double *o1
         cdef double *o2
+        cdef double *cc
+        cdef double *ss
         cdef const int64_t *nodes = &self.nodes[0] if m else NULL
         cdef const int64_t *chans = &self.chans[0] if m else NULL
         cdef const unsigned char *first = &self.first[0] if m else NULL
@@ -124,7 +132,11 @@ cdef class FrameKinematics:
         cdef const int64_t *pairs = &self.pairs[0, 0] if n_pairs else NULL
         cdef const int64_t *translation = &self.translation[0, 0] if n_trans else NULL
         cdef const int64_t *joint_nodes = &self.joint_nodes[0] if n_joints else NULL
-        # local rotations (local)
+        for j in range(n):
+            for c in range(width):
+                cs[c * n + j] = cos[j][c]
+                sn[c * n + j] = sin[j][c]
+        # local rotations (local); qmul written out, its operations in its order
         for k in range(nodes_n):
             for j in range(n):
                 rot[(4 * k + 0) * n + j] = 1.0
@@ -141,32 +153,47 @@ cdef class FrameKinematics:
             r1 = &rot[(4 * k + 1) * n]
             r2 = &rot[(4 * k + 2) * n]
             r3 = &rot[(4 * k + 3) * n]
+            cc = &cs[c * n]
+            ss = &sn[c * n]
             if first[e]:
                 for j in range(n):
-                    s = sin[j][c]
-                    r0[j] = cos[j][c]
+                    s = ss[j]
+                    r0[j] = cc[j]
                     r1[j] = s * ax
                     r2[j] = s * ay
                     r3[j] = s * az
             else:
                 for j in range(n):
-                    s = sin[j][c]
-                    qmul(cos[j][c], s * ax, s * ay, s * az, r0[j], r1[j], r2[j], r3[j], q)
-                    r0[j] = q[0]
-                    r1[j] = q[1]
-                    r2[j] = q[2]
-                    r3[j] = q[3]
+                    s = ss[j]
+                    aw = cc[j]
+                    tx = s * ax
+                    ty = s * ay
+                    tz = s * az
+                    bw = r0[j]
+                    bx = r1[j]
+                    by = r2[j]
+                    bz = r3[j]
+                    r0[j] = ((aw * bw - tx * bx) - ty * by) - tz * bz
+                    r1[j] = ((aw * bx + tx * bw) + ty * bz) - tz * by
+                    r2[j] = ((aw * by - tx * bz) + ty * bw) + tz * bx
+                    r3[j] = ((aw * bz + tx * by) - ty * bx) + tz * bw
         r0 = &rot[0]
         r1 = &rot[n]
         r2 = &rot[2 * n]
         r3 = &rot[3 * n]
+        aw = orientation[0]
+        tx = orientation[1]
+        ty = orientation[2]
+        tz = orientation[3]
         for j in range(n):
-            qmul(orientation[0], orientation[1], orientation[2], orientation[3],
-                 r0[j], r1[j], r2[j], r3[j], q)
-            r0[j] = q[0]
-            r1[j] = q[1]
-            r2[j] = q[2]
-            r3[j] = q[3]
+            bw = r0[j]
+            bx = r1[j]
+            by = r2[j]
+            bz = r3[j]
+            r0[j] = ((aw * bw - tx * bx) - ty * by) - tz * bz
+            r1[j] = ((aw * bx + tx * bw) + ty * bz) - tz * by
+            r2[j] = ((aw * by - tx * bz) + ty * bw) + tz * bx
+            r3[j] = ((aw * bz + tx * by) - ty * bx) + tz * bw
         # positions down the hierarchy (forward)
         for j in range(n):
             pos[j] = position[0]
@@ -187,6 +214,10 @@ cdef class FrameKinematics:
             r1 = &rot[(4 * k + 1) * n]
             r2 = &rot[(4 * k + 2) * n]
             r3 = &rot[(4 * k + 3) * n]
+            q0 = &rot[(4 * p + 0) * n]
+            q1 = &rot[(4 * p + 1) * n]
+            q2 = &rot[(4 * p + 2) * n]
+            q3 = &rot[(4 * p + 3) * n]
             p0 = &pos[(3 * p + 0) * n]
             p1 = &pos[(3 * p + 1) * n]
             p2 = &pos[(3 * p + 2) * n]
@@ -194,12 +225,18 @@ cdef class FrameKinematics:
             o1 = &pos[(3 * k + 1) * n]
             o2 = &pos[(3 * k + 2) * n]
             for j in range(n):
-                qmul(rot[(4 * p + 0) * n + j], rot[(4 * p + 1) * n + j], rot[(4 * p + 2) * n + j],
-                     rot[(4 * p + 3) * n + j], r0[j], r1[j], r2[j], r3[j], q)
-                w = q[0]
-                x = q[1]
-                y = q[2]
-                z = q[3]
+                aw = q0[j]
+                ax = q1[j]
+                ay = q2[j]
+                az = q3[j]
+                bw = r0[j]
+                bx = r1[j]
+                by = r2[j]
+                bz = r3[j]
+                w = ((aw * bw - ax * bx) - ay * by) - az * bz
+                x = ((aw * bx + ax * bw) + ay * bz) - az * by
+                y = ((aw * by - ax * bz) + ay * bw) + az * bx
+                z = ((aw * bz + ax * by) - ay * bx) + az * bw
                 r0[j] = w
                 r1[j] = x
                 r2[j] = y
@@ -210,9 +247,8 @@ cdef class FrameKinematics:
                 o0[j] = p0[j] + ((vx + w * tx) + (y * tz - z * ty))
                 o1[j] = p1[j] + ((vy + w * ty) + (z * tx - x * tz))
                 o2[j] = p2[j] + ((vz + w * tz) + (x * ty - y * tx))
-        for k in range(3 * nodes_n):
-            for j in range(n):
-                pos[k * n + j] = pos[k * n + j] * scale
+        for k in range(3 * nodes_n * n):
+            pos[k] = pos[k] * scale
         # the standard joints (joints_into)
         for j in range(n):
             finite[j] = True
