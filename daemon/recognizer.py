@@ -19,14 +19,19 @@ Bounded state. The features keep 33 poses at 120 Hz, each gating automaton the q
 three columns per template, and the candidates and keyframe ranges of the last :func:`reach`
 frames.
 
-One live path. :class:`Recognizer` is the one per-stream engine: its frame step (the checks, then
-compiled code) and its :class:`ClassStage` (the codes through :class:`CodeRecognizer`, then into the
-stream's frame numbers by its :class:`~daemon.frames.FrameClock`). :meth:`Recognizer.push_many`
-advances any number of recognisers by one frame each in one pass; :meth:`Recognizer.push` is that
-of one frame, :meth:`daemon.bank.RecognizerBank.push` that of its streams' frames. The settings
-shared by every stream are one :class:`~daemon.types.RecognitionSettings`. :func:`detect` is the
-batch twin: the features of the whole recording in one vectorised pass, then the same class stage
-and clock; it equals pushing the frames one by one (tests).
+One live path. :class:`Recognizer` is the one per-stream engine: its state is compiled (a
+:class:`~daemon._live.LiveStream`: forward kinematics, features, decimation; its
+:class:`ClassStage`'s :class:`CodeRecognizer`, whose work is a :class:`~daemon._dtw.Competition`),
+its Python the checks of an unusual frame, the refusals and the detections' ids and frame numbers
+(:class:`ClassStage` with the stream's :class:`~daemon.frames.FrameClock`).
+:meth:`Recognizer.push_many` advances any number of recognisers by one frame each in one compiled
+call (:func:`daemon._live.push_many`: the frames stepped in passes over all of them, forward
+kinematics and the feature program by blocks of streams, each step over the block); a frame's
+operations are the same whatever block it is in. :meth:`Recognizer.push` is that call for one
+frame, :meth:`daemon.bank.RecognizerBank.push` that of its streams' frames. The settings shared by
+every stream are one :class:`~daemon.types.RecognitionSettings`. :func:`detect` is the batch twin:
+the features of the whole recording in one vectorised pass, then the same class stage and clock; it
+equals pushing the frames one by one (tests).
 """
 
 from __future__ import annotations
@@ -221,6 +226,9 @@ class CodeRecognizer:
     """Detections over a stream of index-rate frame codes: ``push(code)`` returns the confirmations
     it made, ``flush()`` ends the stream. The part of :class:`Recognizer` after the features, shared
     with :func:`detect`.
+
+    The algorithm below runs compiled, in :class:`daemon._dtw.Competition` (:attr:`core`), on C
+    arrays; :meth:`push` and :meth:`flush` turn what it confirms into :data:`Confirmation`.
 
     *Candidates.* Every template of every class runs as a subsequence DTW over the whole stream, one
     column per frame (:class:`daemon._dtw.StreamDTW`; thesis Alg. 3.2 with free start, the retrieval
@@ -526,12 +534,13 @@ class Recognizer:
     @staticmethod
     def push_many(frames: Sequence[tuple[Recognizer, object, npt.ArrayLike]]) -> Step:
         """The live path's per-frame step: one frame ``(recogniser, number, values)`` of each of any
-        number of distinct recognisers, in one compiled call (:func:`daemon._live.push_many`): each
-        frame is checked (number, type, shape; :meth:`_check` for all but the usual frame), the
-        channel frames' finiteness checked and the cosines and sines of their half angles (forward
-        kinematics, :mod:`replay.kinematics`) taken in one numpy call each over all of them, every
-        frame's compiled step run (a pose that is not finite after forward kinematics is refused:
-        :meth:`_refusal`) and its index-rate code pushed to its recogniser's compiled competition
+        number of distinct recognisers (ValueError, nothing done, for one twice), in one compiled
+        call (:func:`daemon._live.push_many`): each frame is checked (number, type, shape;
+        :meth:`_check` for all but the usual frame), the channel frames' finiteness checked and the
+        cosines and sines of their half angles (forward kinematics, :mod:`replay.kinematics`) taken
+        in one numpy call each over all of them, forward kinematics and the feature program run by
+        blocks of frames (a pose that is not finite after forward kinematics is refused:
+        :meth:`_refusal`), and each index-rate code pushed to its recogniser's compiled competition
         (:attr:`CodeRecognizer.core`). Returns the detections (in the order of the frames, each
         recogniser's in its order) and the refused frames (each changed nothing)."""
         return push_many(frames if isinstance(frames, list) else list(frames), FrameError)
