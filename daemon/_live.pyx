@@ -1,8 +1,9 @@
 # cython: language_level=3, boundscheck=False, wraparound=False, initializedcheck=False, cdivision=True
-"""A stream's frame step in compiled code, from a checked frame to the index-rate code the keyframe
-automata take: forward kinematics (or the announced joint order), the features and the decimation
-(daemon/recognizer.py says what each step is). One call per frame, or one call for one frame of
-many streams (the bank)."""
+"""The live path's frame step in compiled code: a stream's state (:class:`LiveStream`: forward
+kinematics or the announced joint order, the features, the decimation, and the class stage's
+compiled competition it hands its index-rate codes to), and :func:`push_many`, one frame of each of
+many streams in one call, in passes over all of them, forward kinematics and the feature program by
+blocks of streams (daemon/recognizer.py says what each step is)."""
 
 from cpython.buffer cimport PyBUF_C_CONTIGUOUS, PyBUF_FORMAT, PyBuffer_Release, PyObject_GetBuffer
 from cpython.mem cimport PyMem_Free, PyMem_Malloc, PyMem_Realloc
