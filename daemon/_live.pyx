@@ -239,7 +239,7 @@ def push_many(list frames, refused, dict streams=None):
         # (0) the recognisers, each once
         _tick += 1
         for i in range(n):
-            r = (<tuple> frames[i])[0]
+            r = (<tuple?> frames[i])[0]
             if streams is not None:
                 r = streams.get(r)
                 if r is None:
