@@ -82,6 +82,7 @@ class ZmqTransport:
         self._auth: AsyncioAuthenticator | None = None
         self._dropped = 0
         self._status: tuple[Outgoing, Outgoing] | None = None
+        self._asked = 0
 
     def announce(self, online: Outgoing, offline: Outgoing) -> None:
         """Publish ``online`` once bound and ``offline`` before closing (on the PUB socket)."""
@@ -168,6 +169,17 @@ class ZmqTransport:
     def ask_skeleton(self, stream: str) -> None:
         """Nothing: a ZeroMQ publisher re-announces when the daemon's subscription reaches it, and
         periodically (``protocols/README.md``, "A stream's life")."""
+
+    def ask_skeletons(self) -> None:
+        """Have every connected publisher announce its skeleton again, as when the daemon starts
+        (``mocapd run --workers``: a restarted worker): a subscription the publishers' XPUB sockets
+        have not seen, at once cancelled (a topic no stream has, so nothing else changes)."""
+        if self._sub is None:
+            return
+        self._asked += 1
+        token = b"%s#ask-%d" % (PREFIX, self._asked)
+        self._sub.setsockopt(zmq.SUBSCRIBE, token)
+        self._sub.setsockopt(zmq.UNSUBSCRIBE, token)
 
     def drain_within(self, seconds: float) -> None:
         """Linger at most ``seconds`` (and at most ``linger_ms``) at close."""
