@@ -261,7 +261,8 @@ def run_worker(setup: WorkerSetup, index: int) -> int:
             while True:
                 await asyncio.sleep(1.0)
                 channel.tell(STREAMS, str(index).encode(), str(len(service.table.streams)).encode())
-                if os.getppid() != setup.front_pid:  # the front is gone: nobody routes to us
+                if os.getppid() != setup.front_pid:  # the front is gone: nothing to wait for
+                    channel.drain_within(0)
                     stop.set()
 
         gc.collect()
