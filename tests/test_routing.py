@@ -10,7 +10,7 @@ import sys
 from collections import Counter
 
 import pytest
-from hypothesis import given
+from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from protocols.routing import stream_of, worker_of
@@ -68,6 +68,7 @@ def test_numbered_ids_spread_evenly(workers: int, pattern: str) -> None:
     assert all(abs(n - share) < 0.25 * share for n in counts.values()), counts
 
 
+@settings(max_examples=20)
 @given(st.lists(stream_ids, min_size=400, max_size=400, unique=True))
 def test_random_ids_spread_over_two_workers(names: list[str]) -> None:
     """No set of distinct ids lands lopsided: of 400, each of two workers gets 120 or more (a

@@ -28,7 +28,9 @@ from protocols.publish import messages
 from protocols.routing import worker_of
 from tests.helpers import (
     DATA,
+    Broker,
     Daemon,
+    MqttCollector,
     ZmqCollector,
     detection_keys,
     finished,
@@ -50,6 +52,17 @@ def expected(asf: Path, amc: Path) -> list[dict[str, Any]]:
     return [
         d.as_json() for d in detect(read_recording(asf, amc), load_library(default_library_path()), 120.0)
     ]
+
+
+def unique(items: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """First arrivals only (QoS 1 may deliver a detection twice; the id says which)."""
+    seen: set[str] = set()
+    out = []
+    for d in items:
+        if d["id"] not in seen:
+            seen.add(d["id"])
+            out.append(d)
+    return out
 
 
 def gone(pid: int) -> bool:
@@ -106,6 +119,41 @@ def test_two_workers_give_each_stream_the_detections_of_detect(tmp_path: Path) -
     finally:
         collector.close()
         daemon.stop()
+
+
+@pytest.mark.slow
+def test_two_workers_behind_mqtt(tmp_path: Path) -> None:
+    """Over MQTT the front is the one client: both streams, on both workers, get detect's
+    detections, published on the broker."""
+    names = ["m0", "m1"]
+    assert sorted(worker_of(n, 2) for n in names) == [0, 1]
+    broker = Broker(tmp_path).start()
+    daemon = Daemon(
+        tmp_path, sources=["mqtt"], sinks=["mqtt"], mqtt=broker.url, config=BIG_QUEUE, workers=2
+    ).start()
+    collector = MqttCollector(broker.url, ["mocap/+/detections", "mocapd/+/status"])
+    try:
+        wait_for(lambda: any(s["state"] == "online" for s in collector.statuses()), 10, "the retained online")
+        for p in [replay(*TRIAL, broker.url, stream=n, speed="8") for n in names]:
+            finished(p)
+        wait_for(
+            lambda: daemon.metrics().get("mocapd_frames_in_total") == 2 * 2465, 60, "every pose received"
+        )
+        assert daemon.stop() == 0
+        want = detection_keys(expected(*TRIAL))
+        for name in names:
+
+            def arrived(n: str = name) -> bool:
+                return len({d["id"] for d in collector.detections() if d["stream"] == n}) >= len(want)
+
+            wait_for(arrived, 10, f"the detections of {name}")
+            mine = unique([d for d in collector.detections() if d["stream"] == name])
+            assert detection_keys(mine) == want, name
+        wait_for(lambda: collector.statuses()[-1]["state"] == "offline", 10, "offline")
+    finally:
+        collector.close()
+        daemon.stop()
+        broker.stop()
 
 
 class AskedPublisher:

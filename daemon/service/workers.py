@@ -52,7 +52,7 @@ import sys
 import tempfile
 import time
 from collections import Counter
-from collections.abc import AsyncIterator, Iterable
+from collections.abc import AsyncIterator, Iterable, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from types import TracebackType
@@ -82,8 +82,16 @@ RESTART_MIN_S, RESTART_MAX_S, STEADY_S = 0.2, 10.0, 10.0
 its start."""
 DRAIN_MESSAGES = 512
 """The most messages taken per wakeup, so that receiving yields to the other tasks."""
+NOBLOCK, MORE = int(zmq.NOBLOCK), int(zmq.NOBLOCK | zmq.SNDMORE)
+"""Send flags as plain ints (enum members cost more than a small message's send)."""
+ROUTES_CACHED = 100_000
+"""The most topics whose worker the front remembers."""
 YIELD_EVERY = 64
 """Messages the front routes before it lets its other tasks run."""
+CONNECT_TIMEOUT_MS = 10_000
+"""How long a worker waits for its connection to the front."""
+READY_TIMEOUT_S = 60.0
+"""How long the front waits for its workers to serve at start."""
 WORKER_FAMILIES_SKIPPED = frozenset({"mocapd_transport_up", "mocapd_outbox"})
 """A worker's series about its channel to the front, not the daemon's transports."""
 
@@ -138,7 +146,20 @@ class FrontChannel:
 
     async def __aenter__(self) -> FrontChannel:
         self._ctx = zmq.asyncio.Context()
-        self._pull = open_socket(self._ctx, zmq.PULL, self.inbound, bind=False, hwm=self.hwm, linger_ms=0)
+        # "ready" only once the front's queue to this worker has its end here: a skeleton the
+        # publishers announce when the front says so must not find no one to go to
+        pull = self._ctx.socket(zmq.PULL)
+        pull.setsockopt(zmq.RCVHWM, self.hwm)
+        pull.setsockopt(zmq.LINGER, 0)
+        monitor = pull.get_monitor_socket(zmq.EVENT_HANDSHAKE_SUCCEEDED)
+        try:
+            pull.connect(self.inbound)
+            if not await monitor.poll(CONNECT_TIMEOUT_MS):
+                raise StartupError("service.workers", f"worker {self.index}: no connection to the front")
+        finally:
+            pull.disable_monitor()
+            monitor.close(linger=0)
+        self._pull = pull
         push = open_socket(
             self._ctx, zmq.PUSH, self.outbound, bind=False, hwm=self.hwm, linger_ms=self.linger_ms
         )
@@ -269,7 +290,11 @@ def run_worker(setup: WorkerSetup, index: int) -> int:
         gc.freeze()
         return await service.run(stop, [("http", lambda: serve_http(http)), ("report", report)])
 
-    return 0 if asyncio.run(main()) else 1
+    try:
+        return 0 if asyncio.run(main()) else 1
+    except StartupError as e:  # the front says it did not start; the log line says why
+        logger.error("cannot start", extra={"fields": {"setting": e.setting, "reason": str(e)}})
+        return 2
 
 
 # ------------------------------------------------------------------------------------ the front
@@ -396,7 +421,13 @@ class Front:
     async def _all_ready(self, stop: asyncio.Event) -> None:
         """Wait until every worker says it serves; StartupError if one exits first."""
         assert self._outbound is not None
+        deadline = time.monotonic() + READY_TIMEOUT_S
         while not all(s.ready for s in self.slots) and not stop.is_set():
+            if time.monotonic() > deadline:
+                late = next(s.index for s in self.slots if not s.ready)
+                raise StartupError(
+                    "service.workers", f"worker {late} did not serve within {READY_TIMEOUT_S:g} s"
+                )
             for slot in self.slots:
                 process = slot.process
                 if process is not None and (code := process.poll()) is not None:
@@ -411,17 +442,39 @@ class Front:
     # ------------------------------------------------------------------------------- messages
 
     async def _route(self, transport: Transport) -> None:
-        """The raw messages of ``transport`` to their workers: never decoded."""
+        """The messages of ``transport`` to their workers, never decoded: a ZeroMQ source's frames as
+        they came (:meth:`protocols.zeromq.ZmqTransport.raw_source`), another's topic and payload."""
+        socks, slots = self._inbound, self.slots
+        n = len(socks)
+        routes: dict[bytes, int] = {}  # topic -> worker: a lookup, not a hash, per message
+
+        def send(topic: bytes, frames: Sequence[bytes | zmq.Frame]) -> None:
+            k = routes.get(topic)
+            if k is None:
+                if len(routes) >= ROUTES_CACHED:  # a flood of new ids must not grow it
+                    routes.clear()
+                k = routes[topic] = worker_of(stream_of(topic.decode("utf-8", "replace")), n)
+            sock, last = socks[k], len(frames) - 1
+            try:  # frame by frame with int flags: send_multipart costs twice as much
+                for i, frame in enumerate(frames):
+                    sock.send(frame, MORE if i < last else NOBLOCK, copy=False)
+            except zmq.Again:  # only ever the first frame: a message is queued whole or not at all
+                self.drops["worker_full" if slots[k].ready else "worker_down"] += 1
+
+        raw = getattr(transport, "raw_source", None)
+        batches = raw() if raw is not None else None
+        if batches is not None:
+            async for batch in batches:
+                for frames in batch:
+                    send(frames[0].bytes, frames)
+                await asyncio.sleep(0)
+            return
         source = transport.source()
         assert source is not None
-        socks, n, slots = self._inbound, len(self._inbound), self.slots
         count = 0
         async for incoming in source:
-            k = worker_of(stream_of(incoming.topic), n)
-            try:
-                socks[k].send_multipart([incoming.topic.encode(), incoming.payload], flags=zmq.NOBLOCK)
-            except zmq.Again:
-                self.drops["worker_full" if slots[k].ready else "worker_down"] += 1
+            name = incoming.topic.encode()
+            send(name, [name, incoming.payload])
             count += 1
             if count % YIELD_EVERY == 0:
                 await asyncio.sleep(0)
