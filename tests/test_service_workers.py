@@ -266,3 +266,30 @@ def test_workers_must_be_a_count() -> None:
     result = mocapd("run", "--workers", "-1")
     assert result.returncode == 2
     assert result.stderr == "mocapd: --workers: must be 0 (one per core) to 1024, got -1\n"
+
+
+@pytest.mark.slow
+def test_what_the_front_cannot_route_whole_is_refused_and_counted_once(tmp_path: Path) -> None:
+    """A message that is not ``[topic, payload]`` and one whose payload is not msgpack pass the front
+    undecoded and are refused by a worker as the single process refuses them; ``/metrics`` sums
+    the workers' counts."""
+    daemon = Daemon(tmp_path, workers=2).start()
+    ctx = zmq.Context()
+    sock = ctx.socket(zmq.XPUB)
+    sock.setsockopt(zmq.LINGER, 1000)
+    try:
+        sock.connect(daemon.poses)
+        assert sock.poll(10_000) and sock.recv()[:1] == b"\x01"
+        sock.send_multipart([b"mocap/x/pose", b"a", b"b"])
+        sock.send_multipart([b"mocap/y/pose", b"\xc1 not msgpack"])
+        sock.send_multipart([b"mocap/z/pose"])
+        wait_for(
+            lambda: daemon.metrics().get('mocapd_rejects_total{reason="undecodable"}') == 3,
+            10,
+            "three undecodable messages counted",
+        )
+        assert daemon.stop() == 0
+    finally:
+        sock.close()
+        ctx.term()
+        daemon.stop()

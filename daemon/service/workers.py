@@ -53,7 +53,7 @@ import tempfile
 import time
 from collections import Counter
 from collections.abc import AsyncIterator, Iterable, Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 from types import TracebackType
 
@@ -75,7 +75,7 @@ from protocols.zeromq import open_socket
 
 PUBLISH, READY, ASK, STREAMS = b"p", b"r", b"a", b"n"
 """What a worker sends the front, the first frame of each message: ``[p, topic, payload, retain]``
-to publish, ``[r, index, metrics port]`` once it serves, ``[a, stream]`` to have a stream's skeleton
+to publish, ``[r, index, metrics port, pid]`` once it serves, ``[a, stream]`` to have a stream's skeleton
 sent again, ``[n, index, streams]`` every second."""
 RESTART_MIN_S, RESTART_MAX_S, STEADY_S = 0.2, 10.0, 10.0
 """Restart back-off: from the first, doubling to the second while a worker dies within STEADY_S of
@@ -214,8 +214,9 @@ class FrontChannel:
 
 
 class _Inbound:
-    """The messages the front routed to this worker, as :class:`Incoming` (a message that is not
-    ``[topic, payload]`` as one with no topic: the service refuses it as undecodable)."""
+    """The messages the front routed to this worker, as :class:`Incoming`: each message of the
+    front holds one or more ``topic, payload`` pairs (an empty topic: what came was not a
+    ``[topic, payload]`` message, which the service refuses as undecodable)."""
 
     def __init__(self, sock: zmq.asyncio.Socket) -> None:
         self._sock = sock
@@ -230,10 +231,9 @@ class _Inbound:
                     parts = sync.recv_multipart(zmq.NOBLOCK)
                 except zmq.Again:
                     break
-                if len(parts) != 2 or not parts[0]:
-                    yield Incoming("", b"", received)
-                    continue
-                yield Incoming(parts[0].decode("utf-8", "replace"), parts[1], received)
+                for i in range(0, len(parts) - 1, 2):
+                    name = parts[i]
+                    yield Incoming(name.decode("utf-8", "replace"), parts[i + 1], received)
 
 
 class _Tagged(logging.Filter):
@@ -278,7 +278,7 @@ def run_worker(setup: WorkerSetup, index: int) -> int:
         port = http.sockets[0].getsockname()[1]
 
         async def report() -> None:
-            channel.tell(READY, str(index).encode(), str(port).encode())
+            channel.tell(READY, str(index).encode(), str(port).encode(), str(os.getpid()).encode())
             while True:
                 await asyncio.sleep(1.0)
                 channel.tell(STREAMS, str(index).encode(), str(len(service.table.streams)).encode())
@@ -313,7 +313,6 @@ class Slot:
     restarts: int = 0
     backoff: float = 0.0
     next_start: float = 0.0
-    exits: list[int] = field(default_factory=list)
 
 
 class Front:
@@ -388,8 +387,7 @@ class Front:
         """The exit status of ``slot``'s process if it has exited (then the slot is empty)."""
         if slot.process is None or (code := slot.process.poll()) is None:
             return None
-        slot.process, slot.ready = None, False
-        slot.exits.append(code)
+        slot.process, slot.ready, slot.streams = None, False, 0
         return code
 
     async def _supervise(self) -> None:
@@ -448,25 +446,38 @@ class Front:
         n = len(socks)
         routes: dict[bytes, int] = {}  # topic -> worker: a lookup, not a hash, per message
 
-        def send(topic: bytes, frames: Sequence[bytes | zmq.Frame]) -> None:
+        def worker(topic: bytes) -> int:
             k = routes.get(topic)
             if k is None:
                 if len(routes) >= ROUTES_CACHED:  # a flood of new ids must not grow it
                     routes.clear()
                 k = routes[topic] = worker_of(stream_of(topic.decode("utf-8", "replace")), n)
+            return k
+
+        def send(k: int, frames: Sequence[bytes | zmq.Frame]) -> None:
+            """``frames`` (topic, payload, topic, payload, ...) to worker ``k`` as one message."""
             sock, last = socks[k], len(frames) - 1
             try:  # frame by frame with int flags: send_multipart costs twice as much
                 for i, frame in enumerate(frames):
                     sock.send(frame, MORE if i < last else NOBLOCK, copy=False)
             except zmq.Again:  # only ever the first frame: a message is queued whole or not at all
-                self.drops["worker_full" if slots[k].ready else "worker_down"] += 1
+                self.drops["worker_full" if slots[k].ready else "worker_down"] += len(frames) // 2
 
         raw = getattr(transport, "raw_source", None)
         batches = raw() if raw is not None else None
         if batches is not None:
+            # what one wakeup took, one message per worker: the queue's wakeup is paid once
             async for batch in batches:
+                out: list[list[bytes | zmq.Frame]] = [[] for _ in range(n)]
                 for frames in batch:
-                    send(frames[0].bytes, frames)
+                    mine = out[worker(frames[0].bytes)]
+                    if len(frames) == 2:
+                        mine += frames
+                    else:  # not [topic, payload]: the worker refuses it as undecodable
+                        mine += (b"", b"")
+                for k, frames in enumerate(out):
+                    if frames:
+                        send(k, frames)
                 await asyncio.sleep(0)
             return
         source = transport.source()
@@ -474,7 +485,7 @@ class Front:
         count = 0
         async for incoming in source:
             name = incoming.topic.encode()
-            send(name, [name, incoming.payload])
+            send(worker(name), [name, incoming.payload])
             count += 1
             if count % YIELD_EVERY == 0:
                 await asyncio.sleep(0)
@@ -498,8 +509,10 @@ class Front:
                     t.ask_skeleton(frames[1].decode())
             elif kind == STREAMS and len(frames) == 3:
                 self.slots[int(frames[1])].streams = int(frames[2])
-            elif kind == READY and len(frames) == 3:
+            elif kind == READY and len(frames) == 4:
                 slot = self.slots[int(frames[1])]
+                if self._pid(slot) != int(frames[3]):  # from a worker that has exited since
+                    continue
                 slot.ready, slot.metrics_port = True, int(frames[2])
                 self.log.info(
                     "worker ready", extra={"fields": {"worker": slot.index, "pid": self._pid(slot)}}
