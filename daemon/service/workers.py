@@ -33,7 +33,7 @@ transports. A second signal kills the workers and exits at once. Workers ignore 
 Ctrl-C reaches the whole process group: the front decides) and stop by themselves when the front is
 gone.
 
-The worker processes are ``python -m daemon.service.workers INDEX SETUP`` (SETUP: the pickled
+The worker processes are ``python -c BOOT ROOT INDEX SETUP`` (:data:`BOOT`; SETUP: the pickled
 :class:`WorkerSetup`, in a private temporary directory with the ipc sockets).
 """
 
@@ -88,6 +88,18 @@ ROUTES_CACHED = 100_000
 """The most topics whose worker the front remembers."""
 YIELD_EVERY = 64
 """Messages the front routes before it lets its other tasks run."""
+BOOT = """import sys
+root = sys.argv[1]
+if root in sys.path[1:]:
+    del sys.path[0]
+else:
+    sys.path[0] = root
+from daemon.service.workers import main
+sys.exit(main(sys.argv[2:]))
+"""
+"""A worker process's program (``python -c BOOT ROOT INDEX SETUP``): this very code (the directory
+that holds the front's ``daemon`` package in place of the working directory, or nothing added
+where it is already on the path, as an installed package's is), then :func:`main`."""
 CONNECT_TIMEOUT_MS = 10_000
 """How long a worker waits for its connection to the front."""
 READY_TIMEOUT_S = 60.0
@@ -371,14 +383,11 @@ class Front:
 
     def _start(self, slot: Slot) -> None:
         assert self._setup_file is not None
-        package_root = str(Path(__file__).resolve().parents[2])  # the workers run this very code
-        path = os.environ.get("PYTHONPATH")
-        env = {**os.environ, "PYTHONPATH": package_root + (os.pathsep + path if path else "")}
+        root = str(Path(__file__).resolve().parents[2])
         slot.process = subprocess.Popen(
-            [sys.executable, "-m", "daemon.service.workers", str(slot.index), str(self._setup_file)],
+            [sys.executable, "-c", BOOT, root, str(slot.index), str(self._setup_file)],
             stdin=subprocess.DEVNULL,
             stdout=subprocess.DEVNULL,  # stdout is the stdout sink's; a worker's log lines go to stderr
-            env=env,
         )
         slot.started = time.monotonic()
         slot.ready = False
@@ -795,11 +804,8 @@ def serve_workers(config: Config, library: Library, workers: int, *, version: st
         raise ConfigError(e.reason, field=e.setting) from None
 
 
-def _main(argv: list[str]) -> int:
+def main(argv: list[str]) -> int:
+    """A worker process: ``argv`` its index and the file of its :class:`WorkerSetup`."""
     index, path = int(argv[0]), Path(argv[1])
     setup: WorkerSetup = pickle.loads(path.read_bytes())
     return run_worker(setup, index)
-
-
-if __name__ == "__main__":
-    sys.exit(_main(sys.argv[1:]))
