@@ -286,7 +286,7 @@ def run_worker(setup: WorkerSetup, index: int) -> int:
         try:
             http = await open_http("127.0.0.1", 0, service.health, service.metrics)
         except OSError as e:
-            raise StartupError("metrics.host", f"worker {index}: 127.0.0.1: {e}") from None
+            raise StartupError("service.workers", f"worker {index}: no metrics port: {e}") from None
         port = http.sockets[0].getsockname()[1]
 
         async def report() -> None:
