@@ -293,3 +293,27 @@ def test_what_the_front_cannot_route_whole_is_refused_and_counted_once(tmp_path:
         sock.close()
         ctx.term()
         daemon.stop()
+
+
+@pytest.mark.slow
+def test_a_second_signal_ends_the_front_and_its_workers_at_once(tmp_path: Path) -> None:
+    """The first SIGTERM has a worker recognising a long backlog (recognition in slices of one tick
+    falls behind intake on any machine); the second ends every process there."""
+    service = {"queue_frames": 1_000_000, "grace_s": 120, "tick_budget_ms": 0.001}
+    daemon = Daemon(tmp_path, config={"service": service}, workers=2).start()
+    pids = worker_pids(daemon)
+    sender = replay(
+        CMU_13, DATA / "cmu" / "13" / "13_29.amc.gz", "zmq+" + daemon.poses, "--loop", speed="max"
+    )
+    try:
+        wait_for(lambda: daemon.metrics().get("mocapd_queued_poses", 0) > 20_000, 60, "a backlog")
+        daemon.signal(signal.SIGTERM)
+        wait_for(lambda: any(e["event"] == "stopping" for e in daemon.logs()), 10, "the shutdown begun")
+        assert daemon.alive and not all(gone(p) for p in pids.values())  # still recognising the backlog
+        daemon.signal(signal.SIGTERM)
+        assert daemon.wait(timeout=5) == 128 + signal.SIGTERM
+        wait_for(lambda: all(gone(p) for p in pids.values()), 5, "every worker gone")
+    finally:
+        sender.kill()
+        sender.communicate()
+        daemon.stop()
