@@ -18,8 +18,9 @@ same run: one stream, the floor the broker and the wire add.
 
 ``--workers 1,2`` sweeps a daemon of each worker count in turn (``mocapd run --workers N``; N on the
 first N cores, the load then on the last core, shared with a worker) and prints each count's largest
-size held as a ratio of the first's: the issue's aim on 2 cores is 1.7x or more. A sweep stops after
-two sizes in a row that do not hold.
+size held as a ratio of the first's (a count named more than once, e.g. ``1,2,1,2``, is swept each
+time and its median taken): the issue's aim on 2 cores is 1.7x or more. A sweep stops after two
+sizes in a row that do not hold.
 """
 
 from __future__ import annotations
@@ -29,6 +30,7 @@ import json
 import os
 import shutil
 import socket
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -251,12 +253,15 @@ def main() -> None:
         m = read_recording(asf, amc)
         sources.append((Path(asf).read_bytes(), [np.ascontiguousarray(row).tobytes() for row in m.channels]))
     cores = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else [0]
-    held = {n: sweep(args, sizes, sources, n, cores) for n in counts}
+    held: dict[int, list[int]] = {}
+    for n in counts:  # a count named twice is swept twice (interleaved: 1,2,1,2), its median taken
+        held.setdefault(n, []).append(sweep(args, sizes, sources, n, cores))
     if len(held) > 1:
-        base = held[counts[0]]
-        for n in counts[1:]:
-            ratio = held[n] / base if base else float("nan")
-            print(f"--workers {n}: {held[n]} streams held, {ratio:.2f}x --workers {counts[0]} ({base})")
+        one, *others = held
+        base = statistics.median(held[one])
+        for n in others:
+            ratio = statistics.median(held[n]) / base if base else float("nan")
+            print(f"--workers {n}: {held[n]} streams held, {ratio:.2f}x --workers {one} ({held[one]})")
     print(json.dumps({"held": held}))
 
 
