@@ -100,11 +100,6 @@ sys.exit(main(sys.argv[2:]))
 """A worker process's program (``python -c BOOT ROOT INDEX SETUP``): this very code (the directory
 that holds the front's ``daemon`` package in place of the working directory, or nothing added
 where it is already on the path, as an installed package's is), then :func:`main`."""
-WORKER_NICE = 5
-"""Workers run at this niceness, below the front (and a machine's other work): the front routes and
-publishes for every worker on little CPU, and waiting behind a busy worker for a time slice put
-milliseconds on the detections of all (measured: the p99 from a worker's publish to a subscriber,
-at 100 streams on 2 cores shared with other work: 5 and 6 ms, not 7 and 13)."""
 CONNECT_TIMEOUT_MS = 10_000
 """How long a worker waits for its connection to the front."""
 READY_TIMEOUT_S = 60.0
@@ -273,7 +268,6 @@ def run_worker(setup: WorkerSetup, index: int) -> int:
     for handler in logger.handlers:
         handler.addFilter(_Tagged(index))
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    os.nice(WORKER_NICE)
 
     async def main() -> bool:
         loop = asyncio.get_running_loop()
