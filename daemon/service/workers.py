@@ -610,6 +610,10 @@ class Front:
             for slot in self.slots:
                 self._start(slot)
             await self._all_ready(stop)
+            # the modules and the library are there for good: keep the collector off them, or its
+            # full passes over them, set off by the frames forwarded, stall every stream's route
+            gc.collect()
+            gc.freeze()
             self._entered = True
             self.log.info(
                 "online",
