@@ -1,5 +1,9 @@
+from collections.abc import Sequence
+
 import numpy as np
 import numpy.typing as npt
+
+from daemon._automaton import AutomatonSet
 
 def subsequence_codes(
     masks: npt.NDArray[np.uint64],
@@ -34,3 +38,27 @@ class StreamDTW:
     def blocks(self, cost: int, start: int, end: int, lo: int, hi: int) -> bool: ...
 
 def accumulated(cost: npt.NDArray[np.int64]) -> npt.NDArray[np.int64]: ...
+
+class Competition:
+    dtw: StreamDTW
+    automata: AutomatonSet | None
+    compete: bool
+    hold: int
+    memory: int
+    n: int
+    def __init__(
+        self,
+        dtw: StreamDTW,
+        owner: Sequence[int],
+        lo: Sequence[int],
+        hi: Sequence[int],
+        compete: bool,
+        hold: int,
+        memory: int,
+        automata: AutomatonSet | None,
+        gated: Sequence[int],
+    ) -> None: ...
+    @property
+    def state_size(self) -> int: ...
+    def push(self, code: int) -> list[tuple[int, int, int, int, int]] | None: ...
+    def flush(self) -> list[tuple[int, int, int, int, int]] | None: ...

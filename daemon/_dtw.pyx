@@ -5,7 +5,8 @@ The recursion of :func:`daemon.dtw.subsequence_fixed` cell by cell, column by co
 int64 fixed-point costs with the same tie order, so the results are the same integers; the cell
 costs come from the template's retrieval tables (popcount of the differing fixed bits)."""
 
-from cpython.mem cimport PyMem_Free, PyMem_Malloc
+from cpython.mem cimport PyMem_Free, PyMem_Malloc, PyMem_Realloc
+from libc.string cimport memmove
 from libc.stdint cimport int64_t, uint64_t
 
 import numpy as np
@@ -288,18 +289,6 @@ cdef class StreamDTW:
     (D and start column of each cell), whatever the stream's length; the templates' tables are the
     caller's arrays, not copied."""
 
-    cdef list _arrays  # the templates' tables, kept alive for the pointers below
-    cdef const uint64_t **_masks
-    cdef const uint64_t **_values
-    cdef const int64_t **_tables
-    cdef Py_ssize_t k, total, most
-    cdef readonly int64_t n
-    cdef unsigned char[::1] toolbox
-    cdef int64_t[::1] lengths, offsets, widths, thresholds
-    cdef int64_t[:, ::1] cols  # rows: three (D, start) slots, frame f in slot f % 3; templates side by side
-    cdef int64_t[::1] costs  # one template column's cell costs
-    cdef int64_t[:, ::1] highest  # (templates, 3): each slot's highest finite row (pruned templates)
-
     def __cinit__(self):
         self._masks = NULL
         self._values = NULL
@@ -355,6 +344,9 @@ cdef class StreamDTW:
 
     def reset(self):
         """A new stream: no frame seen."""
+        self._reset()
+
+    cdef void _reset(self) noexcept nogil:
         cdef Py_ssize_t r, i
         for r in range(6):
             for i in range(self.total):
@@ -364,7 +356,7 @@ cdef class StreamDTW:
                 self.highest[i, r] = -1
         self.n = 0
 
-    cdef inline int64_t _last(self, Py_ssize_t t, int64_t f) noexcept nogil:
+    cdef int64_t _last(self, Py_ssize_t t, int64_t f) noexcept nogil:
         """Δ of template ``t`` at frame ``f`` (one of the last three; :data:`INF` before frame 0)."""
         if f < 0:
             return INF
@@ -373,60 +365,81 @@ cdef class StreamDTW:
             return INF  # the last row was not written this column
         return self.cols[2 * slot, self.offsets[t] + self.lengths[t] - 1]
 
-    cdef inline int64_t _start(self, Py_ssize_t t, int64_t f) noexcept nogil:
+    cdef int64_t _start(self, Py_ssize_t t, int64_t f) noexcept nogil:
         return self.cols[2 * (f % 3) + 1, self.offsets[t] + self.lengths[t] - 1]
 
     def push(self, uint64_t code):
         """The next frame's code; the local minima it completes: every template's Δ at the frame
         before (e), at or below its threshold, below Δ(e - 1) and not above Δ at this frame, as a
         list of (template, start column, e, Δ) in template order (None if there is none)."""
-        cdef Py_ssize_t t, o, m, cur, p1, p2
+        cdef Candidate *found = <Candidate *> PyMem_Malloc(self.k * sizeof(Candidate))
+        if found == NULL:
+            raise MemoryError()
+        cdef Py_ssize_t n = self.push_into(code, found), i
+        out = [(found[i].member, found[i].start, found[i].end, found[i].cost) for i in range(n)] if n else None
+        PyMem_Free(found)
+        return out
+
+    cdef Py_ssize_t push_into(self, uint64_t code, Candidate *out) noexcept nogil:
+        """:meth:`push` into ``out`` (room for one per template): how many minima."""
+        cdef Py_ssize_t t, o, m, cur, p1, p2, found = 0
         cdef int64_t f = self.n, d
-        with nogil:
-            cur = 2 * (f % 3)
-            p1 = 2 * ((f + 2) % 3)
-            p2 = 2 * ((f + 1) % 3)
-            for t in range(self.k):
-                o = self.offsets[t]
-                m = self.lengths[t]
-                if self.toolbox[t] != 0:
-                    self.highest[t, f % 3] = _pruned_column(
-                        self._masks[t], self._values[t], self._tables[t], self.widths[t], m, code, f,
-                        self.thresholds[t], self.highest[t, (f + 2) % 3], self.highest[t, (f + 1) % 3],
-                        &self.cols[cur, o], &self.cols[cur + 1, o], &self.cols[p1, o],
-                        &self.cols[p1 + 1, o], &self.cols[p2, o], &self.cols[p2 + 1, o])
-                else:
-                    _column(self._masks[t], self._values[t], self._tables[t], self.widths[t], m, code,
-                            False, False, f, &self.costs[0], &self.cols[cur, o], &self.cols[cur + 1, o],
-                            &self.cols[p1, o], &self.cols[p1 + 1, o], &self.cols[p2, o],
-                            &self.cols[p2 + 1, o])
-                    self.highest[t, f % 3] = m - 1
+        cur = 2 * (f % 3)
+        p1 = 2 * ((f + 2) % 3)
+        p2 = 2 * ((f + 1) % 3)
+        for t in range(self.k):
+            o = self.offsets[t]
+            m = self.lengths[t]
+            if self.toolbox[t] != 0:
+                self.highest[t, f % 3] = _pruned_column(
+                    self._masks[t], self._values[t], self._tables[t], self.widths[t], m, code, f,
+                    self.thresholds[t], self.highest[t, (f + 2) % 3], self.highest[t, (f + 1) % 3],
+                    &self.cols[cur, o], &self.cols[cur + 1, o], &self.cols[p1, o],
+                    &self.cols[p1 + 1, o], &self.cols[p2, o], &self.cols[p2 + 1, o])
+            else:
+                _column(self._masks[t], self._values[t], self._tables[t], self.widths[t], m, code,
+                        False, False, f, &self.costs[0], &self.cols[cur, o], &self.cols[cur + 1, o],
+                        &self.cols[p1, o], &self.cols[p1 + 1, o], &self.cols[p2, o],
+                        &self.cols[p2 + 1, o])
+                self.highest[t, f % 3] = m - 1
         self.n = f + 1
         if f == 0:
-            return None
-        out = None
+            return 0
         for t in range(self.k):
             d = self._last(t, f - 1)
             if d <= self.thresholds[t] and d < INF and d < self._last(t, f - 2) and d <= self._last(t, f):
-                if out is None:
-                    out = []
-                out.append((t, self._start(t, f - 1), f - 1, d))
-        return out
+                out[found].cost = d
+                out[found].end = f - 1
+                out[found].member = t
+                out[found].start = self._start(t, f - 1)
+                found += 1
+        return found
 
     def finish(self):
         """The local minima at the last frame pushed, as if the stream ended there (no frame after
         it to compare with), as :meth:`push` lists them (None if there is none)."""
+        cdef Candidate *found = <Candidate *> PyMem_Malloc(self.k * sizeof(Candidate))
+        if found == NULL:
+            raise MemoryError()
+        cdef Py_ssize_t n = self.finish_into(found), i
+        out = [(found[i].member, found[i].start, found[i].end, found[i].cost) for i in range(n)] if n else None
+        PyMem_Free(found)
+        return out
+
+    cdef Py_ssize_t finish_into(self, Candidate *out) noexcept nogil:
         cdef int64_t f = self.n - 1, d
+        cdef Py_ssize_t t, found = 0
         if f < 0:
-            return None
-        out = None
+            return 0
         for t in range(self.k):
             d = self._last(t, f)
             if d <= self.thresholds[t] and d < INF and d < self._last(t, f - 1):
-                if out is None:
-                    out = []
-                out.append((t, self._start(t, f), f, d))
-        return out
+                out[found].cost = d
+                out[found].end = f
+                out[found].member = t
+                out[found].start = self._start(t, f)
+                found += 1
+        return found
 
     def delta(self, Py_ssize_t template, int64_t frame):
         """(Δ, start) of ``template`` at ``frame``, one of the last three pushed; a template with
@@ -446,42 +459,40 @@ cdef class StreamDTW:
         earliest end e a path through it can reach (the shorter range is shortest there): the
         column plus ⌈(M - 1 - i) / 2⌉ with the toolbox's steps (two rows per column at most), the
         column itself with the thesis' (rows may climb within a column), and not before j."""
-        cdef int64_t j = self.n - 1, s, e, shared, shorter, d
-        cdef Py_ssize_t t, i, o, slot, top, r, m
-        cdef bint found = False
-        if j <= end:
-            raise ValueError(f"the range must end before the last frame pushed ({j}), got {end}")
+        if self.n - 1 <= end:
+            raise ValueError(f"the range must end before the last frame pushed ({self.n - 1}), got {end}")
         if not 0 <= lo <= hi <= self.k:
             raise IndexError(f"templates {lo}..{hi - 1} of {self.k}")
-        with nogil:
-            for t in range(lo, hi):
-                o = self.offsets[t]
-                m = self.lengths[t]
-                for r in range(2):
-                    if j - r < 0:
+        return self.blocks_c(cost, start, end, lo, hi)
+
+    cdef bint blocks_c(self, int64_t cost, int64_t start, int64_t end, Py_ssize_t lo,
+                       Py_ssize_t hi) noexcept nogil:
+        """:meth:`blocks` without its checks."""
+        cdef int64_t j = self.n - 1, s, e, shared, shorter, d
+        cdef Py_ssize_t t, i, o, slot, top, r, m
+        for t in range(lo, hi):
+            o = self.offsets[t]
+            m = self.lengths[t]
+            for r in range(2):
+                if j - r < 0:
+                    continue
+                slot = (j - r) % 3
+                top = self.highest[t, slot]
+                for i in range(top + 1):
+                    d = self.cols[2 * slot, o + i]
+                    if d >= cost or d > self.thresholds[t]:
                         continue
-                    slot = (j - r) % 3
-                    top = self.highest[t, slot]
-                    for i in range(top + 1):
-                        d = self.cols[2 * slot, o + i]
-                        if d >= cost or d > self.thresholds[t]:
-                            continue
-                        s = self.cols[2 * slot + 1, o + i]
-                        if s < 0 or s > end:
-                            continue
-                        e = j - r + (m - i) // 2 if self.toolbox[t] != 0 else j - r
-                        if e < j:
-                            e = j
-                        shared = end - (start if start > s else s) + 1
-                        shorter = (end - start if end - start < e - s else e - s) + 1
-                        if 2 * shared > shorter:
-                            found = True
-                            break
-                    if found:
-                        break
-                if found:
-                    break
-        return found
+                    s = self.cols[2 * slot + 1, o + i]
+                    if s < 0 or s > end:
+                        continue
+                    e = j - r + (m - i) // 2 if self.toolbox[t] != 0 else j - r
+                    if e < j:
+                        e = j
+                    shared = end - (start if start > s else s) + 1
+                    shorter = (end - start if end - start < e - s else e - s) + 1
+                    if 2 * shared > shorter:
+                        return True
+        return False
 
 
 def accumulated(const int64_t[:, ::1] cost):
@@ -508,3 +519,332 @@ def accumulated(const int64_t[:, ::1] cost):
                     best = d[i - 1, j]
                 d[i, j] = clamp(best + cost[i, j])
     return out
+
+
+# ----------------------------------------------------------------------------------- competition
+
+
+cdef int buf_init(Buf *b, Py_ssize_t stride) except -1:
+    b.stride = stride
+    b.head = 0
+    b.n = 0
+    b.cap = 8
+    b.data = <int64_t *> PyMem_Malloc(b.cap * stride * sizeof(int64_t))
+    if b.data == NULL:
+        raise MemoryError()
+    return 0
+
+
+cdef inline Py_ssize_t buf_len(const Buf *b) noexcept nogil:
+    return b.n - b.head
+
+
+cdef inline int64_t *buf_row(Buf *b, Py_ssize_t i) noexcept nogil:
+    """Row ``i`` of those held (0: the oldest; -1: the newest)."""
+    return &b.data[(b.head + i if i >= 0 else b.n + i) * b.stride]
+
+
+cdef int64_t *buf_append(Buf *b) except NULL:
+    """A new row at the end (its values for the caller to write)."""
+    cdef int64_t *grown
+    if b.n == b.cap:
+        if 2 * b.head >= b.n:  # half of it dropped at the front: slide back instead of growing
+            memmove(b.data, &b.data[b.head * b.stride], (b.n - b.head) * b.stride * sizeof(int64_t))
+            b.n -= b.head
+            b.head = 0
+        else:
+            grown = <int64_t *> PyMem_Realloc(b.data, 2 * b.cap * b.stride * sizeof(int64_t))
+            if grown == NULL:
+                raise MemoryError()
+            b.data = grown
+            b.cap *= 2
+    b.n += 1
+    return &b.data[(b.n - 1) * b.stride]
+
+
+cdef inline void buf_clear(Buf *b) noexcept nogil:
+    b.head = 0
+    b.n = 0
+
+
+cdef inline bint before(const Candidate *x, const Candidate *y) noexcept nogil:
+    """``x`` comes before ``y`` in the order (cost, end, member, start)."""
+    if x.cost != y.cost:
+        return x.cost < y.cost
+    if x.end != y.end:
+        return x.end < y.end
+    if x.member != y.member:
+        return x.member < y.member
+    return x.start < y.start
+
+
+cdef inline bint same_motion(int64_t a0, int64_t a1, int64_t b0, int64_t b1) noexcept nogil:
+    """:func:`daemon.recognizer.same_motion` of the inclusive ranges a0..a1 and b0..b1."""
+    cdef int64_t shared = (a1 if a1 < b1 else b1) - (a0 if a0 > b0 else b0) + 1
+    cdef int64_t la = a1 - a0, lb = b1 - b0
+    return 2 * shared > (la if la < lb else lb) + 1
+
+
+cdef inline void get(const int64_t *row, Candidate *c) noexcept nogil:
+    c.cost = row[0]
+    c.end = row[1]
+    c.member = row[2]
+    c.start = row[3]
+
+
+cdef inline void put(int64_t *row, const Candidate *c) noexcept nogil:
+    row[0] = c.cost
+    row[1] = c.end
+    row[2] = c.member
+    row[3] = c.start
+
+
+cdef class Competition:
+    """The confirmations of one stream of index-rate codes (the algorithm
+    :class:`daemon.recognizer.CodeRecognizer`'s docstring states, the same operations in the same
+    order) on C arrays: the stream-wide DTW of every template (``dtw``), the gated classes'
+    keyframe automata (``automata``: an :class:`~daemon._automaton.AutomatonSet` or None), the
+    candidates' competition and hold. ``owner`` ``(T,)``: each template's class; ``lo``, ``hi``
+    ``(T,)``: the templates whose matches may beat its candidates; ``gated`` ``(G,)``: the class of
+    each automaton; ``memory``: the frames candidates and keyframe ranges are remembered
+    (:func:`daemon.recognizer.reach`). A confirmation is (class, start, end, fixed-point cost,
+    template). State: the DTW's columns, the automata's partial matches, and the candidates and
+    ranges of the last ``memory`` frames."""
+
+    def __cinit__(self):
+        self.found = NULL
+        self.scratch = NULL
+        self.windows = NULL
+        self.held.data = NULL
+        self.recent.data = NULL
+        self.published.data = NULL
+
+    def __dealloc__(self):
+        cdef Py_ssize_t g
+        PyMem_Free(self.found)
+        PyMem_Free(self.scratch)
+        if self.windows != NULL:
+            for g in range(self.n_gated):
+                PyMem_Free(self.windows[g].data)
+            PyMem_Free(self.windows)
+        PyMem_Free(self.held.data)
+        PyMem_Free(self.recent.data)
+        PyMem_Free(self.published.data)
+
+    def __init__(self, StreamDTW dtw, owner, lo, hi, bint compete, int64_t hold, int64_t memory,
+                 automata, gated):
+        cdef Py_ssize_t g, k = dtw.k
+        self.dtw = dtw
+        self.owner = np.ascontiguousarray(owner, dtype=np.int64)
+        self.lo = np.ascontiguousarray(lo, dtype=np.int64)
+        self.hi = np.ascontiguousarray(hi, dtype=np.int64)
+        if self.owner.shape[0] != k or self.lo.shape[0] != k or self.hi.shape[0] != k:
+            raise ValueError("owner, lo and hi need one entry per template")
+        classes = 1 + max(owner)
+        slot = np.full(classes, -1, dtype=np.int64)
+        for g, c in enumerate(gated):
+            slot[c] = g
+        self.slot = slot
+        self.n_gated = len(gated)
+        if (self.n_gated > 0) != (automata is not None):
+            raise ValueError("automata for the gated classes, and only for them")
+        self.automata = automata
+        self.compete = compete
+        self.hold = hold
+        self.memory = memory
+        self.found = <Candidate *> PyMem_Malloc(k * sizeof(Candidate))
+        self.scratch_cap = 8
+        self.scratch = <Candidate *> PyMem_Malloc(self.scratch_cap * sizeof(Candidate))
+        self.windows = <Buf *> PyMem_Malloc(max(1, self.n_gated) * sizeof(Buf))
+        if self.found == NULL or self.scratch == NULL or self.windows == NULL:
+            raise MemoryError()
+        for g in range(self.n_gated):
+            self.windows[g].data = NULL
+        for g in range(self.n_gated):
+            buf_init(&self.windows[g], 2)
+        buf_init(&self.held, 4)
+        buf_init(&self.recent, 4)
+        buf_init(&self.published, 3)
+        self.n = 0
+
+    @property
+    def state_size(self):
+        """Candidates, detections and keyframe ranges remembered."""
+        cdef Py_ssize_t g, n = buf_len(&self.held) + buf_len(&self.recent) + buf_len(&self.published)
+        for g in range(self.n_gated):
+            n += buf_len(&self.windows[g])
+        return n
+
+    def push(self, uint64_t code):
+        """The next code: the confirmations it made, in the order (end, start, class), or None."""
+        return self.push_c(code)
+
+    cdef list push_c(self, uint64_t code):
+        cdef int64_t j = self.n, first
+        cdef Py_ssize_t found = self.dtw.push_into(code, self.found), i, a, b
+        cdef Candidate y
+        cdef Buf *w
+        cdef int64_t *row
+        self.n += 1
+        if self.automata is not None:
+            for i, reached in self.automata.push(code):
+                w = &self.windows[i]
+                for first, _ in reached:
+                    if buf_len(w) and buf_row(w, -1)[0] == first and buf_row(w, -1)[1] == j - 1:
+                        buf_row(w, -1)[1] = j  # the same match, its range grown by a frame
+                    else:
+                        row = buf_append(w)
+                        row[0] = first
+                        row[1] = j
+        if found:
+            for a in range(1, found):  # insertion sort: a handful, all ending at the same frame
+                y = self.found[a]
+                b = a - 1
+                while b >= 0 and before(&y, &self.found[b]):
+                    self.found[b + 1] = self.found[b]
+                    b -= 1
+                self.found[b + 1] = y
+            for a in range(found):
+                self._arrive(&self.found[a])
+        out = self._decide(j, False) if buf_len(&self.held) else None
+        self._forget(j)
+        return out
+
+    def flush(self):
+        """The end of the stream: the confirmations left (as :meth:`push`'s); then a new stream."""
+        cdef Py_ssize_t found, a, b, g
+        cdef Candidate y
+        out = None
+        if self.n:
+            found = self.dtw.finish_into(self.found)
+            for a in range(1, found):
+                y = self.found[a]
+                b = a - 1
+                while b >= 0 and before(&y, &self.found[b]):
+                    self.found[b + 1] = self.found[b]
+                    b -= 1
+                self.found[b + 1] = y
+            for a in range(found):
+                self._arrive(&self.found[a])
+            out = self._decide(self.n - 1, True)
+            self.dtw._reset()
+        if self.automata is not None:
+            self.automata.flush()
+        for g in range(self.n_gated):
+            buf_clear(&self.windows[g])
+        buf_clear(&self.held)
+        buf_clear(&self.recent)
+        buf_clear(&self.published)
+        self.n = 0
+        return out
+
+    cdef bint _rival(self, const Candidate *x, const Candidate *y) noexcept nogil:
+        return (self.compete or self.owner[x.member] == self.owner[y.member]) and same_motion(
+            x.start, x.end, y.start, y.end)
+
+    cdef int _arrive(self, Candidate *y) except -1:
+        """A new candidate: remembered as a rival; held unless something before it beats it or it is
+        a motion already published; a held one it beats is dropped."""
+        cdef Py_ssize_t i, kept
+        cdef Candidate x
+        cdef bint beaten = False
+        cdef int64_t k = self.owner[y.member]
+        cdef int64_t *row
+        for i in range(buf_len(&self.recent)):
+            get(buf_row(&self.recent, i), &x)
+            if before(&x, y) and self._rival(&x, y):
+                beaten = True
+                break
+        put(buf_append(&self.recent), y)
+        if beaten:
+            return 0
+        for i in range(buf_len(&self.published)):
+            row = buf_row(&self.published, i)
+            if (self.compete or row[2] == k) and same_motion(y.start, y.end, row[0], row[1]):
+                return 0
+        kept = 0
+        for i in range(buf_len(&self.held)):
+            get(buf_row(&self.held, i), &x)
+            if not (before(y, &x) and self._rival(&x, y)):
+                put(buf_row(&self.held, kept), &x)
+                kept += 1
+        self.held.n = self.held.head + kept
+        put(buf_append(&self.held), y)
+        return 0
+
+    cdef list _decide(self, int64_t j, bint ended):
+        """The held candidates that frame ``j`` (the stream's last, if it ``ended``) makes final:
+        those published, in the order (end, start, class), as confirmations."""
+        cdef Py_ssize_t i, kept = 0, final = 0, a, b, g, h = buf_len(&self.held)
+        cdef Candidate x, y
+        cdef int64_t k
+        cdef bint open_
+        cdef Buf *w
+        cdef int64_t *row
+        cdef Candidate *grown
+        if h > self.scratch_cap:
+            grown = <Candidate *> PyMem_Realloc(self.scratch, 2 * h * sizeof(Candidate))
+            if grown == NULL:
+                raise MemoryError()
+            self.scratch = grown
+            self.scratch_cap = 2 * h
+        for i in range(h):
+            get(buf_row(&self.held, i), &x)
+            if ended or j > x.end + self.hold or not self.dtw.blocks_c(
+                    x.cost, x.start, x.end, self.lo[x.member], self.hi[x.member]):
+                self.scratch[final] = x
+                final += 1
+            else:
+                put(buf_row(&self.held, kept), &x)
+                kept += 1
+        self.held.n = self.held.head + kept
+        if not final:
+            return None
+        for a in range(1, final):  # a stable sort by (end, start, class)
+            y = self.scratch[a]
+            b = a - 1
+            while b >= 0 and (
+                self.scratch[b].end > y.end
+                or (self.scratch[b].end == y.end and (
+                    self.scratch[b].start > y.start
+                    or (self.scratch[b].start == y.start
+                        and self.owner[self.scratch[b].member] > self.owner[y.member])))):
+                self.scratch[b + 1] = self.scratch[b]
+                b -= 1
+            self.scratch[b + 1] = y
+        out = None
+        for a in range(final):
+            x = self.scratch[a]
+            k = self.owner[x.member]
+            g = self.slot[k]
+            if g >= 0:
+                w = &self.windows[g]
+                open_ = False
+                for i in range(buf_len(w)):
+                    row = buf_row(w, i)
+                    if row[0] <= x.end and x.start <= row[1]:
+                        open_ = True
+                        break
+                if not open_:
+                    continue
+            row = buf_append(&self.published)
+            row[0] = x.start
+            row[1] = x.end
+            row[2] = k
+            if out is None:
+                out = []
+            out.append((k, x.start, x.end, x.cost, x.member))
+        return out
+
+    cdef void _forget(self, int64_t j) noexcept:
+        """Drop what no candidate after frame ``j`` can be compared with: rivals and published
+        detections that end more than ``memory`` frames back, and keyframe ranges as old."""
+        cdef int64_t forget = j - self.memory
+        cdef Py_ssize_t g
+        while buf_len(&self.recent) and buf_row(&self.recent, 0)[1] < forget:
+            self.recent.head += 1
+        while buf_len(&self.published) and buf_row(&self.published, 0)[1] < forget:
+            self.published.head += 1
+        for g in range(self.n_gated):
+            while buf_len(&self.windows[g]) and buf_row(&self.windows[g], 0)[1] < forget:
+                self.windows[g].head += 1

@@ -25,6 +25,8 @@ cdef class Bytecode:
 
     cdef void run(self, const double *P, const double *S, const double *T, double *r,
                   uint64_t *f1, uint64_t *f2) noexcept nogil
+    cdef void run_many(self, Py_ssize_t n, const double **P, const double **S, const double **T,
+                       double *r, uint64_t *f1, uint64_t *f2) noexcept nogil
 
 
 cdef class FeatureCore:
@@ -40,3 +42,9 @@ cdef class FeatureCore:
     cdef void _store(self, const double *rows) noexcept nogil
     cdef double *_point_row(self, int64_t f) noexcept nogil
     cdef void _emit(self, int64_t t, int64_t n) noexcept nogil
+    cdef void _smooth(self, int64_t t, int64_t n) noexcept nogil
+    cdef int64_t prepare(self, const double *rows) noexcept nogil
+    cdef const double *pose(self, int64_t t) noexcept nogil
+    cdef const double *smoothed(self) noexcept nogil
+    cdef const double *thresholds(self) noexcept nogil
+    cdef int64_t finish(self, int64_t t, uint64_t f1, uint64_t f2) noexcept nogil

@@ -124,6 +124,100 @@ cdef class Bytecode:
         f2[0] = self.present[1] & ~fail[1]
 
 
+    cdef void run_many(self, Py_ssize_t n, const double **P, const double **S, const double **T,
+                       double *r, uint64_t *f1, uint64_t *f2) noexcept nogil:
+        """:meth:`run` of ``n`` frames at once (each its pose ``P[s]``, smoothed velocities ``S[s]``
+        and thresholds ``T[s]``; its bits into ``f1[s]``, ``f2[s]``), every instruction over all of
+        them: register k of frame s in ``r[k * n + s]`` (``registers * n`` doubles). Each frame's
+        operations are :meth:`run`'s in its order, so its bits are the same."""
+        cdef Py_ssize_t i, k, j, rows = self.n_rows
+        cdef Op o
+        cdef Test t
+        cdef double x, y
+        cdef double *d
+        cdef const double *a
+        cdef const double *b
+        cdef uint64_t bit
+        cdef uint64_t *fail
+        cdef Py_ssize_t slot
+        cdef const int64_t *args = &self.args[0] if self.args.shape[0] else NULL
+        for j in range(n):
+            for i in range(rows):
+                r[i * n + j] = P[j][i]
+            for i in range(self.n_points):
+                r[(rows + i) * n + j] = S[j][i]
+            f1[j] = 0
+            f2[j] = 0
+        for i in range(self.n_ops):
+            o = self.ops[i]
+            d = &r[o.dst * n]
+            a = &r[o.a * n]
+            b = &r[o.b * n]
+            if o.op == OP_ADD:
+                for j in range(n):
+                    d[j] = a[j] + b[j]
+            elif o.op == OP_SUB:
+                for j in range(n):
+                    d[j] = a[j] - b[j]
+            elif o.op == OP_MUL:
+                for j in range(n):
+                    d[j] = a[j] * b[j]
+            elif o.op == OP_DIV:
+                for j in range(n):
+                    d[j] = a[j] / b[j]
+            elif o.op == OP_SQRT:
+                for j in range(n):
+                    d[j] = sqrt(a[j])
+            elif o.op == OP_ABS:
+                for j in range(n):
+                    d[j] = fabs(a[j])
+            elif o.op == OP_MIN:
+                for j in range(n):
+                    x = r[args[o.a] * n + j]
+                    for k in range(1, o.b):
+                        y = r[args[o.a + k] * n + j]
+                        if not (x < y or isnan(x)):
+                            x = y
+                    d[j] = x
+            elif o.op == OP_MAX:
+                for j in range(n):
+                    x = r[args[o.a] * n + j]
+                    for k in range(1, o.b):
+                        y = r[args[o.a + k] * n + j]
+                        if not (x > y or isnan(x)):
+                            x = y
+                    d[j] = x
+            else:
+                x = self.consts[o.a]
+                for j in range(n):
+                    d[j] = x
+        for i in range(self.n_tests):  # f1, f2 collect the failures first
+            t = self.tests_[i]
+            a = &r[t.register * n]
+            bit = (<uint64_t>1) << t.bit
+            fail = f1 if t.track == 0 else f2
+            slot = t.slot
+            if t.cmp == CMP_LT:
+                for j in range(n):
+                    if not (a[j] < T[j][slot]):
+                        fail[j] |= bit
+            elif t.cmp == CMP_LE:
+                for j in range(n):
+                    if not (a[j] <= T[j][slot]):
+                        fail[j] |= bit
+            elif t.cmp == CMP_GT:
+                for j in range(n):
+                    if not (a[j] > T[j][slot]):
+                        fail[j] |= bit
+            else:
+                for j in range(n):
+                    if not (a[j] >= T[j][slot]):
+                        fail[j] |= bit
+        for j in range(n):
+            f1[j] = self.present[0] & ~f1[j]
+            f2[j] = self.present[1] & ~f2[j]
+
+
 cdef inline Py_ssize_t mirror(Py_ssize_t j, Py_ssize_t m) noexcept nogil:
     """``j`` reflected into [0, m) with the edge repeated, periodically (padarray's 'symmetric')."""
     cdef Py_ssize_t r = j % (2 * m)
@@ -212,11 +306,42 @@ cdef class FeatureCore:
 
     cdef void _emit(self, int64_t t, int64_t n) noexcept nogil:
         """Frame ``t`` of ``n`` frames: its smoothed velocities, tracks and hysteresis."""
+        cdef uint64_t f1, f2
+        self._smooth(t, n)
+        self.code.run(&self._ring[t % self.keep, 0], &self._smoothed[0], &self._thresholds[0], &self._regs[0], &f1, &f2)
+        self.finish(t, f1, f2)
+
+    cdef int64_t prepare(self, const double *rows) noexcept nogil:
+        """:meth:`push_ptr` up to the program: the pose stored and the smoothed velocities of the
+        frame that becomes final; that frame (-1: none yet). :meth:`Bytecode.run_many` of
+        :meth:`pose`, :meth:`smoothed` and :meth:`thresholds`, then :meth:`finish`, is the rest."""
+        self._store(rows)
+        cdef int64_t t = self.n - 1 - self.latency
+        if t >= 0:
+            self._smooth(t, self.n)
+        return t
+
+    cdef const double *pose(self, int64_t t) noexcept nogil:
+        return &self._ring[t % self.keep, 0]
+
+    cdef const double *smoothed(self) noexcept nogil:
+        return &self._smoothed[0]
+
+    cdef const double *thresholds(self) noexcept nogil:
+        return &self._thresholds[0]
+
+    cdef int64_t finish(self, int64_t t, uint64_t f1, uint64_t f2) noexcept nogil:
+        """Frame ``t``'s tracks ``f1``, ``f2`` through the hysteresis: its code."""
+        self.previous = f2 | (self.previous & f1)
+        self.emitted = t + 1
+        return <int64_t> self.previous
+
+    cdef void _smooth(self, int64_t t, int64_t n) noexcept nogil:
+        """Frame ``t``'s smoothed velocities (of ``n`` frames) into ``_smoothed``."""
         cdef Py_ssize_t w, i, k, big_l, h, first, end, m
         cdef double scale, acc
         cdef double *top
         cdef double *bottom
-        cdef uint64_t f1, f2
         for w in range(self.code.windows.shape[0]):
             h = 1 - self.code.windows[w, 1]
             big_l = self.code.windows[w, 0] - self.code.windows[w, 1]
@@ -244,6 +369,3 @@ cdef class FeatureCore:
                         else:
                             acc = acc + (self._point_row(m + 1)[i] - self._point_row(m)[i])
                     self._smoothed[i] = acc * scale
-        self.code.run(&self._ring[t % self.keep, 0], &self._smoothed[0], &self._thresholds[0], &self._regs[0], &f1, &f2)
-        self.previous = f2 | (self.previous & f1)
-        self.emitted = t + 1

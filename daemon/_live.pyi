@@ -1,13 +1,16 @@
 from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
+from daemon._dtw import Competition
 from daemon._features import FeatureCore
 from replay._kinematics import FrameKinematics
 
 NOTHING: int
 NON_FINITE: int
+NON_FINITE_CHANNELS: int
 
 class LiveStream:
     kinematics: FrameKinematics | None
@@ -15,6 +18,8 @@ class LiveStream:
     width: int
     step: int
     seen: int
+    started: bool
+    last: int
     def __init__(
         self,
         kinematics: FrameKinematics | None,
@@ -31,11 +36,11 @@ class LiveStream:
         sin: npt.NDArray[np.float64],
     ) -> int: ...
     def push_positions(self, positions: npt.NDArray[np.float64]) -> int: ...
+    def attach(self, stage: Any, competition: Competition | None) -> None: ...
     def flush(self) -> list[int]: ...
 
-def push_channels_many(
-    streams: list[LiveStream],
-    channels: npt.NDArray[np.float64],
-    cos: npt.NDArray[np.float64],
-    sin: npt.NDArray[np.float64],
-) -> list[int]: ...
+def push_many(
+    frames: list[tuple[Any, object, Any]],
+    refused: type[Exception],
+    streams: dict[str, Any] | None = None,
+) -> tuple[list[Any], list[tuple[int, Any]]]: ...

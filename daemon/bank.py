@@ -1,20 +1,27 @@
 """Many streams' recognisers in one: each :meth:`RecognizerBank.push` advances any number of streams
 by one frame each (DESIGN.md, "Scale").
 
-A stream is a :class:`~daemon.recognizer.Recognizer`; what made one Python call chain per stream too
-slow (forward kinematics, the feature program, the keyframe automata and the DTW confirmation on
-Python floats) runs in compiled code (:mod:`replay._kinematics`, :mod:`daemon._features`,
-:mod:`daemon._automaton`, :mod:`daemon._dtw`), a few microseconds per frame. A push is the live
-path's one per-frame step, :meth:`~daemon.recognizer.Recognizer.push_many`, over one frame of each
-stream: the one numpy function of the live path, the cosines and sines of the half angles of
-forward kinematics, runs for the channel frames of all streams in one pass, and a bad frame is
-reported as ``(stream, FrameError)`` and changes nothing. A single recogniser's push is the same
-step over its one frame, so the detections equal those of one
-:class:`~daemon.recognizer.Recognizer` per stream bit for bit: the same objects do the same
-operations on the same values.
+A stream is a :class:`~daemon.recognizer.Recognizer`; a push is one compiled call,
+:func:`daemon._live.push_many` (:meth:`~daemon.recognizer.Recognizer.push_many` of the frames),
+that steps all the frames in passes over contiguous arrays: the frames looked up and checked (the
+usual frame, the next number with contiguous doubles of the stream's shape, in C; anything else
+through the recogniser's Python checks); the channel frames side by side for one numpy cosine and
+one sine of their half angles; forward kinematics by blocks of up to 32 streams of one skeleton,
+every step over the block (:meth:`replay._kinematics.FrameKinematics.joints_many`); each pose into
+its features' ring; the feature program by blocks of up to 32 frames, every instruction over the
+block (:meth:`daemon._features.Bytecode.run_many`); then per stream the hysteresis, the decimation
+to the library's rate and, for an index-rate code, the compiled competition
+(:class:`daemon._dtw.Competition`: every template's stream-wide DTW column, the keyframe automata,
+the candidates, their hold and publication on C arrays). Python runs per frame only to hand out a
+detection, to refuse a bad frame (reported as ``(stream, FrameError)``, changing nothing) and at a
+stream's first frame. A single recogniser's push is the same call over its one frame, so the
+detections equal those of one :class:`~daemon.recognizer.Recognizer` per stream bit for bit, and
+those of the batch twin :func:`~daemon.recognizer.detect` (tests): every frame's operations are
+the same in the same order whatever block it is stepped in.
 
-Bounded state: per stream the recogniser's rings (poses, codes) and its automata's partial matches,
-none growing with the frames pushed.
+Bounded state: per stream the recogniser's rings (poses, codes), three DTW columns per template, its
+automata's partial matches and the candidates of the last :func:`~daemon.recognizer.reach` frames,
+none growing with the frames pushed; the blocks' registers are one buffer shared by all streams.
 
 Pure: numpy in, dataclasses out; no I/O.
 """
@@ -28,6 +35,7 @@ from dataclasses import dataclass
 
 import numpy.typing as npt
 
+from daemon._live import push_many
 from daemon.library import Library
 from daemon.recognizer import (
     DEFAULT_SETTINGS,
@@ -168,14 +176,7 @@ class RecognizerBank:
         """Advance each stream named in ``frames`` by its frame: the detections and the refused frames
         (a refused frame changes nothing). ValueError (nothing done) if a stream is not in the bank or
         has more than one frame."""
-        names = [f[0] for f in frames]
-        if len(set(names)) != len(names):
-            raise ValueError("at most one frame per stream in one push")
-        streams = self._streams
-        unknown = [n for n in names if n not in streams]
-        if unknown:
-            raise ValueError(f"streams not in the bank: {', '.join(map(repr, unknown))}")
-        detections, errors = Recognizer.push_many(
-            [(streams[name], number, frame) for name, number, frame in frames]
+        detections, errors = push_many(
+            frames if isinstance(frames, list) else list(frames), FrameError, self._streams
         )
-        return BankResult(tuple(detections), tuple((names[i], e) for i, e in errors))
+        return BankResult(tuple(detections), tuple((frames[i][0], e) for i, e in errors))

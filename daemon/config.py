@@ -11,6 +11,7 @@ scalar, lists as comma-separated words, and errors name the variable."""
 
 from __future__ import annotations
 
+import os
 import re
 import types
 from collections.abc import Mapping, Sequence
@@ -95,7 +96,8 @@ class SegmentationConfig:
 @dataclass(frozen=True)
 class ServiceConfig:
     """``mocapd run``: this instance's name (empty: the host name), the transports poses come in on
-    and detections go out on, and the limits of the stream table (see config.yaml)."""
+    and detections go out on, the limits of the stream table, and the recognition processes
+    (``workers``, 0: one per core available; :func:`workers_of`) (see config.yaml)."""
 
     instance: str = ""
     sources: tuple[str, ...] = field(default=("zmq",), metadata={"choices": lambda: SOURCES})
@@ -107,6 +109,7 @@ class ServiceConfig:
     bridge_s: float = field(default=0.25, metadata=_range(0, 60))
     grace_s: float = field(default=5.0, metadata=_positive(3600))
     tick_budget_ms: float = field(default=2.0, metadata=_positive(1000))
+    workers: int = field(default=0, metadata=_range(0, 1024))
 
 
 @dataclass(frozen=True)
@@ -232,6 +235,14 @@ def transports_named(config: Config) -> list[TransportUse]:
         )
         for name in dict.fromkeys(service.sources + service.sinks)
     ]
+
+
+def workers_of(service: ServiceConfig) -> int:
+    """The recognition processes ``service`` asks for: ``workers``, or with 0 the cores this
+    process may run on."""
+    if service.workers:
+        return service.workers
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
 
 
 RENAMED = {

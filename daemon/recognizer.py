@@ -19,33 +19,36 @@ Bounded state. The features keep 33 poses at 120 Hz, each gating automaton the q
 three columns per template, and the candidates and keyframe ranges of the last :func:`reach`
 frames.
 
-One live path. :class:`Recognizer` is the one per-stream engine: its frame step (the checks, then
-compiled code) and its :class:`ClassStage` (the codes through :class:`CodeRecognizer`, then into the
-stream's frame numbers by its :class:`~daemon.frames.FrameClock`). :meth:`Recognizer.push_many`
-advances any number of recognisers by one frame each in one pass; :meth:`Recognizer.push` is that
-of one frame, :meth:`daemon.bank.RecognizerBank.push` that of its streams' frames. The settings
-shared by every stream are one :class:`~daemon.types.RecognitionSettings`. :func:`detect` is the
-batch twin: the features of the whole recording in one vectorised pass, then the same class stage
-and clock; it equals pushing the frames one by one (tests).
+One live path. :class:`Recognizer` is the one per-stream engine: its state is compiled (a
+:class:`~daemon._live.LiveStream`: forward kinematics, features, decimation; its
+:class:`ClassStage`'s :class:`CodeRecognizer`, whose work is a :class:`~daemon._dtw.Competition`),
+its Python the checks of an unusual frame, the refusals and the detections' ids and frame numbers
+(:class:`ClassStage` with the stream's :class:`~daemon.frames.FrameClock`).
+:meth:`Recognizer.push_many` advances any number of recognisers by one frame each in one compiled
+call (:func:`daemon._live.push_many`: the frames stepped in passes over all of them, forward
+kinematics and the feature program by blocks of streams, each step over the block); a frame's
+operations are the same whatever block it is in. :meth:`Recognizer.push` is that call for one
+frame, :meth:`daemon.bank.RecognizerBank.push` that of its streams' frames. The settings shared by
+every stream are one :class:`~daemon.types.RecognitionSettings`. :func:`detect` is the batch twin:
+the features of the whole recording in one vectorised pass, then the same class stage and clock; it
+equals pushing the frames one by one (tests).
 """
 
 from __future__ import annotations
 
-import math
 import uuid
 import weakref
-from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass
 from itertools import accumulate
-from typing import Any, Literal, NamedTuple
+from typing import Any, Literal
 
 import numpy as np
 import numpy.typing as npt
 
 from daemon._automaton import AutomatonSet
-from daemon._dtw import StreamDTW
-from daemon._live import NON_FINITE, NOTHING, LiveStream, push_channels_many
+from daemon._dtw import Competition, StreamDTW
+from daemon._live import NON_FINITE, LiveStream, push_many
 from daemon.automaton import KeyframeAutomaton
 from daemon.dtw import SCALE, Match, RetrievalTables, Steps, pack, retrieval_tables, threshold
 from daemon.errors import InputError, MocapdError
@@ -215,17 +218,6 @@ def same_motion(a: tuple[int, int], b: tuple[int, int]) -> bool:
     return 2 * shared > min(a[1] - a[0], b[1] - b[0]) + 1
 
 
-class _Candidate(NamedTuple):
-    """A local minimum of one template's stream-wide Δ: fixed-point ``cost``, ``end``, the template
-    (``member``, numbered over all classes' templates) and ``start``; ordered by (cost, end,
-    member), the order in which candidates beat each other."""
-
-    cost: int
-    end: int
-    member: int
-    start: int
-
-
 Confirmation = tuple[ClassPlan, Match, float]
 """A detection in index-rate frames: its class, its match and the τ of the template that made it."""
 
@@ -234,6 +226,9 @@ class CodeRecognizer:
     """Detections over a stream of index-rate frame codes: ``push(code)`` returns the confirmations
     it made, ``flush()`` ends the stream. The part of :class:`Recognizer` after the features, shared
     with :func:`detect`.
+
+    The algorithm below runs compiled, in :class:`daemon._dtw.Competition` (:attr:`core`), on C
+    arrays; :meth:`push` and :meth:`flush` turn what it confirms into :data:`Confirmation`.
 
     *Candidates.* Every template of every class runs as a subsequence DTW over the whole stream, one
     column per frame (:class:`daemon._dtw.StreamDTW`; thesis Alg. 3.2 with free start, the retrieval
@@ -270,7 +265,7 @@ class CodeRecognizer:
         # the templates a candidate's rivals come from: all, or its own class's
         self._rivals = [(0, len(self._owner)) if compete else (first[k], first[k + 1]) for k in self._owner]
         self._taus = [m.tau for p in self.plans for m in p.members]
-        self._dtw = (
+        dtw = (
             StreamDTW(
                 [
                     (m.tables.masks, m.tables.values, m.tables.tables, threshold(m.tau), p.steps == "toolbox")
@@ -281,119 +276,54 @@ class CodeRecognizer:
             if self.plans
             else None
         )
-        self._gated = [k for k, p in enumerate(self.plans) if p.gated]
-        self._automata = (
-            AutomatonSet([self.plans[k].automaton(rate).core for k in self._gated]) if self._gated else None
+        gated = [k for k, p in enumerate(self.plans) if p.gated]
+        automata = AutomatonSet([self.plans[k].automaton(rate).core for k in gated]) if gated else None
+        self._core = (
+            Competition(
+                dtw,
+                self._owner,
+                [lo for lo, _ in self._rivals],
+                [hi for _, hi in self._rivals],
+                compete,
+                hold,
+                reach(self.plans, hold),
+                automata,
+                gated,
+            )
+            if dtw is not None
+            else None
         )
-        self._windows: dict[int, deque[tuple[int, int]]] = {k: deque() for k in self._gated}
-        self._memory = reach(self.plans, hold)
-        self._held: list[_Candidate] = []
-        self._recent: deque[_Candidate] = deque()
-        self._published: deque[tuple[int, int, int]] = deque()  # (start, end, class)
         self._n = 0
 
     @property
     def frames(self) -> int:
         """Index-rate frames pushed since the stream began."""
-        return self._n
+        return self._n if self._core is None else self._core.n
+
+    @property
+    def core(self) -> Competition | None:
+        """The compiled competition (None without classes): what :meth:`push` runs."""
+        return self._core
 
     def push(self, code: int) -> list[Confirmation]:
-        j = self._n
-        if self._dtw is None:
+        if self._core is None:
             self._n += 1
             return []
-        found = self._dtw.push(code)
-        self._n += 1
-        if self._automata is not None:
-            for i, reached in self._automata.push(code):
-                w = self._windows[self._gated[i]]
-                for first, _ in reached:
-                    if w and w[-1] == (first, j - 1):  # the same match, its range grown by a frame
-                        w[-1] = (first, j)
-                    else:
-                        w.append((first, j))
-        if found is not None:
-            for c in sorted(_Candidate(d, e, u, s) for u, s, e, d in found):
-                self._arrive(c)
-        out = self._decide(j, False) if self._held else []
-        self._forget(j)
-        return out
+        found = self._core.push(code)
+        return self.confirmations(found) if found else []
 
     def flush(self) -> list[Confirmation]:
-        out: list[Confirmation] = []
-        if self._dtw is not None and self._n:
-            found = self._dtw.finish()
-            if found is not None:
-                for c in sorted(_Candidate(d, e, u, s) for u, s, e, d in found):
-                    self._arrive(c)
-            out = self._decide(self._n - 1, True)
-            self._dtw.reset()
-        if self._automata is not None:
-            self._automata.flush()
-        for w in self._windows.values():
-            w.clear()
-        self._held.clear()
-        self._recent.clear()
-        self._published.clear()
-        self._n = 0
-        return out
+        if self._core is None:
+            self._n = 0
+            return []
+        found = self._core.flush()
+        return self.confirmations(found) if found else []
 
-    def _rival(self, x: _Candidate, y: _Candidate) -> bool:
-        """Whether ``x`` and ``y`` may beat one another: the same motion, of one class or competing."""
-        return (self.compete or self._owner[x.member] == self._owner[y.member]) and same_motion(
-            (x.start, x.end), (y.start, y.end)
-        )
+    def confirmations(self, found: Sequence[tuple[int, int, int, int, int]]) -> list[Confirmation]:
+        """The compiled competition's confirmations (class, start, end, fixed-point cost, template)
+        as :data:`Confirmation`."""
+        return [(self.plans[k], Match(s, e, cost / SCALE), self._taus[u]) for k, s, e, cost, u in found]
 
-    def _arrive(self, y: _Candidate) -> None:
-        """A new candidate: remembered as a rival; held unless something before it beats it or it is
-        a motion already published; a held one it beats is dropped."""
-        beaten = any(x < y and self._rival(x, y) for x in self._recent)
-        self._recent.append(y)
-        k = self._owner[y.member]
-        if beaten or any(
-            (self.compete or c == k) and same_motion((y.start, y.end), (a, b)) for a, b, c in self._published
-        ):
-            return
-        self._held = [x for x in self._held if not (y < x and self._rival(x, y))]
-        self._held.append(y)
-
-    def _decide(self, j: int, ended: bool) -> list[Confirmation]:
-        """The held candidates that frame ``j`` (the stream's last, if it ``ended``) makes final:
-        those published, in the order (end, start, class)."""
-        assert self._dtw is not None
-        final, keep = [], []
-        for x in self._held:
-            lo, hi = self._rivals[x.member]
-            if ended or j > x.end + self.hold or not self._dtw.blocks(x.cost, x.start, x.end, lo, hi):
-                final.append(x)
-            else:
-                keep.append(x)
-        self._held = keep
-        out = []
-        for x in sorted(final, key=lambda x: (x.end, x.start, self._owner[x.member])):
-            k = self._owner[x.member]
-            if k in self._windows and not any(a <= x.end and x.start <= b for a, b in self._windows[k]):
-                continue
-            self._published.append((x.start, x.end, k))
-            out.append((self.plans[k], Match(x.start, x.end, x.cost / SCALE), self._taus[x.member]))
-        return out
-
-    def _forget(self, j: int) -> None:
-        """Drop what no candidate after frame ``j`` can be compared with: rivals and published
-        detections that end more than :func:`reach` frames back (a later candidate cannot overlap
-        them), and keyframe matches as long."""
-        forget = j - self._memory
-        while self._recent and self._recent[0].end < forget:
-            self._recent.popleft()
-        while self._published and self._published[0][1] < forget:
-            self._published.popleft()
-        for w in self._windows.values():
-            while w and w[0][1] < forget:
-                w.popleft()
-
-
-NON_FINITE_CHANNELS = NON_FINITE - 1
-"""A channel frame's code when a channel is not finite (its compiled step was not run)."""
 
 Step = tuple[list[Detection], list[tuple[int, FrameError]]]
 """What :meth:`Recognizer.push_many` gave: the detections, and the refused frames as (position
@@ -435,6 +365,11 @@ class ClassStage:
         detections it completed."""
         found = self.codes.push(code)
         return [self._detection(c, number) for c in found] if found else []
+
+    def found(self, number: int, found: Sequence[tuple[int, int, int, int, int]]) -> list[Detection]:
+        """The detections of what the compiled competition (:attr:`CodeRecognizer.core`) confirmed at
+        the push of frame ``number`` (:func:`daemon._live.push_many` pushes to it directly)."""
+        return [self._detection(c, number) for c in self.codes.confirmations(found)]
 
     def flush(self, last: int | None, codes: Sequence[int] = ()) -> list[Detection]:
         """The motion ends at frame ``last`` (None: it had no frame) with its last ``codes``: the
@@ -513,7 +448,12 @@ class Recognizer:
         self._stage = ClassStage(
             self._plans, library.rate, settings, self.clock, stream=stream, session=self.session
         )
-        self._last: int | None = None  # the frame number of the stream's last frame
+        self._live.attach(self._stage, self._stage.codes.core)
+
+    @property
+    def _last(self) -> int | None:
+        """The frame number of the stream's last frame (None: no frame since it began)."""
+        return self._live.last if self._live.started else None
 
     @classmethod
     def for_skeleton(
@@ -580,71 +520,35 @@ class Recognizer:
     def push(self, number: int, frame: npt.ArrayLike) -> list[Detection]:
         """Add frame ``number``; the detections it completed. The step of :meth:`push_many` for this
         one frame."""
-        n, values = self._check(number, frame)
-        if self.model is None:
-            return self._take(n, self._live.push_positions(values.reshape(-1)))
-        return self._take(n, Recognizer._channel_codes([self._live], [values])[0])
+        detections, errors = push_many([(self, number, frame)], FrameError)
+        if errors:
+            raise errors[0][1]
+        return detections
 
     def flush(self) -> list[Detection]:
         """End the stream: the remaining detections, then a fresh stream (frame numbers start anew)."""
-        last, self._last = self._last, None
+        last = self._last
+        self._live.started = False
         return self._stage.flush(last, self._live.flush())
 
     @staticmethod
     def push_many(frames: Sequence[tuple[Recognizer, object, npt.ArrayLike]]) -> Step:
         """The live path's per-frame step: one frame ``(recogniser, number, values)`` of each of any
-        number of distinct recognisers. Each frame is checked (:meth:`_check`: number, type, shape);
-        the channel frames' finiteness, the cosines and sines of their half angles (forward
-        kinematics, :mod:`replay.kinematics`) and their compiled steps run in one pass each over all
-        of them (:meth:`_channel_codes`); each frame's code goes to its recogniser (:meth:`_take`:
-        a pose that is not finite after forward kinematics is refused, an index-rate code goes to
-        the :class:`ClassStage`). Returns the detections (in the order of the frames, each
+        number of distinct recognisers (ValueError, nothing done, for one twice), in one compiled
+        call (:func:`daemon._live.push_many`): each frame is checked (number, type, shape;
+        :meth:`_check` for all but the usual frame), the channel frames' finiteness checked and the
+        cosines and sines of their half angles (forward kinematics, :mod:`replay.kinematics`) taken
+        in one numpy call each over all of them, forward kinematics and the feature program run by
+        blocks of frames (a pose that is not finite after forward kinematics is refused:
+        :meth:`_refusal`), and each index-rate code pushed to its recogniser's compiled competition
+        (:attr:`CodeRecognizer.core`). Returns the detections (in the order of the frames, each
         recogniser's in its order) and the refused frames (each changed nothing)."""
-        errors: list[tuple[int, FrameError]] = []
-        taken: list[tuple[int, Recognizer, int, int | None]] = []  # (position, recogniser, number, code)
-        steps: list[LiveStream] = []  # the channel frames' (their codes None in taken, until stepped)
-        values: list[FloatArray] = []
-        for i, (r, number, frame) in enumerate(frames):
-            try:
-                n, v = r._check(number, frame)
-            except FrameError as e:
-                errors.append((i, e))
-                continue
-            if r.model is None:
-                taken.append((i, r, n, r._live.push_positions(v.reshape(-1))))
-            else:
-                taken.append((i, r, n, None))
-                steps.append(r._live)
-                values.append(v)
-        stepped = iter(Recognizer._channel_codes(steps, values) if steps else ())
-        detections: list[Detection] = []
-        for i, r, n, code in taken:
-            try:
-                detections += r._take(n, next(stepped) if code is None else code)
-            except FrameError as e:
-                errors.append((i, e))
-        if len(errors) > 1:
-            errors.sort(key=lambda e: e[0])
-        return detections, errors
+        return push_many(frames if isinstance(frames, list) else list(frames), FrameError)
 
-    @staticmethod
-    def _channel_codes(steps: list[LiveStream], values: list[FloatArray]) -> list[int]:
-        """The compiled steps of checked channel frames ``values`` (one per step), in one pass over
-        all: each frame's code, or :data:`NON_FINITE_CHANNELS` (not stepped) for one with a channel
-        that is not finite."""
-        flat = values[0] if len(values) == 1 else np.concatenate(values)
-        if not math.isfinite(flat.sum()):  # one reduction if all are finite
-            finite = [bool(np.isfinite(v).all()) for v in values]
-            if not all(finite):
-                kept = [k for k, ok in enumerate(finite) if ok]
-                found = iter(
-                    Recognizer._channel_codes([steps[k] for k in kept], [values[k] for k in kept])
-                    if kept
-                    else ()
-                )
-                return [next(found) if ok else NON_FINITE_CHANNELS for ok in finite]
-        half = 0.5 * flat
-        return push_channels_many(steps, flat, np.cos(half), np.sin(half))
+    def _refusal(self, number: int, code: int) -> FrameError:
+        """The refusal of frame ``number`` whose compiled step gave ``code`` (below
+        :data:`~daemon._live.NOTHING`): a channel or a joint position that is not finite."""
+        return (non_finite_pose if code == NON_FINITE else non_finite_channels)(number, self.stream)
 
     def _check(self, number: object, frame: npt.ArrayLike) -> tuple[int, FloatArray]:
         """The frame number and the frame's values (contiguous float64) if their number, type and
@@ -660,17 +564,6 @@ class Recognizer:
                 check_channels(n, values, self._width, self.stream)
             check_positions(n, values, self._width, self.stream)
         return n, values
-
-    def _take(self, number: int, code: int) -> list[Detection]:
-        """What the compiled step gave for frame ``number``: an index-rate code for the
-        :class:`ClassStage`, :data:`~daemon._live.NOTHING`, or a refusal (FrameError; the step
-        changed nothing)."""
-        if code < NOTHING:
-            raise (non_finite_pose if code == NON_FINITE else non_finite_channels)(number, self.stream)
-        if self._last is None:
-            self._stage.start(number)
-        self._last = number
-        return [] if code == NOTHING else self._stage.push(number, code)
 
 
 def skeleton_model(skeleton: Skeleton) -> KinematicModel:

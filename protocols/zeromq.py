@@ -9,11 +9,12 @@ keys are in that directory may connect."""
 
 from __future__ import annotations
 
+import asyncio
 import time
 from collections.abc import AsyncIterator
 from pathlib import Path
 from types import TracebackType
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, cast
 
 import zmq
 import zmq.asyncio
@@ -82,6 +83,7 @@ class ZmqTransport:
         self._auth: AsyncioAuthenticator | None = None
         self._dropped = 0
         self._status: tuple[Outgoing, Outgoing] | None = None
+        self._asked = 0
 
     def announce(self, online: Outgoing, offline: Outgoing) -> None:
         """Publish ``online`` once bound and ``offline`` before closing (on the PUB socket)."""
@@ -162,12 +164,28 @@ class ZmqTransport:
     def source(self) -> _Source | None:
         return None if self._sub is None else _Source(self._sub)
 
+    def raw_source(self) -> RawSource | None:
+        """The poses socket's messages undecoded, a batch of multipart messages (lists of frames)
+        per wakeup: for ``mocapd run --workers``' front, which routes them without looking inside."""
+        return None if self._sub is None else RawSource(self._sub)
+
     def sink(self) -> ZmqTransport | None:
         return None if self._pub is None else self
 
     def ask_skeleton(self, stream: str) -> None:
         """Nothing: a ZeroMQ publisher re-announces when the daemon's subscription reaches it, and
         periodically (``protocols/README.md``, "A stream's life")."""
+
+    def ask_skeletons(self) -> None:
+        """Have every connected publisher announce its skeleton again, as when the daemon starts
+        (``mocapd run --workers``: a restarted worker): a subscription the publishers' XPUB sockets
+        have not seen, at once cancelled (a topic no stream has, so nothing else changes)."""
+        if self._sub is None:
+            return
+        self._asked += 1
+        token = b"%s#ask-%d" % (PREFIX, self._asked)
+        self._sub.setsockopt(zmq.SUBSCRIBE, token)
+        self._sub.setsockopt(zmq.UNSUBSCRIBE, token)
 
     def drain_within(self, seconds: float) -> None:
         """Linger at most ``seconds`` (and at most ``linger_ms``) at close."""
@@ -217,6 +235,46 @@ class _Source:
                 yield Incoming(parts[0].decode("utf-8", "replace"), parts[1], received)
 
 
+class RawSource:
+    """The SUB socket's messages as they came (as :class:`zmq.Frame` objects), in batches: what it
+    holds when it becomes readable (at most :data:`DRAIN_MESSAGES` at a time)."""
+
+    def __init__(self, sock: zmq.asyncio.Socket) -> None:
+        self._sock = sock
+
+    async def __aiter__(self) -> AsyncIterator[list[list[zmq.Frame]]]:
+        # the socket's file descriptor watched directly (an awaited poll costs more than a small
+        # message): it signals an edge, so the socket's events are checked before each wait
+        sync: zmq.Socket[bytes] = zmq.Socket.shadow(self._sock.underlying)
+        loop = asyncio.get_running_loop()
+        readable = asyncio.Event()
+        fd = sync.fileno()
+        loop.add_reader(fd, readable.set)
+        try:
+            while True:
+                batch = []
+                for _ in range(DRAIN_MESSAGES):
+                    try:  # frames, not bytes: forwarded as they are, never copied
+                        frame = sync.recv(NOBLOCK, copy=False)
+                    except zmq.Again:
+                        break
+                    frames = [frame]
+                    while frame.more:
+                        frame = sync.recv(NOBLOCK, copy=False)
+                        frames.append(frame)
+                    batch.append(frames)
+                if batch:
+                    yield batch
+                    continue
+                readable.clear()
+                if not cast(int, sync.getsockopt(zmq.EVENTS)) & zmq.POLLIN:
+                    await readable.wait()
+        finally:
+            loop.remove_reader(fd)
+
+
+NOBLOCK = int(zmq.NOBLOCK)
+"""As a plain int: flags as enum members cost more than a small message's receive."""
 DRAIN_MESSAGES = 512
 """The most messages taken per wakeup, so that receiving yields to the other tasks."""
 

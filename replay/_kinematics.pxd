@@ -18,3 +18,5 @@ cdef class FrameKinematics:
                       double *out) noexcept nogil
     cdef bint joints_into(self, const double *channels, const double *cos, const double *sin,
                           double *out) noexcept nogil
+    cdef void joints_many(self, Py_ssize_t n, const double **channels, const double **cos,
+                          const double **sin, double **out, bint *finite, double *scratch) noexcept nogil

@@ -285,7 +285,8 @@ class Broker:
 
 class Daemon:
     """``mocapd run`` as a real process on free ports: ZeroMQ poses/detections endpoints, the metrics
-    port, the MQTT broker ``mqtt`` if given, more ``config`` sections merged in. Its stdout (the
+    port, the MQTT broker ``mqtt`` if given, ``workers`` recognition processes (default one: the
+    single process), more ``config`` sections merged in. Its stdout (the
     stdout sink's JSON lines) and stderr (structured logs) go to files in ``where``."""
 
     def __init__(
@@ -297,6 +298,7 @@ class Daemon:
         mqtt: str | None = None,
         config: Mapping[str, Mapping[str, object]] | None = None,
         env: dict[str, str] | None = None,
+        workers: int = 1,
     ) -> None:
         self.where = where
         self.poses = f"tcp://127.0.0.1:{free_port()}"
@@ -307,6 +309,7 @@ class Daemon:
                 "instance": f"test-{self.metrics_port}",
                 "sources": list(sources),
                 "sinks": list(sinks),
+                "workers": workers,
             },
             "zmq": {"poses": self.poses, "detections": self.detections},
             "metrics": {"port": self.metrics_port},

@@ -21,7 +21,7 @@ from hypothesis import strategies as st
 
 from daemon.bank import RecognizerBank
 from daemon.library import Library
-from daemon.recognizer import Detection, FrameError, Recognizer, detect
+from daemon.recognizer import Detection, FrameError, Recognizer, detect, detect_positions
 from daemon.recordings import read_recording
 from daemon.types import FloatArray
 from replay import JOINT_NAMES, Bone, Motion, Skeleton
@@ -309,3 +309,122 @@ def test_a_restart_is_a_flush_then_a_fresh_recogniser(library: Library, name: st
     assert last == reference.remove("a")
     if name == "bd-squat":  # the squat is found again after the restart
         assert [d.class_name for d in seen + last].count("squat1Reps") >= 1
+
+
+# ------------------------------------------------------------------ many streams, the batch twin
+
+
+def as_given(values: FloatArray, k: int) -> npt.ArrayLike:
+    """A frame in one of the forms a caller may send: an array, a list, a strided view, Fortran
+    order (the last three through the recogniser's own checks, not the compiled fast path)."""
+    form = k % 4
+    if form == 1:
+        listed: npt.ArrayLike = values.tolist()
+        return listed
+    if form == 2:
+        return np.repeat(values, 2, axis=0)[::2]
+    if form == 3:
+        return np.asfortranarray(values)
+    return values
+
+
+def batch_twin(
+    library: Library, source: Source, frames: list[tuple[int, FloatArray]], name: str
+) -> list[Detection]:
+    """:func:`detect` (or :func:`detect_positions`) of ``frames`` of ``source``."""
+    numbers = np.array([n for n, _ in frames])
+    values = np.array([v for _, v in frames])
+    if source.skeleton is not None:
+        m = motion(DATA / "cmu" / "02" / "02.asf", DATA / "cmu" / "02" / "02_01.amc.gz")
+        played = Motion(m.source, source.skeleton, m.header, numbers, values)
+        return detect(played, library, source.rate, stream=name, session=SESSION)
+    assert source.joint_names is not None
+    standard = values[:, [source.joint_names.index(j) for j in JOINT_NAMES]]
+    return detect_positions(standard, numbers, library, source.rate, stream=name, session=SESSION)
+
+
+def test_blocks_of_streams_equal_the_batch_twin(library: Library) -> None:
+    """More streams of one skeleton than one block of the compiled step holds (32), streams of another
+    skeleton, positions at 120 Hz and at 60 Hz (another feature program), joining at different
+    ticks, each from another frame of its recording, frames in the forms a caller may send: each
+    stream's detections (and what leaving gives) equal :func:`detect` on its frames, bit for bit."""
+    plan = (
+        [("bd-squat", k) for k in range(40)]
+        + [("bk-hop-prop", k) for k in range(3)]
+        + [("cmu13-positions", k) for k in range(3)]
+        + [("dg-squat-60hz", k) for k in range(3)]
+    )
+    bank = RecognizerBank(library)
+    played: dict[str, list[tuple[int, FloatArray]]] = {}
+    for k, (name, _) in enumerate(plan):
+        frames = sources()[name].frames
+        shift = (37 * k) % len(frames)
+        played[f"{name}/{k}"] = [(j + 1, v) for j, (_, v) in enumerate(frames[shift:] + frames[:shift])]
+    got: dict[str, list[Detection]] = {s: [] for s in played}
+    left: set[str] = set()
+    tick = 0
+    while len(left) < len(plan):
+        frames_now: list[tuple[str, int, npt.ArrayLike]] = []
+        for k, (name, _) in enumerate(plan):
+            stream = f"{name}/{k}"
+            at = tick - k % 7
+            if at == 0:
+                sources()[name].add_to(bank, stream, SESSION)
+            if 0 <= at < len(played[stream]):
+                number, values = played[stream][at]
+                frames_now.append((stream, number, as_given(values, k)))
+            elif at == len(played[stream]):
+                got[stream] += bank.remove(stream)
+                left.add(stream)
+        result = bank.push(frames_now)
+        assert result.errors == ()
+        for d in result.detections:
+            got[d.stream].append(d)
+        tick += 1
+    for k, (name, _) in enumerate(plan):
+        stream = f"{name}/{k}"
+        assert got[stream] == batch_twin(library, sources()[name], played[stream], stream), stream
+    assert sum(len(d) for d in got.values()) >= 30  # squats were found
+
+
+def test_push_many_takes_a_recogniser_once(library: Library) -> None:
+    """Two frames of one recogniser in one step are refused before anything is done."""
+    source = sources()["bd-squat"]
+    r = source.recognizer(library, "a", SESSION)
+    reference = source.recognizer(library, "a", SESSION)
+    (n1, v1), (n2, v2) = source.frames[:2]
+    with pytest.raises(ValueError, match="at most one frame"):
+        Recognizer.push_many([(r, n1, v1), (r, n2, v2)])
+    for number, values in source.frames:
+        assert r.push(number, values) == reference.push(number, values)
+    assert r.flush() == reference.flush()
+
+
+def test_a_frame_number_beyond_int64_is_refused(library: Library) -> None:
+    source = sources()["cmu13-positions"]
+    r = source.recognizer(library, "a", SESSION)
+    _, values = source.frames[0]
+    with pytest.raises(FrameError, match="out of range") as caught:
+        r.push(2**70, values)
+    assert caught.value.problem == "type"
+    r.push(1, values)  # nothing changed: the stream starts at the next good frame
+    with pytest.raises(FrameError) as jumped:
+        r.push(2**64, values)
+    assert jumped.value.problem == "jump"
+
+
+def test_the_class_stage_state_is_bounded(library: Library) -> None:
+    """A squat played twelve times: the compiled competition's candidates, detections and keyframe
+    ranges remembered are the same after the eighth and the twelfth (what is older than its reach is
+    forgotten), and its DTW keeps three columns whatever the length."""
+    source = sources()["bd-squat"]
+    r = source.recognizer(library, "a", SESSION)
+    core = r._stage.codes.core
+    assert core is not None
+    sizes = []
+    for rep in range(12):
+        for j, (_, values) in enumerate(source.frames):
+            r.push(rep * len(source.frames) + j + 1, values)
+        sizes.append(core.state_size)
+    assert sizes[7] == sizes[11] and max(sizes) > 0
+    assert core.dtw.n == core.n  # every index frame a column, none kept beyond three

@@ -45,6 +45,11 @@ def test_bad_cluster_settings_are_named(tmp_path: Path) -> None:
     result = mocapd("run", "--cluster", "http://127.0.0.1:4222", "--coordinator", "etcd://127.0.0.1:2379")
     assert result.returncode == 2
     assert "--cluster: must be nats://HOST:PORT" in result.stderr.splitlines()[-1]
+    result = mocapd(
+        "run", "--cluster", "nats://127.0.0.1:4222", "--coordinator", "etcd://h", "--workers", "2"
+    )
+    assert result.returncode == 2
+    assert "--workers: a cluster worker is one recognition process" in result.stderr.splitlines()[-1]
     result = mocapd("run", "--cluster", "nats://127.0.0.1:4222")
     assert result.returncode == 2
     assert "--coordinator: give --coordinator etcd://HOST[:PORT]" in result.stderr.splitlines()[-1]

@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING, Any
 
 from daemon.cli import common
 from daemon.cli.detect import speed
-from daemon.config import Config
+from daemon.config import Config, workers_of
 from daemon.errors import InputError, UsageError
 from daemon.library import default_library_path, load_library
 from daemon.recordings import native_rate, read_recording
@@ -63,6 +63,14 @@ def register(sub: Any) -> None:
         "--speed", type=speed, default=1.0, metavar="1|X|max", help="--replay's pace (default 1)"
     )
     run.add_argument("--stream", default=None, help="--replay's stream id (default: the AMC file's name)")
+    run.add_argument(
+        "--workers",
+        type=int,
+        default=None,
+        metavar="N",
+        help="recognition processes, a stream always on the same one (default: service.workers, "
+        "whose 0 is one per core); 1: one process (as --replay always is)",
+    )
     run.set_defaults(func=_run)
 
     rep = sub.add_parser(
@@ -116,6 +124,19 @@ def _run(args: argparse.Namespace, config: Config) -> int:
 
     config = _overridden(args, config)
     library = load_library(default_library_path() if args.library is None else args.library)
+    clustered = "cluster" in config.service.sources + config.service.sinks
+    if clustered and config.service.workers > 1:
+        raise UsageError(
+            "a cluster worker is one recognition process: start one worker per core "
+            "(deploy/systemd/mocapd-worker@.service) instead",
+            field="--workers" if args.workers is not None else "service.workers",
+        )
+    # a cluster worker is one process (the cluster shares the streams between workers)
+    workers = 1 if args.replay is not None or clustered else workers_of(config.service)
+    if workers > 1:
+        from daemon.service.workers import serve_workers
+
+        return serve_workers(config, library, workers, version=package_version())
     extra = None if args.replay is None else _replay_into(args, config)
     return serve(config, library, version=package_version(), extra=extra)
 
@@ -167,6 +188,10 @@ def _overridden(args: argparse.Namespace, config: Config) -> Config:
         if not 0 <= args.metrics_port <= 65535:
             raise UsageError(f"must be a port in 0..65535, got {args.metrics_port}", field="--metrics-port")
         metrics = dataclasses.replace(metrics, port=args.metrics_port)
+    if args.workers is not None:
+        if not 0 <= args.workers <= 1024:
+            raise UsageError(f"must be 0 (one per core) to 1024, got {args.workers}", field="--workers")
+        service = dataclasses.replace(service, workers=args.workers)
     return dataclasses.replace(config, service=service, metrics=metrics, mqtt=mqtt, cluster=cluster)
 
 

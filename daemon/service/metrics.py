@@ -23,7 +23,7 @@ import asyncio
 import contextlib
 from bisect import bisect_left
 from collections import Counter
-from collections.abc import Callable, Container, Iterable, Mapping
+from collections.abc import Awaitable, Callable, Container, Iterable, Mapping
 from dataclasses import dataclass, field
 
 from prometheus_client import CollectorRegistry, generate_latest
@@ -168,11 +168,12 @@ class Metrics(Collector):
 
 
 async def open_http(
-    host: str, port: int, health: Callable[[], str | None], metrics: Metrics
+    host: str, port: int, health: Callable[[], str | None], metrics: Metrics | Callable[[], Awaitable[bytes]]
 ) -> asyncio.Server:
-    """A server listening on ``host:port`` for ``GET /healthz`` (200 ``ok`` while ``health()`` is
-    None, else 503 with its reason) and ``GET /metrics``; serve it with :func:`serve_http`. OSError
-    if it cannot listen."""
+    """A server listening on ``host:port`` (0: a free port) for ``GET /healthz`` (200 ``ok`` while
+    ``health()`` is None, else 503 with its reason) and ``GET /metrics`` (``metrics``' exposition,
+    or what the coroutine function ``metrics`` gives); serve it with :func:`serve_http`. OSError if
+    it cannot listen."""
 
     async def handle(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         try:
@@ -186,7 +187,8 @@ async def open_http(
                 problem = health()
                 status, body = (200, b"ok\n") if problem is None else (503, f"{problem}\n".encode())
             elif path == "/metrics":
-                status, body, kind = 200, metrics.exposition(), CONTENT_TYPE_LATEST
+                body = metrics.exposition() if isinstance(metrics, Metrics) else await metrics()
+                status, kind = 200, CONTENT_TYPE_LATEST
             else:
                 status, body = 404, b"not found\n"
             reason = {200: "OK", 404: "Not Found", 503: "Service Unavailable"}[status]

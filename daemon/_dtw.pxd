@@ -1,0 +1,60 @@
+from libc.stdint cimport int64_t, uint64_t
+
+
+cdef struct Candidate:
+    # a local minimum of one template's stream-wide delta, ordered by (cost, end, member, start)
+    int64_t cost
+    int64_t end
+    int64_t member
+    int64_t start
+
+
+cdef struct Buf:
+    # a growable FIFO of rows of ``stride`` int64: rows head .. n - 1 are held
+    int64_t *data
+    Py_ssize_t head
+    Py_ssize_t n
+    Py_ssize_t cap
+    Py_ssize_t stride
+
+
+cdef class StreamDTW:
+    cdef list _arrays  # the templates' tables, kept alive for the pointers below
+    cdef const uint64_t **_masks
+    cdef const uint64_t **_values
+    cdef const int64_t **_tables
+    cdef Py_ssize_t k, total, most
+    cdef readonly int64_t n
+    cdef unsigned char[::1] toolbox
+    cdef int64_t[::1] lengths, offsets, widths, thresholds
+    cdef int64_t[:, ::1] cols  # rows: three (D, start) slots, frame f in slot f % 3; templates side by side
+    cdef int64_t[::1] costs  # one template column's cell costs
+    cdef int64_t[:, ::1] highest  # (templates, 3): each slot's highest finite row (pruned templates)
+
+    cdef void _reset(self) noexcept nogil
+    cdef int64_t _last(self, Py_ssize_t t, int64_t f) noexcept nogil
+    cdef int64_t _start(self, Py_ssize_t t, int64_t f) noexcept nogil
+    cdef Py_ssize_t push_into(self, uint64_t code, Candidate *out) noexcept nogil
+    cdef Py_ssize_t finish_into(self, Candidate *out) noexcept nogil
+    cdef bint blocks_c(self, int64_t cost, int64_t start, int64_t end, Py_ssize_t lo,
+                       Py_ssize_t hi) noexcept nogil
+
+
+cdef class Competition:
+    cdef readonly StreamDTW dtw
+    cdef readonly object automata
+    cdef readonly bint compete
+    cdef readonly int64_t hold, memory, n
+    cdef int64_t[::1] owner, lo, hi, slot
+    cdef Py_ssize_t n_gated
+    cdef Candidate *found  # one per template: a frame's minima
+    cdef Candidate *scratch  # the held candidates a frame makes final
+    cdef Py_ssize_t scratch_cap
+    cdef Buf held, recent, published
+    cdef Buf *windows  # per gated class (automaton order): its keyframe ranges (first, frame)
+
+    cdef list push_c(self, uint64_t code)
+    cdef bint _rival(self, const Candidate *x, const Candidate *y) noexcept nogil
+    cdef int _arrive(self, Candidate *y) except -1
+    cdef list _decide(self, int64_t j, bint ended)
+    cdef void _forget(self, int64_t j) noexcept
