@@ -65,8 +65,10 @@ class Wire:
         self.sock.sendall(b'CONNECT {"verbose":false,"pedantic":false}\r\n')
         self.latencies: list[float] = []
         self.lock = threading.Lock()
+        self._closing = threading.Event()
         ready = threading.Event()
-        threading.Thread(target=self._collect, args=(url, ready), daemon=True).start()
+        self._collector = threading.Thread(target=self._collect, args=(url, ready), daemon=True)
+        self._collector.start()
         assert ready.wait(10)
         threading.Thread(target=self._drain, daemon=True).start()
 
@@ -95,10 +97,17 @@ class Wire:
             await nc.subscribe("mocap.*.detections", cb=got)
             await nc.flush()
             ready.set()
-            while True:
-                await asyncio.sleep(3600)
+            while not self._closing.is_set():
+                await asyncio.sleep(0.1)
+            await nc.close()
 
         asyncio.run(main())
+
+    def close(self) -> None:
+        """Disconnect both sides before the server stops (else the client logs its reconnects)."""
+        self._closing.set()
+        self._collector.join(10)
+        self.sock.close()
 
     def send(self, messages: list[tuple[str, bytes]]) -> None:
         out = []
@@ -291,6 +300,7 @@ def main() -> None:
         takeover(work, server, etcd, wire, args.takeover_streams)
         extrapolate(results, pose_bytes)
     finally:
+        wire.close()
         etcd.stop()
         server.stop()
 
