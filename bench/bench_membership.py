@@ -1,4 +1,4 @@
-"""Cluster membership in etcd (``daemon/cluster/membership.py``): how soon the others see a worker
+"""Cluster membership in etcd (``daemon/service/membership.py``): how soon the others see a worker
 join, leave, or die.
 
     python -m bench.bench_membership [--repeat 3] [--joins 50] [--kills 3]
@@ -26,13 +26,13 @@ from collections.abc import Callable
 from pathlib import Path
 
 from bench.machine import describe
-from daemon.cluster.membership import Membership
+from daemon.service.membership import Membership
 from tests.etcd_server import Etcd, running
 
 REPO = Path(__file__).resolve().parents[1]
 WORKER = """
 import asyncio, sys
-from daemon.cluster.membership import Membership
+from daemon.service.membership import Membership
 
 async def main() -> None:
     async with Membership(sys.argv[1], sys.argv[2]):

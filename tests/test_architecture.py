@@ -190,20 +190,17 @@ def test_imports_go_only_downward() -> None:
     assert wrong == []
 
 
-ASYNC = ("daemon.service", "protocols", "daemon.cluster")
-"""Where asyncio may be imported: the service, the transports, and the cluster's adapters (the
-membership in etcd and the workers on NATS talk to their servers the way the transports do)."""
-PURE = ("daemon.cluster.ring",)
-"""Pure modules inside those packages: no asyncio, no I/O."""
+ASYNC = ("daemon.service", "protocols")
+"""Where asyncio may be imported: the service (with its adapters to etcd) and the transports."""
 
 
-def test_asyncio_only_in_the_service_the_transports_and_the_cluster_adapters() -> None:
-    """DESIGN: daemon/service/ is the only place besides the transports (and the cluster's adapters
-    to etcd and NATS) that imports asyncio."""
+def test_asyncio_only_in_the_service_and_the_transports() -> None:
+    """DESIGN: daemon/service/ is the only place besides the transports that imports asyncio; the
+    cluster's ring is pure."""
     wrong = [
         str(path.relative_to(REPO))
         for path in sources()
-        if (not module_name(path).startswith(ASYNC) or module_name(path) in PURE)
+        if not module_name(path).startswith(ASYNC)
         and re.search(r"^\s*(import asyncio|from asyncio)", path.read_text(encoding="utf-8"), re.M)
     ]
     assert wrong == []

@@ -9,8 +9,8 @@ import json
 import subprocess
 
 from bench.processes import free_port
-from daemon.cluster.membership import Membership
 from daemon.cluster.ring import assignment
+from daemon.service.membership import Membership
 from tests.etcd_server import Etcd
 from tests.helpers import assert_ok, assert_one_error_line, mocapd
 

@@ -20,8 +20,8 @@ from collections.abc import Callable
 import pytest
 
 from bench.processes import free_port
-from daemon.cluster.membership import STARTUP_S, Membership, cluster_status
 from daemon.errors import InputError
+from daemon.service.membership import STARTUP_S, Membership, cluster_status
 from protocols.transport import StartupError
 from tests.etcd_server import Etcd
 from tests.helpers import REPO
@@ -132,7 +132,7 @@ async def test_reported_statuses_and_leases_are_read_back(etcd: Etcd) -> None:
 
 VICTIM = """
 import asyncio, sys
-from daemon.cluster.membership import Membership
+from daemon.service.membership import Membership
 
 async def main() -> None:
     async with Membership(sys.argv[1], "victim") as m:

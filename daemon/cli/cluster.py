@@ -12,7 +12,7 @@ from daemon.config import Config
 from daemon.errors import UsageError
 
 if TYPE_CHECKING:  # the command imports etcd's client only when it runs
-    from daemon.cluster.membership import ClusterStatus
+    from daemon.service.membership import ClusterStatus
 
 DEFAULT_PARTITIONS = 16
 """``--partitions`` when neither the option nor the configuration's ``cluster.partitions`` gives it."""
@@ -144,7 +144,7 @@ def _numbers(ps: list[int] | None) -> str:
 
 
 def _status(args: argparse.Namespace, config: Config) -> int:
-    from daemon.cluster.membership import read_cluster
+    from daemon.service.membership import read_cluster
     from protocols.transport import StartupError
 
     coordinator = args.coordinator or _configured(config, "coordinator")

@@ -3,7 +3,7 @@ owns, status reports, and leaving.
 
 :class:`Cluster` is entered with the service's transports (joining fails fast, naming
 ``cluster.coordinator``, when etcd does not answer). Its :meth:`Cluster.follow` task takes each
-change of the live members from :class:`~daemon.cluster.membership.Membership` and has the
+change of the live members from :class:`~daemon.service.membership.Membership` and has the
 transport consume exactly the partitions :func:`~daemon.cluster.ring.owned` gives this member;
 streams of a partition given up are dropped from the stream table without publishing anything (the
 new owner publishes their detections). :meth:`Cluster.report` writes this worker's status about once
@@ -22,11 +22,11 @@ import time
 from types import TracebackType
 from typing import TYPE_CHECKING, Any
 
-from daemon.cluster.membership import Membership
 from daemon.cluster.ring import owned
 from daemon.config import ClusterConfig
 from daemon.library import Library
 from daemon.recognizer import Recognizer
+from daemon.service.membership import Membership
 from replay import JOINT_NAMES
 
 if TYPE_CHECKING:
