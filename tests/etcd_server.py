@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import contextlib
 import shutil
-import signal
 import subprocess
 import time
 import urllib.error
@@ -24,6 +23,7 @@ import pytest
 import yaml
 
 from bench.processes import free_port
+from tests.helpers import ServerProcess
 
 REPO = Path(__file__).resolve().parents[1]
 CONFIG = REPO / "deploy" / "etcd" / "etcd.conf.yml"
@@ -38,7 +38,7 @@ def etcd_binary() -> str:
     return binary
 
 
-class Etcd:
+class Etcd(ServerProcess):
     """One etcd on free loopback ports, its data and ``etcd.log`` in ``where``."""
 
     def __init__(self, where: Path, config: Path = CONFIG) -> None:
@@ -102,15 +102,6 @@ class Etcd:
             if "address already in use" not in log:
                 raise AssertionError(f"etcd did not become healthy within {START_S:g} s:\n{log[-3000:]}")
         raise AssertionError("etcd could not listen on its ports")
-
-    def stop(self, sig: int = signal.SIGTERM) -> None:
-        if self.process is not None and self.process.poll() is None:
-            self.process.send_signal(sig)
-            self.process.wait(10)
-        self.process = None
-
-    def kill(self) -> None:
-        self.stop(signal.SIGKILL)
 
 
 @contextlib.contextmanager

@@ -238,7 +238,23 @@ def _accepts(port: int) -> bool:
         return s.connect_ex(("127.0.0.1", port)) == 0
 
 
-class Broker:
+class ServerProcess:
+    """A server the tests run as a process (``process``, None when stopped): :meth:`stop` sends
+    ``sig`` (SIGTERM) and waits, :meth:`kill` is SIGKILL."""
+
+    process: subprocess.Popen[bytes] | None = None
+
+    def stop(self, sig: int = signal.SIGTERM) -> None:
+        if self.process is not None and self.process.poll() is None:
+            self.process.send_signal(sig)
+            self.process.wait(10)
+        self.process = None
+
+    def kill(self) -> None:
+        self.stop(signal.SIGKILL)
+
+
+class Broker(ServerProcess):
     """A real mosquitto on a free loopback port with persistence on (its database in ``where``) and
     ``settings`` (default: anonymous clients allowed) for its listener;
     :meth:`start`, :meth:`stop` (SIGTERM: it saves its sessions), :meth:`kill`, start again on the
@@ -272,15 +288,6 @@ class Broker:
         )
         wait_for(lambda: _accepts(self.port), 10, f"mosquitto on port {self.port}")
         return self
-
-    def stop(self, sig: int = signal.SIGTERM) -> None:
-        if self.process is not None and self.process.poll() is None:
-            self.process.send_signal(sig)
-            self.process.wait(10)
-        self.process = None
-
-    def kill(self) -> None:
-        self.stop(signal.SIGKILL)
 
 
 class Daemon:

@@ -8,11 +8,11 @@ from __future__ import annotations
 
 import re
 import shutil
-import signal
 import subprocess
 from pathlib import Path
 
 from bench.processes import free_port
+from tests.helpers import ServerProcess
 
 REPO = Path(__file__).resolve().parents[1]
 CONFIG = REPO / "deploy" / "nats" / "nats.conf"
@@ -42,7 +42,7 @@ def partitions() -> int:
     return found.pop()
 
 
-class NatsServer:
+class NatsServer(ServerProcess):
     """One nats-server on free loopback ports (client, MQTT, monitoring), its JetStream directory and
     log in ``where``."""
 
@@ -85,9 +85,3 @@ class NatsServer:
 
         wait_for(ready, START_S, "nats-server")
         return self
-
-    def stop(self, sig: int = signal.SIGTERM) -> None:
-        if self.process is not None and self.process.poll() is None:
-            self.process.send_signal(sig)
-            self.process.wait(10)
-        self.process = None
