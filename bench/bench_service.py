@@ -13,7 +13,8 @@ to the detections (QoS 1). Each size
 runs ``--seconds`` after a 2 s warm-up; a size holds when the daemon dropped nothing (no lagging
 pose, no full queue), saw no gap, was at most 0.5 s behind at the end, and its latency's p99 was at
 most ``--p99-ms`` (20). Latency: p50 and p99 of
-(detection received) - (``source_time``, the completing pose's timestamp), in ms. Baseline in the
+(detection received) - (``source_time``, the completing pose's timestamp), in ms. CPU: the
+daemon's (front and workers) and the load's, in µs per pose sent. Baseline in the
 same run: one stream, the floor the broker and the wire add.
 
 ``--workers 1,2`` sweeps a daemon of each worker count in turn (``mocapd run --workers N``; N on the
@@ -47,9 +48,9 @@ from paho.mqtt.enums import CallbackAPIVersion
 
 from bench.common import DATA
 from bench.machine import describe
-from bench.processes import free_port, rss_kib, scrape, wait_healthy, wait_port
+from bench.processes import cpu_seconds, free_port, rss_kib, scrape, wait_healthy, wait_port
 from daemon.recordings import read_recording
-from protocols.messages import PoseMessage, SkeletonMessage, encode
+from protocols.messages import VERSION, SkeletonMessage, encode
 from replay.catalog import CMU_SUBSTITUTES, recordings
 
 RATE = 120.0
@@ -141,8 +142,10 @@ class ZmqLoad:
         self.ctx.term()  # the collecting thread closes its socket when told
 
     def send(self, messages: list[tuple[str, bytes]]) -> None:
+        send, more = self.pub.send, int(zmq.SNDMORE)  # int flags: an enum costs more than the send
         for topic, payload in messages:
-            self.pub.send_multipart([topic.encode(), payload])
+            send(topic.encode(), more)
+            send(payload)
 
 
 class MqttLoad:
@@ -190,6 +193,7 @@ class Load:
         rng = np.random.default_rng(streams)
         picks = [self.sources[k % len(self.sources)] for k in range(streams)]
         names = [f"{prefix}{k}" for k in range(streams)]
+        topics = [f"mocap/{name}/pose" for name in names]
         at = [int(rng.integers(len(frames))) for _, frames in picks]
         for name, (asf, _) in zip(names, picks, strict=True):
             if name not in self.seq:
@@ -204,14 +208,22 @@ class Load:
             wait = start + tick / RATE - time.monotonic()
             if wait > 0:
                 time.sleep(wait)
-            now = time.time()
             messages = []
             for k, name in enumerate(names):
                 frames = picks[k][1]
-                channels = np.frombuffer(frames[(at[k] + tick) % len(frames)], dtype="<f8")
                 self.seq[name] += 1
-                payload = encode(PoseMessage(name, self.seq[name], now, channels=channels))
-                messages.append((f"mocap/{name}/pose", payload))
+                # the map of protocols/README.md packed directly, each pose stamped as it is packed:
+                # the load's own time is not counted as the daemon's latency, and costs little CPU
+                # of the core it shares with a worker
+                body = {
+                    "v": VERSION,
+                    "type": "pose",
+                    "stream": name,
+                    "seq": self.seq[name],
+                    "time": time.time(),
+                    "channels": frames[(at[k] + tick) % len(frames)],
+                }
+                messages.append((topics[k], msgpack.packb(body)))
             self.wire.send(messages)
             sent += len(messages)
         return sent
@@ -275,7 +287,13 @@ def sweep(
     """A daemon of ``workers`` processes on ``cores`` through ``sizes``; the largest size held."""
     work = Path(tempfile.mkdtemp(prefix="bench-service-"))
     metrics_port = free_port()
-    env = {**os.environ, "MOCAPD_LOGGING_LEVEL": "warning", "MOCAPD_SERVICE_IDLE_S": "3600"}
+    # the streams of every size stay in the table (none evicted mid-sweep): room for all of them
+    env = {
+        **os.environ,
+        "MOCAPD_LOGGING_LEVEL": "warning",
+        "MOCAPD_SERVICE_IDLE_S": "3600",
+        "MOCAPD_SERVICE_MAX_STREAMS": str(10 * sum(sizes)),
+    }
     broker = None
     broker_port = free_port()
     poses, detections = f"tcp://127.0.0.1:{free_port()}", f"tcp://127.0.0.1:{free_port()}"
@@ -312,8 +330,9 @@ def sweep(
         f"{args.transport}{' (mosquitto on loopback)' if broker else ' on loopback'}; --workers {workers}: "
         f"daemon on cores {daemon_cores}, load on {sorted(load_cores)}; {args.seconds:g} s per size"
     )
-    head = ("streams", "poses/s", "lost", "behind", "detections", "p50 ms", "p99 ms")
-    print(" ".join(f"{h:>{w}s}" for h, w in zip(head, (8, 9, 6, 8, 11, 8, 8), strict=True)) + "  holds")
+    head = ("streams", "poses/s", "lost", "behind", "detections", "p50 ms", "p99 ms", "daemon µs", "load µs")
+    widths = (8, 9, 6, 8, 11, 8, 8, 10, 8)
+    print(" ".join(f"{h:>{w}s}" for h, w in zip(head, widths, strict=True)) + "  holds")
     held, failed = 0, 0
     try:
         for size in sizes:
@@ -321,7 +340,9 @@ def sweep(
             load.run(size, 2.0, f"w{size}-")  # warm-up: the recognisers made, the phases spread
             load.take_latencies()
             warm = scrape(metrics_port)
+            cpu, own = cpu_seconds(daemon.pid), time.process_time()
             sent = load.run(size, args.seconds, f"w{size}-")
+            cpu, own = cpu_seconds(daemon.pid) - cpu, time.process_time() - own
             time.sleep(0.5)
             after = scrape(metrics_port)
             received = after.get("mocapd_frames_in_total", 0) - warm.get("mocapd_frames_in_total", 0)
@@ -334,7 +355,8 @@ def sweep(
             failed = 0 if ok else failed + 1
             print(
                 f"{size:8d} {sent / args.seconds:9,.0f} {gone:6.0f} {behind / (RATE * size):7.2f}s "
-                f"{lat.size:11d} {p50:8.1f} {p99:8.1f}  {'yes' if ok else 'no'}",
+                f"{lat.size:11d} {p50:8.1f} {p99:8.1f} {cpu / sent * 1e6:10.1f} {own / sent * 1e6:8.1f}"
+                f"  {'yes' if ok else 'no'}",
                 flush=True,
             )
             if failed == 2:  # two sizes in a row not held: the larger ones will not be

@@ -1,9 +1,11 @@
 """What the benchmarks that run real processes share: free loopback ports, waiting for one to
 listen and for a daemon to be healthy, a daemon's /metrics samples and a process's resident
-memory."""
+memory and CPU time."""
 
 from __future__ import annotations
 
+import contextlib
+import os
 import random
 import socket
 import time
@@ -85,3 +87,33 @@ def rss_kib(pid: int) -> int:
     except OSError:
         return 0
     return next((int(line.split()[1]) for line in lines if line.startswith("VmRSS:")), 0)
+
+
+def _tree(pid: int) -> list[int]:
+    """``pid`` and its descendants alive now."""
+    out, todo = [], [pid]
+    while todo:
+        p = todo.pop()
+        out.append(p)
+        try:
+            tasks = list(Path(f"/proc/{p}/task").iterdir())
+        except OSError:
+            continue
+        for task in tasks:
+            with contextlib.suppress(OSError):
+                todo += [int(c) for c in (task / "children").read_text().split()]
+    return out
+
+
+def cpu_seconds(pid: int) -> float:
+    """User plus system CPU seconds used so far by process ``pid`` and its descendants alive now
+    (``mocapd run --workers``: the front and its workers)."""
+    tick = os.sysconf("SC_CLK_TCK")
+    total = 0
+    for p in _tree(pid):
+        try:
+            fields = Path(f"/proc/{p}/stat").read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        total += int(fields[11]) + int(fields[12])  # utime, stime (fields 14 and 15 of proc(5))
+    return total / tick

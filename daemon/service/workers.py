@@ -4,14 +4,16 @@ The front owns the daemon's transports exactly as one process would (the ZeroMQ 
 sockets, the MQTT client, stdout, ``/healthz`` and ``/metrics``) and decodes nothing: for each
 message it reads the stream id from the topic (``mocap/<stream>/<word>``) and forwards the raw
 ``[topic, payload]`` to worker :func:`protocols.routing.worker_of` (a stable hash of the id) over a
-PUSH socket on ``ipc://``. A worker is a :class:`~daemon.service.app.Service` whose only transport
-is :class:`FrontChannel`: it takes those messages in, decodes, validates and recognises them as the
-single process does, and sends what it publishes (detections, boundaries) back to the front, which
-publishes it on its sinks. Decoding and recognising cost per pose and parallelise; the front's cost
-per message is a topic lookup, a hash and a ZeroMQ send (a few µs); one stream always takes one path
-(one PUSH queue, one worker, one PUSH back), so its order is kept. Over MQTT the front is the MQTT
-client likewise, forwarding raw payloads by hash (a shared subscription would hand one stream's
-messages round-robin to several workers).
+PUSH socket on ``ipc://``, the pairs one wakeup took for a worker packed into one frame (a msgpack
+array ``[topic, payload, topic, payload, ...]``). A worker is a
+:class:`~daemon.service.app.Service` whose only transport is :class:`FrontChannel`: it takes those
+messages in, decodes, validates and recognises them as the single process does, and sends what it
+publishes (detections, boundaries) back to the front, which publishes it on its sinks. Decoding and
+recognising cost per pose and parallelise; the front's cost per message is a ZeroMQ receive, a
+topic lookup and its share of one send (a few µs); one stream always takes one path (one PUSH
+queue, one worker, one PUSH back), so its order is kept. Over MQTT the front is the MQTT client
+likewise, forwarding raw payloads by hash (a shared subscription would hand one stream's messages
+round-robin to several workers).
 
 A worker that dies is started again, after 0.2 s, doubling up to 10 s while it keeps dying within
 10 s of its start. When it is up (it says "ready") the front asks every publisher for its skeleton
@@ -52,11 +54,12 @@ import sys
 import tempfile
 import time
 from collections import Counter
-from collections.abc import AsyncIterator, Iterable, Sequence
+from collections.abc import AsyncIterator, Iterable
 from dataclasses import dataclass, replace
 from pathlib import Path
 from types import TracebackType
 
+import msgpack
 import zmq
 import zmq.asyncio
 from prometheus_client import CollectorRegistry, generate_latest
@@ -71,7 +74,7 @@ from daemon.service.metrics import open_http, serve_http
 from protocols.messages import StatusMessage, decode, encode, topic
 from protocols.routing import stream_of, worker_of
 from protocols.transport import Incoming, Outgoing, StartupError, Transport
-from protocols.zeromq import open_socket
+from protocols.zeromq import open_socket, receive
 
 PUBLISH, READY, ASK, STREAMS = b"p", b"r", b"a", b"n"
 """What a worker sends the front, the first frame of each message: ``[p, topic, payload, retain]``
@@ -82,8 +85,18 @@ RESTART_MIN_S, RESTART_MAX_S, STEADY_S = 0.2, 10.0, 10.0
 its start."""
 DRAIN_MESSAGES = 512
 """The most messages taken per wakeup, so that receiving yields to the other tasks."""
-NOBLOCK, MORE = int(zmq.NOBLOCK), int(zmq.NOBLOCK | zmq.SNDMORE)
-"""Send flags as plain ints (enum members cost more than a small message's send)."""
+NOBLOCK = int(zmq.NOBLOCK)
+"""As a plain int (an enum member costs more than a small message's send)."""
+packb = msgpack.Packer(use_bin_type=True).pack
+"""The frame of the messages the front sends a worker at once: ``[topic, payload, ...]``, bytes."""
+
+
+def unpackb(frame: bytes) -> list[bytes]:
+    """The ``[topic, payload, ...]`` of a frame :data:`packb` made."""
+    out: list[bytes] = msgpack.unpackb(frame, use_list=True)
+    return out
+
+
 ROUTES_CACHED = 100_000
 """The most topics whose worker the front remembers."""
 YIELD_EVERY = 64
@@ -240,7 +253,7 @@ class _Inbound:
             received = time.time()
             for _ in range(DRAIN_MESSAGES):
                 try:
-                    parts = sync.recv_multipart(zmq.NOBLOCK)
+                    parts = unpackb(sync.recv(NOBLOCK))
                 except zmq.Again:
                     break
                 for i in range(0, len(parts) - 1, 2):
@@ -463,13 +476,13 @@ class Front:
                 k = routes[topic] = worker_of(stream_of(topic.decode("utf-8", "replace")), n)
             return k
 
-        def send(k: int, frames: Sequence[bytes | zmq.Frame]) -> None:
-            """``frames`` (topic, payload, topic, payload, ...) to worker ``k`` as one message."""
-            sock, last = socks[k], len(frames) - 1
-            try:  # frame by frame with int flags: send_multipart costs twice as much
-                for i, frame in enumerate(frames):
-                    sock.send(frame, MORE if i < last else NOBLOCK, copy=False)
-            except zmq.Again:  # only ever the first frame: a message is queued whole or not at all
+        def send(k: int, frames: list[bytes]) -> None:
+            """``frames`` (topic, payload, topic, payload, ...) to worker ``k`` as one message of one
+            frame (a msgpack array): a frame per pose would cost the front and the worker a
+            ZeroMQ message each, twice what they spend on the pose otherwise."""
+            try:
+                socks[k].send(packb(frames), NOBLOCK)
+            except zmq.Again:
                 self.drops["worker_full" if slots[k].ready else "worker_down"] += len(frames) // 2
 
         raw = getattr(transport, "raw_source", None)
@@ -477,9 +490,9 @@ class Front:
         if batches is not None:
             # what one wakeup took, one message per worker: the queue's wakeup is paid once
             async for batch in batches:
-                out: list[list[bytes | zmq.Frame]] = [[] for _ in range(n)]
+                out: list[list[bytes]] = [[] for _ in range(n)]
                 for frames in batch:
-                    mine = out[worker(frames[0].bytes)]
+                    mine = out[worker(frames[0])]
                     if len(frames) == 2:
                         mine += frames
                     else:  # not [topic, payload]: the worker refuses it as undecodable
@@ -506,9 +519,8 @@ class Front:
         sync: zmq.Socket[bytes] = zmq.Socket.shadow(self._outbound.underlying)
         out = []
         for _ in range(DRAIN_MESSAGES):
-            try:
-                frames = sync.recv_multipart(zmq.NOBLOCK)
-            except zmq.Again:
+            frames = receive(sync)
+            if frames is None:
                 break
             kind = frames[0]
             if kind == PUBLISH and len(frames) == 4:
