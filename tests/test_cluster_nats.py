@@ -11,12 +11,17 @@ import asyncio
 import threading
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import paho.mqtt.client as paho
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from nats.aio.msg import Msg
+from nats.errors import NotJSMessageError
 from paho.mqtt.enums import CallbackAPIVersion
 
+from protocols.nats import sequences
 from tests.helpers import wait_for
 from tests.nats_server import NatsServer, partitions
 
@@ -106,3 +111,34 @@ def test_what_cluster_mode_relies_on(tmp_path: Path) -> None:
             if client is not None:
                 client.close()
         server.stop()
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    stream_seq=st.integers(1, 2**63 - 1),
+    consumer_seq=st.integers(1, 2**63 - 1),
+    delivered=st.integers(1, 1000),
+    domain=st.booleans(),
+)
+def test_sequences_are_those_nats_py_reads(
+    stream_seq: int, consumer_seq: int, delivered: int, domain: bool
+) -> None:
+    """The fast reading of a JetStream message's sequences equals nats-py's ``Msg.metadata``, in
+    both forms of the acknowledgement subject (ADR-15), and a reply of neither form is left to it."""
+    head = "$JS.ACK.hub.ACCHASH." if domain else "$JS.ACK."
+    tail = ".tok" if domain else ""
+    reply = (
+        f"{head}MOCAPD_BUF_3.c0nsumer.{delivered}.{stream_seq}.{consumer_seq}.1701234567890123456.42{tail}"
+    )
+    slow = _message(reply).metadata.sequence
+    assert sequences(_message(reply)) == (slow.stream, slow.consumer)
+
+
+def test_sequences_refuse_what_is_not_an_acknowledgement_subject() -> None:
+    with pytest.raises(NotJSMessageError):
+        sequences(_message("_INBOX.abc"))
+
+
+def _message(reply: str) -> Msg:
+    """A message as nats-py delivers it, with no client (the sequences need none)."""
+    return Msg(_client=cast(Any, None), subject="mocap.p.3.s.pose", reply=reply)
