@@ -22,6 +22,7 @@ setup(
                 "daemon._features",
                 "daemon._live",
                 "replay._kinematics",
+                "protocols._route",
             )
         ],
         compiler_directives={"language_level": 3},

@@ -7,8 +7,11 @@ payload. Pure: no sockets."""
 from __future__ import annotations
 
 import hashlib
+from collections.abc import Callable, Sequence
 
 TOPIC_PREFIX = "mocap/"
+ROUTES_CACHED = 100_000
+"""The most topics whose worker a :class:`Routes` remembers."""
 
 
 def stream_of(topic: str) -> str:
@@ -27,3 +30,47 @@ def worker_of(stream: str, workers: int) -> int:
         raise ValueError(f"workers must be at least 1, got {workers}")
     digest = hashlib.blake2b(stream.encode("utf-8", "surrogateescape"), digest_size=8).digest()
     return int.from_bytes(digest, "little") % workers
+
+
+def choose(workers: int) -> Callable[[bytes], int]:
+    """The worker of a topic (UTF-8 bytes, undecodable bytes replaced) of ``workers``."""
+
+    def worker(topic: bytes) -> int:
+        return worker_of(stream_of(topic.decode("utf-8", "replace")), workers)
+
+    return worker
+
+
+class Routes:
+    """:func:`choose` remembered per topic, at most ``cached`` topics (then all forgotten at once:
+    a flood of new ids must not grow it): a lookup per message, not a hash."""
+
+    def __init__(self, workers: int, cached: int = ROUTES_CACHED) -> None:
+        self.workers = workers
+        self.cached = max(1, cached)
+        self._choose = choose(workers)
+        self._routes: dict[bytes, int] = {}
+
+    def __call__(self, topic: bytes) -> int:
+        k = self._routes.get(topic)
+        if k is None:
+            if len(self._routes) >= self.cached:
+                self._routes.clear()
+            k = self._routes[topic] = self._choose(topic)
+        return k
+
+
+def split(
+    messages: Sequence[Sequence[bytes]], worker: Callable[[bytes], int], workers: int
+) -> list[list[bytes]]:
+    """Per worker the frames ``[topic, payload, topic, payload, ...]`` of ``messages`` (each a
+    message's frames, in order) that ``worker`` sends it; a message that is not two frames becomes
+    ``b"", b""`` (refused by the worker as undecodable) for the worker of its first frame."""
+    out: list[list[bytes]] = [[] for _ in range(workers)]
+    for frames in messages:
+        mine = out[worker(frames[0])]
+        if len(frames) == 2:
+            mine += frames
+        else:
+            mine += (b"", b"")
+    return out

@@ -10,8 +10,10 @@ keys are in that directory may connect."""
 from __future__ import annotations
 
 import asyncio
+import ctypes
+import functools
 import time
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Callable
 from pathlib import Path
 from types import TracebackType
 from typing import TYPE_CHECKING, cast
@@ -21,6 +23,7 @@ import zmq.asyncio
 import zmq.auth
 from zmq.auth.asyncio import AsyncioAuthenticator
 
+from protocols._route import FUNCTIONS, Router
 from protocols.transport import Incoming, Outgoing, StartupError
 from protocols.urls import split_endpoint
 
@@ -164,6 +167,17 @@ class ZmqTransport:
     def source(self) -> _Source | None:
         return None if self._sub is None else _Source(self._sub)
 
+    def router(self, sinks: list[zmq.Socket[bytes]], choose: Callable[[bytes], int]) -> Routed | None:
+        """The poses socket's messages routed in C to the PUSH sockets ``sinks`` by ``choose`` (a
+        topic's index in ``sinks``), as :func:`protocols.routing.split` would: for ``mocapd run
+        --workers``' front; None where the compiled router cannot call the libzmq pyzmq loaded."""
+        functions = libzmq_functions()
+        if self._sub is None or functions is None:
+            return None
+        return Routed(
+            self._sub, Router(functions, self._sub.underlying, [s.underlying for s in sinks], choose)
+        )
+
     def raw_source(self) -> RawSource | None:
         """The poses socket's messages undecoded, a batch of multipart messages (lists of frames)
         per wakeup: for ``mocapd run --workers``' front, which routes them without looking inside."""
@@ -235,15 +249,18 @@ class _Source:
 
 
 def receive(sync: zmq.Socket[bytes]) -> list[bytes] | None:
-    """The next message's frames, None if none is waiting. Frame by frame with int flags and
-    copies: for messages of a few hundred bytes ``recv_multipart`` costs four times as much, and
-    a zero-copy :class:`zmq.Frame` more than the copy."""
+    """The next message's frames, None if none is waiting. Each frame received as a
+    :class:`zmq.Frame`, whose ``more`` pyzmq reads in C as it receives it, then copied to bytes:
+    ``getsockopt(RCVMORE)`` builds an option enum per call and cost three times the receive itself
+    for a pose of a few hundred bytes (and ``recv_multipart`` asks it per frame)."""
     try:
-        parts = [sync.recv(NOBLOCK)]
+        frame = sync.recv(NOBLOCK, copy=False)
     except zmq.Again:
         return None
-    while sync.getsockopt(RCVMORE):
-        parts.append(sync.recv(NOBLOCK))
+    parts = [frame.bytes]
+    while frame.more:
+        frame = sync.recv(NOBLOCK, copy=False)
+        parts.append(frame.bytes)
     return parts
 
 
@@ -280,10 +297,66 @@ class RawSource:
             loop.remove_reader(fd)
 
 
-NOBLOCK, RCVMORE = int(zmq.NOBLOCK), int(zmq.RCVMORE)
-"""As plain ints: flags and options as enum members cost more than a small message's receive."""
+class Routed:
+    """The poses socket's messages routed by :class:`protocols._route.Router` as they come: after
+    each drain of what is waiting (at most :data:`DRAIN_MESSAGES`), per sink the messages its full
+    queue did not take."""
+
+    def __init__(self, sock: zmq.asyncio.Socket, router: Router) -> None:
+        self._sock = sock
+        self._router = router
+
+    async def __aiter__(self) -> AsyncIterator[list[int]]:
+        # as RawSource: the descriptor signals an edge, so the events are checked before each wait
+        sync: zmq.Socket[bytes] = zmq.Socket.shadow(self._sock.underlying)
+        loop = asyncio.get_running_loop()
+        readable = asyncio.Event()
+        fd = sync.fileno()
+        loop.add_reader(fd, readable.set)
+        try:
+            while True:
+                taken, full = self._router.drain(DRAIN_MESSAGES)
+                if taken:
+                    yield full
+                    continue
+                readable.clear()
+                if not cast(int, sync.getsockopt(zmq.EVENTS)) & zmq.POLLIN:
+                    await readable.wait()
+        finally:
+            loop.remove_reader(fd)
+
+
+NOBLOCK = int(zmq.NOBLOCK)
+"""As a plain int: a flag as an enum member costs more than a small message's receive."""
 DRAIN_MESSAGES = 512
 """The most messages taken per wakeup, so that receiving yields to the other tasks."""
+
+
+@functools.cache
+def libzmq_functions() -> dict[str, int] | None:
+    """The addresses of :data:`protocols._route.FUNCTIONS` in the libzmq pyzmq loaded, for the
+    compiled router; None where it cannot be found for certain (then the front routes in Python):
+    the one shared object named ``libzmq*`` mapped into this process (``/proc/self/maps``, Linux),
+    of pyzmq's libzmq version. ``ctypes.CDLL`` of a loaded library's path is that library."""
+    try:
+        with open("/proc/self/maps", encoding="utf-8", errors="replace") as maps:
+            paths = {line.split(None, 5)[-1].strip() for line in maps if "/libzmq" in line}
+    except OSError:
+        return None
+    paths = {p for p in paths if Path(p).name.startswith("libzmq") and ".so" in Path(p).name}
+    if len(paths) != 1:
+        return None
+    try:
+        lib = ctypes.CDLL(paths.pop())
+        major, minor, patch = ctypes.c_int(), ctypes.c_int(), ctypes.c_int()
+        lib.zmq_version(ctypes.byref(major), ctypes.byref(minor), ctypes.byref(patch))
+        if (major.value, minor.value, patch.value) != zmq.zmq_version_info():
+            return None
+        found = {name: ctypes.cast(getattr(lib, name), ctypes.c_void_p).value for name in FUNCTIONS}
+    except (OSError, AttributeError):
+        return None
+    addresses = {name: address for name, address in found.items() if address}
+    return addresses if len(addresses) == len(FUNCTIONS) else None
 
 
 def transport(settings: ZmqConfig, *, instance: str, source: bool, sink: bool) -> ZmqTransport:

@@ -5,15 +5,17 @@ sockets, the MQTT client, stdout, ``/healthz`` and ``/metrics``) and decodes not
 message it reads the stream id from the topic (``mocap/<stream>/<word>``) and forwards the raw
 ``[topic, payload]`` to worker :func:`protocols.routing.worker_of` (a stable hash of the id) over a
 PUSH socket on ``ipc://``, the pairs one wakeup took for a worker packed into one frame (a msgpack
-array ``[topic, payload, topic, payload, ...]``). A worker is a
+array ``[topic, payload, topic, payload, ...]``); over ZeroMQ this loop is compiled
+(:mod:`protocols._route`: no Python object per message but the topic's bytes for the lookup), in
+Python where it cannot be. A worker is a
 :class:`~daemon.service.app.Service` whose only transport is :class:`FrontChannel`: it takes those
 messages in, decodes, validates and recognises them as the single process does, and sends what it
 publishes (detections, boundaries) back to the front, which publishes it on its sinks. Decoding and
 recognising cost per pose and parallelise; the front's cost per message is a ZeroMQ receive, a
-topic lookup and its share of one send (a few µs); one stream always takes one path (one PUSH
-queue, one worker, one PUSH back), so its order is kept. Over MQTT the front is the MQTT client
-likewise, forwarding raw payloads by hash (a shared subscription would hand one stream's messages
-round-robin to several workers).
+topic lookup and its share of one send (0.3 µs compiled, about 7 µs in Python); one stream always
+takes one path (one PUSH queue, one worker, one PUSH back), so its order is kept. Over MQTT the
+front is the MQTT client likewise, forwarding raw payloads by hash (a shared subscription would
+hand one stream's messages round-robin to several workers).
 
 A worker that dies is started again, after 0.2 s, doubling up to 10 s while it keeps dying within
 10 s of its start. When it is up (it says "ready") the front asks every publisher for its skeleton
@@ -72,7 +74,7 @@ from daemon.library import Library
 from daemon.service.app import Service, configure_logging, instance_name, transports_of
 from daemon.service.metrics import open_http, serve_http
 from protocols.messages import StatusMessage, decode, encode, topic
-from protocols.routing import stream_of, worker_of
+from protocols.routing import Routes, choose, split
 from protocols.transport import Incoming, Outgoing, StartupError, Transport
 from protocols.zeromq import open_socket, receive
 
@@ -97,8 +99,6 @@ def unpackb(frame: bytes) -> list[bytes]:
     return out
 
 
-ROUTES_CACHED = 100_000
-"""The most topics whose worker the front remembers."""
 YIELD_EVERY = 64
 """Messages the front routes before it lets its other tasks run."""
 BOOT = """import sys
@@ -474,19 +474,29 @@ class Front:
     # ------------------------------------------------------------------------------- messages
 
     async def _route(self, transport: Transport) -> None:
-        """The messages of ``transport`` to their workers, never decoded: a ZeroMQ source's frames as
-        they came (:meth:`protocols.zeromq.ZmqTransport.raw_source`), another's topic and payload."""
+        """The messages of ``transport`` to their workers, never decoded: a ZeroMQ source's routed in
+        C where it can be (:meth:`protocols.zeromq.ZmqTransport.router`), else its frames as they
+        came (:meth:`~protocols.zeromq.ZmqTransport.raw_source`) by
+        :func:`protocols.routing.split`; another transport's topic and payload."""
         socks, slots = self._inbound, self.slots
         n = len(socks)
-        routes: dict[bytes, int] = {}  # topic -> worker: a lookup, not a hash, per message
 
-        def worker(topic: bytes) -> int:
-            k = routes.get(topic)
-            if k is None:
-                if len(routes) >= ROUTES_CACHED:  # a flood of new ids must not grow it
-                    routes.clear()
-                k = routes[topic] = worker_of(stream_of(topic.decode("utf-8", "replace")), n)
-            return k
+        def lost(k: int, count: int) -> None:
+            self.drops["worker_full" if slots[k].ready else "worker_down"] += count
+
+        router = getattr(transport, "router", None)
+        routed = router(socks, choose(n)) if router is not None else None
+        if router is not None and routed is None:
+            fields = {"transport": transport.name, "reason": "the libzmq pyzmq loaded was not found"}
+            self.log.warning("routing in Python", extra={"fields": fields})
+        if routed is not None:
+            async for full in routed:
+                for k, count in enumerate(full):
+                    if count:
+                        lost(k, count)
+                await asyncio.sleep(0)
+            return
+        worker = Routes(n)
 
         def send(k: int, frames: list[bytes]) -> None:
             """``frames`` (topic, payload, topic, payload, ...) to worker ``k`` as one message of one
@@ -495,21 +505,14 @@ class Front:
             try:
                 socks[k].send(packb(frames), NOBLOCK)
             except zmq.Again:
-                self.drops["worker_full" if slots[k].ready else "worker_down"] += len(frames) // 2
+                lost(k, len(frames) // 2)
 
         raw = getattr(transport, "raw_source", None)
         batches = raw() if raw is not None else None
         if batches is not None:
             # what one wakeup took, one message per worker: the queue's wakeup is paid once
             async for batch in batches:
-                out: list[list[bytes]] = [[] for _ in range(n)]
-                for frames in batch:
-                    mine = out[worker(frames[0])]
-                    if len(frames) == 2:
-                        mine += frames
-                    else:  # not [topic, payload]: the worker refuses it as undecodable
-                        mine += (b"", b"")
-                for k, frames in enumerate(out):
+                for k, frames in enumerate(split(batch, worker, n)):
                     if frames:
                         send(k, frames)
                 await asyncio.sleep(0)
