@@ -2,7 +2,8 @@
 
 Every message is a msgpack map with ``"v": 1`` and a ``"type"``: ``skeleton`` (a stream announces
 what its poses carry), ``pose`` (one frame), ``detection`` (a recognised motion), ``boundary`` (a
-behaviour cut) and ``status`` (a daemon instance online or offline). :func:`encode` writes one,
+behaviour cut), ``progress`` (how far the motions under way on a stream have got) and ``status``
+(a daemon instance online or offline). :func:`encode` writes one,
 :func:`decode` reads one and validates it completely — type, version, every field's type, the
 shape and finiteness of the pose arrays, a maximum size — raising :class:`WireError` with one
 reason code on anything else. Topics (:func:`topic`, :func:`parse_topic`) are the MQTT topic words,
@@ -14,6 +15,7 @@ Pure: bytes in, frozen dataclasses out; no sockets.
 from __future__ import annotations
 
 import functools
+import itertools
 import math
 import re
 from collections.abc import Callable
@@ -36,7 +38,7 @@ Units = Literal["m", "cm", "mm", "in", "asf"]
 Up = Literal["y", "z"]
 AngleUnit = Literal["deg", "rad"]
 State = Literal["online", "offline"]
-Kind = Literal["skeleton", "pose", "detection", "boundary", "status"]
+Kind = Literal["skeleton", "pose", "detection", "boundary", "progress", "status"]
 
 STREAM_ID = re.compile(r"[A-Za-z0-9_.:@-]{1,128}")
 """A stream or instance id: one MQTT topic level (no ``/``, ``+``, ``#``), at most 128 characters."""
@@ -44,6 +46,10 @@ EPOCH = re.compile(r"[A-Za-z0-9_.:@-]{1,64}")
 """A run of a source (a random id it draws when it starts): letters, digits, ``_.:@-``, at most 64."""
 MAX_SEQ = (1 << 53) - 1
 """The largest sequence number (exact in every JSON and float consumer)."""
+MAX_CLASSES = 256
+"""The most classes one progress message reports."""
+MAX_KEYFRAMES = 64
+"""The most keyframes a class's progress counts."""
 
 
 class WireError(MocapdError, ValueError):
@@ -131,6 +137,34 @@ class BoundaryMessage:
 
 
 @dataclass(frozen=True)
+class ClassProgress:
+    """How far a motion of class ``class_name`` under way has got: of its ``keyframes`` (n; 0 for a
+    class without a keyframe gate), the sequence numbers at which keyframes 1..k were ``matched``
+    (k <= n, the most advanced match in progress; n: a whole keyframe hit), and ``position`` in
+    [0, 1] along its template of the stream-wide DTW's path ending at the current frame, whose
+    mean cost per template column is ``cost`` (comparable with the class's ``tau``)."""
+
+    class_name: str
+    keyframes: int
+    matched: tuple[int, ...]
+    position: float
+    cost: float
+    tau: float
+
+
+@dataclass(frozen=True)
+class ProgressMessage:
+    """The classes under way on ``stream`` when the pose of sequence number ``frame`` (taken at
+    ``source_time``) was recognised (none: nothing is under way), published at ``emit_time``."""
+
+    stream: str
+    frame: int
+    classes: tuple[ClassProgress, ...]
+    source_time: float
+    emit_time: float
+
+
+@dataclass(frozen=True)
 class StatusMessage:
     """A daemon ``instance`` going ``online`` or ``offline``: its ``version``, the ``streams`` it
     holds and when it ``started`` (seconds since the Unix epoch)."""
@@ -142,13 +176,14 @@ class StatusMessage:
     started: float
 
 
-Message = SkeletonMessage | PoseMessage | DetectionMessage | BoundaryMessage | StatusMessage
+Message = SkeletonMessage | PoseMessage | DetectionMessage | BoundaryMessage | ProgressMessage | StatusMessage
 
 TOPIC_OF: dict[type[Any], str] = {
     SkeletonMessage: "skeleton",
     PoseMessage: "pose",
     DetectionMessage: "detections",
     BoundaryMessage: "boundaries",
+    ProgressMessage: "progress",
 }
 """The topic word of each per-stream message: ``mocap/<stream>/<word>``."""
 
@@ -214,6 +249,25 @@ def encode(message: Message) -> bytes:
             "frame": message.frame,
             "method": message.method,
             "score": float(message.score),
+            "emit_time": float(message.emit_time),
+        }
+    elif isinstance(message, ProgressMessage):
+        body |= {
+            "type": "progress",
+            "stream": message.stream,
+            "frame": message.frame,
+            "classes": [
+                {
+                    "class": c.class_name,
+                    "keyframes": c.keyframes,
+                    "matched": list(c.matched),
+                    "position": float(c.position),
+                    "cost": float(c.cost),
+                    "tau": float(c.tau),
+                }
+                for c in message.classes
+            ],
+            "source_time": float(message.source_time),
             "emit_time": float(message.emit_time),
         }
     else:
@@ -458,6 +512,44 @@ def _boundary(f: _Fields) -> BoundaryMessage:
     return out
 
 
+def _progress(f: _Fields) -> ProgressMessage:
+    stream = f.text("stream", STREAM_ID)
+    frame = f.integer("frame", low=0, high=MAX_SEQ)
+    entries = f.take("classes")
+    if not isinstance(entries, list) or len(entries) > MAX_CLASSES:
+        raise f.fail("classes", f"must be a list of at most {MAX_CLASSES} class progress maps")
+    classes = []
+    for k, entry in enumerate(entries):
+        if not isinstance(entry, dict):
+            raise f.fail(f"classes[{k}]", f"must be a map, got {type(entry).__name__}")
+        c = _Fields(entry, f"progress.classes[{k}]")
+        c.seen.clear()
+        name = c.text("class")
+        if not name or len(name) > 128:
+            raise c.fail("class", "must be 1 to 128 characters")
+        keyframes = c.integer("keyframes", low=0, high=MAX_KEYFRAMES)
+        matched = c.take("matched")
+        if (
+            not isinstance(matched, list)
+            or len(matched) > keyframes
+            or not all(type(m) is int and 0 <= m <= MAX_SEQ for m in matched)
+            or any(b < a for a, b in itertools.pairwise(matched))
+        ):
+            raise c.fail("matched", f"must be at most {keyframes} ascending sequence numbers")
+        position = c.number("position")
+        if not 0.0 <= position <= 1.0:
+            raise c.fail("position", f"must be within [0, 1], got {position}")
+        cost = c.number("cost")
+        if cost < 0:
+            raise c.fail("cost", f"must not be negative, got {cost}")
+        tau = c.number("tau", positive=True)
+        c.done()
+        classes.append(ClassProgress(name, keyframes, tuple(matched), position, cost, tau))
+    out = ProgressMessage(stream, frame, tuple(classes), f.number("source_time"), f.number("emit_time"))
+    f.done()
+    return out
+
+
 def _status(f: _Fields) -> StatusMessage:
     out = StatusMessage(
         f.text("instance", STREAM_ID),
@@ -475,5 +567,6 @@ _READERS: dict[str, Callable[[_Fields], Message]] = {
     "pose": _pose,
     "detection": _detection,
     "boundary": _boundary,
+    "progress": _progress,
     "status": _status,
 }

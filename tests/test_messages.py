@@ -15,9 +15,11 @@ from hypothesis import strategies as st
 from protocols.messages import (
     REASONS,
     BoundaryMessage,
+    ClassProgress,
     DetectionMessage,
     Message,
     PoseMessage,
+    ProgressMessage,
     SkeletonMessage,
     StatusMessage,
     WireError,
@@ -37,7 +39,9 @@ times = st.floats(0, 4e9)
 
 @st.composite
 def messages(draw: st.DrawFn) -> Message:
-    kind = draw(st.sampled_from(["skeleton-p", "skeleton-c", "pose-p", "pose-c", "det", "bound", "status"]))
+    kind = draw(
+        st.sampled_from(["skeleton-p", "skeleton-c", "pose-p", "pose-c", "det", "bound", "prog", "status"])
+    )
     stream = draw(ids)
     if kind == "skeleton-p":
         joints = tuple(draw(st.lists(ids, min_size=1, max_size=30, unique=True)))
@@ -98,6 +102,22 @@ def messages(draw: st.DrawFn) -> Message:
             draw(finite),
             draw(times),
         )
+    if kind == "prog":
+        classes = []
+        for _ in range(draw(st.integers(0, 4))):
+            n = draw(st.integers(0, 8))
+            matched = sorted(draw(st.lists(st.integers(0, 2**53 - 1), max_size=n)))
+            classes.append(
+                ClassProgress(
+                    draw(st.text(min_size=1, max_size=128)),
+                    n,
+                    tuple(matched),
+                    draw(st.floats(0, 1)),
+                    draw(st.floats(0, 1e6)),
+                    draw(st.floats(1e-6, 1e6)),
+                )
+            )
+        return ProgressMessage(stream, draw(st.integers(0, 2**53 - 1)), tuple(classes), draw(times), draw(times))
     return StatusMessage(
         stream,
         draw(st.sampled_from(["online", "offline"])),
@@ -144,7 +164,7 @@ def test_examples_of_the_schema_document_decode() -> None:
     the JSON-like line above it (bytes fields aside), and re-encodes to the same bytes."""
     text = (REPO / "protocols" / "README.md").read_text(encoding="utf-8")
     pairs = re.findall(r"^    (\{.*\})\n    ([0-9a-f]+)$", text, flags=re.M)
-    assert len(pairs) == 7
+    assert len(pairs) == 8
     kinds = set()
     for shown, hexed in pairs:
         payload = bytes.fromhex(hexed)
@@ -158,7 +178,7 @@ def test_examples_of_the_schema_document_decode() -> None:
                     assert str(body[key]) == value.strip('"').replace("\\n", "\n"), (key, body[key], value)
                 else:
                     assert float(body[key]) == float(value), (key, body[key], value)
-    assert kinds == {"skeleton", "pose", "detection", "boundary", "status"}
+    assert kinds == {"skeleton", "pose", "detection", "boundary", "progress", "status"}
     skeleton = decode(encode(SkeletonMessage("studio-a", 120.0, JOINT_NAMES)))
     assert (
         isinstance(skeleton, SkeletonMessage)
