@@ -122,6 +122,9 @@ class ZmqConfig:
     linger_ms: int = field(default=1000, metadata=_range(0, 600_000))
     curve_secret_key_file: str | None = None
     curve_clients_dir: str | None = None
+    relay_per_s: float = field(default=0.0, metadata=_range(0, 1000))
+    """Pass each stream's skeleton (at most once a second) and up to this many of its poses a
+    second on the detections socket, unchanged, for ``mocapd view`` (0: none)."""
 
 
 @dataclass(frozen=True)

@@ -695,8 +695,10 @@ class MqttTransport:
     async def publish(self, message: Outgoing) -> None:
         """Queue ``message`` for sending (never waits for the network). An unreliable message while
         disconnected is dropped; when the outbox is full the oldest unreliable one goes, or if there
-        is none the message itself is dropped (counted)."""
-        self._enqueue(message)
+        is none the message itself is dropped (counted). A relayed pose is not published: MQTT's
+        clients hear the publishers on the broker."""
+        if not message.relay:
+            self._enqueue(message)
 
     def _enqueue(self, message: Outgoing) -> None:
         if not message.reliable and not self._connected.is_set():

@@ -454,6 +454,8 @@ class NatsTransport:
         return self if self._sink else None
 
     async def publish(self, message: Outgoing) -> None:
+        if message.relay:  # the publishers' poses are on the bus already
+            return
         if message.key is None:
             await self._plain(message)
             return

@@ -65,6 +65,8 @@ class StdoutTransport:
         return 0
 
     async def publish(self, message: Outgoing) -> None:
+        if message.relay:  # a publisher's pose passed on for viewers: not the daemon's output
+            return
         body = msgpack.unpackb(message.payload, raw=False)
         out = self.stream or sys.stdout
         if self.format == "json":

@@ -50,13 +50,17 @@ class Outgoing:
     """A message to publish: ``retain`` (MQTT: the broker keeps the last one for late subscribers)
     and ``reliable`` (MQTT: QoS 1, kept until the broker acknowledges it, resent after a
     reconnect); ``key``: the message's id (a detection's or boundary's), on which a transport that
-    can de-duplicates (cluster: a key already published by any worker is not published again)."""
+    can de-duplicates (cluster: a key already published by any worker is not published again);
+    ``relay``: a publisher's skeleton or pose passed on for viewers (``zmq.relay_per_s``), which only
+    a transport whose clients cannot hear the publishers themselves publishes (ZeroMQ; over MQTT
+    and NATS they are on the broker already)."""
 
     topic: str
     payload: bytes
     retain: bool = False
     reliable: bool = False
     key: str | None = None
+    relay: bool = False
 
 
 class Source(Protocol):

@@ -195,6 +195,9 @@ class Service:
             cluster=cluster is not None,
         )
         self.rejects: Counter[str] = Counter()
+        self.relay_per_s = config.zmq.relay_per_s
+        self._relayed: dict[str, tuple[int, float]] = {}  # stream -> its last relayed pose, skeleton
+        self._relays: list[Outgoing] = []
         self.metrics = Metrics(config.metrics.stream_labels, self._tallies, self._gauge_values)
         self.stopping = False
         self.published = 0
@@ -250,10 +253,14 @@ class Service:
                 self.metrics.messages["pose"] += 1  # taken in: a refused message counts in rejects only
                 self.metrics.frame_in(stream)
                 self._work.set()
+                if self.relay_per_s:
+                    self._relay(incoming, stream, message.seq, now)
                 return []
             known = self.table.streams.get(stream)
             before = None if known is None else known.announced
             out = self.table.skeleton(message, now)
+            if self.relay_per_s:
+                self._relay(incoming, stream, None, now)
             if known is None and self.cluster is not None and self.cluster.transport.partial(stream):
                 self.table.warm_up(stream)  # taken over from a buffer that lost the run's start
             self.metrics.messages["skeleton"] += 1
@@ -273,6 +280,31 @@ class Service:
             self.metrics.stage["decode"].observe(time.perf_counter() - started)
         return []
 
+    def _relay(self, incoming: Incoming, stream: str, seq: int | None, now: float) -> None:
+        """Pass a taken-in pose (``seq``) or skeleton (None) on for viewers (``zmq.relay_per_s``):
+        a stream's skeleton at most once a second, its poses at most ``relay_per_s`` a second (every
+        ``rate / relay_per_s``-th by sequence number)."""
+        pose, skeleton_at = self._relayed.get(stream, (-1, -1.0))
+        if seq is None:
+            if skeleton_at >= 0 and now - skeleton_at < 1.0:
+                return
+            skeleton_at = now
+        else:
+            step = max(1, round(self.table.streams[stream].announced.rate / self.relay_per_s))
+            if 0 <= pose <= seq < pose + step:
+                return
+            pose = seq
+        self._relayed[stream] = (pose, skeleton_at)
+        self._relays.append(Outgoing(incoming.topic, incoming.payload, relay=True))
+
+    async def _pass_on(self) -> None:
+        relays, self._relays = self._relays, []
+        for out in relays:
+            for t in self.transports:
+                sink = t.sink()
+                if sink is not None:
+                    await sink.publish(out)
+
     async def _intake(self, transport: Transport) -> None:
         source = transport.source()
         assert source is not None
@@ -282,6 +314,8 @@ class Service:
         async for incoming in source:
             for e in self.receive(incoming):
                 await self.publish(e)
+            if self._relays:
+                await self._pass_on()
             n += 1
             if paced and self.table.queued >= limit:
                 # a replayed buffer arrives faster than recognition: wait rather than drop (no stream
@@ -349,6 +383,8 @@ class Service:
             for e in self.table.evict_idle(time.monotonic(), self.config.service.idle_s):
                 await self.publish(e)
             self.metrics.keep(self.table.streams)
+            for gone in self._relayed.keys() - self.table.streams.keys():
+                del self._relayed[gone]
             release_memory()
 
     def _tallies(self) -> tuple[Counter[str], Counter[str], Counter[str]]:

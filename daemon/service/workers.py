@@ -79,7 +79,8 @@ from protocols.transport import Incoming, Outgoing, StartupError, Transport
 from protocols.zeromq import open_socket, receive
 
 PUBLISH, READY, ASK, STREAMS = b"p", b"r", b"a", b"n"
-"""What a worker sends the front, the first frame of each message: ``[p, topic, payload, retain]``
+"""What a worker sends the front, the first frame of each message: ``[p, topic, payload, flags]``
+(flags: ``r`` retain, ``p`` a relayed pose or skeleton)
 to publish, ``[r, index, metrics port, pid]`` once it serves, ``[a, stream]`` to have a stream's skeleton
 sent again, ``[n, index, streams]`` every second."""
 RESTART_MIN_S, RESTART_MAX_S, STEADY_S = 0.2, 10.0, 10.0
@@ -218,7 +219,8 @@ class FrontChannel:
             self._dropped += 1
 
     async def publish(self, message: Outgoing) -> None:
-        self.tell(PUBLISH, message.topic.encode(), message.payload, b"1" if message.retain else b"")
+        flags = (b"r" if message.retain else b"") + (b"p" if message.relay else b"")
+        self.tell(PUBLISH, message.topic.encode(), message.payload, flags)
 
     def ask_skeleton(self, stream: str) -> None:
         self.tell(ASK, stream.encode())
@@ -564,8 +566,9 @@ class Front:
         return None if slot.process is None else slot.process.pid
 
     async def _publish(self, frames: list[bytes]) -> None:
-        _, name, payload, retain = frames
-        out = Outgoing(name.decode(), payload, retain=retain == b"1", reliable=True)
+        _, name, payload, flags = frames
+        relay = b"p" in flags
+        out = Outgoing(name.decode(), payload, retain=b"r" in flags, reliable=not relay, relay=relay)
         for t in self.transports:
             sink = t.sink()
             if sink is not None:
