@@ -16,7 +16,7 @@ import time
 from collections.abc import AsyncIterator, Callable
 from pathlib import Path
 from types import TracebackType
-from typing import TYPE_CHECKING, cast
+from typing import TYPE_CHECKING, TypeVar, cast
 
 import zmq
 import zmq.asyncio
@@ -264,6 +264,34 @@ def receive(sync: zmq.Socket[bytes]) -> list[bytes] | None:
     return parts
 
 
+T = TypeVar("T")
+
+
+async def _drained(
+    sock: zmq.asyncio.Socket, drain: Callable[[zmq.Socket[bytes]], T | None]
+) -> AsyncIterator[T]:
+    """What each ``drain`` of the socket's waiting messages gave (None: nothing was waiting), for as
+    long as it is read. The socket's file descriptor is watched directly (an awaited poll costs
+    more than a small message); it signals an edge, so the socket's events are checked before each
+    wait."""
+    sync: zmq.Socket[bytes] = zmq.Socket.shadow(sock.underlying)
+    loop = asyncio.get_running_loop()
+    readable = asyncio.Event()
+    fd = sync.fileno()
+    loop.add_reader(fd, readable.set)
+    try:
+        while True:
+            got = drain(sync)
+            if got is not None:
+                yield got
+                continue
+            readable.clear()
+            if not cast(int, sync.getsockopt(zmq.EVENTS)) & zmq.POLLIN:
+                await readable.wait()
+    finally:
+        loop.remove_reader(fd)
+
+
 class RawSource:
     """The SUB socket's messages as they came (lists of frames), in batches: what it holds when
     it becomes readable (at most :data:`DRAIN_MESSAGES` at a time)."""
@@ -271,30 +299,17 @@ class RawSource:
     def __init__(self, sock: zmq.asyncio.Socket) -> None:
         self._sock = sock
 
-    async def __aiter__(self) -> AsyncIterator[list[list[bytes]]]:
-        # the socket's file descriptor watched directly (an awaited poll costs more than a small
-        # message): it signals an edge, so the socket's events are checked before each wait
-        sync: zmq.Socket[bytes] = zmq.Socket.shadow(self._sock.underlying)
-        loop = asyncio.get_running_loop()
-        readable = asyncio.Event()
-        fd = sync.fileno()
-        loop.add_reader(fd, readable.set)
-        try:
-            while True:
-                batch = []
-                for _ in range(DRAIN_MESSAGES):
-                    parts = receive(sync)
-                    if parts is None:
-                        break
-                    batch.append(parts)
-                if batch:
-                    yield batch
-                    continue
-                readable.clear()
-                if not cast(int, sync.getsockopt(zmq.EVENTS)) & zmq.POLLIN:
-                    await readable.wait()
-        finally:
-            loop.remove_reader(fd)
+    def __aiter__(self) -> AsyncIterator[list[list[bytes]]]:
+        def batch(sync: zmq.Socket[bytes]) -> list[list[bytes]] | None:
+            out = []
+            for _ in range(DRAIN_MESSAGES):
+                parts = receive(sync)
+                if parts is None:
+                    break
+                out.append(parts)
+            return out or None
+
+        return _drained(self._sock, batch)
 
 
 class Routed:
@@ -306,24 +321,12 @@ class Routed:
         self._sock = sock
         self._router = router
 
-    async def __aiter__(self) -> AsyncIterator[list[int]]:
-        # as RawSource: the descriptor signals an edge, so the events are checked before each wait
-        sync: zmq.Socket[bytes] = zmq.Socket.shadow(self._sock.underlying)
-        loop = asyncio.get_running_loop()
-        readable = asyncio.Event()
-        fd = sync.fileno()
-        loop.add_reader(fd, readable.set)
-        try:
-            while True:
-                taken, full = self._router.drain(DRAIN_MESSAGES)
-                if taken:
-                    yield full
-                    continue
-                readable.clear()
-                if not cast(int, sync.getsockopt(zmq.EVENTS)) & zmq.POLLIN:
-                    await readable.wait()
-        finally:
-            loop.remove_reader(fd)
+    def __aiter__(self) -> AsyncIterator[list[int]]:
+        def routed(sync: zmq.Socket[bytes]) -> list[int] | None:
+            taken, full = self._router.drain(DRAIN_MESSAGES)
+            return full if taken else None
+
+        return _drained(self._sock, routed)
 
 
 NOBLOCK = int(zmq.NOBLOCK)
