@@ -79,9 +79,10 @@ from protocols.transport import Incoming, Outgoing, StartupError, Transport
 from protocols.zeromq import open_socket, receive
 
 PUBLISH, READY, ASK, STREAMS = b"p", b"r", b"a", b"n"
-"""What a worker sends the front, the first frame of each message: ``[p, topic, payload, retain]``
-to publish, ``[r, index, metrics port, pid]`` once it serves, ``[a, stream]`` to have a stream's skeleton
-sent again, ``[n, index, streams]`` every second."""
+"""What a worker sends the front, the first frame of each message: ``[p, topic, payload, flags]``
+to publish (flags: ``r`` retained, ``q`` reliable, QoS 1), ``[r, index, metrics port, pid]`` once
+it serves, ``[a, stream]`` to have a stream's skeleton sent again, ``[n, index, streams]`` every
+second."""
 RESTART_MIN_S, RESTART_MAX_S, STEADY_S = 0.2, 10.0, 10.0
 """Restart back-off: from the first, doubling to the second while a worker dies within STEADY_S of
 its start."""
@@ -218,7 +219,7 @@ class FrontChannel:
             self._dropped += 1
 
     async def publish(self, message: Outgoing) -> None:
-        self.tell(PUBLISH, message.topic.encode(), message.payload, b"1" if message.retain else b"")
+        self.tell(PUBLISH, message.topic.encode(), message.payload, flags(message))
 
     def ask_skeleton(self, stream: str) -> None:
         self.tell(ASK, stream.encode())
@@ -236,6 +237,12 @@ class FrontChannel:
 
     def dropped(self) -> dict[str, int]:
         return {"worker_send_full": self._dropped}
+
+
+def flags(message: Outgoing) -> bytes:
+    """How the front publishes ``message`` for a worker: ``r`` retained, ``q`` reliable (a
+    detection, a boundary, a status; a progress event is neither)."""
+    return (b"r" if message.retain else b"") + (b"q" if message.reliable else b"")
 
 
 class _Inbound:
@@ -564,8 +571,8 @@ class Front:
         return None if slot.process is None else slot.process.pid
 
     async def _publish(self, frames: list[bytes]) -> None:
-        _, name, payload, retain = frames
-        out = Outgoing(name.decode(), payload, retain=retain == b"1", reliable=True)
+        _, name, payload, how = frames
+        out = Outgoing(name.decode(), payload, retain=b"r" in how, reliable=b"q" in how)
         for t in self.transports:
             sink = t.sink()
             if sink is not None:
