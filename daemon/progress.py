@@ -163,20 +163,29 @@ def read(stage: ClassStage, floor: float = FLOOR, numbering: Callable[[int], int
     found = core.progress(floor)
     if not found:
         return ()
-    first, clock, codes = stage.first, stage.clock, stage.codes
+    first, step, codes = stage.first, stage.clock.step, stage.codes
+    names, counts, lengths, taus, plans_ = (
+        codes.names,
+        codes.keyframes,
+        codes.lengths,
+        codes.taus,
+        codes.plans,
+    )
     out = []
     for k, u, i, d, frames in found:
-        plan = codes.plans[k]
-        matched = tuple(clock.start(first, f) for f in frames)
-        if numbering is not None:
-            matched = tuple(numbering(f) for f in matched)
-        n = len(plan.template.keyframes.keyframes) if plan.gated and plan.template.keyframes else 0
+        matched: tuple[int, ...] = ()
+        if frames:  # index frames to frame numbers, as FrameClock.start
+            matched = tuple(first + f * step for f in frames)
+            if numbering is not None:
+                matched = tuple(numbering(f) for f in matched)
         if u >= 0:
-            m = codes.lengths[u]
-            position, cost, tau = (i + 1) / m, d * m / ((i + 1) * SCALE), codes.taus[u]
+            m = lengths[u]
+            out.append(
+                ClassState(names[k], counts[k], matched, (i + 1) / m, d * m / ((i + 1) * SCALE), taus[u])
+            )
         else:
-            position, cost, tau = 0.0, plan.tau, plan.tau
-        out.append(ClassState(plan.name, n, matched, position, cost, tau))
+            tau = plans_[k].tau
+            out.append(ClassState(names[k], counts[k], matched, 0.0, tau, tau))
     out.sort(key=lambda c: c.class_name)
     return tuple(out)
 

@@ -269,6 +269,11 @@ class CodeRecognizer:
         """Each template's τ, in the order of :attr:`core`'s templates (the plans' members)."""
         self.lengths = tuple(m.length for p in self.plans for m in p.members)
         """Each template's columns, in that order."""
+        self.names = tuple(p.name for p in self.plans)
+        self.keyframes = tuple(
+            len(p.template.keyframes.keyframes) if p.gated and p.template.keyframes else 0 for p in self.plans
+        )
+        """Each class's keyframes gating it (0: none)."""
         dtw = (
             StreamDTW(
                 [
