@@ -57,6 +57,8 @@ cdef class AutomatonCore:
     cdef list _partials
     cdef list _matches
     cdef bint _idle
+    cdef Partial _hit  # the match completed last (what progress reports as a whole hit)
+    cdef int64_t _hit_t
 
     def __init__(self, masks, values, dmin, dmax, int64_t period, bint components):
         cdef int k
@@ -82,6 +84,8 @@ cdef class AutomatonCore:
         self._partials = [[] for _ in range(self._k - 1)]
         self._matches = []
         self._idle = True
+        self._hit = None
+        self._hit_t = -1
 
     @property
     def state_size(self):
@@ -168,8 +172,40 @@ cdef class AutomatonCore:
         if k == last:
             self._matches.append(partial)
             self.reached.append((partial.first, partial.lo))
+            self._hit = partial
+            self._hit_t = self._t - 1
         else:
             self._partials[k].append(partial)
+
+    cdef tuple _found(self, Partial p):
+        """The frames at which keyframes 1..k of ``p`` were found (linked): lo_1 = the first run's
+        start, lo_j = max(s_j, lo_{j-1} + dmin_{j-1})."""
+        cdef Run run = p.runs[0]
+        cdef int64_t lo = run.start
+        cdef Py_ssize_t j
+        out = [lo]
+        for j in range(1, len(p.runs)):
+            run = p.runs[j]
+            lo = max(run.start, lo + self._dmin[j - 1])
+            out.append(lo)
+        return tuple(out)
+
+    def partial(self):
+        """The frames at which keyframes 1..k were found of the most advanced partial match held
+        (k < K keyframes: the most, then the one found first; a whole match is not a partial
+        one), ascending; () if none is held."""
+        cdef int k
+        for k in range(self._k - 2, -1, -1):
+            if self._partials[k]:
+                return self._found(<Partial> self._partials[k][0])
+        return ()
+
+    def hit(self):
+        """(frame pushed when it completed, start of R(M), first frame of keyframe K, the frames of
+        keyframes 1..K) of the match completed last since the stream began, or None."""
+        if self._hit is None:
+            return None
+        return (self._hit_t, self._hit.first, self._hit.lo, self._found(self._hit))
 
     cdef int64_t _hi(self, tuple runs, int64_t t):
         """hi_k of the runs at frame ``t`` (an open run ends at ``t`` so far)."""
@@ -252,6 +288,10 @@ cdef class AutomatonSet:
     def __init__(self, cores):
         self._cores = list(cores)
         self._n = len(self._cores)
+
+    def core(self, Py_ssize_t k):
+        """Automaton ``k``."""
+        return self._cores[k]
 
     def push(self, uint64_t code):
         """Push ``code`` to every automaton; (index, reached) of those whose :attr:`reached` is not

@@ -38,6 +38,8 @@ cdef class StreamDTW:
     cdef Py_ssize_t finish_into(self, Candidate *out) noexcept nogil
     cdef bint blocks_c(self, int64_t cost, int64_t start, int64_t end, Py_ssize_t lo,
                        Py_ssize_t hi) noexcept nogil
+    cdef Py_ssize_t progress_c(self, Py_ssize_t t, int64_t *d) noexcept nogil
+    cdef bint reaches_c(self, Py_ssize_t lo, Py_ssize_t hi, int64_t end) noexcept nogil
 
 
 cdef class Competition:
@@ -52,9 +54,16 @@ cdef class Competition:
     cdef Py_ssize_t scratch_cap
     cdef Buf held, recent, published
     cdef Buf *windows  # per gated class (automaton order): its keyframe ranges (first, frame)
+    cdef int64_t[::1] cls_lo, cls_hi  # per class: its templates lo .. hi - 1
+    cdef Py_ssize_t n_classes
+    cdef int64_t[:, ::1] hits  # per gated class: its last whole keyframe hit (progress; HIT_* fields)
+    cdef list hit_frames  # per gated class: that hit's keyframe frames
+    cdef int64_t[:, ::1] last_pub  # per gated class: start, end, frame of its last detection published
 
     cdef list push_c(self, uint64_t code)
     cdef bint _rival(self, const Candidate *x, const Candidate *y) noexcept nogil
     cdef int _arrive(self, Candidate *y) except -1
     cdef list _decide(self, int64_t j, bint ended)
     cdef void _forget(self, int64_t j) noexcept
+    cdef void _follow_hit(self, Py_ssize_t g, int64_t j) except *
+    cdef bint _may_give(self, Py_ssize_t g) noexcept

@@ -16,6 +16,11 @@ cdef extern from *:
 
 cdef int64_t INF = (<int64_t>1) << 46
 cdef int64_t NO_START = -1
+cdef Py_ssize_t MAX_COLUMNS = 1 << 16
+
+cdef enum:
+    # the fields of a gated class's last whole keyframe hit (Competition.hits)
+    HIT_LIVE, HIT_T, HIT_FIRST, HIT_LO, HIT_END, HIT_RELEASE, HIT_FIELDS
 
 
 cdef inline int64_t clamp(int64_t x) noexcept nogil:
@@ -322,6 +327,8 @@ cdef class StreamDTW:
             t_view = tables
             if m_view.shape[0] == 0:
                 raise ValueError("a template needs at least one column")
+            if m_view.shape[0] > MAX_COLUMNS:  # D * M and τ * (i + 1) must stay in int64 (progress)
+                raise ValueError(f"a template has at most {MAX_COLUMNS} columns")
             if v_view.shape[0] != m_view.shape[0] or t_view.shape[0] != m_view.shape[0]:
                 raise ValueError("masks, values and tables need one row per template column")
             self._arrays.append((masks, values, tables))
@@ -448,6 +455,54 @@ cdef class StreamDTW:
             raise IndexError(f"frame {frame} is not among the last 3 of {self.n}")
         d = self._last(template, frame)
         return (d, self._start(template, frame)) if d < INF else (INF, NO_START)
+
+    def progress(self, Py_ssize_t template):
+        """How far along ``template`` (M columns) the stream has got at the last frame pushed: the
+        furthest row i of its column whose D(i) is within τ as a mean per template column,
+        D(i)·M <= τ·(i + 1) in fixed point (cell costs carry the factor 1/M: D(M - 1) is a
+        detection's cost), as (i, D(i)); (-1, :data:`INF`) if no row is, or no frame was pushed.
+        With the toolbox's steps only cells within τ are kept, and those are exact: every row that
+        qualifies (D(i) <= τ·(i + 1)/M <= τ) is one of them."""
+        if not 0 <= template < self.k:
+            raise IndexError(f"template {template} of {self.k}")
+        cdef int64_t d = INF
+        cdef Py_ssize_t i = self.progress_c(template, &d)
+        if i < 0:
+            return (-1, INF)
+        return (i, d)
+
+    cdef Py_ssize_t progress_c(self, Py_ssize_t t, int64_t *d) noexcept nogil:
+        """:meth:`progress` of template ``t`` without its checks: the row (-1: none), D in ``d``."""
+        if self.n == 0:
+            return -1
+        cdef Py_ssize_t slot = (self.n - 1) % 3, o = self.offsets[t], i
+        cdef int64_t m = self.lengths[t], thr = self.thresholds[t], x
+        for i in range(self.highest[t, slot], -1, -1):
+            x = self.cols[2 * slot, o + i]
+            if x < INF and x * m <= thr * (i + 1):
+                d[0] = x
+                return i
+        return -1
+
+    cdef bint reaches_c(self, Py_ssize_t lo, Py_ssize_t hi, int64_t end) noexcept nogil:
+        """Whether a template ``lo`` .. ``hi - 1`` has a cell within its threshold in one of the last
+        two columns whose path starts by column ``end``: every match that ends at the last frame
+        pushed or later and starts by ``end`` passes such a cell (costs only grow along a path,
+        and the toolbox's steps skip at most one column)."""
+        cdef int64_t j = self.n - 1, s
+        cdef Py_ssize_t t, i, o, slot, r
+        for t in range(lo, hi):
+            o = self.offsets[t]
+            for r in range(2):
+                if j - r < 0:
+                    continue
+                slot = (j - r) % 3
+                for i in range(self.highest[t, slot] + 1):
+                    if self.cols[2 * slot, o + i] <= self.thresholds[t]:
+                        s = self.cols[2 * slot + 1, o + i]
+                        if 0 <= s <= end:
+                            return True
+        return False
 
     def blocks(self, int64_t cost, int64_t start, int64_t end, Py_ssize_t lo, Py_ssize_t hi):
         """Whether a template ``lo`` .. ``hi - 1`` may still end a match below ``cost`` (fixed
@@ -662,6 +717,17 @@ cdef class Competition:
             self.windows[g].data = NULL
         for g in range(self.n_gated):
             buf_init(&self.windows[g], 2)
+        cls_lo = np.full(classes, k, dtype=np.int64)
+        cls_hi = np.zeros(classes, dtype=np.int64)
+        for g in range(k):
+            cls_lo[owner[g]] = min(cls_lo[owner[g]], g)
+            cls_hi[owner[g]] = max(cls_hi[owner[g]], g + 1)
+        self.cls_lo = cls_lo
+        self.cls_hi = cls_hi
+        self.n_classes = classes
+        self.hits = np.full((max(1, self.n_gated), HIT_FIELDS), -1, dtype=np.int64)
+        self.hit_frames = [()] * self.n_gated
+        self.last_pub = np.full((max(1, self.n_gated), 3), -1, dtype=np.int64)
         buf_init(&self.held, 4)
         buf_init(&self.recent, 4)
         buf_init(&self.published, 3)
@@ -730,6 +796,9 @@ cdef class Competition:
             self.dtw._reset()
         if self.automata is not None:
             self.automata.flush()
+        self.hits[:, :] = -1
+        self.last_pub[:, :] = -1
+        self.hit_frames = [()] * self.n_gated
         for g in range(self.n_gated):
             buf_clear(&self.windows[g])
         buf_clear(&self.held)
@@ -827,6 +896,9 @@ cdef class Competition:
                         break
                 if not open_:
                     continue
+                self.last_pub[g, 0] = x.start  # for progress: which keyframe hit gave a detection
+                self.last_pub[g, 1] = x.end
+                self.last_pub[g, 2] = j
             row = buf_append(&self.published)
             row[0] = x.start
             row[1] = x.end
@@ -835,6 +907,93 @@ cdef class Competition:
                 out = []
             out.append((k, x.start, x.end, x.cost, x.member))
         return out
+
+    def progress(self, double floor):
+        """How far each class's motion has got at the last frame pushed (call it after every push
+        of a stream whose progress is followed: it also keeps each gated class's last whole
+        keyframe hit). Per class under way — keyframes matched, or a position of at least
+        ``floor`` — in class order: (class, template, row, D, frames): the template whose
+        :meth:`StreamDTW.progress` row is furthest along as a share of its length (ties: the lower
+        mean cost D·M/(row + 1), then the first), -1, -1, :data:`INF` if none has one; and for a
+        gated class the frames of its keyframes found: those of its last whole hit while it is
+        held, else those of the automaton's most advanced partial match
+        (:meth:`~daemon._automaton.AutomatonCore.partial`), else (). A whole hit is held from the
+        frame that completes it to the frame at which a detection of its class that overlaps its
+        range R(M) is published (inclusive), or until it can give none: its range no longer grows,
+        no held candidate of the class overlaps it, and no path within τ in the DTW's last two
+        columns starts by its end (:meth:`StreamDTW.reaches_c`)."""
+        cdef int64_t j = self.n - 1, d, best_d, m, best_m
+        cdef Py_ssize_t k, u, i, g, best_u, best_i
+        cdef double cost, best_cost
+        cdef StreamDTW dtw = self.dtw
+        out = []
+        if j < 0:
+            return out
+        for g in range(self.n_gated):
+            self._follow_hit(g, j)
+        for k in range(self.n_classes):
+            best_u = best_i = -1
+            best_d = INF
+            best_m = 1
+            best_cost = 0.0
+            for u in range(self.cls_lo[k], self.cls_hi[k]):
+                i = dtw.progress_c(u, &d)
+                if i < 0:
+                    continue
+                m = dtw.lengths[u]
+                cost = (<double> d) * m / (i + 1)
+                if best_u < 0 or (i + 1) * best_m > (best_i + 1) * m or (
+                        (i + 1) * best_m == (best_i + 1) * m and cost < best_cost):
+                    best_u, best_i, best_d, best_m, best_cost = u, i, d, m, cost
+            g = self.slot[k]
+            frames = ()
+            if g >= 0:
+                frames = self.hit_frames[g] if self.hits[g, HIT_LIVE] == 1 else self.automata.core(g).partial()
+            if frames or (best_u >= 0 and (<double> (best_i + 1)) / best_m >= floor):
+                out.append((k, best_u, best_i, best_d, frames))
+        return out
+
+    cdef void _follow_hit(self, Py_ssize_t g, int64_t j) except *:
+        """Gated class ``g``'s last whole hit after frame ``j`` (:meth:`progress`)."""
+        cdef int64_t[:, ::1] h = self.hits
+        core = self.automata.core(g)
+        if h[g, HIT_RELEASE] == 1:  # its detection was published at the frame before
+            h[g, HIT_LIVE] = 0
+            h[g, HIT_RELEASE] = 0
+        found = core.hit()
+        if found is not None and found[0] == j:
+            h[g, HIT_LIVE] = 1
+            h[g, HIT_T] = j
+            h[g, HIT_FIRST] = found[1]
+            h[g, HIT_LO] = found[2]
+            h[g, HIT_END] = j
+            h[g, HIT_RELEASE] = 0
+            self.hit_frames[g] = found[3]
+        elif h[g, HIT_LIVE] == 1 and (h[g, HIT_FIRST], h[g, HIT_LO]) in core.reached:
+            h[g, HIT_END] = j  # its range still grows
+        if h[g, HIT_LIVE] != 1:
+            return
+        if self.last_pub[g, 2] >= h[g, HIT_T] and self.last_pub[g, 0] <= h[g, HIT_END] and (
+                h[g, HIT_FIRST] <= self.last_pub[g, 1]):
+            h[g, HIT_RELEASE] = 1  # still reported at this frame, the detection's
+        elif h[g, HIT_END] < j and not self._may_give(g):
+            h[g, HIT_LIVE] = 0
+
+    cdef bint _may_give(self, Py_ssize_t g) noexcept:
+        """Whether gated class ``g``'s last hit may still overlap a detection: a held candidate
+        of its class overlaps its range, or a path in the DTW may still end one that does."""
+        cdef int64_t k = -1, first = self.hits[g, HIT_FIRST], end = self.hits[g, HIT_END]
+        cdef Py_ssize_t i, c
+        cdef Candidate x
+        for c in range(self.n_classes):
+            if self.slot[c] == g:
+                k = c
+                break
+        for i in range(buf_len(&self.held)):
+            get(buf_row(&self.held, i), &x)
+            if self.owner[x.member] == k and x.start <= end and first <= x.end:
+                return True
+        return self.dtw.reaches_c(self.cls_lo[k], self.cls_hi[k], end)
 
     cdef void _forget(self, int64_t j) noexcept:
         """Drop what no candidate after frame ``j`` can be compared with: rivals and published

@@ -94,6 +94,16 @@ class SegmentationConfig:
 
 
 @dataclass(frozen=True)
+class ProgressConfig:
+    """Progress events (:mod:`daemon.progress`) on ``mocap/<stream>/progress``: whether the daemon
+    publishes them (``enabled``), and at most how many a second of a stream's frames (``per_s``;
+    a change of the keyframes matched goes out at once)."""
+
+    enabled: bool = False
+    per_s: float = field(default=10.0, metadata=_positive(1000))
+
+
+@dataclass(frozen=True)
 class ServiceConfig:
     """``mocapd run``: this instance's name (empty: the host name), the transports poses come in on
     and detections go out on, the limits of the stream table, and the recognition processes
@@ -190,6 +200,7 @@ class Config:
     replay: ReplayConfig = field(default_factory=ReplayConfig)
     recognizer: RecognizerConfig = field(default_factory=RecognizerConfig)
     segmentation: SegmentationConfig = field(default_factory=SegmentationConfig)
+    progress: ProgressConfig = field(default_factory=ProgressConfig)
     service: ServiceConfig = field(default_factory=ServiceConfig)
     zmq: ZmqConfig = field(
         default_factory=ZmqConfig, metadata=transport_section("protocols.zeromq", source=True)

@@ -38,7 +38,7 @@ from __future__ import annotations
 
 import uuid
 import weakref
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from itertools import accumulate
 from typing import Any, Literal
@@ -265,6 +265,15 @@ class CodeRecognizer:
         # the templates a candidate's rivals come from: all, or its own class's
         self._rivals = [(0, len(self._owner)) if compete else (first[k], first[k + 1]) for k in self._owner]
         self._taus = [m.tau for p in self.plans for m in p.members]
+        self.taus = tuple(self._taus)
+        """Each template's τ, in the order of :attr:`core`'s templates (the plans' members)."""
+        self.lengths = tuple(m.length for p in self.plans for m in p.members)
+        """Each template's columns, in that order."""
+        self.names = tuple(p.name for p in self.plans)
+        self.keyframes = tuple(
+            len(p.template.keyframes.keyframes) if p.gated and p.template.keyframes else 0 for p in self.plans
+        )
+        """Each class's keyframes gating it (0: none)."""
         dtw = (
             StreamDTW(
                 [
@@ -355,6 +364,9 @@ class ClassStage:
         self.session = session
         self.first: int | None = None
         """The frame number of the motion's first frame (None: no motion under way)."""
+        self.watch: Callable[[int], None] | None = None
+        """Called with the frame number after each code :meth:`flush` pushes (progress follows the
+        codes the end of a motion gives: :class:`daemon.progress.StreamProgress`)."""
 
     def start(self, first: int) -> None:
         """A motion begins at frame ``first``."""
@@ -374,7 +386,11 @@ class ClassStage:
     def flush(self, last: int | None, codes: Sequence[int] = ()) -> list[Detection]:
         """The motion ends at frame ``last`` (None: it had no frame) with its last ``codes``: the
         remaining detections; then no motion is under way."""
-        out = [d for code in codes for d in self.push(last or 0, code)]
+        out = []
+        for code in codes:
+            out += self.push(last or 0, code)
+            if self.watch is not None:
+                self.watch(last or 0)
         found = self.codes.flush()
         if last is not None:
             out += [self._detection(c, last) for c in found]
@@ -504,6 +520,11 @@ class Recognizer:
     @property
     def plans(self) -> tuple[ClassPlan, ...]:
         return self._plans
+
+    @property
+    def stage(self) -> ClassStage:
+        """The stream's class stage (its index-rate codes, detections in its frame numbers)."""
+        return self._stage
 
     @property
     def reach(self) -> int:

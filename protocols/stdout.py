@@ -1,6 +1,6 @@
 """Standard output as a sink: every published message as one JSON line (``{"topic": ..., **fields}``,
-bytes fields as hex) or, with ``format: text``, a readable line per detection and boundary. Lines
-are flushed at once, so a pipe sees each detection when it is published."""
+bytes fields as hex) or, with ``format: text``, a readable line per detection, boundary and
+progress event. Lines are flushed at once, so a pipe sees each detection when it is published."""
 
 from __future__ import annotations
 
@@ -79,6 +79,15 @@ class StdoutTransport:
         elif body.get("type") == "boundary":
             line = (
                 f"{body['stream']}: boundary at frame {body['frame']} ({body['method']}, {body['score']:.3g})"
+            )
+        elif body.get("type") == "progress":
+            line = f"{body['stream']}: progress at frame {body['frame']}: " + (
+                ", ".join(
+                    f"{c['class']} {c['position']:.0%} (cost {c['cost']:.3f}"
+                    + (f", keyframes {len(c['matched'])}/{c['keyframes']})" if c["keyframes"] else ")")
+                    for c in body["classes"]
+                )
+                or "nothing under way"
             )
         elif body.get("type") == "status":
             line = f"mocapd {body['instance']} {body['state']} ({body['streams']} streams)"

@@ -415,7 +415,7 @@ def finished(process: subprocess.Popen[str], timeout: float = 120) -> str:
 class MqttCollector:
     """A subscriber in its own thread (paho): QoS 1 on ``topics`` with a persistent session (fixed
     ``client_id``, so the broker keeps what arrives while it is away), reconnecting by itself;
-    :attr:`messages` holds (topic, decoded message dict) as they arrive."""
+    :attr:`messages` holds (topic, decoded message dict) as they arrive, :attr:`qos` how each came."""
 
     def __init__(self, url: str, topics: Sequence[str], client_id: str = "collector") -> None:
         import paho.mqtt.client as paho
@@ -423,6 +423,8 @@ class MqttCollector:
 
         host, port = url.removeprefix("mqtt://").split(":")
         self.messages: list[tuple[str, dict[str, Any]]] = []
+        self.qos: list[tuple[int, bool]] = []
+        """Each message's (QoS it was delivered at, retained flag), in the order of :attr:`messages`."""
         self.lock = threading.Lock()
         self.client = paho.Client(CallbackAPIVersion.VERSION2, client_id=client_id, clean_session=False)
         self.client.reconnect_delay_set(1, 1)
@@ -438,6 +440,7 @@ class MqttCollector:
             body = msgpack.unpackb(message.payload, raw=False)
             with self.lock:
                 self.messages.append((message.topic, body))
+                self.qos.append((message.qos, bool(message.retain)))
 
         self.client.on_connect = on_connect
         self.client.on_message = on_message

@@ -10,7 +10,7 @@ from collections.abc import Iterator, Sequence
 from fractions import Fraction
 from itertools import pairwise, product
 from pathlib import Path
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 import numpy.typing as npt
@@ -1034,4 +1034,45 @@ def slow_rendezvous(members: Sequence[str], partitions: int) -> dict[str, set[in
         if members:
             ranked = sorted(set(members), key=lambda m: (-score(m, p), m))
             out[ranked[0]].add(p)
+    return out
+
+
+def slow_progress_events(
+    pushes: Sequence[tuple[int, tuple[Any, ...]]], rate: float, per_s: float
+) -> list[tuple[int, tuple[Any, ...]]]:
+    """The progress events of ``pushes`` ((sequence number, snapshot of class states)) read from
+    the rule: a snapshot goes out when, with cost to 0.001 and position to 0.01, it differs from the
+    last one out (none yet: as an empty one), and either some class's keyframes matched differ (a
+    class absent as one with none) or it is at least ceil(rate / per_s) numbers after the last one
+    out (or none went out yet); at the end, an empty snapshot at the last number if the last one
+    out was not empty."""
+    gap = max(1, math.ceil(rate / per_s))
+
+    def shown(snapshot: tuple[Any, ...]) -> list[dict[str, Any]]:
+        return [
+            {
+                "class": c.class_name,
+                "keyframes": c.keyframes,
+                "matched": list(c.matched),
+                "position": round(c.position, 2),
+                "cost": round(c.cost, 3),
+                "tau": c.tau,
+            }
+            for c in snapshot
+        ]
+
+    def keys(snapshot: tuple[Any, ...]) -> dict[str, tuple[int, ...]]:
+        return {c.class_name: tuple(c.matched) for c in snapshot if c.matched}
+
+    out: list[tuple[int, tuple[Any, ...]]] = []
+    last: tuple[Any, ...] = ()
+    last_number: int | None = None
+    for number, snapshot in pushes:
+        if shown(snapshot) == shown(last):
+            continue
+        if keys(snapshot) != keys(last) or last_number is None or number - last_number >= gap:
+            out.append((number, snapshot))
+            last, last_number = snapshot, number
+    if last and pushes:
+        out.append((pushes[-1][0], ()))
     return out

@@ -37,6 +37,7 @@ LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
             "daemon.library",
             "daemon.recognizer",
             "daemon.bank",
+            "daemon.progress",
         ),
     ),
     ("search", ("daemon.recordings", "daemon.search")),

@@ -13,7 +13,15 @@ import numpy as np
 import pytest
 import yaml
 
-from daemon.config import Config, ConfigError, RecognizerConfig, ReplayConfig, load_config, parse_config
+from daemon.config import (
+    Config,
+    ConfigError,
+    ProgressConfig,
+    RecognizerConfig,
+    ReplayConfig,
+    load_config,
+    parse_config,
+)
 from daemon.errors import FileAccessError, MocapdError
 from daemon.types import RecognitionSettings
 from replay import KinematicModel, read_amc, read_asf
@@ -68,6 +76,18 @@ def test_good_config(tmp_path: Path, text: str, expected: ReplayConfig) -> None:
     assert isinstance(config.replay.frame_rate_hz, float)
 
 
+def test_progress_section(tmp_path: Path) -> None:
+    """Off by default, 10 a second; the file and MOCAPD_PROGRESS_<FIELD> set it, the variable wins
+    and is named in its error."""
+    assert Config().progress == ProgressConfig(enabled=False, per_s=10.0)
+    path = write(tmp_path, "progress:\n  enabled: true\n  per_s: 4\n")
+    assert load_config(path).progress == ProgressConfig(True, 4.0)
+    env = {"MOCAPD_PROGRESS_PER_S": "2.5", "MOCAPD_PROGRESS_ENABLED": "false"}
+    assert load_config(path, env).progress == ProgressConfig(False, 2.5)
+    with pytest.raises(ConfigError, match="MOCAPD_PROGRESS_PER_S"):
+        load_config(path, {"MOCAPD_PROGRESS_PER_S": "-1"})
+
+
 def test_recognizer_section(tmp_path: Path) -> None:
     config = load_config(write(tmp_path, "recognizer:\n  max_gap_s: 1.5\n  compete: false\n"))
     assert config == Config(recognizer=RecognizerConfig(max_gap_s=1.5, compete=False))
@@ -119,7 +139,7 @@ BAD = [
     (
         "unknown-top",
         "replay: {}\nextra: 1\n",
-        "extra: unknown field (allowed: cluster, logging, metrics, mqtt, recognizer",
+        "extra: unknown field (allowed: cluster, logging, metrics, mqtt, progress, recognizer",
     ),
     (
         "unknown-recognizer",
@@ -131,6 +151,14 @@ BAD = [
     ("gap-huge", "recognizer:\n  max_gap_s: 1e9\n", "recognizer.max_gap_s"),
     ("gap-nan", "recognizer:\n  max_gap_s: .nan\n", "recognizer.max_gap_s"),
     ("compete-string", "recognizer:\n  compete: 'yes'\n", "recognizer.compete"),
+    ("progress-per-s-zero", "progress:\n  per_s: 0\n", "progress.per_s"),
+    ("progress-per-s-huge", "progress:\n  per_s: 1e6\n", "progress.per_s"),
+    ("progress-enabled-string", "progress:\n  enabled: 'on'\n", "progress.enabled"),
+    (
+        "progress-unknown",
+        "progress:\n  floor: 0.2\n",
+        "progress.floor: unknown field (allowed: enabled, per_s)",
+    ),
     ("unknown-replay", "replay:\n  fps: 60\n", "replay.fps: unknown field (allowed: frame_rate_hz, units)"),
     ("misspelt", "replay:\n  frame_rate: 60\n", "replay.frame_rate: unknown field"),
     # wrong types and non-positive frame rates

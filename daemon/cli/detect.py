@@ -1,11 +1,13 @@
 """``mocapd detect``: replay a recording through a live :class:`~daemon.recognizer.Recognizer` in this
-process and print each detection when it is emitted."""
+process and print each detection when it is emitted (with ``--progress``, the progress events of
+:class:`daemon.progress.StreamProgress` too, each before the detections of the same frame's push)."""
 
 from __future__ import annotations
 
 import argparse
 import json
 import time
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -14,6 +16,7 @@ from daemon.config import Config
 from daemon.errors import InputError, UsageError
 from daemon.library import default_library_path, load_library
 from daemon.plots import timeline_png
+from daemon.progress import ProgressEvent, StreamProgress
 from daemon.recognizer import Detection, Recognizer
 from daemon.recordings import native_rate, read_labels, read_recording
 
@@ -52,6 +55,11 @@ def register(sub: Any) -> None:
         "--stream", default=None, help="stream id in the detections (default: the AMC file's name)"
     )
     cmd.add_argument("--json", action="store_true", help="print one JSON object per detection")
+    cmd.add_argument(
+        "--progress",
+        action="store_true",
+        help="also print the progress events (JSON lines, as the daemon publishes them) in emission order",
+    )
     cmd.add_argument("--png", type=Path, default=None, help="draw the detections over time into this .png")
     cmd.add_argument(
         "--truth",
@@ -92,8 +100,12 @@ def _detect(args: argparse.Namespace, config: Config) -> int:
     except InputError as exc:  # a rate the library's does not divide
         raise UsageError(str(exc), field="--library") from None
     found: list[Detection] = []
+    first = int(motion.frames[0]) if len(motion) else 0
+    follow = StreamProgress(recognizer.stage, rate, config.progress.per_s) if args.progress else None
 
-    def report(detections: list[Detection]) -> None:
+    def report(detections: list[Detection], events: Sequence[ProgressEvent] = ()) -> None:
+        for e in events:  # the source time: seconds into the recording
+            print(json.dumps(e.as_json(stream, (e.frame - first) / rate)), flush=True)
         for d in detections:
             found.append(d)
             print(json.dumps(d.as_json()) if args.json else _line(d, rate, motion.frames[0]), flush=True)
@@ -105,8 +117,10 @@ def _detect(args: argparse.Namespace, config: Config) -> int:
             ahead = began + i * pace - time.perf_counter()
             if ahead > 0:
                 time.sleep(ahead)
-        report(recognizer.push(number, channels))
-    report(recognizer.flush())
+        detections = recognizer.push(number, channels)
+        report(detections, follow.observe(number) if follow is not None else [])
+    detections = recognizer.flush()
+    report(detections, follow.end() if follow is not None else [])
     took = time.perf_counter() - began
     if not args.json:
         print(

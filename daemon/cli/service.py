@@ -71,6 +71,12 @@ def register(sub: Any) -> None:
         help="recognition processes, a stream always on the same one (default: service.workers, "
         "whose 0 is one per core); 1: one process (as --replay always is)",
     )
+    run.add_argument(
+        "--progress",
+        action="store_true",
+        default=None,
+        help="publish progress events on mocap/<stream>/progress (progress.enabled)",
+    )
     run.set_defaults(func=_run)
 
     rep = sub.add_parser(
@@ -156,6 +162,9 @@ def _replay_into(args: argparse.Namespace, config: Config) -> Tasks:
 
 def _overridden(args: argparse.Namespace, config: Config) -> Config:
     service, metrics, mqtt, cluster = config.service, config.metrics, config.mqtt, config.cluster
+    progress = config.progress
+    if args.progress:
+        progress = dataclasses.replace(progress, enabled=True)
     if args.cluster is not None or args.coordinator is not None:
         if args.mqtt is not None:
             raise UsageError("--mqtt and --cluster exclude each other", field="--cluster")
@@ -192,7 +201,9 @@ def _overridden(args: argparse.Namespace, config: Config) -> Config:
         if not 0 <= args.workers <= 1024:
             raise UsageError(f"must be 0 (one per core) to 1024, got {args.workers}", field="--workers")
         service = dataclasses.replace(service, workers=args.workers)
-    return dataclasses.replace(config, service=service, metrics=metrics, mqtt=mqtt, cluster=cluster)
+    return dataclasses.replace(
+        config, service=service, metrics=metrics, mqtt=mqtt, cluster=cluster, progress=progress
+    )
 
 
 def _own_source(config: Config) -> str:

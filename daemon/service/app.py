@@ -44,6 +44,7 @@ from daemon.service.streams import Emitted, Refused, StreamTable
 from protocols.messages import (
     BoundaryMessage,
     PoseMessage,
+    ProgressMessage,
     SkeletonMessage,
     StatusMessage,
     WireError,
@@ -192,6 +193,7 @@ class Service:
             service=config.service,
             recognizer=config.recognizer,
             segmentation=config.segmentation,
+            progress=config.progress,
             cluster=cluster is not None,
         )
         self.rejects: Counter[str] = Counter()
@@ -354,7 +356,10 @@ class Service:
     async def publish(self, e: Emitted) -> None:
         started = time.perf_counter()
         message = replace(e.message, emit_time=time.time())
-        out = Outgoing(topic(message), encode(message), reliable=True, key=message.id)
+        if isinstance(message, ProgressMessage):  # QoS 0, not retained: the next one supersedes it
+            out = Outgoing(topic(message), encode(message))
+        else:
+            out = Outgoing(topic(message), encode(message), reliable=True, key=message.id)
         for t in self.transports:
             sink = t.sink()
             if sink is not None:
@@ -362,6 +367,9 @@ class Service:
         self.published += 1
         m = self.metrics
         m.stage["publish"].observe(time.perf_counter() - started)
+        if isinstance(message, ProgressMessage):
+            m.progress += 1
+            return
         if isinstance(message, BoundaryMessage):
             m.boundaries += 1
             self.log.debug(

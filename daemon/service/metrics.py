@@ -6,15 +6,16 @@ a second); prometheus-client turns them into its exposition format when ``/metri
 (:class:`Metrics` is a registry collector).
 
 Series (prefix ``mocapd_``): ``frames_in``, ``messages_in{type}``, ``detections_out``,
-``boundaries_out``, ``rejects{reason}``, ``drops{reason}``, ``stream_events{event}`` (gaps, poses
-missing in them, evictions, skeleton changes), ``streams``, ``queued_poses``, ``outbox``,
-``transport_up{transport}``, ``stage_seconds{stage}`` (decode, recognise, publish; buckets from
-25 µs to 50 ms with one at the 2 ms budget) and ``end_to_end_seconds`` (a pose's source timestamp
-to the publish of the detection it completed). ``frames_in`` and ``detections_out`` have a
-``stream`` label only with ``metrics.stream_labels``, which config allows only for a bounded
-stream table. Every incoming message is counted once: in ``messages_in`` when taken in (a pose
-queued, a skeleton taken or repeated, an empty skeleton: a retained one cleared), in ``rejects``
-when refused, in ``drops{reason="mqtt_incoming_full"}`` when dropped before it was looked at.
+``boundaries_out``, ``progress_out``, ``rejects{reason}``, ``drops{reason}``,
+``stream_events{event}`` (gaps, poses missing in them, evictions, skeleton changes), ``streams``,
+``queued_poses``, ``outbox``, ``transport_up{transport}``, ``stage_seconds{stage}`` (decode,
+recognise, publish; buckets from 25 µs to 50 ms with one at the 2 ms budget) and
+``end_to_end_seconds`` (a pose's source timestamp to the publish of the detection it completed).
+``frames_in`` and ``detections_out`` have a ``stream`` label only with ``metrics.stream_labels``,
+which config allows only for a bounded stream table. Every incoming message is counted once: in
+``messages_in`` when taken in (a pose queued, a skeleton taken or repeated, an empty skeleton: a
+retained one cleared), in ``rejects`` when refused, in ``drops{reason="mqtt_incoming_full"}`` when
+dropped before it was looked at.
 """
 
 from __future__ import annotations
@@ -76,6 +77,8 @@ class Metrics(Collector):
         self.detections: Counter[str] = Counter()
         self.boundaries = 0
         """Behaviour boundaries published."""
+        self.progress = 0
+        """Progress events published."""
         self.stage = {s: Histogram(STAGE_BUCKETS) for s in ("decode", "recognise", "publish")}
         self.end_to_end = Histogram(END_TO_END_BUCKETS)
         self._tallies = tallies
@@ -116,6 +119,7 @@ class Metrics(Collector):
         yield CounterMetricFamily(
             "mocapd_boundaries_out", "Behaviour boundaries published", value=self.boundaries
         )
+        yield CounterMetricFamily("mocapd_progress_out", "Progress events published", value=self.progress)
         messages = CounterMetricFamily(
             "mocapd_messages_in", "Messages taken in (pose, skeleton, clear), by type", labels=["type"]
         )

@@ -46,12 +46,20 @@ import numpy as np
 from daemon.bank import RecognizerBank
 from daemon.behaviours import Boundary, JointRotations, PcaSegmenter, PpcaSegmenter
 from daemon.behaviours import online_segmenter as make_segmenter
-from daemon.config import RecognizerConfig, SegmentationConfig, ServiceConfig
+from daemon.config import ProgressConfig, RecognizerConfig, SegmentationConfig, ServiceConfig
 from daemon.errors import InputError, MocapdError, printable
 from daemon.frames import Renumbering
 from daemon.library import Library
+from daemon.progress import ProgressEvent, StreamProgress
 from daemon.recognizer import Detection, Recognizer
-from protocols.messages import BoundaryMessage, DetectionMessage, PoseMessage, SkeletonMessage
+from protocols.messages import (
+    BoundaryMessage,
+    ClassProgress,
+    DetectionMessage,
+    PoseMessage,
+    ProgressMessage,
+    SkeletonMessage,
+)
 from replay import MocapFormatError, Skeleton, parse_asf
 from replay.amc import DEG
 
@@ -137,14 +145,16 @@ class _Stream:
     start within :attr:`warmup` frames of its first fed pose are suppressed."""
     suppress_before: int | None = None
     """Detections starting before this sequence number are suppressed (see :attr:`warming`)."""
+    progress: StreamProgress | None = None
+    """The recogniser's progress (``progress.enabled``), made anew with it."""
 
 
 @dataclass(frozen=True)
 class Emitted:
-    """A detection or a behaviour boundary ready for the wire, and when the pose that completed it
-    was stamped by its source (for the end-to-end latency)."""
+    """A detection, a behaviour boundary or a progress event ready for the wire, and when the pose
+    that completed it was stamped by its source (for the end-to-end latency)."""
 
-    message: DetectionMessage | BoundaryMessage
+    message: DetectionMessage | BoundaryMessage | ProgressMessage
     source_time: float
 
 
@@ -176,6 +186,7 @@ class StreamTable:
         service: ServiceConfig | None = None,
         recognizer: RecognizerConfig | None = None,
         segmentation: SegmentationConfig | None = None,
+        progress: ProgressConfig | None = None,
         cluster: bool = False,
     ) -> None:
         service = ServiceConfig() if service is None else service
@@ -192,6 +203,7 @@ class StreamTable:
         """Refusals and drops by reason, and ``gaps``/``gap_frames``."""
         self.segmentation = segmentation.method
         self.segmented = segmentation.streams
+        self.progress = ProgressConfig() if progress is None else progress
         self._queued = 0
         self._skeletons: dict[str, Skeleton] = {}  # by ASF text, least recently announced first
         self._waiting: dict[str, _Stream] = {}  # the streams with queued poses, in arrival order
@@ -251,7 +263,7 @@ class StreamTable:
         out = self._remove(message.stream, "skeleton_changed") if old is not None else []
         self.bank.put(message.stream, recognizer)
         horizon = self._horizon(recognizer)
-        self.streams[message.stream] = _Stream(
+        self.streams[message.stream] = s = _Stream(
             message,
             skeleton,
             angles,
@@ -265,7 +277,15 @@ class StreamTable:
             step=recognizer.clock.step,
             warmup=recognizer.clock.lag(recognizer.reach),
         )
+        self._follow(s, recognizer)
         return out
+
+    def _follow(self, s: _Stream, recognizer: Recognizer) -> None:
+        """Follow the progress of ``s``'s (new) recogniser, if progress events are enabled."""
+        if self.progress.enabled:
+            s.progress = StreamProgress(
+                recognizer.stage, recognizer.native_rate, self.progress.per_s, numbering=s.numbers.seq
+            )
 
     def warm_up(self, name: str) -> None:
         """``name``'s history here is truncated (cluster mode: taken over from a buffer that lost
@@ -410,6 +430,12 @@ class StreamTable:
         result = self.bank.push(frames)
         refused: list[tuple[str, str, str]] = []
         numbers = {name: frame for name, frame, _ in frames}
+        if self.progress.enabled:  # a tick's progress goes out before its detections
+            taken = {name for name, _ in result.errors}
+            for name, frame, _ in frames:
+                s = self.streams[name]
+                if s.progress is not None and name not in taken:
+                    out += self._progressed(name, s, s.progress.observe(frame), frame)
         for name, error in result.errors:
             # a taken-in pose the recogniser refused (e.g. positions beyond floating point after
             # forward kinematics): dropped, and as if never fed, so that the next pose follows on
@@ -466,9 +492,44 @@ class StreamTable:
         self._waiting.pop(name, None)
         if reason is not None:
             self.counts[reason] += 1
-        return self._kept([self._emitted(d, s) for d in self.bank.remove(name)], s) + self._segments_end(
-            name, s
+        detections = self.bank.remove(name)
+        return (
+            self._progress_end(name, s)
+            + self._kept([self._emitted(d, s) for d in detections], s)
+            + self._segments_end(name, s)
         )
+
+    def _progressed(self, name: str, s: _Stream, events: list[ProgressEvent], frame: int) -> list[Emitted]:
+        """``events`` of stream ``name`` as progress messages (sequence numbers already), the time
+        of frame ``frame``'s pose theirs."""
+        if not events:
+            return []
+        source_time = float(s.times[frame % len(s.times)])
+        return [
+            Emitted(
+                ProgressMessage(
+                    name,
+                    e.frame,
+                    tuple(
+                        ClassProgress(c.class_name, c.keyframes, c.matched, c.position, c.cost, c.tau)
+                        for c in e.classes
+                    ),
+                    source_time,
+                    0.0,
+                ),
+                source_time,
+            )
+            for e in events
+        ]
+
+    def _progress_end(self, name: str, s: _Stream) -> list[Emitted]:
+        """The progress events of the end of ``s``'s motion (its recogniser just flushed)."""
+        p = s.progress
+        if p is None:
+            return []
+        frame = p.frame
+        events = p.end()
+        return self._progressed(name, s, events, frame) if frame is not None else []
 
     def _segments_end(self, name: str, s: _Stream) -> list[Emitted]:
         """The boundaries the end of a stream's motion gives (its segmenter starts anew)."""
@@ -479,7 +540,12 @@ class StreamTable:
         then a fresh recogniser."""
         s.generation += 1
         detections = self.bank.restart(name, session=self._session(s.generation, epoch))
-        out = self._kept([self._emitted(d) for d in detections]) + self._segments_end(name, s)
+        out = (
+            self._progress_end(name, s)
+            + self._kept([self._emitted(d) for d in detections])
+            + self._segments_end(name, s)
+        )
+        self._follow(s, self.bank[name])
         s.last_fed = None
         return out
 

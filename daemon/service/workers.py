@@ -80,9 +80,9 @@ from protocols.zeromq import open_socket, receive
 
 PUBLISH, READY, ASK, STREAMS = b"p", b"r", b"a", b"n"
 """What a worker sends the front, the first frame of each message: ``[p, topic, payload, flags]``
-(flags: ``r`` retain, ``p`` a relayed pose or skeleton)
-to publish, ``[r, index, metrics port, pid]`` once it serves, ``[a, stream]`` to have a stream's skeleton
-sent again, ``[n, index, streams]`` every second."""
+to publish (flags: ``r`` retained, ``q`` reliable, QoS 1, ``p`` a relayed pose or skeleton),
+``[r, index, metrics port, pid]`` once it serves, ``[a, stream]`` to have a stream's skeleton sent
+again, ``[n, index, streams]`` every second."""
 RESTART_MIN_S, RESTART_MAX_S, STEADY_S = 0.2, 10.0, 10.0
 """Restart back-off: from the first, doubling to the second while a worker dies within STEADY_S of
 its start."""
@@ -219,8 +219,7 @@ class FrontChannel:
             self._dropped += 1
 
     async def publish(self, message: Outgoing) -> None:
-        flags = (b"r" if message.retain else b"") + (b"p" if message.relay else b"")
-        self.tell(PUBLISH, message.topic.encode(), message.payload, flags)
+        self.tell(PUBLISH, message.topic.encode(), message.payload, flags(message))
 
     def ask_skeleton(self, stream: str) -> None:
         self.tell(ASK, stream.encode())
@@ -238,6 +237,15 @@ class FrontChannel:
 
     def dropped(self) -> dict[str, int]:
         return {"worker_send_full": self._dropped}
+
+
+def flags(message: Outgoing) -> bytes:
+    """How the front publishes ``message`` for a worker: ``r`` retained, ``q`` reliable (a
+    detection, a boundary, a status; a progress event is neither), ``p`` relayed (a pose or a
+    skeleton passed on for viewers)."""
+    return b"".join(
+        f for f, on in ((b"r", message.retain), (b"q", message.reliable), (b"p", message.relay)) if on
+    )
 
 
 class _Inbound:
@@ -566,9 +574,9 @@ class Front:
         return None if slot.process is None else slot.process.pid
 
     async def _publish(self, frames: list[bytes]) -> None:
-        _, name, payload, flags = frames
-        relay = b"p" in flags
-        out = Outgoing(name.decode(), payload, retain=b"r" in flags, reliable=not relay, relay=relay)
+        _, name, payload, how = frames
+        relay = b"p" in how
+        out = Outgoing(name.decode(), payload, retain=b"r" in how, reliable=b"q" in how, relay=relay)
         for t in self.transports:
             sink = t.sink()
             if sink is not None:
