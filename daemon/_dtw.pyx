@@ -911,8 +911,8 @@ cdef class Competition:
     def progress(self, double floor):
         """How far each class's motion has got at the last frame pushed (call it after every push
         of a stream whose progress is followed: it also keeps each gated class's last whole
-        keyframe hit). Per class under way — keyframes matched, or a position of at least
-        ``floor`` — in class order: (class, template, row, D, frames): the template whose
+        keyframe hit). Per class under way — a gated class with keyframes matched, another at a
+        position of at least ``floor`` — in class order: (class, template, row, D, frames): the template whose
         :meth:`StreamDTW.progress` row is furthest along as a share of its length (ties: the lower
         mean cost D·M/(row + 1), then the first), -1, -1, :data:`INF` if none has one; and for a
         gated class the frames of its keyframes found: those of its last whole hit while it is
@@ -949,7 +949,9 @@ cdef class Competition:
             frames = ()
             if g >= 0:
                 frames = self.hit_frames[g] if self.hits[g, HIT_LIVE] == 1 else self.automata.core(g).partial()
-            if frames or (best_u >= 0 and (<double> (best_i + 1)) / best_m >= floor):
+            # a gated class is under way only on keyframe evidence: its gate, not its template,
+            # decides, and a loose template's path stays within τ through much unrelated motion
+            if frames or (g < 0 and best_u >= 0 and (<double> (best_i + 1)) / best_m >= floor):
                 out.append((k, best_u, best_i, best_d, frames))
         return out
 

@@ -21,7 +21,8 @@ at this index frame whose accumulated cost D(i) is within τ as a mean per templ
 detection's units (a detection's cost is this at position 1); the template furthest along wins,
 ties the cheaper. None within τ: position 0, cost τ.
 
-*Under way.* A class with a keyframe matched, or at position :data:`FLOOR` or more
+*Under way.* A class gated by keyframes with a keyframe matched (its gate decides whether its
+template's match can be a detection); another at position :data:`FLOOR` or more
 (``docs/live-recognition.md`` says how the floor was chosen).
 
 Pure: integers in, frozen dataclasses out; no I/O.
@@ -44,7 +45,7 @@ from replay import JOINT_NAMES, Motion
 from replay.kinematics import joint_positions
 
 FLOOR = 0.5
-"""The position from which a class without a keyframe matched counts as under way (how it was
+"""The position from which a class not gated by keyframes counts as under way (how it was
 chosen: ``docs/live-recognition.md``, "Progress events")."""
 DEFAULT_PER_S = 10.0
 """Progress events a second of a stream's frames, at most (config ``progress.per_s``)."""
