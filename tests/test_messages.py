@@ -117,7 +117,9 @@ def messages(draw: st.DrawFn) -> Message:
                     draw(st.floats(1e-6, 1e6)),
                 )
             )
-        return ProgressMessage(stream, draw(st.integers(0, 2**53 - 1)), tuple(classes), draw(times), draw(times))
+        return ProgressMessage(
+            stream, draw(st.integers(0, 2**53 - 1)), tuple(classes), draw(times), draw(times)
+        )
     return StatusMessage(
         stream,
         draw(st.sampled_from(["online", "offline"])),
