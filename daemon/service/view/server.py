@@ -24,7 +24,9 @@ import contextlib
 import itertools
 import json
 import logging
+import os
 import signal
+import socket
 import time
 from collections import deque
 from pathlib import Path
@@ -43,6 +45,9 @@ STATIC = Path(__file__).resolve().parent / "static"
 MAX_PENDING = 512
 """Updates (poses aside) a client may have waiting; past it, a snapshot replaces them."""
 POSE_BATCHES_PER_S = 60
+SEND_BUFFER = 64 * 1024
+"""A client socket's kernel send buffer: a slow client backs up into its coalesced poses soon, not
+into megabytes of stale ones the kernel would hold (its default grows to 4 MiB)."""
 GRACE_S = 2.0
 POLL_S = 1.0
 HEARTBEAT_S = 10.0
@@ -218,6 +223,9 @@ class ViewServer:
     async def _socket(self, request: web.Request) -> web.WebSocketResponse:
         ws = web.WebSocketResponse(heartbeat=HEARTBEAT_S, compress=False, max_msg_size=4096)
         await ws.prepare(request)
+        sock = None if request.transport is None else request.transport.get_extra_info("socket")
+        if sock is not None:
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, SEND_BUFFER)
         client = Client(ws, next(self._numbers), request.remote or "?")
         self.clients[client.number] = client
         self.log.info("client", extra={"fields": {"client": client.number, "peer": client.peer}})
@@ -276,7 +284,7 @@ class ViewServer:
             try:
                 await site.start()
             except OSError as e:
-                why = e.strerror.lower() if e.strerror else str(e)
+                why = os.strerror(e.errno).lower() if e.errno else str(e)
                 raise UsageError(
                     f"{self.settings.host}:{self.settings.port}: {why}", field="--port"
                 ) from None

@@ -212,6 +212,7 @@ class ViewState:
         self._drawers: OrderedDict[tuple[object, ...], Drawer] = OrderedDict()
         self._listed: dict[str, float] = {}
         self._last_tick: float | None = None
+        self._made: list[Event] = []  # the streams the message being taken made
 
     # -------------------------------------------------------------------------------- intake
 
@@ -219,10 +220,12 @@ class ViewState:
         """The browsers' updates from one message of the bus (``now``: a monotonic clock); a message
         that cannot be used is counted and listed (a ``refused`` update), never raised."""
         self.received += 1
+        self._made = []
         try:
-            return self._take(incoming, now)
+            out = self._take(incoming, now)
         except WireError as e:
-            return self._refuse(incoming, e.reason, e.detail, now)
+            out = self._refuse(incoming, e.reason, e.detail, now)
+        return self._made + out if self._made else out
 
     def _take(self, incoming: Incoming, now: float) -> list[Event]:
         if not incoming.topic:
@@ -308,28 +311,29 @@ class ViewState:
             self._drawers.popitem(last=False)
         return drawer
 
-    def _stream(self, name: str, now: float) -> tuple[StreamView, list[Event]]:
-        """The live stream ``name`` (made if new: then also its ``stream`` update)."""
+    def _stream(self, name: str, now: float) -> StreamView:
+        """The live stream ``name`` (made if new: its ``stream`` update goes out whatever follows)."""
         s = self.streams.get(name)
         if s is not None:
             s.seen = now
-            return s, []
+            return s
         if len(self.streams) >= self.max_streams:
             raise WireError("schema", f"more than {self.max_streams} streams at once: not shown")
         s = self.streams[name] = StreamView(name, now)
         known = self.skeletons.get(name)
         if known is not None:
             s.drawer, s.skeleton = self._drawer(known), known
-        return s, [s.info()]
+        self._made.append(s.info())
+        return s
 
     def _pose(self, pose: PoseMessage, arrived: float, now: float) -> list[Event]:
-        s, out = self._stream(pose.stream, now)
+        s = self._stream(pose.stream, now)
         rate = s.skeleton.rate if s.skeleton is not None else 120.0
         last = s.last_seq
         if last is None or pose.epoch != s.epoch or pose.seq < last - NEW_RUN_S * rate:
             s.epoch = pose.epoch  # a new run of its source: numbered afresh
         elif pose.seq <= last:
-            return out  # a repeat, or one overtaken
+            return []  # a repeat, or one overtaken
         elif pose.seq - last - 1 <= GAP_S * rate:
             s.missing += pose.seq - last - 1
         s.last_seq = pose.seq
@@ -337,11 +341,11 @@ class ViewState:
         s.window_received += 1
         s.lag_sum += arrived - pose.time
         s.lag_n += 1
-        if now < s.next_draw or s.drawer is None:
-            return out
-        s.next_draw = (
-            s.next_draw + self.interval if now - s.next_draw < self.interval else now + self.interval
-        )
+        # at most one pose an interval on average; half an interval's slack takes a stream at the
+        # limit whole, however its poses jitter
+        if now < s.next_draw - 0.5 * self.interval or s.drawer is None:
+            return []
+        s.next_draw = max(s.next_draw + self.interval, now + 0.5 * self.interval)
         joints = s.drawer.joints(pose)
         if not np.isfinite(joints).all():
             raise WireError("non_finite", "the pose's joints are not finite")
@@ -353,12 +357,12 @@ class ViewState:
             "time": pose.time,
             "p": np.round(joints, 1).ravel().tolist(),
         }
-        return [*out, s.pose]
+        return [s.pose]
 
     def _detection(self, d: DetectionMessage, now: float) -> list[Event]:
-        s, out = self._stream(d.stream, now)
+        s = self._stream(d.stream, now)
         if d.id in s.ids:
-            return out  # QoS 1 may deliver one twice
+            return []  # QoS 1 may deliver one twice
         s.ids[d.id] = None
         while len(s.ids) > 4 * DETECTIONS_KEPT:
             s.ids.popitem(last=False)
@@ -376,10 +380,10 @@ class ViewState:
             "emit_time": d.emit_time,
         }
         s.detections.append(event)
-        return [*out, event]
+        return [event]
 
     def _progress(self, p: ProgressMessage, now: float) -> list[Event]:
-        s, out = self._stream(p.stream, now)
+        s = self._stream(p.stream, now)
         s.progress = {
             "type": "progress",
             "stream": s.name,
@@ -398,7 +402,7 @@ class ViewState:
                 for c in p.classes
             ],
         }
-        return [*out, s.progress]
+        return [s.progress]
 
     def _refuse(self, incoming: Incoming, reason: str, detail: str, now: float) -> list[Event]:
         self.refusals[reason] += 1
