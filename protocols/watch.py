@@ -1,11 +1,13 @@
 """An observer's subscription to the bus (``mocapd view``): every message of mocapd's topics that the
 bus carries, read-only, handed as :class:`~protocols.transport.Incoming` to a callback.
 
-* MQTT (aiomqtt, clean sessions: the broker keeps nothing for an observer that went away): two
-  connections, one for the poses (QoS 0) and one for the rest (the retained skeletons and status,
-  detections, progress; QoS 1), each with a bounded incoming queue that drops its oldest message
-  when full (counted), so that a flood of poses never crowds out a detection. Each connection is
-  made again after a loss, with a capped back-off.
+* MQTT (the daemon's own transport, :class:`protocols.mqtt.MqttTransport`, on clean sessions: the
+  broker keeps nothing for an observer that went away): two connections, one for the poses (QoS 0)
+  and one for the rest (the retained skeletons and status, detections, progress; QoS 1), each with
+  its bounded queue, fair between streams, that drops the oldest message of the stream holding the
+  most when full (counted), so that a flood of poses never crowds out a detection. Each connection
+  is made again after a loss, with a capped back-off. (aiomqtt's public API costs twice the CPU a
+  message: docs/benchmarks.md, "MQTT intake", and "Live view".)
 * ZeroMQ: a SUB socket connected to the daemon's detections PUB socket, subscribed to ``mocap/`` and
   ``mocapd/`` (there the daemon relays its streams' skeletons, and poses where ``zmq.relay_per_s``
   says so, beside its detections, progress and status); its high-water mark bounds what waits, its
@@ -20,19 +22,17 @@ from __future__ import annotations
 import asyncio
 import itertools
 import logging
-import ssl
 import time
 import uuid
-from collections import Counter
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 
-import aiomqtt
 import zmq
 import zmq.asyncio
 from zmq.utils.monitor import parse_monitor_message
 
+from protocols.mqtt import MqttTransport
 from protocols.transport import Incoming
-from protocols.urls import parse_bus_url, parse_mqtt_url
+from protocols.urls import parse_bus_url
 from protocols.zeromq import RawSource, open_socket
 
 LOG = logging.getLogger("mocapd.watch")
@@ -51,27 +51,12 @@ EVENT_QUEUE = 8192
 """Other messages waiting on the MQTT events connection."""
 ZMQ_HWM = 10_000
 """Messages the SUB socket holds (ZeroMQ drops past it, at the publisher)."""
-RECONNECT_MIN_S, RECONNECT_MAX_S = 0.25, 5.0
+RECONNECT_MAX_S = 5.0
 KEEPALIVE_S = 10
 YIELD_EVERY = 64
 _monitors = itertools.count()
 
 Deliver = Callable[[Incoming], None]
-
-
-def _dropping(counts: Counter[str], name: str) -> type[asyncio.Queue[aiomqtt.Message]]:
-    """aiomqtt's incoming queue (its documented ``queue_type``) bounded by dropping the oldest
-    message, counted in ``counts[name]``, rather than the newest (aiomqtt's own way, logged per
-    message)."""
-
-    class DropOldest(asyncio.Queue[aiomqtt.Message]):
-        def put_nowait(self, item: aiomqtt.Message) -> None:
-            if self.full():
-                self.get_nowait()
-                counts[name] += 1
-            super().put_nowait(item)
-
-    return DropOldest
 
 
 class Watch:
@@ -84,20 +69,36 @@ class Watch:
         self.url = url
         self.kind, self.address = parse_bus_url(url)
         self.received = 0
-        self._dropped: Counter[str] = Counter()
-        self._problems: dict[str, str | None] = (
-            {"poses": "connecting", "events": "connecting"} if self.kind == "mqtt" else {"zmq": "connecting"}
-        )
+        self._problems: dict[str, str | None] = {"zmq": "connecting"}
         self._identity = uuid.uuid4().hex[:12]
+        self._transports: dict[str, MqttTransport] = {}
+        if self.kind == "mqtt":
+            from daemon.config import MqttConfig
+
+            for name, topics, queue in (
+                ("poses", POSE_TOPICS, POSE_QUEUE),
+                ("events", EVENT_TOPICS, EVENT_QUEUE),
+            ):
+                settings = MqttConfig(
+                    url=self.address, queue=queue, keepalive_s=KEEPALIVE_S, reconnect_max_s=RECONNECT_MAX_S
+                )
+                self._transports[name] = MqttTransport(
+                    settings,
+                    client_id=f"mocapd-view-{self._identity}-{name}",
+                    subscribe=topics,
+                    presence=None,
+                    clean_session=True,
+                )
 
     @property
     def problem(self) -> str | None:
-        problems = [f"{name}: {p}" for name, p in self._problems.items() if p is not None]
+        said = {n: t.problem for n, t in self._transports.items()} if self._transports else self._problems
+        problems = [f"{name}: {p}" for name, p in said.items() if p is not None]
         return "; ".join(problems) if problems else None
 
     @property
     def dropped(self) -> int:
-        return sum(self._dropped.values())
+        return sum(t.dropped()["mqtt_incoming_full"] for t in self._transports.values())
 
     async def run(self, deliver: Deliver) -> None:
         """Deliver every message until cancelled (connections lost are made again)."""
@@ -105,48 +106,21 @@ class Watch:
             await self._zmq(deliver)
             return
         async with asyncio.TaskGroup() as group:
-            group.create_task(self._mqtt("poses", POSE_TOPICS, POSE_QUEUE, deliver), name="watch mqtt poses")
-            group.create_task(
-                self._mqtt("events", EVENT_TOPICS, EVENT_QUEUE, deliver), name="watch mqtt events"
-            )
+            for name in self._transports:
+                group.create_task(self._mqtt(name, deliver), name=f"watch mqtt {name}")
 
     # ------------------------------------------------------------------------------------ MQTT
 
-    async def _mqtt(self, name: str, topics: Sequence[tuple[str, int]], queue: int, deliver: Deliver) -> None:
-        host, port, tls = parse_mqtt_url(self.address)
-        delay = RECONNECT_MIN_S
-        while True:
-            try:
-                async with aiomqtt.Client(
-                    host,
-                    port,
-                    identifier=f"mocapd-view-{self._identity}-{name}",
-                    clean_session=True,
-                    keepalive=KEEPALIVE_S,
-                    timeout=10,
-                    tls_context=ssl.create_default_context() if tls else None,
-                    queue_type=_dropping(self._dropped, name),
-                    max_queued_incoming_messages=queue,
-                    logger=LOG,
-                ) as client:
-                    await client.subscribe(list(topics))
-                    self._problems[name] = None
-                    delay = RECONNECT_MIN_S
-                    LOG.info("bus connected", extra={"fields": {"bus": self.url, "connection": name}})
-                    n = 0
-                    async for message in client.messages:
-                        deliver(Incoming(message.topic.value, message.payload, time.time()))
-                        self.received += 1
-                        n += 1
-                        if n % YIELD_EVERY == 0:
-                            await asyncio.sleep(0)
-            except aiomqtt.MqttError as e:
-                self._problems[name] = f"{e} (reconnecting)"
-                LOG.warning(
-                    "bus lost", extra={"fields": {"bus": self.url, "connection": name, "error": str(e)}}
-                )
-            await asyncio.sleep(delay)
-            delay = min(2 * delay, RECONNECT_MAX_S)
+    async def _mqtt(self, name: str, deliver: Deliver) -> None:
+        transport = self._transports[name]
+        async with transport:
+            n = 0
+            async for incoming in transport:
+                deliver(incoming)
+                self.received += 1
+                n += 1
+                if n % YIELD_EVERY == 0:
+                    await asyncio.sleep(0)
 
     # ---------------------------------------------------------------------------------- ZeroMQ
 
