@@ -132,7 +132,7 @@ async def test_the_view_on_mqtt_shows_what_the_broker_carries(tmp_path: Path, br
     assert made == {"type": "stream", "stream": "studio-a", "kind": "positions", "rate": 120.0}
     poses = [p for m in rest if m["type"] == "poses" for p in m["poses"]]
     assert 2 * 30 * 0.8 <= len(poses) <= 2 * 30 + 2  # 240 poses, at most 30 a second sent
-    assert poses[0]["p"][:6] == [0.0, poses[0]["seq"] - 1.0, 0.0, 0.0, poses[0]["seq"] + 4.0, 0.0]
+    assert poses[0]["p"][:6] == [0, 10 * (poses[0]["seq"] - 1), 0, 0, 10 * (poses[0]["seq"] + 4), 0]  # mm
     assert [m["id"] for m in rest if m["type"] == "detection"] == ["id-1"]  # the repeat dropped
     (progress,) = [m for m in rest if m["type"] == "progress"]
     assert progress["classes"][0] | {} == {

@@ -80,8 +80,8 @@ def test_a_channel_stream_is_drawn_by_forward_kinematics_decimated(angle_unit: s
     want = joints_cm(ASF, AMC)
     for e in poses:
         frame = int(e["seq"]) - 1  # type: ignore[call-overload]
-        got = np.array(e["p"]).reshape(26, 3)
-        np.testing.assert_allclose(got, want[frame], atol=0.051)
+        got = np.array(e["p"]).reshape(26, 3) / 10  # whole millimetres
+        np.testing.assert_allclose(got, want[frame], atol=0.0501)
     s = state.streams["13_30"]
     assert (s.received, s.missing, s.drawn) == (2465, 0, len(poses))
 
@@ -96,7 +96,7 @@ def test_a_positions_stream_is_gathered_by_name_in_cm_y_up() -> None:
     assert made == {"type": "stream", "stream": "s", "kind": "positions", "rate": 60.0}
     by_name = {n: joints[i].astype(np.float64) * 100 for i, n in enumerate(names)}
     want = np.array([[by_name[j][0], by_name[j][2], -by_name[j][1]] for j in JOINT_NAMES])
-    np.testing.assert_allclose(np.array(pose["p"]).reshape(26, 3), want, atol=0.051)
+    np.testing.assert_allclose(np.array(pose["p"]).reshape(26, 3) / 10, want, atol=0.0501)
     assert all(0 <= a < 26 and 0 <= b < 26 and a != b for a, b in BONE_INDICES)
 
 

@@ -4,7 +4,7 @@ Pure: :class:`ViewState` takes the bus's messages (:class:`~protocols.transport.
 decoded with :func:`protocols.messages.decode` and otherwise untrusted) and the clock, and returns
 the updates for the browsers (JSON-ready dicts, ``{"type": ...}``); no sockets, no asyncio.
 
-Per stream: its skeleton, the standard joints (:data:`replay.JOINT_NAMES`, centimetres, y up) of
+Per stream: its skeleton, the standard joints (:data:`replay.JOINT_NAMES`, whole millimetres, y up) of
 at most ``poses_per_s`` poses a second (the only poses whose joints are computed: gathered by name
 for a positions stream, by the package's forward kinematics for a channel stream), the poses
 received a second, the lag (arrival - the pose's ``time``), poses missing (sequence gaps), the latest
@@ -99,7 +99,7 @@ def text(value: str, limit: int = TEXT_CHARS) -> str:
 
 
 class Drawer:
-    """A skeleton's way from a pose to the standard joints, centimetres, y up, flat ``(78,)``."""
+    """A skeleton's way from a pose to the standard joints (centimetres, y up, shape ``(26, 3)``)."""
 
     def __init__(self, skeleton: SkeletonMessage) -> None:
         self.kind = skeleton.kind
@@ -355,7 +355,7 @@ class ViewState:
             "stream": s.name,
             "seq": pose.seq,
             "time": pose.time,
-            "p": np.round(joints, 1).ravel().tolist(),
+            "p": np.rint(joints * 10).astype(np.int32).ravel().tolist(),  # mm: ints cost JSON half
         }
         return [s.pose]
 

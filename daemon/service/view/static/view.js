@@ -253,7 +253,7 @@
         minY = Math.min(minY, p[3 * j + 1]);
         maxY = Math.max(maxY, p[3 * j + 1]);
       }
-      this.extent = Math.max(this.extent * 0.995, maxY - minY, 50);
+      this.extent = Math.max(this.extent * 0.995, maxY - minY, 500); // mm
       const cx = p[0];
       const cz = p[2];
       const cy = minY + this.extent / 2;
