@@ -54,6 +54,17 @@ CHROMIUM_ARGS = [
 ]
 
 
+def until(page: Page, expression: str, timeout: float = 30.0) -> None:
+    """Wait until ``expression`` (JavaScript) is true in ``page``, asked through the DevTools protocol:
+    Playwright's ``wait_for_function`` evaluates it with ``eval`` in the page, which the view's
+    Content-Security-Policy refuses."""
+    deadline = time.monotonic() + timeout
+    while not page.evaluate(expression):
+        if time.monotonic() > deadline:
+            raise TimeoutError(f"{expression} did not hold within {timeout:g} s")
+        time.sleep(0.05)
+
+
 def sources(count: int = 12) -> list[tuple[bytes, list[bytes]]]:
     """(ASF text, channel rows packed) of ``count`` recordings spread over the shared data."""
     pairs = recordings(DATA, CMU_SUBSTITUTES)
@@ -107,7 +118,7 @@ def measure(
     """One size: a warm-up, then ``seconds`` measured."""
     prefix = "v"
     load.run(size, 2.0, prefix)
-    page.wait_for_function(f"Object.keys(window.mocapdView.streams).length >= {size}", timeout=30_000)
+    until(page, f"Object.keys(window.mocapdView.streams).length >= {size}")
     before_status, before_cpu, before_browser = status(port), cpu_seconds(view.pid), browser_cpu(others)
     start = page.evaluate(PAGE_START)
     sender = threading.Thread(target=load.run, args=(size, seconds, prefix))
@@ -175,7 +186,7 @@ def main() -> None:
             browser = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
             page = browser.new_page(viewport={"width": 1600, "height": 1000})
             page.goto(f"http://127.0.0.1:{view_port}/")
-            page.wait_for_function("window.mocapdView && window.mocapdView.connected", timeout=10_000)
+            until(page, "window.mocapdView && window.mocapdView.connected")
             print(
                 f"mosquitto on loopback; mocapd view --poses-per-s {args.poses_per_s:g}; one headless "
                 f"Chromium tab (1600x1000); {args.seconds:g} s per size after a 2 s warm-up"

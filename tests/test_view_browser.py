@@ -62,6 +62,12 @@ class Publisher:
         self.client.disconnect()
 
 
+def until(page: Page, expression: str, timeout: float = 10.0) -> None:
+    """Wait until ``expression`` holds in the page, asked through the DevTools protocol (Playwright's
+    ``wait_for_function`` evaluates with ``eval`` in the page, which the view's CSP refuses)."""
+    wait_for(lambda: bool(page.evaluate(expression)), timeout, expression)
+
+
 def loopback_only(page: Page) -> list[str]:
     """Every URL the page asks for, its WebSockets too (checked loopback by the caller)."""
     urls: list[str] = []
@@ -127,7 +133,7 @@ def test_the_page_shows_a_replay_through_the_daemon(tmp_path: Path, browser: Bro
     page.on("pageerror", lambda e: errors.append(str(e)))
     try:
         page.goto(view.url)
-        page.wait_for_function("window.mocapdView && window.mocapdView.snapshots >= 1", timeout=10_000)
+        until(page, "window.mocapdView && window.mocapdView.snapshots >= 1")
         page.wait_for_selector('#daemons .pill[data-state="online"]', timeout=10_000)
         page.wait_for_selector('#health[data-healthy="true"]', timeout=10_000)
         replaying = replay(*TRIAL, broker.url, speed="2")
@@ -140,16 +146,14 @@ def test_the_page_shows_a_replay_through_the_daemon(tmp_path: Path, browser: Bro
         seen = []
         for k, (position, matched) in enumerate([(0.2, ()), (0.55, (600,)), (0.9, (600, 640))]):
             pub.send(progress("13_30", 600 + 40 * k, position, matched))
-            page.wait_for_function(
-                "(p) => (window.mocapdView.streams['13_30']?.progress.Squat?.position ?? -1) === p",
-                arg=position,
-                timeout=5_000,
+            until(
+                page, f"(window.mocapdView.streams['13_30']?.progress.Squat?.position ?? -1) === {position}"
             )
             (row,) = card_of(page, "13_30")["progress"]
             seen.append((row["position"], row["matched"], row["ticks"], row["width"]))
         assert seen == [(0.2, 0, 0, "20%"), (0.55, 1, 1, "55%"), (0.9, 2, 2, "90%")]
         pub.send(ProgressMessage("13_30", 800, (), time.time(), time.time()))  # nothing under way
-        page.wait_for_function("Object.keys(window.mocapdView.streams['13_30'].progress).length === 0")
+        until(page, "Object.keys(window.mocapdView.streams['13_30'].progress).length === 0")
 
         finished(replaying)
         wait_for(lambda: len(card_of(page, "13_30")["detections"]) >= len(want), 20, "the detections")
@@ -187,7 +191,7 @@ def test_bus_text_is_shown_as_text(tmp_path: Path, browser: Browser) -> None:
     urls = loopback_only(page)
     try:
         page.goto(view.url)
-        page.wait_for_function("window.mocapdView && window.mocapdView.snapshots >= 1", timeout=10_000)
+        until(page, "window.mocapdView && window.mocapdView.snapshots >= 1")
         pose = PoseMessage("evil", 1, time.time(), positions=np.zeros((26, 3), np.float32))
         pub.send(pose, on=f"mocap/{XSS[1]}/pose")  # refused (not a stream id), listed
         pub.send(StatusMessage("d-x", "online", XSS[0], 1, 1.0), retain=False)
@@ -204,7 +208,7 @@ def test_bus_text_is_shown_as_text(tmp_path: Path, browser: Browser) -> None:
             lambda: len((card_of(page, "evil") or {"detections": []})["detections"]) == 2, 10, "detections"
         )
         wait_for(lambda: len(card_of(page, "evil")["progress"]) == 2, 10, "progress")
-        page.wait_for_function("document.querySelectorAll('#refused li').length >= 1", timeout=10_000)
+        until(page, "document.querySelectorAll('#refused li').length >= 1")
         page.wait_for_selector('#daemons .pill[data-instance="d-x"]', timeout=10_000)
         page.wait_for_timeout(300)
         card = card_of(page, "evil")

@@ -87,7 +87,7 @@
       this.rate = el("span", "stat", "– poses/s");
       this.lag = el("span", "stat", "lag –");
       this.missing = el("span", "stat", "missing 0");
-      this.latency = el("span", "stat", "drawn –");
+      this.latency = el("span", "stat", "on screen –");
       stats.append(this.rate, this.lag, this.missing, this.latency);
       this.progress = el("div", "progress");
       this.progress.append((this.idle = el("p", "muted small", "no motion under way")));
@@ -138,7 +138,8 @@
       this.rate.textContent = `${fixed(s.rate, 0)} poses/s`;
       this.lag.textContent = `lag ${s.lag === null ? "–" : fixed(s.lag * 1000, 0) + " ms"}`;
       this.missing.textContent = `missing ${s.missing}`;
-      this.latency.textContent = `drawn ${this.rec.latencyMs === null ? "–" : fixed(this.rec.latencyMs, 0) + " ms"} after`;
+      const latency = this.rec.latencyMs === null ? "–" : `${fixed(this.rec.latencyMs, 0)} ms`;
+      this.latency.textContent = `on screen ${latency} after the pose`;
       this.missing.classList.toggle("warn", s.missing > 0);
       this.root.dataset.rate = String(s.rate);
       this.root.dataset.missing = String(s.missing);
