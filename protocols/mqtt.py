@@ -418,7 +418,9 @@ class MqttTransport:
     bounds, keepalive, reconnect back-off; ``daemon.config.MqttConfig``): ``subscribe`` (topic, QoS)
     pairs in, publications out, as ``client_id`` (fixed: the persistent session is the broker's
     record of it). With ``presence`` (the instance name), a starting transport first makes sure no
-    live daemon of that instance is on the broker, and answers the next one's question itself."""
+    live daemon of that instance is on the broker, and answers the next one's question itself.
+    ``clean_session``: a session the broker forgets when the connection ends (an observer's, such
+    as ``mocapd view``'s, which wants nothing kept for it while it is away)."""
 
     name = "mqtt"
 
@@ -429,8 +431,10 @@ class MqttTransport:
         client_id: str,
         subscribe: Sequence[tuple[str, int]],
         presence: str | None,
+        clean_session: bool = False,
     ) -> None:
         self.host, self.port, tls = parse_mqtt_url(settings.url)
+        self.clean_session = clean_session
         self.url = settings.url
         self.settings = settings
         self.client_id = client_id
@@ -533,7 +537,7 @@ class MqttTransport:
             connection = self._connection_to(
                 context,
                 client_id=self.client_id,
-                clean_session=False,
+                clean_session=self.clean_session,
                 will=self._offline,
                 deliver=self._deliver,
                 timeout_s=TIMEOUT_S,

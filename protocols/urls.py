@@ -38,3 +38,20 @@ def split_endpoint(endpoint: str) -> tuple[str, bool]:
     if len(words) == 2 and words[0] in ("bind", "connect"):
         return words[1], words[0] == "bind"
     return endpoint, True
+
+
+def parse_bus_url(url: str) -> tuple[str, str]:
+    """(kind, address) of a bus an observer subscribes to: ``mqtt://HOST[:PORT]`` or ``mqtts://`` (a
+    broker; kind ``mqtt``, the URL itself) or ``zmq+tcp://HOST:PORT`` (the daemon's detections PUB
+    socket; kind ``zmq``, the ZeroMQ endpoint ``tcp://HOST:PORT``); InputError otherwise."""
+    if url.startswith(("mqtt://", "mqtts://")):
+        parse_mqtt_url(url)
+        return "mqtt", url
+    try:
+        parts = urlsplit(url)
+        port = parts.port
+    except ValueError as exc:
+        raise InputError(f"a ZeroMQ bus is zmq+tcp://HOST:PORT, got {url!r}: {exc}") from None
+    if parts.scheme != "zmq+tcp" or not parts.hostname or port is None or parts.path not in ("", "/"):
+        raise InputError(f"a bus is mqtt://HOST[:PORT] or zmq+tcp://HOST:PORT, got {url!r}")
+    return "zmq", f"tcp://{parts.netloc}"

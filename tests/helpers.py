@@ -512,3 +512,56 @@ DETECTION_KEY = ("class", "start_frame", "end_frame", "cost", "tau", "emitted_at
 def detection_keys(items: Sequence[dict[str, Any]]) -> list[tuple[Any, ...]]:
     """What must agree between a detection on the wire and ``mocapd detect``'s: all but the id."""
     return [tuple(d[k] for k in DETECTION_KEY) for d in items]
+
+
+class View(ServerProcess):
+    """``mocapd view`` as a real process on a free port, watching ``bus`` (and the daemon's metrics
+    at ``metrics``): :meth:`start` waits for its ``/api/status``; :meth:`status` reads it; its stderr
+    (JSON log lines) goes to ``where/view.err``."""
+
+    def __init__(self, where: Path, bus: str, *extra: str, metrics: str | None = None) -> None:
+        self.where = where
+        self.port = free_port()
+        self.args = [str(MOCAPD_SCRIPT), "view", "--bus", bus, "--port", str(self.port), *extra]
+        if metrics is not None:
+            self.args += ["--metrics", metrics]
+        self.stderr_path = where / "view.err"
+
+    @property
+    def url(self) -> str:
+        return f"http://127.0.0.1:{self.port}/"
+
+    def start(self) -> View:
+        with self.stderr_path.open("ab") as err:
+            process = self.process = subprocess.Popen(self.args, stdout=subprocess.DEVNULL, stderr=err)
+        wait_for(lambda: self.status() is not None or process.poll() is not None, 30, "mocapd view")
+        assert process.poll() is None, self.stderr_path.read_text()
+        return self
+
+    def status(self) -> dict[str, Any] | None:
+        """``/api/status``; None while it does not answer."""
+        try:
+            with urllib.request.urlopen(f"{self.url}api/status", timeout=2) as r:
+                out: dict[str, Any] = json.loads(r.read())
+                return out
+        except OSError:
+            return None
+
+    def logs(self) -> list[dict[str, Any]]:
+        lines = self.stderr_path.read_text().splitlines()
+        return [json.loads(line) for line in lines if line.startswith("{")]
+
+
+CHROMIUM = "/usr/bin/chromium"
+CHROMIUM_ARGS = [
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-quic",
+    "--no-first-run",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+]
+"""Debian's Chromium, headless, as root, talking to nothing but the page (Playwright gives each
+launch a fresh profile directory)."""

@@ -589,6 +589,7 @@ def test_an_amc_that_does_not_fit_its_skeleton_names_the_asf_too(tmp_path: Path)
 NOT_USER_ERRORS = {
     "daemon.service.app._Stop",  # the service's own signal to end its task group, never shown
     "daemon.service.workers._Stop",  # the same of run --workers' front
+    "daemon.service.view.server._Stop",  # the same of mocapd view
     "protocols.mqtt.MqttLost",  # a lost broker connection, mended by the transport, never shown
 }
 """Exceptions of the project that are not for a user or a client to cause, and why."""

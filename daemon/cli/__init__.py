@@ -38,6 +38,7 @@ COMMANDS = (
     "daemon.cli.segment",
     "daemon.cli.service",
     "daemon.cli.cluster",
+    "daemon.cli.view",
 )
 """The command groups, in the order ``--help`` lists them; each has ``register(subparsers)``."""
 

@@ -1,0 +1,512 @@
+"""What ``mocapd view`` knows of the bus, and the JSON messages it sends the browsers about it.
+
+Pure: :class:`ViewState` takes the bus's messages (:class:`~protocols.transport.Incoming`, each
+decoded with :func:`protocols.messages.decode` and otherwise untrusted) and the clock, and returns
+the updates for the browsers (JSON-ready dicts, ``{"type": ...}``); no sockets, no asyncio.
+
+Per stream: its skeleton, the standard joints (:data:`replay.JOINT_NAMES`, whole millimetres, y up) of
+at most ``poses_per_s`` poses a second (the only poses whose joints are computed: gathered by name
+for a positions stream, by the package's forward kinematics for a channel stream), the poses
+received a second, the lag (arrival - the pose's ``time``), poses missing (sequence gaps), the latest
+progress and the last :data:`DETECTIONS_KEPT` detections. A stream appears with its first pose,
+detection or progress (a retained skeleton alone is remembered, not shown) and is dropped after
+:data:`IDLE_S` seconds without any of them. Everything is bounded: at most ``max_streams`` streams
+(more are refused), :data:`SKELETONS_KEPT` skeletons, :data:`INSTANCES_KEPT` daemon instances, the
+last :data:`REFUSED_KEPT` refusals (per reason at most one a second listed, all counted), and text
+from the bus cut to :data:`TEXT_CHARS` characters.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import Counter, OrderedDict, deque
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from daemon.errors import InputError, printable
+from daemon.recognizer import joint_order, skeleton_model
+from protocols.messages import (
+    DEFAULT_MAX_BYTES,
+    STREAM_ID,
+    DetectionMessage,
+    PoseMessage,
+    ProgressMessage,
+    SkeletonMessage,
+    StatusMessage,
+    WireError,
+    decode,
+    parse_topic,
+)
+from protocols.transport import Incoming
+from replay import JOINT_NAMES, MocapFormatError, parse_asf
+from replay.amc import DEG
+from replay.kinematics import KinematicModel
+
+Event = dict[str, Any]
+"""One JSON message for the browsers."""
+
+IDLE_S = 10.0
+"""A stream with no pose, detection or progress for this long is dropped."""
+MAX_STREAMS = 100
+SKELETONS_KEPT = 400
+DRAWERS_KEPT = 16
+DETECTIONS_KEPT = 50
+REFUSED_KEPT = 50
+INSTANCES_KEPT = 16
+TEXT_CHARS = 200
+NEW_RUN_S = 1.0
+"""A sequence number back by more than this many seconds of frames (or a new epoch) is a new run."""
+GAP_S = 10.0
+"""A gap longer than this many seconds of frames is a new run too, not that many poses missing."""
+
+BONES = (
+    ("root", "lhip"),
+    ("lhip", "lknee"),
+    ("lknee", "lankle"),
+    ("lankle", "ltoes"),
+    ("root", "rhip"),
+    ("rhip", "rknee"),
+    ("rknee", "rankle"),
+    ("rankle", "rtoes"),
+    ("root", "belly"),
+    ("belly", "chest"),
+    ("chest", "neck"),
+    ("neck", "head"),
+    ("head", "headtop"),
+    ("lclavicle", "lshoulder"),
+    ("lshoulder", "lelbow"),
+    ("lelbow", "lwrist"),
+    ("lwrist", "lfingers"),
+    ("lwrist", "lthumb"),
+    ("rclavicle", "rshoulder"),
+    ("rshoulder", "relbow"),
+    ("relbow", "rwrist"),
+    ("rwrist", "rfingers"),
+    ("rwrist", "rthumb"),
+)
+"""The stick figure: bones between standard joints (the clavicle joints sit on the neck)."""
+BONE_INDICES = tuple((JOINT_NAMES.index(a), JOINT_NAMES.index(b)) for a, b in BONES)
+TO_CM = {"m": 100.0, "cm": 1.0, "mm": 0.1, "in": 2.54, "asf": 1.0}
+
+
+def text(value: str, limit: int = TEXT_CHARS) -> str:
+    """Text from the bus as it may be shown: control characters escaped, at most ``limit`` long."""
+    out = printable(value[: limit * 4])
+    return out if len(out) <= limit else out[: limit - 1] + "…"
+
+
+class Drawer:
+    """A skeleton's way from a pose to the standard joints (centimetres, y up, shape ``(26, 3)``)."""
+
+    def __init__(self, skeleton: SkeletonMessage) -> None:
+        self.kind = skeleton.kind
+        self.model: KinematicModel | None = None
+        self.angles: npt.NDArray[np.intp] | None = None
+        self.order: npt.NDArray[np.intp] | None = None
+        try:
+            if skeleton.asf is not None:
+                parsed = parse_asf(skeleton.asf.splitlines(), f"<skeleton of {skeleton.stream}>")
+                self.model = skeleton_model(parsed)
+                self.width = len(parsed.channel_names)
+                if skeleton.angle_unit == "deg":
+                    self.angles = np.asarray(parsed.angle_channels, dtype=np.intp)
+            else:
+                assert skeleton.joints is not None
+                self.order = joint_order(skeleton.joints)
+                self.width = len(skeleton.joints)
+        except (InputError, MocapFormatError) as e:
+            raise WireError("schema", f"skeleton: {e}") from None
+        self.up = skeleton.up
+        self.scale = TO_CM[skeleton.units]
+
+    def joints(self, pose: PoseMessage) -> npt.NDArray[np.float64]:
+        """The 26 standard joints of ``pose``, shape ``(26, 3)``; WireError ``shape`` if the pose is
+        not of this skeleton."""
+        if self.model is not None:
+            if pose.channels is None or len(pose.channels) != self.width:
+                raise WireError("shape", f"a pose of {self.width} channels expected")
+            c = pose.channels.astype(np.float64)
+            if self.angles is not None:
+                c[self.angles] *= DEG
+            out: npt.NDArray[np.float64] = self.model.joints(self.model.positions_frame(c, "cm"))
+            return out
+        assert self.order is not None
+        if pose.positions is None or len(pose.positions) != self.width:
+            raise WireError("shape", f"a pose of {self.width} joints expected")
+        p = pose.positions[self.order].astype(np.float64) * self.scale
+        if self.up == "z":  # to y up: a quarter turn about x
+            p = np.stack([p[:, 0], p[:, 2], -p[:, 1]], axis=1)
+        return p
+
+
+@dataclass
+class StreamView:
+    """One live stream as the view holds it."""
+
+    name: str
+    seen: float
+    skeleton: SkeletonMessage | None = None
+    drawer: Drawer | None = None
+    epoch: str | None = None
+    last_seq: int | None = None
+    received: int = 0
+    missing: int = 0
+    drawn: int = 0
+    next_draw: float = 0.0
+    window_received: int = 0
+    lag_sum: float = 0.0
+    lag_n: int = 0
+    rate: float = 0.0
+    lag: float | None = None
+    pose: Event | None = None
+    progress: Event | None = None
+    detections: deque[Event] = field(default_factory=lambda: deque(maxlen=DETECTIONS_KEPT))
+    ids: OrderedDict[str, None] = field(default_factory=OrderedDict)
+
+    def info(self) -> Event:
+        s = self.skeleton
+        return {
+            "type": "stream",
+            "stream": self.name,
+            "kind": None if s is None else s.kind,
+            "rate": None if s is None else s.rate,
+        }
+
+    def stats(self) -> Event:
+        return {
+            "stream": self.name,
+            "rate": round(self.rate, 1),
+            "lag": None if self.lag is None else round(self.lag, 4),
+            "missing": self.missing,
+            "received": self.received,
+            "drawn": self.drawn,
+        }
+
+
+class ViewState:
+    """The bus as the view sees it (module docstring): :meth:`take` each message, :meth:`tick`
+    once a second, :meth:`snapshot` for a browser that connects."""
+
+    def __init__(
+        self,
+        poses_per_s: float,
+        *,
+        idle_s: float = IDLE_S,
+        max_streams: int = MAX_STREAMS,
+        max_bytes: int = DEFAULT_MAX_BYTES,
+    ) -> None:
+        self.interval = 1.0 / poses_per_s
+        self.poses_per_s = poses_per_s
+        self.idle_s = idle_s
+        self.max_streams = max_streams
+        self.max_bytes = max_bytes
+        self.streams: dict[str, StreamView] = {}
+        self.skeletons: OrderedDict[str, SkeletonMessage] = OrderedDict()
+        self.statuses: OrderedDict[str, Event] = OrderedDict()
+        self.refused: deque[Event] = deque(maxlen=REFUSED_KEPT)
+        self.refusals: Counter[str] = Counter()
+        self.received = 0
+        self._drawers: OrderedDict[tuple[object, ...], Drawer] = OrderedDict()
+        self._listed: dict[str, float] = {}
+        self._last_tick: float | None = None
+        self._made: list[Event] = []  # the streams the message being taken made
+
+    # -------------------------------------------------------------------------------- intake
+
+    def take(self, incoming: Incoming, now: float) -> list[Event]:
+        """The browsers' updates from one message of the bus (``now``: a monotonic clock); a message
+        that cannot be used is counted and listed (a ``refused`` update), never raised."""
+        self.received += 1
+        self._made = []
+        try:
+            out = self._take(incoming, now)
+        except WireError as e:
+            out = self._refuse(incoming, e.reason, e.detail, now)
+        return self._made + out if self._made else out
+
+    def _take(self, incoming: Incoming, now: float) -> list[Event]:
+        if not incoming.topic:
+            raise WireError("undecodable", "not a [topic, payload] message")
+        parts = incoming.topic.split("/")
+        if len(parts) == 3 and parts[0] == "mocapd" and parts[2] == "status":
+            return self._status(parts[1], incoming)
+        parsed = parse_topic(incoming.topic)
+        if parsed is None:
+            raise WireError("schema", "not a topic of mocapd's (mocap/<stream>/<kind>)")
+        stream, word = parsed
+        if word not in ("skeleton", "pose", "detections", "progress"):
+            return []  # boundaries and the like: not shown
+        if word == "skeleton" and not incoming.payload:  # MQTT's way to clear a retained skeleton
+            self.skeletons.pop(stream, None)
+            return []
+        message = decode(incoming.payload, self.max_bytes)
+        wanted = {
+            "skeleton": SkeletonMessage,
+            "pose": PoseMessage,
+            "detections": DetectionMessage,
+            "progress": ProgressMessage,
+        }[word]
+        if not isinstance(message, wanted) or isinstance(message, StatusMessage):
+            raise WireError("type", f"a {type(message).__name__} on a {word} topic")
+        if message.stream != stream:
+            raise WireError("schema", f"a message of stream {message.stream!r} on another stream's topic")
+        if isinstance(message, SkeletonMessage):
+            return self._skeleton(message)
+        if isinstance(message, PoseMessage):
+            return self._pose(message, incoming.received, now)
+        if isinstance(message, DetectionMessage):
+            return self._detection(message, now)
+        assert isinstance(message, ProgressMessage)
+        return self._progress(message, now)
+
+    def _status(self, instance: str, incoming: Incoming) -> list[Event]:
+        if not STREAM_ID.fullmatch(instance):
+            raise WireError("schema", "not an instance id in the status topic")
+        if not incoming.payload:  # a retained status cleared
+            return (
+                [{"type": "status_gone", "instance": instance}] if self.statuses.pop(instance, None) else []
+            )
+        message = decode(incoming.payload, self.max_bytes)
+        if not isinstance(message, StatusMessage) or message.instance != instance:
+            raise WireError("schema", "not the status of the topic's instance")
+        event: Event = {
+            "type": "status",
+            "instance": message.instance,
+            "state": message.state,
+            "version": text(message.version, 40),
+            "streams": message.streams,
+            "started": message.started,
+        }
+        self.statuses[instance] = event
+        self.statuses.move_to_end(instance)
+        while len(self.statuses) > INSTANCES_KEPT:
+            self.statuses.popitem(last=False)
+        return [event]
+
+    def _skeleton(self, message: SkeletonMessage) -> list[Event]:
+        s = self.streams.get(message.stream)
+        if s is not None and s.skeleton == message:
+            return []  # announced again
+        drawer = self._drawer(message)  # a skeleton it cannot use is refused here, the stream kept
+        self.skeletons[message.stream] = message
+        self.skeletons.move_to_end(message.stream)
+        while len(self.skeletons) > SKELETONS_KEPT:
+            self.skeletons.popitem(last=False)
+        if s is None:
+            return []
+        same = s.skeleton is not None and _unepoched(s.skeleton) == _unepoched(message)
+        s.drawer, s.skeleton = drawer, message
+        return [] if same else [s.info()]
+
+    def _drawer(self, message: SkeletonMessage) -> Drawer:
+        """The drawer of ``message`` (many streams announce the same skeleton: made once for the
+        last :data:`DRAWERS_KEPT`)."""
+        key = (message.asf, message.angle_unit, message.joints, message.up, message.units)
+        drawer = self._drawers.pop(key, None) or Drawer(message)
+        self._drawers[key] = drawer
+        while len(self._drawers) > DRAWERS_KEPT:
+            self._drawers.popitem(last=False)
+        return drawer
+
+    def _stream(self, name: str, now: float) -> StreamView:
+        """The live stream ``name`` (made if new: its ``stream`` update goes out whatever follows)."""
+        s = self.streams.get(name)
+        if s is not None:
+            s.seen = now
+            return s
+        if len(self.streams) >= self.max_streams:
+            raise WireError("schema", f"more than {self.max_streams} streams at once: not shown")
+        s = self.streams[name] = StreamView(name, now)
+        known = self.skeletons.get(name)
+        if known is not None:
+            s.drawer, s.skeleton = self._drawer(known), known
+        self._made.append(s.info())
+        return s
+
+    def _pose(self, pose: PoseMessage, arrived: float, now: float) -> list[Event]:
+        s = self._stream(pose.stream, now)
+        rate = s.skeleton.rate if s.skeleton is not None else 120.0
+        last = s.last_seq
+        if last is None or pose.epoch != s.epoch or pose.seq < last - NEW_RUN_S * rate:
+            s.epoch = pose.epoch  # a new run of its source: numbered afresh
+        elif pose.seq <= last:
+            return []  # a repeat, or one overtaken
+        elif pose.seq - last - 1 <= GAP_S * rate:
+            s.missing += pose.seq - last - 1
+        s.last_seq = pose.seq
+        s.received += 1
+        s.window_received += 1
+        s.lag_sum += arrived - pose.time
+        s.lag_n += 1
+        # at most one pose an interval on average; half an interval's slack takes a stream at the
+        # limit whole, however its poses jitter
+        if now < s.next_draw - 0.5 * self.interval or s.drawer is None:
+            return []
+        s.next_draw = max(s.next_draw + self.interval, now + 0.5 * self.interval)
+        joints = s.drawer.joints(pose)
+        if not np.isfinite(joints).all():
+            raise WireError("non_finite", "the pose's joints are not finite")
+        s.drawn += 1
+        s.pose = {
+            "type": "pose",
+            "stream": s.name,
+            "seq": pose.seq,
+            "time": pose.time,
+            "p": np.rint(joints * 10).astype(np.int32).ravel().tolist(),  # mm: ints cost JSON half
+        }
+        return [s.pose]
+
+    def _detection(self, d: DetectionMessage, now: float) -> list[Event]:
+        s = self._stream(d.stream, now)
+        if d.id in s.ids:
+            return []  # QoS 1 may deliver one twice
+        s.ids[d.id] = None
+        while len(s.ids) > 4 * DETECTIONS_KEPT:
+            s.ids.popitem(last=False)
+        event: Event = {
+            "type": "detection",
+            "stream": s.name,
+            "id": text(d.id, 80),
+            "class": text(d.class_name, 128),
+            "start_frame": d.start_frame,
+            "end_frame": d.end_frame,
+            "cost": d.cost,
+            "tau": d.tau,
+            "emitted_at_frame": d.emitted_at_frame,
+            "source_time": d.source_time,
+            "emit_time": d.emit_time,
+        }
+        s.detections.append(event)
+        return [event]
+
+    def _progress(self, p: ProgressMessage, now: float) -> list[Event]:
+        s = self._stream(p.stream, now)
+        s.progress = {
+            "type": "progress",
+            "stream": s.name,
+            "frame": p.frame,
+            "source_time": p.source_time,
+            "emit_time": p.emit_time,
+            "classes": [
+                {
+                    "class": text(c.class_name, 128),
+                    "keyframes": c.keyframes,
+                    "matched": list(c.matched),
+                    "position": c.position,
+                    "cost": c.cost,
+                    "tau": c.tau,
+                }
+                for c in p.classes
+            ],
+        }
+        return [s.progress]
+
+    def _refuse(self, incoming: Incoming, reason: str, detail: str, now: float) -> list[Event]:
+        self.refusals[reason] += 1
+        if now - self._listed.get(reason, -math.inf) < 1.0:
+            return []
+        self._listed[reason] = now
+        event: Event = {
+            "type": "refused",
+            "topic": text(incoming.topic),
+            "reason": reason,
+            "detail": text(detail),
+            "time": incoming.received,
+        }
+        self.refused.append(event)
+        return [event]
+
+    # ----------------------------------------------------------------------------- the clock
+
+    def tick(self, now: float) -> list[Event]:
+        """Once a second: the streams silent for :attr:`idle_s` dropped (``gone``), then every
+        stream's rate, lag and missing poses (``stats``)."""
+        out: list[Event] = []
+        for name in [n for n, s in self.streams.items() if now - s.seen > self.idle_s]:
+            del self.streams[name]
+            out.append({"type": "gone", "stream": name})
+        elapsed = None if self._last_tick is None else max(1e-3, now - self._last_tick)
+        self._last_tick = now
+        for s in self.streams.values():
+            if elapsed is not None:
+                s.rate = s.window_received / elapsed
+            s.lag = s.lag_sum / s.lag_n if s.lag_n else None
+            s.window_received, s.lag_sum, s.lag_n = 0, 0.0, 0
+        out.append({"type": "stats", "streams": [s.stats() for s in self.streams.values()]})
+        return out
+
+    def snapshot(self) -> Event:
+        """Everything a browser that connects needs, in one message."""
+        return {
+            "type": "snapshot",
+            "poses_per_s": self.poses_per_s,
+            "idle_s": self.idle_s,
+            "joints": list(JOINT_NAMES),
+            "bones": [list(b) for b in BONE_INDICES],
+            "streams": [
+                s.info()
+                | {
+                    "pose": s.pose,
+                    "progress": s.progress,
+                    "detections": list(s.detections),
+                    "stats": s.stats(),
+                }
+                for s in self.streams.values()
+            ],
+            "statuses": list(self.statuses.values()),
+            "refused": list(self.refused),
+            "refusals": dict(self.refusals),
+        }
+
+
+def _unepoched(message: SkeletonMessage) -> SkeletonMessage:
+    """The skeleton without its run (the same body announced by a restarted source)."""
+    return SkeletonMessage(
+        message.stream,
+        message.rate,
+        message.joints,
+        message.up,
+        message.units,
+        message.asf,
+        message.angle_unit,
+    )
+
+
+def daemon_health(status: int | None, healthz: str, metrics: str | None) -> Event:
+    """The ``health`` update of one poll of the daemon's ``/healthz`` (``status``, None: no answer;
+    ``healthz``: its text or why it did not answer) and ``/metrics`` (its prometheus text, None: not
+    read): healthy or not and why, the poses it dropped (``mocapd_drops_total``, all reasons and by
+    reason) and, where its streams are labelled, each stream's poses in and detections out."""
+    from prometheus_client.parser import text_string_to_metric_families
+
+    drops: float | None = None
+    by_reason: dict[str, float] = {}
+    streams: dict[str, dict[str, float]] = {}
+    problem = None
+    if metrics is not None:
+        try:
+            for family in text_string_to_metric_families(metrics):
+                for sample in family.samples:
+                    if sample.name == "mocapd_drops_total":
+                        drops = (drops or 0.0) + sample.value
+                        reason = text(str(sample.labels.get("reason", "")), 40)
+                        by_reason[reason] = by_reason.get(reason, 0.0) + sample.value
+                    elif sample.name in ("mocapd_frames_in_total", "mocapd_detections_out_total"):
+                        stream = sample.labels.get("stream")
+                        if stream and len(streams) < MAX_STREAMS:
+                            key = "frames_in" if sample.name == "mocapd_frames_in_total" else "detections_out"
+                            streams.setdefault(text(stream, 128), {})[key] = sample.value
+        except ValueError as e:  # not a prometheus exposition
+            problem = text(f"/metrics: {e}", 120)
+    return {
+        "type": "health",
+        "healthy": None if status is None else status == 200,
+        "text": text(healthz.strip(), 200),
+        "drops": drops,
+        "drops_by_reason": by_reason,
+        "streams": streams,
+        "problem": problem,
+    }

@@ -1,0 +1,500 @@
+// mocapd view: the page. Vanilla JS, no build step. Everything that comes from the bus is shown
+// as text (textContent, attributes through the DOM), never parsed as HTML.
+// What it draws is recorded on window.mocapdView (for tests and figures) and in data-* attributes.
+"use strict";
+
+(() => {
+  const AUTO_SPIN = 0.35; // radians a second
+  const RESUME_SPIN_MS = 3000;
+  const SHOWN_DETECTIONS = 20;
+  const SHOWN_REFUSED = 50;
+  const LATENCIES_KEPT = 4000;
+  const LEFT = new Set(["lhip", "lknee", "lankle", "ltoes", "lclavicle", "lshoulder", "lelbow", "lwrist", "lfingers", "lthumb"]);
+  const RIGHT = new Set(["rhip", "rknee", "rankle", "rtoes", "rclavicle", "rshoulder", "relbow", "rwrist", "rfingers", "rthumb"]);
+
+  const record = {
+    connected: false,
+    snapshots: 0,
+    messages: 0,
+    fps: 0,
+    frames: 0,
+    streams: Object.create(null), // stream id -> what its card drew (a map without a prototype)
+    refused: [],
+    latencies() {
+      return Object.values(this.streams).flatMap((s) => s.latencies);
+    },
+  };
+  window.mocapdView = record;
+
+  let joints = [];
+  let bones = [];
+  const cards = new Map();
+  const daemons = new Map();
+  const $ = (id) => document.getElementById(id);
+
+  function el(tag, className, text) {
+    const node = document.createElement(tag);
+    if (className) node.className = className;
+    if (text !== undefined) node.textContent = text;
+    return node;
+  }
+
+  function fixed(x, digits) {
+    return typeof x === "number" && Number.isFinite(x) ? x.toFixed(digits) : "–";
+  }
+
+  function clock(seconds) {
+    return typeof seconds === "number" ? new Date(seconds * 1000).toLocaleTimeString() : "";
+  }
+
+  // ------------------------------------------------------------------------------ a stream's card
+
+  class Card {
+    constructor(info) {
+      this.id = info.stream;
+      this.pose = null;
+      this.drawnSeq = null;
+      this.yaw = 0.6;
+      this.pitch = 0.3;
+      this.dragging = false;
+      this.touched = -Infinity;
+      this.lastDraw = 0;
+      this.extent = 0;
+      this.ids = new Set();
+      this.progressRows = new Map();
+      this.rec = {
+        posesDrawn: 0,
+        draws: 0,
+        latencyMs: null,
+        latencies: [],
+        lastSeq: null,
+        detections: [],
+        progress: Object.create(null),
+        progressUpdates: 0,
+      };
+      record.streams[this.id] = this.rec;
+
+      const root = (this.root = el("section", "card"));
+      root.dataset.stream = this.id;
+      root.dataset.posesDrawn = "0";
+      const head = el("header", "card-head");
+      head.append(el("h2", "stream-id", this.id), (this.kind = el("span", "kind muted", "")));
+      const canvas = (this.canvas = el("canvas", "figure"));
+      canvas.width = 320;
+      canvas.height = 260;
+      this.ctx = canvas.getContext("2d");
+      const stats = el("div", "stats");
+      this.rate = el("span", "stat", "– poses/s");
+      this.lag = el("span", "stat", "lag –");
+      this.missing = el("span", "stat", "missing 0");
+      this.latency = el("span", "stat", "on screen –");
+      stats.append(this.rate, this.lag, this.missing, this.latency);
+      this.progress = el("div", "progress");
+      this.progress.append((this.idle = el("p", "muted small", "no motion under way")));
+      const timelineHead = el("h3", "small", "Detections");
+      this.timeline = el("ol", "timeline");
+      root.append(head, canvas, stats, el("h3", "small", "Under way"), this.progress, timelineHead, this.timeline);
+      this.update(info);
+      this.orbit();
+    }
+
+    update(info) {
+      const kind = info.kind ? `${info.kind}` : "no skeleton yet";
+      const rate = typeof info.rate === "number" ? ` · ${fixed(info.rate, 0)} Hz` : "";
+      this.kind.textContent = kind + rate;
+    }
+
+    orbit() {
+      const c = this.canvas;
+      let x = 0;
+      let y = 0;
+      c.addEventListener("pointerdown", (e) => {
+        this.dragging = true;
+        x = e.clientX;
+        y = e.clientY;
+        c.setPointerCapture(e.pointerId);
+      });
+      c.addEventListener("pointermove", (e) => {
+        if (!this.dragging) return;
+        this.yaw += (e.clientX - x) * 0.01;
+        this.pitch = Math.max(-1.2, Math.min(1.2, this.pitch + (e.clientY - y) * 0.01));
+        x = e.clientX;
+        y = e.clientY;
+        this.touched = performance.now();
+      });
+      const release = () => {
+        this.dragging = false;
+        this.touched = performance.now();
+      };
+      c.addEventListener("pointerup", release);
+      c.addEventListener("pointercancel", release);
+    }
+
+    setPose(p) {
+      if (Array.isArray(p.p) && p.p.length === joints.length * 3) this.pose = p;
+    }
+
+    setStats(s) {
+      this.rate.textContent = `${fixed(s.rate, 0)} poses/s`;
+      this.lag.textContent = `lag ${s.lag === null ? "–" : fixed(s.lag * 1000, 0) + " ms"}`;
+      this.missing.textContent = `missing ${s.missing}`;
+      const latency = this.rec.latencyMs === null ? "–" : `${fixed(this.rec.latencyMs, 0)} ms`;
+      this.latency.textContent = `on screen ${latency} after the pose`;
+      this.missing.classList.toggle("warn", s.missing > 0);
+      this.root.dataset.rate = String(s.rate);
+      this.root.dataset.missing = String(s.missing);
+      this.root.dataset.posesDrawn = String(this.rec.posesDrawn);
+      if (this.rec.latencyMs !== null) this.root.dataset.latencyMs = String(Math.round(this.rec.latencyMs));
+    }
+
+    setProgress(ev) {
+      this.rec.progressUpdates += 1;
+      const seen = new Set();
+      const rec = Object.create(null);
+      for (const c of ev.classes) {
+        seen.add(c.class);
+        let row = this.progressRows.get(c.class);
+        if (!row) {
+          row = this.progressRow(c.class);
+          this.progressRows.set(c.class, row);
+          this.progress.append(row.root);
+        }
+        const n = c.keyframes;
+        const k = c.matched.length;
+        while (row.ticks.childElementCount < n) row.ticks.append(el("span", "tick"));
+        while (row.ticks.childElementCount > n) row.ticks.lastChild.remove();
+        Array.from(row.ticks.children).forEach((t, i) => t.classList.toggle("on", i < k));
+        row.keys.textContent = n ? `${k}/${n} keyframes` : "no keyframes";
+        row.fill.style.width = `${Math.round(c.position * 1000) / 10}%`;
+        row.cost.textContent = `cost ${fixed(c.cost, 3)} / τ ${fixed(c.tau, 3)}`;
+        row.cost.classList.toggle("ok", c.cost <= c.tau);
+        row.root.dataset.position = String(c.position);
+        row.root.dataset.matched = String(k);
+        row.root.dataset.keyframes = String(n);
+        row.root.dataset.cost = String(c.cost);
+        rec[c.class] = { position: c.position, matched: k, keyframes: n, cost: c.cost, tau: c.tau };
+      }
+      for (const [name, row] of this.progressRows) {
+        if (!seen.has(name)) {
+          row.root.remove();
+          this.progressRows.delete(name);
+        }
+      }
+      this.rec.progress = rec;
+      this.idle.hidden = this.progressRows.size > 0;
+    }
+
+    progressRow(name) {
+      const root = el("div", "class-progress");
+      root.dataset.class = name;
+      const label = el("div", "class-head");
+      const keys = el("span", "keys muted small");
+      label.append(el("span", "class-name", name), keys);
+      const bar = el("div", "bar");
+      const fill = el("div", "fill");
+      bar.append(fill);
+      const ticks = el("div", "ticks");
+      const cost = el("span", "cost small");
+      const foot = el("div", "class-foot");
+      foot.append(ticks, cost);
+      root.append(label, bar, foot);
+      return { root, keys, fill, ticks, cost };
+    }
+
+    addDetection(d) {
+      if (this.ids.has(d.id)) return;
+      this.ids.add(d.id);
+      this.rec.detections.push({ id: d.id, class: d.class, start: d.start_frame, end: d.end_frame, cost: d.cost, tau: d.tau });
+      const li = el("li", "detection");
+      li.dataset.class = d.class;
+      li.dataset.start = String(d.start_frame);
+      li.dataset.end = String(d.end_frame);
+      li.dataset.id = d.id;
+      li.append(
+        el("span", "class-name", d.class),
+        el("span", "frames", `${d.start_frame}–${d.end_frame}`),
+        el("span", "cost ok small", `${fixed(d.cost, 3)} ≤ τ ${fixed(d.tau, 3)}`),
+        el("time", "muted small", clock(d.emit_time)),
+      );
+      this.timeline.prepend(li);
+      while (this.timeline.childElementCount > SHOWN_DETECTIONS) this.timeline.lastChild.remove();
+    }
+
+    draw(now) {
+      const spinning = !this.dragging && now - this.touched > RESUME_SPIN_MS;
+      const dt = this.lastDraw ? Math.min(0.1, (now - this.lastDraw) / 1000) : 0;
+      const fresh = this.pose !== null && this.pose.seq !== this.drawnSeq;
+      if (spinning) this.yaw += AUTO_SPIN * dt;
+      this.lastDraw = now;
+      if (!fresh && !this.dragging && !(spinning && this.pose)) return;
+      this.render();
+      this.rec.draws += 1;
+      if (fresh) {
+        this.drawnSeq = this.pose.seq;
+        const latency = Date.now() - this.pose.time * 1000;
+        this.rec.posesDrawn += 1;
+        this.rec.latencyMs = latency;
+        this.rec.lastSeq = this.pose.seq;
+        this.rec.latencies.push(latency);
+        if (this.rec.latencies.length > LATENCIES_KEPT) this.rec.latencies.splice(0, LATENCIES_KEPT / 2);
+      }
+    }
+
+    render() {
+      const ctx = this.ctx;
+      const w = this.canvas.width;
+      const h = this.canvas.height;
+      ctx.fillStyle = "#10161f";
+      ctx.fillRect(0, 0, w, h);
+      const p = this.pose.p;
+      const n = joints.length;
+      let minY = Infinity;
+      let maxY = -Infinity;
+      for (let j = 0; j < n; j++) {
+        minY = Math.min(minY, p[3 * j + 1]);
+        maxY = Math.max(maxY, p[3 * j + 1]);
+      }
+      this.extent = Math.max(this.extent * 0.995, maxY - minY, 500); // mm
+      const cx = p[0];
+      const cz = p[2];
+      const cy = minY + this.extent / 2;
+      const scale = (h * 0.78) / this.extent;
+      const cosY = Math.cos(this.yaw);
+      const sinY = Math.sin(this.yaw);
+      const cosP = Math.cos(this.pitch);
+      const sinP = Math.sin(this.pitch);
+      const depth = this.extent * 4;
+      const project = (x, y, z) => {
+        const dx = x - cx;
+        const dy = y - cy;
+        const dz = z - cz;
+        const x1 = dx * cosY + dz * sinY;
+        const z1 = -dx * sinY + dz * cosY;
+        const y2 = dy * cosP - z1 * sinP;
+        const z2 = dy * sinP + z1 * cosP;
+        const s = (scale * depth) / (depth + z2);
+        return [w / 2 + x1 * s, h / 2 - y2 * s];
+      };
+      // the floor under the figure: a ring of radius half its height, for depth
+      ctx.strokeStyle = "#2a3646";
+      ctx.lineWidth = 1;
+      ctx.beginPath();
+      for (let i = 0; i <= 48; i++) {
+        const a = (i / 48) * 2 * Math.PI;
+        const r = this.extent * 0.5;
+        const [u, v] = project(cx + r * Math.cos(a), minY, cz + r * Math.sin(a));
+        if (i === 0) ctx.moveTo(u, v);
+        else ctx.lineTo(u, v);
+      }
+      ctx.stroke();
+      const screen = new Array(n);
+      for (let j = 0; j < n; j++) screen[j] = project(p[3 * j], p[3 * j + 1], p[3 * j + 2]);
+      ctx.lineWidth = 3;
+      ctx.lineCap = "round";
+      for (const [a, b] of bones) {
+        const name = joints[b];
+        ctx.strokeStyle = LEFT.has(name) ? "#5fb3ff" : RIGHT.has(name) ? "#ffb35f" : "#d7dde6";
+        ctx.beginPath();
+        ctx.moveTo(screen[a][0], screen[a][1]);
+        ctx.lineTo(screen[b][0], screen[b][1]);
+        ctx.stroke();
+      }
+      const head = joints.indexOf("head");
+      if (head >= 0) {
+        ctx.fillStyle = "#d7dde6";
+        ctx.beginPath();
+        ctx.arc(screen[head][0], screen[head][1], 4, 0, 2 * Math.PI);
+        ctx.fill();
+      }
+    }
+
+    remove() {
+      this.root.remove();
+      delete record.streams[this.id];
+    }
+  }
+
+  // ---------------------------------------------------------------------------------- the page
+
+  function card(info) {
+    let c = cards.get(info.stream);
+    if (!c) {
+      c = new Card(info);
+      cards.set(info.stream, c);
+      $("streams").append(c.root);
+      $("empty").hidden = true;
+    } else {
+      c.update(info);
+    }
+    return c;
+  }
+
+  function gone(id) {
+    const c = cards.get(id);
+    if (c) {
+      c.remove();
+      cards.delete(id);
+    }
+    $("empty").hidden = cards.size > 0;
+  }
+
+  function status(s) {
+    daemons.set(s.instance, s);
+    renderDaemons();
+  }
+
+  function renderDaemons() {
+    const box = $("daemons");
+    box.replaceChildren();
+    for (const d of daemons.values()) {
+      const pill = el("span", `pill ${d.state === "online" ? "ok" : "bad"}`);
+      pill.dataset.instance = d.instance;
+      pill.dataset.state = d.state;
+      pill.append(
+        el("strong", "", d.instance),
+        document.createTextNode(` ${d.state} · mocapd ${d.version} · ${d.streams} streams`),
+      );
+      box.append(pill);
+    }
+    if (!daemons.size) box.append(el("span", "pill muted", "no daemon status yet"));
+  }
+
+  function health(h) {
+    const pill = $("health");
+    if (!h) {
+      pill.className = "pill muted";
+      pill.textContent = "health: not watched";
+      return;
+    }
+    const state = h.healthy === null ? "no answer" : h.healthy ? "healthy" : `unhealthy: ${h.text}`;
+    const drops = typeof h.drops === "number" ? ` · drops ${Math.round(h.drops)}` : "";
+    pill.className = `pill ${h.healthy ? "ok" : "bad"}`;
+    pill.textContent = `daemon ${state}${drops}`;
+    pill.title = h.healthy === null ? h.text : "the daemon's /healthz and /metrics";
+    pill.dataset.healthy = String(h.healthy);
+    pill.dataset.drops = String(h.drops);
+  }
+
+  function bus(b) {
+    const pill = $("bus");
+    pill.className = `pill ${b.connected ? "ok" : "bad"}`;
+    pill.textContent = `bus ${b.url} ${b.connected ? "connected" : b.problem} · ${b.received} messages · ${b.refused} refused`;
+    pill.dataset.connected = String(b.connected);
+  }
+
+  function refused(r) {
+    record.refused.push(r);
+    if (record.refused.length > SHOWN_REFUSED) record.refused.shift();
+    const li = el("li", "refusal");
+    li.dataset.reason = r.reason;
+    li.append(
+      el("time", "muted small", clock(r.time)),
+      el("span", "reason", r.reason),
+      el("code", "topic", r.topic),
+      el("span", "detail muted", r.detail),
+    );
+    const list = $("refused");
+    list.prepend(li);
+    while (list.childElementCount > SHOWN_REFUSED) list.lastChild.remove();
+  }
+
+  function snapshot(s) {
+    record.snapshots += 1;
+    joints = s.joints;
+    bones = s.bones;
+    for (const id of [...cards.keys()]) gone(id);
+    daemons.clear();
+    for (const st of s.statuses) daemons.set(st.instance, st);
+    renderDaemons();
+    for (const info of s.streams) {
+      const c = card(info);
+      if (info.pose) c.setPose(info.pose);
+      if (info.progress) c.setProgress(info.progress);
+      for (const d of info.detections) c.addDetection(d);
+      c.setStats(info.stats);
+    }
+    $("refused").replaceChildren();
+    record.refused = [];
+    for (const r of s.refused) refused(r);
+    $("refused-count").textContent = String(Object.values(s.refusals).reduce((a, b) => a + b, 0));
+    bus(s.bus);
+    health(s.health);
+    $("empty").hidden = cards.size > 0;
+  }
+
+  const handlers = {
+    snapshot,
+    stream: card,
+    gone: (m) => gone(m.stream),
+    poses: (m) => {
+      for (const p of m.poses) cards.get(p.stream)?.setPose(p);
+    },
+    progress: (m) => cards.get(m.stream)?.setProgress(m),
+    detection: (m) => cards.get(m.stream)?.addDetection(m),
+    status,
+    status_gone: (m) => {
+      daemons.delete(m.instance);
+      renderDaemons();
+    },
+    refused: (m) => {
+      refused(m);
+      const n = $("refused-count");
+      n.textContent = String(Number(n.textContent) + 1);
+    },
+    stats: (m) => {
+      for (const s of m.streams) cards.get(s.stream)?.setStats(s);
+    },
+    bus: (m) => {
+      bus(m);
+      $("refused-count").textContent = String(m.refused);
+    },
+    health,
+  };
+
+  // --------------------------------------------------------------------------- the connection
+
+  let retry = 500;
+  function connect() {
+    const link = $("link");
+    const ws = new WebSocket(`${location.protocol === "https:" ? "wss" : "ws"}://${location.host}/ws`);
+    ws.onopen = () => {
+      retry = 500;
+      record.connected = true;
+      link.className = "pill ok";
+      link.textContent = "live";
+    };
+    ws.onmessage = (e) => {
+      record.messages += 1;
+      const m = JSON.parse(e.data);
+      const handle = Object.prototype.hasOwnProperty.call(handlers, m.type) ? handlers[m.type] : null;
+      if (handle) handle(m);
+    };
+    ws.onclose = () => {
+      record.connected = false;
+      link.className = "pill bad";
+      link.textContent = "disconnected: reconnecting…";
+      setTimeout(connect, retry);
+      retry = Math.min(5000, retry * 2);
+    };
+  }
+
+  // ------------------------------------------------------------------------------- the drawing
+
+  let second = performance.now();
+  let inSecond = 0;
+  function frame(now) {
+    record.frames += 1;
+    inSecond += 1;
+    if (now - second >= 1000) {
+      record.fps = (inSecond * 1000) / (now - second);
+      $("fps").textContent = `${fixed(record.fps, 0)} fps`;
+      second = now;
+      inSecond = 0;
+    }
+    for (const c of cards.values()) c.draw(now);
+    requestAnimationFrame(frame);
+  }
+
+  connect();
+  requestAnimationFrame(frame);
+})();

@@ -1,0 +1,240 @@
+"""The live view's page in a real browser (Playwright driving Debian's Chromium, headless): a real
+mosquitto, a real daemon, ``mocapd view`` and ``mocapd replay`` as real processes; what the page
+shows is read from its DOM and from what it records on ``window.mocapdView``."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+from urllib.parse import urlsplit
+
+import numpy as np
+import paho.mqtt.client as paho
+import pytest
+from paho.mqtt.enums import CallbackAPIVersion
+from playwright.sync_api import Browser, Page, sync_playwright
+
+from daemon.library import default_library_path, load_library
+from daemon.recognizer import detect
+from daemon.recordings import read_recording
+from protocols.messages import (
+    ClassProgress,
+    DetectionMessage,
+    Message,
+    PoseMessage,
+    ProgressMessage,
+    SkeletonMessage,
+    StatusMessage,
+    encode,
+    topic,
+)
+from replay import JOINT_NAMES
+from tests.helpers import CHROMIUM, CHROMIUM_ARGS, DATA, Broker, Daemon, View, finished, replay, wait_for
+
+TRIAL = (DATA / "cmu" / "13" / "13.asf", DATA / "cmu" / "13" / "13_30.amc.gz")
+XSS = ("<script>window.__xss=1</script>", '<img src=x onerror="window.__xss=1">')
+
+
+@pytest.fixture(scope="module")
+def browser() -> Iterator[Browser]:
+    with sync_playwright() as p:
+        b = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
+        yield b
+        b.close()
+
+
+class Publisher:
+    def __init__(self, url: str) -> None:
+        host, port = url.removeprefix("mqtt://").split(":")
+        self.client = paho.Client(
+            CallbackAPIVersion.VERSION2, client_id=f"test-browser-{time.monotonic_ns()}"
+        )
+        self.client.connect(host, int(port))
+        self.client.loop_start()
+
+    def send(self, message: Message, on: str | None = None, retain: bool = False) -> None:
+        self.client.publish(on or topic(message), encode(message), qos=1, retain=retain).wait_for_publish(5)
+
+    def close(self) -> None:
+        self.client.loop_stop()
+        self.client.disconnect()
+
+
+def until(page: Page, expression: str, timeout: float = 10.0) -> None:
+    """Wait until ``expression`` holds in the page, asked through the DevTools protocol (Playwright's
+    ``wait_for_function`` evaluates with ``eval`` in the page, which the view's CSP refuses)."""
+    wait_for(lambda: bool(page.evaluate(expression)), timeout, expression)
+
+
+def loopback_only(page: Page) -> list[str]:
+    """Every URL the page asks for, its WebSockets too (checked loopback by the caller)."""
+    urls: list[str] = []
+    page.on("request", lambda r: urls.append(r.url))
+    page.on("websocket", lambda ws: urls.append(ws.url))
+    return urls
+
+
+def card_of(page: Page, stream: str) -> Any:
+    """The DOM facts of ``stream``'s card (None while it has none)."""
+    return page.evaluate(
+        """(id) => {
+            const card = [...document.querySelectorAll('section.card')].find((c) => c.dataset.stream === id);
+            if (!card) return null;
+            return {
+                title: card.querySelector('h2').textContent,
+                detections: [...card.querySelectorAll('li.detection')].map((li) => ({
+                    class: li.dataset.class, start: Number(li.dataset.start), end: Number(li.dataset.end),
+                    text: li.querySelector('.class-name').textContent,
+                })),
+                progress: [...card.querySelectorAll('.class-progress')].map((row) => ({
+                    class: row.dataset.class, position: Number(row.dataset.position),
+                    matched: Number(row.dataset.matched), keyframes: Number(row.dataset.keyframes),
+                    width: row.querySelector('.fill').style.width,
+                    ticks: row.querySelectorAll('.tick.on').length,
+                    text: row.querySelector('.class-name').textContent,
+                })),
+                canvas: card.querySelector('canvas').toDataURL(),
+            };
+        }""",
+        stream,
+    )
+
+
+def progress(stream: str, frame: int, position: float, matched: tuple[int, ...]) -> ProgressMessage:
+    c = ClassProgress("Squat", 3, matched, position, 0.4 * position * 0.25, 0.25)
+    return ProgressMessage(stream, frame, (c,), time.time(), time.time())
+
+
+@pytest.mark.slow
+def test_the_page_shows_a_replay_through_the_daemon(tmp_path: Path, browser: Browser) -> None:
+    """A replay of CMU 13_30 through mosquitto and a daemon: its card appears, its figure moves,
+    the detections ``mocapd detect`` gives on the recording land in its timeline with the same
+    classes and frames, progress bars move with the progress messages published; every request
+    the page makes is to loopback; a closed tab frees the view's client."""
+    want = [
+        (d.class_name, d.start_frame, d.end_frame)
+        for d in detect(read_recording(*TRIAL), load_library(default_library_path()), 120.0)
+    ]
+    broker = Broker(tmp_path).start()
+    daemon = Daemon(
+        tmp_path,
+        sources=["mqtt"],
+        sinks=["mqtt"],
+        mqtt=broker.url,
+        config={"service": {"queue_frames": 100_000}},
+    ).start()
+    view = View(tmp_path, broker.url, metrics=f"http://127.0.0.1:{daemon.metrics_port}").start()
+    pub = Publisher(broker.url)
+    page = browser.new_page(viewport={"width": 1280, "height": 900})
+    urls = loopback_only(page)
+    errors: list[str] = []
+    page.on("pageerror", lambda e: errors.append(str(e)))
+    try:
+        page.goto(view.url)
+        until(page, "window.mocapdView && window.mocapdView.snapshots >= 1")
+        page.wait_for_selector('#daemons .pill[data-state="online"]', timeout=10_000)
+        page.wait_for_selector('#health[data-healthy="true"]', timeout=10_000)
+        replaying = replay(*TRIAL, broker.url, speed="2")
+        wait_for(lambda: card_of(page, "13_30") is not None, 15, "the stream's card")
+        first = card_of(page, "13_30")["canvas"]
+        page.wait_for_timeout(250)
+        assert card_of(page, "13_30")["canvas"] != first, "the figure did not change between frames"
+
+        # progress bars move with the progress messages (the daemon's own: after issue 24 part 1)
+        seen = []
+        for k, (position, matched) in enumerate([(0.2, ()), (0.55, (600,)), (0.9, (600, 640))]):
+            pub.send(progress("13_30", 600 + 40 * k, position, matched))
+            until(
+                page, f"(window.mocapdView.streams['13_30']?.progress.Squat?.position ?? -1) === {position}"
+            )
+            (row,) = card_of(page, "13_30")["progress"]
+            seen.append((row["position"], row["matched"], row["ticks"], row["width"]))
+        assert seen == [(0.2, 0, 0, "20%"), (0.55, 1, 1, "55%"), (0.9, 2, 2, "90%")]
+        pub.send(ProgressMessage("13_30", 800, (), time.time(), time.time()))  # nothing under way
+        until(page, "Object.keys(window.mocapdView.streams['13_30'].progress).length === 0")
+
+        finished(replaying)
+        wait_for(lambda: len(card_of(page, "13_30")["detections"]) >= len(want), 20, "the detections")
+        card = card_of(page, "13_30")
+        shown = [(d["class"], d["start"], d["end"]) for d in reversed(card["detections"])]  # newest first
+        recorded = page.evaluate("window.mocapdView.streams['13_30'].detections")
+        assert shown == want == [(d["class"], d["start"], d["end"]) for d in recorded]
+        assert [d["text"] for d in reversed(card["detections"])] == [c for c, _, _ in want]
+        facts = page.evaluate(
+            """() => { const s = window.mocapdView.streams['13_30'];
+                       return {drawn: s.posesDrawn, latency: s.latencyMs, fps: window.mocapdView.fps}; }"""
+        )
+        assert facts["drawn"] >= 100 and 0 <= facts["latency"] < 1000 and facts["fps"] > 5
+        assert view.status()["clients"] == 1  # type: ignore[index]
+    finally:
+        page.close()
+        pub.close()
+    try:
+        wait_for(lambda: view.status()["clients"] == 0, 10, "the closed tab's client freed")  # type: ignore[index]
+        assert errors == []
+        assert urls and all(urlsplit(u).hostname == "127.0.0.1" for u in urls), urls
+    finally:
+        view.stop()
+        daemon.stop()
+        broker.stop()
+
+
+def test_bus_text_is_shown_as_text(tmp_path: Path, browser: Browser) -> None:
+    """A topic level, class names and a version holding markup, and stream ids that are names of
+    JavaScript's object prototype, are shown as text: nothing runs, no element is made of them."""
+    broker = Broker(tmp_path).start()
+    view = View(tmp_path, broker.url).start()
+    pub = Publisher(broker.url)
+    page = browser.new_page()
+    urls = loopback_only(page)
+    try:
+        page.goto(view.url)
+        until(page, "window.mocapdView && window.mocapdView.snapshots >= 1")
+        pose = PoseMessage("evil", 1, time.time(), positions=np.zeros((26, 3), np.float32))
+        pub.send(pose, on=f"mocap/{XSS[1]}/pose")  # refused (not a stream id), listed
+        pub.send(StatusMessage("d-x", "online", XSS[0], 1, 1.0), retain=False)
+        for stream in ("evil", "__proto__", "constructor"):
+            pub.send(SkeletonMessage(stream, 120.0, JOINT_NAMES))
+            pub.send(PoseMessage(stream, 1, time.time(), positions=pose.positions))
+        for k, name in enumerate(XSS):
+            pub.send(
+                DetectionMessage(f"x{k}", "evil", name, 10 * k, 10 * k + 5, 0.01, 0.1, 10 * k + 9, 1.0, 2.0)
+            )
+        c = ClassProgress(XSS[1], 2, (3,), 0.5, 0.01, 0.1)
+        pub.send(ProgressMessage("evil", 12, (c, ClassProgress(XSS[0], 0, (), 0.25, 0.2, 0.1)), 1.0, 2.0))
+        wait_for(
+            lambda: len((card_of(page, "evil") or {"detections": []})["detections"]) == 2, 10, "detections"
+        )
+        wait_for(lambda: len(card_of(page, "evil")["progress"]) == 2, 10, "progress")
+        until(page, "document.querySelectorAll('#refused li').length >= 1")
+        page.wait_for_selector('#daemons .pill[data-instance="d-x"]', timeout=10_000)
+        page.wait_for_timeout(300)
+        card = card_of(page, "evil")
+        assert sorted(d["text"] for d in card["detections"]) == sorted(XSS)
+        assert sorted(p["text"] for p in card["progress"]) == sorted(XSS)
+        facts = page.evaluate(
+            """() => ({
+                xss: typeof window.__xss,
+                scripts: [...document.scripts].map((s) => s.getAttribute('src')),
+                images: document.images.length,
+                refused: [...document.querySelectorAll('#refused li .topic')].map((e) => e.textContent),
+                daemon: document.querySelector('#daemons .pill[data-instance="d-x"]').textContent,
+                titles: [...document.querySelectorAll('section.card h2')].map((h) => h.textContent).sort(),
+                recorded: Object.keys(window.mocapdView.streams).sort(),
+                protoIntact: ({}).constructor === Object && typeof ({}).hasOwnProperty === "function",
+            })"""
+        )
+        assert facts["xss"] == "undefined"
+        assert facts["scripts"] == ["/static/view.js"] and facts["images"] == 0
+        assert facts["refused"] == [f"mocap/{XSS[1]}/pose"]
+        assert XSS[0] in facts["daemon"]
+        assert facts["titles"] == facts["recorded"] == ["__proto__", "constructor", "evil"]
+        assert facts["protoIntact"]
+        assert all(urlsplit(u).hostname == "127.0.0.1" for u in urls), urls
+    finally:
+        page.close()
+        pub.close()
+        view.stop()
+        broker.stop()

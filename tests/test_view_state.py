@@ -1,0 +1,219 @@
+"""The live view's state (daemon/service/view/state.py), pure: real recordings' messages in, the
+browsers' updates out; decimation, the joints drawn, rate, lag, missing poses, refusals, bounds."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from daemon.recordings import read_recording
+from daemon.service.metrics import Metrics
+from daemon.service.view.state import (
+    BONE_INDICES,
+    DETECTIONS_KEPT,
+    ViewState,
+    daemon_health,
+)
+from protocols.messages import (
+    ClassProgress,
+    DetectionMessage,
+    Message,
+    PoseMessage,
+    ProgressMessage,
+    SkeletonMessage,
+    StatusMessage,
+    encode,
+    topic,
+)
+from protocols.publish import messages
+from protocols.transport import Incoming
+from replay import JOINT_NAMES
+from tests.helpers import DATA, joints_cm
+
+ASF, AMC = DATA / "cmu" / "13" / "13.asf", DATA / "cmu" / "13" / "13_30.amc.gz"
+XSS = ("<script>window.__xss=1</script>", '<img src=x onerror="window.__xss=1">')
+
+
+def wire(message: Message, at: float = 1000.0) -> Incoming:
+    return Incoming(topic(message), encode(message), at)
+
+
+def feed(state: ViewState, items: list[Message], rate: float = 120.0) -> list[dict[str, object]]:
+    """Every message at its own time (pose k at k / rate seconds); the updates."""
+    out = []
+    for k, m in enumerate(items):
+        out += state.take(wire(m, 1000.0 + k / rate), k / rate)
+    return out
+
+
+def recording(stream: str = "13_30", angle_unit: str = "rad") -> list[Message]:
+    motion = read_recording(ASF, AMC)
+    items: list[Message] = list(messages(motion, ASF.read_text(), stream, 120.0, 1, epoch="run1"))
+    if angle_unit == "deg":
+        skeleton = items[0]
+        assert isinstance(skeleton, SkeletonMessage)
+        angles = np.asarray(motion.skeleton.angle_channels)
+        items[0] = SkeletonMessage(stream, 120.0, asf=skeleton.asf, angle_unit="deg", epoch="run1")
+        for k, m in enumerate(items[1:], 1):
+            assert isinstance(m, PoseMessage) and m.channels is not None
+            c = m.channels.copy()
+            c[angles] = np.degrees(c[angles])
+            items[k] = PoseMessage(stream, m.seq, 1000.0 + k / 120, channels=c, epoch="run1")
+    return [
+        PoseMessage(m.stream, m.seq, 1000.0 + k / 120, channels=m.channels, epoch=m.epoch)
+        if isinstance(m, PoseMessage)
+        else m
+        for k, m in enumerate(items)
+    ]
+
+
+@pytest.mark.parametrize("angle_unit", ["rad", "deg"])
+def test_a_channel_stream_is_drawn_by_forward_kinematics_decimated(angle_unit: str) -> None:
+    state = ViewState(30.0)
+    out = feed(state, recording(angle_unit=angle_unit))
+    poses = [e for e in out if e["type"] == "pose"]
+    assert [e["type"] for e in out[:1]] == ["stream"]
+    assert len(poses) == pytest.approx(2465 / 4, abs=2)  # 120 Hz to at most 30 a second
+    want = joints_cm(ASF, AMC)
+    for e in poses:
+        frame = int(e["seq"]) - 1  # type: ignore[call-overload]
+        got = np.array(e["p"]).reshape(26, 3) / 10  # whole millimetres
+        np.testing.assert_allclose(got, want[frame], atol=0.0501)
+    s = state.streams["13_30"]
+    assert (s.received, s.missing, s.drawn) == (2465, 0, len(poses))
+
+
+def test_a_positions_stream_is_gathered_by_name_in_cm_y_up() -> None:
+    rng = np.random.default_rng(1)
+    names = ["extra", *reversed(JOINT_NAMES)]
+    joints = rng.normal(size=(len(names), 3)).astype(np.float32)
+    state = ViewState(30.0)
+    state.take(wire(SkeletonMessage("s", 60.0, tuple(names), up="z", units="m")), 0.0)
+    (made, pose) = state.take(wire(PoseMessage("s", 5, 999.0, positions=joints)), 0.0)
+    assert made == {"type": "stream", "stream": "s", "kind": "positions", "rate": 60.0}
+    by_name = {n: joints[i].astype(np.float64) * 100 for i, n in enumerate(names)}
+    want = np.array([[by_name[j][0], by_name[j][2], -by_name[j][1]] for j in JOINT_NAMES])
+    np.testing.assert_allclose(np.array(pose["p"]).reshape(26, 3) / 10, want, atol=0.0501)
+    assert all(0 <= a < 26 and 0 <= b < 26 and a != b for a, b in BONE_INDICES)
+
+
+def test_rate_lag_and_missing_poses() -> None:
+    state = ViewState(30.0)
+    state.take(wire(SkeletonMessage("s", 120.0, JOINT_NAMES)), 0.0)
+    p = np.zeros((26, 3), np.float32)
+    state.tick(0.0)
+    seqs = [*range(1, 61), *range(71, 131), 130, 129]  # 10 lost, a repeat, one overtaken
+    for k, seq in enumerate(seqs):
+        state.take(
+            Incoming("mocap/s/pose", encode(PoseMessage("s", seq, 100.0 + k / 120, p)), 100.025 + k / 120),
+            k / 120,
+        )
+    (stats,) = state.tick(1.0)
+    (s,) = stats["streams"]
+    assert s["missing"] == 10 and s["received"] == 120 and s["rate"] == 120.0
+    assert s["lag"] == pytest.approx(0.025, abs=1e-6)
+    # a new run of the source (another epoch) numbers afresh: nothing missing
+    for seq in (1, 2, 4):
+        state.take(wire(PoseMessage("s", seq, 101.0, p, epoch="b")), 1.1)
+    assert state.streams["s"].missing == 11
+
+
+def test_a_stream_goes_after_being_idle_and_its_state_is_bounded() -> None:
+    state = ViewState(30.0, idle_s=10.0, max_streams=3)
+    for k in range(200):
+        d = DetectionMessage(f"id{k % 120}", "a", "Squat", k, k + 9, 0.01, 0.2, k + 12, 1.0, 2.0)
+        state.take(wire(d), 0.0)
+    a = state.streams["a"]
+    assert len(a.detections) == DETECTIONS_KEPT and len(a.ids) <= 4 * DETECTIONS_KEPT
+    progress = ProgressMessage("b", 40, (ClassProgress("Squat", 3, (10, 20), 0.5, 0.03, 0.2),), 1.0, 1.0)
+    assert [e["type"] for e in state.take(wire(progress), 5.0)] == ["stream", "progress"]
+    state.take(wire(progress), 5.0)  # the same stream: no new one
+    state.take(wire(DetectionMessage("x", "c", "Jog", 1, 2, 0.0, 0.1, 3, 1.0, 2.0)), 5.0)
+    (refused,) = state.take(wire(DetectionMessage("y", "d", "Jog", 1, 2, 0.0, 0.1, 3, 1.0, 2.0)), 5.0)
+    assert refused["reason"] == "schema" and "more than 3 streams" in str(refused["detail"])
+    events = state.tick(10.5)
+    assert [e["stream"] for e in events if e["type"] == "gone"] == ["a"]
+    assert sorted(state.streams) == ["b", "c"]
+    json.dumps(state.snapshot(), allow_nan=False)
+
+
+def test_what_cannot_be_used_is_refused_and_listed_as_text() -> None:
+    state = ViewState(30.0)
+    bad_topic = Incoming(
+        f"mocap/{XSS[1]}/pose", encode(PoseMessage("s", 1, 1.0, np.zeros((26, 3), np.float32))), 5.0
+    )
+    (r,) = state.take(bad_topic, 0.0)
+    assert r == {
+        "type": "refused",
+        "topic": f"mocap/{XSS[1]}/pose",
+        "reason": "schema",
+        "detail": "not a topic of mocapd's (mocap/<stream>/<kind>)",
+        "time": 5.0,
+    }
+    assert state.take(bad_topic, 0.5) == []  # listed at most once a second per reason, all counted
+    other = DetectionMessage("x", "s", XSS[0], 1, 2, 0.0, 0.1, 3, 1.0, 2.0)
+    cases = [
+        (Incoming("mocap/t/detections", encode(other), 0.0), "schema"),  # another stream's topic
+        (Incoming("mocap/s/pose", encode(other), 0.0), "type"),
+        (Incoming("mocap/s/pose", b"\xc1", 0.0), "undecodable"),
+        (Incoming("mocap/s/pose", b"", 0.0), "undecodable"),
+        (Incoming("mocap/s/pose", b"\x82\xa1v\x02\xa4type\xa4pose", 0.0), "version"),
+    ]
+    for k, (incoming, reason) in enumerate(cases):
+        (r,) = state.take(incoming, 2.0 * (k + 1))
+        assert r["reason"] == reason, (incoming, r)
+    assert state.refusals["schema"] == 3 and sum(state.refusals.values()) == 7
+    (d,) = state.take(wire(other), 20.0)[1:]
+    assert d["class"] == XSS[0]  # kept as it came (the page shows it as text)
+    # a pose of a skeleton it does not fit, and a skeleton lacking the standard joints
+    state.take(wire(SkeletonMessage("p", 120.0, JOINT_NAMES)), 30.0)
+    (s, r) = state.take(wire(PoseMessage("p", 1, 1.0, np.zeros((3, 3), np.float32))), 30.0)
+    assert (s["type"], r["reason"]) == ("stream", "shape")
+    (r,) = state.take(wire(SkeletonMessage("q", 120.0, ("root", "lhip"))), 30.0)
+    assert r["reason"] == "schema" and "must include" in str(r["detail"])
+
+
+def test_statuses_and_their_clearing() -> None:
+    state = ViewState(30.0)
+    online = StatusMessage("d-1", "online", "0.1.0", 2, 5.0)
+    assert state.take(wire(online), 0.0) == [
+        {
+            "type": "status",
+            "instance": "d-1",
+            "state": "online",
+            "version": "0.1.0",
+            "streams": 2,
+            "started": 5.0,
+        }
+    ]
+    (r,) = state.take(Incoming("mocapd/d-2/status", encode(online), 0.0), 0.0)
+    assert r["reason"] == "schema"  # another instance's status
+    assert state.take(Incoming("mocapd/d-1/status", b"", 0.0), 0.0) == [
+        {"type": "status_gone", "instance": "d-1"}
+    ]
+    assert state.snapshot()["statuses"] == []
+
+
+def test_the_daemons_health_from_its_own_metrics() -> None:
+    metrics = Metrics(True, lambda: ({}, {"lagging": 3, "mqtt_incoming_full": 1}, {}), lambda: (1, 0, 0, {}))
+    metrics.frame_in("a")
+    metrics.frame_in("a")
+    metrics.detection_out("a")
+    h = daemon_health(200, "ok\n", metrics.exposition().decode())
+    assert h["healthy"] is True and h["text"] == "ok"
+    assert h["drops"] == 4 and h["drops_by_reason"] == {"lagging": 3, "mqtt_incoming_full": 1}
+    assert h["streams"] == {"a": {"frames_in": 2, "detections_out": 1}}
+    down = daemon_health(503, "mqtt: connection refused\n", "not {prometheus")
+    assert (down["healthy"], down["text"], down["drops"]) == (False, "mqtt: connection refused", None)
+    assert daemon_health(None, "no answer", None)["healthy"] is None
+
+
+def test_the_page_is_shipped(tmp_path: Path) -> None:
+    from daemon.service.view.server import STATIC
+
+    assert {p.name for p in STATIC.iterdir()} >= {"index.html", "view.js", "view.css"}
+    page = (STATIC / "view.js").read_text()
+    assert "innerHTML" not in page and "insertAdjacentHTML" not in page and "document.write" not in page
