@@ -51,9 +51,9 @@ class Outgoing:
     and ``reliable`` (MQTT: QoS 1, kept until the broker acknowledges it, resent after a
     reconnect); ``key``: the message's id (a detection's or boundary's), on which a transport that
     can de-duplicates (cluster: a key already published by any worker is not published again);
-    ``relay``: a publisher's skeleton or pose passed on for viewers (``zmq.relay_per_s``), which only
-    a transport whose clients cannot hear the publishers themselves publishes (ZeroMQ; over MQTT
-    and NATS they are on the broker already)."""
+    ``relay``: a message only a transport with neither a broker nor retained messages publishes
+    (ZeroMQ; over MQTT and NATS clients have both): a publisher's skeleton or pose passed on for
+    viewers (``zmq.relay_per_s``), or the daemon's status again for subscribers that joined since."""
 
     topic: str
     payload: bytes

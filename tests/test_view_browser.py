@@ -108,25 +108,32 @@ def progress(stream: str, frame: int, position: float, matched: tuple[int, ...])
 
 
 @pytest.mark.slow
-def test_the_page_shows_a_replay_through_the_daemon(tmp_path: Path, browser: Browser) -> None:
-    """A replay of CMU 13_30 through mosquitto and a daemon: its card appears, its figure moves,
-    the detections ``mocapd detect`` gives on the recording land in its timeline with the same
-    classes and frames, progress bars move with the progress messages published; every request
-    the page makes is to loopback; a closed tab frees the view's client."""
+@pytest.mark.parametrize("bus", ["mqtt", "zmq"])
+def test_the_page_shows_a_replay_through_the_daemon(tmp_path: Path, browser: Browser, bus: str) -> None:
+    """A replay of CMU 13_30 through a daemon with its progress on, over MQTT (mosquitto carries the
+    poses) or ZeroMQ (the daemon relays 30 poses a second to the view): its card appears, its figure
+    moves, progress bars move with the daemon's progress events (a class of each detection shown
+    before it), the detections ``mocapd detect`` gives on the recording land in its timeline with
+    the same classes and frames; every request the page makes is to loopback; a closed tab frees
+    the view's client."""
     want = [
         (d.class_name, d.start_frame, d.end_frame)
         for d in detect(read_recording(*TRIAL), load_library(default_library_path()), 120.0)
     ]
-    broker = Broker(tmp_path).start()
-    daemon = Daemon(
-        tmp_path,
-        sources=["mqtt"],
-        sinks=["mqtt"],
-        mqtt=broker.url,
-        config={"service": {"queue_frames": 100_000}},
-    ).start()
-    view = View(tmp_path, broker.url, metrics=f"http://127.0.0.1:{daemon.metrics_port}").start()
-    pub = Publisher(broker.url)
+    config: dict[str, dict[str, object]] = {
+        "service": {"queue_frames": 100_000},
+        "progress": {"enabled": True},
+    }
+    broker = None
+    if bus == "mqtt":
+        broker = Broker(tmp_path).start()
+        daemon = Daemon(tmp_path, sources=["mqtt"], sinks=["mqtt"], mqtt=broker.url, config=config).start()
+        watched, into = broker.url, broker.url
+    else:
+        config["zmq"] = {"relay_per_s": 30}
+        daemon = Daemon(tmp_path, sinks=["zmq"], config=config).start()
+        watched, into = "zmq+" + daemon.detections, "zmq+" + daemon.poses
+    view = View(tmp_path, watched, metrics=f"http://127.0.0.1:{daemon.metrics_port}").start()
     page = browser.new_page(viewport={"width": 1280, "height": 900})
     urls = loopback_only(page)
     errors: list[str] = []
@@ -134,27 +141,18 @@ def test_the_page_shows_a_replay_through_the_daemon(tmp_path: Path, browser: Bro
     try:
         page.goto(view.url)
         until(page, "window.mocapdView && window.mocapdView.snapshots >= 1")
-        page.wait_for_selector('#daemons .pill[data-state="online"]', timeout=10_000)
         page.wait_for_selector('#health[data-healthy="true"]', timeout=10_000)
-        replaying = replay(*TRIAL, broker.url, speed="2")
+        replaying = replay(*TRIAL, into, speed="1.5")
         wait_for(lambda: card_of(page, "13_30") is not None, 15, "the stream's card")
+        page.wait_for_selector('#daemons .pill[data-state="online"]', timeout=10_000)
         first = card_of(page, "13_30")["canvas"]
         page.wait_for_timeout(250)
         assert card_of(page, "13_30")["canvas"] != first, "the figure did not change between frames"
-
-        # progress bars move with the progress messages (the daemon's own: after issue 24 part 1)
-        seen = []
-        for k, (position, matched) in enumerate([(0.2, ()), (0.55, (600,)), (0.9, (600, 640))]):
-            pub.send(progress("13_30", 600 + 40 * k, position, matched))
-            until(
-                page, f"(window.mocapdView.streams['13_30']?.progress.Squat?.position ?? -1) === {position}"
-            )
-            (row,) = card_of(page, "13_30")["progress"]
-            seen.append((row["position"], row["matched"], row["ticks"], row["width"]))
-        assert seen == [(0.2, 0, 0, "20%"), (0.55, 1, 1, "55%"), (0.9, 2, 2, "90%")]
-        pub.send(ProgressMessage("13_30", 800, (), time.time(), time.time()))  # nothing under way
-        until(page, "Object.keys(window.mocapdView.streams['13_30'].progress).length === 0")
-
+        bars: dict[str, set[str]] = {}
+        while replaying.poll() is None:  # what the bars show, a few times a second
+            for row in card_of(page, "13_30")["progress"]:
+                bars.setdefault(row["class"], set()).add(row["width"])
+            page.wait_for_timeout(100)
         finished(replaying)
         wait_for(lambda: len(card_of(page, "13_30")["detections"]) >= len(want), 20, "the detections")
         card = card_of(page, "13_30")
@@ -162,6 +160,8 @@ def test_the_page_shows_a_replay_through_the_daemon(tmp_path: Path, browser: Bro
         recorded = page.evaluate("window.mocapdView.streams['13_30'].detections")
         assert shown == want == [(d["class"], d["start"], d["end"]) for d in recorded]
         assert [d["text"] for d in reversed(card["detections"])] == [c for c, _, _ in want]
+        assert {c for c, _, _ in want} <= set(bars), bars  # every detected class had a bar
+        assert max(len(widths) for widths in bars.values()) >= 3, bars  # and bars moved
         facts = page.evaluate(
             """() => { const s = window.mocapdView.streams['13_30'];
                        return {drawn: s.posesDrawn, latency: s.latencyMs, fps: window.mocapdView.fps}; }"""
@@ -170,7 +170,6 @@ def test_the_page_shows_a_replay_through_the_daemon(tmp_path: Path, browser: Bro
         assert view.status()["clients"] == 1  # type: ignore[index]
     finally:
         page.close()
-        pub.close()
     try:
         wait_for(lambda: view.status()["clients"] == 0, 10, "the closed tab's client freed")  # type: ignore[index]
         assert errors == []
@@ -178,6 +177,36 @@ def test_the_page_shows_a_replay_through_the_daemon(tmp_path: Path, browser: Bro
     finally:
         view.stop()
         daemon.stop()
+        if broker is not None:
+            broker.stop()
+
+
+def test_progress_bars_follow_the_progress_messages(tmp_path: Path, browser: Browser) -> None:
+    """Each progress message sets its class's bar to its position and lights its keyframes matched;
+    an empty one clears the stream's bars."""
+    broker = Broker(tmp_path).start()
+    view = View(tmp_path, broker.url).start()
+    pub = Publisher(broker.url)
+    page = browser.new_page()
+    try:
+        page.goto(view.url)
+        until(page, "window.mocapdView && window.mocapdView.snapshots >= 1")
+        pub.send(SkeletonMessage("s", 120.0, JOINT_NAMES))
+        pub.send(PoseMessage("s", 1, time.time(), positions=np.zeros((26, 3), np.float32)))
+        wait_for(lambda: card_of(page, "s") is not None, 10, "the stream's card")
+        seen = []
+        for k, (position, matched) in enumerate([(0.2, ()), (0.55, (600,)), (0.9, (600, 640))]):
+            pub.send(progress("s", 600 + 40 * k, position, matched))
+            until(page, f"(window.mocapdView.streams['s']?.progress.Squat?.position ?? -1) === {position}")
+            (row,) = card_of(page, "s")["progress"]
+            seen.append((row["position"], row["matched"], row["ticks"], row["width"]))
+        assert seen == [(0.2, 0, 0, "20%"), (0.55, 1, 1, "55%"), (0.9, 2, 2, "90%")]
+        pub.send(ProgressMessage("s", 800, (), time.time(), time.time()))  # nothing under way
+        until(page, "Object.keys(window.mocapdView.streams['s'].progress).length === 0")
+    finally:
+        page.close()
+        pub.close()
+        view.stop()
         broker.stop()
 
 

@@ -73,6 +73,8 @@ DROPS = ("lagging",)
 """Taken-in poses not recognised: a full queue; and ``recognizer_<problem>``, the recogniser's refusals."""
 YIELD_EVERY = 64
 """Messages an intake takes before it lets the other tasks run."""
+STATUS_EVERY_S = 5
+"""How often the daemon's status goes out again where nothing retains it (ZeroMQ: :func:`reminder`)."""
 CATCH_UP_POLL_S = 0.005
 """How often recognition looks whether the cluster transport has read a taken partition's buffer."""
 
@@ -177,6 +179,7 @@ class Service:
         version: str,
         logger: logging.Logger,
         cluster: Cluster | None = None,
+        remind: bool = True,
     ) -> None:
         self.config = config
         self.cluster = cluster
@@ -197,6 +200,7 @@ class Service:
             cluster=cluster is not None,
         )
         self.rejects: Counter[str] = Counter()
+        self.remind = remind
         self.relay_per_s = config.zmq.relay_per_s
         self._relayed: dict[str, tuple[int, float]] = {}  # stream -> its last relayed pose, skeleton
         self._relays: list[Outgoing] = []
@@ -299,8 +303,10 @@ class Service:
         self._relayed[stream] = (pose, skeleton_at)
         self._relays.append(Outgoing(incoming.topic, incoming.payload, relay=True))
 
-    async def _pass_on(self) -> None:
-        relays, self._relays = self._relays, []
+    async def _pass_on(self, relays: list[Outgoing] | None = None) -> None:
+        """What ``relays`` (default: the poses and skeletons taken in to pass on) holds, published."""
+        if relays is None:
+            relays, self._relays = self._relays, []
         for out in relays:
             for t in self.transports:
                 sink = t.sink()
@@ -386,8 +392,12 @@ class Service:
         )
 
     async def _housekeeping(self) -> None:
+        beats = 0
         while True:
             await asyncio.sleep(1.0)
+            beats += 1
+            if self.remind and beats % STATUS_EVERY_S == 0:
+                await self._pass_on([reminder(self._status("online"))])
             for e in self.table.evict_idle(time.monotonic(), self.config.service.idle_s):
                 await self.publish(e)
             self.metrics.keep(self.table.streams)
@@ -524,6 +534,12 @@ class Service:
         for t in self.transports:
             t.drain_within(left)
         raise _Stop
+
+
+def reminder(status: Outgoing) -> Outgoing:
+    """``status`` again, for the subscribers that joined since it was published, on the transports
+    that retain nothing (``Outgoing.relay``)."""
+    return replace(status, reliable=False, relay=True)
 
 
 def release_memory() -> None:

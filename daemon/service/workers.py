@@ -71,7 +71,14 @@ from prometheus_client.registry import Collector
 
 from daemon.config import Config, ConfigError
 from daemon.library import Library
-from daemon.service.app import Service, configure_logging, instance_name, transports_of
+from daemon.service.app import (
+    STATUS_EVERY_S,
+    Service,
+    configure_logging,
+    instance_name,
+    reminder,
+    transports_of,
+)
 from daemon.service.metrics import open_http, serve_http
 from protocols.messages import StatusMessage, decode, encode, topic
 from protocols.routing import Routes, choose, split
@@ -315,8 +322,14 @@ def run_worker(setup: WorkerSetup, index: int) -> int:
 
         loop.add_signal_handler(signal.SIGTERM, on_signal)
         channel = FrontChannel(setup, index)
-        service = Service(
-            config, setup.library, [channel], instance=setup.instance, version=setup.version, logger=logger
+        service = Service(  # the front says the daemon's status, not each worker
+            config,
+            setup.library,
+            [channel],
+            instance=setup.instance,
+            version=setup.version,
+            logger=logger,
+            remind=False,
         )
         try:
             http = await open_http("127.0.0.1", 0, service.health, service.metrics)
@@ -435,11 +448,15 @@ class Front:
         return code
 
     async def _supervise(self) -> None:
+        reminded = time.monotonic()
         while True:
             await asyncio.sleep(0.1)
             if self.stopping:
                 continue
             now = time.monotonic()
+            if now - reminded >= STATUS_EVERY_S:
+                reminded = now
+                await self._publish_all(reminder(self._status("online")))
             for slot in self.slots:
                 code = self._reap(slot)
                 if code is not None:
@@ -576,12 +593,16 @@ class Front:
     async def _publish(self, frames: list[bytes]) -> None:
         _, name, payload, how = frames
         relay = b"p" in how
-        out = Outgoing(name.decode(), payload, retain=b"r" in how, reliable=b"q" in how, relay=relay)
+        await self._publish_all(
+            Outgoing(name.decode(), payload, retain=b"r" in how, reliable=b"q" in how, relay=relay)
+        )
+        self.published += 1
+
+    async def _publish_all(self, out: Outgoing) -> None:
         for t in self.transports:
             sink = t.sink()
             if sink is not None:
                 await sink.publish(out)
-        self.published += 1
 
     async def _collect(self) -> None:
         assert self._outbound is not None
