@@ -133,11 +133,25 @@ def test_the_page_shows_a_replay_through_the_daemon(tmp_path: Path, browser: Bro
         config["zmq"] = {"relay_per_s": 30}
         daemon = Daemon(tmp_path, sinks=["zmq"], config=config).start()
         watched, into = "zmq+" + daemon.detections, "zmq+" + daemon.poses
-    view = View(tmp_path, watched, metrics=f"http://127.0.0.1:{daemon.metrics_port}").start()
+    try:
+        view = View(tmp_path, watched, metrics=f"http://127.0.0.1:{daemon.metrics_port}").start()
+        try:
+            watch_the_replay(browser, view, into, want)
+        finally:
+            view.stop()
+    finally:
+        daemon.stop()
+        if broker is not None:
+            broker.stop()
+
+
+def watch_the_replay(browser: Browser, view: View, into: str, want: list[tuple[str, int, int]]) -> None:
+    """The page of ``view`` while CMU 13_30 is replayed ``into`` the daemon (see the test above)."""
     page = browser.new_page(viewport={"width": 1280, "height": 900})
     urls = loopback_only(page)
     errors: list[str] = []
     page.on("pageerror", lambda e: errors.append(str(e)))
+    replaying = None
     try:
         page.goto(view.url)
         until(page, "window.mocapdView && window.mocapdView.snapshots >= 1")
@@ -169,16 +183,13 @@ def test_the_page_shows_a_replay_through_the_daemon(tmp_path: Path, browser: Bro
         assert facts["drawn"] >= 100 and 0 <= facts["latency"] < 1000 and facts["fps"] > 5
         assert view.status()["clients"] == 1  # type: ignore[index]
     finally:
+        if replaying is not None and replaying.poll() is None:
+            replaying.kill()
+            replaying.communicate()
         page.close()
-    try:
-        wait_for(lambda: view.status()["clients"] == 0, 10, "the closed tab's client freed")  # type: ignore[index]
-        assert errors == []
-        assert urls and all(urlsplit(u).hostname == "127.0.0.1" for u in urls), urls
-    finally:
-        view.stop()
-        daemon.stop()
-        if broker is not None:
-            broker.stop()
+    wait_for(lambda: view.status()["clients"] == 0, 10, "the closed tab's client freed")  # type: ignore[index]
+    assert errors == []
+    assert urls and all(urlsplit(u).hostname == "127.0.0.1" for u in urls), urls
 
 
 def test_progress_bars_follow_the_progress_messages(tmp_path: Path, browser: Browser) -> None:
