@@ -102,6 +102,22 @@ def card_of(page: Page, stream: str) -> Any:
     )
 
 
+SAMPLE_BARS = """(id) => {
+    window.__bars = {};
+    const sample = () => {
+        const card = [...document.querySelectorAll('section.card')].find((c) => c.dataset.stream === id);
+        for (const row of card ? card.querySelectorAll('.class-progress') : []) {
+            const seen = (window.__bars[row.dataset.class] ??= []);
+            const width = row.querySelector('.fill').style.width;
+            if (!seen.includes(width)) seen.push(width);
+        }
+        requestAnimationFrame(sample);
+    };
+    sample();
+}"""
+"""Record in the page, every frame it draws, the widths each class's progress bar of a card shows."""
+
+
 def progress(stream: str, frame: int, position: float, matched: tuple[int, ...]) -> ProgressMessage:
     c = ClassProgress("Squat", 3, matched, position, 0.4 * position * 0.25, 0.25)
     return ProgressMessage(stream, frame, (c,), time.time(), time.time())
@@ -156,17 +172,13 @@ def watch_the_replay(browser: Browser, view: View, into: str, want: list[tuple[s
         page.goto(view.url)
         until(page, "window.mocapdView && window.mocapdView.snapshots >= 1")
         page.wait_for_selector('#health[data-healthy="true"]', timeout=10_000)
-        replaying = replay(*TRIAL, into, speed="1.5")
+        page.evaluate(SAMPLE_BARS, "13_30")
+        replaying = replay(*TRIAL, into, speed="3")
         wait_for(lambda: card_of(page, "13_30") is not None, 15, "the stream's card")
         page.wait_for_selector('#daemons .pill[data-state="online"]', timeout=10_000)
         first = card_of(page, "13_30")["canvas"]
         page.wait_for_timeout(250)
         assert card_of(page, "13_30")["canvas"] != first, "the figure did not change between frames"
-        bars: dict[str, set[str]] = {}
-        while replaying.poll() is None:  # what the bars show, a few times a second
-            for row in card_of(page, "13_30")["progress"]:
-                bars.setdefault(row["class"], set()).add(row["width"])
-            page.wait_for_timeout(100)
         finished(replaying)
         wait_for(lambda: len(card_of(page, "13_30")["detections"]) >= len(want), 20, "the detections")
         card = card_of(page, "13_30")
@@ -174,6 +186,7 @@ def watch_the_replay(browser: Browser, view: View, into: str, want: list[tuple[s
         recorded = page.evaluate("window.mocapdView.streams['13_30'].detections")
         assert shown == want == [(d["class"], d["start"], d["end"]) for d in recorded]
         assert [d["text"] for d in reversed(card["detections"])] == [c for c, _, _ in want]
+        bars: dict[str, list[str]] = page.evaluate("window.__bars")
         assert {c for c, _, _ in want} <= set(bars), bars  # every detected class had a bar
         assert max(len(widths) for widths in bars.values()) >= 3, bars  # and bars moved
         facts = page.evaluate(
