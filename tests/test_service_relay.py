@@ -70,7 +70,7 @@ def run(tmp_path: Path, workers: int, relay: float, streams: dict[str, tuple[Pat
         broker.stop()
 
 
-@pytest.mark.parametrize("workers", [1, 2])
+@pytest.mark.parametrize("workers", [1, pytest.param(2, marks=pytest.mark.slow)])
 def test_skeletons_and_every_fourth_pose_are_relayed_unchanged(tmp_path: Path, workers: int) -> None:
     streams = {"s0": TRIAL, "s2": OTHER}
     if workers == 2:
@@ -89,6 +89,7 @@ def test_skeletons_and_every_fourth_pose_are_relayed_unchanged(tmp_path: Path, w
     assert detection_keys(daemon.detections_printed())  # recognition went on as ever
 
 
+@pytest.mark.slow
 def test_nothing_is_relayed_by_default(tmp_path: Path) -> None:
     collector, _, daemon = run(tmp_path, 1, 0.0, {"s0": TRIAL})
     assert relayed(collector, "pose") == relayed(collector, "skeleton") == {}

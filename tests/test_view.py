@@ -99,6 +99,7 @@ async def collect(url: str, until: float) -> list[dict[str, Any]]:
     return out
 
 
+@pytest.mark.slow
 async def test_the_view_on_mqtt_shows_what_the_broker_carries(tmp_path: Path, broker: Broker) -> None:
     pub = Publisher(broker.url)
     pub.send(StatusMessage("d-1", "online", "0.1.0", 1, 5.0))
@@ -147,6 +148,7 @@ async def test_the_view_on_mqtt_shows_what_the_broker_carries(tmp_path: Path, br
     assert status["bus"]["received"] >= 240 + 3 + 2
 
 
+@pytest.mark.slow
 async def test_the_view_on_zeromq_takes_the_daemons_relay(tmp_path: Path) -> None:
     """A PUB socket bound where the daemon's detections socket would be sends what the daemon
     relays (protocols/README.md's topics and payloads): the view's SUB socket takes it."""
@@ -204,6 +206,7 @@ def raw_websocket(port: int) -> socket.socket:
     return sock
 
 
+@pytest.mark.slow
 async def test_a_slow_client_is_bounded_and_a_closed_one_freed(tmp_path: Path, broker: Broker) -> None:
     pub = Publisher(broker.url)
     view = View(tmp_path, broker.url).start()
