@@ -52,6 +52,8 @@ CHROMIUM_ARGS = [
     "--disable-component-update",
     "--disable-sync",
 ]
+"""Debian's Chromium, headless, as root, talking to nothing but the page (Playwright gives each
+launch a fresh profile directory)."""
 
 
 def until(page: Page, expression: str, timeout: float = 30.0) -> None:

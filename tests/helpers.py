@@ -550,18 +550,3 @@ class View(ServerProcess):
     def logs(self) -> list[dict[str, Any]]:
         lines = self.stderr_path.read_text().splitlines()
         return [json.loads(line) for line in lines if line.startswith("{")]
-
-
-CHROMIUM = "/usr/bin/chromium"
-CHROMIUM_ARGS = [
-    "--headless",
-    "--no-sandbox",
-    "--disable-gpu",
-    "--disable-quic",
-    "--no-first-run",
-    "--disable-background-networking",
-    "--disable-component-update",
-    "--disable-sync",
-]
-"""Debian's Chromium, headless, as root, talking to nothing but the page (Playwright gives each
-launch a fresh profile directory)."""

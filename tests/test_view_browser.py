@@ -16,6 +16,7 @@ import pytest
 from paho.mqtt.enums import CallbackAPIVersion
 from playwright.sync_api import Browser, Page, sync_playwright
 
+from bench.bench_view import CHROMIUM, CHROMIUM_ARGS
 from daemon.library import default_library_path, load_library
 from daemon.recognizer import detect
 from daemon.recordings import read_recording
@@ -31,7 +32,7 @@ from protocols.messages import (
     topic,
 )
 from replay import JOINT_NAMES
-from tests.helpers import CHROMIUM, CHROMIUM_ARGS, DATA, Broker, Daemon, View, finished, replay, wait_for
+from tests.helpers import DATA, Broker, Daemon, View, finished, replay, wait_for
 
 TRIAL = (DATA / "cmu" / "13" / "13.asf", DATA / "cmu" / "13" / "13_30.amc.gz")
 XSS = ("<script>window.__xss=1</script>", '<img src=x onerror="window.__xss=1">')
