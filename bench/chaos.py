@@ -144,8 +144,9 @@ class Outcome:
     rss_rounds: list[float]
     """Its resident memory after each round of the storm. The first round fills the intake queue
     with messages of distinct streams, and the allocator keeps much of what that peak took (with
-    ``mqtt.queue`` 1,000 instead of 10,000: +2 MiB instead of +11); memory that grew with the ids
-    would grow round after round."""
+    ``mqtt.queue`` 1,000 instead of 10,000: +2 MiB instead of +11), more or less from run to run
+    (63 to 68 MiB after it, in five runs on one machine): the rounds after it are the measure
+    (:attr:`rss_growth`); memory that grew with the ids would grow round after round."""
     streams_live: int
     streams_after_storm: int
     series_after_storm: int
@@ -157,13 +158,18 @@ class Outcome:
         return self.rss_rounds[-1]
 
     @property
+    def rss_growth(self) -> float:
+        """The last round's memory over the second's (the first round's peak aside)."""
+        return self.rss_after_storm / self.rss_rounds[min(1, len(self.rss_rounds) - 1)]
+
+    @property
     def ok(self) -> bool:
         return (
             all(d.survived for d in self.disruptions)
             and all(s.expected == s.got for s in self.spans)
             and self.doubled == 0
             and self.streams_after_storm == self.streams_live == self.series_after_storm
-            and self.rss_after_storm <= 1.1 * self.rss_rounds[0]
+            and self.rss_growth <= 1.1
         )
 
 
@@ -656,7 +662,6 @@ def table(outcome: Outcome) -> str:
     equal = sum(len(s.expected & s.got) for s in outcome.spans)
     wrong = [s for s in outcome.spans if s.expected != s.got]
     seconds = sum(s.last - s.first + 1 for s in outcome.spans) / RATE
-    ratio = outcome.rss_after_storm / outcome.rss_rounds[0]
     rounds = ", ".join(f"{r:.1f}" for r in outcome.rss_rounds)
     lines += [
         "",
@@ -665,7 +670,8 @@ def table(outcome: Outcome) -> str:
         f"detections: {outcome.detections} ids; delivered twice: {outcome.redelivered}; "
         f"one motion under two ids: {outcome.doubled}",
         f"storm of {outcome.plan.storm:,} stream ids ({outcome.storm_refused:,} poses refused): daemon RSS "
-        f"{outcome.rss_live:.1f} MiB before, after each round {rounds} MiB (last / first: {ratio:.3f})",
+        f"{outcome.rss_live:.1f} MiB before, after each round {rounds} MiB (last / second: "
+        f"{outcome.rss_growth:.3f})",
         f"streams {outcome.streams_live} before the storm, {outcome.streams_after_storm} after; "
         f"per-stream series after: {outcome.series_after_storm}",
     ]
