@@ -31,15 +31,12 @@ import numpy as np
 
 from bench.common import DATA
 from bench.machine import describe
-from daemon.dtw import pack
-from daemon.features import features
 from daemon.frames import FrameClock
 from daemon.library import Library, default_library_path, load_library
 from daemon.progress import read
-from daemon.recognizer import DEFAULT_SETTINGS, ClassStage, Detection, plans
+from daemon.recognizer import Detection, recording_stage
 from daemon.recordings import read_recording
 from daemon.tools.shipped import HDM05_CLASSES
-from replay import JOINT_NAMES
 from replay.kinematics import joint_positions
 
 CANDIDATES = tuple(round(0.05 * k, 2) for k in range(1, 20))
@@ -64,9 +61,8 @@ def positions(asf: Path, amc: Path, library: Library) -> tuple[dict[str, list[fl
     """Per class the position at every index frame of the recording (0: no path within τ), the
     detections, and the recording's first frame number."""
     motion = read_recording(asf, amc)
-    clock = FrameClock.of(120.0, library.rate)
-    codes = pack(features(joint_positions(motion), JOINT_NAMES, 120.0)[:: clock.step]).tolist()
-    stage = ClassStage(plans(library), library.rate, DEFAULT_SETTINGS, clock, stream="", session="")
+    codes, stage = recording_stage(joint_positions(motion), library, 120.0)
+    clock = stage.clock
     first, last = int(motion.frames[0]), int(motion.frames[-1])
     stage.start(first)
     names = [p.name for p in stage.codes.plans]

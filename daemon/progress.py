@@ -35,13 +35,11 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from daemon.dtw import SCALE, pack
-from daemon.features import features
-from daemon.frames import FrameClock
+from daemon.dtw import SCALE
 from daemon.library import Library
-from daemon.recognizer import DEFAULT_SETTINGS, ClassStage, Detection, plans
+from daemon.recognizer import DEFAULT_SETTINGS, ClassStage, Detection, recording_stage
 from daemon.types import FloatArray, IntArray, RecognitionSettings
-from replay import JOINT_NAMES, Motion
+from replay import Motion
 from replay.kinematics import joint_positions
 
 FLOOR = 0.5
@@ -284,13 +282,10 @@ def detect_progress_positions(
     """:func:`detect_progress` of standard joint positions shape ``(N, 26, 3)`` with frame numbers
     ``(N,)`` (consecutive), as :func:`daemon.recognizer.detect_positions` reads them: the codes a
     push of the stream gives through the class stage one by one, those its end gives in its flush."""
-    clock = FrameClock.of(native_rate, library.rate)
     if len(positions) == 0:
         return []
-    codes: list[int] = pack(features(positions, JOINT_NAMES, native_rate)[:: clock.step]).tolist()
-    stage = ClassStage(
-        plans(library, settings), library.rate, settings, clock, stream=stream, session=session
-    )
+    codes, stage = recording_stage(positions, library, native_rate, settings, stream=stream, session=session)
+    clock = stage.clock
     follow = StreamProgress(stage, native_rate, per_s, floor=floor)
     first, last = int(numbers[0]), int(numbers[-1])
     pushed = [j for j in range(len(codes)) if clock.start(first, j) + clock.delay <= last]

@@ -697,14 +697,32 @@ def detect_positions(
     :class:`~daemon.features.FeatureStream`), decimated by the live path's
     :class:`~daemon.frames.FrameClock`; the codes go through the live path's :class:`ClassStage`,
     each with the frame whose push would give it (:meth:`~daemon.frames.FrameClock.known`)."""
-    clock = FrameClock.of(native_rate, library.rate)
     if len(positions) == 0:
         return []
-    codes: list[int] = pack(features(positions, JOINT_NAMES, native_rate)[:: clock.step]).tolist()
-    stage = ClassStage(
-        plans(library, settings), library.rate, settings, clock, stream=stream, session=session
-    )
+    codes, stage = recording_stage(positions, library, native_rate, settings, stream=stream, session=session)
+    clock = stage.clock
     first, last = int(numbers[0]), int(numbers[-1])
     stage.start(first)
     out = [d for j, code in enumerate(codes) for d in stage.push(clock.known(first, j, last), code)]
     return out + stage.flush(last)
+
+
+def recording_stage(
+    positions: FloatArray,
+    library: Library,
+    native_rate: float,
+    settings: RecognitionSettings = DEFAULT_SETTINGS,
+    *,
+    stream: str = "",
+    session: str = "",
+) -> tuple[list[int], ClassStage]:
+    """What the batch twins take a recording's standard joint positions ``(N, 26, 3)`` through: its
+    index-rate codes, from one vectorised feature pass (:func:`daemon.features.features`) decimated
+    by the live path's :class:`~daemon.frames.FrameClock`, and the live path's :class:`ClassStage`
+    for them (not started)."""
+    clock = FrameClock.of(native_rate, library.rate)
+    codes: list[int] = pack(features(positions, JOINT_NAMES, native_rate)[:: clock.step]).tolist()
+    stage = ClassStage(
+        plans(library, settings), library.rate, settings, clock, stream=stream, session=session
+    )
+    return codes, stage

@@ -21,6 +21,8 @@ from libc.errno cimport EAGAIN, EINTR
 from libc.stdint cimport uint32_t, uintptr_t
 from libc.string cimport memcpy, memset
 
+from protocols.routing import ROUTES_CACHED
+
 cdef extern from *:
     """
     /* libzmq's zmq_msg_t (zmq.h, stable since 4.0): 64 bytes, pointer-aligned */
@@ -93,7 +95,7 @@ cdef class Router:
     cdef object choose
     cdef Py_ssize_t cached
 
-    def __cinit__(self, dict functions, uintptr_t source, list sinks, choose, Py_ssize_t cached=100_000):
+    def __cinit__(self, dict functions, uintptr_t source, list sinks, choose, Py_ssize_t cached=ROUTES_CACHED):
         missing = [name for name in FUNCTIONS if not functions.get(name)]
         if missing:
             raise ValueError(f"libzmq functions missing: {', '.join(missing)}")

@@ -303,15 +303,18 @@ class Service:
         self._relayed[stream] = (pose, skeleton_at)
         self._relays.append(Outgoing(incoming.topic, incoming.payload, relay=True))
 
-    async def _pass_on(self, relays: list[Outgoing] | None = None) -> None:
-        """What ``relays`` (default: the poses and skeletons taken in to pass on) holds, published."""
-        if relays is None:
-            relays, self._relays = self._relays, []
+    async def _pass_on(self) -> None:
+        """The poses and skeletons taken in to pass on, published."""
+        relays, self._relays = self._relays, []
         for out in relays:
-            for t in self.transports:
-                sink = t.sink()
-                if sink is not None:
-                    await sink.publish(out)
+            await self._send(out)
+
+    async def _send(self, out: Outgoing) -> None:
+        """``out`` on every sink."""
+        for t in self.transports:
+            sink = t.sink()
+            if sink is not None:
+                await sink.publish(out)
 
     async def _intake(self, transport: Transport) -> None:
         source = transport.source()
@@ -366,10 +369,7 @@ class Service:
             out = Outgoing(topic(message), encode(message))
         else:
             out = Outgoing(topic(message), encode(message), reliable=True, key=message.id)
-        for t in self.transports:
-            sink = t.sink()
-            if sink is not None:
-                await sink.publish(out)
+        await self._send(out)
         self.published += 1
         m = self.metrics
         m.stage["publish"].observe(time.perf_counter() - started)
@@ -397,7 +397,7 @@ class Service:
             await asyncio.sleep(1.0)
             beats += 1
             if self.remind and beats % STATUS_EVERY_S == 0:
-                await self._pass_on([reminder(self._status("online"))])
+                await self._send(reminder(self._status("online")))
             for e in self.table.evict_idle(time.monotonic(), self.config.service.idle_s):
                 await self.publish(e)
             self.metrics.keep(self.table.streams)

@@ -430,8 +430,8 @@ class StreamTable:
         result = self.bank.push(frames)
         refused: list[tuple[str, str, str]] = []
         numbers = {name: frame for name, frame, _ in frames}
+        taken = {name for name, _ in result.errors}  # refused by the recogniser: not fed on
         if self.progress.enabled:  # a tick's progress goes out before its detections
-            taken = {name for name, _ in result.errors}
             for name, frame, _ in frames:
                 s = self.streams[name]
                 if s.progress is not None and name not in taken:
@@ -447,7 +447,6 @@ class StreamTable:
             refused.append((name, error.problem, str(error)))
         out += self._kept([self._emitted(d) for d in result.detections])
         if self.segmentation != "none":
-            taken = {name for name, _ in result.errors}
             for name, frame, values in frames:
                 s = self.streams[name]
                 if s.segmenting is not None and name not in taken:
