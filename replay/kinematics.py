@@ -288,6 +288,11 @@ class KinematicModel:
         return joints
 
 
+def y_up(points: FloatArray) -> FloatArray:
+    """Points ``(..., 3)`` of a z-up frame in mocapd's y-up one: a quarter turn about x."""
+    return np.stack([points[..., 0], points[..., 2], -points[..., 1]], axis=-1)
+
+
 def joint_positions(motion: Motion, unit: str = "cm") -> FloatArray:
     """The standard joints (:data:`replay.JOINT_NAMES`) of every frame, shape ``(N, 26, 3)``, in
     centimetres or (``"asf"``) the skeleton's own units."""

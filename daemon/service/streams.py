@@ -62,6 +62,7 @@ from protocols.messages import (
 )
 from replay import MocapFormatError, Skeleton, parse_asf
 from replay.amc import DEG
+from replay.kinematics import y_up
 
 SKELETONS_KEPT = 64
 """How many announced ASF texts the table keeps parsed."""
@@ -456,9 +457,7 @@ class StreamTable:
     def _values(self, s: _Stream, pose: PoseMessage) -> np.ndarray:
         if pose.positions is not None:
             p = pose.positions.astype(np.float64)
-            if s.announced.up == "z":  # to mocapd's y up: a quarter turn about x
-                p = np.stack([p[:, 0], p[:, 2], -p[:, 1]], axis=1)
-            return p
+            return y_up(p) if s.announced.up == "z" else p
         assert pose.channels is not None and s.skeleton is not None
         if s.angles is None or len(pose.channels) != len(s.skeleton.channel_names):
             return pose.channels  # radians, or a wrong length the bank refuses

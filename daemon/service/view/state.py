@@ -43,7 +43,7 @@ from protocols.messages import (
 from protocols.transport import Incoming
 from replay import JOINT_NAMES, MocapFormatError, parse_asf
 from replay.amc import DEG
-from replay.kinematics import KinematicModel
+from replay.kinematics import KinematicModel, y_up
 
 Event = dict[str, Any]
 """One JSON message for the browsers."""
@@ -137,9 +137,7 @@ class Drawer:
         if pose.positions is None or len(pose.positions) != self.width:
             raise WireError("shape", f"a pose of {self.width} joints expected")
         p = pose.positions[self.order].astype(np.float64) * self.scale
-        if self.up == "z":  # to y up: a quarter turn about x
-            p = np.stack([p[:, 0], p[:, 2], -p[:, 1]], axis=1)
-        return p
+        return y_up(p) if self.up == "z" else p
 
 
 @dataclass
