@@ -36,6 +36,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from daemon.dtw import SCALE
+from daemon.errors import InputError
 from daemon.library import Library
 from daemon.recognizer import DEFAULT_SETTINGS, ClassStage, Detection, recording_stage
 from daemon.types import FloatArray, IntArray, RecognitionSettings
@@ -100,7 +101,7 @@ class ProgressEvent:
 def min_gap(rate: float, per_s: float) -> int:
     """Frames (sequence numbers) between two rate-limited events at ``rate`` Hz: ceil(rate/per_s)."""
     if not (math.isfinite(per_s) and per_s > 0):
-        raise ValueError(f"per_s must be a positive number of events a second, got {per_s!r}")
+        raise InputError(f"per_s must be a positive number of events a second, got {per_s!r}")
     return max(1, math.ceil(rate / per_s))
 
 
@@ -207,7 +208,7 @@ class StreamProgress:
         numbering: Callable[[int], int] | None = None,
     ) -> None:
         if not 0 < floor <= 1:
-            raise ValueError(f"the floor must be a position in (0, 1], got {floor!r}")
+            raise InputError(f"the floor must be a position in (0, 1], got {floor!r}")
         self.stage = stage
         self.events = ProgressStage(rate, per_s)
         self.floor = floor

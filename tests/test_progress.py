@@ -22,6 +22,7 @@ from daemon import dtw
 from daemon._dtw import StreamDTW
 from daemon.automaton import KeyframeAutomaton
 from daemon.dtw import INF, SCALE
+from daemon.errors import InputError
 from daemon.keyframes import KeyframeQuery, query_bounds
 from daemon.library import Library, default_library_path, load_library
 from daemon.progress import (
@@ -221,7 +222,7 @@ def test_the_stage_equals_its_naive_reference(
 
 def test_the_stage_state_is_bounded_and_its_gap_is_the_rate_s() -> None:
     assert (min_gap(120.0, 10.0), min_gap(120.0, 7.0), min_gap(30.0, 1000.0)) == (12, 18, 1)
-    with pytest.raises(ValueError, match="per_s"):
+    with pytest.raises(InputError, match="per_s"):
         min_gap(120.0, 0.0)
     stage = ProgressStage(120.0, 10.0)
     state = ClassState("a", 0, (), 0.5, 0.01, 0.1)

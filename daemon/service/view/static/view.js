@@ -352,7 +352,8 @@
       pill.dataset.state = d.state;
       pill.append(
         el("strong", "", d.instance),
-        document.createTextNode(` ${d.state} · mocapd ${d.version} · ${d.streams} streams`),
+        // not its "streams": that is the count when it said so (over MQTT, when it started)
+        document.createTextNode(` ${d.state} · started ${clock(d.started)} · mocapd ${d.version}`),
       );
       box.append(pill);
     }
