@@ -97,6 +97,7 @@ def card_of(page: Page, stream: str) -> Any:
                     text: row.querySelector('.class-name').textContent,
                 })),
                 canvas: card.querySelector('canvas').toDataURL(),
+                idle: ((p) => (p.hidden ? null : p.textContent))(card.querySelector('.progress > p')),
             };
         }""",
         stream,
@@ -207,8 +208,9 @@ def watch_the_replay(browser: Browser, view: View, into: str, want: list[tuple[s
 
 
 def test_progress_bars_follow_the_progress_messages(tmp_path: Path, browser: Browser) -> None:
-    """Each progress message sets its class's bar to its position and lights its keyframes matched;
-    an empty one clears the stream's bars."""
+    """Until a stream's first progress message the card says none came (the daemon may not publish
+    any); each sets its class's bar to its position and lights its keyframes matched; an empty one
+    clears the stream's bars: no motion under way."""
     broker = Broker(tmp_path).start()
     view = View(tmp_path, broker.url).start()
     pub = Publisher(broker.url)
@@ -219,6 +221,7 @@ def test_progress_bars_follow_the_progress_messages(tmp_path: Path, browser: Bro
         pub.send(SkeletonMessage("s", 120.0, JOINT_NAMES))
         pub.send(PoseMessage("s", 1, time.time(), positions=np.zeros((26, 3), np.float32)))
         wait_for(lambda: card_of(page, "s") is not None, 10, "the stream's card")
+        assert card_of(page, "s")["idle"] == "no progress yet (mocapd run --progress)"
         seen = []
         for k, (position, matched) in enumerate([(0.2, ()), (0.55, (600,)), (0.9, (600, 640))]):
             pub.send(progress("s", 600 + 40 * k, position, matched))
@@ -228,6 +231,7 @@ def test_progress_bars_follow_the_progress_messages(tmp_path: Path, browser: Bro
         assert seen == [(0.2, 0, 0, "20%"), (0.55, 1, 1, "55%"), (0.9, 2, 2, "90%")]
         pub.send(ProgressMessage("s", 800, (), time.time(), time.time()))  # nothing under way
         until(page, "Object.keys(window.mocapdView.streams['s'].progress).length === 0")
+        assert card_of(page, "s")["idle"] == "no motion under way"
     finally:
         page.close()
         pub.close()

@@ -90,7 +90,8 @@
       this.latency = el("span", "stat", "on screen –");
       stats.append(this.rate, this.lag, this.missing, this.latency);
       this.progress = el("div", "progress");
-      this.progress.append((this.idle = el("p", "muted small", "no motion under way")));
+      // until a progress message comes, the daemon may not publish any (it does with --progress)
+      this.progress.append((this.idle = el("p", "muted small", "no progress yet (mocapd run --progress)")));
       const timelineHead = el("h3", "small", "Detections");
       this.timeline = el("ol", "timeline");
       root.append(head, canvas, stats, el("h3", "small", "Under way"), this.progress, timelineHead, this.timeline);
@@ -181,6 +182,7 @@
         }
       }
       this.rec.progress = rec;
+      this.idle.textContent = "no motion under way";
       this.idle.hidden = this.progressRows.size > 0;
     }
 
