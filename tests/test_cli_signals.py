@@ -73,9 +73,9 @@ def snapshot(path: Path) -> Snapshot:
     }
 
 
-def place(content: Snapshot, path: Path, replace: bool = False) -> None:
-    """Write ``content`` (a :func:`snapshot`) as ``path``, with ``replace`` over what is there."""
-    if replace and path.is_dir():
+def place(content: Snapshot, path: Path) -> None:
+    """Write ``content`` (a :func:`snapshot`) as ``path``, in place of what is there."""
+    if path.is_dir():
         shutil.rmtree(path)
     if "." in content:
         path.write_bytes(content["."])
@@ -335,7 +335,7 @@ def test_a_run_after_an_interrupted_one_writes_the_whole_output(
     command = commands.get(name)
     for fraction in FRACTIONS:
         for out, content in command.previous.items():
-            place(content, tmp_path / out, replace=True)
+            place(content, tmp_path / out)
         first = run(command.argv(tmp_path), fraction * command.seconds, signal.SIGTERM)
         if check_outcome(command, first, signal.SIGTERM, tmp_path):
             break
