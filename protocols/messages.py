@@ -50,6 +50,8 @@ MAX_CLASSES = 256
 """The most classes one progress message reports."""
 MAX_KEYFRAMES = 64
 """The most keyframes a class's progress counts."""
+MAX_DEPTH = 8
+"""The deepest nesting of maps and lists a message may have (a progress message has 4)."""
 
 
 class WireError(MocapdError, ValueError):
@@ -299,7 +301,7 @@ def decode(payload: bytes, max_bytes: int = DEFAULT_MAX_BYTES) -> Message:
         raise WireError("schema", f"a message is a map, got {type(body).__name__}")
     version = body.get("v")
     if type(version) is not int:
-        raise WireError("version", f"'v' must be the integer {VERSION}, got {version!r:.40}")
+        raise WireError("version", f"'v' must be the integer {VERSION}, got {describe(version)}")
     if version != VERSION:
         raise WireError("version", f"version {version} (this daemon speaks {VERSION})")
     kind = body.get("type")
@@ -307,9 +309,43 @@ def decode(payload: bytes, max_bytes: int = DEFAULT_MAX_BYTES) -> Message:
         pose = _plain_pose(body)
         if pose is not None:
             return pose
+    if not _shallow(body):
+        raise WireError("schema", f"nested deeper than {MAX_DEPTH} maps and lists")
     if not isinstance(kind, str) or kind not in _READERS:
-        raise WireError("type", f"unknown type {kind!r:.40} (one of {', '.join(_READERS)})")
+        raise WireError("type", f"unknown type {describe(kind)} (one of {', '.join(_READERS)})")
     return _READERS[kind](_Fields(body, kind))
+
+
+def describe(value: object) -> str:
+    """A bad value for a refusal's detail, by its type and size: a scalar as itself, a string by its
+    first characters and length, a container by its length. Never the value's repr, which for a
+    container is unbounded in size and, nested deep enough, raises RecursionError."""
+    if value is None or type(value) in (bool, int, float):
+        return str(value)
+    if isinstance(value, str):
+        head = printable(value[:40])
+        return f"'{head}'" if len(value) <= 40 else f"'{head}…' ({len(value)} characters)"
+    if isinstance(value, bytes | list | dict):
+        unit = {bytes: "byte", list: "item", dict: "entry"}[type(value)]
+        return f"{type(value).__name__} of {len(value)} {unit}{'' if len(value) == 1 else 's'}"
+    return type(value).__name__
+
+
+def _shallow(body: dict[str, Any]) -> bool:
+    """Whether ``body`` nests maps and lists at most :data:`MAX_DEPTH` deep (iteratively: the
+    depth a hostile message can reach must not reach Python's recursion limit anywhere)."""
+    level: list[Any] = [body]
+    for _ in range(MAX_DEPTH):
+        deeper = [
+            inner
+            for outer in level
+            for inner in (outer.values() if isinstance(outer, dict) else outer)
+            if isinstance(inner, dict | list)
+        ]
+        if not deeper:
+            return True
+        level = deeper
+    return False
 
 
 _POSE_KEYS = (
@@ -382,7 +418,7 @@ class _Fields:
         if not isinstance(value, str):
             raise self.fail(name, f"must be a string, got {type(value).__name__}")
         if pattern is not None and not pattern.fullmatch(value):
-            raise self.fail(name, f"{value!r:.60} is not an id (letters, digits, _.:@-, at most 128)")
+            raise self.fail(name, f"{describe(value)} is not an id (letters, digits, _.:@-, at most 128)")
         return value
 
     def integer(self, name: str, low: int | None = None, high: int | None = None) -> int:
@@ -401,7 +437,8 @@ class _Fields:
         if value is None:
             return None
         if not isinstance(value, str) or not EPOCH.fullmatch(value):
-            raise self.fail("epoch", f"{value!r:.60} is not an epoch (letters, digits, _.:@-, at most 64)")
+            what = "letters, digits, _.:@-, at most 64"
+            raise self.fail("epoch", f"{describe(value)} is not an epoch ({what})")
         return value
 
     def number(self, name: str, *, positive: bool = False) -> float:
@@ -417,7 +454,7 @@ class _Fields:
     def choice(self, name: str, options: tuple[str, ...], default: Any = ...) -> str:
         value = self.text(name, default=default)
         if value not in options:
-            raise self.fail(name, f"{value!r:.40} is not one of {', '.join(options)}")
+            raise self.fail(name, f"{describe(value)} is not one of {', '.join(options)}")
         return value
 
     def array(self, name: str, dtype: str, width: int) -> npt.NDArray[Any]:

@@ -280,3 +280,85 @@ def test_random_bytes_never_escape_as_another_error(payload: bytes) -> None:
         decode(payload)
     except WireError as e:
         assert e.reason in REASONS
+
+
+def nested(depth: int, leaf: Any = 1, *, maps: bool = False) -> Any:
+    """``leaf`` inside ``depth`` lists (or one-entry maps)."""
+    for _ in range(depth):
+        leaf = {"k": leaf} if maps else [leaf]
+    return leaf
+
+
+VALID_BODIES = {
+    "pose": POSE,
+    "skeleton": {"v": 1, "type": "skeleton", "stream": "s", "rate": 120.0, "joints": ["a"], "epoch": "e"},
+    "status": {
+        "v": 1,
+        "type": "status",
+        "instance": "i",
+        "state": "online",
+        "version": "1",
+        "streams": 0,
+        "started": 0.0,
+    },
+    "progress": msgpack.unpackb(
+        encode(ProgressMessage("s", 4, (ClassProgress("c", 2, (1,), 0.5, 0.1, 0.2),), 1.0, 2.0)), raw=False
+    ),
+}
+FIELDS = sorted({(kind, name) for kind, body in VALID_BODIES.items() for name in [*body, "epoch", "extra"]})
+
+
+@pytest.mark.parametrize("maps", [False, True], ids=["lists", "maps"])
+@pytest.mark.parametrize(("kind", "name"), FIELDS)
+def test_a_value_nested_a_thousand_deep_is_refused_in_any_field(kind: str, name: str, maps: bool) -> None:
+    """Issue 32: a pose whose ``v``, ``type`` or ``epoch`` was a list nested 1,000 deep (1 KB) raised
+    RecursionError from a refusal's repr of the value, and the daemon died. Now the decoder refuses
+    whatever nests more than 8 deep, and describes a bad value by its type and size."""
+    payload = raw({**VALID_BODIES[kind], name: nested(1000, maps=maps)})
+    assert len(payload) < 8200
+    with pytest.raises(WireError) as caught:
+        decode(payload)
+    assert caught.value.reason in ("version", "schema"), str(caught.value)
+    assert len(str(caught.value)) < 200, str(caught.value)
+
+
+def test_nesting_is_bounded_at_eight() -> None:
+    """Nine levels (the map, then a field nested eight deep) are refused, whatever the field; the
+    deepest message of the wire (progress: map, list, map, list) is four."""
+    with pytest.raises(WireError, match="nested deeper than 8"):
+        decode(raw({**POSE, "extra": nested(8, maps=True)}))
+    with pytest.raises(WireError, match=r"unknown field\(s\) extra"):
+        decode(raw({**POSE, "extra": nested(7)}))
+
+
+@st.composite
+def hostile_values(draw: st.DrawFn) -> Any:
+    """Any msgpack value, recursively: deep lists and maps, huge integers, NaN and infinities,
+    long strings and bytes."""
+    scalars = (
+        st.none()
+        | st.booleans()
+        | st.integers(-(2**63), 2**64 - 1)
+        | st.floats()
+        | st.text(max_size=300)
+        | st.binary(max_size=300)
+    )
+    tree = st.recursive(
+        scalars,
+        lambda inner: st.lists(inner, max_size=3) | st.dictionaries(st.text(max_size=5), inner, max_size=3),
+    )
+    value = draw(tree)
+    return nested(draw(st.sampled_from([0, 0, 1, 7, 9, 200, 1000])), value, maps=draw(st.booleans()))
+
+
+@settings(max_examples=500, deadline=None)
+@given(st.sampled_from(FIELDS), hostile_values())
+def test_any_value_in_any_field_decodes_or_is_refused_with_a_short_reason(
+    field: tuple[str, str], value: Any
+) -> None:
+    kind, name = field
+    try:
+        decode(raw({**VALID_BODIES[kind], name: value}))
+    except WireError as e:
+        assert e.reason in REASONS
+        assert len(str(e)) < 300, str(e)

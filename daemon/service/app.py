@@ -38,6 +38,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from daemon.config import Config, ConfigError, transports_named
+from daemon.errors import printable
 from daemon.library import Library
 from daemon.service.metrics import Metrics, open_http, serve_http
 from daemon.service.streams import Emitted, Refused, StreamTable
@@ -233,7 +234,8 @@ class Service:
 
     def receive(self, incoming: Incoming) -> list[Emitted]:
         """Decode, validate and route one message; what it completed (a replaced stream's last
-        detections). Refusals are counted and logged, never raised."""
+        detections). Refusals are counted and logged, never raised; so is any other exception that
+        one message sets off (``internal``), so that no message can stop an intake."""
         started = time.perf_counter()
         parsed = parse_topic(incoming.topic)
         stream = parsed[0] if parsed else "?"
@@ -282,6 +284,9 @@ class Service:
             if e.reason == "no_skeleton":
                 for t in self.transports:
                     t.ask_skeleton(stream)
+        except Exception as e:  # a defect of mocapd's: it costs this one message, never the intake
+            self.rejects["internal"] += 1
+            self.events.warn(stream, "internal", printable(f"{type(e).__name__}: {e}"[:200]))
         finally:
             self.metrics.stage["decode"].observe(time.perf_counter() - started)
         return []
