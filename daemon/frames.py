@@ -1,13 +1,13 @@
-"""A stream's frame numbers, and every translation between them, in one place.
+"""A stream's frame numbers and index frames, in one place (DESIGN.md, "A stream's life" and
+"Streaming confirmation").
 
-Three numberings (DESIGN.md, "A stream's life" and "Streaming confirmation"):
-
-- *sequence numbers*, the source's, on the wire: they may have gaps (poses lost on the way, or
-  dropped by a full queue);
-- *frame numbers*, the recogniser's, at the stream's native rate and consecutive within one motion:
-  a motion's first pose keeps its sequence number, each pose after it takes the next frame number
-  (a bridged gap is closed up; :class:`Renumbering`);
-- *index frames*, at the library's rate, counted from 0 at the motion's first frame: every
+- *Frame numbers* are the source's sequence numbers (a recording's AMC frame numbers), at the
+  stream's native rate. They may have gaps (poses lost on the way, or dropped by a full queue); the
+  recogniser takes a motion's frames consecutively: a gap of at most ``service.bridge_s`` is filled
+  with interpolated frames (:func:`bridge`), a longer one ends the motion (:func:`bridged_runs`, the
+  batch twin of the stream table's bridging). So a lost pose moves no later frame: index frames are
+  sampled by frame number.
+- *Index frames*, at the library's rate, counted from 0 at the motion's first frame: every
   ``step``-th frame (the toolbox's ``1:4:end`` at 120 Hz, reference facts section 0), whose
   features come out ``delay`` frames after it (the velocity windows are centred;
   :func:`daemon.features.latency_frames`) (:class:`FrameClock`).
@@ -15,13 +15,16 @@ Three numberings (DESIGN.md, "A stream's life" and "Streaming confirmation"):
 
 from __future__ import annotations
 
+import dataclasses
 import math
-from collections import deque
 from dataclasses import dataclass
+
+import numpy as np
 
 from daemon.errors import InputError
 from daemon.features import decimation_factor, latency_frames
-from daemon.types import MAX_NATIVE_RATE
+from daemon.types import DEFAULT_BRIDGE_S, MAX_NATIVE_RATE, FloatArray, IntArray
+from replay.amc import Motion
 
 
 def check_native_rate(rate: float) -> None:
@@ -76,50 +79,61 @@ class FrameClock:
         return index_frames * self.step + self.delay
 
 
-class Renumbering:
-    """A stream's frame numbers for its sequence numbers: :meth:`frame` numbers each pose fed to the
-    recogniser, :meth:`seq` maps a frame number back (a frame at most ``horizon`` frames before the
-    last one numbered). Frame ``f`` has sequence number ``f + offset`` with the offset of the last
-    change at or before ``f``; a change is kept while a frame within the horizon needs it, so the
-    state is bounded by the gaps in ``horizon`` frames."""
+def bridge_frames(bridge_s: float, rate: float) -> int:
+    """The most missing frames at ``rate`` Hz that ``bridge_s`` seconds bridge."""
+    return round(bridge_s * rate)
 
-    def __init__(self, horizon: int) -> None:
-        self.horizon = horizon
-        self._changes: deque[tuple[int, int]] = deque()  # (first frame, seq - frame from it on)
-        self._next = 0
 
-    def frame(self, seq: int, *, first: bool) -> int:
-        """The frame number of the pose with sequence number ``seq`` fed next: ``seq`` itself if it
-        is the ``first`` of a motion, else the one after the last numbered (or after the last
-        :meth:`refused`)."""
-        if first:
-            self._changes.clear()
-            self._next = seq
-        frame = self._next
-        changes = self._changes
-        if changes and changes[-1][0] == frame:
-            changes.pop()  # a refused pose's, numbered the same
-        if not changes or changes[-1][1] != seq - frame:
-            changes.append((frame, seq - frame))
-        self._next = frame + 1
-        while len(changes) > 1 and changes[1][0] < frame - self.horizon:
-            changes.popleft()
-        return frame
+def bridge(before: FloatArray, after: FloatArray, missing: int, angles: IntArray | None = None) -> FloatArray:
+    """The ``missing`` frames between frame ``before`` and frame ``after`` (any one shape, e.g.
+    ``(C,)`` channels or ``(J, 3)`` positions), interpolated linearly: shape ``(missing, *shape)``.
+    ``angles``: indexes of a channel vector's angles (radians), interpolated along the shorter arc
+    (an Euler angle that wraps from just under π to just over -π turns a little, not nearly once)."""
+    delta = after - before
+    if angles is not None and len(angles):
+        delta[angles] = np.remainder(delta[angles] + math.pi, 2 * math.pi) - math.pi
+    at = np.arange(1, missing + 1, dtype=np.float64) / (missing + 1)
+    out: FloatArray = before + at.reshape((missing,) + (1,) * before.ndim) * delta
+    return out
 
-    def __len__(self) -> int:
-        """The changes kept."""
-        return len(self._changes)
 
-    def refused(self, frame: int) -> None:
-        """The pose numbered ``frame`` (the last) did not reach the recogniser: the next pose takes
-        its number."""
-        self._next = frame
+def bridged_runs(
+    numbers: IntArray, values: FloatArray, max_missing: int, angles: IntArray | None = None
+) -> list[tuple[IntArray, FloatArray]]:
+    """A recording's frames ``values`` (shape ``(N, ...)``) with frame numbers ``numbers`` (shape
+    ``(N,)``, increasing, perhaps with gaps) as the live path takes them: a gap of at most
+    ``max_missing`` frames filled by :func:`bridge` (so that every frame after it is the frame it
+    would have been without the gap, and the index frames are sampled by frame number), a longer
+    one ending a run. The runs as (consecutive frame numbers, values); ValueError if ``numbers``
+    does not increase."""
+    if len(numbers) and np.any(np.diff(numbers) < 1):
+        raise InputError("frame numbers must increase")
+    gaps = np.flatnonzero(np.diff(numbers) > 1)
+    if not len(gaps):
+        return [(numbers, values)] if len(numbers) else []
+    runs: list[tuple[IntArray, FloatArray]] = []
+    pieces: list[FloatArray] = [values[: gaps[0] + 1]]
+    first = int(numbers[0])
+    for k, at in enumerate(gaps):
+        missing = int(numbers[at + 1] - numbers[at]) - 1
+        if missing > max_missing:
+            runs.append((np.arange(first, numbers[at] + 1, dtype=np.int64), np.concatenate(pieces)))
+            pieces, first = [], int(numbers[at + 1])
+        else:
+            pieces.append(bridge(values[at], values[at + 1], missing, angles))
+        end = gaps[k + 1] + 1 if k + 1 < len(gaps) else len(values)
+        pieces.append(values[at + 1 : end])
+    runs.append((np.arange(first, numbers[-1] + 1, dtype=np.int64), np.concatenate(pieces)))
+    return runs
 
-    def seq(self, frame: int) -> int:
-        """The sequence number of frame ``frame`` (numbered, and within the horizon)."""
-        offset = 0
-        for start, value in self._changes:
-            if start > frame:
-                break
-            offset = value
-        return frame + offset
+
+def motion_runs(motion: Motion, native_rate: float, bridge_s: float = DEFAULT_BRIDGE_S) -> list[Motion]:
+    """``motion`` as the daemon takes a stream with the same frames (AMC frame numbers may skip:
+    frames lost in capture or transit): its runs of consecutive frames, a gap of at most ``bridge_s``
+    seconds filled by interpolation (channel angles along the shorter arc), a longer one beginning a
+    new run (:func:`daemon.frames.bridged_runs`). A motion without gaps is one run, itself."""
+    angles = np.asarray(motion.skeleton.angle_channels, dtype=np.intp)
+    runs = bridged_runs(motion.frames, motion.channels, bridge_frames(bridge_s, native_rate), angles)
+    if len(runs) == 1 and len(runs[0][0]) == len(motion):
+        return [motion]
+    return [dataclasses.replace(motion, frames=frames, channels=channels) for frames, channels in runs]

@@ -31,15 +31,17 @@ Pure: integers in, frozen dataclasses out; no I/O.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
+import numpy as np
+
 from daemon.dtw import SCALE
 from daemon.errors import InputError
+from daemon.frames import motion_runs
 from daemon.library import Library
 from daemon.recognizer import DEFAULT_SETTINGS, ClassStage, Detection, recording_stage
-from daemon.types import FloatArray, IntArray, RecognitionSettings
+from daemon.types import DEFAULT_BRIDGE_S, FloatArray, IntArray, RecognitionSettings
 from replay import Motion
 from replay.kinematics import joint_positions
 
@@ -152,11 +154,11 @@ class ProgressStage:
         return out
 
 
-def read(stage: ClassStage, floor: float = FLOOR, numbering: Callable[[int], int] | None = None) -> Snapshot:
+def read(stage: ClassStage, floor: float = FLOOR) -> Snapshot:
     """The classes under way on ``stage``'s stream after its last index frame (position at least
-    ``floor`` in (0, 1], or a keyframe matched), by class name; keyframe frames as frame numbers,
-    through ``numbering`` if given (the service's sequence numbers). Call it after every index
-    frame of a stream whose progress is followed (it keeps each gated class's last whole hit)."""
+    ``floor`` in (0, 1], or a keyframe matched), by class name; keyframe frames as frame numbers.
+    Call it after every index frame of a stream whose progress is followed (it keeps each gated
+    class's last whole hit)."""
     core = stage.codes.core
     if core is None or stage.first is None:
         return ()
@@ -176,8 +178,6 @@ def read(stage: ClassStage, floor: float = FLOOR, numbering: Callable[[int], int
         matched: tuple[int, ...] = ()
         if frames:  # index frames to frame numbers, as FrameClock.start
             matched = tuple(first + f * step for f in frames)
-            if numbering is not None:
-                matched = tuple(numbering(f) for f in matched)
         if u >= 0:
             m = lengths[u]
             out.append(
@@ -195,8 +195,7 @@ class StreamProgress:
     each push of frame ``number`` reads it if an index frame came (:func:`read`) into its
     :class:`ProgressStage`; the codes the end of the stream pushes are observed as they are
     (the stage's ``watch``); :meth:`end` when the stream's motion ended (flushed): what those gave
-    and the stage's flush. ``numbering``: frame numbers to sequence numbers (the service's), which
-    the events carry and the rate limit counts; :attr:`frame` is the frame number last observed."""
+    and the stage's flush. :attr:`frame` is the frame number last observed."""
 
     def __init__(
         self,
@@ -205,14 +204,12 @@ class StreamProgress:
         per_s: float = DEFAULT_PER_S,
         *,
         floor: float = FLOOR,
-        numbering: Callable[[int], int] | None = None,
     ) -> None:
         if not 0 < floor <= 1:
             raise InputError(f"the floor must be a position in (0, 1], got {floor!r}")
         self.stage = stage
         self.events = ProgressStage(rate, per_s)
         self.floor = floor
-        self.numbering = numbering
         self.frame: int | None = None
         self._seen = 0
         self._pending: list[ProgressEvent] = []
@@ -226,8 +223,7 @@ class StreamProgress:
             return []
         self._seen = n
         self.frame = number
-        seq = number if self.numbering is None else self.numbering(number)
-        return self.events.push(seq, read(self.stage, self.floor, self.numbering))
+        return self.events.push(number, read(self.stage, self.floor))
 
     def _watch(self, number: int) -> None:
         self._pending += self.observe(number)
@@ -250,22 +246,28 @@ def detect_progress(
     session: str = "",
     per_s: float = DEFAULT_PER_S,
     floor: float = FLOOR,
+    bridge_s: float = DEFAULT_BRIDGE_S,
 ) -> list[Detection | ProgressEvent]:
     """The batch twin of a :class:`~daemon.recognizer.Recognizer` followed by
     :class:`StreamProgress`: every detection and progress event of ``motion`` in emission order
     (a push's progress event before its detections; at the end, the events of the codes the end
-    gives and the flush's, then the last detections)."""
-    return detect_progress_positions(
-        joint_positions(motion),
-        motion.frames,
-        library,
-        native_rate,
-        settings=settings,
-        stream=stream,
-        session=session,
-        per_s=per_s,
-        floor=floor,
-    )
+    gives and the flush's, then the last detections). Frames missing from ``motion`` are taken as
+    :func:`daemon.recognizer.detect` takes them (:func:`~daemon.frames.motion_runs`)."""
+    return [
+        e
+        for run in motion_runs(motion, native_rate, bridge_s)
+        for e in detect_progress_positions(
+            joint_positions(run),
+            run.frames,
+            library,
+            native_rate,
+            settings=settings,
+            stream=stream,
+            session=session,
+            per_s=per_s,
+            floor=floor,
+        )
+    ]
 
 
 def detect_progress_positions(
@@ -280,11 +282,14 @@ def detect_progress_positions(
     per_s: float = DEFAULT_PER_S,
     floor: float = FLOOR,
 ) -> list[Detection | ProgressEvent]:
-    """:func:`detect_progress` of standard joint positions shape ``(N, 26, 3)`` with frame numbers
-    ``(N,)`` (consecutive), as :func:`daemon.recognizer.detect_positions` reads them: the codes a
-    push of the stream gives through the class stage one by one, those its end gives in its flush."""
+    """:func:`detect_progress` of one run of standard joint positions shape ``(N, 26, 3)`` with
+    frame numbers ``(N,)`` (consecutive), as :func:`daemon.recognizer.detect_positions` reads them:
+    the codes a push of the stream gives through the class stage one by one, those its end gives
+    in its flush."""
     if len(positions) == 0:
         return []
+    if np.any(np.diff(numbers) != 1):
+        raise InputError("frame numbers must be consecutive (daemon.frames.motion_runs bridges gaps)")
     codes, stage = recording_stage(positions, library, native_rate, settings, stream=stream, session=session)
     clock = stage.clock
     follow = StreamProgress(stage, native_rate, per_s, floor=floor)

@@ -53,11 +53,11 @@ from daemon.automaton import KeyframeAutomaton
 from daemon.dtw import SCALE, Match, RetrievalTables, Steps, pack, retrieval_tables, threshold
 from daemon.errors import InputError, MocapdError
 from daemon.features import FeatureStream, features
-from daemon.frames import FrameClock, check_native_rate
+from daemon.frames import FrameClock, bridge_frames, bridged_runs, check_native_rate, motion_runs
 from daemon.keyframes import KeyframeQuery
 from daemon.library import GATED, ClassTemplate, Library
 from daemon.templates import expand
-from daemon.types import FloatArray, IntArray, RecognitionSettings
+from daemon.types import DEFAULT_BRIDGE_S, FloatArray, IntArray, RecognitionSettings
 from replay import JOINT_NAMES, KinematicModel, Motion, Skeleton
 from replay.kinematics import joint_positions
 
@@ -666,19 +666,25 @@ def detect(
     settings: RecognitionSettings = DEFAULT_SETTINGS,
     stream: str = "",
     session: str = "",
+    bridge_s: float = DEFAULT_BRIDGE_S,
 ) -> list[Detection]:
-    """The batch twin of :class:`Recognizer`: every detection of ``motion`` (read at ``native_rate``
-    Hz) in the order the recogniser emits them, equal to pushing its frames one by one with the same
-    settings and ``session``."""
-    return detect_positions(
-        joint_positions(motion),
-        motion.frames,
-        library,
-        native_rate,
-        settings=settings,
-        stream=stream,
-        session=session,
-    )
+    """The batch twin of :class:`Recognizer` (as the service's stream table feeds it): every
+    detection of ``motion`` (read at ``native_rate`` Hz) in the order the recogniser emits them,
+    equal to pushing its frames one by one with the same settings and ``session``. Frames missing
+    from ``motion`` are taken as the stream table takes lost poses (:func:`motion_runs`)."""
+    return [
+        d
+        for run in motion_runs(motion, native_rate, bridge_s)
+        for d in detect_positions(
+            joint_positions(run),
+            run.frames,
+            library,
+            native_rate,
+            settings=settings,
+            stream=stream,
+            session=session,
+        )
+    ]
 
 
 def detect_positions(
@@ -690,21 +696,23 @@ def detect_positions(
     settings: RecognitionSettings = DEFAULT_SETTINGS,
     stream: str = "",
     session: str = "",
+    bridge_s: float = DEFAULT_BRIDGE_S,
 ) -> list[Detection]:
     """:func:`detect` of standard joint positions shape ``(N, 26, 3)`` with frame numbers ``(N,)``
-    (consecutive). The features of all frames come from one vectorised pass
-    (:func:`daemon.features.features`, the batch twin of the live path's
+    (increasing; gaps bridged as :func:`detect`'s). The features of all frames of a run come from
+    one vectorised pass (:func:`daemon.features.features`, the batch twin of the live path's
     :class:`~daemon.features.FeatureStream`), decimated by the live path's
     :class:`~daemon.frames.FrameClock`; the codes go through the live path's :class:`ClassStage`,
     each with the frame whose push would give it (:meth:`~daemon.frames.FrameClock.known`)."""
-    if len(positions) == 0:
-        return []
-    codes, stage = recording_stage(positions, library, native_rate, settings, stream=stream, session=session)
-    clock = stage.clock
-    first, last = int(numbers[0]), int(numbers[-1])
-    stage.start(first)
-    out = [d for j, code in enumerate(codes) for d in stage.push(clock.known(first, j, last), code)]
-    return out + stage.flush(last)
+    out: list[Detection] = []
+    for run_numbers, run in bridged_runs(numbers, positions, bridge_frames(bridge_s, native_rate)):
+        codes, stage = recording_stage(run, library, native_rate, settings, stream=stream, session=session)
+        clock = stage.clock
+        first, last = int(run_numbers[0]), int(run_numbers[-1])
+        stage.start(first)
+        out += [d for j, code in enumerate(codes) for d in stage.push(clock.known(first, j, last), code)]
+        out += stage.flush(last)
+    return out
 
 
 def recording_stage(

@@ -27,8 +27,10 @@ import numpy as np
 from daemon.checks import csv_records, read_text
 from daemon.errors import InputError, MocapdError
 from daemon.features import decimate, decimation_factor, features
+from daemon.frames import motion_runs
 from daemon.types import (
     CLASS_NAME,
+    DEFAULT_BRIDGE_S,
     DEFAULT_INDEX_RATE,
     DEFAULT_NATIVE_RATE,
     Band,
@@ -69,6 +71,22 @@ def native_rate(motion: Motion, default: float = DEFAULT_NATIVE_RATE) -> float:
     return motion.header.frame_rate or default
 
 
+def continuous(
+    motion: Motion, bridge_s: float = DEFAULT_BRIDGE_S, default_native_rate: float = DEFAULT_NATIVE_RATE
+) -> Motion:
+    """``motion`` with its missing frames interpolated as the daemon bridges lost poses
+    (:func:`~daemon.frames.motion_runs`); :class:`RecordingError` naming the file and the frames for a gap longer
+    than ``bridge_s`` seconds, which features, indexes and templates cannot span."""
+    runs = motion_runs(motion, native_rate(motion, default_native_rate), bridge_s)
+    if len(runs) > 1:
+        a, b = int(runs[0].frames[-1]) + 1, int(runs[1].frames[0]) - 1
+        raise RecordingError(
+            f"frames {a}-{b} are missing, longer than the {bridge_s:g} s bridged: cut the recording there",
+            path=motion.source,
+        )
+    return runs[0] if runs else motion
+
+
 @dataclass(frozen=True)
 class RecordingFeatures:
     """A recording's features at ``native_rate / step`` Hz: ``matrix`` shape ``(N, 39)`` and the AMC
@@ -107,6 +125,7 @@ def motion_features(
     from the joints in centimetres, then every k-th frame from the first."""
     step = sampling_step(motion, rate, default_native_rate)
     native = native_rate(motion, default_native_rate)
+    motion = continuous(motion, default_native_rate=default_native_rate)
     try:
         matrix = decimate(features(joint_positions(motion), JOINT_NAMES, native), step)
     except InputError as exc:

@@ -35,6 +35,10 @@ frames at 10 kHz), so an absurd rate (a typo, a damaged file) would exhaust memo
 DEFAULT_INDEX_RATE = 30.0
 """Hz at which indexes, templates and keyframes work (the toolbox's every 4th frame of 120 Hz)."""
 
+DEFAULT_BRIDGE_S = 0.25
+"""The longest run of missing frames (seconds) bridged by interpolation (config ``service.bridge_s``);
+a longer one ends the motion (:func:`daemon.frames.bridged_runs`)."""
+
 DEFAULT_HOLD_S = 5.0
 """Seconds the live recogniser may hold a detection while another template could still explain
 the same motion more cheaply (config ``recognizer.hold_s``)."""

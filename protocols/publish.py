@@ -1,11 +1,13 @@
 """A recording as a live stream's messages (``mocapd replay``; :mod:`protocols.replay` sends them):
 the skeleton announced (the ASF text), then every frame's channels as a pose, and when each is due.
 
-Pacing: frame i is due at t0 + i / (rate * speed), t0 the time the first frame went out; each frame
-waits for its own due time, so sleeping late never accumulates into drift over a long file
-(``speed`` None: as fast as the transport takes them). Sequence numbers are the AMC frame numbers,
-continued across passes with ``loop``; each pose carries the time it was sent and the replay's
-epoch (one run of the source, ``protocols/README.md``, "A stream's life"). Pure: no sockets.
+Pacing: frame i (counted from the first frame's number, so a frame missing from the recording
+leaves its time empty) is due at t0 + i / (rate * speed), t0 the time the first frame went out;
+each frame waits for its own due time, so sleeping late never accumulates into drift over a long
+file (``speed`` None: as fast as the transport takes them). Sequence numbers are the AMC frame
+numbers (a recording's missing frames are missing from the stream too), continued across passes
+with ``loop``; each pose carries the time it was sent and the replay's epoch (one run of the source,
+``protocols/README.md``, "A stream's life"). Pure: no sockets.
 """
 
 from __future__ import annotations
@@ -30,14 +32,15 @@ def messages(
     motion: Motion, asf_text: str, stream: str, rate: float, passes: int | None, epoch: str | None = None
 ) -> Items:
     """The skeleton, then one pose per frame (``passes`` times through the recording; None: for
-    ever), sequence numbers from the first AMC frame number on, all of run ``epoch``; ``time`` is
-    filled when sent."""
+    ever), sequence numbers the AMC frame numbers, each pass's after the last's, all of run
+    ``epoch``; ``time`` is filled when sent."""
     yield SkeletonMessage(stream, rate, asf=asf_text, angle_unit="rad", epoch=epoch)
-    first = int(motion.frames[0]) if len(motion) else 1
-    seq = first
+    if not len(motion):
+        return
+    span = int(motion.frames[-1]) - int(motion.frames[0]) + 1
     done = 0
     while passes is None or done < passes:
-        for row in motion.channels:
+        for number, row in zip(motion.frames.tolist(), motion.channels, strict=True):
+            seq = number + done * span
             yield PoseMessage(stream, seq, 0.0, channels=np.ascontiguousarray(row), epoch=epoch)
-            seq += 1
         done += 1

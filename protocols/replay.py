@@ -79,11 +79,13 @@ async def _send_all(
     sent = 0
     start = time.monotonic()
     i = 0
+    first: int | None = None
     skeleton: Outgoing | None = None
     announced = start
     for m in items:
         if isinstance(m, PoseMessage):
-            wait = due(start, i, rate, speed) - time.monotonic()
+            first = m.seq if first is None else first
+            wait = due(start, m.seq - first, rate, speed) - time.monotonic()
             if wait > 0:
                 await asyncio.sleep(wait)
             elif i % 256 == 0:

@@ -4,6 +4,9 @@ Both return channel vectors in the layout of :attr:`replay.asf.Skeleton.channel_
 then each bone's dofs in ``:bonedata`` order), float64, rotation channels in radians whatever the
 file's angle unit, translations in ASF units as written.
 
+Frame numbers must increase; a gap (frames lost in capture) reads, and the frames keep their numbers
+(``daemon.frames.motion_runs`` bridges it as the daemon bridges lost poses).
+
 * :class:`AmcStream` reads one frame at a time with memory bounded by one frame. It yields every
   complete frame before a bad one, then raises :class:`~replay.errors.MocapFormatError` naming the
   file and line.
@@ -57,7 +60,8 @@ class AmcFrame:
 
 @dataclass(frozen=True)
 class Motion:
-    """A whole AMC file: ``frames`` shape ``(N,)`` (AMC frame numbers), ``channels`` shape ``(N, C)``."""
+    """A whole AMC file: ``frames`` shape ``(N,)`` (AMC frame numbers, increasing; a file that lost
+    frames skips their numbers), ``channels`` shape ``(N, C)``."""
 
     source: str
     skeleton: Skeleton
@@ -200,8 +204,8 @@ class AmcStream:
             number = int(words[0])
             if number > _MAX_FRAME:
                 raise self._error(f"frame number {number} is too large (at most {_MAX_FRAME})")
-            if expected is not None and number != expected:
-                raise self._error(f"frame number {number} out of sequence (expected {expected})")
+            if expected is not None and number < expected:  # a gap is frames lost: it reads
+                raise self._error(f"frame number {number} out of sequence (expected {expected} or later)")
             start = self._line
             buf = [0.0] * layout.n_channels
             seen: set[bytes] = set()
@@ -370,7 +374,7 @@ def _parse_regular(body: bytes, layout: _Layout) -> tuple[IntArray, FloatArray] 
     if not frames_out:
         return None
     all_frames = np.concatenate(frames_out)
-    if not np.all(np.diff(all_frames) == 1):
+    if not np.all(np.diff(all_frames) >= 1):
         return None
     channels = np.empty((all_frames.size, layout.n_channels), dtype=np.float64)
     channels[:, value_dest] = np.concatenate(values_out)

@@ -282,16 +282,21 @@ def test_bone_with_one_value_given_two(clip: Clip, tmp_path: Path) -> None:
     check_bad_amc(clip, path, at, BAD, "bone 'ltibia'", "needs 1 values, got 2")
 
 
-@pytest.mark.parametrize("delta", [2, -1, -2], ids=["gap", "repeat", "backwards"])
+@pytest.mark.parametrize("delta", [-1, -2], ids=["repeat", "backwards"])
 def test_frame_number_out_of_sequence(clip: Clip, tmp_path: Path, delta: int) -> None:
-    """Frame BAD numbered n + 2 (a gap), n - 1 (the previous number again) or n - 2."""
+    """Frame BAD numbered n - 1 (the previous number again) or n - 2; a gap (n + 2) is read
+    (frames lost in capture: see test_recordings_with_gaps.py)."""
     n = clip.frame_number(BAD)
     wrong = n + delta
     lines = clip.edit()
     set_words(lines, clip.frame_lines[BAD], [str(wrong)])
     path = write(tmp_path / "sequence.amc", lines)
     check_bad_amc(
-        clip, path, clip.frame_lines[BAD], BAD, f"frame number {wrong} out of sequence (expected {n})"
+        clip,
+        path,
+        clip.frame_lines[BAD],
+        BAD,
+        f"frame number {wrong} out of sequence (expected {n} or later)",
     )
 
 

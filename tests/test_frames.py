@@ -1,7 +1,6 @@
 """Frame numbers translated in one place (:mod:`daemon.frames`): the clock between a motion's frame
 numbers and its index frames against a slow enumeration of the frames (and against the feature
-stream's real delay), and a stream's renumbering of sequence numbers against a plain table of every
-pose fed; both round-trip."""
+stream's real delay)."""
 
 from __future__ import annotations
 
@@ -13,7 +12,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from daemon.features import FeatureStream, latency_frames
-from daemon.frames import FrameClock, Renumbering
+from daemon.frames import FrameClock
 from daemon.recordings import read_recording
 from replay import JOINT_NAMES
 from replay.kinematics import joint_positions
@@ -89,63 +88,3 @@ def test_clock_agrees_with_the_features_delay(every: int) -> None:
     assert len(gave) == len(positions)
     index_frames = gave[:: clock.step]
     assert index_frames == [clock.known(first, j, last) for j in range(len(index_frames))]
-
-
-# ------------------------------------------------------------------------------ renumbering
-
-
-Op = tuple[str, int]
-
-
-POSE = st.tuples(st.just("pose"), st.integers(0, 3))  # a pose after a gap of so many
-REFUSED = st.tuples(st.just("refused"), st.integers(0, 3))  # a pose numbered, then refused
-MOTION = st.tuples(st.just("motion"), st.integers(-(10**6), 10**6))  # a new motion from seq
-
-
-@settings(max_examples=300, deadline=None)
-@given(
-    st.integers(0, 12),
-    st.integers(-1000, 10**6),
-    st.lists(st.one_of(POSE, POSE, POSE, POSE, REFUSED, MOTION), max_size=100),
-)
-def test_renumbering_equals_a_table_of_every_pose(horizon: int, start: int, ops: list[Op]) -> None:
-    """Consecutive frame numbers from a motion's first sequence number; every pose fed maps back
-    to its sequence number while it is within the horizon; a refused pose's number goes to the
-    next pose."""
-    r = Renumbering(horizon)
-    table: dict[int, int] = {}  # frame -> seq, this motion's poses fed
-    last_seq: int | None = None  # the last sequence number fed, None: a motion begins
-    next_frame: int | None = None
-    latest = start
-    for kind, value in ops:
-        if kind == "motion":
-            last_seq, latest = None, value
-            continue
-        first = last_seq is None
-        seq = latest if last_seq is None else max(latest, last_seq) + 1 + value
-        frame = r.frame(seq, first=first)
-        assert frame == (seq if first else next_frame)
-        if first:
-            table.clear()
-        if kind == "refused":
-            r.refused(frame)
-            next_frame, latest = frame, seq  # a later pose comes after the refused one
-        else:
-            table[frame] = seq
-            last_seq, next_frame, latest = seq, frame + 1, seq
-            assert r.seq(frame) == seq  # round trip
-        newest = frame
-        for f, s in table.items():
-            if f >= newest - horizon:
-                assert r.seq(f) == s, (f, s)
-
-
-def test_renumbering_is_bounded() -> None:
-    """A gap every other pose over a long stream keeps about horizon / 2 changes."""
-    r = Renumbering(100)
-    seq = 0
-    for k in range(10_000):
-        seq += 1 + k % 2
-        r.frame(seq, first=k == 0)
-    assert r.seq(r.frame(seq + 1, first=False)) == seq + 1
-    assert len(r) <= 52

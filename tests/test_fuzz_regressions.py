@@ -102,9 +102,10 @@ def test_a_pose_the_recogniser_refuses_does_not_black_hole_its_stream() -> None:
     detections += [e.message for e in table.flush_all()]
     assert [(p, why.split(":")[1].strip()) for _, p, why in refused] == [
         ("non_finite", "frame 101"),
-        ("non_finite", "frame 101"),
-        ("non_finite", "frame 499"),
+        ("non_finite", "frame 101"),  # bridging 100 to the bad 102: 102 is dropped
+        ("non_finite", "frame 501"),
     ]
+    assert "bridging the gap before pose 102, dropped" in refused[1][2]
     # the poses after each refused one bridge a gap: 102 (1 missing), 103 (2), 502 (1)
     assert dict(table.counts) == {"recognizer_non_finite": 3, "gaps": 3, "gap_frames": 4}
     assert len(detections) >= 10, detections  # the clip's exercises (13 with no pose refused)

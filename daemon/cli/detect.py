@@ -14,6 +14,7 @@ from typing import Any
 from daemon.cli import common
 from daemon.config import Config
 from daemon.errors import InputError, UsageError
+from daemon.frames import motion_runs
 from daemon.library import default_library_path, load_library
 from daemon.plots import timeline_png
 from daemon.progress import ProgressEvent, StreamProgress
@@ -112,15 +113,17 @@ def _detect(args: argparse.Namespace, config: Config) -> int:
 
     began = time.perf_counter()
     pace = None if args.speed is None else 1.0 / (rate * args.speed)
-    for i, (number, channels) in enumerate(zip(motion.frames.tolist(), motion.channels, strict=True)):
-        if pace is not None:  # by the clock: a late frame does not delay the next ones
-            ahead = began + i * pace - time.perf_counter()
-            if ahead > 0:
-                time.sleep(ahead)
-        detections = recognizer.push(number, channels)
-        report(detections, follow.observe(number) if follow is not None else [])
-    detections = recognizer.flush()
-    report(detections, follow.end() if follow is not None else [])
+    # frames missing from the recording are taken as the daemon takes lost poses
+    for run in motion_runs(motion, rate, config.service.bridge_s):
+        for number, channels in zip(run.frames.tolist(), run.channels, strict=True):
+            if pace is not None:  # by the clock: a late frame does not delay the next ones
+                ahead = began + (number - first) * pace - time.perf_counter()
+                if ahead > 0:
+                    time.sleep(ahead)
+            detections = recognizer.push(number, channels)
+            report(detections, follow.observe(number) if follow is not None else [])
+        detections = recognizer.flush()
+        report(detections, follow.end() if follow is not None else [])
     took = time.perf_counter() - began
     if not args.json:
         print(

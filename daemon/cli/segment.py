@@ -14,7 +14,7 @@ from daemon.cli import common
 from daemon.config import Config
 from daemon.errors import InputError, UsageError
 from daemon.plots import segmentation_png
-from daemon.recordings import native_rate, read_boundaries, read_recording
+from daemon.recordings import continuous, native_rate, read_boundaries, read_recording
 
 
 def register(sub: Any) -> None:
@@ -119,6 +119,7 @@ def _segment(args: argparse.Namespace, config: Config) -> int:
     trial = args.amc.name.removesuffix(".gz").removesuffix(".amc")
     motion = read_recording(args.asf, args.amc)
     rate = native_rate(motion, common.default_native_rate(args, config))
+    motion = continuous(motion, config.service.bridge_s, rate)
     bands = [] if args.truth is None else read_boundaries(args.truth, trial, rate=rate)
     began = time.perf_counter()
     rotations = bh.JointRotations(motion.skeleton)

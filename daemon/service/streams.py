@@ -16,13 +16,14 @@ further ahead than the time since the stream's last pose allows (twice its rate,
 refused (``implausible``), not taken as a gap, unless the pose after it follows on from it (a real
 jump: a gap in a source faster than its announced rate), which is then taken after the gap.
 
-Frame numbers. The recogniser needs consecutive frame numbers; a stream's sequence numbers may have
-gaps (poses lost on the way, or dropped here when its queue is full). A gap of at most
-``service.bridge_s`` (in the stream's frames) is bridged: the pose after it is given the next frame
-number, and detections report sequence numbers through the stream's table of (frame, sequence
-offset) changes. A longer gap ends the stream's motion: its recogniser is flushed and begins again at
-the new pose. With no gap, frame number = sequence number, so a replayed recording's detections
-are those of ``mocapd detect``.
+Frame numbers are sequence numbers (:mod:`daemon.frames`). The recogniser takes a motion's frames
+consecutively; a stream's sequence numbers may have gaps (poses lost on the way, or dropped here
+when its queue is full). A gap of at most ``service.bridge_s`` (in the stream's frames) is bridged:
+the missing frames are interpolated between the last frame fed and the pose after the gap
+(:func:`daemon.frames.bridge`; channel angles along the shorter arc) and fed before it, so every
+later frame, and every index frame, is the one it would have been without the gap. A longer gap ends
+the stream's motion: its recogniser is flushed and begins again at the new pose. So a stream gives
+the detections of ``mocapd detect`` on the same frames (:func:`daemon.frames.bridged_runs`).
 
 Behaviour boundaries. With a segmentation method (``segmentation`` of the config), every channel
 stream whose id matches one of its patterns also goes through an online segmenter
@@ -48,7 +49,7 @@ from daemon.behaviours import Boundary, JointRotations, PcaSegmenter, PpcaSegmen
 from daemon.behaviours import online_segmenter as make_segmenter
 from daemon.config import ProgressConfig, RecognizerConfig, SegmentationConfig, ServiceConfig
 from daemon.errors import InputError, MocapdError, printable
-from daemon.frames import Renumbering
+from daemon.frames import bridge, bridge_frames
 from daemon.library import Library
 from daemon.progress import ProgressEvent, StreamProgress
 from daemon.recognizer import Detection, Recognizer
@@ -109,17 +110,23 @@ class _Segmenting:
 @dataclass
 class _Stream:
     """One stream: its announcement, the skeleton parsed from it (channel streams), the last
-    sequence number received and the last fed to the recogniser, the poses waiting, and its frame
-    numbers for its sequence numbers (:class:`~daemon.frames.Renumbering`)."""
+    sequence number received and the last fed to the recogniser (and its values), the poses
+    waiting, and the frames bridging a gap before the first of them."""
 
     announced: SkeletonMessage
     skeleton: Skeleton | None
     angles: np.ndarray | None
+    """The channels converted from degrees (None: none)."""
+    turns: np.ndarray | None = None
+    """The channels that are angles, bridged along the shorter arc (None: positions)."""
     last_received: int | None = None
     received: int = 0
     last_fed: int | None = None
+    last_values: np.ndarray | None = None
+    """The values of frame :attr:`last_fed` (a gap after it is bridged from them)."""
     queue: deque[PoseMessage] = field(default_factory=deque)
-    numbers: Renumbering = field(default_factory=lambda: Renumbering(0))
+    filling: deque[tuple[int, float, np.ndarray]] = field(default_factory=deque)
+    """The interpolated frames (frame number, time, values) of a gap before ``queue[0]``."""
     times: np.ndarray = field(default_factory=lambda: np.zeros(1))
     width: int = 0
     seen: float = 0.0
@@ -218,8 +225,8 @@ class StreamTable:
     @staticmethod
     def _horizon(recognizer: Recognizer) -> int:
         """Native frames a detection of ``recognizer`` reaches back at most: the index-rate frames of
-        :attr:`~daemon.recognizer.Recognizer.reach`, the features' delay, and margin (the renumbering's
-        changes and source times are kept as long)."""
+        :attr:`~daemon.recognizer.Recognizer.reach`, the features' delay, and margin (the source
+        times of so many frames are kept)."""
         return recognizer.clock.lag(recognizer.reach + 2) + 8
 
     @property
@@ -268,7 +275,7 @@ class StreamTable:
             message,
             skeleton,
             angles,
-            numbers=Renumbering(horizon),
+            turns=None if skeleton is None else np.asarray(skeleton.angle_channels, dtype=np.intp),
             times=np.zeros(horizon),
             width=len(skeleton.channel_names) if skeleton is not None else len(message.joints or ()),
             seen=now,
@@ -284,9 +291,7 @@ class StreamTable:
     def _follow(self, s: _Stream, recognizer: Recognizer) -> None:
         """Follow the progress of ``s``'s (new) recogniser, if progress events are enabled."""
         if self.progress.enabled:
-            s.progress = StreamProgress(
-                recognizer.stage, recognizer.native_rate, self.progress.per_s, numbering=s.numbers.seq
-            )
+            s.progress = StreamProgress(recognizer.stage, recognizer.native_rate, self.progress.per_s)
 
     def warm_up(self, name: str) -> None:
         """``name``'s history here is truncated (cluster mode: taken over from a buffer that lost
@@ -389,48 +394,44 @@ class StreamTable:
     # ------------------------------------------------------------------------------ recognition
 
     def tick(self) -> tuple[list[Emitted], list[tuple[str, str, str]]]:
-        """One queued pose of every stream that has one, through one bank push: the detections, and
-        the poses the recognisers refused as (stream, problem, why)."""
+        """One frame of every stream that has one waiting (a queued pose, or a frame bridging the
+        gap before it), through one bank push: the detections, and the frames the recognisers
+        refused as (stream, problem, why)."""
         frames = []
-        before: dict[str, int | None] = {}  # each stream's last fed sequence number before this pose
+        before: dict[str, tuple[int | None, np.ndarray | None]] = {}  # last fed before this frame
+        bridging: set[str] = set()  # the streams whose frame this tick is an interpolated one
         out: list[Emitted] = []
         for name, s in list(self._waiting.items()):
-            pose = s.queue.popleft()
+            if s.filling:
+                seq, stamp, values = s.filling.popleft()
+                bridging.add(name)
+            else:
+                pose = s.queue.popleft()
+                if not s.queue:
+                    del self._waiting[name]
+                out += self._follows(name, s, pose)
+                if self.cluster and s.last_fed is None:
+                    if pose.seq % s.step:  # every owner begins a motion at the same index frames
+                        self.counts["aligning"] += 1
+                        self._queued -= 1
+                        continue
+                    if s.warming:
+                        s.warming = False
+                        s.suppress_before = pose.seq + s.warmup
+                seq, stamp, values = pose.seq, pose.time, self._values(s, pose)
+                if s.last_fed is not None and seq > s.last_fed + 1:
+                    self._bridge(name, s, pose, values)
+                    seq, stamp, values = s.filling.popleft()
+                    bridging.add(name)
             self._queued -= 1
-            if not s.queue:
-                del self._waiting[name]
-            if s.last_fed is not None and (
-                pose.seq <= s.last_fed or (pose.epoch is not None and pose.epoch != s.fed_epoch)
-            ):  # the first pose of a new run of the source
-                self.counts["restarts"] += 1
-                out += self._restart(name, s, pose.epoch)
-            if pose.epoch is not None:
-                s.fed_epoch = pose.epoch
-            gap = 0 if s.last_fed is None else pose.seq - s.last_fed - 1
-            if gap > round(self.bridge_s * s.announced.rate):
-                self.counts["gaps"] += 1
-                self.counts["gap_frames"] += gap
-                out += self._restart(name, s, pose.epoch)
-            elif gap > 0:
-                self.counts["gaps"] += 1
-                self.counts["gap_frames"] += gap
-            if self.cluster and s.last_fed is None:
-                if pose.seq % s.step:  # every owner begins a motion at the same index frames
-                    self.counts["aligning"] += 1
-                    continue
-                if s.warming:
-                    s.warming = False
-                    s.suppress_before = pose.seq + s.warmup
-            before[name] = s.last_fed
-            frame = s.numbers.frame(pose.seq, first=s.last_fed is None)
-            s.last_fed = pose.seq
-            s.times[frame % len(s.times)] = pose.time
-            frames.append((name, frame, self._values(s, pose)))
+            before[name] = (s.last_fed, s.last_values)
+            s.last_fed, s.last_values = seq, values
+            s.times[seq % len(s.times)] = stamp
+            frames.append((name, seq, values))
         if not frames:
             return out, []
         result = self.bank.push(frames)
         refused: list[tuple[str, str, str]] = []
-        numbers = {name: frame for name, frame, _ in frames}
         taken = {name for name, _ in result.errors}  # refused by the recogniser: not fed on
         if self.progress.enabled:  # a tick's progress goes out before its detections
             for name, frame, _ in frames:
@@ -439,13 +440,20 @@ class StreamTable:
                     out += self._progressed(name, s, s.progress.observe(frame), frame)
         for name, error in result.errors:
             # a taken-in pose the recogniser refused (e.g. positions beyond floating point after
-            # forward kinematics): dropped, and as if never fed, so that the next pose follows on
-            # (its frame number this one's) instead of every later one being refused as a jump
+            # forward kinematics): dropped, and as if never fed, so that the next pose bridges it
+            # instead of every later one being refused as a jump
             self.counts[f"recognizer_{error.problem}"] += 1
             s = self.streams[name]
-            s.numbers.refused(numbers[name])
-            s.last_fed = before[name]
-            refused.append((name, error.problem, str(error)))
+            s.last_fed, s.last_values = before[name]
+            why = str(error)
+            if name in bridging:  # the last frame fed was usable: the pose after the gap is not
+                self._queued -= len(s.filling) + 1
+                s.filling.clear()
+                dropped = s.queue.popleft()
+                if not s.queue:
+                    del self._waiting[name]
+                why += f" (bridging the gap before pose {dropped.seq}, dropped)"
+            refused.append((name, error.problem, why))
         out += self._kept([self._emitted(d) for d in result.detections])
         if self.segmentation != "none":
             for name, frame, values in frames:
@@ -453,6 +461,39 @@ class StreamTable:
                 if s.segmenting is not None and name not in taken:
                     out += [self._boundary(name, s, *cut) for cut in s.segmenting.push(frame, values)]
         return out, refused
+
+    def _follows(self, name: str, s: _Stream, pose: PoseMessage) -> list[Emitted]:
+        """Where ``pose``, the next of ``s`` to be fed, stands: the first of a new run of the source
+        or after a gap too long to bridge, it ends the stream's motion (the detections that gives);
+        a gap is counted."""
+        out: list[Emitted] = []
+        if s.last_fed is not None and (
+            pose.seq <= s.last_fed or (pose.epoch is not None and pose.epoch != s.fed_epoch)
+        ):  # the first pose of a new run of the source
+            self.counts["restarts"] += 1
+            out += self._restart(name, s, pose.epoch)
+        if pose.epoch is not None:
+            s.fed_epoch = pose.epoch
+        gap = 0 if s.last_fed is None else pose.seq - s.last_fed - 1
+        if gap > 0:
+            self.counts["gaps"] += 1
+            self.counts["gap_frames"] += gap
+            if gap > bridge_frames(self.bridge_s, s.announced.rate):
+                out += self._restart(name, s, pose.epoch)
+        return out
+
+    def _bridge(self, name: str, s: _Stream, pose: PoseMessage, values: np.ndarray) -> None:
+        """Queue the frames of the gap between the last frame fed and ``pose`` (whose recogniser
+        input is ``values``), interpolated, before ``pose`` itself."""
+        assert s.last_fed is not None and s.last_values is not None
+        missing = pose.seq - s.last_fed - 1
+        fill = bridge(s.last_values, values, missing, s.turns)
+        start = float(s.times[s.last_fed % len(s.times)])
+        stamps = start + (pose.time - start) * np.arange(1, missing + 1) / (missing + 1)
+        s.filling.extend(zip(range(s.last_fed + 1, pose.seq), stamps.tolist(), fill, strict=True))
+        s.queue.appendleft(pose)
+        self._waiting.setdefault(name, s)
+        self._queued += missing  # the pose is queued again: counted already
 
     def _values(self, s: _Stream, pose: PoseMessage) -> np.ndarray:
         if pose.positions is not None:
@@ -486,7 +527,7 @@ class StreamTable:
 
     def _remove(self, name: str, reason: str | None) -> list[Emitted]:
         s = self.streams.pop(name)
-        self._queued -= len(s.queue)
+        self._queued -= len(s.queue) + len(s.filling)
         self._waiting.pop(name, None)
         if reason is not None:
             self.counts[reason] += 1
@@ -544,7 +585,7 @@ class StreamTable:
             + self._segments_end(name, s)
         )
         self._follow(s, self.bank[name])
-        s.last_fed = None
+        s.last_fed = s.last_values = None
         return out
 
     def _kept(self, emitted: list[Emitted], s: _Stream | None = None) -> list[Emitted]:
@@ -567,19 +608,20 @@ class StreamTable:
             d.id,
             d.stream,
             d.class_name,
-            s.numbers.seq(d.start_frame),
-            s.numbers.seq(d.end_frame),
+            d.start_frame,
+            d.end_frame,
             d.cost,
             d.tau,
-            s.numbers.seq(d.emitted_at_frame),
+            d.emitted_at_frame,
             source_time,
             0.0,
         )
         return Emitted(message, source_time)
 
     def _boundary(self, name: str, s: _Stream, frame: int, known: int, b: Boundary) -> Emitted:
-        seq = s.numbers.seq(frame)
-        key = f"{self.session}/{s.generation}/{name}/boundary/{b.method}/{seq}"
+        key = f"{self.session}/{s.generation}/{name}/boundary/{b.method}/{frame}"
         source_time = float(s.times[known % len(s.times)])
-        message = BoundaryMessage(str(uuid.uuid5(uuid.NAMESPACE_URL, key)), name, seq, b.method, b.score, 0.0)
+        message = BoundaryMessage(
+            str(uuid.uuid5(uuid.NAMESPACE_URL, key)), name, frame, b.method, b.score, 0.0
+        )
         return Emitted(message, source_time)
