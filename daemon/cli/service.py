@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING, Any
 
 from daemon.cli import common
 from daemon.cli.detect import speed
-from daemon.config import Config, workers_of
+from daemon.config import Config, workers_of, workers_reason
 from daemon.errors import InputError, UsageError
 from daemon.library import default_library_path, load_library
 from daemon.recordings import native_rate, read_recording
@@ -198,8 +198,8 @@ def _overridden(args: argparse.Namespace, config: Config) -> Config:
             raise UsageError(f"must be a port in 0..65535, got {args.metrics_port}", field="--metrics-port")
         metrics = dataclasses.replace(metrics, port=args.metrics_port)
     if args.workers is not None:
-        if not 0 <= args.workers <= 1024:
-            raise UsageError(f"must be 0 (one per core) to 1024, got {args.workers}", field="--workers")
+        if (why := workers_reason(args.workers)) is not None:
+            raise UsageError(why, field="--workers")
         service = dataclasses.replace(service, workers=args.workers)
     return dataclasses.replace(
         config, service=service, metrics=metrics, mqtt=mqtt, cluster=cluster, progress=progress
