@@ -13,7 +13,17 @@ from pathlib import Path
 import pytest
 
 from bench.processes import free_port
-from tests.helpers import MOCAPD_SCRIPT, Broker, Daemon
+from tests.helpers import (
+    HDM_AMC,
+    HDM_ASF,
+    MOCAPD_SCRIPT,
+    Broker,
+    Daemon,
+    ZmqCollector,
+    finished,
+    replay,
+    wait_for,
+)
 
 
 @pytest.fixture
@@ -70,6 +80,56 @@ def test_poses_and_detections_on_one_endpoint(tmp_path: Path) -> None:
 )
 def test_an_endpoint_zeromq_cannot_take(tmp_path: Path, endpoint: str, why: str) -> None:
     check_refused(run(tmp_path, {"zmq": {"poses": endpoint}}), f"mocapd: zmq.poses: {endpoint}: {why}")
+
+
+def test_a_port_past_65535_is_refused_before_anything_binds(tmp_path: Path) -> None:
+    """libzmq takes a port modulo 65536: ``:99999`` bound 34463 and the daemon said it was online
+    (issue 32). The configuration refuses it, naming the field."""
+    result = run(tmp_path, {"zmq": {"poses": "tcp://127.0.0.1:99999"}})
+    check_refused(
+        result,
+        f"mocapd: {tmp_path / 'daemon.yaml'}: zmq.poses: tcp://127.0.0.1:99999: the port must be in "
+        "1..65535 (or 0 or * to bind any free port), got '99999'",
+    )
+
+
+def test_a_host_to_connect_to_that_does_not_resolve(tmp_path: Path) -> None:
+    """ZeroMQ connects in the background and retried a host that does not exist for ever, the
+    daemon saying it was online (issue 32): it is refused at start, naming the setting."""
+    spec = "connect tcp://no-such-host.invalid:5555"
+    result = run(tmp_path, {"zmq": {"poses": spec}})
+    line = result.stderr.splitlines()[-1] if result.stderr else ""
+    assert line.startswith(f"mocapd: zmq.poses: {spec}: cannot resolve 'no-such-host.invalid': "), (
+        result.stderr
+    )
+    check_refused(result, line)
+
+
+def test_a_free_port_is_bound_and_said(tmp_path: Path) -> None:
+    """``:0`` (and ZeroMQ's ``:*``) binds any free port; the "online" log line says which, so that a
+    client can find it (it used to say nothing), and the daemon takes poses there."""
+    daemon = Daemon(
+        tmp_path, config={"zmq": {"poses": "tcp://127.0.0.1:0", "detections": "tcp://127.0.0.1:*"}}
+    )
+    try:
+        daemon.start()
+        (online,) = [e for e in daemon.logs() if e["event"] == "online"]
+        poses, detections = online["endpoints"]["zmq.poses"], online["endpoints"]["zmq.detections"]
+        for endpoint in (poses, detections):
+            host, port = endpoint.removeprefix("tcp://").rsplit(":", 1)
+            assert host == "127.0.0.1" and 0 < int(port) < 65536, endpoint
+        assert poses != detections
+        collector = ZmqCollector(detections)
+        try:
+            out = finished(replay(HDM_ASF, HDM_AMC, f"zmq+{poses}", stream="free"))
+            assert out.startswith("replayed 140 frames")
+            wait_for(lambda: daemon.metrics().get("mocapd_frames_in_total") == 140, 30, "the poses taken in")
+            assert daemon.stop() == 0  # the stream flushed: its squat published on the free port
+            wait_for(lambda: bool(collector.detections()), 10, "the detection on the free port")
+        finally:
+            collector.close()
+    finally:
+        daemon.stop()
 
 
 def test_metrics_port_in_use(tmp_path: Path, taken: int) -> None:

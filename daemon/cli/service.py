@@ -213,7 +213,10 @@ def _own_source(config: Config) -> str:
         return config.mqtt.url
     if first != "zmq":  # a transport mocapd replay does not speak
         raise UsageError(f"replays over zmq or mqtt, and the first source is {first}", field="--replay")
-    from protocols.urls import split_endpoint
+    from protocols.urls import FREE_PORTS, split_endpoint, tcp_address
 
     endpoint, _ = split_endpoint(config.zmq.poses)
+    address = tcp_address(endpoint)
+    if address is not None and address[1] in FREE_PORTS:
+        raise UsageError(f"replays into zmq.poses, which binds any free port ({endpoint})", field="--replay")
     return "zmq+" + endpoint.replace("://*:", "://127.0.0.1:").replace("://0.0.0.0:", "://127.0.0.1:")

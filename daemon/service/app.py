@@ -472,7 +472,11 @@ class Service:
             self.log.info(
                 "online",
                 extra={
-                    "fields": {"instance": self.instance, "transports": [t.name for t in self.transports]}
+                    "fields": {
+                        "instance": self.instance,
+                        "transports": [t.name for t in self.transports],
+                        "endpoints": endpoints_of(self.transports),
+                    }
                 },
             )
             intakes: list[asyncio.Task[None]] = []
@@ -558,6 +562,15 @@ def release_memory() -> None:
 async def _closed(server: asyncio.Server) -> None:
     server.close()
     await server.wait_closed()
+
+
+def endpoints_of(transports: Iterable[Transport]) -> dict[str, str]:
+    """Where the transports that say so are, by setting (ZeroMQ's sockets: the port it bound for
+    ``:0``), for the "online" log line."""
+    out: dict[str, str] = {}
+    for t in transports:
+        out.update(getattr(t, "endpoints", {}))
+    return out
 
 
 def instance_name(config: Config) -> str:

@@ -75,6 +75,7 @@ from daemon.service.app import (
     STATUS_EVERY_S,
     Service,
     configure_logging,
+    endpoints_of,
     instance_name,
     reminder,
     transports_of,
@@ -680,6 +681,7 @@ class Front:
                     "fields": {
                         "instance": self.instance,
                         "transports": [t.name for t in self.transports],
+                        "endpoints": endpoints_of(self.transports),
                         "workers": len(self.slots),
                         "pids": [self._pid(s) for s in self.slots],
                     }
