@@ -140,7 +140,9 @@ class ZmqConfig:
 
 @dataclass(frozen=True)
 class MqttConfig:
-    """The MQTT broker, the client's identity and credentials, TLS files and the queue bounds."""
+    """The MQTT broker, the client's identity and credentials, TLS files, the queue bounds, the
+    reconnect back-off, and ``startup_s``: how long a starting daemon waits for the broker before
+    it gives up (status 2, before "online"; once connected it reconnects for ever)."""
 
     url: str = "mqtt://127.0.0.1:1883"
     client_id: str = ""
@@ -154,6 +156,7 @@ class MqttConfig:
     keepalive_s: int = field(default=30, metadata=_range(5, 3600))
     reconnect_min_s: float = field(default=0.25, metadata=_positive(60))
     reconnect_max_s: float = field(default=10.0, metadata=_positive(3600))
+    startup_s: float = field(default=10.0, metadata=_positive(3600))
 
 
 @dataclass(frozen=True)

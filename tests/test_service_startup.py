@@ -5,8 +5,10 @@ with status 2 and one line naming the setting (``zmq.poses: ...: address already
 from __future__ import annotations
 
 import json
+import signal
 import socket
 import subprocess
+import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -19,6 +21,7 @@ from tests.helpers import (
     MOCAPD_SCRIPT,
     Broker,
     Daemon,
+    MqttCollector,
     ZmqCollector,
     finished,
     replay,
@@ -174,5 +177,149 @@ def test_a_second_daemon_of_one_instance_is_refused(tmp_path: Path) -> None:
         assert third.health() == (200, "ok\n")
     finally:
         for d in (first, second, third):
+            d.stop()
+        broker.stop()
+
+
+@pytest.mark.slow
+def test_a_daemon_without_its_broker_fails_before_online(tmp_path: Path) -> None:
+    """An MQTT daemon whose broker does not answer said "online" and retried for ever (issue 32):
+    after ``mqtt.startup_s`` (10 s) without a connection it ends with status 2 and one line naming
+    ``mqtt.url`` and the last error. (Once it has been online, it reconnects for ever:
+    test_service.py.)"""
+    url = f"mqtt://127.0.0.1:{free_port()}"
+    result = run(tmp_path, {"service": {"sources": ["mqtt"], "sinks": ["mqtt"]}, "mqtt": {"url": url}})
+    check_refused(
+        result,
+        f"mocapd: mqtt.url: {url}: no connection within 10 s (mqtt.startup_s): "
+        "[Errno 111] Connection refused",
+    )
+
+
+def twins(tmp_path: Path, broker: Broker, *names: str) -> list[Daemon]:
+    """Daemons of the one instance ``twin`` over ``broker``, each in a directory of its own."""
+    out = []
+    for name in names:
+        (tmp_path / name).mkdir()
+        config = {"service": {"instance": "twin"}}
+        out.append(Daemon(tmp_path / name, sources=["mqtt"], sinks=["mqtt"], mqtt=broker.url, config=config))
+    return out
+
+
+def takeovers(broker: Broker) -> int:
+    """How often the broker gave a client id that was connected to another connection."""
+    return (broker.where / "mosquitto.log").read_text().count("already connected, closing old connection")
+
+
+def refused_line(daemon: Daemon) -> str:
+    """The last line of a daemon that ended with status 2, which names service.instance."""
+    assert daemon.process is not None and daemon.process.returncode == 2, daemon.stderr_path.read_text()
+    line = daemon.stderr_path.read_text().splitlines()[-1]
+    assert line.startswith("mocapd: service.instance: 'twin' is "), line
+    assert line.endswith("; give each daemon an instance of its own"), line
+    return line
+
+
+def one_of_two(tmp_path: Path, broker: Broker, gap_s: float, names: tuple[str, str]) -> None:
+    """Start two daemons of one instance ``gap_s`` apart: one serves, the other is refused before
+    it is online, and nothing takes the client id from the one that serves."""
+    daemons = twins(tmp_path, broker, *names)
+    try:
+        daemons[0].start(wait=False)
+        time.sleep(gap_s)
+        daemons[1].start(wait=False)
+        wait_for(lambda: not all(d.alive for d in daemons), 30, "one of the two to be refused")
+        (refused,) = [d for d in daemons if not d.alive]
+        (serving,) = [d for d in daemons if d.alive]
+        refused_line(refused)
+        assert not [e for e in refused.logs() if e["event"] in ("online", "mqtt connected")]
+        wait_for(lambda: serving.health() == (200, "ok\n"), 30, "the other to serve")
+        time.sleep(2.0)  # long enough for a few of the old fight's reconnects
+        assert serving.alive and serving.health() == (200, "ok\n")
+        assert [e["event"] for e in serving.logs()].count("mqtt connected") == 1
+        assert takeovers(broker) == 0
+    finally:
+        for d in daemons:
+            d.stop()
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("gap_s", [0.0, 0.1, 0.2, 0.4])
+def test_two_daemons_of_one_instance_started_together(tmp_path: Path, gap_s: float) -> None:
+    """Two daemons of one instance started 0-0.4 s apart on one broker both ran and took each other's
+    client id for ever, two reconnects a second each (issue 32): both asked before either answered.
+    Now exactly one serves and the other is refused with one line. Twice per gap: how far apart
+    the two ask depends on how long each takes to start."""
+    broker = Broker(tmp_path).start()
+    try:
+        one_of_two(tmp_path, broker, gap_s, ("first", "second"))
+        one_of_two(tmp_path, broker, gap_s, ("third", "fourth"))
+    finally:
+        broker.stop()
+
+
+@pytest.mark.slow
+def test_a_daemon_whose_client_id_is_taken_over_does_not_fight_for_it(tmp_path: Path) -> None:
+    """A daemon that cannot answer (here stopped with SIGSTOP; a host cut off from the broker is
+    the same) lets a second daemon of its instance start, which takes its client id. When the first
+    went on, the two took it from each other for ever (issue 32). Now the one started later gives
+    way at once (status 2, one line), the first serves on with its own status retained, and the
+    client id stays where it is."""
+    broker = Broker(tmp_path).start()
+    first, second = twins(tmp_path, broker, "first", "second")
+    watcher = None
+    try:
+        first.start()
+        watcher = MqttCollector(broker.url, ["mocapd/twin/status"], client_id="status-watcher")
+        wait_for(lambda: bool(watcher.statuses()), 10, "the first's status")
+        started = watcher.statuses()[-1]["started"]
+        first.signal(signal.SIGSTOP)
+        try:
+            second.start()  # the first answers nothing: the second serves, with the client id
+        finally:
+            first.signal(signal.SIGCONT)
+        wait_for(lambda: not second.alive, 30, "the second to give way")
+        line = refused_line(second)
+        assert "is served by another live daemon" in line, line
+        wait_for(lambda: first.health() == (200, "ok\n"), 30, "the first to serve again")
+        settled = takeovers(broker)
+        time.sleep(2.0)
+        assert first.alive and first.health() == (200, "ok\n")
+        assert takeovers(broker) == settled
+        last = watcher.statuses()[-1]
+        assert (last["state"], last["started"]) == ("online", started)
+    finally:
+        if watcher is not None:
+            watcher.close()
+        for d in (first, second):
+            d.stop()
+        broker.stop()
+
+
+@pytest.mark.slow
+def test_a_second_daemon_on_one_client_id_is_refused(tmp_path: Path) -> None:
+    """Two instances given one ``mqtt.client_id`` took it from each other for ever just as two
+    daemons of one instance did: the second is refused at start, naming the setting."""
+    broker = Broker(tmp_path).start()
+    daemons = []
+    for name in ("left", "right"):
+        (tmp_path / name).mkdir()
+        config = {"service": {"instance": name}, "mqtt": {"client_id": "shared"}}
+        daemons.append(
+            Daemon(tmp_path / name, sources=["mqtt"], sinks=["mqtt"], mqtt=broker.url, config=config)
+        )
+    left, right = daemons
+    try:
+        left.start()
+        right.start(wait=False)
+        assert right.wait(30) == 2
+        assert right.stderr_path.read_text().splitlines()[-1] == (
+            f"mocapd: mqtt.client_id: 'shared' is the client id of a daemon of instance 'left' on "
+            f"{broker.url} already; give each daemon a client id of its own"
+        )
+        assert left.alive and left.health() == (200, "ok\n")
+        assert takeovers(broker) == 0
+    finally:
+        for d in daemons:
             d.stop()
         broker.stop()
