@@ -23,7 +23,9 @@ from tests.helpers import (
     Daemon,
     MqttCollector,
     ZmqCollector,
+    assert_one_error_line,
     finished,
+    mocapd,
     replay,
     wait_for,
 )
@@ -133,6 +135,16 @@ def test_a_free_port_is_bound_and_said(tmp_path: Path) -> None:
             collector.close()
     finally:
         daemon.stop()
+
+
+def test_run_replay_needs_a_poses_port_it_can_send_to(tmp_path: Path) -> None:
+    """``run --replay`` sends to ``zmq.poses`` as configured, so a free port there is refused."""
+    config = tmp_path / "daemon.yaml"
+    config.write_text(json.dumps({"zmq": {"poses": "tcp://127.0.0.1:0"}, "metrics": {"port": 0}}))
+    result = mocapd("--config", config, "run", "--replay", HDM_ASF, HDM_AMC, timeout=60)
+    assert assert_one_error_line(result) == (
+        "mocapd: --replay: replays into zmq.poses, which binds any free port (tcp://127.0.0.1:0)"
+    )
 
 
 def test_metrics_port_in_use(tmp_path: Path, taken: int) -> None:
