@@ -30,7 +30,7 @@ from daemon.types import (
     MAX_NATIVE_RATE,
     RecognitionSettings,
 )
-from protocols.urls import parse_mqtt_url
+from protocols.urls import check_zmq_endpoint, parse_etcd_url, parse_mqtt_url
 
 Units = Literal["asf", "cm"]
 LogLevel = Literal["debug", "info", "warning", "error"]
@@ -107,7 +107,8 @@ class ProgressConfig:
 class ServiceConfig:
     """``mocapd run``: this instance's name (empty: the host name), the transports poses come in on
     and detections go out on, the limits of the stream table, and the recognition processes
-    (``workers``, 0: one per core available; :func:`workers_of`) (see config.yaml)."""
+    (``workers``, 0: one per core available; :func:`workers_of`; at most :func:`max_workers`) (see
+    config.yaml)."""
 
     instance: str = ""
     sources: tuple[str, ...] = field(default=("zmq",), metadata={"choices": lambda: SOURCES})
@@ -139,7 +140,9 @@ class ZmqConfig:
 
 @dataclass(frozen=True)
 class MqttConfig:
-    """The MQTT broker, the client's identity and credentials, TLS files and the queue bounds."""
+    """The MQTT broker, the client's identity and credentials, TLS files, the queue bounds, the
+    reconnect back-off, and ``startup_s``: how long a starting daemon waits for the broker before
+    it gives up (status 2, before "online"; once connected it reconnects for ever)."""
 
     url: str = "mqtt://127.0.0.1:1883"
     client_id: str = ""
@@ -153,6 +156,7 @@ class MqttConfig:
     keepalive_s: int = field(default=30, metadata=_range(5, 3600))
     reconnect_min_s: float = field(default=0.25, metadata=_positive(60))
     reconnect_max_s: float = field(default=10.0, metadata=_positive(3600))
+    startup_s: float = field(default=10.0, metadata=_positive(3600))
 
 
 @dataclass(frozen=True)
@@ -251,12 +255,36 @@ def transports_named(config: Config) -> list[TransportUse]:
     ]
 
 
+def cores() -> int:
+    """The cores this process may run on."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+
+
+WORKERS_PER_CORE = 4
+"""``service.workers`` may ask for at most this many recognition processes per core: more gain
+nothing (recognition is CPU-bound), and each costs its memory, its start and its share of a
+shutdown (500 workers on 2 cores took 54 s to stop)."""
+
+
+def max_workers() -> int:
+    """The most recognition processes ``service.workers`` may ask for on this machine."""
+    return WORKERS_PER_CORE * cores()
+
+
+def workers_reason(workers: int) -> str | None:
+    """Why ``workers`` is not a number of recognition processes for this machine, or None."""
+    if 0 <= workers <= max_workers():
+        return None
+    return (
+        f"must be 0 (one per core) to {max_workers()} ({WORKERS_PER_CORE} per core, {cores()} "
+        f"available), got {workers}"
+    )
+
+
 def workers_of(service: ServiceConfig) -> int:
     """The recognition processes ``service`` asks for: ``workers``, or with 0 the cores this
     process may run on."""
-    if service.workers:
-        return service.workers
-    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+    return service.workers or cores()
 
 
 RENAMED = {
@@ -425,6 +453,8 @@ def _cross_checks(check: Checker, config: Config) -> None:
             check.fail(
                 f"service.{name}", "must name at least one transport (a daemon without one does nothing)"
             )
+    if (why := workers_reason(config.service.workers)) is not None:
+        check.fail("service.workers", why)
     if config.metrics.stream_labels and config.service.max_streams > MAX_LABELLED_STREAMS:
         check.fail(
             "metrics.stream_labels",
@@ -434,16 +464,34 @@ def _cross_checks(check: Checker, config: Config) -> None:
     if config.mqtt.reconnect_min_s > config.mqtt.reconnect_max_s:
         check.fail("mqtt.reconnect_min_s", "must not exceed mqtt.reconnect_max_s")
     cluster = config.cluster
-    if not re.fullmatch(r"nats://[^/\s]+:\d+", cluster.nats):
-        check.fail("cluster.nats", f"must be nats://HOST:PORT, got {cluster.nats!r:.70}")
+    nats = re.fullmatch(r"nats://[^/\s]+:(\d+)", cluster.nats)
+    if nats is None or not 1 <= int(nats[1]) <= 65535:
+        check.fail("cluster.nats", f"must be nats://HOST:PORT (a port in 1..65535), got {cluster.nats!r:.70}")
     clustered = "cluster" in config.service.sources + config.service.sinks
     if (cluster.coordinator or clustered) and not re.fullmatch(r"etcd://[^/\s]+", cluster.coordinator):
         check.fail("cluster.coordinator", f"must be etcd://HOST[:PORT], got {cluster.coordinator!r:.70}")
+    if cluster.coordinator:
+        try:
+            parse_etcd_url(cluster.coordinator)
+        except InputError as e:
+            check.fail("cluster.coordinator", str(e))
     if cluster.member and not INSTANCE.fullmatch(cluster.member):
         check.fail(
             "cluster.member", f"letters, digits, '_', '.', '-' (at most 64), got {cluster.member!r:.70}"
         )
-    if "mqtt" not in config.service.sources + config.service.sinks:
+    used = config.service.sources + config.service.sinks
+    if "zmq" in used:
+        # checked here, not at bind: libzmq takes a port modulo 65536 (":99999" binds 34463)
+        for name, wanted in (
+            ("poses", "zmq" in config.service.sources),
+            ("detections", "zmq" in config.service.sinks),
+        ):
+            if wanted:
+                try:
+                    check_zmq_endpoint(getattr(config.zmq, name))
+                except InputError as e:
+                    check.fail(f"zmq.{name}", str(e))
+    if "mqtt" not in used:
         return
     try:
         parse_mqtt_url(config.mqtt.url)

@@ -29,6 +29,12 @@ will, and a planned close publishes "offline" itself before disconnecting (a cle
 suppresses the will). The incoming queue is bounded (``mqtt.queue``) and fair between streams
 (:class:`~protocols.fair.FairQueue`): when it is full the oldest message of the stream holding the
 most is dropped (counted), so one stream's flood does not crowd out the others.
+
+Start-up: the daemon's transport (``startup_s``: ``mqtt.startup_s``) is not entered until it is
+connected; a broker that does not answer within that time, or refuses the connection, is a
+:class:`~protocols.transport.StartupError` naming ``mqtt.url``, before the daemon says "online".
+After that first connection it reconnects for ever. One daemon per instance and client id:
+:class:`_Presence`.
 """
 
 from __future__ import annotations
@@ -44,9 +50,11 @@ import time
 import uuid
 from collections import OrderedDict, deque
 from collections.abc import AsyncIterator, Callable, Sequence
+from dataclasses import dataclass, replace
 from types import TracebackType
 from typing import TYPE_CHECKING, Any
 
+import msgpack
 import paho.mqtt.client as paho
 from paho.mqtt.enums import CallbackAPIVersion, MQTTErrorCode
 from paho.mqtt.properties import Properties
@@ -70,7 +78,15 @@ SUBSCRIPTIONS = (("mocap/+/skeleton", 1), ("mocap/+/pose", 0))
 """What a daemon taking poses in over MQTT subscribes to: skeletons reliably (they are retained),
 poses as they come."""
 PROBE_S = 0.5
-"""How long a starting daemon waits for another live daemon of its instance to answer."""
+"""How long a starting daemon waits, once it asked, for another daemon of its instance or client id
+to answer (:class:`_Presence`)."""
+PINGS = "mocapd/+/ping"
+"""Where daemons ask who else is there: every daemon's guard hears every instance's questions, since
+two instances may share a client id."""
+STEADY_S = 10.0
+"""A connection that lasted less than this does not reset the reconnect back-off, so a client id
+that something else takes over again and again (not a mocapd: its guard would see that) is taken
+back at most once per ``mqtt.reconnect_max_s``, not four times a second."""
 ASK_EVERY_S = 5.0
 """The shortest time between two requests for one stream's skeleton."""
 ASKED = 1_000
@@ -96,7 +112,15 @@ answering them)."""
 
 class MqttLost(Exception):
     """A connection could not be made, or ended (the message says why); the transport makes
-    another."""
+    another. ``refused``: the broker refused it (trying again will not do at start)."""
+
+    def __init__(self, why: str, *, refused: bool = False) -> None:
+        super().__init__(why)
+        self.refused = refused
+
+
+TRANSIENT_REFUSALS = frozenset({"Server unavailable"})
+"""The broker refusals (paho's names of MQTT 3.1.1's CONNACK codes) that may mend by themselves."""
 
 
 class _Connection:
@@ -353,7 +377,10 @@ class _Connection:
         if self._connected.done():
             return
         if reason.is_failure:
-            self._connected.set_exception(MqttLost(f"the broker refused the connection: {reason}"))
+            refused = reason.getName() not in TRANSIENT_REFUSALS
+            self._connected.set_exception(
+                MqttLost(f"the broker refused the connection: {reason}", refused=refused)
+            )
         else:
             self._connected.set_result(None)
 
@@ -418,9 +445,12 @@ class MqttTransport:
     bounds, keepalive, reconnect back-off; ``daemon.config.MqttConfig``): ``subscribe`` (topic, QoS)
     pairs in, publications out, as ``client_id`` (fixed: the persistent session is the broker's
     record of it). With ``presence`` (the instance name), a starting transport first makes sure no
-    live daemon of that instance is on the broker, and answers the next one's question itself.
-    ``clean_session``: a session the broker forgets when the connection ends (an observer's, such
-    as ``mocapd view``'s, which wants nothing kept for it while it is away)."""
+    other daemon of that instance or client id is on the broker, and keeps the next one out
+    (:class:`_Presence`). ``clean_session``: a session the broker forgets when the connection ends
+    (an observer's, such as ``mocapd view``'s, which wants nothing kept for it while it is away).
+    ``startup_s``: entering waits at most this long for the first connection (StartupError after
+    it, or at once if the broker refuses); None: entering does not wait, the connection is made
+    in the background."""
 
     name = "mqtt"
 
@@ -432,8 +462,10 @@ class MqttTransport:
         subscribe: Sequence[tuple[str, int]],
         presence: str | None,
         clean_session: bool = False,
+        startup_s: float | None = None,
     ) -> None:
         self.host, self.port, tls = parse_mqtt_url(settings.url)
+        self.startup_s = startup_s
         self.clean_session = clean_session
         self.url = settings.url
         self.settings = settings
@@ -457,7 +489,10 @@ class MqttTransport:
         self._dropped_outbox = 0
         self.connects = 0
         self.presence = presence
-        self._ping = None if presence is None else f"mocapd/{presence}/ping"
+        self._guard: _Presence | None = None
+        self._failed: asyncio.Future[None] | None = None  # with StartupError: this daemon must stop
+        self.last_error: str | None = None
+        """Why the last connection failed or ended."""
         self._asked: OrderedDict[str, float] = OrderedDict()  # stream -> when its skeleton was asked for
         self._to_ask: deque[str] = deque()
         self._ask = asyncio.Event()
@@ -480,7 +515,7 @@ class MqttTransport:
             context.load_cert_chain(self.settings.cert_file, self.settings.key_file)
         return context
 
-    def _connection_to(
+    def connection_to(
         self,
         context: ssl.SSLContext | None,
         *,
@@ -507,34 +542,107 @@ class MqttTransport:
 
     async def __aenter__(self) -> MqttTransport:
         context = self._tls_context()
-        if self.presence is not None:
-            await self._probe(context)
-        self._runner = asyncio.create_task(self._run(context), name=f"mqtt {self.host}:{self.port}")
+        loop = asyncio.get_running_loop()
+        self._failed = loop.create_future()
+        self._failed.add_done_callback(_retrieved)
+        deadline = None if self.startup_s is None else loop.time() + self.startup_s
+        try:
+            async with asyncio.timeout_at(deadline):
+                if self.presence is not None:
+                    self._guard = _Presence(self, context, self.presence)
+                    await self._guard.claim()
+                self._runner = asyncio.create_task(self._run(context), name=f"mqtt {self.host}:{self.port}")
+                if deadline is not None:
+                    await self._first_connection()
+        except TimeoutError:
+            await self._stopped()
+            why = self.last_error or "the broker did not answer"
+            raise StartupError(
+                "mqtt.url", f"{self.url}: no connection within {self.startup_s:g} s (mqtt.startup_s): {why}"
+            ) from None
+        except BaseException:
+            await self._stopped()
+            raise
         return self
+
+    async def _first_connection(self) -> None:
+        """Wait until the connection is up; StartupError if the transport failed first."""
+        assert self._failed is not None
+        connected = asyncio.ensure_future(self._connected.wait())
+        waited: list[asyncio.Future[Any]] = [connected, self._failed]
+        try:
+            await asyncio.wait(waited, return_when=asyncio.FIRST_COMPLETED)
+        finally:
+            connected.cancel()
+        if self._failed.done():
+            self._failed.result()  # raises why
 
     async def __aexit__(
         self, kind: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
     ) -> None:
-        """Drain the outbox (at most ``drain_s`` seconds), publish "offline", disconnect."""
+        """Drain the outbox (at most ``drain_s`` seconds), publish "offline", disconnect; a
+        transport that failed (another daemon has the instance now) publishes nothing."""
         deadline = time.monotonic() + self.drain_s
-        while self._outbox and self._connected.is_set() and time.monotonic() < deadline:
-            await asyncio.sleep(0.01)
-        connection = self._connection
-        if self._offline is not None and connection is not None and self._connected.is_set():
-            with contextlib.suppress(MqttLost, TimeoutError):
-                await asyncio.wait_for(
-                    connection.publish(self._offline), max(0.1, deadline - time.monotonic())
-                )
-        if self._runner is not None:
-            self._runner.cancel()  # leaving the connection disconnects it cleanly
+        if not self.failed:
+            while self._outbox and self._connected.is_set() and time.monotonic() < deadline:
+                await asyncio.sleep(0.01)
+            connection = self._connection
+            if self._offline is not None and connection is not None and self._connected.is_set():
+                with contextlib.suppress(MqttLost, TimeoutError):
+                    await asyncio.wait_for(
+                        connection.publish(self._offline), max(0.1, deadline - time.monotonic())
+                    )
+        await self._stopped()
+
+    async def _stopped(self) -> None:
+        """The connection and the guard's ended (cleanly: leaving a connection disconnects it, so
+        the broker publishes no will)."""
+        tasks = [t for t in self._tasks() if t is not None]
+        for task in tasks:
+            task.cancel()
+        for task in tasks:
             with contextlib.suppress(asyncio.CancelledError):
-                await self._runner
+                await task
         self._runner = None
+        self._guard = None
+
+    def _tasks(self) -> tuple[asyncio.Task[None] | None, asyncio.Task[None] | None]:
+        """The connection's task and the guard's."""
+        return self._runner, None if self._guard is None else self._guard.runner
+
+    @property
+    def failure(self) -> asyncio.Future[None]:
+        """Done, with the StartupError that says why, when this transport must not go on (from
+        entering it)."""
+        assert self._failed is not None
+        return self._failed
+
+    @property
+    def failed(self) -> bool:
+        """Whether this transport must not go on (:meth:`fatal` says why)."""
+        return self._failed is not None and self._failed.done()
+
+    def give_up(self, error: StartupError) -> None:
+        """Stop for good because of ``error``: no more connecting, and leaving publishes nothing."""
+        if self._failed is None or self._failed.done():
+            return
+        self._failed.set_exception(error)
+        current = asyncio.current_task()
+        for task in self._tasks():
+            if task is not None and task is not current:
+                task.cancel()  # leaving its connection disconnects it cleanly: no will
+
+    async def fatal(self) -> None:
+        """Wait while the transport may go on; raise the StartupError that says why it must not
+        (another daemon of the instance or the client id was there first: :class:`_Presence`).
+        The daemon runs this beside its other tasks, and stops with status 2 when it raises."""
+        assert self._failed is not None
+        await asyncio.shield(self._failed)  # cancelling the wait must not cancel the future
 
     async def _run(self, context: ssl.SSLContext | None) -> None:
         delay = self.settings.reconnect_min_s
-        while True:
-            connection = self._connection_to(
+        while not self.failed:
+            connection = self.connection_to(
                 context,
                 client_id=self.client_id,
                 clean_session=self.clean_session,
@@ -542,35 +650,49 @@ class MqttTransport:
                 deliver=self._deliver,
                 timeout_s=TIMEOUT_S,
             )
+            began: float | None = None
+            refused = False
             try:
                 async with connection:
+                    began = time.monotonic()
                     self._connection = connection
                     self.connects += 1
                     if self._online is not None:
                         await self._settled(connection, connection.publish(self._online))
                     for topic, qos in self.subscriptions:
                         await connection.subscribe(topic, qos)
-                    if self._ping is not None:
-                        await connection.subscribe(self._ping, 0)
                     self._problem = None
                     self._connected.set()
                     LOG.info(
                         "mqtt connected", extra={"fields": {"broker": self.url, "connects": self.connects}}
                     )
-                    delay = self.settings.reconnect_min_s
                     async with asyncio.TaskGroup() as tasks:
                         tasks.create_task(connection.serve(), name="mqtt connection")
                         tasks.create_task(self._sender(connection), name="mqtt sender")
                         tasks.create_task(self._asker(connection), name="mqtt skeleton requests")
             except* MqttLost as group:
-                self._problem = f"mqtt: {group.exceptions[0]} (reconnecting)"
-                LOG.warning(
-                    "mqtt lost", extra={"fields": {"broker": self.url, "error": str(group.exceptions[0])}}
-                )
+                lost = group.exceptions[0]
+                assert isinstance(lost, MqttLost)
+                self.last_error = str(lost)
+                refused = lost.refused and self.connects == 0 and self.startup_s is not None
+                self._problem = f"mqtt: {lost} (reconnecting)"
+                if not refused:
+                    LOG.warning("mqtt lost", extra={"fields": {"broker": self.url, "error": str(lost)}})
             finally:
                 self._connected.clear()
                 self._connection = None
-            await asyncio.sleep(delay)
+            if refused:  # at start: trying again will not do
+                self.give_up(StartupError("mqtt.url", f"{self.url}: {self.last_error}"))
+                return
+            if began is not None and time.monotonic() - began >= STEADY_S:
+                delay = self.settings.reconnect_min_s
+            wait = delay
+            if began is not None and self._guard is not None and self._guard.ask():
+                # the client id may have been taken by another daemon: its answer comes before
+                # this one would take the client id back
+                wait = max(delay, PROBE_S)
+            if self._failed is not None:
+                await asyncio.wait([self._failed], timeout=wait)
             delay = min(2 * delay, self.settings.reconnect_max_s)
 
     @staticmethod
@@ -580,43 +702,6 @@ class MqttTransport:
                 await done
         except TimeoutError:
             raise MqttLost("the broker did not acknowledge") from None
-
-    async def _probe(self, context: ssl.SSLContext | None) -> None:
-        """Before taking the client id: ask, with a client id of its own, whether a live daemon
-        already answers for ``presence`` (``mocapd/<presence>/ping``, answered on ``.../pong``
-        within :data:`PROBE_S`); StartupError if one does. A retained "online" cannot tell: a
-        daemon killed leaves it until the broker notices, but a dead daemon answers no ping. No
-        broker within the probe's time: nothing is known, the daemon goes on (and waits for it)."""
-        assert self.presence is not None and self._ping is not None
-        nonce = uuid.uuid4().hex.encode()
-        pong = f"mocapd/{self.presence}/pong"
-        answered = asyncio.Event()
-
-        def deliver(topic: str, payload: bytes) -> None:
-            if topic == pong and payload == nonce:
-                answered.set()
-
-        probe = self._connection_to(
-            context,
-            client_id=f"{self.client_id}-probe-{nonce[:8].decode()}",
-            clean_session=True,
-            will=None,
-            deliver=deliver,
-            timeout_s=PROBE_S,
-        )
-        try:
-            async with probe:
-                await probe.subscribe(pong, 0)
-                probe.publish(Outgoing(self._ping, nonce)).add_done_callback(_retrieved)
-                async with asyncio.timeout(PROBE_S):
-                    await answered.wait()
-        except (MqttLost, TimeoutError):
-            return  # no answer, or no broker yet
-        raise StartupError(
-            "service.instance",
-            f"{self.presence!r} is served by a live daemon on {self.url} already (client id "
-            f"{self.client_id}); give each daemon an instance of its own",
-        )
 
     def ask_skeleton(self, stream: str) -> None:
         """Subscribe to ``stream``'s skeleton topic again, which makes the broker send its retained
@@ -649,9 +734,6 @@ class MqttTransport:
                 await connection.unsubscribe(t)
 
     def _deliver(self, topic: str, payload: bytes) -> None:
-        if topic == self._ping:  # another daemon's probe: this instance is alive
-            self._enqueue(Outgoing(f"mocapd/{self.presence}/pong", payload))
-            return
         if self._incoming.put(Incoming(topic, payload, time.time())):
             self._dropped_incoming += 1
         self._arrived.set()
@@ -738,6 +820,239 @@ class MqttTransport:
         }
 
 
+@dataclass(frozen=True)
+class Claim:
+    """What a daemon's guard says of it on ``mocapd/<instance>/ping`` and ``.../pong``: its
+    instance, its client id, its ``rank`` (when it started, in microseconds since the epoch, 17
+    digits, then a random part: the lower started first) and whether it is ``live`` (it asked, and
+    kept the instance)."""
+
+    instance: str
+    client_id: str
+    rank: str
+    live: bool
+
+    def beats(self, other: Claim) -> bool:
+        """Whether this daemon keeps the instance and client id against ``other``: a live one
+        against one still starting, else the one that started first (by its own clock; the random
+        part breaks ties). Every daemon decides alike from the same two claims."""
+        if self.live != other.live:
+            return self.live
+        return self.rank < other.rank
+
+    def message(self, kind: str, to: str | None = None) -> bytes:
+        """A ``ping`` (``to`` None) or a ``pong`` answering the daemon of rank ``to``: msgpack."""
+        body: dict[str, object] = {
+            "v": 1,
+            "type": kind,
+            "instance": self.instance,
+            "client_id": self.client_id,
+            "rank": self.rank,
+            "live": self.live,
+        }
+        if to is not None:
+            body["to"] = to
+        out: bytes = msgpack.packb(body)
+        return out
+
+
+MAX_CLAIM_BYTES = 1024
+"""A ping or pong longer than this is not a mocapd's (and not unpacked)."""
+
+
+def read_claim(payload: bytes, kind: str) -> tuple[Claim, str | None] | None:
+    """The claim of a ``ping`` or ``pong`` (``kind``) and whom a pong answers; None for anything
+    else (an older mocapd's ping is random bytes, which it wants echoed)."""
+    if len(payload) > MAX_CLAIM_BYTES:
+        return None
+    try:
+        body = msgpack.unpackb(payload)
+    except Exception:  # any bytes may come: what is not msgpack is not a claim
+        return None
+    if not isinstance(body, dict) or body.get("v") != 1 or body.get("type") != kind:
+        return None
+    words = [body.get(k) for k in ("instance", "client_id", "rank")]
+    to = body.get("to")
+    live = body.get("live")
+    if not all(isinstance(w, str) for w in words) or not isinstance(live, bool):
+        return None
+    if (kind == "pong") != isinstance(to, str):
+        return None
+    instance, client_id, rank = (str(w) for w in words)
+    return Claim(instance, client_id, rank, live), to if isinstance(to, str) else None
+
+
+class _Presence:
+    """One daemon per instance and per client id on a broker. Two daemons with one client id take
+    it from each other for ever (the broker gives it to the newest connection, the other reconnects
+    at once), and two of one instance overwrite each other's retained status.
+
+    The guard has a connection of its own (client id ``<client id>-presence-<random>``, a clean
+    session) for the daemon's whole life, subscribed to every instance's ``mocapd/+/ping`` and its
+    own ``mocapd/<instance>/pong`` (QoS 1 both ways). Starting, it asks: it publishes a ``ping``
+    with its :class:`Claim`, and if nothing that :meth:`Claim.beats` it answers within
+    :data:`PROBE_S`, it is live and the daemon takes its client id. Every guard answers every ping
+    of a daemon that shares its instance or client id with a ``pong`` of its own claim, and gives
+    way when either says a claim that beats its own: a starting daemon to a live one, two starting
+    at once to the one that started first, and two live ones (a host cut off from the broker, a
+    process stopped, while another started) likewise. Since each was subscribed before it asked,
+    of two daemons asking at once each hears the other's ping or its answer: both decide, and
+    alike. A live guard asks again whenever its connection comes back and whenever the broker
+    closes the daemon's main connection, which is what a client id taken over looks like.
+
+    Giving way before it is live, a daemon is refused at start; after, it stops: either way with
+    :class:`StartupError` (``service.instance``, or ``mqtt.client_id`` for another instance's
+    daemon on the same client id), having published nothing more (the status topic is the other's
+    now). An older mocapd answers a ping by echoing it: an echo is a live daemon's answer, and a
+    ping that is not a claim is echoed for it."""
+
+    def __init__(self, transport: MqttTransport, context: ssl.SSLContext | None, instance: str) -> None:
+        self.transport = transport
+        self.context = context
+        token = uuid.uuid4().hex[:16]
+        self.me = Claim(instance, transport.client_id, f"{time.time_ns() // 1000:017d}-{token}", False)
+        self.client_id = f"{transport.client_id}-presence-{token[:8]}"
+        self.ping_topic = f"mocapd/{instance}/ping"
+        self.pong_topic = f"mocapd/{instance}/pong"
+        self.runner: asyncio.Task[None] | None = None
+        self._connection: _Connection | None = None
+        self._live: asyncio.Future[None] | None = None
+        self._asked: set[bytes] = set()  # the pings sent: an older mocapd answers with the same bytes
+
+    async def claim(self) -> None:
+        """Connect and ask; return once nothing beat this daemon's claim for :data:`PROBE_S` (it is
+        live from then on, and the guard stays connected); StartupError if something did, or the
+        broker refused the connection. The caller bounds how long it waits for a broker."""
+        failed = self.transport.failure
+        self._live = asyncio.get_running_loop().create_future()
+        self.runner = asyncio.create_task(self._run(), name="mqtt presence")
+        await asyncio.wait([self._live, failed], return_when=asyncio.FIRST_COMPLETED)
+        if failed.done():
+            failed.result()  # raises why
+
+    def ask(self) -> bool:
+        """Ask again whether another daemon is there (this one's client id may have been taken); False
+        if the guard is not connected."""
+        connection = self._connection
+        if connection is None:
+            return False
+        ping = self.me.message("ping")
+        self._asked.add(ping)
+        connection.publish(Outgoing(self.ping_topic, ping, reliable=True)).add_done_callback(_retrieved)
+        return True
+
+    async def _run(self) -> None:
+        t = self.transport
+        delay = t.settings.reconnect_min_s
+        while not t.failed:
+            connection = t.connection_to(
+                self.context,
+                client_id=self.client_id,
+                clean_session=True,
+                will=None,
+                deliver=self._heard,
+                timeout_s=TIMEOUT_S,
+            )
+            began: float | None = None
+            try:
+                async with connection:
+                    began = time.monotonic()
+                    await connection.subscribe(PINGS, 1)
+                    await connection.subscribe(self.pong_topic, 1)
+                    self._connection = connection
+                    self.ask()
+                    if not self.me.live:
+                        await asyncio.wait([connection.lost], timeout=PROBE_S)
+                        if not connection.lost.done() and not t.failed:
+                            self.me = replace(self.me, live=True)
+                            assert self._live is not None
+                            self._live.set_result(None)
+                    await connection.serve()
+            except MqttLost as lost:
+                t.last_error = str(lost)
+                if lost.refused and not self.me.live and t.startup_s is not None:
+                    t.give_up(StartupError("mqtt.url", f"{t.url}: {lost}"))
+                    return
+                if self.me.live:
+                    LOG.warning("mqtt presence lost", extra={"fields": {"broker": t.url, "error": str(lost)}})
+            finally:
+                self._connection = None
+            if began is not None and time.monotonic() - began >= STEADY_S:
+                delay = t.settings.reconnect_min_s
+            await asyncio.sleep(delay)
+            delay = min(2 * delay, t.settings.reconnect_max_s)
+
+    def _heard(self, topic: str, payload: bytes) -> None:
+        """A ping (of any instance) or a pong (to this instance's daemons)."""
+        connection = self._connection
+        if self.transport.failed or connection is None:
+            return  # a daemon that gave way answers nobody
+        if topic == self.pong_topic:
+            if payload in self._asked:  # an older mocapd, live, echoed the question
+                self._give_way(None)
+                return
+            said = read_claim(payload, "pong")
+            if said is not None and said[1] == self.me.rank and self._shares(said[0]):
+                rival = said[0]
+                self._meet(rival)
+                if self.me.live and not rival.live and not self.transport.failed:
+                    self.ask()  # it asked before this one was live: it must hear that it is now
+            return
+        said = read_claim(payload, "ping")
+        if said is None:
+            if topic == self.ping_topic:  # an older mocapd starting: it wants its bytes back
+                connection.publish(Outgoing(self.pong_topic, payload)).add_done_callback(_retrieved)
+            return
+        rival = said[0]
+        asker = topic.split("/")[1]  # the topic level its subscription matched: a valid one
+        if rival.rank == self.me.rank or rival.instance != asker or not self._shares(rival):
+            return
+        answer = Outgoing(f"mocapd/{asker}/pong", self.me.message("pong", rival.rank), reliable=True)
+        connection.publish(answer).add_done_callback(_retrieved)
+        self._meet(rival)
+
+    def _shares(self, rival: Claim) -> bool:
+        return rival.instance == self.me.instance or rival.client_id == self.me.client_id
+
+    def _meet(self, rival: Claim) -> None:
+        if rival.beats(self.me):
+            self._give_way(rival)
+
+    def _give_way(self, rival: Claim | None) -> None:
+        """Another daemon has the instance or the client id: this one stops
+        (:meth:`MqttTransport.give_up`)."""
+        me, url = self.me, self.transport.url
+        advice = "give each daemon an instance of its own"
+        if rival is not None and rival.instance != me.instance:
+            setting = "mqtt.client_id"
+            why = (
+                f"{me.client_id!r} is the client id of a daemon of instance {rival.instance!r} on {url} "
+                "already; give each daemon a client id of its own"
+            )
+        elif rival is None or (rival.live and not me.live):
+            setting = "service.instance"
+            why = (
+                f"{me.instance!r} is served by a live daemon on {url} already (client id "
+                f"{me.client_id}); {advice}"
+            )
+        elif not rival.live:
+            setting = "service.instance"
+            why = (
+                f"{me.instance!r} is claimed by another daemon starting on {url} at the same time, which "
+                f"started first (client id {me.client_id}); {advice}"
+            )
+        else:
+            setting = "service.instance"
+            why = (
+                f"{me.instance!r} is served by another live daemon on {url}, which started before this "
+                f"one (client id {me.client_id}); this one stops; {advice}"
+            )
+        LOG.error(
+            "gave way", extra={"fields": {"field": setting, "reason": why, "rival": rival and rival.rank}}
+        )
+        self.transport.give_up(StartupError(setting, why))
+
+
 def _retrieved(future: asyncio.Future[None]) -> None:
     """A done callback for a future nobody awaits: its failure is taken, not reported as lost."""
     if not future.cancelled():
@@ -747,10 +1062,12 @@ def _retrieved(future: asyncio.Future[None]) -> None:
 def transport(settings: MqttConfig, *, instance: str, source: bool, sink: bool) -> MqttTransport:
     """The daemon's MQTT transport (:class:`protocols.transport.Factory`): as ``mocapd-<instance>``
     unless ``settings.client_id`` says otherwise, subscribed to :data:`SUBSCRIPTIONS` if it is a
-    source, and making sure it is the only live daemon of ``instance``."""
+    source, making sure it is the only daemon of ``instance`` and of its client id, and connected
+    within ``settings.startup_s`` of its start."""
     return MqttTransport(
         settings,
         client_id=settings.client_id or f"mocapd-{instance}",
         subscribe=SUBSCRIPTIONS if source else (),
         presence=instance,
+        startup_s=settings.startup_s,
     )

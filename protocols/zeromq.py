@@ -12,6 +12,7 @@ from __future__ import annotations
 import asyncio
 import ctypes
 import functools
+import socket
 import time
 from collections.abc import AsyncIterator, Callable
 from pathlib import Path
@@ -25,12 +26,14 @@ from zmq.auth.asyncio import AsyncioAuthenticator
 
 from protocols._route import FUNCTIONS, Router
 from protocols.transport import Incoming, Outgoing, StartupError
-from protocols.urls import split_endpoint
+from protocols.urls import split_endpoint, tcp_address
 
 if TYPE_CHECKING:
     from daemon.config import ZmqConfig
 
 PREFIX = b"mocap/"
+RESOLVE_S = 10.0
+"""The longest start waits for a host to connect to to resolve."""
 
 
 def open_socket(
@@ -136,6 +139,9 @@ class ZmqTransport:
                 raise StartupError(setting, f"{spec}: {why}") from None
 
         try:
+            for spec, setting in ((self.poses, "zmq.poses"), (self.detections, "zmq.detections")):
+                if spec is not None:
+                    await _resolvable(spec, setting)
             if self.poses is not None:
                 self._sub = opened(zmq.SUB, self.poses, "zmq.poses")
                 self._sub.setsockopt(zmq.SUBSCRIBE, PREFIX)
@@ -163,6 +169,16 @@ class ZmqTransport:
         if self._ctx is not None:
             self._ctx.term()
             self._ctx = None
+
+    @property
+    def endpoints(self) -> dict[str, str]:
+        """The endpoint of each open socket by its setting: where a bound one listens (the port
+        ZeroMQ chose for ``:0`` or ``:*``), what a connecting one connects to."""
+        out = {}
+        for setting, sock in (("zmq.poses", self._sub), ("zmq.detections", self._pub)):
+            if sock is not None:
+                out[setting] = cast(bytes, sock.getsockopt(zmq.LAST_ENDPOINT)).decode()
+        return out
 
     def source(self) -> _Source | None:
         return None if self._sub is None else _Source(self._sub)
@@ -223,6 +239,24 @@ class ZmqTransport:
 
     def dropped(self) -> dict[str, int]:
         return {"zmq_send_full": self._dropped}
+
+
+async def _resolvable(spec: str, setting: str) -> None:
+    """StartupError naming ``setting`` if ``spec`` connects to a TCP host that does not resolve
+    (within :data:`RESOLVE_S`): ZeroMQ connects in the background and would retry it for ever,
+    silently."""
+    endpoint, bind = split_endpoint(spec)
+    address = tcp_address(endpoint)
+    if bind or address is None:
+        return
+    host, port = address
+    try:
+        async with asyncio.timeout(RESOLVE_S):
+            await asyncio.get_running_loop().getaddrinfo(host, port, type=socket.SOCK_STREAM)
+    except socket.gaierror as e:
+        raise StartupError(setting, f"{spec}: cannot resolve {host!r}: {e.strerror}") from None
+    except TimeoutError:
+        raise StartupError(setting, f"{spec}: {host!r} did not resolve within {RESOLVE_S:g} s") from None
 
 
 class _Source:

@@ -76,6 +76,24 @@ def test_good_config(tmp_path: Path, text: str, expected: ReplayConfig) -> None:
     assert isinstance(config.replay.frame_rate_hz, float)
 
 
+@pytest.mark.parametrize(
+    "endpoint",
+    [
+        "tcp://127.0.0.1:0",
+        "bind tcp://*:*",
+        "tcp://[::1]:65535",
+        "connect tcp://h:1",
+        "ipc:///tmp/p",
+        "hello",
+    ],
+)
+def test_zmq_endpoints_config_takes(endpoint: str) -> None:
+    """A free port to bind (0 or ZeroMQ's ``*``: the "online" log line says which was bound), any
+    port in 1..65535, and what is not TCP (ZeroMQ checks that when it binds)."""
+    config = parse_config({"zmq": {"poses": endpoint}})
+    assert config.zmq.poses == endpoint
+
+
 def test_progress_section(tmp_path: Path) -> None:
     """Off by default, 10 a second; the file and MOCAPD_PROGRESS_<FIELD> set it, the variable wins
     and is named in its error."""
@@ -183,6 +201,32 @@ BAD = [
     ("instance-space", "service:\n  instance: a b\n", "service.instance: letters, digits"),
     ("no-sources", "service:\n  sources: []\n", "service.sources: must name at least one transport"),
     ("no-sinks", "service:\n  sinks: []\n", "service.sinks: must name at least one transport"),
+    # ports outside 1..65535, which libzmq took modulo 65536 (":99999" bound 34463), and more
+    # recognition processes than a machine can use (500 on 2 cores once started, and took 54 s to
+    # stop): refused at parse (issue 32)
+    (
+        "zmq-port-past-65535",
+        "zmq:\n  poses: tcp://127.0.0.1:99999\n",
+        "zmq.poses: tcp://127.0.0.1:99999: the port must be in 1..65535 (or 0 or * to bind any free "
+        "port), got '99999'",
+    ),
+    ("zmq-port-65536", "zmq:\n  detections: tcp://*:65536\n", "zmq.detections: tcp://*:65536: the port"),
+    ("zmq-port-negative", "zmq:\n  poses: bind tcp://127.0.0.1:-1\n", "zmq.poses: bind tcp://127.0.0.1:-1:"),
+    (
+        "zmq-connect-to-port-0",
+        "zmq:\n  poses: connect tcp://127.0.0.1:0\n",
+        "zmq.poses: connect tcp://127.0.0.1:0: the port must be in 1..65535, got '0'",
+    ),
+    (
+        "mqtt-port-past-65535",
+        "service:\n  sources: [mqtt]\nmqtt:\n  url: mqtt://127.0.0.1:99999\n",
+        "mqtt.url: an MQTT broker is mqtt://HOST[:PORT] or mqtts://HOST[:PORT], the port in 1..65535, "
+        "got 'mqtt://127.0.0.1:99999'",
+    ),
+    ("mqtt-port-0", "service:\n  sinks: [mqtt]\nmqtt:\n  url: mqtt://127.0.0.1:0\n", "mqtt.url: an MQTT"),
+    ("nats-port", "cluster:\n  nats: nats://h:70000\n", "cluster.nats: must be nats://HOST:PORT (a port"),
+    ("etcd-port", "cluster:\n  coordinator: etcd://h:70000\n", "cluster.coordinator: an etcd coordinator"),
+    ("workers-too-many", "service:\n  workers: 1000\n", "service.workers: must be 0 (one per core) to "),
     # non-mapping sections
     ("replay-number", "replay: 3\n", "replay: must be a mapping"),
     ("replay-list", "replay:\n  - frame_rate_hz: 60\n", "replay: must be a mapping"),

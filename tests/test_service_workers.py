@@ -263,9 +263,14 @@ def test_a_front_that_cannot_bind_fails_at_once(tmp_path: Path) -> None:
 
 
 def test_workers_must_be_a_count() -> None:
-    result = mocapd("run", "--workers", "-1")
-    assert result.returncode == 2
-    assert result.stderr == "mocapd: --workers: must be 0 (one per core) to 1024, got -1\n"
+    """From none (0: one per core) to 4 per core: 500 workers on 2 cores once started, took 54 s to
+    stop and exited 1 (issue 32)."""
+    cores = len(os.sched_getaffinity(0))
+    bound = f"must be 0 (one per core) to {4 * cores} (4 per core, {cores} available)"
+    for workers in (-1, 4 * cores + 1, 500):
+        result = mocapd("run", "--workers", str(workers))
+        assert result.returncode == 2
+        assert result.stderr == f"mocapd: --workers: {bound}, got {workers}\n"
 
 
 @pytest.mark.slow

@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING, Any
 
 from daemon.cli import common
 from daemon.cli.detect import speed
-from daemon.config import Config, workers_of
+from daemon.config import Config, workers_of, workers_reason
 from daemon.errors import InputError, UsageError
 from daemon.library import default_library_path, load_library
 from daemon.recordings import native_rate, read_recording
@@ -198,8 +198,8 @@ def _overridden(args: argparse.Namespace, config: Config) -> Config:
             raise UsageError(f"must be a port in 0..65535, got {args.metrics_port}", field="--metrics-port")
         metrics = dataclasses.replace(metrics, port=args.metrics_port)
     if args.workers is not None:
-        if not 0 <= args.workers <= 1024:
-            raise UsageError(f"must be 0 (one per core) to 1024, got {args.workers}", field="--workers")
+        if (why := workers_reason(args.workers)) is not None:
+            raise UsageError(why, field="--workers")
         service = dataclasses.replace(service, workers=args.workers)
     return dataclasses.replace(
         config, service=service, metrics=metrics, mqtt=mqtt, cluster=cluster, progress=progress
@@ -213,7 +213,10 @@ def _own_source(config: Config) -> str:
         return config.mqtt.url
     if first != "zmq":  # a transport mocapd replay does not speak
         raise UsageError(f"replays over zmq or mqtt, and the first source is {first}", field="--replay")
-    from protocols.urls import split_endpoint
+    from protocols.urls import FREE_PORTS, split_endpoint, tcp_address
 
     endpoint, _ = split_endpoint(config.zmq.poses)
+    address = tcp_address(endpoint)
+    if address is not None and address[1] in FREE_PORTS:
+        raise UsageError(f"replays into zmq.poses, which binds any free port ({endpoint})", field="--replay")
     return "zmq+" + endpoint.replace("://*:", "://127.0.0.1:").replace("://0.0.0.0:", "://127.0.0.1:")

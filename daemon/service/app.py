@@ -33,7 +33,7 @@ import time
 from collections import Counter
 from collections.abc import Callable, Coroutine, Iterable
 from dataclasses import replace
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
 
@@ -477,15 +477,22 @@ class Service:
             self.log.info(
                 "online",
                 extra={
-                    "fields": {"instance": self.instance, "transports": [t.name for t in self.transports]}
+                    "fields": {
+                        "instance": self.instance,
+                        "transports": [t.name for t in self.transports],
+                        "endpoints": endpoints_of(self.transports),
+                    }
                 },
             )
             intakes: list[asyncio.Task[None]] = []
+            failure: StartupError | None = None
             try:
                 async with asyncio.TaskGroup() as group:
                     for t in self.transports:
                         if t.source() is not None:
                             intakes.append(group.create_task(self._intake(t), name=f"intake {t.name}"))
+                    for name, fatal in fatal_of(self.transports):
+                        group.create_task(fatal(), name=name)
                     group.create_task(self._recognise(), name="recognise")
                     group.create_task(self._housekeeping(), name="housekeeping")
                     if http is not None:
@@ -500,11 +507,15 @@ class Service:
                 pass
             except* TimeoutError:
                 clean = False
+            except* StartupError as group:
+                failure = cast(StartupError, group.exceptions[0])
             self.stopping = True
             self.log.info(
                 "offline",
                 extra={"fields": {"instance": self.instance, "published": self.published, "clean": clean}},
             )
+        if failure is not None:  # another daemon took this one's place: said like a start-up error
+            raise failure
         return clean
 
     async def _shutdown(self, stop: asyncio.Event, intakes: list[asyncio.Task[None]]) -> None:
@@ -563,6 +574,24 @@ def release_memory() -> None:
 async def _closed(server: asyncio.Server) -> None:
     server.close()
     await server.wait_closed()
+
+
+def fatal_of(transports: Iterable[Transport]) -> list[tuple[str, Callable[[], Coroutine[Any, Any, None]]]]:
+    """(task name, coroutine function) of every transport that can fail for good while it serves
+    (``fatal``, raising StartupError: MQTT's client id taken by another daemon), for the daemon's
+    task group: when one raises, the daemon stops."""
+    return [
+        (f"{t.name} guard", fatal) for t in transports if (fatal := getattr(t, "fatal", None)) is not None
+    ]
+
+
+def endpoints_of(transports: Iterable[Transport]) -> dict[str, str]:
+    """Where the transports that say so are, by setting (ZeroMQ's sockets: the port it bound for
+    ``:0``), for the "online" log line."""
+    out: dict[str, str] = {}
+    for t in transports:
+        out.update(getattr(t, "endpoints", {}))
+    return out
 
 
 def instance_name(config: Config) -> str:

@@ -60,6 +60,7 @@ from collections.abc import AsyncIterator, Iterable
 from dataclasses import dataclass, replace
 from pathlib import Path
 from types import TracebackType
+from typing import cast
 
 import msgpack
 import zmq
@@ -75,6 +76,8 @@ from daemon.service.app import (
     STATUS_EVERY_S,
     Service,
     configure_logging,
+    endpoints_of,
+    fatal_of,
     instance_name,
     reminder,
     transports_of,
@@ -680,17 +683,21 @@ class Front:
                     "fields": {
                         "instance": self.instance,
                         "transports": [t.name for t in self.transports],
+                        "endpoints": endpoints_of(self.transports),
                         "workers": len(self.slots),
                         "pids": [self._pid(s) for s in self.slots],
                     }
                 },
             )
             routes: list[asyncio.Task[None]] = []
+            failure: StartupError | None = None
             try:
                 async with asyncio.TaskGroup() as group:
                     for t in self.transports:
                         if t.source() is not None:
                             routes.append(group.create_task(self._route(t), name=f"route {t.name}"))
+                    for name, fatal in fatal_of(self.transports):
+                        group.create_task(fatal(), name=name)
                     group.create_task(self._collect(), name="collect")
                     group.create_task(self._supervise(), name="supervise")
                     if http is not None:
@@ -698,11 +705,15 @@ class Front:
                     group.create_task(self._shutdown(stop, routes), name="shutdown")
             except* _Stop as stopped:
                 clean = all(isinstance(e, _Stop) and e.args == (True,) for e in stopped.exceptions)
+            except* StartupError as group:
+                failure = cast(StartupError, group.exceptions[0])
             self.stopping = True
             self.log.info(
                 "offline",
                 extra={"fields": {"instance": self.instance, "published": self.published, "clean": clean}},
             )
+        if failure is not None:  # another daemon took this one's place (the workers were killed)
+            raise failure
         return clean
 
     async def _shutdown(self, stop: asyncio.Event, routes: list[asyncio.Task[None]]) -> None:
