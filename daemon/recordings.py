@@ -75,8 +75,8 @@ def continuous(
     motion: Motion, bridge_s: float = DEFAULT_BRIDGE_S, default_native_rate: float = DEFAULT_NATIVE_RATE
 ) -> Motion:
     """``motion`` with its missing frames interpolated as the daemon bridges lost poses
-    (:func:`~daemon.frames.motion_runs`); :class:`RecordingError` naming the file and the frames for a gap longer
-    than ``bridge_s`` seconds, which features, indexes and templates cannot span."""
+    (:func:`~daemon.frames.motion_runs`); :class:`RecordingError` naming the file and the frames
+    for a gap longer than ``bridge_s`` seconds, which features, indexes and templates cannot span."""
     runs = motion_runs(motion, native_rate(motion, default_native_rate), bridge_s)
     if len(runs) > 1:
         a, b = int(runs[0].frames[-1]) + 1, int(runs[1].frames[0]) - 1
