@@ -409,9 +409,13 @@ def reference(
 ) -> frozenset[tuple[str, int, int]]:
     """``mocapd detect``'s detections (class, start, end) lying in frames ``first``…``last`` of the
     looping clip, seen from ``CONTEXT_S`` before (decimated in ``phase`` modulo ``step``) to
-    ``hold_s`` + ``CONTEXT_S`` after."""
+    ``hold_s`` + ``CONTEXT_S`` after, but never from before the run's first pose: every run of a
+    replay begins at the clip's first frame number, and the daemon saw nothing before it (a
+    replay that started late, on a loaded machine, leaves less context than ``CONTEXT_S`` before a
+    span, or none)."""
     lo = first - int(CONTEXT_S * RATE)
     lo -= (lo - phase) % step
+    lo = max(lo, clip.first)
     numbers = np.arange(lo, last + int((hold_s + CONTEXT_S) * RATE), dtype=np.int64)
     positions = clip.positions[(numbers - clip.first) % len(clip.positions)]
     found = detect_positions(positions, numbers, library, RATE, settings=RecognitionSettings(hold_s=hold_s))
@@ -445,7 +449,11 @@ def run(plan: Plan, say: Callable[[str], None] = lambda _: None) -> Outcome:
             begin = time.time()
             for r in replays.values():
                 r.start()
-            start = Disruption("start", tuple(streams), begin, begin)
+            # up when the last replay's skeleton reached the broker: starting them takes seconds on a
+            # loaded machine, and the first spans must not begin before the streams did
+            wait(lambda: all(listener.new_skeleton(s, begin) is not None for s in streams), GIVE_UP_S)
+            up = max(listener.new_skeleton(s, begin) or time.time() for s in streams)
+            start = Disruption("start", tuple(streams), begin, up)
             measure(start, daemon, listener, base={})
             disruptions.append(start)
             began = time.monotonic()
