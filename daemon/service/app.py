@@ -9,11 +9,11 @@ spent, then yields, so receiving and publishing are never held up longer than a 
 or a slow stream only grows the queues, which are bounded (a stream's oldest pose is dropped, never a
 detection). Intake yields every few messages too, so a flood cannot starve recognition.
 
-Shutdown (SIGTERM/SIGINT through ``loop.add_signal_handler``): intake stops, every queued pose is
-recognised and every stream flushed, what that gives is published, the transports close (MQTT
-drains its outbox, publishes "offline" and disconnects; ZeroMQ sockets linger), the metrics server
-stops; all within ``service.grace_s``, after which what is left is cancelled. A second signal exits
-at once.
+Shutdown (SIGTERM, SIGINT or SIGHUP through ``loop.add_signal_handler``: :data:`STOP_SIGNALS`):
+intake stops, every queued pose is recognised and every stream flushed, what that gives is
+published, the transports close (MQTT drains its outbox, publishes "offline" and disconnects; ZeroMQ
+sockets linger), the metrics server stops; all within ``service.grace_s``, after which what is left
+is cancelled. A second signal exits at once.
 """
 
 from __future__ import annotations
@@ -77,6 +77,10 @@ STATUS_EVERY_S = 5
 """How often the daemon's status goes out again where nothing retains it (ZeroMQ: :func:`reminder`)."""
 CATCH_UP_POLL_S = 0.005
 """How often recognition looks whether the cluster transport has read a taken partition's buffer."""
+STOP_SIGNALS = (signal.SIGTERM, signal.SIGINT, signal.SIGHUP)
+"""The signals that stop the daemon gracefully (:func:`on_stop_signals`). SIGHUP, which a closed
+terminal or an operator expecting a reload sends, is a stop too: the daemon reads its configuration
+only when it starts."""
 
 
 class _Stop(Exception):
@@ -580,10 +584,10 @@ def serve(
     extra: Callable[[Service, asyncio.Event], Iterable[tuple[str, Callable[[], Coroutine[Any, Any, None]]]]]
     | None = None,
 ) -> int:
-    """Run the service until SIGTERM/SIGINT (or ``extra``'s tasks set the stop event); the exit
-    status: 0 when everything was published within the grace, 1 otherwise. A transport or the
-    metrics server that cannot start raises :class:`~daemon.config.ConfigError` naming the setting,
-    before "online" is published."""
+    """Run the service until SIGTERM, SIGINT or SIGHUP (or ``extra``'s tasks set the stop event);
+    the exit status: 0 when everything was published within the grace, 1 otherwise. A transport or
+    the metrics server that cannot start raises :class:`~daemon.config.ConfigError` naming the
+    setting, before "online" is published."""
     logger = configure_logging(config.logging.level)
     clustered = "cluster" in config.service.sources + config.service.sinks
     member = ""
@@ -614,8 +618,7 @@ def serve(
             logger.info("signal", extra={"fields": {"signal": signal.Signals(signum).name}})
             stop.set()
 
-        for signum in (signal.SIGTERM, signal.SIGINT):
-            loop.add_signal_handler(signum, on_signal, signum)
+        on_stop_signals(loop, on_signal)
         transports = transports_of(config, instance)
         cluster = None
         if clustered:
@@ -641,3 +644,11 @@ def serve(
         return 0 if asyncio.run(main()) else 1
     except StartupError as e:  # before anything was published: the setting, in one line
         raise ConfigError(e.reason, field=e.setting) from None
+
+
+def on_stop_signals(loop: asyncio.AbstractEventLoop, callback: Callable[[int], None]) -> None:
+    """``callback(signum)`` on each of :data:`STOP_SIGNALS` (``loop.add_signal_handler``), except
+    SIGHUP where it is ignored (``nohup mocapd run``: it stays ignored)."""
+    for signum in STOP_SIGNALS:
+        if signum != signal.SIGHUP or signal.getsignal(signum) != signal.SIG_IGN:
+            loop.add_signal_handler(signum, callback, signum)
