@@ -14,6 +14,10 @@ intake stops, every queued pose is recognised and every stream flushed, what tha
 published, the transports close (MQTT drains its outbox, publishes "offline" and disconnects; ZeroMQ
 sockets linger), the metrics server stops; all within ``service.grace_s``, after which what is left
 is cancelled. A second signal exits at once.
+
+Every line on stderr is one JSON object (:func:`configure_logging`), an internal error's too: it is
+logged with its traceback in a field (:func:`internal_error`) and the daemon exits with
+:data:`EXIT_BUG`.
 """
 
 from __future__ import annotations
@@ -38,6 +42,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from daemon.config import Config, ConfigError, transports_named
+from daemon.errors import MocapdError
 from daemon.library import Library
 from daemon.service.metrics import Metrics, open_http, serve_http
 from daemon.service.streams import Emitted, Refused, StreamTable
@@ -81,6 +86,8 @@ STOP_SIGNALS = (signal.SIGTERM, signal.SIGINT, signal.SIGHUP)
 """The signals that stop the daemon gracefully (:func:`on_stop_signals`). SIGHUP, which a closed
 terminal or an operator expecting a reload sends, is a stop too: the daemon reads its configuration
 only when it starts."""
+EXIT_BUG = 70
+"""The exit status of an internal error, the command line's (``daemon.cli.EXIT_BUG``)."""
 
 
 class _Stop(Exception):
@@ -585,9 +592,10 @@ def serve(
     | None = None,
 ) -> int:
     """Run the service until SIGTERM, SIGINT or SIGHUP (or ``extra``'s tasks set the stop event);
-    the exit status: 0 when everything was published within the grace, 1 otherwise. A transport or
-    the metrics server that cannot start raises :class:`~daemon.config.ConfigError` naming the
-    setting, before "online" is published."""
+    the exit status: 0 when everything was published within the grace, 1 otherwise, 70 on an
+    internal error (logged as one JSON line: :func:`internal_error`). A transport or the metrics
+    server that cannot start raises :class:`~daemon.config.ConfigError` naming the setting, before
+    "online" is published."""
     logger = configure_logging(config.logging.level)
     clustered = "cluster" in config.service.sources + config.service.sinks
     member = ""
@@ -644,6 +652,10 @@ def serve(
         return 0 if asyncio.run(main()) else 1
     except StartupError as e:  # before anything was published: the setting, in one line
         raise ConfigError(e.reason, field=e.setting) from None
+    except (MocapdError, OSError):
+        raise  # bad input or a file: the command line's one line
+    except Exception:
+        return internal_error(logger)
 
 
 def on_stop_signals(loop: asyncio.AbstractEventLoop, callback: Callable[[int], None]) -> None:
@@ -652,3 +664,18 @@ def on_stop_signals(loop: asyncio.AbstractEventLoop, callback: Callable[[int], N
     for signum in STOP_SIGNALS:
         if signum != signal.SIGHUP or signal.getsignal(signum) != signal.SIG_IGN:
             loop.add_signal_handler(signum, callback, signum)
+
+
+def internal_error(logger: logging.Logger) -> int:
+    """The exception being handled (a bug) logged as one JSON line, ``internal error``: the
+    exception in ``exception`` (a task group's first), its traceback in ``error``, with or without
+    ``--debug``: a running daemon writes nothing else on stderr. :data:`EXIT_BUG`."""
+    error = sys.exc_info()[1]
+    while isinstance(error, BaseExceptionGroup) and error.exceptions:  # a task group's: the first inside
+        error = error.exceptions[0]
+    fields = {
+        "exception": f"{type(error).__name__}: {error}",
+        "bug": "a bug in mocapd: please report this line (docs/command-line.md, 'Reporting bugs')",
+    }
+    logger.critical("internal error", exc_info=True, extra={"fields": fields})
+    return EXIT_BUG
