@@ -395,8 +395,8 @@ class Service:
             )
             return
         m.detection_out(message.stream)
-        if e.source_time > 0:
-            m.end_to_end.observe(max(0.0, message.emit_time - e.source_time))
+        if e.arrived > 0:  # from the pose's arrival, on this process's clock: a source's may be anywhere
+            m.end_to_end.observe(max(0.0, time.monotonic() - e.arrived))
         self.log.debug(
             "detection",
             extra={"fields": {"id": message.id, "stream": message.stream, "class": message.class_name}},

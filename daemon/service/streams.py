@@ -119,8 +119,14 @@ class _Stream:
     received: int = 0
     last_fed: int | None = None
     queue: deque[PoseMessage] = field(default_factory=deque)
+    arrived: deque[float] = field(default_factory=deque)
+    """When each queued pose was taken in (the ``now`` of :meth:`StreamTable.pose`), in step with
+    :attr:`queue`."""
     numbers: Renumbering = field(default_factory=lambda: Renumbering(0))
     times: np.ndarray = field(default_factory=lambda: np.zeros(1))
+    arrivals: np.ndarray = field(default_factory=lambda: np.zeros(1))
+    """When the pose of each recent frame was taken in, a ring like :attr:`times` (the source's
+    timestamps)."""
     width: int = 0
     seen: float = 0.0
     generation: int = 0
@@ -153,10 +159,12 @@ class _Stream:
 @dataclass(frozen=True)
 class Emitted:
     """A detection, a behaviour boundary or a progress event ready for the wire, and when the pose
-    that completed it was stamped by its source (for the end-to-end latency)."""
+    that completed it was taken in (the ``now`` of :meth:`StreamTable.pose`, the service's monotonic
+    clock; 0: not known), for the latency from arrival to publish. Not the source's timestamp (the
+    message's ``source_time``): a source's clock may be anywhere."""
 
     message: DetectionMessage | BoundaryMessage | ProgressMessage
-    source_time: float
+    arrived: float
 
 
 def _allowance(rate: float, seconds: float) -> float:
@@ -270,6 +278,7 @@ class StreamTable:
             angles,
             numbers=Renumbering(horizon),
             times=np.zeros(horizon),
+            arrivals=np.zeros(horizon),
             width=len(skeleton.channel_names) if skeleton is not None else len(message.joints or ()),
             seen=now,
             generation=(old.generation + 1) if old else 0,
@@ -380,9 +389,11 @@ class StreamTable:
         s.seen = s.posed = now
         if len(s.queue) >= self.queue_frames:
             s.queue.popleft()
+            s.arrived.popleft()
             self.counts["lagging"] += 1
             self._queued -= 1
         s.queue.append(message)
+        s.arrived.append(now)
         self._queued += 1
         self._waiting.setdefault(message.stream, s)
 
@@ -395,7 +406,7 @@ class StreamTable:
         before: dict[str, int | None] = {}  # each stream's last fed sequence number before this pose
         out: list[Emitted] = []
         for name, s in list(self._waiting.items()):
-            pose = s.queue.popleft()
+            pose, arrived = s.queue.popleft(), s.arrived.popleft()
             self._queued -= 1
             if not s.queue:
                 del self._waiting[name]
@@ -425,6 +436,7 @@ class StreamTable:
             frame = s.numbers.frame(pose.seq, first=s.last_fed is None)
             s.last_fed = pose.seq
             s.times[frame % len(s.times)] = pose.time
+            s.arrivals[frame % len(s.arrivals)] = arrived
             frames.append((name, frame, self._values(s, pose)))
         if not frames:
             return out, []
@@ -503,6 +515,7 @@ class StreamTable:
         if not events:
             return []
         source_time = float(s.times[frame % len(s.times)])
+        arrived = float(s.arrivals[frame % len(s.arrivals)])
         return [
             Emitted(
                 ProgressMessage(
@@ -515,7 +528,7 @@ class StreamTable:
                     source_time,
                     0.0,
                 ),
-                source_time,
+                arrived,
             )
             for e in events
         ]
@@ -563,6 +576,7 @@ class StreamTable:
     def _emitted(self, d: Detection, s: _Stream | None = None) -> Emitted:
         s = s if s is not None else self.streams[d.stream]
         source_time = float(s.times[d.emitted_at_frame % len(s.times)])
+        arrived = float(s.arrivals[d.emitted_at_frame % len(s.arrivals)])
         message = DetectionMessage(
             d.id,
             d.stream,
@@ -575,11 +589,10 @@ class StreamTable:
             source_time,
             0.0,
         )
-        return Emitted(message, source_time)
+        return Emitted(message, arrived)
 
     def _boundary(self, name: str, s: _Stream, frame: int, known: int, b: Boundary) -> Emitted:
         seq = s.numbers.seq(frame)
         key = f"{self.session}/{s.generation}/{name}/boundary/{b.method}/{seq}"
-        source_time = float(s.times[known % len(s.times)])
         message = BoundaryMessage(str(uuid.uuid5(uuid.NAMESPACE_URL, key)), name, seq, b.method, b.score, 0.0)
-        return Emitted(message, source_time)
+        return Emitted(message, float(s.arrivals[known % len(s.arrivals)]))
