@@ -323,6 +323,30 @@ def test_a_flood_on_mqtt_does_not_crowd_out_a_good_stream(tmp_path: Path) -> Non
         broker.stop()
 
 
+def test_a_forgotten_stream_is_logged(tmp_path: Path) -> None:
+    """Streams silent for ``idle_s`` are forgotten with a line each ("stream forgotten", the stream,
+    why, how long it was silent, its poses), throttled like the other per-stream lines: 25 streams
+    forgotten at once give the first 20 (before: no line at all)."""
+    daemon = Daemon(tmp_path, sinks=["stdout"], config={"service": {"idle_s": 1}}).start()
+    sender = ZmqSender(daemon.poses)
+    names = [f"quiet-{k}" for k in range(25)]
+    try:
+        for name in names:
+            sender.send(f"mocap/{name}/skeleton", encode(SkeletonMessage(name, 120.0, JOINT_NAMES)))
+            sender.send(f"mocap/{name}/pose", pose(name, 1))
+        wait_for(lambda: daemon.metrics().get("mocapd_frames_in_total", 0) == 25, 10, "a pose of each")
+        wait_for(lambda: daemon.metrics().get("mocapd_streams", 1) == 0, 10, "the streams forgotten")
+        assert daemon.metrics()['mocapd_stream_events_total{event="idle"}'] == 25
+        forgotten = [e for e in daemon.logs() if e["event"] == "stream forgotten"]
+        assert len(forgotten) == 20
+        assert len({e["stream"] for e in forgotten}) == 20 and {e["stream"] for e in forgotten} <= set(names)
+        assert all(e["level"] == "info" and e["reason"] == "idle" and e["poses"] == 1 for e in forgotten)
+        assert all(e["silent_s"] >= 1 for e in forgotten)
+    finally:
+        sender.close()
+        daemon.stop()
+
+
 def test_a_message_that_breaks_the_daemon_leaves_only_json_on_stderr(tmp_path: Path) -> None:
     """A pose whose ``v`` is a list 1000 deep (issue 32: it made the decoder raise RecursionError):
     the daemon refuses it, or, if it is a bug that ends the daemon, it says so in one JSON line

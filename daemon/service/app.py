@@ -409,7 +409,13 @@ class Service:
             beats += 1
             if self.remind and beats % STATUS_EVERY_S == 0:
                 await self._send(reminder(self._status("online")))
-            for e in self.table.evict_idle(time.monotonic(), self.config.service.idle_s):
+            now, live = time.monotonic(), dict(self.table.streams)
+            last = self.table.evict_idle(now, self.config.service.idle_s)
+            for name, s in live.items():
+                if name not in self.table.streams:  # per stream, throttled like the other such lines
+                    fields = {"stream": name, "reason": "idle", "silent_s": round(now - s.seen, 1)}
+                    self.events.info("stream forgotten", fields | {"poses": s.received})
+            for e in last:
                 await self.publish(e)
             self.metrics.keep(self.table.streams)
             for gone in self._relayed.keys() - self.table.streams.keys():
