@@ -25,8 +25,8 @@ message sent) for every stream concerned (all for the daemon and the broker, one
 time until the daemon takes the stream's poses again (its ``frames_in`` series grows), and until
 its first detection of poses sent after the disruption began was published.
 
-Checked, per stream, in every span it is left alone — from ``SETTLE_S`` after the daemon took its
-poses again (after it was back) to ``hold_s`` + 1 s before the next disruption concerning it: the
+Checked, per stream, in every span it is left alone — from ``SETTLE_S`` after it is back to
+``hold_s`` + 1 s before the next disruption concerning it: the
 detections equal ``mocapd detect``'s on the same frames (the looped clip's poses by sequence number,
 from ``CONTEXT_S`` before the span but never before the run's first pose, decimated in the phase the
 daemon's detections show). Also counted: ids delivered more than once
@@ -82,9 +82,8 @@ KINDS = (
 CONTEXT_S = 4.0
 """Frames before a checked span that the reference sees (longer than any template's match)."""
 SETTLE_S = CONTEXT_S + 1.5
-"""A checked span starts this long after the daemon took the stream's poses again: the daemon must
-have its frames from ``CONTEXT_S`` before the span, so it has 1.5 s to recover (a restarted daemon
-takes poses 0.6 s after its metrics port answers, 3.9 s with two CPU-bound processes beside it)."""
+"""A checked span starts this long after the stream is back: the daemon must have its frames from
+``CONTEXT_S`` before the span, so it has 1.5 s to recover."""
 GIVE_UP_S = 30.0
 GARBAGE = b"\xc1" * 400
 """Not msgpack, a pose's size."""
@@ -623,7 +622,7 @@ def check(
     for s, name in streams.items():
         mine = [d for d in disruptions if s in d.streams]
         for d, following in zip(mine, [*mine[1:], None], strict=True):
-            t0 = d.back + d.taken.get(s, 0.0) + SETTLE_S  # from its first pose the daemon took
+            t0 = d.back + SETTLE_S
             t1 = (following.at if following else end) - plan.hold_s - 1.0
             run_ = replays[s].run_of(t0)
             found = by_run[(s, run_)]
