@@ -6,7 +6,8 @@
 Set-up: mosquitto on a loopback port (persistence on), ``mocapd run`` over MQTT (``idle_s`` 3,
 per-stream metric labels), ``--streams`` looping real-time replays of short HDM05 clips (a squat, a
 hop, an elbow-to-knee, a kick), each its own stream, and a subscriber of every detection, skeleton
-and status. Every ``--every`` seconds one disruption, in turn:
+and status. Every ``--every`` seconds one disruption, in turn (``--seconds`` / ``--every`` - 1 of them,
+all made even when a loaded machine makes them late):
 
 * ``daemon SIGTERM`` and ``daemon kill -9``: the daemon stopped, and started again at once;
 * ``broker restart``: mosquitto stopped and started again on its port;
@@ -27,9 +28,10 @@ its first detection of poses sent after the disruption began was published.
 
 Checked, per stream, in every span it is left alone — from ``SETTLE_S`` after it is back to
 ``hold_s`` + 1 s before the next disruption concerning it: the detections equal ``mocapd detect``'s
-on the same frames (the looped clip's poses by sequence number, from ``CONTEXT_S`` before the span,
-decimated in the phase the daemon's detections show). Also counted: ids delivered more than once
-(QoS 1 may), and one motion published under two ids (never allowed).
+on the same frames (the looped clip's poses by sequence number, from ``CONTEXT_S`` before the span
+but never before the run's first pose, decimated in the phase the daemon's detections show). Also
+counted: ids delivered more than once (QoS 1 may), and one motion published under two ids (never
+allowed).
 """
 
 from __future__ import annotations
@@ -409,9 +411,13 @@ def reference(
 ) -> frozenset[tuple[str, int, int]]:
     """``mocapd detect``'s detections (class, start, end) lying in frames ``first``…``last`` of the
     looping clip, seen from ``CONTEXT_S`` before (decimated in ``phase`` modulo ``step``) to
-    ``hold_s`` + ``CONTEXT_S`` after."""
+    ``hold_s`` + ``CONTEXT_S`` after, but never from before the run's first pose: every run of a
+    replay begins at the clip's first frame number, and the daemon saw nothing before it (a
+    replay that started late, on a loaded machine, leaves less context than ``CONTEXT_S`` before a
+    span, or none)."""
     lo = first - int(CONTEXT_S * RATE)
     lo -= (lo - phase) % step
+    lo = max(lo, clip.first)
     numbers = np.arange(lo, last + int((hold_s + CONTEXT_S) * RATE), dtype=np.int64)
     positions = clip.positions[(numbers - clip.first) % len(clip.positions)]
     found = detect_positions(positions, numbers, library, RATE, settings=RecognitionSettings(hold_s=hold_s))
@@ -445,16 +451,20 @@ def run(plan: Plan, say: Callable[[str], None] = lambda _: None) -> Outcome:
             begin = time.time()
             for r in replays.values():
                 r.start()
-            start = Disruption("start", tuple(streams), begin, begin)
+            # up when the last replay's skeleton reached the broker: starting them takes seconds on a
+            # loaded machine, and the first spans must not begin before the streams did
+            wait(lambda: all(listener.new_skeleton(s, begin) is not None for s in streams), GIVE_UP_S)
+            up = max(listener.new_skeleton(s, begin) or time.time() for s in streams)
+            start = Disruption("start", tuple(streams), begin, up)
             measure(start, daemon, listener, base={})
             disruptions.append(start)
             began = time.monotonic()
-            k = 0
-            while time.monotonic() - began + plan.every <= plan.seconds:
+            # a count, each due ``every`` s after the last: on a loaded machine they run late (a
+            # daemon restart takes seconds), and a schedule by the clock would leave some out
+            for k in range(disruptions_in(plan)):
                 time.sleep(max(0.0, began + (k + 1) * plan.every - time.monotonic()))
                 kind = KINDS[k % len(KINDS)]
                 target = f"s{(k * 3) % plan.streams}"
-                k += 1
                 d = disrupt(kind, target, plan, broker, daemon, replays, listener)
                 disruptions.append(d)
                 which = ",".join(d.streams) if len(d.streams) < 3 else "all"
@@ -496,6 +506,12 @@ def run(plan: Plan, say: Callable[[str], None] = lambda _: None) -> Outcome:
         series_after_storm=series,
         storm_refused=refused,
     )
+
+
+def disruptions_in(plan: Plan) -> int:
+    """How many disruptions a run makes: one every ``plan.every`` s of ``plan.seconds``, the first
+    after ``every`` s and the last ``every`` s before the end."""
+    return max(0, math.floor(plan.seconds / plan.every + 1e-9) - 1)
 
 
 def disrupt(
@@ -584,12 +600,19 @@ def storm(plan: Plan, url: str, daemon: DaemonProcess) -> tuple[int, list[float]
             m.get(f'mocapd_rejects_total{{reason="{r}"}}', 0) for r in ("no_skeleton", "too_many_streams")
         )
 
-    before = refused()
+    def streams() -> float:
+        return daemon.metrics().get("mocapd_streams", 0.0)
+
+    before, live = refused(), streams()
     rss = []
     with sender(url, "chaos-storm") as client:
         for r in range(rounds):
             publish_all(client, messages(r))
-            time.sleep(plan.idle_s + 2.0)  # forgotten, and the housekeeping gives the memory back
+            time.sleep(plan.idle_s)
+            # forgotten: idle_s after the daemon took the round's last message, which a loaded
+            # machine delays by seconds (within GIVE_UP_S, or the outcome says how many are left)
+            wait(lambda: streams() <= live, GIVE_UP_S, step=0.2)
+            time.sleep(2.0)  # the housekeeping gives the memory back
             rss.append(daemon.rss_mib())
     return int(refused() - before), rss
 

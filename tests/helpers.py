@@ -333,13 +333,18 @@ class Daemon:
         self.env = {**os.environ, **(env or {})}
         self.process: subprocess.Popen[bytes] | None = None
 
-    def start(self, wait: bool = True) -> Daemon:
+    def start(self, wait: bool = True, *, group: bool = False, command: Sequence[str] = ()) -> Daemon:
+        """Start it (``wait``: until ``/healthz`` says ok); ``group``: as the leader of a process
+        group of its own (its workers in it), as a terminal's job is; ``command``: run under it
+        (``["nohup"]``)."""
         with self.stdout_path.open("ab") as out, self.stderr_path.open("ab") as err:
             self.process = subprocess.Popen(
-                [str(MOCAPD_SCRIPT), "--config", str(self.config), "run"],
+                [*command, str(MOCAPD_SCRIPT), "--config", str(self.config), "run"],
+                stdin=subprocess.DEVNULL,
                 stdout=out,
                 stderr=err,
                 env=self.env,
+                process_group=0 if group else None,
             )
         if wait:
             wait_for(lambda: self.health()[0] == 200 or not self.alive, 30, "the daemon's /healthz")

@@ -1,7 +1,8 @@
 """The README's commands, run as written (issue 22): its two first commands are what CI runs; every
 ``sh`` block of the tour runs, in order, in one shell in a scratch copy of the layout (the repository's
 ``.venv`` and ``../shared`` beside it), and must succeed and print what the tour says; the Python
-subscriber receives a replay's detections."""
+subscriber receives a replay's detections; ``mocapd run`` exits as it and ``docs/command-line.md`` say
+when a signal stops it."""
 
 from __future__ import annotations
 
@@ -16,7 +17,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.helpers import REPO, SHARED
+from tests.helpers import REPO, SHARED, Daemon
 
 README = (REPO / "README.md").read_text(encoding="utf-8")
 
@@ -105,3 +106,34 @@ def test_the_python_subscriber_gets_the_detections(tmp_path: Path) -> None:
     lines = out.splitlines()
     assert len(lines) == 13, (out, err)
     assert lines[0].split()[:4] == ["13_30", "JumpJack", "85", "220"]
+
+
+def daemon_exit_said(text: str) -> int:
+    """The exit status ``text`` says ``mocapd run`` ends with when a signal stops it."""
+    flat = " ".join(text.split())
+    found = re.findall(
+        r"`mocapd run` is a daemon, whose normal end is a signal: on Ctrl-C, SIGTERM or SIGHUP it "
+        r'drains, says "offline" and exits (\d+)',
+        flat,
+    )
+    assert len(found) == 1, "the sentence on mocapd run's exit status is missing or repeated"
+    return int(found[0])
+
+
+@pytest.mark.slow
+def test_mocapd_run_exits_as_the_readme_says_when_a_signal_stops_it(tmp_path: Path) -> None:
+    """The README and docs/command-line.md give one exit status for a daemon stopped by Ctrl-C,
+    SIGTERM or SIGHUP, and a real ``mocapd run`` stopped by each exits with it after "offline".
+    Before: the README said 130 / 143 while the daemon exited 0 (and SIGHUP killed it)."""
+    status = daemon_exit_said(README)
+    assert daemon_exit_said((REPO / "docs" / "command-line.md").read_text(encoding="utf-8")) == status
+    for signum in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+        where = tmp_path / signum.name
+        where.mkdir()
+        daemon = Daemon(where).start()
+        try:
+            daemon.signal(signum)
+            assert daemon.wait(30) == status, signum.name
+            assert [e["event"] for e in daemon.logs()][-2:] == ["stopping", "offline"], signum.name
+        finally:
+            daemon.stop()

@@ -2,10 +2,12 @@
 a mosquitto on a loopback port, the sockets are ZeroMQ's. A replayed recording gives exactly the
 detections ``mocapd detect`` gives (every field but the id), over ZeroMQ and over MQTT, for one
 stream and for eight at once; SIGTERM mid-stream publishes everything received and "offline"; a
-broker restart loses no detection; kill -9 leaves the will."""
+broker restart loses no detection; kill -9 leaves the will; the latency metric does not trust a
+source's clock."""
 
 from __future__ import annotations
 
+import dataclasses
 import signal
 import time
 from functools import cache
@@ -14,12 +16,15 @@ from typing import Any
 
 import numpy as np
 import pytest
+import zmq
 
 from daemon.behaviours import JointRotations, ppca_forward
 from daemon.library import default_library_path, load_library
 from daemon.recognizer import detect, same_motion
 from daemon.recordings import read_recording
 from daemon.types import RecognitionSettings
+from protocols.messages import PoseMessage, encode, topic
+from protocols.publish import messages
 from replay import Motion
 from tests.helpers import (
     DATA,
@@ -321,4 +326,42 @@ def test_a_second_signal_exits_at_once(tmp_path: Path) -> None:
     finally:
         sender.kill()
         sender.communicate()
+        daemon.stop()
+
+
+@pytest.mark.slow
+def test_the_latency_metric_does_not_trust_the_source_clock(tmp_path: Path) -> None:
+    """A source whose clock jumps back an hour halfway through a recording (issue 32: the end-to-end
+    sum was 1.08e10 s for 13 detections): ``mocapd_end_to_end_seconds`` counts from each pose's
+    arrival on the daemon's own clock, so an hour of skew is not in it, while the detections still
+    carry the source's timestamps."""
+    daemon = Daemon(tmp_path, config=BIG_QUEUE).start()
+    motion = read_recording(*TRIAL)
+    ctx = zmq.Context()
+    sock = ctx.socket(zmq.XPUB)
+    sock.setsockopt(zmq.SNDHWM, 1_000_000)
+    sock.setsockopt(zmq.LINGER, 5000)
+    try:
+        sock.connect(daemon.poses)
+        assert sock.poll(10_000) and sock.recv()[:1] == b"\x01"  # the daemon's subscription
+        began = time.monotonic()
+        for i, m in enumerate(messages(motion, TRIAL[0].read_text(), "skewed", 120.0, 1, epoch="e1")):
+            if isinstance(m, PoseMessage):  # at 4 times real time, the second half an hour behind
+                behind = 3600.0 if m.seq > len(motion) // 2 else 0.0
+                m = dataclasses.replace(m, time=time.time() - behind)
+                time.sleep(max(0.0, began + i / (4 * 120.0) - time.monotonic()))
+            sock.send_multipart([topic(m).encode(), encode(m)])
+        wait_for(lambda: daemon.metrics().get("mocapd_frames_in_total") == len(motion), 30, "every pose")
+        wait_for(lambda: daemon.metrics().get("mocapd_queued_poses", 1) == 0, 30, "every pose recognised")
+        metrics = daemon.metrics()
+        count, total = metrics["mocapd_end_to_end_seconds_count"], metrics["mocapd_end_to_end_seconds_sum"]
+        assert count >= 10
+        assert total < 60 * count  # an hour's skew puts 3600 s in each of the later ones
+        assert daemon.stop() == 0
+        printed = daemon.detections_printed()
+        assert detection_keys(printed) == detection_keys(expected(*TRIAL))
+        assert sum(d["source_time"] < time.time() - 3000 for d in printed) >= 3  # the source's clock
+    finally:
+        sock.close()
+        ctx.term()
         daemon.stop()

@@ -321,3 +321,56 @@ def test_a_flood_on_mqtt_does_not_crowd_out_a_good_stream(tmp_path: Path) -> Non
         sender.close()
         daemon.stop()
         broker.stop()
+
+
+def test_a_forgotten_stream_is_logged(tmp_path: Path) -> None:
+    """Streams silent for ``idle_s`` are forgotten with a line each ("stream forgotten", the stream,
+    why, how long it was silent, its poses), throttled like the other per-stream lines: 25 streams
+    forgotten at once give the first 20 (before: no line at all)."""
+    daemon = Daemon(tmp_path, sinks=["stdout"], config={"service": {"idle_s": 1}}).start()
+    sender = ZmqSender(daemon.poses)
+    names = [f"quiet-{k}" for k in range(25)]
+    try:
+        for name in names:
+            sender.send(f"mocap/{name}/skeleton", encode(SkeletonMessage(name, 120.0, JOINT_NAMES)))
+            sender.send(f"mocap/{name}/pose", pose(name, 1))
+        wait_for(lambda: daemon.metrics().get("mocapd_frames_in_total", 0) == 25, 10, "a pose of each")
+        wait_for(lambda: daemon.metrics().get("mocapd_streams", 1) == 0, 10, "the streams forgotten")
+        assert daemon.metrics()['mocapd_stream_events_total{event="idle"}'] == 25
+        forgotten = [e for e in daemon.logs() if e["event"] == "stream forgotten"]
+        assert len(forgotten) == 20
+        assert len({e["stream"] for e in forgotten}) == 20 and {e["stream"] for e in forgotten} <= set(names)
+        assert all(e["level"] == "info" and e["reason"] == "idle" and e["poses"] == 1 for e in forgotten)
+        assert all(e["silent_s"] >= 1 for e in forgotten)
+    finally:
+        sender.close()
+        daemon.stop()
+
+
+def test_a_message_that_breaks_the_daemon_leaves_only_json_on_stderr(tmp_path: Path) -> None:
+    """A pose whose ``v`` is a list 1000 deep (issue 32: it made the decoder raise RecursionError):
+    the daemon refuses it, or, if it is a bug that ends the daemon, it says so in one JSON line
+    (``internal error``, the exception and its traceback in fields) and exits 70; every line on
+    stderr is one JSON object. Before: a plain line "mocapd: internal error: ExceptionGroup ..."."""
+    daemon = Daemon(tmp_path, sinks=["stdout"]).start()
+    sender = ZmqSender(daemon.poses)
+    try:
+        v: list[Any] = []
+        for _ in range(1000):
+            v = [v]
+        sender.send("mocap/deep/pose", raw({"v": v, "type": "pose", "stream": "deep", "seq": 1, "time": 1.0}))
+        wait_for(
+            lambda: not daemon.alive or any(e.get("stream") == "deep" for e in daemon.logs()),
+            10,
+            "the message refused, or the daemon ended",
+        )
+        code = daemon.stop()
+        lines = [json.loads(line) for line in daemon.stderr_path.read_text().splitlines()]
+        if code != 0:
+            assert code == 70
+            assert lines[-1]["event"] == "internal error" and lines[-1]["level"] == "critical"
+            assert lines[-1]["exception"].startswith("RecursionError: ")
+            assert "Traceback (most recent call last)" in lines[-1]["error"]
+    finally:
+        sender.close()
+        daemon.stop()

@@ -2,7 +2,8 @@
 processes; the sockets are ZeroMQ's): each stream's detections are exactly ``mocapd detect``'s, each
 stream on the worker :func:`protocols.routing.worker_of` names; a worker killed with SIGKILL is
 started again and learns its streams from publishers that announce only when asked; SIGTERM stops
-the front and every worker cleanly; workers whose front is gone stop by themselves."""
+the front and every worker cleanly; workers whose front is gone stop by themselves; whatever escapes
+a worker is one JSON line on stderr, never a traceback."""
 
 from __future__ import annotations
 
@@ -17,6 +18,7 @@ from functools import cache
 from pathlib import Path
 from typing import Any
 
+import msgpack
 import pytest
 import zmq
 
@@ -321,4 +323,82 @@ def test_a_second_signal_ends_the_front_and_its_workers_at_once(tmp_path: Path) 
     finally:
         sender.kill()
         sender.communicate()
+        daemon.stop()
+
+
+def nested(depth: int) -> list[Any]:
+    """A list ``depth`` lists deep."""
+    out: list[Any] = []
+    for _ in range(depth):
+        out = [out]
+    return out
+
+
+def stderr_lines(daemon: Daemon) -> list[dict[str, Any]]:
+    """Every line on the daemon's stderr (its workers' too), each of which must be a JSON object."""
+    return [json.loads(line) for line in daemon.stderr_path.read_text().splitlines()]
+
+
+@pytest.mark.slow
+def test_a_worker_that_cannot_read_its_setup_says_so_in_one_json_line(tmp_path: Path) -> None:
+    """A worker started again after its setup file was removed (a temporary-file cleaner at work
+    under a long-running daemon) fails at once: one JSON line says why, with the traceback in a field,
+    it exits 70 and the front tries again. Before: a multi-line Python traceback on the daemon's
+    stderr each time."""
+    temporary = tmp_path / "tmp"
+    temporary.mkdir()
+    daemon = Daemon(tmp_path, workers=2, env={"TMPDIR": str(temporary)}).start()
+    try:
+        (setup,) = temporary.glob("mocapd-workers-*/setup.pickle")
+        setup.unlink()
+        os.kill(worker_pids(daemon)[1], signal.SIGKILL)
+
+        def exits() -> set[tuple[int, int]]:
+            return {(e["worker"], e["status"]) for e in daemon.logs() if e["event"] == "worker exited"}
+
+        wait_for(lambda: (1, 70) in exits(), 30, "the restarted worker's failure")
+        assert daemon.alive
+        lines = stderr_lines(daemon)
+        failed = [e for e in lines if e["event"] == "internal error"]
+        assert failed and all(e["worker"] == 1 and e["level"] == "critical" for e in failed)
+        assert failed[0]["exception"].startswith("FileNotFoundError: ")
+        assert failed[0]["error"].startswith("Traceback (most recent call last):")
+        assert "setup.pickle" in failed[0]["error"]
+        daemon.stop()
+        stderr_lines(daemon)  # to the end
+    finally:
+        daemon.stop()
+
+
+@pytest.mark.slow
+def test_a_message_that_breaks_a_worker_leaves_only_json_on_stderr(tmp_path: Path) -> None:
+    """A pose whose ``v`` is a list 1000 deep (issue 32: it made the decoder raise RecursionError)
+    sent to ``run --workers 2``: whatever the worker makes of it, every line on stderr is one JSON
+    object, and the daemon serves on. Before: the worker's traceback, dozens of lines."""
+    daemon = Daemon(tmp_path, workers=2).start()
+    ctx = zmq.Context()
+    sock = ctx.socket(zmq.XPUB)
+    sock.setsockopt(zmq.LINGER, 1000)
+    try:
+        sock.connect(daemon.poses)
+        assert sock.poll(10_000) and sock.recv()[:1] == b"\x01"
+        body = {"v": nested(1000), "type": "pose", "stream": "deep", "seq": 1, "time": 1.0}
+        sock.send_multipart([b"mocap/deep/pose", msgpack.packb(body)])
+
+        def handled() -> bool:  # the worker failed and was started again, or refused the message
+            logs = daemon.logs()
+            return any(e["event"] == "worker exited" for e in logs) or any(
+                e["event"] == "refused" and e["stream"] == "deep" for e in logs
+            )
+
+        wait_for(handled, 30, "the nested message handled")
+        wait_for(lambda: daemon.health()[0] == 200, 30, "serving again")
+        lines = stderr_lines(daemon)
+        failed = [e for e in lines if e["event"] == "internal error"]
+        assert all(e["worker"] == worker_of("deep", 2) for e in failed)
+        assert daemon.stop() == 0
+        stderr_lines(daemon)  # to the end
+    finally:
+        sock.close()
+        ctx.term()
         daemon.stop()

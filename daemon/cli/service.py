@@ -5,10 +5,11 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import re
+import signal
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from daemon.cli import common
+from daemon.cli import _terminate, common
 from daemon.cli.detect import speed
 from daemon.config import Config, workers_of, workers_reason
 from daemon.errors import InputError, UsageError
@@ -125,6 +126,19 @@ def _replay(args: argparse.Namespace, config: Config) -> int:
 
 
 def _run(args: argparse.Namespace, config: Config) -> int:
+    """The daemon. SIGHUP is taken as SIGTERM from here on (unless it is ignored, as under
+    ``nohup``): before the daemon serves it stops the command ("terminated", 143), then the
+    daemon drains and exits 0 (``daemon.service.app.STOP_SIGNALS``)."""
+    hangup = signal.getsignal(signal.SIGHUP)
+    if hangup != signal.SIG_IGN:
+        signal.signal(signal.SIGHUP, _terminate)
+    try:
+        return _serve(args, config)
+    finally:
+        signal.signal(signal.SIGHUP, signal.SIG_DFL if hangup is None else hangup)
+
+
+def _serve(args: argparse.Namespace, config: Config) -> int:
     from daemon.cli import package_version
     from daemon.service.app import serve
 

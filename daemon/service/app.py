@@ -9,11 +9,15 @@ spent, then yields, so receiving and publishing are never held up longer than a 
 or a slow stream only grows the queues, which are bounded (a stream's oldest pose is dropped, never a
 detection). Intake yields every few messages too, so a flood cannot starve recognition.
 
-Shutdown (SIGTERM/SIGINT through ``loop.add_signal_handler``): intake stops, every queued pose is
-recognised and every stream flushed, what that gives is published, the transports close (MQTT
-drains its outbox, publishes "offline" and disconnects; ZeroMQ sockets linger), the metrics server
-stops; all within ``service.grace_s``, after which what is left is cancelled. A second signal exits
-at once.
+Shutdown (SIGTERM, SIGINT or SIGHUP through ``loop.add_signal_handler``: :data:`STOP_SIGNALS`):
+intake stops, every queued pose is recognised and every stream flushed, what that gives is
+published, the transports close (MQTT drains its outbox, publishes "offline" and disconnects; ZeroMQ
+sockets linger), the metrics server stops; all within ``service.grace_s``, after which what is left
+is cancelled. A second signal exits at once.
+
+Every line on stderr is one JSON object (:func:`configure_logging`), an internal error's too: it is
+logged with its traceback in a field (:func:`internal_error`) and the daemon exits with
+:data:`EXIT_BUG`.
 """
 
 from __future__ import annotations
@@ -38,7 +42,7 @@ from typing import TYPE_CHECKING, Any, cast
 import numpy as np
 
 from daemon.config import Config, ConfigError, transports_named
-from daemon.errors import printable
+from daemon.errors import MocapdError, printable
 from daemon.library import Library
 from daemon.service.metrics import Metrics, open_http, serve_http
 from daemon.service.streams import Emitted, Refused, StreamTable
@@ -78,6 +82,12 @@ STATUS_EVERY_S = 5
 """How often the daemon's status goes out again where nothing retains it (ZeroMQ: :func:`reminder`)."""
 CATCH_UP_POLL_S = 0.005
 """How often recognition looks whether the cluster transport has read a taken partition's buffer."""
+STOP_SIGNALS = (signal.SIGTERM, signal.SIGINT, signal.SIGHUP)
+"""The signals that stop the daemon gracefully (:func:`on_stop_signals`). SIGHUP, which a closed
+terminal or an operator expecting a reload sends, is a stop too: the daemon reads its configuration
+only when it starts."""
+EXIT_BUG = 70
+"""The exit status of an internal error, the command line's (``daemon.cli.EXIT_BUG``)."""
 
 
 class _Stop(Exception):
@@ -389,8 +399,8 @@ class Service:
             )
             return
         m.detection_out(message.stream)
-        if e.source_time > 0:
-            m.end_to_end.observe(max(0.0, message.emit_time - e.source_time))
+        if e.arrived > 0:  # from the pose's arrival, on this process's clock: a source's may be anywhere
+            m.end_to_end.observe(max(0.0, time.monotonic() - e.arrived))
         self.log.debug(
             "detection",
             extra={"fields": {"id": message.id, "stream": message.stream, "class": message.class_name}},
@@ -403,7 +413,13 @@ class Service:
             beats += 1
             if self.remind and beats % STATUS_EVERY_S == 0:
                 await self._send(reminder(self._status("online")))
-            for e in self.table.evict_idle(time.monotonic(), self.config.service.idle_s):
+            now, live = time.monotonic(), dict(self.table.streams)
+            last = self.table.evict_idle(now, self.config.service.idle_s)
+            for name, s in live.items():
+                if name not in self.table.streams:  # per stream, throttled like the other such lines
+                    fields = {"stream": name, "reason": "idle", "silent_s": round(now - s.seen, 1)}
+                    self.events.info("stream forgotten", fields | {"poses": s.received})
+            for e in last:
                 await self.publish(e)
             self.metrics.keep(self.table.streams)
             for gone in self._relayed.keys() - self.table.streams.keys():
@@ -614,10 +630,11 @@ def serve(
     extra: Callable[[Service, asyncio.Event], Iterable[tuple[str, Callable[[], Coroutine[Any, Any, None]]]]]
     | None = None,
 ) -> int:
-    """Run the service until SIGTERM/SIGINT (or ``extra``'s tasks set the stop event); the exit
-    status: 0 when everything was published within the grace, 1 otherwise. A transport or the
-    metrics server that cannot start raises :class:`~daemon.config.ConfigError` naming the setting,
-    before "online" is published."""
+    """Run the service until SIGTERM, SIGINT or SIGHUP (or ``extra``'s tasks set the stop event);
+    the exit status: 0 when everything was published within the grace, 1 otherwise, 70 on an
+    internal error (logged as one JSON line: :func:`internal_error`). A transport or the metrics
+    server that cannot start raises :class:`~daemon.config.ConfigError` naming the setting, before
+    "online" is published."""
     logger = configure_logging(config.logging.level)
     clustered = "cluster" in config.service.sources + config.service.sinks
     member = ""
@@ -648,8 +665,7 @@ def serve(
             logger.info("signal", extra={"fields": {"signal": signal.Signals(signum).name}})
             stop.set()
 
-        for signum in (signal.SIGTERM, signal.SIGINT):
-            loop.add_signal_handler(signum, on_signal, signum)
+        on_stop_signals(loop, on_signal)
         transports = transports_of(config, instance)
         cluster = None
         if clustered:
@@ -675,3 +691,30 @@ def serve(
         return 0 if asyncio.run(main()) else 1
     except StartupError as e:  # before anything was published: the setting, in one line
         raise ConfigError(e.reason, field=e.setting) from None
+    except (MocapdError, OSError):
+        raise  # bad input or a file: the command line's one line
+    except Exception:
+        return internal_error(logger)
+
+
+def on_stop_signals(loop: asyncio.AbstractEventLoop, callback: Callable[[int], None]) -> None:
+    """``callback(signum)`` on each of :data:`STOP_SIGNALS` (``loop.add_signal_handler``), except
+    SIGHUP where it is ignored (``nohup mocapd run``: it stays ignored)."""
+    for signum in STOP_SIGNALS:
+        if signum != signal.SIGHUP or signal.getsignal(signum) != signal.SIG_IGN:
+            loop.add_signal_handler(signum, callback, signum)
+
+
+def internal_error(logger: logging.Logger) -> int:
+    """The exception being handled (a bug) logged as one JSON line, ``internal error``: the
+    exception in ``exception`` (a task group's first), its traceback in ``error``, with or without
+    ``--debug``: a running daemon writes nothing else on stderr. :data:`EXIT_BUG`."""
+    error = sys.exc_info()[1]
+    while isinstance(error, BaseExceptionGroup) and error.exceptions:  # a task group's: the first inside
+        error = error.exceptions[0]
+    fields = {
+        "exception": f"{type(error).__name__}: {error}",
+        "bug": "a bug in mocapd: please report this line (docs/command-line.md, 'Reporting bugs')",
+    }
+    logger.critical("internal error", exc_info=True, extra={"fields": fields})
+    return EXIT_BUG

@@ -10,7 +10,9 @@ Series (prefix ``mocapd_``): ``frames_in``, ``messages_in{type}``, ``detections_
 ``stream_events{event}`` (gaps, poses missing in them, evictions, skeleton changes), ``streams``,
 ``queued_poses``, ``outbox``, ``transport_up{transport}``, ``stage_seconds{stage}`` (decode,
 recognise, publish; buckets from 25 µs to 50 ms with one at the 2 ms budget) and
-``end_to_end_seconds`` (a pose's source timestamp to the publish of the detection it completed).
+``end_to_end_seconds`` (the arrival of the pose that completed a detection to the detection's
+publish, on this process's monotonic clock: never the pose's source timestamp, since a source's
+clock may be anywhere).
 ``frames_in`` and ``detections_out`` have a ``stream`` label only with ``metrics.stream_labels``,
 which config allows only for a bounded stream table. Every incoming message is counted once: in
 ``messages_in`` when taken in (a pose queued, a skeleton taken or repeated, an empty skeleton: a
@@ -159,7 +161,7 @@ class Metrics(Collector):
         yield stage
         e2e = HistogramMetricFamily(
             "mocapd_end_to_end_seconds",
-            "Source timestamp of the pose that completed a detection to the detection's publish",
+            "Arrival of the pose that completed a detection to the detection's publish",
         )
         e2e.add_metric([], self.end_to_end.buckets(), self.end_to_end.total)
         yield e2e

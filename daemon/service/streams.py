@@ -125,9 +125,15 @@ class _Stream:
     last_values: np.ndarray | None = None
     """The values of frame :attr:`last_fed` (a gap after it is bridged from them)."""
     queue: deque[PoseMessage] = field(default_factory=deque)
-    filling: deque[tuple[int, float, np.ndarray]] = field(default_factory=deque)
-    """The interpolated frames (frame number, time, values) of a gap before ``queue[0]``."""
+    arrived: deque[float] = field(default_factory=deque)
+    """When each queued pose was taken in (the ``now`` of :meth:`StreamTable.pose`), in step with
+    :attr:`queue`."""
+    filling: deque[tuple[int, float, float, np.ndarray]] = field(default_factory=deque)
+    """The interpolated frames (frame number, time, arrival, values) of a gap before ``queue[0]``."""
     times: np.ndarray = field(default_factory=lambda: np.zeros(1))
+    arrivals: np.ndarray = field(default_factory=lambda: np.zeros(1))
+    """When the pose of each recent frame was taken in, a ring like :attr:`times` (the source's
+    timestamps)."""
     width: int = 0
     seen: float = 0.0
     generation: int = 0
@@ -160,10 +166,12 @@ class _Stream:
 @dataclass(frozen=True)
 class Emitted:
     """A detection, a behaviour boundary or a progress event ready for the wire, and when the pose
-    that completed it was stamped by its source (for the end-to-end latency)."""
+    that completed it was taken in (the ``now`` of :meth:`StreamTable.pose`, the service's monotonic
+    clock; 0: not known), for the latency from arrival to publish. Not the source's timestamp (the
+    message's ``source_time``): a source's clock may be anywhere."""
 
     message: DetectionMessage | BoundaryMessage | ProgressMessage
-    source_time: float
+    arrived: float
 
 
 def _allowance(rate: float, seconds: float) -> float:
@@ -277,6 +285,7 @@ class StreamTable:
             angles,
             turns=None if skeleton is None else np.asarray(skeleton.angle_channels, dtype=np.intp),
             times=np.zeros(horizon),
+            arrivals=np.zeros(horizon),
             width=len(skeleton.channel_names) if skeleton is not None else len(message.joints or ()),
             seen=now,
             generation=(old.generation + 1) if old else 0,
@@ -385,9 +394,11 @@ class StreamTable:
         s.seen = s.posed = now
         if len(s.queue) >= self.queue_frames:
             s.queue.popleft()
+            s.arrived.popleft()
             self.counts["lagging"] += 1
             self._queued -= 1
         s.queue.append(message)
+        s.arrived.append(now)
         self._queued += 1
         self._waiting.setdefault(message.stream, s)
 
@@ -403,10 +414,10 @@ class StreamTable:
         out: list[Emitted] = []
         for name, s in list(self._waiting.items()):
             if s.filling:
-                seq, stamp, values = s.filling.popleft()
+                seq, stamp, arrived, values = s.filling.popleft()
                 bridging.add(name)
             else:
-                pose = s.queue.popleft()
+                pose, arrived = s.queue.popleft(), s.arrived.popleft()
                 if not s.queue:
                     del self._waiting[name]
                 out += self._follows(name, s, pose)
@@ -420,13 +431,14 @@ class StreamTable:
                         s.suppress_before = pose.seq + s.warmup
                 seq, stamp, values = pose.seq, pose.time, self._values(s, pose)
                 if s.last_fed is not None and seq > s.last_fed + 1:
-                    self._bridge(name, s, pose, values)
-                    seq, stamp, values = s.filling.popleft()
+                    self._bridge(name, s, pose, arrived, values)
+                    seq, stamp, arrived, values = s.filling.popleft()
                     bridging.add(name)
             self._queued -= 1
             before[name] = (s.last_fed, s.last_values)
             s.last_fed, s.last_values = seq, values
             s.times[seq % len(s.times)] = stamp
+            s.arrivals[seq % len(s.arrivals)] = arrived
             frames.append((name, seq, values))
         if not frames:
             return out, []
@@ -450,6 +462,7 @@ class StreamTable:
                 self._queued -= len(s.filling) + 1
                 s.filling.clear()
                 dropped = s.queue.popleft()
+                s.arrived.popleft()
                 if not s.queue:
                     del self._waiting[name]
                 why += f" (bridging the gap before pose {dropped.seq}, dropped)"
@@ -482,16 +495,20 @@ class StreamTable:
                 out += self._restart(name, s, pose.epoch)
         return out
 
-    def _bridge(self, name: str, s: _Stream, pose: PoseMessage, values: np.ndarray) -> None:
-        """Queue the frames of the gap between the last frame fed and ``pose`` (whose recogniser
-        input is ``values``), interpolated, before ``pose`` itself."""
+    def _bridge(self, name: str, s: _Stream, pose: PoseMessage, arrived: float, values: np.ndarray) -> None:
+        """Queue the frames of the gap between the last frame fed and ``pose`` (taken in at
+        ``arrived``, its recogniser input ``values``), interpolated, before ``pose`` itself."""
         assert s.last_fed is not None and s.last_values is not None
         missing = pose.seq - s.last_fed - 1
         fill = bridge(s.last_values, values, missing, s.turns)
         start = float(s.times[s.last_fed % len(s.times)])
         stamps = start + (pose.time - start) * np.arange(1, missing + 1) / (missing + 1)
-        s.filling.extend(zip(range(s.last_fed + 1, pose.seq), stamps.tolist(), fill, strict=True))
+        s.filling.extend(
+            (seq, stamp, arrived, values)
+            for seq, stamp, values in zip(range(s.last_fed + 1, pose.seq), stamps.tolist(), fill, strict=True)
+        )
         s.queue.appendleft(pose)
+        s.arrived.appendleft(arrived)
         self._waiting.setdefault(name, s)
         self._queued += missing  # the pose is queued again: counted already
 
@@ -544,6 +561,7 @@ class StreamTable:
         if not events:
             return []
         source_time = float(s.times[frame % len(s.times)])
+        arrived = float(s.arrivals[frame % len(s.arrivals)])
         return [
             Emitted(
                 ProgressMessage(
@@ -556,7 +574,7 @@ class StreamTable:
                     source_time,
                     0.0,
                 ),
-                source_time,
+                arrived,
             )
             for e in events
         ]
@@ -604,6 +622,7 @@ class StreamTable:
     def _emitted(self, d: Detection, s: _Stream | None = None) -> Emitted:
         s = s if s is not None else self.streams[d.stream]
         source_time = float(s.times[d.emitted_at_frame % len(s.times)])
+        arrived = float(s.arrivals[d.emitted_at_frame % len(s.arrivals)])
         message = DetectionMessage(
             d.id,
             d.stream,
@@ -616,12 +635,11 @@ class StreamTable:
             source_time,
             0.0,
         )
-        return Emitted(message, source_time)
+        return Emitted(message, arrived)
 
     def _boundary(self, name: str, s: _Stream, frame: int, known: int, b: Boundary) -> Emitted:
         key = f"{self.session}/{s.generation}/{name}/boundary/{b.method}/{frame}"
-        source_time = float(s.times[known % len(s.times)])
         message = BoundaryMessage(
             str(uuid.uuid5(uuid.NAMESPACE_URL, key)), name, frame, b.method, b.score, 0.0
         )
-        return Emitted(message, source_time)
+        return Emitted(message, float(s.arrivals[known % len(s.arrivals)]))

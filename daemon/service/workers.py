@@ -30,12 +30,13 @@ labels, so the series are those of one process, plus ``mocapd_workers``, ``mocap
 and ``mocapd_worker_restarts_total{worker}``; the transports' series (``transport_up``, ``outbox``,
 their drops) are the front's. ``/healthz`` is 503 while a worker is starting or restarting.
 
-Shutdown: SIGTERM/SIGINT to the front stops its intake and sends SIGTERM to every worker, which
-drains as the single process does (within ``service.grace_s``); the front publishes what they send
-until the last has exited (a worker still running ``grace_s`` + 2 s later is killed), then closes its
-transports. A second signal kills the workers and exits at once. Workers ignore SIGINT (a terminal's
-Ctrl-C reaches the whole process group: the front decides) and stop by themselves when the front is
-gone.
+Shutdown: SIGTERM, SIGINT or SIGHUP to the front stops its intake and sends SIGTERM to every
+worker, which drains as the single process does (within ``service.grace_s``); the front publishes
+what they send until the last has exited (a worker still running ``grace_s`` + 2 s later is killed),
+then closes its transports. A second signal kills the workers and exits at once. Workers ignore
+SIGINT and SIGHUP (a terminal's Ctrl-C or hangup reaches the whole process group: the front
+decides) and stop by themselves when the front is gone. Whatever escapes a worker is logged as one
+JSON line and ends it with status 70 (:func:`main`); the front starts it again.
 
 The worker processes are ``python -c BOOT ROOT INDEX SETUP`` (:data:`BOOT`; SETUP: the pickled
 :class:`WorkerSetup`, in a private temporary directory with the ipc sockets).
@@ -71,6 +72,7 @@ from prometheus_client.parser import text_string_to_metric_families
 from prometheus_client.registry import Collector
 
 from daemon.config import Config, ConfigError
+from daemon.errors import MocapdError
 from daemon.library import Library
 from daemon.service.app import (
     STATUS_EVERY_S,
@@ -79,6 +81,8 @@ from daemon.service.app import (
     endpoints_of,
     fatal_of,
     instance_name,
+    internal_error,
+    on_stop_signals,
     reminder,
     transports_of,
 )
@@ -112,7 +116,9 @@ def unpackb(frame: bytes) -> list[bytes]:
 
 YIELD_EVERY = 64
 """Messages the front routes before it lets its other tasks run."""
-BOOT = """import sys
+BOOT = """import signal, sys
+signal.signal(signal.SIGINT, signal.SIG_IGN)
+signal.signal(signal.SIGHUP, signal.SIG_IGN)
 root = sys.argv[1]
 if root in sys.path[1:]:
     del sys.path[0]
@@ -121,9 +127,10 @@ else:
 from daemon.service.workers import main
 sys.exit(main(sys.argv[2:]))
 """
-"""A worker process's program (``python -c BOOT ROOT INDEX SETUP``): this very code (the directory
-that holds the front's ``daemon`` package in place of the working directory, or nothing added
-where it is already on the path, as an installed package's is), then :func:`main`."""
+"""A worker process's program (``python -c BOOT ROOT INDEX SETUP``): SIGINT and SIGHUP ignored
+first (a terminal's Ctrl-C or hangup reaches the whole process group: the front decides), this very
+code (the directory that holds the front's ``daemon`` package in place of the working directory, or
+nothing added where it is already on the path, as an installed package's is), then :func:`main`."""
 CONNECT_TIMEOUT_MS = 10_000
 """How long a worker waits for its connection to the front."""
 READY_TIMEOUT_S = 60.0
@@ -304,14 +311,19 @@ def pin(index: int, workers: int) -> None:
         os.sched_setaffinity(0, {cores[index]})
 
 
+def tagged_logging(level: str, index: int) -> logging.Logger:
+    """:func:`~daemon.service.app.configure_logging` for worker ``index``: its lines say which."""
+    logger = configure_logging(level)
+    for handler in logger.handlers:
+        handler.addFilter(_Tagged(index))
+    return logger
+
+
 def run_worker(setup: WorkerSetup, index: int) -> int:
     """Worker ``index``'s service until SIGTERM (or its front is gone); 0 when everything was
     published within the grace."""
     config = replace(setup.config, metrics=replace(setup.config.metrics, port=0))
-    logger = configure_logging(config.logging.level)
-    for handler in logger.handlers:
-        handler.addFilter(_Tagged(index))
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    logger = tagged_logging(config.logging.level, index)
     pin(index, len(setup.inbound))
 
     async def main() -> bool:
@@ -850,10 +862,11 @@ async def _closed(server: asyncio.Server) -> None:
 
 
 def serve_workers(config: Config, library: Library, workers: int, *, version: str) -> int:
-    """``mocapd run`` with ``workers`` recognition processes until SIGTERM/SIGINT; the exit status:
-    0 when every worker published everything within the grace, 1 otherwise. A transport, the
-    metrics server or a worker that cannot start raises :class:`~daemon.config.ConfigError` naming
-    the setting, before "online" is published."""
+    """``mocapd run`` with ``workers`` recognition processes until SIGTERM, SIGINT or SIGHUP; the
+    exit status: 0 when every worker published everything within the grace, 1 otherwise, 70 on an
+    internal error (logged as one JSON line). A transport, the metrics server or a worker that
+    cannot start raises :class:`~daemon.config.ConfigError` naming the setting, before "online" is
+    published."""
     logger = configure_logging(config.logging.level)
     front = Front(config, library, workers, instance=instance_name(config), version=version, logger=logger)
 
@@ -868,18 +881,28 @@ def serve_workers(config: Config, library: Library, workers: int, *, version: st
             logger.info("signal", extra={"fields": {"signal": signal.Signals(signum).name}})
             stop.set()
 
-        for signum in (signal.SIGTERM, signal.SIGINT):
-            loop.add_signal_handler(signum, on_signal, signum)
+        on_stop_signals(loop, on_signal)
         return await front.run(stop)
 
     try:
         return 0 if asyncio.run(main()) else 1
     except StartupError as e:
         raise ConfigError(e.reason, field=e.setting) from None
+    except (MocapdError, OSError):
+        raise  # bad input or a file: the command line's one line
+    except Exception:
+        return internal_error(logger)
 
 
 def main(argv: list[str]) -> int:
-    """A worker process: ``argv`` its index and the file of its :class:`WorkerSetup`."""
+    """A worker process: ``argv`` its index and the file of its :class:`WorkerSetup`. Whatever
+    escapes the worker is logged as one JSON line (:func:`~daemon.service.app.internal_error`: its
+    stderr is the daemon's, where every line is a JSON object) and ends it with
+    :data:`~daemon.service.app.EXIT_BUG`; the front starts it again."""
     index, path = int(argv[0]), Path(argv[1])
-    setup: WorkerSetup = pickle.loads(path.read_bytes())
-    return run_worker(setup, index)
+    logger = tagged_logging("info", index)  # until the setup says the level
+    try:
+        setup: WorkerSetup = pickle.loads(path.read_bytes())
+        return run_worker(setup, index)
+    except Exception:
+        return internal_error(logger)
