@@ -12,11 +12,18 @@ sends CMU 13_30 (exercises) as stream ``good``, paced (``--speed auto``) to last
 the fuzzing; meanwhile this process sends the fuzzed messages, a seeded mix of
 
 * random bytes of random length (0 to 2 KiB, a few beyond ``max_message_bytes``);
-* structure-aware mutations of valid skeletons and poses (and the daemon's own message types):
-  fields removed, added, retyped; ``positions``/``channels`` of wrong lengths, NaN, infinity, huge
-  values; sequence numbers negative, huge, 2**64-1; wrong ``v`` and ``type``; odd stream ids (with
-  ``/``, ``+``, ``#``, unicode, 129+ characters); epochs of the wrong type; ASF texts cut, shuffled
-  or with garbage; truncated or bit-flipped msgpack, extra bytes, deep nesting, non-string keys;
+* structure-aware mutations of valid skeletons and poses (and the daemon's own message types:
+  detection, boundary, progress, status): fields removed, added, retyped; ``positions``/``channels``
+  of wrong lengths, NaN, infinity, huge values; sequence numbers negative, huge, 2**64-1; wrong
+  ``v`` and ``type``; odd stream ids (with ``/``, ``+``, ``#``, unicode, 129+ characters); epochs of
+  the wrong type; ASF texts cut, shuffled or with garbage; truncated or bit-flipped msgpack, extra
+  bytes, deep nesting, non-string keys;
+* field values mutated recursively (issue 32): any field of any of those messages, or a value
+  inside one (an element of ``joints`` or ``matched``, an entry of a progress message's
+  ``classes``, recursively), replaced by lists and maps nested to random depths (often 7-10, around
+  the decoder's bound of 8; sometimes about 1,000 and 3,000, beyond what ``msgpack.packb`` packs:
+  :func:`pack_value`), deep maps with odd keys, huge integers (±2**63, 2**64-1), NaN and ±infinity,
+  the wrong type (bytes for a string, a string for bytes, a bool for an int, None), long strings;
 * valid messages on other streams: skeletons (positions and ASF, repeated, changed, new runs),
   poses in order, repeated, out of order, after gaps, implausibly far ahead, of streams that
   announced no skeleton; new streams beyond ``max_streams``;
@@ -31,8 +38,10 @@ keeps at most 20,000 messages ahead of what the daemon has counted.
 
 Checks (exit status 1 if one fails):
 
-* no crash: the daemon is alive throughout and exits 0 on SIGTERM; every line of its stderr is one
-  JSON object, none an error, a traceback or a Python warning;
+* no crash: the daemon is alive throughout and exits 0 on SIGTERM, no worker of it was started
+  again (``mocapd_worker_restarts_total``), no message set off a defect
+  (``rejects{reason="internal"}``); every line of its stderr is one JSON object, none an error, a
+  traceback or a Python warning;
 * every message counted once: the messages that reached the daemon (the fuzzed ones a ZeroMQ
   subscription or an MQTT subscription lets through, and the good stream's) equal
   ``mocapd_messages_in_total{type}`` (taken in) + ``mocapd_rejects_total{reason}`` (refused) +
@@ -50,6 +59,7 @@ from __future__ import annotations
 import argparse
 import getpass
 import json
+import math
 import os
 import random
 import shutil
@@ -80,9 +90,11 @@ from daemon.recognizer import detect
 from daemon.recordings import read_recording
 from protocols.messages import (
     BoundaryMessage,
+    ClassProgress,
     DetectionMessage,
     Message,
     PoseMessage,
+    ProgressMessage,
     SkeletonMessage,
     StatusMessage,
     encode,
@@ -213,11 +225,102 @@ RATES = (RATE, 60.0, 100.0, 240.0, 30.0, 90.0, 9990.0)
 """A pool stream's rate when its skeleton changes (100 Hz cannot be recognised: refused)."""
 EXTRA_FIELDS = ("extra", "pad", "positions", "channels", "asf", "joints", "epoch", "seq", "")
 BAD_TIMESTAMPS = (b"\xd4\xff\x00", b"\xc7\x03\xff\x00\x00\x00", b"\x81\xa1v\xd4\xff\x01")
+DEPTHS = (1, 2, 3, 4, 6, 7, 7, 8, 8, 8, 9, 9, 10, 16, 64, 500, 999, 1000, 1000, 1001, 3000)
+"""How deep a generated value nests: often around the decoder's bound (``MAX_DEPTH`` 8: a field's
+value at depth 7 makes the message 8 deep, taken; 8 or 9 makes it 9 or 10, refused), sometimes about
+1,000 deep (issue 32's attack: the refusal's repr raised RecursionError) and beyond what
+``msgpack.packb`` itself packs (:func:`pack_value` writes any depth)."""
+HUGE_INTS = (
+    2**63 - 1,
+    2**63,
+    2**64 - 1,
+    -(2**63),
+    -(2**63) + 1,
+    2**53 + 1,
+    -(2**53) - 1,
+    2**32,
+    -(2**31) - 1,
+)
+"""Integers at the edges of msgpack's int64 and uint64 and of a double's exact integers."""
+ODD_FLOATS = (float("nan"), float("inf"), float("-inf"), -0.0, 5e-324, 1.7976931348623157e308, -1e308)
+ODD_KEYS: tuple[str | bytes, ...] = (
+    "",
+    " ",
+    "v",
+    "type",
+    "stream",
+    "class",
+    "classes",
+    "é" * 50,
+    "k" * 1000,
+    "\x00",
+    "😀",
+    "a.b",
+    "$",
+    "__proto__",
+    "\ud7ff\ue000",
+    b"bytes-key",
+    b"",
+    b"\xff\xfe",
+)
+"""Map keys for generated maps: empty, long, control and astral characters, field names, and bytes
+(msgpack allows str and bytes keys; the decoder takes neither as a field)."""
+SHORT_KEYS: tuple[str | bytes, ...] = tuple(k for k in ODD_KEYS if len(k) <= 4)
+LONG_TEXTS = (129, 300, 1000, 5000, 15000)
 
 
 def pack(body: Any) -> bytes:
-    out: bytes = msgpack.packb(body, use_bin_type=True)
+    """``body`` as msgpack: by ``msgpack.packb``, or by :func:`pack_value` for a value nested deeper
+    than msgpack packs (about 1,000 levels)."""
+    try:
+        out: bytes = msgpack.packb(body, use_bin_type=True)
+    except ValueError:  # "recursion limit exceeded"
+        return pack_value(body)
     return out
+
+
+def _container_head(kind: str, n: int) -> bytes:
+    small, word, long = (0x90, b"\xdc", b"\xdd") if kind == "list" else (0x80, b"\xde", b"\xdf")
+    if n < 16:
+        return bytes([small | n])
+    if n < 1 << 16:
+        return word + n.to_bytes(2, "big")
+    return long + n.to_bytes(4, "big")
+
+
+def pack_value(value: Any) -> bytes:
+    """``value`` as msgpack at any depth, without recursion (an explicit stack): lists and maps
+    written here, every other value by ``msgpack.packb``."""
+    out = bytearray()
+    stack: list[Any] = [value]
+    while stack:
+        item = stack.pop()
+        if isinstance(item, list):
+            out += _container_head("list", len(item))
+            stack.extend(reversed(item))
+        elif isinstance(item, dict):
+            out += _container_head("map", len(item))
+            for k, v in reversed(list(item.items())):
+                stack += [v, k]
+        else:
+            out += msgpack.packb(item, use_bin_type=True)
+    return bytes(out)
+
+
+def shape(value: Any) -> str:
+    """A value by its type, size and depth, never its repr (unbounded, and for a deep value a
+    RecursionError)."""
+    depth, level = 0, [value]
+    while level and depth < 10_000:
+        level = [
+            inner
+            for outer in level
+            if isinstance(outer, dict | list)
+            for inner in (outer.values() if isinstance(outer, dict) else outer)
+        ]
+        depth += 1
+    size = len(value) if isinstance(value, str | bytes | list | dict) else 0
+    return f"{type(value).__name__} of {size}, {depth} deep"
 
 
 def _mqtt_safe(text: str) -> bool:
@@ -411,8 +514,8 @@ class Fuzzer:
             self._mutate(body)
         try:
             payload = pack(body)
-        except (OverflowError, ValueError, TypeError):
-            payload = pack({"v": 1, "type": word, "stream": s.name, "x": repr(body)[:200]})
+        except (OverflowError, ValueError, TypeError):  # nothing generated should get here
+            payload = pack({"v": 1, "type": word, "stream": s.name, "x": shape(body)})
         r = self.rng.random()
         if r < 0.08 and payload:
             payload = payload[: self.rng.randrange(len(payload))]  # truncated
@@ -444,12 +547,19 @@ class Fuzzer:
         return opener * depth + b"\xc0"
 
     def _other_message(self, stream: str) -> dict[str, Any]:
-        """A valid message of a type the daemon publishes (detection, boundary, status), as a map."""
-        kind = self.rng.randrange(3)
+        """A valid message of a type the daemon publishes (detection, boundary, progress, status), as
+        a map."""
+        kind = self.rng.randrange(4)
         if kind == 0:
             message: Message = DetectionMessage("x", stream, "squat", 1, 2, 0.1, 0.2, 3, 1.0, 2.0)
         elif kind == 1:
             message = BoundaryMessage("x", stream, 4, "pca", 1.0, 1.0)
+        elif kind == 2:
+            classes = tuple(
+                ClassProgress(f"class{k}", 3, (10 + k, 20 + k), 0.25 * k, 0.01, 0.1)
+                for k in range(self.rng.randrange(1, 4))
+            )
+            message = ProgressMessage(stream, 30, classes, 1.0, 2.0)
         else:
             message = StatusMessage("fuzz", "online", "0", 1, 1.0)
         body: dict[str, Any] = msgpack.unpackb(encode(message))
@@ -458,8 +568,11 @@ class Fuzzer:
     def _mutate(self, body: dict[str, Any]) -> None:
         rng = self.rng
         keys = list(body)
-        op = rng.randrange(14)
-        if op == 0 and keys:
+        op = rng.randrange(20)
+        if op >= 14 and keys:  # a field's value, recursively (into lists and maps such as classes)
+            key = rng.choice(keys)
+            body[key] = self.mutate_value(body[key])
+        elif op == 0 and keys:
             del body[rng.choice(keys)]
         elif op == 1:
             body[rng.choice(EXTRA_FIELDS)] = self.junk()
@@ -475,6 +588,97 @@ class Fuzzer:
             self._mutate_array(body)
         else:
             body["asf"] = self._mutated_asf()
+
+    # --- field values, recursively
+
+    def mutate_value(self, value: Any, depth: int = 0) -> Any:
+        """``value`` mutated: a list's or a map's contents mutated in turn (an element or an entry,
+        recursively, or one added or removed), or the value replaced by :meth:`hostile`."""
+        rng = self.rng
+        if isinstance(value, list | dict) and value and depth < 6 and rng.random() < 0.6:
+            value = list(value) if isinstance(value, list) else dict(value)
+            r = rng.random()
+            if isinstance(value, list):
+                k = rng.randrange(len(value))
+                if r < 0.7:
+                    value[k] = self.mutate_value(value[k], depth + 1)
+                elif r < 0.85:
+                    value.insert(k, self.hostile(value[k]))
+                else:
+                    del value[k]
+            else:
+                key = rng.choice(list(value))
+                if r < 0.7:
+                    value[key] = self.mutate_value(value[key], depth + 1)
+                elif r < 0.85:
+                    value[rng.choice(ODD_KEYS)] = self.hostile(None)
+                else:
+                    del value[key]
+            return value
+        return self.hostile(value)
+
+    def hostile(self, original: Any) -> Any:
+        """A value to put in place of ``original``: nested lists and maps (often around the
+        decoder's depth bound, sometimes ~1,000 deep), deep maps with odd keys, huge integers, NaN
+        and infinities, the wrong type for ``original`` (bytes for a string, a string for bytes, a
+        bool for an int, None), long strings, ext types, or any :meth:`junk`."""
+        rng = self.rng
+        r = rng.randrange(10)
+        if r in (0, 1):
+            return self.nested(rng.choice(DEPTHS))
+        if r == 2:
+            return self.nested(rng.choice(DEPTHS), maps=True)
+        if r == 3:
+            return rng.choice(HUGE_INTS)
+        if r == 4:
+            return rng.choice(ODD_FLOATS)
+        if r in (5, 6):
+            return self.retyped(original)
+        if r == 7:
+            n = rng.choice(LONG_TEXTS)
+            return rng.choice(("x", "é", "流", "😀", "\x00", "a.b")) * (n // 2) + "y" * (n - n // 2)
+        if r == 8:
+            return rng.choice((None, [], {}, "", b"", 0, False))
+        return self.junk()
+
+    def retyped(self, original: Any) -> Any:
+        """``original`` as the wrong type: a string as bytes, bytes as a string, a number as a bool,
+        a string or a float, a list as a map, a map as a list, anything as None."""
+        rng = self.rng
+        if rng.random() < 0.15:
+            return None
+        if isinstance(original, str):
+            return original.encode("utf-8", "surrogatepass") if rng.random() < 0.7 else [original]
+        if isinstance(original, bytes):
+            return original.decode("latin-1") if rng.random() < 0.7 else list(original[:64])
+        if isinstance(original, bool):
+            return int(original)
+        if isinstance(original, int):
+            return rng.choice((True, False, float(original), str(original), [original]))
+        if isinstance(original, float):
+            return rng.choice((True, int(original) if math.isfinite(original) else 0, str(original)))
+        if isinstance(original, list):
+            return {str(k): v for k, v in enumerate(original)}
+        if isinstance(original, dict):
+            return list(original.values())
+        return rng.choice((True, b"bytes", "text", 1))
+
+    def nested(self, depth: int, *, maps: bool = False) -> Any:
+        """A value ``depth`` lists or maps deep (maps: keys from :data:`ODD_KEYS`, and now and then
+        a sibling entry; only maps with ``maps``) around a scalar: as a field's value, it makes the
+        message ``depth`` + 1 deep."""
+        rng = self.rng
+        keys = ODD_KEYS if depth <= 16 else SHORT_KEYS  # 1,000 levels of long keys: past any size limit
+        value: Any = rng.choice((None, 1, "x", b"\x00", 2**64 - 1, float("nan"), True))
+        for level in range(depth):
+            if maps or (depth < 100 and rng.random() < 0.3):
+                inner: dict[Any, Any] = {rng.choice(keys): value}
+                if level < 10 and rng.random() < 0.2:
+                    inner[rng.choice(keys)] = rng.choice(HUGE_INTS)
+                value = inner
+            else:
+                value = [value]
+        return value
 
     def _mutate_array(self, body: dict[str, Any]) -> None:
         rng = self.rng
@@ -670,12 +874,17 @@ def routed(m: Fuzzed, transport: str) -> bool:
 # ---------------------------------------------------------------------------------- the senders
 
 
+class DaemonDied(Exception):
+    """The daemon died while a message waited to be sent to it."""
+
+
 class ZmqWire:
     """The fuzz sender over ZeroMQ: an XPUB socket connected to the daemon that never drops (a full
     queue waits), and a SUB socket the good replay sends to, whose messages it passes on (counted)
     between the fuzzed ones."""
 
-    def __init__(self, poses: str) -> None:
+    def __init__(self, poses: str, alive: Callable[[], bool] = lambda: True) -> None:
+        self.alive = alive
         self.ctx = zmq.Context()
         self.pub = self.ctx.socket(zmq.XPUB)
         self.pub.setsockopt(zmq.SNDHWM, 100_000)
@@ -696,12 +905,16 @@ class ZmqWire:
         self.problem: str | None = None
 
     def _send(self, frames: list[bytes]) -> None:
+        waited = 0
         while True:
             try:
                 self.pub.send_multipart(frames, zmq.NOBLOCK)
                 return
             except zmq.Again:
                 time.sleep(0.0005)  # the daemon's queue is full: wait, never drop
+                waited += 1
+                if waited % 200 == 0 and not self.alive():
+                    raise DaemonDied from None  # a dead daemon never takes it: do not wait for ever
 
     def send(self, m: Fuzzed) -> None:
         self._send([m.topic, *m.payloads])
@@ -911,6 +1124,8 @@ class Result:
     exit_code: int | None = None
     crashed: bool = False
     log_lines: int = 0
+    workers: int = 0
+    restarts: int = 0
     detections: int = 0
     expected_detections: int = 0
     broker_dropped: int | None = None
@@ -961,7 +1176,7 @@ def run(
         daemon = Daemon(work, transport, broker_port)
         result.rss_start_kib = daemon.rss_kib()
         if transport == "zmq":
-            wire = ZmqWire(daemon.poses)
+            wire = ZmqWire(daemon.poses, lambda: daemon is not None and daemon.alive)
         else:
             wire = MqttWire(broker_port or 0, f"mqtt://127.0.0.1:{broker_port}")
         command = [str(MOCAPD), "replay", "--asf", str(asf), "--amc", str(amc), "--to", wire.good_url]
@@ -975,13 +1190,16 @@ def run(
                 raise RuntimeError("the good stream did not reach the daemon")
             time.sleep(0.01)
         say(f"{transport}: sending {messages:,} fuzzed messages (the good replay at speed {pace})")
-        _fuzz(Fuzzer(seed, mqtt=transport == "mqtt"), wire, daemon, result, say)
-        while replay.poll() is None:  # the rest of the good stream
-            wire.pump()
-            time.sleep(0.002)
-        for _ in range(50):
-            wire.pump()
-            time.sleep(0.01)
+        try:
+            _fuzz(Fuzzer(seed, mqtt=transport == "mqtt"), wire, daemon, result, say)
+            while replay.poll() is None:  # the rest of the good stream
+                wire.pump()
+                time.sleep(0.002)
+            for _ in range(50):
+                wire.pump()
+                time.sleep(0.01)
+        except DaemonDied:
+            replay.kill()  # _settle says the daemon died
         _, err = replay.communicate()
         if replay.returncode != 0:
             result.failures.append(f"the good replay failed ({replay.returncode}): {err[-500:]}")
@@ -1012,26 +1230,28 @@ def _fuzz(
     ahead of what the daemon counted."""
     start = checked = time.monotonic()
     progress = 100_000
-    for i, message in enumerate(fuzzer.messages(result.messages)):
-        wire.send(message)
-        if routed(message, result.transport):
-            result.fuzz_routed += 1
-        else:
-            result.fuzz_unrouted += 1
-        if i % 16 == 0:
-            wire.pump()
-        if i % 1000 == 0 and time.monotonic() - checked > 0.5:
-            checked = time.monotonic()
-            while result.fuzz_routed + wire.good - counted(daemon.metrics()) > AHEAD and daemon.alive:
+    try:
+        for i, message in enumerate(fuzzer.messages(result.messages)):
+            wire.send(message)
+            if routed(message, result.transport):
+                result.fuzz_routed += 1
+            else:
+                result.fuzz_unrouted += 1
+            if i % 16 == 0:
                 wire.pump()
-                time.sleep(0.005)
-            if not daemon.alive:
-                break
-        if i + 1 == progress:
-            say(f"  {progress:,} sent in {time.monotonic() - start:.0f} s")
-            progress += 100_000
-    result.send_s = time.monotonic() - start
-    result.kinds = fuzzer.kinds
+            if i % 1000 == 0 and time.monotonic() - checked > 0.5:
+                checked = time.monotonic()
+                while result.fuzz_routed + wire.good - counted(daemon.metrics()) > AHEAD and daemon.alive:
+                    wire.pump()
+                    time.sleep(0.005)
+                if not daemon.alive:
+                    break
+            if i + 1 == progress:
+                say(f"  {progress:,} sent in {time.monotonic() - start:.0f} s")
+                progress += 100_000
+    finally:  # also when the daemon died (DaemonDied)
+        result.send_s = time.monotonic() - start
+        result.kinds = fuzzer.kinds
 
 
 def _settle(wire: ZmqWire | MqttWire, daemon: Daemon, result: Result) -> None:
@@ -1050,6 +1270,10 @@ def _settle(wire: ZmqWire | MqttWire, daemon: Daemon, result: Result) -> None:
     kinds = ("mocapd_messages_in_total{", "mocapd_rejects_total{", "mocapd_drops_total{")
     result.series = {k: v for k, v in m.items() if k.startswith(kinds)}
     result.counted = counted(m)
+    result.workers = round(m.get("mocapd_workers", 1))
+    result.restarts = round(sum(v for k, v in m.items() if k.startswith("mocapd_worker_restarts_total")))
+    if result.restarts:
+        result.failures.append(f"workers were started again {result.restarts} times")
     result.rss_end_kib = daemon.rss_kib() if daemon.alive else 0
     if isinstance(wire, MqttWire):
         result.broker_dropped = wire.dropped
@@ -1076,6 +1300,9 @@ def _check(result: Result, daemon: Daemon, want: list[tuple[Any, ...]]) -> None:
             f"counted {result.counted:,} messages, {result.expected:,} reached the daemon "
             f"({result.fuzz_routed:,} fuzzed + {result.good:,} good)"
         )
+    internal = result.series.get('mocapd_rejects_total{reason="internal"}', 0.0)
+    if internal:
+        result.failures.append(f'{internal:,.0f} messages set off a defect (rejects{{reason="internal"}})')
     if result.broker_dropped is None and result.transport == "mqtt":
         result.failures.append("the broker's count of dropped messages never came")
     elif result.broker_dropped:
@@ -1141,6 +1368,7 @@ def report(r: Result) -> str:
         f"daemon RSS: {r.rss_start_kib / 1024:.1f} MiB at the start, "
         f"{r.rss_end_kib / 1024:.1f} MiB at the end",
         f"daemon log: {r.log_lines:,} lines, each one JSON object; exit status {r.exit_code} on SIGTERM",
+        f"workers: {r.workers}, started again {r.restarts} times",
         f"good stream: {r.detections} detections, mocapd detect: {r.expected_detections}",
         "checks: " + ("all hold" if not r.failures else "FAILED: " + "; ".join(r.failures)),
     ]
