@@ -3,10 +3,12 @@ after it was decoded counted twice (in ``messages_in`` and in ``rejects``) and a
 at all, so the counts could not be reconciled with what was sent; one pose the recogniser refuses
 (channels finite on the wire, beyond floating point after forward kinematics) black-holed its stream
 (every later pose refused as a ``jump``); a pose of infinities of both signs put a numpy warning in
-the log."""
+the log. Over NATS (cluster mode, issue 32): a worker fenced while a keep-alive was on its way never
+owned again."""
 
 from __future__ import annotations
 
+import asyncio
 import time
 from pathlib import Path
 from typing import Any
@@ -18,9 +20,11 @@ import zmq
 
 from daemon.library import default_library_path, load_library
 from daemon.recordings import read_recording
+from daemon.service.membership import Membership
 from daemon.service.streams import StreamTable
 from protocols.messages import DetectionMessage, PoseMessage, SkeletonMessage, encode
 from replay import JOINT_NAMES
+from tests.etcd_server import Etcd
 from tests.helpers import DATA, Daemon, wait_for
 
 CLIP = (DATA / "cmu" / "13" / "13.asf", DATA / "cmu" / "13" / "13_30.amc.gz")
@@ -110,3 +114,97 @@ def test_a_pose_the_recogniser_refuses_does_not_black_hole_its_stream() -> None:
     assert len(detections) >= 10, detections  # the clip's exercises (13 with no pose refused)
     frames = [(d.start_frame, d.end_frame) for d in detections if isinstance(d, DetectionMessage)]
     assert all(1 <= a <= b <= len(motion) for a, b in frames)
+
+
+class DelayProxy:
+    """A TCP proxy on a free loopback port to ``port``: what the client sends goes on at once, what
+    the server answers goes on ``delay`` seconds after it came (in order): a slow network, for a
+    real client and a real server."""
+
+    def __init__(self, port: int) -> None:
+        self.target = port
+        self.delay = 0.0
+        self.port = 0
+        self._server: asyncio.Server | None = None
+        self._tasks: set[asyncio.Task[None]] = set()
+
+    async def start(self) -> DelayProxy:
+        self._server = await asyncio.start_server(self._serve, "127.0.0.1", 0)
+        self.port = self._server.sockets[0].getsockname()[1]
+        return self
+
+    async def close(self) -> None:
+        assert self._server is not None
+        self._server.close()
+        for task in self._tasks:
+            task.cancel()
+        await asyncio.gather(*self._tasks, return_exceptions=True)
+
+    async def _serve(self, client_in: asyncio.StreamReader, client_out: asyncio.StreamWriter) -> None:
+        server_in, server_out = await asyncio.open_connection("127.0.0.1", self.target)
+        late: asyncio.Queue[tuple[float, bytes]] = asyncio.Queue()
+
+        async def up() -> None:
+            while data := await client_in.read(65536):
+                server_out.write(data)
+                await server_out.drain()
+            server_out.close()
+
+        async def down() -> None:
+            while data := await server_in.read(65536):
+                late.put_nowait((time.monotonic() + self.delay, data))
+            late.put_nowait((0.0, b""))
+
+        async def deliver() -> None:
+            while True:
+                due, data = await late.get()
+                if not data:
+                    break
+                await asyncio.sleep(max(0.0, due - time.monotonic()))
+                client_out.write(data)
+                await client_out.drain()
+            client_out.close()
+
+        for coroutine in (up(), down(), deliver()):
+            task = asyncio.create_task(coroutine)
+            self._tasks.add(task)
+            task.add_done_callback(self._tasks.discard)
+
+
+def test_a_worker_fenced_while_a_keep_alive_was_answered_late_owns_again(etcd: Etcd) -> None:
+    """A worker's loop stalled (a burst of fuzzed messages on 2 cores) until just before its fence
+    time; the keep-alive it sent then was answered just after the fence (etcd behind a proxy that
+    answers 0.3 s late): the member was fenced and, the answer come, live again, but its changes
+    never said so (it notified only when the problem differed from what it was when the keep-alive
+    was sent, and time alone had changed it meanwhile). The worker kept its lease alive and owned
+    nothing for the rest of the run: 7 of 16 partitions without an owner. Now it owns again."""
+
+    async def scenario() -> list[frozenset[str]]:
+        proxy = await DelayProxy(int(etcd.url.rsplit(":", 1)[1])).start()
+        seen: list[frozenset[str]] = []
+        try:
+            async with Membership(f"etcd://127.0.0.1:{proxy.port}", "w1", lease_s=2.0) as m:
+
+                async def follow() -> None:
+                    async for members in m.changes():
+                        seen.append(members)
+
+                follower = asyncio.create_task(follow())
+                await asyncio.sleep(0.5)
+                proxy.delay = 0.3
+                fence = m._fence_at
+                while m._fence_at == fence:  # a keep-alive answered (late) since
+                    await asyncio.sleep(0.01)
+                time.sleep(max(0.0, m._fence_at - time.monotonic() - 0.1))  # the loop stalls
+                await asyncio.sleep(1.0)  # the next keep-alive: sent before the fence, answered after
+                proxy.delay = 0.0
+                await asyncio.sleep(2.0)
+                assert m.problem is None, m.problem  # live all along at etcd, and here again
+                follower.cancel()
+        finally:
+            await proxy.close()
+        return seen
+
+    seen = asyncio.run(scenario())
+    assert frozenset({"w1"}) in seen and frozenset() in seen, seen  # fenced, as it should be
+    assert seen[-1] == frozenset({"w1"}), seen  # and live again (before: fenced for good)
