@@ -4,7 +4,9 @@ at all, so the counts could not be reconciled with what was sent; one pose the r
 (channels finite on the wire, beyond floating point after forward kinematics) black-holed its stream
 (every later pose refused as a ``jump``); a pose of infinities of both signs put a numpy warning in
 the log. Over NATS (cluster mode, issue 32): a worker fenced while a keep-alive was on its way never
-owned again."""
+owned again; one delivered message whose subject or header block nats-py could not decode made a
+worker deaf for good; a subject of too few tokens was dropped uncounted, a pose with a status line
+of 100 taken for flow control, and a forged heartbeat made the worker publish where it said."""
 
 from __future__ import annotations
 
@@ -22,13 +24,16 @@ from daemon.library import default_library_path, load_library
 from daemon.recordings import read_recording
 from daemon.service.membership import Membership
 from daemon.service.streams import StreamTable
+from protocols.deliveries import Delivery
 from protocols.messages import DetectionMessage, PoseMessage, SkeletonMessage, encode
 from replay import JOINT_NAMES
 from tests.etcd_server import Etcd
-from tests.helpers import DATA, Daemon, wait_for
+from tests.helpers import DATA, Daemon, finished, replay, wait_for
 
 CLIP = (DATA / "cmu" / "13" / "13.asf", DATA / "cmu" / "13" / "13_30.amc.gz")
 POSE = np.zeros((len(JOINT_NAMES), 3), dtype=np.float32)
+STATUS_100 = b"NATS/1.0 100 FlowControl Request\r\n\r\n"
+"""The header block of the server's flow control, as a publisher may put it on a message."""
 
 
 def pose(stream: str, seq: int, positions: np.ndarray = POSE) -> bytes:
@@ -208,3 +213,82 @@ def test_a_worker_fenced_while_a_keep_alive_was_answered_late_owns_again(etcd: E
     seen = asyncio.run(scenario())
     assert frozenset({"w1"}) in seen and frozenset() in seen, seen  # fenced, as it should be
     assert seen[-1] == frozenset({"w1"}), seen  # and live again (before: fenced for good)
+
+
+def ghost_pose(k: int) -> bytes:
+    """A valid pose of a stream that announced no skeleton (refused as ``no_skeleton``)."""
+    return pose(f"ghost-{k}", 1)
+
+
+@pytest.mark.slow
+def test_a_worker_reads_on_after_what_nats_py_could_not_decode(tmp_path: Path) -> None:
+    """Cluster mode, one worker (a real nats-server from the shipped config, etcd, ``mocapd run
+    --cluster``), a good stream replayed over the server's MQTT port, and beside it what a NATS
+    publisher can send and what the fuzz run found, each once counted under its reason:
+
+    * a subject that is not UTF-8 and header blocks whose status line nats-py cannot read: its
+      reader stopped for good, and the worker, keeping its lease, read nothing more on any
+      partition (now: refused as ``topic``, or taken in as the pose they carry);
+    * ``mocap.p.<p>.x``, straight into a partition's buffer: dropped uncounted (now ``topic``);
+    * a pose whose header block says ``NATS/1.0 100``: taken for the server's flow control, answered
+      and not counted, and the next delivery logged as a buffer gap (now taken in);
+    * on the worker's delivery subject: a message published there (counted as
+      ``drops{nats_foreign}``), and a heartbeat whose ``Nats-Consumer-Stalled`` header names another
+      subject: the worker published on it (``$JS.API.STREAM.DELETE.<buffer>`` would delete a
+      buffer; now it answers flow control on ``$JS.FC.`` subjects only).
+
+    The good stream's detections are ``mocapd detect``'s on the frames from the first aligned one."""
+    from bench.fuzz import Cluster, Fuzzed, NatsWire, detection_keys, good_detections
+
+    cluster = Cluster(tmp_path, 1, lease_s=10.0)  # a busy machine must not fence it: the
+    wire = None  # consumers, and the delivery subject this test publishes on, would be made anew
+    try:
+        wire = NatsWire(cluster.server.port, cluster.server.mqtt_port)
+        spied: list[bytes] = []
+
+        async def spy(delivery: Delivery) -> None:
+            spied.append(delivery.subject)
+
+        wire.call(wire.reader.subscribe("spy.>", spy))
+        inbox = wire.inboxes()[0]
+        heartbeat = b"NATS/1.0 100 Idle Heartbeat\r\nNats-Consumer-Stalled: spy.stalled\r\n\r\n"
+        before = [
+            *(Fuzzed("x", b"mocap.p.%d.x" % k, (b"\x80",)) for k in range(5)),
+            *(
+                Fuzzed("x", b"mocap.ghost-%d.pose" % k, (ghost_pose(k),), headers=STATUS_100)
+                for k in range(5)
+            ),
+            *(Fuzzed("x", inbox, (ghost_pose(9),)) for _ in range(5)),
+            *(Fuzzed("x", inbox, (b"",), headers=heartbeat) for _ in range(3)),
+        ]
+        poison = [
+            Fuzzed("x", b"mocap.\xff\xfe.pose", (ghost_pose(20),)),
+            Fuzzed("x", b"mocap.ghost-21.pose", (ghost_pose(21),), headers=b"NATS/1.0 \xff\xfe\r\n\r\n"),
+            Fuzzed("x", b"mocap.ghost-22.pose", (ghost_pose(22),), headers=b"NATS/1.0"),
+            Fuzzed("x", b"mocap.ghost-23.pose", (ghost_pose(23),), headers=b"NATS/1.0 100 \xff\r\n\r\n"),
+        ]
+        after = [Fuzzed("x", b"mocap.ghost-%d.pose" % k, (ghost_pose(k),)) for k in range(30, 35)]
+        running = replay(*CLIP, wire.good_url, stream="good", speed="4")
+        wait_for(lambda: cluster.metrics().get("mocapd_streams", 0) >= 1, 20, "the good stream")
+        for message in (*before, *poison, *after):
+            wire.send(message)
+        wire.sync()
+        finished(running)
+        wait_for(lambda: cluster.metrics().get("mocapd_streams", 1) == 0, 30, "the streams flushed as idle")
+        m = cluster.metrics()
+        assert m['mocapd_rejects_total{reason="topic"}'] == 5 + 1
+        assert m['mocapd_rejects_total{reason="no_skeleton"}'] == 5 + 3 + 5
+        assert m['mocapd_drops_total{reason="nats_foreign"}'] == 5
+        assert m.get('mocapd_rejects_total{reason="internal"}', 0) == 0
+        assert m['mocapd_drops_total{reason="nats_internal"}'] == 0
+        assert counted(m) == wire.stored()  # taken in or refused: every message the buffers stored
+        assert spied == []
+        assert not [e for name in ("buffer gap", "nats error") for e in cluster.members[0].events(name)]
+        want = good_detections(cluster=True)
+        wait_for(lambda: len(wire.detections) >= len(want), 10, "the detections of the idle flush")
+        assert detection_keys([d for d in wire.detections if d["stream"] == "good"]) == want
+        assert cluster.stop() == 0
+    finally:
+        if wire is not None:
+            wire.close()
+        cluster.close()
