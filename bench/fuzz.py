@@ -1706,11 +1706,12 @@ def run(
     expected_detections: list[tuple[Any, ...]] | None = None,
     say: Callable[[str], None] = lambda line: None,
     members: int = 2,
+    lease_s: float = 2.0,
 ) -> Result:
     """One transport's fuzz run (see the module docstring); the working files in ``where`` (default:
     a temporary directory, removed). ``expected_detections``: ``mocapd detect``'s on the clip, as
     :func:`detection_keys` (computed if not given; over NATS on the frames a cluster worker
-    recognises). ``members``: the cluster's workers (NATS)."""
+    recognises). ``members`` and ``lease_s``: the cluster's workers and their leases (NATS)."""
     asf, amc = DATA / GOOD_CLIP[0], DATA / GOOD_CLIP[1]
     nats = transport == "nats"
     want = good_detections(nats) if expected_detections is None else expected_detections
@@ -1726,7 +1727,7 @@ def run(
     try:
         fuzzer = Fuzzer(seed, mqtt=transport == "mqtt", nats=nats)
         if nats:
-            daemon = Cluster(work, members)
+            daemon = Cluster(work, members, lease_s)
             result.members = members
             wire = NatsWire(daemon.server.port, daemon.server.mqtt_port)
             fuzzer.partitions = daemon.partitions

@@ -176,6 +176,7 @@ class DelayProxy:
             task.add_done_callback(self._tasks.discard)
 
 
+@pytest.mark.slow
 def test_a_worker_fenced_while_a_keep_alive_was_answered_late_owns_again(etcd: Etcd) -> None:
     """A worker's loop stalled (a burst of fuzzed messages on 2 cores) until just before its fence
     time; the keep-alive it sent then was answered just after the fence (etcd behind a proxy that
