@@ -138,8 +138,9 @@ MAX_MESSAGE_BYTES = 16384
 MAX_STREAMS = 200
 AHEAD = 20_000
 """The most messages the sender is ahead of what the daemon counted."""
-ESTIMATED_RATE = {"zmq": 18000.0, "mqtt": 11000.0, "nats": 4000.0}
-"""Fuzzed messages a second on 2 cores (measured), for ``--speed auto``."""
+ESTIMATED_RATE = {"zmq": 10000.0, "mqtt": 5500.0, "nats": 8500.0}
+"""Fuzzed messages a second on 2 cores (measured 2026-12-06 with the recursive field values, the
+machine shared with other work), for ``--speed auto``."""
 INTAKE_DROPS = ("mqtt_incoming_full", "nats_foreign", "nats_internal")
 """Drops of a message before the daemon looked at it (the others are of taken-in poses or going out):
 the MQTT intake's queue full; over NATS, a message published on a worker's delivery subject that no
