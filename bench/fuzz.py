@@ -1,27 +1,48 @@
-"""A fuzz run of the daemon over both transports (issue 21): a real ``mocapd run`` takes a stream of
-N fuzzed messages beside one good stream, and must not crash, must count every message it gets
-under exactly one reason, and must give the good stream exactly ``mocapd detect``'s detections.
+"""A fuzz run of the daemon over its transports (issues 21 and 32): a real ``mocapd run`` takes a
+stream of N fuzzed messages beside one good stream, and must not crash, must count every message it
+gets under exactly one reason, and must give the good stream exactly ``mocapd detect``'s detections.
 
-    python -m bench.fuzz [--messages 1000000] [--transport zmq|mqtt|both] [--seed N] [--speed X|auto]
+    python -m bench.fuzz [--messages 1000000] [--transport zmq|mqtt|nats|both|all] [--seed N]
+                         [--speed X|auto] [--members 2]
 
 Per transport: the daemon (``mocapd --config C run``, its config in a temporary directory: sink
 stdout, ``service.max_streams`` 200, ``service.max_message_bytes`` 16 KiB, ``service.idle_s`` 10,
-logging at debug); over MQTT a mosquitto on a free loopback port that never drops
-(``max_queued_messages 0``; its ``$SYS`` count of dropped messages is checked). ``mocapd replay``
-sends CMU 13_30 (exercises) as stream ``good``, paced (``--speed auto``) to last about as long as
-the fuzzing; meanwhile this process sends the fuzzed messages, a seeded mix of
+logging at debug; one worker per core); over MQTT a mosquitto on a free loopback port that never
+drops (``max_queued_messages 0``; its ``$SYS`` count of dropped messages is checked). Over NATS the
+cluster (:class:`Cluster`): a nats-server from the shipped nats.conf, an etcd, and ``--members``
+workers ``mocapd run --cluster ... --coordinator ...`` with the same service settings, the
+partitions split between them. ``mocapd replay`` sends CMU 13_30 (exercises) as stream ``good``
+(over NATS to the server's MQTT port), paced (``--speed auto``) to last about as long as the
+fuzzing; meanwhile this process sends the fuzzed messages, a seeded mix of
 
 * random bytes of random length (0 to 2 KiB, a few beyond ``max_message_bytes``);
-* structure-aware mutations of valid skeletons and poses (and the daemon's own message types):
-  fields removed, added, retyped; ``positions``/``channels`` of wrong lengths, NaN, infinity, huge
-  values; sequence numbers negative, huge, 2**64-1; wrong ``v`` and ``type``; odd stream ids (with
-  ``/``, ``+``, ``#``, unicode, 129+ characters); epochs of the wrong type; ASF texts cut, shuffled
-  or with garbage; truncated or bit-flipped msgpack, extra bytes, deep nesting, non-string keys;
+* structure-aware mutations of valid skeletons and poses (and the daemon's own message types:
+  detection, boundary, progress, status): fields removed, added, retyped; ``positions``/``channels``
+  of wrong lengths, NaN, infinity, huge values; sequence numbers negative, huge, 2**64-1; wrong
+  ``v`` and ``type``; odd stream ids (with ``/``, ``+``, ``#``, unicode, 129+ characters); epochs of
+  the wrong type; ASF texts cut, shuffled or with garbage; truncated or bit-flipped msgpack, extra
+  bytes, deep nesting, non-string keys;
+* field values mutated recursively (issue 32): any field of any of those messages, or a value
+  inside one (an element of ``joints`` or ``matched``, an entry of a progress message's
+  ``classes``, recursively), replaced by lists and maps nested to random depths (often 7-10, around
+  the decoder's bound of 8; sometimes about 1,000 and 3,000, beyond what ``msgpack.packb`` packs:
+  :func:`pack_value`), deep maps with odd keys, huge integers (±2**63, 2**64-1), NaN and ±infinity,
+  the wrong type (bytes for a string, a string for bytes, a bool for an int, None), long strings;
 * valid messages on other streams: skeletons (positions and ASF, repeated, changed, new runs),
   poses in order, repeated, out of order, after gaps, implausibly far ahead, of streams that
   announced no skeleton; new streams beyond ``max_streams``;
 * messages on wrong topics: another stream's, the other message word, ``detections``, too many or
-  too few levels, odd stream ids, topics outside ``mocap/`` (ZeroMQ also: one or three frames).
+  too few levels, odd stream ids, topics outside ``mocap/`` (ZeroMQ also: one or three frames);
+* over NATS (from a raw client connection: any subject bytes and header block), all of the above
+  on their subjects (``mocap/<s>/pose`` as ``mocap.<s>.pose``, mapped to a partition), one in ten
+  with a header block (status lines, bytes that are not UTF-8, ``Nats-Msg-Id`` once and repeated,
+  failed ``Nats-Expected-*``, ``Nats-Rollup``), some with a reply subject; and subjects only NATS
+  carries: straight into a partition's buffer (``mocap.p.<p>.<stream>.<word>``, of the wrong
+  partition, too few tokens, not UTF-8, control characters, ``*`` and ``>`` tokens), the
+  detections' de-duplication store ``mocap.d.<s>.detections``, subjects the server drops (empty
+  tokens); and messages on the workers' delivery subjects themselves (found through JetStream's
+  API): published there directly, with forged acknowledgement subjects (refused by the server) and
+  forged flow control and heartbeats (``Nats-Consumer-Stalled`` naming ``$JS.API.STREAM.DELETE``).
 
 Nothing fuzzed is sent on the good stream's topics (a fuzzed body may claim to be ``good``, on
 another stream's topic). Over ZeroMQ the fuzz goes from an XPUB socket that never drops
@@ -31,15 +52,25 @@ keeps at most 20,000 messages ahead of what the daemon has counted.
 
 Checks (exit status 1 if one fails):
 
-* no crash: the daemon is alive throughout and exits 0 on SIGTERM; every line of its stderr is one
-  JSON object, none an error, a traceback or a Python warning;
+* no crash: the daemon is alive throughout and exits 0 on SIGTERM, no worker of it was started
+  again (``mocapd_worker_restarts_total``), no message set off a defect
+  (``rejects{reason="internal"}``); every line of its stderr is one JSON object, none an error, a
+  traceback or a Python warning;
 * every message counted once: the messages that reached the daemon (the fuzzed ones a ZeroMQ
-  subscription or an MQTT subscription lets through, and the good stream's) equal
+  subscription or an MQTT subscription lets through, over NATS those a partition's buffer stored
+  and those published on a delivery subject but forged flow control; and the good stream's) equal
   ``mocapd_messages_in_total{type}`` (taken in) + ``mocapd_rejects_total{reason}`` (refused) +
-  ``mocapd_drops_total{reason="mqtt_incoming_full"}`` (dropped before being looked at); the other
-  drops (``lagging``, ``recognizer_<problem>``: taken-in poses not recognised; ``zmq_send_full``,
-  ``mqtt_outbox_full``: going out) count no incoming message;
-* the good stream's detections are ``mocapd detect``'s on the clip, exactly (all but the ids).
+  the drops before a message is looked at (:data:`INTAKE_DROPS`: ``mqtt_incoming_full``,
+  ``nats_foreign``, ``nats_internal``); the other drops (``lagging``, ``recognizer_<problem>``:
+  taken-in poses not recognised; ``zmq_send_full``, ``mqtt_outbox_full``: going out) count no
+  incoming message;
+* over NATS also: the buffers stored exactly what the fuzzer predicts (:func:`nats_stored`, the
+  header blocks' effects; each buffer's last sequence number), the server refused exactly the
+  forged acknowledgement subjects, every worker was healthy whenever looked at (no fence) and the
+  partitions never moved, no buffer gap, no lost connection, no detection suppressed as a duplicate;
+* the good stream's detections are ``mocapd detect``'s on the clip, exactly (all but the ids; over
+  NATS on the frames from the first whose number is a multiple of the decimation step, where a
+  cluster worker begins).
 
 Prints the machine, then per transport the table of reasons, messages a second, the wall time and
 the daemon's resident memory at the start and the end, and a summary.
@@ -48,12 +79,16 @@ the daemon's resident memory at the start and the end, and a summary.
 from __future__ import annotations
 
 import argparse
+import asyncio
+import contextlib
 import getpass
 import json
+import math
 import os
 import random
 import shutil
 import signal
+import socket
 import subprocess
 import sys
 import tempfile
@@ -61,10 +96,10 @@ import threading
 import time
 import urllib.request
 from collections import Counter
-from collections.abc import Callable, Iterator
-from dataclasses import dataclass, field
+from collections.abc import Callable, Coroutine, Iterator
+from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import msgpack
 import numpy as np
@@ -75,19 +110,25 @@ from paho.mqtt.enums import CallbackAPIVersion
 from bench.common import DATA
 from bench.machine import describe
 from bench.processes import free_port, rss_kib, scrape, wait_port
+from daemon.frames import FrameClock
 from daemon.library import default_library_path, load_library
 from daemon.recognizer import detect
 from daemon.recordings import read_recording
+from protocols.deliveries import Delivery, Reader
 from protocols.messages import (
     BoundaryMessage,
+    ClassProgress,
     DetectionMessage,
     Message,
     PoseMessage,
+    ProgressMessage,
     SkeletonMessage,
     StatusMessage,
     encode,
 )
-from replay import JOINT_NAMES, parse_asf
+from replay import JOINT_NAMES, Motion, parse_asf
+
+T = TypeVar("T")
 
 MOCAPD = Path(sys.executable).parent / "mocapd"
 GOOD_STREAM = "good"
@@ -97,10 +138,13 @@ MAX_MESSAGE_BYTES = 16384
 MAX_STREAMS = 200
 AHEAD = 20_000
 """The most messages the sender is ahead of what the daemon counted."""
-ESTIMATED_RATE = {"zmq": 18000.0, "mqtt": 11000.0}
-"""Fuzzed messages a second on 2 cores (measured), for ``--speed auto``."""
-INTAKE_DROPS = ("mqtt_incoming_full",)
-"""Drops of a message before the daemon looked at it (the others are of taken-in poses or going out)."""
+ESTIMATED_RATE = {"zmq": 10000.0, "mqtt": 5500.0, "nats": 8500.0}
+"""Fuzzed messages a second on 2 cores (measured 2026-12-06 with the recursive field values, the
+machine shared with other work), for ``--speed auto``."""
+INTAKE_DROPS = ("mqtt_incoming_full", "nats_foreign", "nats_internal")
+"""Drops of a message before the daemon looked at it (the others are of taken-in poses or going out):
+the MQTT intake's queue full; over NATS, a message published on a worker's delivery subject that no
+buffer delivered, and one whose handling raised (a defect)."""
 DETECTION_KEY = ("class", "start_frame", "end_frame", "cost", "tau", "emitted_at_frame")
 POOL = 40
 """Streams with valid traffic (``fz-00`` ...), 12 of them channel streams."""
@@ -113,13 +157,19 @@ GHOSTS = 200
 
 @dataclass(frozen=True)
 class Fuzzed:
-    """One message: its kind (random, mutated, valid, topic), the topic's bytes, the frames after
-    the topic (one normally; ZeroMQ framing faults have none or two) and the MQTT QoS."""
+    """One message: its kind (random, mutated, valid, topic; over NATS also subject and inbox), the
+    topic's bytes (over NATS the subject), the frames after the topic (one normally; ZeroMQ framing
+    faults have none or two) and the MQTT QoS; over NATS its header block and reply subject, and
+    whether a worker counts it (:func:`nats_stored`, or for a message on a delivery subject whether
+    it is anything but the server's flow control)."""
 
     kind: str
     topic: bytes
     payloads: tuple[bytes, ...]
     qos: int = 0
+    headers: bytes | None = None
+    reply: bytes = b""
+    reaches: bool = True
 
 
 @dataclass
@@ -213,11 +263,166 @@ RATES = (RATE, 60.0, 100.0, 240.0, 30.0, 90.0, 9990.0)
 """A pool stream's rate when its skeleton changes (100 Hz cannot be recognised: refused)."""
 EXTRA_FIELDS = ("extra", "pad", "positions", "channels", "asf", "joints", "epoch", "seq", "")
 BAD_TIMESTAMPS = (b"\xd4\xff\x00", b"\xc7\x03\xff\x00\x00\x00", b"\x81\xa1v\xd4\xff\x01")
+DEPTHS = (1, 2, 3, 4, 6, 7, 7, 8, 8, 8, 9, 9, 10, 16, 64, 500, 999, 1000, 1000, 1001, 3000)
+"""How deep a generated value nests: often around the decoder's bound (``MAX_DEPTH`` 8: a field's
+value at depth 7 makes the message 8 deep, taken; 8 or 9 makes it 9 or 10, refused), sometimes about
+1,000 deep (issue 32's attack: the refusal's repr raised RecursionError) and beyond what
+``msgpack.packb`` itself packs (:func:`pack_value` writes any depth)."""
+HUGE_INTS = (
+    2**63 - 1,
+    2**63,
+    2**64 - 1,
+    -(2**63),
+    -(2**63) + 1,
+    2**53 + 1,
+    -(2**53) - 1,
+    2**32,
+    -(2**31) - 1,
+)
+"""Integers at the edges of msgpack's int64 and uint64 and of a double's exact integers."""
+ODD_FLOATS = (float("nan"), float("inf"), float("-inf"), -0.0, 5e-324, 1.7976931348623157e308, -1e308)
+ODD_KEYS: tuple[str | bytes, ...] = (
+    "",
+    " ",
+    "v",
+    "type",
+    "stream",
+    "class",
+    "classes",
+    "é" * 50,
+    "k" * 1000,
+    "\x00",
+    "😀",
+    "a.b",
+    "$",
+    "__proto__",
+    "\ud7ff\ue000",
+    b"bytes-key",
+    b"",
+    b"\xff\xfe",
+)
+"""Map keys for generated maps: empty, long, control and astral characters, field names, and bytes
+(msgpack allows str and bytes keys; the decoder takes neither as a field)."""
+SHORT_KEYS: tuple[str | bytes, ...] = tuple(k for k in ODD_KEYS if len(k) <= 4)
+LONG_TEXTS = (129, 300, 1000, 5000, 15000)
+
+
+PARTITIONS = 16
+"""The shipped nats.conf's ``partition(16, ...)`` (the cluster run reads it from there)."""
+SUBJECT_SAFE = bytes.maketrans(b" \t\n\r\x0b\x0c.", b"_______")
+"""Bytes a NATS subject token cannot hold (the protocol's separators, and the token separator) as
+``_``: a subject is any other bytes, which the server passes on (not UTF-8 included)."""
+HEADER_BLOCKS: tuple[tuple[bytes, bool], ...] = (
+    (b"NATS/1.0\r\nX-Fuzz: 1\r\n\r\n", True),
+    (b"NATS/1.0\r\nX-Fuzz: " + b"y" * 3000 + b"\r\n\r\n", True),
+    (b"NATS/1.0\r\nX: \xff\xfe\r\n\r\n", True),
+    (b"NATS/1.0\r\n\xff\xfe: v\r\n\r\n", True),
+    (b"NATS/1.0\r\nStatus: 100\r\n\r\n", True),
+    (b"NATS/1.0 100 FlowControl Request\r\n\r\n", True),
+    (b"NATS/1.0 100 Idle Heartbeat\r\nNats-Consumer-Stalled: fuzz.stalled\r\n\r\n", True),
+    (b"NATS/1.0 \xff\xfe\r\n\r\n", True),
+    (b"NATS/1.0 100 \xff\xfe\r\n\r\n", True),
+    (b"NATS/1.0", True),
+    (b"NATS/1.0 503\r\n\r\n", True),
+    (b"NATS/1.0 404 No Messages\r\n\r\n", True),
+    (b"garbage\r\n\r\n", True),
+    (b"NATS/1.0\nA: b\n\n", True),
+    (b"NATS/1.0\r\nNats-Msg-Id: \r\n\r\n", True),
+    (b"NATS/1.0\r\nNats-Expected-Stream: NOPE\r\n\r\n", False),
+    (b"NATS/1.0\r\nNats-Expected-Last-Sequence: 9223372036854775807\r\n\r\n", False),
+    (b"NATS/1.0\r\nNats-Expected-Last-Subject-Sequence: 9223372036854775807\r\n\r\n", False),
+    (b"NATS/1.0\r\nNats-Expected-Last-Msg-Id: fuzz-never\r\n\r\n", False),
+    (b"NATS/1.0\r\nNats-Rollup: all\r\n\r\n", False),
+    (b"NATS/1.0\r\nNats-Rollup: sub\r\n\r\n", False),
+)
+"""Header blocks a NATS publisher may put on a message, and whether JetStream still stores it (a
+failed expectation and a rollup the buffers do not allow are refused; measured on nats-server
+2.9.10): headers of odd bytes, status lines (the server's flow control and heartbeats as a
+publisher's header, not UTF-8, none at all: ``NATS/1.0`` alone), not a header block."""
+
+
+STALLED = b"NATS/1.0 100 Idle Heartbeat\r\nNats-Consumer-Stalled: %s\r\n\r\n"
+"""A heartbeat's header block whose consumer asks for flow control on the subject given."""
+
+
+def subject_of(topic: bytes) -> bytes:
+    """An MQTT-style topic as a NATS subject: ``/`` as ``.``, the protocol's separators as ``_``,
+    at most 3,000 bytes (the server's protocol line is 4 KiB)."""
+    subject = topic.translate(bytes.maketrans(b" \t\n\r\x0b\x0c/", b"______."))
+    if len(subject) > 3000:
+        subject = subject[:1500] + subject[-1500:]
+    return subject or b"mocap"
+
+
+def nats_stored(subject: bytes, partitions: int = PARTITIONS) -> bool:
+    """Whether nats-server (the shipped nats.conf, the workers' buffers) stores a message published
+    on ``subject`` in a partition's buffer, from which a worker reads it: ``mocap.<s>.pose`` and
+    ``.skeleton`` mapped to a partition (``s`` any token but ``>``), ``mocap.p.<p>.`` and more
+    tokens straight in; none with an empty token (the server drops those). Measured on 2.9.10."""
+    tokens = subject.split(b".")
+    if not all(tokens):
+        return False
+    if len(tokens) == 3 and tokens[0] == b"mocap" and tokens[2] in (b"pose", b"skeleton"):
+        return tokens[1] != b">"
+    return (
+        len(tokens) >= 4
+        and tokens[:2] == [b"mocap", b"p"]
+        and tokens[2] in {str(p).encode() for p in range(partitions)}
+    )
 
 
 def pack(body: Any) -> bytes:
-    out: bytes = msgpack.packb(body, use_bin_type=True)
+    """``body`` as msgpack: by ``msgpack.packb``, or by :func:`pack_value` for a value nested deeper
+    than msgpack packs (about 1,000 levels)."""
+    try:
+        out: bytes = msgpack.packb(body, use_bin_type=True)
+    except ValueError:  # "recursion limit exceeded"
+        return pack_value(body)
     return out
+
+
+def _container_head(kind: str, n: int) -> bytes:
+    small, word, long = (0x90, b"\xdc", b"\xdd") if kind == "list" else (0x80, b"\xde", b"\xdf")
+    if n < 16:
+        return bytes([small | n])
+    if n < 1 << 16:
+        return word + n.to_bytes(2, "big")
+    return long + n.to_bytes(4, "big")
+
+
+def pack_value(value: Any) -> bytes:
+    """``value`` as msgpack at any depth, without recursion (an explicit stack): lists and maps
+    written here, every other value by ``msgpack.packb``."""
+    out = bytearray()
+    stack: list[Any] = [value]
+    while stack:
+        item = stack.pop()
+        if isinstance(item, list):
+            out += _container_head("list", len(item))
+            stack.extend(reversed(item))
+        elif isinstance(item, dict):
+            out += _container_head("map", len(item))
+            for k, v in reversed(list(item.items())):
+                stack += [v, k]
+        else:
+            out += msgpack.packb(item, use_bin_type=True)
+    return bytes(out)
+
+
+def shape(value: Any) -> str:
+    """A value by its type, size and depth, never its repr (unbounded, and for a deep value a
+    RecursionError)."""
+    depth, level = 0, [value]
+    while level and depth < 10_000:
+        level = [
+            inner
+            for outer in level
+            if isinstance(outer, dict | list)
+            for inner in (outer.values() if isinstance(outer, dict) else outer)
+        ]
+        depth += 1
+    size = len(value) if isinstance(value, str | bytes | list | dict) else 0
+    return f"{type(value).__name__} of {size}, {depth} deep"
 
 
 def _mqtt_safe(text: str) -> bool:
@@ -228,10 +433,20 @@ class Fuzzer:
     """Fuzzed messages for the daemon from a seed (:meth:`messages`); ``mqtt``: only topics an MQTT
     publisher may use, and only one payload per message."""
 
-    def __init__(self, seed: int, *, mqtt: bool) -> None:
+    def __init__(self, seed: int, *, mqtt: bool = False, nats: bool = False) -> None:
         self.rng = random.Random(seed)
         self.np = np.random.default_rng(seed)
         self.mqtt = mqtt
+        self.nats = nats
+        self.frames = not (mqtt or nats)  # ZeroMQ: messages of other than two frames
+        self.inboxes: list[bytes] = []
+        """The workers' delivery subjects (NATS: set before the messages are drawn)."""
+        self.partitions = PARTITIONS
+        self.ids = 0
+        self.headed = 0
+        """Messages with a header block (NATS)."""
+        self.refused = 0
+        """Messages the NATS server refuses: a reply subject of JetStream's acknowledgements."""
         asf_path = DATA / GOOD_CLIP[0]
         self.asf = asf_path.read_text(encoding="utf-8")
         self.asf_lines = self.asf.splitlines()
@@ -349,20 +564,146 @@ class Fuzzer:
     # --- the four kinds
 
     def messages(self, n: int) -> Iterator[Fuzzed]:
-        """``n`` fuzzed messages."""
-        for _ in range(n):
+        """``n`` fuzzed messages (over NATS a repeated ``Nats-Msg-Id`` is a second message)."""
+        sent = 0
+        while sent < n:
             r = self.rng.random()
-            if r < 0.20:
-                m = self.random_bytes()
-            elif r < 0.65:
-                m = self.mutated()
-            elif r < 0.90:
-                m = self.valid()
+            if self.nats and r < 0.08:
+                batch = self.nats_only()
             else:
-                m = self.wrong_topic()
-            assert _not_good(m.topic), m.topic
-            self.kinds[m.kind] += 1
-            yield m
+                r = self.rng.random()
+                if r < 0.20:
+                    m = self.random_bytes()
+                elif r < 0.65:
+                    m = self.mutated()
+                elif r < 0.90:
+                    m = self.valid()
+                else:
+                    m = self.wrong_topic()
+                assert _not_good(m.topic), m.topic
+                batch = self.over_nats(m) if self.nats else [m]
+            for m in batch[: n - sent]:
+                assert not self.nats or _not_good_subject(m.topic), m.topic
+                self.kinds[m.kind] += 1
+                self.headed += m.headers is not None
+                self.refused += m.reply.startswith(b"$JS.ACK.")
+                sent += 1
+                yield m
+
+    # --- NATS: subjects, header blocks, reply subjects, the workers' delivery subjects
+
+    def over_nats(self, m: Fuzzed) -> list[Fuzzed]:
+        """``m`` published on NATS: its topic as a subject (:func:`subject_of`), one in ten with a
+        header block (:data:`HEADER_BLOCKS`; a ``Nats-Msg-Id`` of its own, or the same message
+        twice with one, the second not stored), one in thirty with a reply subject."""
+        rng = self.rng
+        subject = subject_of(m.topic)
+        reply = b"fuzz.reply." + str(rng.randrange(100)).encode() if rng.random() < 0.03 else b""
+        stored = nats_stored(subject)
+        if rng.random() >= 0.1:
+            return [replace(m, topic=subject, reply=reply, reaches=stored)]
+        r = rng.random()
+        if r < 0.15:  # twice with one id: JetStream stores the first copy only
+            self.ids += 1
+            block = b"NATS/1.0\r\nNats-Msg-Id: fuzz-%d-%d\r\n\r\n" % (self.ids, rng.getrandbits(32))
+            first = replace(m, topic=subject, headers=block, reply=reply, reaches=stored)
+            return [first, replace(first, reaches=False)]
+        if r < 0.25:
+            self.ids += 1
+            block = b"NATS/1.0\r\nNats-Msg-Id: fuzz-%d-%d\r\n\r\n" % (self.ids, rng.getrandbits(32))
+            return [replace(m, topic=subject, headers=block, reply=reply, reaches=stored)]
+        block, kept = rng.choice(HEADER_BLOCKS)
+        return [replace(m, topic=subject, headers=block, reply=reply, reaches=stored and kept)]
+
+    def nats_only(self) -> list[Fuzzed]:
+        """A message only NATS can carry: on a subject straight into a partition's buffer (of a
+        pool stream, the wrong partition or none, a subject of the wrong shape, bytes that are not
+        UTF-8, control characters, wildcard tokens), one the server drops or stores elsewhere
+        (empty tokens, ``mocap.d.<s>.detections``, a status subject), or one published on a
+        worker's delivery subject (:meth:`inbox`)."""
+        rng = self.rng
+        if self.inboxes and rng.random() < 0.25:
+            return [self.inbox()]
+        s = rng.choice(self.pool)
+        name = s.name.encode()
+        n = rng.randrange(self.partitions)
+        part = b"mocap.p.%d." % n
+        r = rng.random()
+        if r < 0.3:  # a pool stream's valid message, straight into some partition
+            word = b"pose" if rng.random() < 0.8 else b"skeleton"
+            body = pack(self._pose_body(s, s.seq + 1)) if word == b"pose" else pack(s.skeleton)
+            return [Fuzzed("subject", part + name + b"." + word, (body,))]
+        payload = self.rng.choice(
+            (pack(self._pose_body(s, s.seq + 1)), self.rng.randbytes(self.rng.randrange(64)), b"")
+        )
+        subjects = (
+            part + b"x",
+            part + rng.randbytes(rng.randrange(1, 9)).translate(SUBJECT_SAFE) + b".pose",
+            b"mocap." + b"\xff\xfe" + rng.randbytes(3).translate(SUBJECT_SAFE) + b".pose",
+            part + b"a\x00b.pose",
+            b"mocap.a\x01\x7f.skeleton",
+            part + b"*.pose",
+            b"mocap.*.pose",
+            part + b">",
+            part + name + b".pose.extra",
+            part + b"a.b.pose",
+            part + b"\xc3\xa9" * 700 + b".pose",
+            b"mocap.p.%02d.x.pose" % n,
+            b"mocap.p.16.x.pose",
+            b"mocap..pose",
+            b".mocap.x.pose",
+            b"mocap.x.pose.",
+            b"mocap.>.pose",
+            b"mocap.>",
+            b"mocap.d." + name + b".detections",
+            b"mocap." + name + b".detections",
+            b"mocapd." + name + b".status",
+            b"MOCAP." + name + b".pose",
+        )
+        subject = rng.choice(subjects)
+        headers = None
+        if subject.startswith(b"mocap.d."):
+            self.ids += 1
+            headers = b"NATS/1.0\r\nNats-Msg-Id: fuzz-d-%d\r\n\r\n" % self.ids
+        return [Fuzzed("subject", subject, (payload,), headers=headers, reaches=nats_stored(subject))]
+
+    def inbox(self) -> Fuzzed:
+        """A message published on a worker's delivery subject: a pose or junk with no reply,
+        another reply, a forged acknowledgement subject (the server refuses a reply of ``$JS.ACK.``
+        from any client: measured), odd header blocks; or the server's flow control and heartbeats
+        forged (status 100: answered only on a ``$JS.FC.`` subject, never on the one a
+        ``Nats-Consumer-Stalled`` header names otherwise; not counted)."""
+        rng = self.rng
+        subject = rng.choice(self.inboxes)
+        s = rng.choice(self.pool)
+        payload = rng.choice((pack(self._pose_body(s, s.seq + 1)), pack(s.skeleton), rng.randbytes(40), b""))
+        p = rng.randrange(self.partitions)
+        replies = (
+            b"",
+            b"fuzz.reply",
+            b"$JS.ACK.MOCAPD_BUF_%d.forged.1.%d.%d.0.0" % (p, rng.randrange(1, 10**6), rng.randrange(10**6)),
+            b"$JS.ACK.MOCAPD_BUF_%d.forged.1.x.y.0.0" % p,
+            b"$JS.ACK.x",
+            b"$JS.ACK.MOCAPD_BUF_%d.\xff\xfe.1.2.3.0.0" % p,
+        )
+        r = rng.random()
+        if r < 0.25:
+            block = rng.choice(
+                (
+                    b"NATS/1.0 100 FlowControl Request\r\n\r\n",
+                    STALLED % b"$JS.API.STREAM.DELETE.MOCAPD_BUF_%d" % p,
+                    STALLED % b"fuzz.stalled",
+                    STALLED % b"$JS.FC.fuzz.%d" % p,
+                )
+            )
+            reply = rng.choice((b"", b"$JS.FC.MOCAPD_BUF_%d.fuzz.%d" % (p, rng.randrange(100))))
+            return Fuzzed("inbox", subject, (b"",), headers=block, reply=reply, reaches=False)
+        other: bytes | None = rng.choice(
+            (None, None, *(b for b, _ in HEADER_BLOCKS if not b.startswith(b"NATS/1.0 100")))
+        )
+        reply = rng.choice(replies)  # the server refuses a reply of $JS.ACK.: no client forges one
+        forged = reply.startswith(b"$JS.ACK.")
+        return Fuzzed("inbox", subject, (payload,), headers=other, reply=reply, reaches=not forged)
 
     def _topic(self, stream: str, word: str) -> bytes:
         return f"mocap/{stream}/{word}".encode()
@@ -411,8 +752,8 @@ class Fuzzer:
             self._mutate(body)
         try:
             payload = pack(body)
-        except (OverflowError, ValueError, TypeError):
-            payload = pack({"v": 1, "type": word, "stream": s.name, "x": repr(body)[:200]})
+        except (OverflowError, ValueError, TypeError):  # nothing generated should get here
+            payload = pack({"v": 1, "type": word, "stream": s.name, "x": shape(body)})
         r = self.rng.random()
         if r < 0.08 and payload:
             payload = payload[: self.rng.randrange(len(payload))]  # truncated
@@ -444,12 +785,19 @@ class Fuzzer:
         return opener * depth + b"\xc0"
 
     def _other_message(self, stream: str) -> dict[str, Any]:
-        """A valid message of a type the daemon publishes (detection, boundary, status), as a map."""
-        kind = self.rng.randrange(3)
+        """A valid message of a type the daemon publishes (detection, boundary, progress, status), as
+        a map."""
+        kind = self.rng.randrange(4)
         if kind == 0:
             message: Message = DetectionMessage("x", stream, "squat", 1, 2, 0.1, 0.2, 3, 1.0, 2.0)
         elif kind == 1:
             message = BoundaryMessage("x", stream, 4, "pca", 1.0, 1.0)
+        elif kind == 2:
+            classes = tuple(
+                ClassProgress(f"class{k}", 3, (10 + k, 20 + k), 0.25 * k, 0.01, 0.1)
+                for k in range(self.rng.randrange(1, 4))
+            )
+            message = ProgressMessage(stream, 30, classes, 1.0, 2.0)
         else:
             message = StatusMessage("fuzz", "online", "0", 1, 1.0)
         body: dict[str, Any] = msgpack.unpackb(encode(message))
@@ -458,8 +806,11 @@ class Fuzzer:
     def _mutate(self, body: dict[str, Any]) -> None:
         rng = self.rng
         keys = list(body)
-        op = rng.randrange(14)
-        if op == 0 and keys:
+        op = rng.randrange(20)
+        if op >= 14 and keys:  # a field's value, recursively (into lists and maps such as classes)
+            key = rng.choice(keys)
+            body[key] = self.mutate_value(body[key])
+        elif op == 0 and keys:
             del body[rng.choice(keys)]
         elif op == 1:
             body[rng.choice(EXTRA_FIELDS)] = self.junk()
@@ -475,6 +826,97 @@ class Fuzzer:
             self._mutate_array(body)
         else:
             body["asf"] = self._mutated_asf()
+
+    # --- field values, recursively
+
+    def mutate_value(self, value: Any, depth: int = 0) -> Any:
+        """``value`` mutated: a list's or a map's contents mutated in turn (an element or an entry,
+        recursively, or one added or removed), or the value replaced by :meth:`hostile`."""
+        rng = self.rng
+        if isinstance(value, list | dict) and value and depth < 6 and rng.random() < 0.6:
+            value = list(value) if isinstance(value, list) else dict(value)
+            r = rng.random()
+            if isinstance(value, list):
+                k = rng.randrange(len(value))
+                if r < 0.7:
+                    value[k] = self.mutate_value(value[k], depth + 1)
+                elif r < 0.85:
+                    value.insert(k, self.hostile(value[k]))
+                else:
+                    del value[k]
+            else:
+                key = rng.choice(list(value))
+                if r < 0.7:
+                    value[key] = self.mutate_value(value[key], depth + 1)
+                elif r < 0.85:
+                    value[rng.choice(ODD_KEYS)] = self.hostile(None)
+                else:
+                    del value[key]
+            return value
+        return self.hostile(value)
+
+    def hostile(self, original: Any) -> Any:
+        """A value to put in place of ``original``: nested lists and maps (often around the
+        decoder's depth bound, sometimes ~1,000 deep), deep maps with odd keys, huge integers, NaN
+        and infinities, the wrong type for ``original`` (bytes for a string, a string for bytes, a
+        bool for an int, None), long strings, ext types, or any :meth:`junk`."""
+        rng = self.rng
+        r = rng.randrange(10)
+        if r in (0, 1):
+            return self.nested(rng.choice(DEPTHS))
+        if r == 2:
+            return self.nested(rng.choice(DEPTHS), maps=True)
+        if r == 3:
+            return rng.choice(HUGE_INTS)
+        if r == 4:
+            return rng.choice(ODD_FLOATS)
+        if r in (5, 6):
+            return self.retyped(original)
+        if r == 7:
+            n = rng.choice(LONG_TEXTS)
+            return rng.choice(("x", "é", "流", "😀", "\x00", "a.b")) * (n // 2) + "y" * (n - n // 2)
+        if r == 8:
+            return rng.choice((None, [], {}, "", b"", 0, False))
+        return self.junk()
+
+    def retyped(self, original: Any) -> Any:
+        """``original`` as the wrong type: a string as bytes, bytes as a string, a number as a bool,
+        a string or a float, a list as a map, a map as a list, anything as None."""
+        rng = self.rng
+        if rng.random() < 0.15:
+            return None
+        if isinstance(original, str):
+            return original.encode("utf-8", "surrogatepass") if rng.random() < 0.7 else [original]
+        if isinstance(original, bytes):
+            return original.decode("latin-1") if rng.random() < 0.7 else list(original[:64])
+        if isinstance(original, bool):
+            return int(original)
+        if isinstance(original, int):
+            return rng.choice((True, False, float(original), str(original), [original]))
+        if isinstance(original, float):
+            return rng.choice((True, int(original) if math.isfinite(original) else 0, str(original)))
+        if isinstance(original, list):
+            return {str(k): v for k, v in enumerate(original)}
+        if isinstance(original, dict):
+            return list(original.values())
+        return rng.choice((True, b"bytes", "text", 1))
+
+    def nested(self, depth: int, *, maps: bool = False) -> Any:
+        """A value ``depth`` lists or maps deep (maps: keys from :data:`ODD_KEYS`, and now and then
+        a sibling entry; only maps with ``maps``) around a scalar: as a field's value, it makes the
+        message ``depth`` + 1 deep."""
+        rng = self.rng
+        keys = ODD_KEYS if depth <= 16 else SHORT_KEYS  # 1,000 levels of long keys: past any size limit
+        value: Any = rng.choice((None, 1, "x", b"\x00", 2**64 - 1, float("nan"), True))
+        for level in range(depth):
+            if maps or (depth < 100 and rng.random() < 0.3):
+                inner: dict[Any, Any] = {rng.choice(keys): value}
+                if level < 10 and rng.random() < 0.2:
+                    inner[rng.choice(keys)] = rng.choice(HUGE_INTS)
+                value = inner
+            else:
+                value = [value]
+        return value
 
     def _mutate_array(self, body: dict[str, Any]) -> None:
         rng = self.rng
@@ -624,6 +1066,8 @@ class Fuzzer:
             encoded = topic.encode("utf-8", "surrogatepass")
             if not self.mqtt and rng.random() < 0.1:
                 encoded = b"mocap/" + rng.randbytes(rng.randrange(1, 12)) + b"/pose"  # not UTF-8
+            if self.nats and not _not_good_subject(subject_of(encoded)):
+                continue
             if _not_good(encoded):
                 return encoded
 
@@ -647,7 +1091,7 @@ class Fuzzer:
             return Fuzzed("topic", self._topic(other.name, "skeleton"), (pack(s.skeleton),), 1)
         if r < 0.62:  # an empty skeleton: MQTT's way to clear a retained one
             return Fuzzed("topic", self._topic(s.name, "skeleton"), (b"",), 1)
-        if not self.mqtt and r < 0.72:
+        if self.frames and r < 0.72:
             frames = rng.choice(((), (pose, b"more"), (b"", b""), (pose, pose, pose)))
             return Fuzzed("topic", self._topic(s.name, "pose"), frames)  # not [topic, payload]
         return Fuzzed("topic", self.odd_topic(), (pose,), self._qos())
@@ -658,9 +1102,21 @@ def _not_good(topic: bytes) -> bool:
     return topic.split(b"/")[1:2] != [GOOD_STREAM.encode()]
 
 
+def _not_good_subject(subject: bytes) -> bool:
+    """Whether a NATS subject stays off the good stream: neither ``mocap.good.*`` nor
+    ``mocap.p.<p>.good.*``."""
+    tokens = subject.split(b".")
+    good = GOOD_STREAM.encode()
+    return tokens[1:2] != [good] and not (tokens[:2] == [b"mocap", b"p"] and tokens[3:4] == [good])
+
+
 def routed(m: Fuzzed, transport: str) -> bool:
     """Whether a message reaches the daemon: over ZeroMQ what its subscription (``mocap/``) lets
-    through; over MQTT what its subscriptions (``mocap/+/skeleton``, ``mocap/+/pose``) match."""
+    through; over MQTT what its subscriptions (``mocap/+/skeleton``, ``mocap/+/pose``) match; over
+    NATS what a partition's buffer stores (:func:`nats_stored`) and what is published on a worker's
+    delivery subject, but the server's flow control (:attr:`Fuzzed.reaches`)."""
+    if transport == "nats":
+        return m.reaches
     if transport == "zmq":
         return m.topic.startswith(b"mocap/")
     levels = m.topic.decode().split("/")
@@ -670,12 +1126,17 @@ def routed(m: Fuzzed, transport: str) -> bool:
 # ---------------------------------------------------------------------------------- the senders
 
 
+class DaemonDied(Exception):
+    """The daemon died while a message waited to be sent to it."""
+
+
 class ZmqWire:
     """The fuzz sender over ZeroMQ: an XPUB socket connected to the daemon that never drops (a full
     queue waits), and a SUB socket the good replay sends to, whose messages it passes on (counted)
     between the fuzzed ones."""
 
-    def __init__(self, poses: str) -> None:
+    def __init__(self, poses: str, alive: Callable[[], bool] = lambda: True) -> None:
+        self.alive = alive
         self.ctx = zmq.Context()
         self.pub = self.ctx.socket(zmq.XPUB)
         self.pub.setsockopt(zmq.SNDHWM, 100_000)
@@ -696,12 +1157,16 @@ class ZmqWire:
         self.problem: str | None = None
 
     def _send(self, frames: list[bytes]) -> None:
+        waited = 0
         while True:
             try:
                 self.pub.send_multipart(frames, zmq.NOBLOCK)
                 return
             except zmq.Again:
                 time.sleep(0.0005)  # the daemon's queue is full: wait, never drop
+                waited += 1
+                if waited % 200 == 0 and not self.alive():
+                    raise DaemonDied from None  # a dead daemon never takes it: do not wait for ever
 
     def send(self, m: Fuzzed) -> None:
         self._send([m.topic, *m.payloads])
@@ -783,6 +1248,158 @@ class MqttWire:
         self.counter.loop_stop()
 
 
+class NatsWire:
+    """The fuzz sender over NATS: a raw client connection of its own (``PUB`` and ``HPUB`` of any
+    subject, reply and header block, which nats-py would refuse to send), a thread answering the
+    server's PINGs on it; and in a thread with an event loop, a subscriber
+    (:class:`protocols.deliveries.Reader`: a nats-py subscriber stops at the first message it cannot
+    decode) counting the good stream's messages on ``mocap.p.*.good.*`` and collecting its
+    detections from ``mocap.good.detections``, and a nats-py client for JetStream's API (the
+    buffers' counts, the workers' delivery subjects). The good replay publishes over the server's
+    MQTT listener itself."""
+
+    def __init__(self, port: int, mqtt_port: int) -> None:
+        self.url = f"nats://127.0.0.1:{port}"
+        self.good_url = f"mqtt://127.0.0.1:{mqtt_port}"
+        self.good = 0
+        self.detections: list[dict[str, Any]] = []
+        self.problem: str | None = None
+        self.refused = 0
+        """Fuzzed messages the server refused (a reply subject of ``$JS.ACK.``)."""
+        self._buffer = bytearray()
+        self._lock = threading.Lock()
+        self._pongs = threading.Semaphore(0)
+        self.sock = socket.create_connection(("127.0.0.1", port))
+        self.sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        hello = b""
+        while b"\r\n" not in hello:
+            hello += self.sock.recv(4096)
+        connect = {"verbose": False, "pedantic": False, "headers": True, "echo": False, "name": "fuzz"}
+        self.sock.sendall(b"CONNECT %s\r\n" % json.dumps(connect).encode())
+        self._watcher = threading.Thread(target=self._watch, name="fuzz nats", daemon=True)
+        self._watcher.start()
+        self.loop = asyncio.new_event_loop()
+        self._thread = threading.Thread(target=self.loop.run_forever, name="fuzz nats api", daemon=True)
+        self._thread.start()
+        self.call(self._connect())
+        self.sync()
+
+    def call(self, coroutine: Coroutine[Any, Any, T], timeout: float = 30) -> T:
+        return asyncio.run_coroutine_threadsafe(coroutine, self.loop).result(timeout)
+
+    async def _connect(self) -> None:
+        import nats
+
+        self.nc = await nats.connect(self.url)
+        self.js = self.nc.jetstream()
+        self.reader = await Reader(self.url, "fuzz counter").start()
+        await self.reader.subscribe(f"mocap.p.*.{GOOD_STREAM}.*", self._good)
+        await self.reader.subscribe(f"mocap.{GOOD_STREAM}.detections", self._detection)
+
+    async def _good(self, delivery: Delivery) -> None:
+        self.good += 1
+
+    async def _detection(self, delivery: Delivery) -> None:
+        self.detections.append(msgpack.unpackb(delivery.data, raw=False))
+
+    def _watch(self) -> None:
+        """The server's lines: PING answered, PONG counted (:meth:`sync`), -ERR kept as a problem."""
+        pending = b""
+        while True:
+            try:
+                data = self.sock.recv(65536)
+            except OSError:
+                return
+            if not data:
+                self.problem = self.problem or "the fuzz sender's NATS connection was closed"
+                return
+            pending += data
+            while b"\r\n" in pending:
+                line, pending = pending.split(b"\r\n", 1)
+                if line.startswith(b"PING"):
+                    with self._lock:
+                        self.sock.sendall(b"PONG\r\n")
+                elif line.startswith(b"PONG"):
+                    self._pongs.release()
+                elif line.startswith(b"-ERR 'Permissions Violation for Publish with Reply of \"$JS.ACK."):
+                    self.refused += 1  # a forged acknowledgement subject: refused, as it should be
+                elif line.startswith(b"-ERR"):
+                    self.problem = f"the server refused a fuzzed message: {line[:200]!r}"
+
+    def send(self, m: Fuzzed) -> None:
+        payload = m.payloads[0] if m.payloads else b""
+        reply = b" " + m.reply if m.reply else b""
+        if m.headers is None:
+            self._buffer += b"PUB %s%s %d\r\n%s\r\n" % (m.topic, reply, len(payload), payload)
+        else:
+            total = len(m.headers) + len(payload)
+            self._buffer += b"HPUB %s%s %d %d\r\n%s%s\r\n" % (
+                m.topic,
+                reply,
+                len(m.headers),
+                total,
+                m.headers,
+                payload,
+            )
+        if len(self._buffer) > 1 << 16:
+            self.pump()
+
+    def pump(self) -> None:
+        """Send what is buffered."""
+        if self._buffer:
+            with self._lock:
+                self.sock.sendall(self._buffer)
+            self._buffer.clear()
+
+    def sync(self, timeout: float = 30) -> None:
+        """Return once the server has read everything sent (a PING answered)."""
+        self.pump()
+        with self._lock:
+            self.sock.sendall(b"PING\r\n")
+        if not self._pongs.acquire(timeout=timeout):
+            raise RuntimeError("the NATS server did not answer the fuzz sender's PING")
+
+    def stored(self) -> int:
+        """Messages the partitions' buffers ever stored (each buffer's last sequence number)."""
+
+        async def count() -> int:
+            total = 0
+            for info in await self.js.streams_info():
+                if (info.config.name or "").startswith("MOCAPD_BUF_"):
+                    total += info.state.last_seq
+            return total
+
+        return self.call(count())
+
+    def inboxes(self) -> list[bytes]:
+        """The subjects the workers' consumers deliver the partitions' buffers on."""
+
+        async def find() -> list[bytes]:
+            found = []
+            for info in await self.js.streams_info():
+                name = info.config.name or ""
+                if name.startswith("MOCAPD_BUF_"):
+                    for consumer in await self.js.consumers_info(name):
+                        if consumer.config.deliver_subject:
+                            found.append(consumer.config.deliver_subject.encode())
+            return sorted(found)
+
+        return self.call(find())
+
+    def close(self) -> None:
+        async def shut() -> None:
+            await self.reader.close()
+            await self.nc.close()
+
+        with contextlib.suppress(Exception):
+            self.call(shut(), 10)
+        self.loop.call_soon_threadsafe(self.loop.stop)
+        self._thread.join(10)
+        self.loop.close()
+        with contextlib.suppress(OSError):
+            self.sock.close()
+
+
 # ------------------------------------------------------------------------------ the processes
 
 
@@ -861,10 +1478,144 @@ class Daemon:
     def rss_kib(self) -> int:
         return rss_kib(self.process.pid)
 
+    def watch(self) -> None:
+        """Nothing: a lone daemon's health is its being alive."""
+
+    def logs(self) -> list[Path]:
+        return [self.err]
+
     def stop(self) -> int:
         if self.alive:
             self.process.send_signal(signal.SIGTERM)
         return self.process.wait(60)
+
+    def close(self) -> None:
+        if self.alive:
+            self.process.kill()
+            self.process.wait()
+
+
+class Member:
+    """One cluster worker, ``mocapd --config C run --cluster NATS --coordinator ETCD`` as member
+    ``fuzz-<k>``, its stderr in ``worker-<k>.err``."""
+
+    def __init__(self, where: Path, k: int, nats: str, etcd: str, partitions: int, lease_s: float) -> None:
+        self.name = f"fuzz-{k}"
+        self.metrics_port = free_port()
+        config = {
+            "service": {
+                "queue_frames": 100_000,
+                "max_streams": MAX_STREAMS,
+                "max_message_bytes": MAX_MESSAGE_BYTES,
+                "idle_s": 10,
+            },
+            "cluster": {"partitions": partitions, "lease_s": lease_s, "member": self.name},
+            "metrics": {"port": self.metrics_port},
+            "logging": {"level": "debug"},
+        }
+        path = where / f"worker-{k}.yaml"
+        path.write_text(json.dumps(config, indent=1), encoding="utf-8")
+        self.err = where / f"worker-{k}.err"
+        command = [str(MOCAPD), "--config", str(path), "run", "--cluster", nats, "--coordinator", etcd]
+        with self.err.open("wb") as err:
+            self.process = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=err)
+
+    def healthy(self) -> bool:
+        try:
+            with urllib.request.urlopen(f"http://127.0.0.1:{self.metrics_port}/healthz", timeout=2) as r:
+                return bool(r.status == 200)
+        except OSError:
+            return False
+
+    def events(self, name: str) -> list[dict[str, Any]]:
+        lines = self.err.read_text(encoding="utf-8", errors="replace").splitlines()
+        return [e for e in (json.loads(x) for x in lines if x.startswith("{")) if e.get("event") == name]
+
+
+class Cluster:
+    """Cluster mode (``docs/cluster.md``): a nats-server from the shipped nats.conf (JetStream, the
+    MQTT listener, the partitioning mappings; ``tests/nats_server.py``), an etcd from the shipped
+    config, and ``members`` workers (``lease_s``: the shipped 2 s); once every worker sees them
+    all, the partitions are split between them. Watched as one daemon (:class:`Daemon`'s
+    interface: metrics summed)."""
+
+    def __init__(self, where: Path, members: int, lease_s: float = 2.0) -> None:
+        from tests.etcd_server import Etcd
+        from tests.nats_server import NatsServer, partitions
+
+        (where / "nats").mkdir(exist_ok=True)
+        (where / "etcd").mkdir(exist_ok=True)
+        self.partitions = partitions()
+        self.server = NatsServer(where / "nats").start()
+        self.etcd: Etcd | None = None
+        self.members: list[Member] = []
+        self.unhealthy: list[str] = []
+        try:
+            self.etcd = Etcd(where / "etcd").start()
+            for k in range(members):
+                member = Member(where, k, self.server.url, self.etcd.url, self.partitions, lease_s)
+                self.members.append(member)
+            deadline = time.monotonic() + 60
+            while not self._settled(members):
+                if not self.alive or time.monotonic() > deadline:
+                    logs = "\n".join(m.err.read_text()[-1500:] for m in self.members)
+                    raise RuntimeError(f"the cluster did not form: {logs}")
+                time.sleep(0.1)
+        except BaseException:
+            self.close()
+            raise
+        self.assignments = [len(m.events("partitions")) for m in self.members]
+
+    def _settled(self, members: int) -> bool:
+        owned: list[int] = []
+        for m in self.members:
+            last = m.events("partitions")
+            if not m.healthy() or not last or len(last[-1]["members"]) != members:
+                return False
+            owned += last[-1]["owned"]
+        return sorted(owned) == list(range(self.partitions))
+
+    @property
+    def alive(self) -> bool:
+        return all(m.process.poll() is None for m in self.members)
+
+    def metrics(self) -> dict[str, float]:
+        """Every worker's /metrics samples, summed (none if one does not answer)."""
+        total: Counter[str] = Counter()
+        for m in self.members:
+            try:
+                total.update(scrape(m.metrics_port))
+            except OSError:
+                return {}
+        return dict(total)
+
+    def watch(self) -> None:
+        """Note a worker that is not healthy now (a lease lost: fenced; a connection down)."""
+        for m in self.members:
+            if m.process.poll() is None and not m.healthy():
+                self.unhealthy.append(f"{m.name} unhealthy at {time.strftime('%H:%M:%S')}")
+
+    def rss_kib(self) -> int:
+        return sum(rss_kib(m.process.pid) for m in self.members)
+
+    def logs(self) -> list[Path]:
+        return [m.err for m in self.members]
+
+    def stop(self) -> int:
+        """SIGTERM to every worker; the worst exit status."""
+        for m in self.members:
+            if m.process.poll() is None:
+                m.process.send_signal(signal.SIGTERM)
+        return max(m.process.wait(60) for m in self.members)
+
+    def close(self) -> None:
+        for m in self.members:
+            if m.process.poll() is None:
+                m.process.kill()
+                m.process.wait()
+        if self.etcd is not None:
+            self.etcd.stop()
+        self.server.stop()
 
 
 def counted(m: dict[str, float]) -> int:
@@ -881,10 +1632,17 @@ def detection_keys(items: list[dict[str, Any]]) -> list[tuple[Any, ...]]:
     return [tuple(d[k] for k in DETECTION_KEY) for d in items]
 
 
-def good_detections() -> list[tuple[Any, ...]]:
-    """``mocapd detect``'s detections of the good clip (the shipped library), as :func:`detection_keys`."""
+def good_detections(cluster: bool = False) -> list[tuple[Any, ...]]:
+    """``mocapd detect``'s detections of the good clip (the shipped library), as :func:`detection_keys`;
+    ``cluster``: of the frames from the first whose number is a multiple of the decimation step on,
+    where a cluster worker begins a stream's motion (``docs/cluster.md``, rule 2)."""
     motion = read_recording(DATA / GOOD_CLIP[0], DATA / GOOD_CLIP[1])
-    return detection_keys([d.as_json() for d in detect(motion, load_library(default_library_path()), RATE)])
+    library = load_library(default_library_path())
+    if cluster:
+        step = FrameClock.of(RATE, library.rate).step
+        k = int(np.flatnonzero(motion.frames % step == 0)[0])
+        motion = Motion(motion.source, motion.skeleton, motion.header, motion.frames[k:], motion.channels[k:])
+    return detection_keys([d.as_json() for d in detect(motion, library, RATE)])
 
 
 # ------------------------------------------------------------------------------------- the run
@@ -911,9 +1669,18 @@ class Result:
     exit_code: int | None = None
     crashed: bool = False
     log_lines: int = 0
+    workers: int = 0
+    restarts: int = 0
     detections: int = 0
     expected_detections: int = 0
     broker_dropped: int | None = None
+    members: int = 0
+    fuzz_stored: int = 0
+    fuzz_inbox: int = 0
+    headed: int = 0
+    refused: int = 0
+    refused_predicted: int = 0
+    stored: int | None = None
     failures: list[str] = field(default_factory=list)
 
     @property
@@ -939,31 +1706,43 @@ def run(
     where: Path | None = None,
     expected_detections: list[tuple[Any, ...]] | None = None,
     say: Callable[[str], None] = lambda line: None,
+    members: int = 2,
+    lease_s: float = 2.0,
 ) -> Result:
     """One transport's fuzz run (see the module docstring); the working files in ``where`` (default:
     a temporary directory, removed). ``expected_detections``: ``mocapd detect``'s on the clip, as
-    :func:`detection_keys` (computed if not given)."""
+    :func:`detection_keys` (computed if not given; over NATS on the frames a cluster worker
+    recognises). ``members`` and ``lease_s``: the cluster's workers and their leases (NATS)."""
     asf, amc = DATA / GOOD_CLIP[0], DATA / GOOD_CLIP[1]
-    want = good_detections() if expected_detections is None else expected_detections
+    nats = transport == "nats"
+    want = good_detections(nats) if expected_detections is None else expected_detections
     clip_s = len(read_recording(asf, amc)) / RATE
     pace = speed if speed != "auto" else f"{auto_speed(transport, messages, clip_s):.3g}"
     result = Result(transport, messages, seed, pace, expected_detections=len(want))
     work = Path(tempfile.mkdtemp(prefix=f"fuzz-{transport}-")) if where is None else where
     broker: subprocess.Popen[bytes] | None = None
-    daemon: Daemon | None = None
-    wire: ZmqWire | MqttWire | None = None
+    daemon: Daemon | Cluster | None = None
+    wire: ZmqWire | MqttWire | NatsWire | None = None
     replay: subprocess.Popen[str] | None = None
     started = time.monotonic()
     try:
-        broker_port = None
-        if transport == "mqtt":
-            broker, broker_port = start_broker(work)
-        daemon = Daemon(work, transport, broker_port)
-        result.rss_start_kib = daemon.rss_kib()
-        if transport == "zmq":
-            wire = ZmqWire(daemon.poses)
+        fuzzer = Fuzzer(seed, mqtt=transport == "mqtt", nats=nats)
+        if nats:
+            daemon = Cluster(work, members, lease_s)
+            result.members = members
+            wire = NatsWire(daemon.server.port, daemon.server.mqtt_port)
+            fuzzer.partitions = daemon.partitions
+            fuzzer.inboxes = wire.inboxes()
         else:
-            wire = MqttWire(broker_port or 0, f"mqtt://127.0.0.1:{broker_port}")
+            broker_port = None
+            if transport == "mqtt":
+                broker, broker_port = start_broker(work)
+            daemon = Daemon(work, transport, broker_port)
+            if transport == "zmq":
+                wire = ZmqWire(daemon.poses, lambda: daemon is not None and daemon.alive)
+            else:
+                wire = MqttWire(broker_port or 0, f"mqtt://127.0.0.1:{broker_port}")
+        result.rss_start_kib = daemon.rss_kib()
         command = [str(MOCAPD), "replay", "--asf", str(asf), "--amc", str(amc), "--to", wire.good_url]
         command += ["--stream", GOOD_STREAM, "--speed", pace]
         replay = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
@@ -975,28 +1754,31 @@ def run(
                 raise RuntimeError("the good stream did not reach the daemon")
             time.sleep(0.01)
         say(f"{transport}: sending {messages:,} fuzzed messages (the good replay at speed {pace})")
-        _fuzz(Fuzzer(seed, mqtt=transport == "mqtt"), wire, daemon, result, say)
-        while replay.poll() is None:  # the rest of the good stream
-            wire.pump()
-            time.sleep(0.002)
-        for _ in range(50):
-            wire.pump()
-            time.sleep(0.01)
+        try:
+            _fuzz(fuzzer, wire, daemon, result, say)
+            while replay.poll() is None:  # the rest of the good stream
+                wire.pump()
+                time.sleep(0.002)
+            for _ in range(50):
+                wire.pump()
+                time.sleep(0.01)
+        except DaemonDied:
+            replay.kill()  # _settle says the daemon died
         _, err = replay.communicate()
         if replay.returncode != 0:
             result.failures.append(f"the good replay failed ({replay.returncode}): {err[-500:]}")
         _settle(wire, daemon, result)
         result.wall_s = time.monotonic() - started
-        _check(result, daemon, want)
+        printed = wire.detections if isinstance(wire, NatsWire) else _printed(work / "daemon.out")
+        _check(result, daemon, printed, want)
     finally:
         if replay is not None and replay.poll() is None:
             replay.kill()
             replay.wait()
         if wire is not None:
             wire.close()
-        if daemon is not None and daemon.alive:
-            daemon.process.kill()
-            daemon.process.wait()
+        if daemon is not None:
+            daemon.close()
         if broker is not None:
             broker.terminate()
             broker.wait(10)
@@ -1006,37 +1788,54 @@ def run(
 
 
 def _fuzz(
-    fuzzer: Fuzzer, wire: ZmqWire | MqttWire, daemon: Daemon, result: Result, say: Callable[[str], None]
+    fuzzer: Fuzzer,
+    wire: ZmqWire | MqttWire | NatsWire,
+    daemon: Daemon | Cluster,
+    result: Result,
+    say: Callable[[str], None],
 ) -> None:
     """Send the fuzzed messages, passing the good stream's on between them, at most :data:`AHEAD`
     ahead of what the daemon counted."""
     start = checked = time.monotonic()
     progress = 100_000
-    for i, message in enumerate(fuzzer.messages(result.messages)):
-        wire.send(message)
-        if routed(message, result.transport):
-            result.fuzz_routed += 1
-        else:
-            result.fuzz_unrouted += 1
-        if i % 16 == 0:
-            wire.pump()
-        if i % 1000 == 0 and time.monotonic() - checked > 0.5:
-            checked = time.monotonic()
-            while result.fuzz_routed + wire.good - counted(daemon.metrics()) > AHEAD and daemon.alive:
+    try:
+        for i, message in enumerate(fuzzer.messages(result.messages)):
+            wire.send(message)
+            if not routed(message, result.transport):
+                result.fuzz_unrouted += 1
+            elif message.kind == "inbox":
+                result.fuzz_inbox += 1
+            else:
+                result.fuzz_stored += result.transport == "nats"
+                result.fuzz_routed += 1
+            if i % 16 == 0:
                 wire.pump()
-                time.sleep(0.005)
-            if not daemon.alive:
-                break
-        if i + 1 == progress:
-            say(f"  {progress:,} sent in {time.monotonic() - start:.0f} s")
-            progress += 100_000
-    result.send_s = time.monotonic() - start
-    result.kinds = fuzzer.kinds
+            if i % 1000 == 0 and time.monotonic() - checked > 0.5:
+                checked = time.monotonic()
+                daemon.watch()
+                ahead = result.fuzz_routed + result.fuzz_inbox + wire.good
+                while ahead - counted(daemon.metrics()) > AHEAD and daemon.alive:
+                    wire.pump()
+                    time.sleep(0.005)
+                if not daemon.alive:
+                    break
+            if i + 1 == progress:
+                say(f"  {progress:,} sent in {time.monotonic() - start:.0f} s")
+                progress += 100_000
+    finally:  # also when the daemon died (DaemonDied)
+        result.send_s = time.monotonic() - start
+        result.kinds = fuzzer.kinds
+        result.headed = fuzzer.headed
+        result.refused_predicted = fuzzer.refused
+    result.fuzz_routed += result.fuzz_inbox
 
 
-def _settle(wire: ZmqWire | MqttWire, daemon: Daemon, result: Result) -> None:
-    """Wait for every message to be counted and every pose recognised; read the counts, stop the
-    daemon."""
+def _settle(wire: ZmqWire | MqttWire | NatsWire, daemon: Daemon | Cluster, result: Result) -> None:
+    """Wait for every message to be counted and every pose recognised (over NATS also for every
+    stream to be flushed as idle: a cluster worker flushes nothing when it stops); read the counts,
+    stop the daemon."""
+    if isinstance(wire, NatsWire):
+        wire.sync()
     expected = result.fuzz_routed + wire.good
     deadline = time.monotonic() + 120
     while daemon.alive and time.monotonic() < deadline:
@@ -1044,12 +1843,26 @@ def _settle(wire: ZmqWire | MqttWire, daemon: Daemon, result: Result) -> None:
         if counted(m) >= expected and m.get("mocapd_queued_poses", 1) == 0:
             break
         time.sleep(0.1)
+    if isinstance(wire, NatsWire):
+        deadline = time.monotonic() + 60
+        while daemon.alive and time.monotonic() < deadline and daemon.metrics().get("mocapd_streams", 1):
+            time.sleep(0.2)  # idle_s 10
+        deadline = time.monotonic() + 10  # the flushed streams' detections: stored, then published
+        while len(wire.detections) < result.expected_detections and time.monotonic() < deadline:
+            time.sleep(0.1)
+        daemon.watch()
+        result.stored = wire.stored()
+        result.refused = wire.refused
     time.sleep(1.2 if isinstance(wire, MqttWire) else 0.3)  # the broker's $SYS count: every second
     m = daemon.metrics()
     result.good = wire.good
-    kinds = ("mocapd_messages_in_total{", "mocapd_rejects_total{", "mocapd_drops_total{")
+    kinds = ("mocapd_messages_in_total{", "mocapd_rejects_total{", "mocapd_drops_total{", "mocapd_cluster_")
     result.series = {k: v for k, v in m.items() if k.startswith(kinds)}
     result.counted = counted(m)
+    result.workers = round(m.get("mocapd_workers", 1)) if isinstance(daemon, Daemon) else len(daemon.members)
+    result.restarts = round(sum(v for k, v in m.items() if k.startswith("mocapd_worker_restarts_total")))
+    if result.restarts:
+        result.failures.append(f"workers were started again {result.restarts} times")
     result.rss_end_kib = daemon.rss_kib() if daemon.alive else 0
     if isinstance(wire, MqttWire):
         result.broker_dropped = wire.dropped
@@ -1057,18 +1870,27 @@ def _settle(wire: ZmqWire | MqttWire, daemon: Daemon, result: Result) -> None:
         result.failures.append(wire.problem)
     if not daemon.alive:
         result.crashed = True
-        result.failures.append(f"the daemon died (exit status {daemon.process.returncode})")
+        result.failures.append(
+            "the daemon died (a worker of the cluster)" if result.members else "the daemon died"
+        )
     result.exit_code = daemon.stop()
     if result.exit_code != 0 and not result.crashed:
         result.crashed = True
         result.failures.append(f"the daemon exited {result.exit_code} on SIGTERM")
 
 
+def _printed(out: Path) -> list[dict[str, Any]]:
+    """The detections a daemon printed on stdout (JSON lines)."""
+    return [json.loads(line) for line in out.read_text(encoding="utf-8").splitlines() if line.strip()]
+
+
 def _strict(constant: str) -> Any:
     raise ValueError(f"{constant} is not JSON")
 
 
-def _check(result: Result, daemon: Daemon, want: list[tuple[Any, ...]]) -> None:
+def _check(
+    result: Result, daemon: Daemon | Cluster, printed: list[dict[str, Any]], want: list[tuple[Any, ...]]
+) -> None:
     """The accounting, the logs and the good stream's detections (the crash checks are made as the
     run goes)."""
     if result.counted != result.expected:
@@ -1076,43 +1898,80 @@ def _check(result: Result, daemon: Daemon, want: list[tuple[Any, ...]]) -> None:
             f"counted {result.counted:,} messages, {result.expected:,} reached the daemon "
             f"({result.fuzz_routed:,} fuzzed + {result.good:,} good)"
         )
+    internal = result.series.get('mocapd_rejects_total{reason="internal"}', 0.0)
+    if internal:
+        result.failures.append(f'{internal:,.0f} messages set off a defect (rejects{{reason="internal"}})')
     if result.broker_dropped is None and result.transport == "mqtt":
         result.failures.append("the broker's count of dropped messages never came")
     elif result.broker_dropped:
         result.failures.append(f"the broker dropped {result.broker_dropped} messages")
-    text = daemon.err.read_text(encoding="utf-8", errors="replace")
-    lines = text.splitlines()
-    result.log_lines = len(lines)
+    if isinstance(daemon, Cluster):
+        _check_cluster(result, daemon)
     bad = []
-    for line in lines:
-        try:
-            entry = json.loads(line, parse_constant=_strict)
-        except ValueError:
-            bad.append(line)
-            continue
-        if (
-            not isinstance(entry, dict)
-            or entry.get("level") in ("error", "critical")
-            or "error" in entry
-            or "Warning: " in str(entry.get("event"))  # a Python warning, routed through the log
-        ):
-            bad.append(line)
-    if "Traceback" in text or "internal error" in text:
-        bad.append("a traceback or an internal error")
+    result.log_lines = 0
+    for log in daemon.logs():
+        text = log.read_text(encoding="utf-8", errors="replace")
+        lines = text.splitlines()
+        result.log_lines += len(lines)
+        for line in lines:
+            try:
+                entry = json.loads(line, parse_constant=_strict)
+            except ValueError:
+                bad.append(line)
+                continue
+            if (
+                not isinstance(entry, dict)
+                or entry.get("level") in ("error", "critical")
+                or "error" in entry
+                or "Warning: " in str(entry.get("event"))  # a Python warning, routed through the log
+            ):
+                bad.append(line)
+        if "Traceback" in text or "internal error" in text:
+            bad.append("a traceback or an internal error")
     if bad:
         result.failures.append(f"{len(bad)} bad log lines, the first: {bad[0][:300]}")
-    printed = []
-    for line in daemon.out.read_text(encoding="utf-8").splitlines():
-        if line.strip():
-            body = json.loads(line)
-            if body.get("type") == "detection" and body.get("stream") == GOOD_STREAM:
-                printed.append(body)
-    got = detection_keys(printed)
+    good = [b for b in printed if b.get("type") == "detection" and b.get("stream") == GOOD_STREAM]
+    got = detection_keys(good)
     result.detections = len(got)
     if got != want:
         result.failures.append(
-            f"the good stream's detections differ: {len(got)} printed, {len(want)} expected"
+            f"the good stream's detections differ: {len(got)} published, {len(want)} expected"
         )
+
+
+def _check_cluster(result: Result, cluster: Cluster) -> None:
+    """What only a cluster can get wrong: the buffers stored other than what the fuzzer predicts
+    (:func:`nats_stored`, the header blocks' effects); a worker unhealthy at any look (its lease
+    lost: fenced), the partitions moved after the cluster formed, a buffer gap, a delivery
+    connection lost, a detection suppressed as a duplicate (fuzzed ``mocap.d.>``), a delivery whose
+    handling raised."""
+    if result.stored != result.fuzz_stored + result.good:
+        result.failures.append(
+            f"the buffers stored {result.stored:,} messages, {result.fuzz_stored + result.good:,} "
+            f"expected ({result.fuzz_stored:,} fuzzed + {result.good:,} good)"
+        )
+    if result.refused != result.refused_predicted:
+        result.failures.append(
+            f"the server refused {result.refused:,} fuzzed messages, {result.refused_predicted:,} expected"
+        )
+    if cluster.unhealthy:
+        result.failures.append(f"unhealthy {len(cluster.unhealthy)} times, first: {cluster.unhealthy[0]}")
+    moved = [
+        len(m.events("partitions")) - n for m, n in zip(cluster.members, cluster.assignments, strict=True)
+    ]
+    if any(moved):
+        result.failures.append(f"the partitions moved during the run ({moved} more assignments per worker)")
+    for event in ("buffer gap", "deliveries disconnected", "partition not read", "nats error"):
+        seen = sum(len(m.events(event)) for m in cluster.members)
+        if seen:
+            result.failures.append(f"{seen} '{event}' events")
+    series = result.series
+    for key in ("mocapd_cluster_takeovers_total", "mocapd_cluster_duplicates_suppressed_total"):
+        if series.get(key, 0.0):
+            result.failures.append(f"{key} is {series[key]:,.0f}")
+    failures = series.get('mocapd_drops_total{reason="nats_internal"}', 0.0)
+    if failures:
+        result.failures.append(f"{failures:,.0f} deliveries whose handling raised (nats_internal)")
 
 
 # ------------------------------------------------------------------------------------ reporting
@@ -1126,11 +1985,24 @@ def report(r: Result) -> str:
         "kinds sent: " + ", ".join(f"{k} {n:,}" for k, n in sorted(r.kinds.items())),
         f"reached the daemon: {r.fuzz_routed:,} fuzzed + {r.good:,} good = {r.expected:,}; "
         f"not routed to it (no subscription matches the topic): {r.fuzz_unrouted:,}",
+    ]
+    if r.transport == "nats":
+        out += [
+            f"cluster: {r.members} workers (mocapd run --cluster); {r.headed:,} fuzzed messages with a "
+            f"header block; stored in the partitions' buffers: {r.stored if r.stored is not None else '?':,} "
+            f"({r.fuzz_stored:,} fuzzed + {r.good:,} good expected); published on the workers' delivery "
+            f"subjects: {r.fuzz_inbox:,} (and {r.kinds.get('inbox', 0) - r.fuzz_inbox - r.refused:,} forged "
+            f"flow control, not counted; {r.refused:,} with a forged acknowledgement subject, refused by "
+            f"the server); not stored (the subject or a header): {r.fuzz_unrouted - r.refused:,}",
+        ]
+    out += [
         f"{'counted under':<52s} {'messages':>10s}",
     ]
     for key in sorted(r.series):
         name = key.removeprefix("mocapd_").replace("_total{", "{")
-        intake = not key.startswith("mocapd_drops") or any(f'"{d}"' in key for d in INTAKE_DROPS)
+        intake = key.startswith(("mocapd_messages_in", "mocapd_rejects")) or any(
+            f'"{d}"' in key for d in INTAKE_DROPS
+        )
         note = "" if intake else "  (not an intake outcome)"
         out.append(f"  {name:<50s} {r.series[key]:>10,.0f}{note}")
     out.append(f"  {'total (taken in + refused + dropped at intake)':<50s} {r.counted:>10,}")
@@ -1141,6 +2013,7 @@ def report(r: Result) -> str:
         f"daemon RSS: {r.rss_start_kib / 1024:.1f} MiB at the start, "
         f"{r.rss_end_kib / 1024:.1f} MiB at the end",
         f"daemon log: {r.log_lines:,} lines, each one JSON object; exit status {r.exit_code} on SIGTERM",
+        f"workers: {r.workers}, started again {r.restarts} times",
         f"good stream: {r.detections} detections, mocapd detect: {r.expected_detections}",
         "checks: " + ("all hold" if not r.failures else "FAILED: " + "; ".join(r.failures)),
     ]
@@ -1152,17 +2025,24 @@ def main() -> None:
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     parser.add_argument("--messages", type=int, default=1_000_000)
-    parser.add_argument("--transport", choices=("zmq", "mqtt", "both"), default="both")
+    parser.add_argument(
+        "--transport",
+        choices=("zmq", "mqtt", "nats", "both", "all"),
+        default="all",
+        help="both: ZeroMQ and MQTT; all: and NATS (cluster mode)",
+    )
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument(
         "--speed",
         default="auto",
         help="the good replay's speed (auto: it lasts about as long as the fuzzing)",
     )
+    parser.add_argument("--members", type=int, default=2, help="cluster workers (NATS)")
     args = parser.parse_args()
     print(describe(), flush=True)
-    want = good_detections()
-    transports = ("zmq", "mqtt") if args.transport == "both" else (args.transport,)
+    transports = {"both": ("zmq", "mqtt"), "all": ("zmq", "mqtt", "nats")}.get(
+        args.transport, (args.transport,)
+    )
     results = []
     started = time.monotonic()
     for t in transports:
@@ -1171,14 +2051,26 @@ def main() -> None:
             args.messages,
             args.seed,
             args.speed,
-            expected_detections=want,
+            expected_detections=good_detections(cluster=t == "nats"),
             say=lambda s: print(s, flush=True),
+            members=args.members,
         )
         print(report(r), flush=True)
         results.append(r)
     print("\n== summary")
-    head = ("transport", "fuzzed", "reached", "counted", "msg/s", "wall s", "RSS MiB", "crashes", "good")
-    widths = (9, 10, 10, 10, 7, 7, 11, 7, 6)
+    head = (
+        "transport",
+        "fuzzed",
+        "reached",
+        "counted",
+        "msg/s",
+        "wall s",
+        "RSS MiB",
+        "crashes",
+        "restarts",
+        "good",
+    )
+    widths = (9, 10, 10, 10, 7, 7, 11, 7, 8, 6)
     print(
         f"{head[0]:<9s} "
         + " ".join(f"{h:>{w}s}" for h, w in zip(head[1:], widths[1:], strict=True))
@@ -1194,6 +2086,7 @@ def main() -> None:
             f"{r.wall_s:.1f}",
             f"{r.rss_start_kib / 1024:.0f} -> {r.rss_end_kib / 1024:.0f}",
             str(int(r.crashed)),
+            str(r.restarts),
             f"{r.detections}/{r.expected_detections}",
         )
         ok = "all hold" if not r.failures else "FAILED"

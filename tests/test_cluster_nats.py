@@ -18,10 +18,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from nats.aio.msg import Msg
-from nats.errors import NotJSMessageError
 from paho.mqtt.enums import CallbackAPIVersion
 
-from protocols.nats import sequences
+from protocols.nats import Ack, acknowledgement
 from tests.helpers import wait_for
 from tests.nats_server import NatsServer, partitions
 
@@ -120,25 +119,40 @@ def test_what_cluster_mode_relies_on(tmp_path: Path) -> None:
     delivered=st.integers(1, 1000),
     domain=st.booleans(),
 )
-def test_sequences_are_those_nats_py_reads(
+def test_acknowledgements_are_read_as_nats_py_reads_them(
     stream_seq: int, consumer_seq: int, delivered: int, domain: bool
 ) -> None:
-    """The fast reading of a JetStream message's sequences equals nats-py's ``Msg.metadata``, in
-    both forms of the acknowledgement subject (ADR-15), and a reply of neither form is left to it."""
+    """The reading of a JetStream message's acknowledgement subject equals nats-py's
+    ``Msg.metadata``, in both forms of the subject (ADR-15)."""
     head = "$JS.ACK.hub.ACCHASH." if domain else "$JS.ACK."
     tail = ".tok" if domain else ""
     reply = (
         f"{head}MOCAPD_BUF_3.c0nsumer.{delivered}.{stream_seq}.{consumer_seq}.1701234567890123456.42{tail}"
     )
-    slow = _message(reply).metadata.sequence
-    assert sequences(_message(reply)) == (slow.stream, slow.consumer)
+    slow = _message(reply).metadata
+    ack = acknowledgement(reply.encode())
+    assert ack == Ack(slow.stream, slow.consumer, slow.sequence.stream, slow.sequence.consumer)
 
 
-def test_sequences_refuse_what_is_not_an_acknowledgement_subject() -> None:
-    with pytest.raises(NotJSMessageError):
-        sequences(_message("_INBOX.abc"))
+@pytest.mark.parametrize(
+    "reply",
+    [
+        b"",
+        b"_INBOX.abc",
+        b"$JS.FC.MOCAPD_BUF_3.x.y",
+        b"$JS.ACK.MOCAPD_BUF_3.c.1.x.2.3.4",  # a sequence that is no number
+        b"$JS.ACK.MOCAPD_BUF_3.c.1.-2.2.3.4",
+        b"$JS.ACK.MOCAPD_BUF_\xff.c.1.2.2.3.4",  # a stream name that is not ASCII
+        b"$JS.ACK.MOCAPD_BUF_3.c.1.2.2.3",  # a token short
+        b"$js.ack.MOCAPD_BUF_3.c.1.2.2.3.4",
+    ],
+)
+def test_what_is_no_acknowledgement_subject_is_none(reply: bytes) -> None:
+    """A reply that is not JetStream's acknowledgement subject (a message published on a delivery
+    subject directly, the server's flow control) says nothing: None, never an exception."""
+    assert acknowledgement(reply) is None
 
 
 def _message(reply: str) -> Msg:
-    """A message as nats-py delivers it, with no client (the sequences need none)."""
+    """A message as nats-py delivers it, with no client (the metadata needs none)."""
     return Msg(_client=cast(Any, None), subject="mocap.p.3.s.pose", reply=reply)

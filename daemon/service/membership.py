@@ -284,7 +284,6 @@ class Membership:
         while True:
             await asyncio.sleep(max(0.0, self._next_keep - time.monotonic()))
             sent = time.monotonic()
-            was = self.problem
             answered = False
             try:
                 async with asyncio.timeout(self.interval):
@@ -304,8 +303,11 @@ class Membership:
                 self._lease_problem = f"keep-alive to etcd at {self.coordinator} failed: {_why(exc)}"
             if not answered:
                 self._next_keep = time.monotonic() + min(RETRY_S, self.interval)
-            if self.problem != was:
-                self._notify()
+            # changes() looks again after every keep-alive, answered or not: the problem may have
+            # changed while it was on its way by the clock alone (the fence passed, and the answer
+            # then came: the member fenced and live again with nothing said had it notified only
+            # when the problem differed from what it was when the keep-alive was sent)
+            self._notify()
 
     async def _rejoin(self) -> bool:
         """The lease may have expired at etcd: join again with a new one."""
