@@ -3,6 +3,8 @@ extra: ``pip install 'mocapd[plot]'``)."""
 
 from __future__ import annotations
 
+import signal
+import sys
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import IO, Any
@@ -24,6 +26,11 @@ class PlotUnavailable(MocapdError, RuntimeError):
 
 
 def _pyplot() -> Any:
+    # SIGINT and SIGTERM wait until matplotlib is imported: one in the middle of importing its
+    # extension modules left them half made (an ImportError here, then a crash as Python exits)
+    held = {signal.SIGINT, signal.SIGTERM}
+    blocked = hasattr(signal, "pthread_sigmask") and "matplotlib.pyplot" not in sys.modules
+    before = signal.pthread_sigmask(signal.SIG_BLOCK, held) if blocked else set()
     try:
         import matplotlib
 
@@ -31,6 +38,9 @@ def _pyplot() -> Any:
         import matplotlib.pyplot as plt
     except ImportError:
         raise PlotUnavailable("writing PNG needs matplotlib: pip install 'mocapd[plot]'") from None
+    finally:
+        if blocked:
+            signal.pthread_sigmask(signal.SIG_SETMASK, before)
     return plt
 
 

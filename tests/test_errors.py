@@ -596,6 +596,7 @@ NOT_USER_ERRORS = {
     "daemon.service.workers._Stop",  # the same of run --workers' front
     "daemon.service.view.server._Stop",  # the same of mocapd view
     "protocols.mqtt.MqttLost",  # a lost broker connection, mended by the transport, never shown
+    "protocols.deliveries.ProtocolError",  # a broken NATS connection, mended (at start: StartupError)
 }
 """Exceptions of the project that are not for a user or a client to cause, and why."""
 
