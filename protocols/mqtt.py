@@ -43,6 +43,7 @@ import asyncio
 import contextlib
 import itertools
 import logging
+import math
 import socket
 import ssl
 import threading
@@ -80,6 +81,10 @@ poses as they come."""
 PROBE_S = 0.5
 """How long a starting daemon waits, once it asked, for another daemon of its instance or client id
 to answer (:class:`_Presence`)."""
+CONTESTED_S = 10.0
+"""How long after its main connection was lost a live daemon gives way to a claim that beats its
+own (:class:`_Presence`). A daemon whose client id another takes over loses its connection first;
+at any other time a claim is a message anyone on the broker can send, which must not stop it."""
 PINGS = "mocapd/+/ping"
 """Where daemons ask who else is there: every daemon's guard hears every instance's questions, since
 two instances may share a client id."""
@@ -687,7 +692,7 @@ class MqttTransport:
             if began is not None and time.monotonic() - began >= STEADY_S:
                 delay = self.settings.reconnect_min_s
             wait = delay
-            if began is not None and self._guard is not None and self._guard.ask():
+            if began is not None and self._guard is not None and self._guard.contested():
                 # the client id may have been taken by another daemon: its answer comes before
                 # this one would take the client id back
                 wait = max(delay, PROBE_S)
@@ -900,6 +905,10 @@ class _Presence:
     alike. A live guard asks again whenever its connection comes back and whenever the broker
     closes the daemon's main connection, which is what a client id taken over looks like.
 
+    A live daemon gives way only within :data:`CONTESTED_S` of losing its main connection (a
+    daemon that took its client id answers its question in that time): a claim heard at any other
+    time is logged and ignored, since anyone who may publish on ``mocapd/#`` could send one.
+
     Giving way before it is live, a daemon is refused at start; after, it stops: either way with
     :class:`StartupError` (``service.instance``, or ``mqtt.client_id`` for another instance's
     daemon on the same client id), having published nothing more (the status topic is the other's
@@ -918,6 +927,8 @@ class _Presence:
         self._connection: _Connection | None = None
         self._live: asyncio.Future[None] | None = None
         self._asked: set[bytes] = set()  # the pings sent: an older mocapd answers with the same bytes
+        self._lost_at = -math.inf  # when the main connection was last lost (monotonic)
+        self._ignored_at = -math.inf  # when a claim was last logged as ignored
 
     async def claim(self) -> None:
         """Connect and ask; return once nothing beat this daemon's claim for :data:`PROBE_S` (it is
@@ -929,6 +940,31 @@ class _Presence:
         await asyncio.wait([self._live, failed], return_when=asyncio.FIRST_COMPLETED)
         if failed.done():
             failed.result()  # raises why
+
+    def contested(self) -> bool:
+        """The daemon's main connection was lost (its client id may have been taken by another
+        daemon): ask again, and for :data:`CONTESTED_S` give way to a claim that beats this one's.
+        False if the guard is not connected."""
+        self._lost_at = time.monotonic()
+        return self.ask()
+
+    def _may_give_way(self) -> bool:
+        """Whether a claim that beats this daemon's may stop it now (see the class docstring)."""
+        if not self.me.live or time.monotonic() - self._lost_at <= CONTESTED_S:
+            return True
+        if time.monotonic() - self._ignored_at >= CONTESTED_S:
+            self._ignored_at = time.monotonic()
+            LOG.warning(
+                "claim ignored",
+                extra={
+                    "fields": {
+                        "field": "service.instance",
+                        "reason": "a claim to this daemon's instance or client id while its connection "
+                        "was not contested (publishing on mocapd/# should be for daemons only)",
+                    }
+                },
+            )
+        return False
 
     def ask(self) -> bool:
         """Ask again whether another daemon is there (this one's client id may have been taken); False
@@ -989,7 +1025,8 @@ class _Presence:
             return  # a daemon that gave way answers nobody
         if topic == self.pong_topic:
             if payload in self._asked:  # an older mocapd, live, echoed the question
-                self._give_way(None)
+                if self._may_give_way():
+                    self._give_way(None)
                 return
             said = read_claim(payload, "pong")
             if said is not None and said[1] == self.me.rank and self._shares(said[0]):
@@ -1015,7 +1052,7 @@ class _Presence:
         return rival.instance == self.me.instance or rival.client_id == self.me.client_id
 
     def _meet(self, rival: Claim) -> None:
-        if rival.beats(self.me):
+        if rival.beats(self.me) and self._may_give_way():
             self._give_way(rival)
 
     def _give_way(self, rival: Claim | None) -> None:

@@ -308,6 +308,48 @@ def test_a_daemon_whose_client_id_is_taken_over_does_not_fight_for_it(tmp_path: 
         broker.stop()
 
 
+def test_a_forged_claim_does_not_stop_a_live_daemon(tmp_path: Path) -> None:
+    """One message must not stop a daemon: a claim on its instance's ping and pong topics that
+    would beat its own (live, and started at the epoch), from a client that is no daemon and took
+    no client id, is logged and ignored while the daemon's connection is not contested."""
+    import msgpack
+    import paho.mqtt.client as paho
+    from paho.mqtt.enums import CallbackAPIVersion
+
+    broker = Broker(tmp_path).start()
+    (daemon,) = twins(tmp_path, broker, "only")
+    client = paho.Client(CallbackAPIVersion.VERSION2, client_id="forger")
+    ranks: list[str] = []
+    client.on_message = lambda c, u, m: ranks.append(msgpack.unpackb(m.payload)["rank"])
+    client.connect("127.0.0.1", broker.port)
+    client.subscribe("mocapd/twin/pong", qos=1)
+    client.loop_start()
+    try:
+        daemon.start()
+        claim = {
+            "v": 1,
+            "instance": "twin",
+            "client_id": "mocapd-twin",
+            "rank": "0" * 17 + "-forged",
+            "live": True,
+        }
+        client.publish("mocapd/twin/ping", msgpack.packb({**claim, "type": "ping"}), qos=1).wait_for_publish(
+            10
+        )
+        wait_for(lambda: bool(ranks), 10, "the daemon's answer to the forged ping")
+        pong = {**claim, "type": "pong", "to": ranks[0]}
+        client.publish("mocapd/twin/pong", msgpack.packb(pong), qos=1).wait_for_publish(10)
+        time.sleep(1.0)
+        assert daemon.alive and daemon.health() == (200, "ok\n")
+        assert [e for e in daemon.logs() if e["event"] == "claim ignored"]
+        assert daemon.stop() == 0
+    finally:
+        client.loop_stop()
+        client.disconnect()
+        daemon.stop()
+        broker.stop()
+
+
 @pytest.mark.slow
 def test_a_second_daemon_on_one_client_id_is_refused(tmp_path: Path) -> None:
     """Two instances given one ``mqtt.client_id`` took it from each other for ever just as two
