@@ -12,6 +12,7 @@ class AutomatonCore:
         dmax: Sequence[int],
         period: int,
         components: bool,
+        mismatches: Sequence[int] | None = None,
     ) -> None: ...
     def reset(self) -> None: ...
     @property

@@ -6,6 +6,9 @@ from libc.stdint cimport int64_t, uint64_t
 
 from daemon.keyframes import omega_z
 
+cdef extern from *:
+    int popcount "__builtin_popcountll"(unsigned long long) nogil
+
 cdef int64_t OPEN = -1
 cdef int64_t UNBOUNDED = (<int64_t>1) << 60  # "no bound yet": above every frame, never overflows
 
@@ -40,11 +43,14 @@ cdef class Partial:
 cdef class AutomatonCore:
     """Keyframes as (mask, value) pairs over the frame code, gap bounds ``dmin``/``dmax`` (every gap
     bounded), ``period`` and ``components`` as :class:`daemon.automaton.KeyframeAutomaton` takes
-    them. ``push(code)`` returns the Ω^Z components that became final as (start, end) pairs and sets
-    :attr:`reached`; ``flush()`` returns the rest and resets."""
+    them; ``mismatches`` (None: all 0) how many fixed bits of each keyframe a code may miss, so a
+    code is in keyframe k's set when popcount((code ^ value) & mask) <= mismatches[k] (for 0: when
+    code & mask == value). ``push(code)`` returns the Ω^Z components that became final as (start,
+    end) pairs and sets :attr:`reached`; ``flush()`` returns the rest and resets."""
 
     cdef uint64_t[8] _masks
     cdef uint64_t[8] _values
+    cdef int[8] _mismatches
     cdef int64_t[8] _dmin
     cdef int64_t[8] _dmax
     cdef int64_t[8] _reach
@@ -60,14 +66,27 @@ cdef class AutomatonCore:
     cdef Partial _hit  # the match completed last (what progress reports as a whole hit)
     cdef int64_t _hit_t
 
-    def __init__(self, masks, values, dmin, dmax, int64_t period, bint components):
+    def __init__(self, masks, values, dmin, dmax, int64_t period, bint components, mismatches=None):
         cdef int k
         self._k = len(masks)
-        if not 1 <= self._k <= 8 or len(values) != self._k or len(dmin) != self._k - 1 or len(dmax) != self._k - 1:
-            raise ValueError("1 to 8 keyframes, each with a mask and a value, and bounds for every gap")
+        if mismatches is None:
+            mismatches = [0] * self._k
+        if (
+            not 1 <= self._k <= 8 or len(values) != self._k or len(mismatches) != self._k
+            or len(dmin) != self._k - 1 or len(dmax) != self._k - 1
+        ):
+            raise ValueError(
+                "1 to 8 keyframes, each with a mask, a value and a number of mismatches, and bounds for every gap"
+            )
         for k in range(self._k):
+            if values[k] & ~masks[k] or not 0 <= mismatches[k] < max(1, int(masks[k]).bit_count()):
+                raise ValueError(
+                    f"keyframe {k}: the value must lie within the mask and fewer bits may be missed than the "
+                    f"mask fixes (0 if none), got mask {masks[k]:#x}, value {values[k]:#x}, mismatches {mismatches[k]}"
+                )
             self._masks[k] = masks[k]
             self._values[k] = values[k]
+            self._mismatches[k] = mismatches[k]
         self._reach[0] = 0
         for k in range(self._k - 1):
             self._dmin[k] = dmin[k]
@@ -105,7 +124,7 @@ cdef class AutomatonCore:
         self._t += 1
         if self._idle:
             for k in range(self._k):
-                if code & self._masks[k] == self._values[k]:
+                if self._in_set(code, k):
                     hit = True
                     break
             if not hit:
@@ -115,7 +134,7 @@ cdef class AutomatonCore:
         self.reached = []
         for k in range(self._k):
             run = self._open[k]
-            if code & self._masks[k] != self._values[k]:
+            if not self._in_set(code, k):
                 if run is not None:
                     run.end = t - 1
                     self._open[k] = None
@@ -150,6 +169,9 @@ cdef class AutomatonCore:
                 self._matches = [m for m in self._matches if self._max_hi(m.runs) > t]
         self._idle = not self._matches and not any(self._partials) and self._closed()
         return out
+
+    cdef inline bint _in_set(self, uint64_t code, int k):
+        return popcount((code ^ self._values[k]) & self._masks[k]) <= self._mismatches[k]
 
     cdef bint _closed(self):
         for r in self._open:

@@ -6,8 +6,9 @@ document: pushed the frames of a recording, then flushed, it emits exactly the �
 it.
 
 How. Keyframe k's list Λ_k (post-segmented, section 4.2.4) is the maximal runs of frames whose code
-lies in V_k; the run containing the newest frame is *open* (its end is not known yet). A *partial
-match* is a tuple of runs (r_1, ..., r_k) that Alg. 4.1/4.2 would extend: each r_j meets the window
+lies in V_k (for a tolerant keyframe, within its ``mismatches`` of it on the fixed bits); the run
+containing the newest frame is *open* (its end is not known yet). A *partial match* is a tuple of
+runs (r_1, ..., r_k) that Alg. 4.1/4.2 would extend: each r_j meets the window
 [lo_{j-1} + dmin, hi_{j-1} + dmax] its predecessor allows (the ``allowedRange`` of Alg. 4.2), with
 lo_j = max(s_j, lo_{j-1} + dmin) and hi_j = min(e_j, hi_{j-1} + dmax). The automaton links a run to a
 partial match at the first frame of the run inside the partial match's window — which is the frame
@@ -97,6 +98,7 @@ class KeyframeAutomaton:
             dmax,
             period,
             components,
+            [kf.mismatches for kf in query.keyframes],
         )
 
     @property

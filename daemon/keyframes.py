@@ -3,10 +3,12 @@ parsing from ``manual-keyframes.json`` entries. The search over an index is
 :mod:`daemon.search.keyframes`; the live gate is :mod:`daemon.automaton`.
 
 A keyframe is a {0, 1, ½} vector over one feature set: the set V of every vector that agrees with its
-0/1 entries (Def. 4.3). Gap ``k`` has a nominal distance δ_k (difference of keyframe positions) and a
-stiffness σ_k; a hit (Def. 4.4) is frames i_1 <= ... <= i_K with w(i_k) in V_k and σ_k δ_k <= i_{k+1}
-- i_k <= δ_k / σ_k (no upper bound when σ_k = 0). Stiffness is read as the decimal it is written as
-(0.7 = 7/10), so the bounds ⌈σδ⌉ and ⌊δ/σ⌋ of μ (Def. 4.9) are exact.
+0/1 entries (Def. 4.3); a *tolerant* keyframe (ours: ``mismatches`` m > 0) widens V to every vector
+that differs from it in at most m of those entries (Hamming distance <= m on the fixed bits). Gap ``k``
+has a nominal distance δ_k (difference of keyframe positions) and a stiffness σ_k; a hit (Def. 4.4)
+is frames i_1 <= ... <= i_K with w(i_k) in V_k and σ_k δ_k <= i_{k+1} - i_k <= δ_k / σ_k (no upper
+bound when σ_k = 0). Stiffness is read as the decimal it is written as (0.7 = 7/10), so the bounds
+⌈σδ⌉ and ⌊δ/σ⌋ of μ (Def. 4.9) are exact.
 
 Positions are index-rate frames. Pure: Python in, frozen dataclasses out.
 """
@@ -20,7 +22,7 @@ from fractions import Fraction
 from pathlib import Path
 from typing import Any
 
-from daemon.checks import Checker
+from daemon.checks import Checker, number_reason
 from daemon.errors import MocapdError
 from daemon.features import SET_SLICES
 from daemon.types import FEATURE_SETS, FeatureSet
@@ -33,12 +35,29 @@ class KeyframeError(MocapdError, ValueError):
 @dataclass(frozen=True)
 class Keyframe:
     """One keyframe: ``values`` over ``feature_set`` (0, 1 or 0.5 = either), the template column
-    ``position`` and the stiffness of the gap to the next keyframe (None for the last)."""
+    ``position`` and the stiffness of the gap to the next keyframe (None for the last).
+    ``mismatches``: how many of the fixed (0/1) entries a frame may get wrong and still match, 0 to
+    the number of fixed entries - 1 (0, the thesis' keyframe, when none is fixed)."""
 
     feature_set: FeatureSet
     values: tuple[float, ...]
     position: int
     stiffness_to_next: float | None
+    mismatches: int = 0
+
+    def __post_init__(self) -> None:
+        m = self.mismatches
+        if isinstance(m, bool) or not isinstance(m, int) or m < 0 or (m > 0 and m > self.max_mismatches):
+            raise ValueError(
+                f"mismatches must be an integer in [0, {self.max_mismatches}] for a keyframe with "
+                f"{self.mask.bit_count()} fixed entries, got {self.mismatches!r:.60}"
+            )
+
+    @property
+    def max_mismatches(self) -> int:
+        """The largest ``mismatches`` allowed: one less than the fixed entries (at least 0), so that
+        a tolerant keyframe still needs one of them right."""
+        return max(0, self.mask.bit_count() - 1)
 
     @property
     def mask(self) -> int:
@@ -49,6 +68,11 @@ class Keyframe:
     def value(self) -> int:
         """The fixed bits' values."""
         return sum(1 << i for i, v in enumerate(self.values) if v == 1)
+
+    def matches(self, code: int) -> bool:
+        """Whether the frame whose ``feature_set`` code (bit i = feature i of the set) is ``code``
+        lies in V: at most ``mismatches`` of the fixed bits differ."""
+        return ((code ^ self.value) & self.mask).bit_count() <= self.mismatches
 
 
 @dataclass(frozen=True)
@@ -99,8 +123,9 @@ def query_bounds(
 def parse_keyframe_queries(obj: Any, source: str | Path) -> dict[str, KeyframeQuery]:
     """The classes of a keyframe file in the schema of ``manual-keyframes.json`` (reference facts,
     section e): ``{"frame_rate_hz": 30, "classes": {name: [{"set", "values", "position",
-    "stiffness_to_next"}, ...]}, "template_length": {name: int}}`` (other top-level fields are
-    ignored). Errors (:class:`KeyframeError`) name ``source`` and the field."""
+    "stiffness_to_next"[, "mismatches"]}, ...]}, "template_length": {name: int}}`` (other top-level
+    fields are ignored; ``mismatches``, ours, defaults to 0: see :class:`Keyframe`). Errors
+    (:class:`KeyframeError`) name ``source`` and the field."""
     check = Checker(source, KeyframeError)
     root = check.mapping(obj, "", ("classes",), others=True)
     rate = check.positive_number(root.get("frame_rate_hz", 30), "frame_rate_hz")
@@ -126,7 +151,7 @@ def parse_keyframes(
     for k, item in enumerate(entries):
         here = f"{field}[{k}]"
         last = k == len(entries) - 1
-        entry = check.mapping(item, here, ("set", "values", "position"), ("stiffness_to_next",))
+        entry = check.mapping(item, here, ("set", "values", "position"), ("stiffness_to_next", "mismatches"))
         fs: FeatureSet = check.choice(entry["set"], f"{here}.set", FEATURE_SETS)  # type: ignore[assignment]
         n = SET_SLICES[fs].stop - SET_SLICES[fs].start
         values = check.listing(entry["values"], f"{here}.values")
@@ -144,7 +169,15 @@ def parse_keyframes(
                 check.fail(f"{here}.stiffness_to_next", f"the last keyframe has none, got {stiffness!r:.60}")
         else:
             stiffness = check.number(stiffness, f"{here}.stiffness_to_next", low=0, high=1)
-        keyframes.append(Keyframe(fs, tuple(float(v) for v in values), position, stiffness))
+        fixed = sum(v != 0.5 for v in values)
+        mismatches = entry.get("mismatches", 0)
+        if number_reason(mismatches, low=0, high=max(0, fixed - 1), integer=True) is not None:
+            check.fail(
+                f"{here}.mismatches",
+                f"must be an integer in [0, {max(0, fixed - 1)}] (fewer than the keyframe's {fixed} fixed "
+                f"entries), got {mismatches!r:.60}",
+            )
+        keyframes.append(Keyframe(fs, tuple(float(v) for v in values), position, stiffness, mismatches))
     return KeyframeQuery(name, tuple(keyframes), float(rate), template_length)
 
 

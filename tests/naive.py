@@ -18,7 +18,7 @@ import numpy.typing as npt
 from daemon import dtw
 from daemon.dtw import INF, SCALE, Match, local_minima, retrieval_cost, subsequence_dtw, suppress
 from daemon.features import features, window_frames
-from daemon.keyframes import KeyframeQuery
+from daemon.keyframes import Keyframe, KeyframeQuery
 from daemon.learn.templates import Generalisation
 from daemon.library import ClassTemplate
 from daemon.recognizer import gate_ranges
@@ -331,20 +331,29 @@ def keyframe_brute_force(
     return out
 
 
+def in_keyframe(code: int, keyframe: Keyframe) -> bool:
+    """Whether the frame whose set code is ``code`` lies in the keyframe's set V (Def. 4.3, widened
+    by its ``mismatches``): its 0/1 entries compared one by one with the code's bits, at most
+    ``mismatches`` of them different."""
+    wrong = sum(1 for i, v in enumerate(keyframe.values) if v != 0.5 and (code >> i) & 1 != v)
+    return wrong <= keyframe.mismatches
+
+
 def keyframe_matches(
     codes: dict[FeatureSet, list[int]], query: KeyframeQuery, max_gap: int | None = None
 ) -> list[tuple[int, int, int]]:
     """Every match of ``query`` in one document (Def. 4.4-4.6 read directly): a keyframe's list is
-    the maximal runs of frames whose code lies in V_k; every hit is enumerated frame by frame; a
-    match is the runs its frames lie in. Per match (min i_1, min i_K, max i_K) over its hits: R(M)
-    is (min i_1, max i_K), and min i_K is the first frame at which the match is complete; sorted."""
+    the maximal runs of frames whose code lies in V_k (:func:`in_keyframe`); every hit is enumerated
+    frame by frame; a match is the runs its frames lie in. Per match (min i_1, min i_K, max i_K) over
+    its hits: R(M) is (min i_1, max i_K), and min i_K is the first frame at which the match is
+    complete; sorted."""
     deltas = [b.position - a.position for a, b in zip(query.keyframes, query.keyframes[1:], strict=False)]
     sigmas = [Fraction(repr(kf.stiffness_to_next)) for kf in query.keyframes[:-1]]
     n = len(codes["lower"])
     member = []
     run_id = []
     for kf in query.keyframes:
-        m = [(c & kf.mask) == kf.value for c in codes[kf.feature_set]]
+        m = [in_keyframe(c, kf) for c in codes[kf.feature_set]]
         ids, current = [], -1
         for i in range(n):
             if m[i] and (i == 0 or not m[i - 1]):

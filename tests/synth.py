@@ -535,9 +535,12 @@ def queries(
     draw: st.DrawFn,
     sets: tuple[FeatureSet, ...] = FEATURE_SETS,
     stiffnesses: tuple[float, ...] = (0.0, 0.0, 0.3, 0.5, 0.8, 1.0),
+    tolerant: bool = False,
 ) -> KeyframeQuery:
     """1-4 random keyframes over ``sets`` (σ = 0 for an unbounded gap, equal positions for a zero
-    gap), fixing only the low bits random streams vary."""
+    gap), fixing only the low bits random streams vary (and 0 above them). ``tolerant``: each
+    keyframe may miss 0-3 of its fixed entries, and may fix one high bit to 1, which random streams
+    always miss."""
     k = draw(st.integers(1, 4))
     keyframes = []
     position = 0
@@ -547,6 +550,12 @@ def queries(
         low = [draw(st.sampled_from([0.0, 1.0, 0.5, 0.5])) for _ in range(LOW_BITS)]
         high = [draw(st.sampled_from([0.0, 0.5])) for _ in range(width - LOW_BITS)]
         stiffness = None if j == k - 1 else draw(st.sampled_from(stiffnesses))
-        keyframes.append(Keyframe(fs, tuple(low + high), position, stiffness))
+        mismatches = 0
+        if tolerant:
+            if draw(st.booleans()):
+                high[draw(st.integers(0, width - LOW_BITS - 1))] = 1.0
+            fixed = sum(v != 0.5 for v in low + high)
+            mismatches = min(draw(st.sampled_from([0, 1, 1, 2, 3])), max(0, fixed - 1))
+        keyframes.append(Keyframe(fs, tuple(low + high), position, stiffness, mismatches))
         position += draw(st.sampled_from([0, 0, 1, 2, 4, 7]))  # equal positions: zero gaps
     return KeyframeQuery("random", tuple(keyframes), 30.0)

@@ -4,6 +4,7 @@ bound and its bounded state."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import random
 from pathlib import Path
@@ -13,6 +14,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from daemon._automaton import AutomatonCore
 from daemon.automaton import Component, KeyframeAutomaton
 from daemon.features import SET_SLICES
 from daemon.keyframes import Keyframe, KeyframeQuery, parse_keyframe_queries
@@ -86,13 +88,15 @@ def check_stream(
     assert automaton.state_size == 0
 
 
+@pytest.mark.parametrize("tolerant", [False, True], ids=["exact", "tolerant"])
 @settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.too_slow])
-@given(streams(), queries(), st.integers(0, 8), st.integers(0, 4))
+@given(streams(), st.data(), st.integers(0, 8), st.integers(0, 4))
 def test_automaton_emits_the_batch_components(
-    codes: dict[FeatureSet, list[int]], query: KeyframeQuery, max_gap: int, period: int
+    tolerant: bool, codes: dict[FeatureSet, list[int]], data: st.DataObject, max_gap: int, period: int
 ) -> None:
     """Components, order and emission frames within the latency bound, matches as they complete and
-    grow; batch and brute force agree."""
+    grow; batch and brute force agree; with keyframes that may miss some fixed entries too."""
+    query = data.draw(queries(tolerant=tolerant), label="query")
     check_stream(codes, query, max_gap, period)
     expected = keyframe_brute_force({fs: [c] for fs, c in codes.items()}, query, (0, 0), max_gap)
     assert batch(codes, query, max_gap) == [(s, e) for _, s, e in expected]
@@ -113,6 +117,43 @@ def test_latency_bound_is_reached() -> None:
     got = run(automaton, stream_codes(codes))
     assert got == [(Component(0, 3, 9), 9)]
     assert batch(codes, query, None) == [(0, 3)]
+
+
+def test_a_tolerant_keyframe_holds_on_frames_missing_up_to_its_mismatches() -> None:
+    """One keyframe fixing 4 lower bits (1, 1, 1, 0): frames missing none, one, two or three of them;
+    with k mismatches the components are the runs of frames missing at most k, in the automaton, the
+    batch search and the brute force alike."""
+    lower = [0b0111, 0b0011, 0b1011, 0b1111, 0b0000, 0b0110, 0b1000, 0b0111]
+    codes: dict[FeatureSet, list[int]] = {"lower": lower, "upper": [0] * len(lower), "mix": [0] * len(lower)}
+    values = (1.0, 1.0, 1.0, 0.0) + (0.5,) * (SET_SLICES["lower"].stop - 4)
+    expected = {
+        0: [(0, 0), (7, 7)],
+        1: [(0, 1), (3, 3), (5, 5), (7, 7)],
+        2: [(0, 3), (5, 5), (7, 7)],
+        3: [(0, 5), (7, 7)],
+    }
+    for k, components in expected.items():
+        query = KeyframeQuery("one", (Keyframe("lower", values, 0, None, k),), 30.0)
+        got = run(KeyframeAutomaton(query, 30.0), stream_codes(codes))
+        assert [(c.start, c.end) for c, _ in got] == components
+        assert batch(codes, query, None) == components
+        assert [
+            (s, e) for _, s, e in keyframe_brute_force({fs: [c] for fs, c in codes.items()}, query, (0, 0))
+        ] == (components)
+
+
+def test_the_core_refuses_bad_tolerances() -> None:
+    """A keyframe may miss fewer bits than it fixes (0 when it fixes none), and its value lies within
+    its mask (a bit outside could never match exactly, but would be missed within a tolerance)."""
+    assert AutomatonCore([0b11], [0b01], [], [], 0, True, [1]).state_size == 0
+    assert AutomatonCore([0], [0], [], [], 0, True, [0]).state_size == 0
+    for masks, values, mismatches in (([0b11], [0b01], [2]), ([0], [0], [1]), ([0b01], [0b11], [0])):
+        with pytest.raises(
+            ValueError, match="keyframe 0: the value must lie within the mask and fewer bits may be missed"
+        ):
+            AutomatonCore(masks, values, [], [], 0, True, mismatches)
+    with pytest.raises(ValueError, match="a number of mismatches"):
+        AutomatonCore([0b11, 0b11], [0, 0], [0], [1], 0, True, [0])
 
 
 def test_unbounded_gap_needs_a_cap() -> None:
@@ -167,6 +208,27 @@ def shipped() -> list[KeyframeQuery]:
     queries = [*(published[c] for c in HDM05_CLASSES), *(q for q in learned if q is not None)]
     assert len(queries) > len(HDM05_CLASSES)
     return queries
+
+
+def test_tolerant_keyframes_on_a_real_recording(shipped: list[KeyframeQuery]) -> None:
+    """The shipped queries with every keyframe allowed 1, then 2 mismatches (where it fixes enough
+    entries) on a real recording (CMU 13_30, 617 frames), where every feature varies: the automaton
+    equals the batch search, and more ranges are kept than with exact keyframes."""
+    asf, amc = next(p for p in recording_pairs() if pair_id(p) == "13_30")
+    got = motion_features(read_recording(asf, amc), 30.0)
+    codes = {fs: set_codes(got.matrix, fs).tolist() for fs in FEATURE_SETS}
+    kept = []
+    for k in (0, 1, 2):
+        found = 0
+        for query in shipped:
+            keyframes = tuple(
+                dataclasses.replace(kf, mismatches=min(k, kf.max_mismatches)) for kf in query.keyframes
+            )
+            tolerant = dataclasses.replace(query, keyframes=keyframes)
+            check_stream(codes, tolerant, 60, 10, brute_force=False)
+            found += len(batch(codes, tolerant, 60))
+        kept.append(found)
+    assert kept[0] < kept[1] < kept[2]
 
 
 @pytest.mark.slow

@@ -129,8 +129,8 @@ def databases(draw: st.DrawFn) -> dict[FeatureSet, list[list[int]]]:
     return out
 
 
-def keyframe_queries() -> st.SearchStrategy[KeyframeQuery]:
-    return queries(sets=SET_CHOICES, stiffnesses=(0.0, 0.2, 0.5, 0.7, 0.8, 0.9, 1.0))
+def keyframe_queries(tolerant: bool = False) -> st.SearchStrategy[KeyframeQuery]:
+    return queries(sets=SET_CHOICES, stiffnesses=(0.0, 0.2, 0.5, 0.7, 0.8, 0.9, 1.0), tolerant=tolerant)
 
 
 def set_indexes(docs: dict[FeatureSet, list[list[int]]]) -> dict[FeatureSet, SetIndex]:
@@ -142,11 +142,14 @@ def set_indexes(docs: dict[FeatureSet, list[list[int]]]) -> dict[FeatureSet, Set
     }
 
 
+@pytest.mark.parametrize("tolerant", [False, True], ids=["exact", "tolerant"])
 @settings(max_examples=400, deadline=None, suppress_health_check=[HealthCheck.too_slow])
-@given(databases(), keyframe_queries(), st.sampled_from([(0, 0), (0, 0), (2, 0), (1, 3)]))
+@given(databases(), st.data(), st.sampled_from([(0, 0), (0, 0), (2, 0), (1, 3)]))
 def test_keyframe_search_equals_brute_force(
-    docs: dict[FeatureSet, list[list[int]]], query: KeyframeQuery, extend: tuple[int, int]
+    tolerant: bool, docs: dict[FeatureSet, list[list[int]]], data: st.DataObject, extend: tuple[int, int]
 ) -> None:
+    """Also with keyframes that may miss some of their fixed entries (``tolerant``)."""
+    query = data.draw(keyframe_queries(tolerant), label="query")
     expected = keyframe_brute_force(docs, query, extend)
     for prune in (True, False):
         found = keyframe_search(
@@ -158,11 +161,11 @@ def test_keyframe_search_equals_brute_force(
 
 @pytest.mark.slow
 @settings(max_examples=200, deadline=None)
-@given(databases(), keyframe_queries())
+@given(databases(), keyframe_queries(tolerant=True))
 def test_unpruned_search_per_document(docs: dict[FeatureSet, list[list[int]]], query: KeyframeQuery) -> None:
     """Alg. 4.1 as published, one document at a time on the whole post-segmented lists (no pruning):
     every pointer tuple it reports is a match (Behauptung 4.1) and Ω^Z of its matches equals Ω^Z of
-    all matches (Behauptung 4.2), here the brute force."""
+    all matches (Behauptung 4.2), here the brute force; keyframes exact or tolerant."""
     lists = keyframe_lists(set_indexes(docs), query)
     bounds = [gap_bounds(d, s) for d, s in query.gaps(30.0)]
     got = []
@@ -225,6 +228,12 @@ def test_published_keyframes_parse() -> None:
         (lambda d: d["classes"]["a"][1].update(position=1), "classes.a[1].position"),
         (lambda d: d["classes"]["a"][0].update(stiffness_to_next=1.2), "classes.a[0].stiffness_to_next"),
         (lambda d: d["classes"]["a"][0].update(stiffness_to_next=None), "classes.a[0].stiffness_to_next"),
+        (lambda d: d["classes"]["a"][0].update(mismatches=-1), "classes.a[0].mismatches"),
+        (lambda d: d["classes"]["a"][0].update(mismatches=12), "classes.a[0].mismatches"),
+        (lambda d: d["classes"]["a"][1].update(mismatches=1.0), "classes.a[1].mismatches"),
+        (lambda d: d["classes"]["a"][1].update(mismatches=True), "classes.a[1].mismatches"),
+        (lambda d: d["classes"]["a"][1].update(mismatches="2"), "classes.a[1].mismatches"),
+        (lambda d: d["classes"]["a"][1].update(values=[0.5] * 14, mismatches=1), "classes.a[1].mismatches"),
         (lambda d: d.update(classes={}), "classes"),
         (lambda d: d.update(frame_rate_hz=0), "frame_rate_hz"),
     ],
@@ -244,3 +253,57 @@ def test_bad_keyframe_files_name_the_field(mutate: object, field: str) -> None:
     mutate(doc)
     with pytest.raises(KeyframeError, match=re.escape(f"q.json: {field}")):
         parse_keyframe_queries(doc, "q.json")
+
+
+def test_mismatches_are_optional_and_fewer_than_the_fixed_entries() -> None:
+    """``mismatches`` defaults to 0 (the thesis' keyframe); at most the fixed entries - 1, and 0 for
+    a keyframe that fixes none; the error says the range and why."""
+    doc = {
+        "classes": {
+            "squat": [
+                {
+                    "set": "lower",
+                    "values": [0] * 12,
+                    "position": 3,
+                    "stiffness_to_next": 0.5,
+                    "mismatches": 11,
+                },
+                {
+                    "set": "upper",
+                    "values": [1, 0] + [0.5] * 12,
+                    "position": 5,
+                    "stiffness_to_next": 1,
+                    "mismatches": 1,
+                },
+                {"set": "mix", "values": [0.5] * 13, "position": 6, "mismatches": 0},
+            ]
+        },
+    }
+    got = parse_keyframe_queries(doc, "q.json")["squat"].keyframes
+    assert [k.mismatches for k in got] == [11, 1, 0]
+    del doc["classes"]["squat"][0]["mismatches"]
+    assert parse_keyframe_queries(doc, "q.json")["squat"].keyframes[0].mismatches == 0
+    doc["classes"]["squat"][1]["mismatches"] = 2
+    with pytest.raises(KeyframeError) as caught:
+        parse_keyframe_queries(doc, "q.json")
+    assert str(caught.value) == (
+        "q.json: classes.squat[1].mismatches: must be an integer in [0, 1] (fewer than the keyframe's 2 "
+        "fixed entries), got 2"
+    )
+    values = (1.0, 0.0) + (0.5,) * 12
+    assert Keyframe("upper", values, 0, None, 1).max_mismatches == 1
+    for bad in (2, -1, True):
+        with pytest.raises(ValueError, match=r"mismatches must be an integer in \[0, 1\]"):
+            Keyframe("upper", values, 0, None, bad)
+    with pytest.raises(ValueError, match=r"in \[0, 0\] for a keyframe with 0 fixed entries"):
+        Keyframe("upper", (0.5,) * 14, 0, None, 1)
+
+
+def test_a_tolerant_keyframe_matches_within_its_mismatches() -> None:
+    """``Keyframe.matches``: at most ``mismatches`` of the fixed bits differ; free bits never count."""
+    kf = Keyframe("lower", (1.0, 1.0, 1.0, 0.0) + (0.5,) * 8, 0, None, 1)
+    assert (kf.mask, kf.value) == (0b1111, 0b0111)
+    codes = [0b0111, 0b0011, 0b1111, 0b1011, 0b0000, 0b0110, 0b11110111]
+    assert [kf.matches(c) for c in codes] == [True, True, True, False, False, True, True]
+    exact = Keyframe("lower", kf.values, 0, None)
+    assert [exact.matches(c) for c in codes] == [(c & exact.mask) == exact.value for c in codes]

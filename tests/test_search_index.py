@@ -160,6 +160,8 @@ def test_bad_queries() -> None:
 @settings(max_examples=200, deadline=None)
 @given(documents, st.data())
 def test_union_equals_concatenated_lists(docs: list[np.ndarray], data: st.DataObject) -> None:
+    """L(V) of a set of codes, of the codes fixed by a mask, and of those within some mismatches of
+    it on the mask."""
     index = index_from_codes(docs, BITS, "lower")
     codes = data.draw(st.lists(st.integers(0, (1 << BITS) - 1), max_size=6))
     expected = sorted(s for c in set(codes) for s in index.inverted_list(c).tolist())
@@ -167,6 +169,10 @@ def test_union_equals_concatenated_lists(docs: list[np.ndarray], data: st.DataOb
     mask, value = data.draw(st.integers(0, (1 << BITS) - 1)), data.draw(st.integers(0, (1 << BITS) - 1))
     fixed = [s for s, c in enumerate(index.code.tolist()) if c & mask == value & mask]
     assert index.union_fixed(mask, value).tolist() == fixed
+    assert index.union_tolerant(mask, value, 0).tolist() == fixed
+    mismatches = data.draw(st.integers(0, BITS))
+    near = [s for s, c in enumerate(index.code.tolist()) if ((c ^ value) & mask).bit_count() <= mismatches]
+    assert index.union_tolerant(mask, value, mismatches).tolist() == near
 
 
 @settings(max_examples=200, deadline=None)

@@ -92,6 +92,16 @@ class SetIndex:
         """L(V) for the fuzzy set of every code equal to ``value`` on the bits of ``mask``."""
         return self.union(matching_codes(self.bits, value, mask))
 
+    def union_tolerant(self, mask: int, value: int, mismatches: int) -> IntArray:
+        """L(V) for the fuzzy set of every code that differs from ``value`` in at most ``mismatches``
+        bits of ``mask`` (a Hamming ball on the fixed bits; 0: :meth:`union_fixed`). The codes that
+        occur are tested, not all 2^f."""
+        if mismatches < 0:
+            raise ValueError(f"mismatches must not be negative, got {mismatches}")
+        present = np.flatnonzero(np.diff(self.offsets))
+        near = np.bitwise_count((present ^ value) & mask) <= mismatches
+        return self.union(present[near])
+
 
 def concatenated_ranges(first: IntArray, sizes: IntArray) -> IntArray:
     """``first[j] .. first[j] + sizes[j] - 1`` for every j, concatenated: shape ``(sizes.sum(),)``."""

@@ -2,10 +2,10 @@
 keyframes of a :class:`~daemon.keyframes.KeyframeQuery`, the hit-relevant range of a match
 (Def. 4.6) and the Ω^Z components (Def. 4.7/4.8).
 
-A keyframe's list Λ(V) is the union of the inverted lists of V, post-segmented (section 4.2.4:
-adjacent segments merged), so Λ(V) is the maximal runs of frames whose vector lies in V. Frames are
-index-rate frames (0-based) of one document; hits never cross documents. Pure: numpy and Python in,
-frozen dataclasses out.
+A keyframe's list Λ(V) is the union of the inverted lists of V (for a tolerant keyframe, of every
+code within its ``mismatches`` of it), post-segmented (section 4.2.4: adjacent segments merged), so
+Λ(V) is the maximal runs of frames whose vector lies in V. Frames are index-rate frames (0-based) of
+one document; hits never cross documents. Pure: numpy and Python in, frozen dataclasses out.
 """
 
 from __future__ import annotations
@@ -172,11 +172,12 @@ class KeyframeHits:
 def keyframe_lists(
     sets: Mapping[FeatureSet, SetIndex], query: KeyframeQuery
 ) -> list[tuple[IntArray, IntArray, IntArray]]:
-    """Λ_k for every keyframe (Alg. 4.1 line 2, then post-segmentation): (starts, ends, docs)."""
+    """Λ_k for every keyframe (Alg. 4.1 line 2, then post-segmentation): (starts, ends, docs). A
+    tolerant keyframe's V_k holds every code within its ``mismatches`` of it on the fixed bits."""
     out = []
     for kf in query.keyframes:
         index = sets[kf.feature_set]
-        segs = index.union_fixed(kf.mask, kf.value)
+        segs = index.union_tolerant(kf.mask, kf.value, kf.mismatches)
         start = index.start[segs]
         out.append(post_segment(start, start + index.length[segs] - 1, index.doc[segs]))
     return out
