@@ -17,18 +17,18 @@ A library is a directory::
 Templates are ``(39, K)`` float64 matrices (features in :data:`daemon.features.FEATURE_NAMES` order,
 columns in frames at ``rate``) with weights ``(K,)``; the soft MT lies in [0, 1], the quantised and
 hard MTs in {0, ½, 1}. A training clip is ``{"asf", "amc", "start_frame", "end_frame", "frames",
-"actor"}`` (AMC frame numbers, inclusive; ``frames`` at ``rate``; ``actor`` the person). Keyframes
-use the entries of ``manual-keyframes.json`` (``set``, ``values``, ``position``,
-``stiffness_to_next``), positions in template columns. ``tau`` is the class's retrieval threshold
-and ``calibration`` how it was obtained (:class:`Calibration` without its τ: ``{"method", "folds",
-"positives", "negatives", "recall", "precision"}``; folds 0 and recall and precision null for a τ
-given, not calibrated), ``delta`` the quantisation threshold and ``steps`` the DTW steps retrieval
+"actor"}`` (AMC frame numbers, inclusive; ``frames`` at ``rate``; ``actor`` the person). Keyframes use
+the entries of ``manual-keyframes.json`` (``set``, ``values``, ``position``, ``stiffness_to_next``,
+and ``mismatches``, written only when not 0: how many fixed entries a frame may miss,
+:class:`daemon.keyframes.Keyframe`), positions in template columns. ``tau`` is the class's retrieval
+threshold and ``calibration`` how it was obtained (:class:`Calibration` without its τ: ``{"method",
+"folds", "positives", "negatives", "recall", "precision"}``; folds 0 and recall and precision null for
+a τ given, not calibrated), ``delta`` the quantisation threshold and ``steps`` the DTW steps retrieval
 uses. ``mode`` (:data:`MODES`) says how the live recogniser finds the class, ``mode_reason`` why;
-``members`` are the class's other templates (:class:`Variant`: ``{"tau", "calibration",
-"examples"}``, the array ``member<i>`` its quantised template). ``sha256`` holds the SHA-256 of each
-array, checked on loading, so arrays damaged, swapped or edited are refused. A class's arrays are
-read only when the class is loaded, so a damaged class file does not keep the others from being
-used.
+``members`` are the class's other templates (:class:`Variant`: ``{"tau", "calibration", "examples"}``,
+the array ``member<i>`` its quantised template). ``sha256`` holds the SHA-256 of each array, checked
+on loading, so arrays damaged, swapped or edited are refused. A class's arrays are read only when the
+class is loaded, so a damaged class file does not keep the others from being used.
 
 ``keyframe_source`` (optional) says where the keyframes come from: absent or ``"learned"``, the
 automatic keyframes learned with the templates; ``"published"``, keyframes given to ``mocapd learn

@@ -30,6 +30,7 @@ from daemon.library import (
     Library,
     LibraryFormatError,
     Variant,
+    default_library_path,
     load_library,
 )
 from daemon.recordings import ManifestError, ManifestRow, read_examples, read_training_manifest
@@ -184,6 +185,37 @@ def test_library_keyframe_source_and_extra_files(library: Library, tmp_path: Pat
         save_library(library, tmp_path / "other", {"library.json": "{}"})
     with pytest.raises(ValueError, match="keyframe_source"):
         dataclasses.replace(squat, keyframe_source="guessed")
+
+
+def test_library_keeps_keyframe_mismatches(library: Library, tmp_path: Path) -> None:
+    """A keyframe's ``mismatches`` is written only where it is not 0 and loads back; the shipped
+    library, whose keyframes are exact, is written byte for byte as it ships."""
+    hop = library.classes["hopBothLegs1hops"]
+    assert hop.keyframes is not None
+    first, *rest = hop.keyframes.keyframes
+    tolerant = dataclasses.replace(first, mismatches=first.max_mismatches)
+    assert tolerant.mismatches > 0
+    query = dataclasses.replace(hop.keyframes, keyframes=(tolerant, *rest))
+    lib = tmp_path / "lib"
+    save_library(
+        Library(30.0, {**library.classes, "hopBothLegs1hops": dataclasses.replace(hop, keyframes=query)}), lib
+    )
+    meta = json.loads((lib / "library.json").read_text())
+    entries = meta["classes"]["hopBothLegs1hops"]["keyframes"]
+    assert [e.get("mismatches") for e in entries] == [tolerant.mismatches] + [None] * len(rest)
+    assert all("mismatches" not in e for e in meta["classes"]["squat1Reps"]["keyframes"])
+    loaded = load_library(lib)
+    assert loaded.classes["hopBothLegs1hops"].keyframes == query
+    assert_same_class(loaded.classes["squat1Reps"], library.classes["squat1Reps"])
+    edit_json(lib, {"classes/hopBothLegs1hops/keyframes/0/mismatches": 99})
+    with pytest.raises(
+        LibraryFormatError, match=r"classes\.hopBothLegs1hops\.keyframes\[0\]\.mismatches: must be"
+    ):
+        load_library(lib)
+    save_library(load_library(default_library_path()), tmp_path / "shipped")
+    for path in sorted(default_library_path().glob("*.*")):
+        if path.suffix in (".json", ".npz"):
+            assert (tmp_path / "shipped" / path.name).read_bytes() == path.read_bytes(), path.name
 
 
 def edit_json(lib: Path, change: dict[str, object]) -> None:

@@ -207,16 +207,20 @@ def learn_class(
 
 
 def keyframe_entries(query: KeyframeQuery) -> list[dict[str, Any]]:
-    """A keyframe query as entries of ``manual-keyframes.json``."""
-    return [
-        {
+    """A keyframe query as entries of ``manual-keyframes.json``; ``mismatches`` only where it is not
+    0, so that files of exact keyframes stay as they were."""
+    out: list[dict[str, Any]] = []
+    for k in query.keyframes:
+        entry: dict[str, Any] = {
             "set": k.feature_set,
             "values": [0.5 if v == 0.5 else int(v) for v in k.values],
             "position": k.position,
             "stiffness_to_next": k.stiffness_to_next,
         }
-        for k in query.keyframes
-    ]
+        if k.mismatches:
+            entry["mismatches"] = k.mismatches
+        out.append(entry)
+    return out
 
 
 def _arrays(c: ClassTemplate) -> dict[str, np.ndarray]:
