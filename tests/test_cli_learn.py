@@ -124,8 +124,8 @@ def test_learn_writes_the_library_the_code_learns(learned: Learned) -> None:
         if cls.mode == DTW:
             how = f"stream-wide DTW ({cls.mode_reason})"
         else:
-            assert cls.keyframes is not None
-            how = f"{len(cls.keyframes.keyframes)} keyframes gate it ({cls.mode_reason})"
+            assert cls.keyframes is not None and cls.mode_reason.startswith("keyframes first: ")
+            how = cls.mode_reason
         line = (
             f"{name}: {how}; tau {c.tau:.4g} calibrated: recall {c.recall:.2f}, precision {c.precision:.2f} "
             f"on {c.positives} left-out motions and {c.negatives} wrong candidates ({c.folds} folds)"
@@ -176,7 +176,7 @@ def test_learn_with_keyframes_given_in_a_file(learned: Learned, published: Publi
     meta = json.loads((lib / "library.json").read_text())["classes"]
     assert (meta["squat1Reps"]["keyframe_source"], meta["squat1Reps"]["mode"]) == ("published", "keyframes")
     assert len(meta["squat1Reps"]["keyframes"]) == len(given.keyframes) and "keyframe_source" not in meta[hop]
-    line = f"squat1Reps: {len(given.keyframes)} keyframes gate it (keyframes given to mocapd learn); tau "
+    line = f"squat1Reps: keyframes first, {len(given.keyframes)} (keyframes given to mocapd learn); tau "
     assert line in stdout
 
 

@@ -68,8 +68,9 @@ def register(sub: Any) -> None:
         type=keyframes_option,
         default=3,
         metavar="K|FILE",
-        help="keyframes learned per class (3; 0: none, every class recognised by stream-wide DTW), or a "
-        "JSON file as manual-keyframes.json whose keyframes gate the classes it names (3 learned for "
+        help="keyframes learned per class: K (3; the folds choose among K-1 .. K+2 and how many "
+        "mismatches each tolerates; 0: none, every class recognised by stream-wide DTW), or a JSON file "
+        "as manual-keyframes.json whose keyframes the classes it names are recognised by (learned for "
         "the others)",
     )
     learn.add_argument(
@@ -141,7 +142,8 @@ def _learn(args: argparse.Namespace, config: Config) -> int:
         c = learned.calibrated
         print(
             f"folds:      {len(c.folds)} ({c.groups} left out); tau placed {c.position:g} of the way to the "
-            "next wrong detection"
+            f"next wrong detection; keyframes tolerate {c.spare} mismatch{'es' if c.spare != 1 else ''} more "
+            "than the folds need"
         )
     for i, (name, cls) in enumerate(library.classes.items()):
         print(f"{'classes:' if i == 0 else '':<11} {name}: {_mode(cls)}; tau {_describe(cls.provenance)}")
@@ -152,7 +154,12 @@ def _learn(args: argparse.Namespace, config: Config) -> int:
 def _mode(cls: ClassTemplate) -> str:
     if cls.mode == GATED:
         assert cls.keyframes is not None
-        return f"{len(cls.keyframes.keyframes)} keyframes gate it ({cls.mode_reason or cls.keyframe_source})"
+        why = cls.mode_reason or cls.keyframe_source
+        return (
+            why
+            if why.startswith("keyframes first")
+            else f"keyframes first, {len(cls.keyframes.keyframes)} ({why})"
+        )
     return f"stream-wide DTW ({cls.mode_reason})" if cls.mode_reason else "stream-wide DTW"
 
 

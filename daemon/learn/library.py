@@ -108,7 +108,7 @@ def learn_library(
             )
         else:
             found = calibrated.classes[name]
-            gate = found.keyframes
+            gate = None if found.keyframes is None else found.keyframes.generalisation
             own = (
                 items
                 if found.members is None
@@ -130,10 +130,19 @@ def learn_library(
             if found.members is not None and found.second is not None:
                 second = [i for i, c in enumerate(found.members) if c == 1]
                 template = learn([items[i][1] for i in second], delta=delta, keyframes=0).quantised
+                # the gate opens for both styles: its keyframes come from every example, as in the folds
+                query = (
+                    None
+                    if gate is None
+                    else learn(
+                        [m for _, m in items], keyframes=keyframes, name=name, rate=rate, generalisation=gate
+                    ).keyframes
+                )
                 cls = dataclasses.replace(
                     cls,
                     training=tuple(clip for clip, _ in items),
                     variants=(Variant(template, found.second.tau, found.second, tuple(second)),),
+                    keyframes=query,
                 )
         if name in given_keyframes:
             cls = dataclasses.replace(

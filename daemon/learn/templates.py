@@ -405,19 +405,25 @@ class Generalisation:
     columns of the keyframe's (a new person's timing differs), and at most ``fixed`` of them (None:
     all), those the hard MT keeps longest around the column (a new person's style differs in some);
     observed gaps m .. M become ⌊m / (1 + margin)⌋ .. ⌈M (1 + margin)⌉ before δ and σ are derived (a
-    new person's tempo differs); keyframes lie at least ``min_gap`` frames apart in every example.
-    The defaults are the thesis' rule (ch. 6), exact for the training clips."""
+    new person's tempo differs); keyframes lie at least ``min_gap`` frames apart in every example;
+    ``count`` keyframes (None: the count asked for); a frame matches a keyframe when at most
+    ``mismatches`` of its fixed features differ (a new person misses some; capped at one fewer than
+    the keyframe fixes). The defaults are the thesis' rule (ch. 6), exact for the training clips."""
 
     window: int = 0
     margin: float = 0.0
     min_gap: int = 0
     fixed: int | None = None
+    count: int | None = None
+    mismatches: int = 0
 
     def __post_init__(self) -> None:
-        if self.window < 0 or self.min_gap < 0 or not self.margin >= 0:
-            raise ValueError(f"window, margin and min_gap must not be negative, got {self}")
+        if self.window < 0 or self.min_gap < 0 or not self.margin >= 0 or self.mismatches < 0:
+            raise ValueError(f"window, margin, min_gap and mismatches must not be negative, got {self}")
         if self.fixed is not None and self.fixed < 1:
             raise ValueError(f"fixed must be at least 1, got {self.fixed}")
+        if self.count is not None and self.count < 1:
+            raise ValueError(f"count must be at least 1, got {self.count}")
 
 
 THESIS_KEYFRAMES = Generalisation()
@@ -468,13 +474,14 @@ def automatic_keyframes(
     (δ_k, σ_k) by :func:`gap_parameters`. The first keyframe sits at its column, each next one δ_k
     later; ``template_length`` is the hard MT's length. Every example then contains a hit of the
     query (no false negative on the training set). ``generalisation`` widens this for new people
-    (:class:`Generalisation`: fewer fixed features, wider gaps, a minimum gap); every training
-    example still contains a hit. ``aligned``: :func:`aligned_frames` of every example, shape
-    ``(examples, K)``, if already at hand."""
+    (:class:`Generalisation`: fewer fixed features, wider gaps, a minimum gap, its own count,
+    mismatches); every training example still contains a hit. ``aligned``: :func:`aligned_frames`
+    of every example, shape ``(examples, K)``, if already at hand."""
     if not examples:
         raise ValueError("automatic keyframes need the training examples")
     _check_feature_count(hard)
     g = generalisation
+    count = count if g.count is None else g.count
     if aligned is None:
         aligned = np.stack([aligned_frames(hard, e) for e in examples])  # (examples, K)
     source = stable_template(hard, g.window) if g.window else hard
@@ -491,7 +498,10 @@ def automatic_keyframes(
     for k, (column, feature_set) in enumerate(chosen):
         values = tuple(float(v) for v in most_stable(source, column, SET_SLICES[feature_set], g.fixed))
         stiffness = params[k][1] if k < len(params) else None
-        keyframes.append(Keyframe(feature_set, values, position, stiffness))
+        fixed = sum(v != 0.5 for v in values)
+        keyframes.append(
+            Keyframe(feature_set, values, position, stiffness, min(g.mismatches, max(0, fixed - 1)))
+        )
         if k < len(params):
             position += params[k][0]
     return KeyframeQuery(name, tuple(keyframes), float(rate), hard.length)
