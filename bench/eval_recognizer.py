@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import dataclasses
 import math
 import os
 import random
@@ -55,7 +56,7 @@ from bench.machine import describe
 from daemon.dtw import local_minima, pack, retrieval_tables, subsequence_codes, to_cost
 from daemon.features import features
 from daemon.frames import FrameClock
-from daemon.library import GATED, Library, load_library
+from daemon.library import DTW, GATED, Library, load_library
 from daemon.recognizer import Detection, Recognizer, gate_ranges, same_motion
 from daemon.recordings import native_rate, read_recording
 from daemon.templates import expand
@@ -226,6 +227,8 @@ class Tally:
     found: int = 0
     gate_opened: int = 0
     gated: int = 0
+    other_frames: int = 0
+    other_covered: int = 0
     misses: Counter[str] = field(default_factory=Counter)
 
 
@@ -280,8 +283,12 @@ def why_missed(library: Library, s: Stream, seg: Segment, detections: Sequence[D
     return "beaten by a match that was not published"
 
 
-def measure(library: Library, fold: Fold, results: Results) -> None:
-    kind = fold.kind
+def stream_wide(library: Library) -> Library:
+    """The same library with every class recognised by the stream-wide DTW alone."""
+    return Library(library.rate, {n: dataclasses.replace(c, mode=DTW) for n, c in library.classes.items()})
+
+
+def measure(library: Library, fold: Fold, results: Results, kind: str) -> None:
     for s in fold.streams:
         detections = recognise(library, s)
         for d in detections:
@@ -289,7 +296,9 @@ def measure(library: Library, fold: Fold, results: Results) -> None:
             t.detections += 1
             t.right += any(inside(d.start_frame, d.end_frame, d.class_name, seg) for seg in s.truth)
         clock = FrameClock.of(s.rate, library.rate)
-        codes: list[int] | None = None
+        first = int(s.motion.frames[0])
+        codes = pack(features(joint_positions(s.motion), JOINT_NAMES, s.rate)[:: clock.step]).tolist()
+        segments = [(seg, clock.index(first, seg.start), clock.index(first, seg.end)) for seg in s.truth]
         for seg in s.truth:
             if seg.name not in library.classes:
                 continue
@@ -302,20 +311,26 @@ def measure(library: Library, fold: Fold, results: Results) -> None:
                     results.latency[f"{kind} motion"].append(min(d.emitted_at_frame for d in hits) - seg.end)
             else:
                 t.misses[why_missed(library, s, seg, detections)] += 1
-            cls = library.classes[seg.name]
-            if cls.mode == GATED:
-                assert cls.keyframes is not None
-                if codes is None:
-                    codes = pack(
-                        features(joint_positions(s.motion), JOINT_NAMES, s.rate)[:: clock.step]
-                    ).tolist()
-                first = int(s.motion.frames[0])
-                lo, hi = clock.index(first, seg.start), clock.index(first, seg.end)
-                ranges = gate_ranges(
-                    cls.keyframes, library.rate, RecognitionSettings().max_gap(library.rate), codes
-                )
-                t.gated += 1
-                t.gate_opened += any(a <= hi and lo <= b for a, b in ranges)
+        for name, cls in library.classes.items():
+            if cls.mode != GATED:
+                continue
+            assert cls.keyframes is not None
+            ranges = gate_ranges(
+                cls.keyframes, library.rate, RecognitionSettings().max_gap(library.rate), codes
+            )
+            covered = np.zeros(len(codes) + 1, dtype=np.int64)
+            for a, b in ranges:  # ranges end at their frame, so marking each [a, b] is a difference array
+                covered[a] += 1
+                covered[b + 1] -= 1
+            inside_gate = np.cumsum(covered)[:-1] > 0
+            t = results.tally(kind, name)
+            for seg, lo, hi in segments:
+                if seg.name == name:
+                    t.gated += 1
+                    t.gate_opened += any(a <= hi and lo <= b for a, b in ranges)
+                else:
+                    t.other_frames += hi - lo + 1
+                    t.other_covered += int(inside_gate[lo : hi + 1].sum())
         results.latency[f"{kind} detection"] += [d.emitted_at_frame - d.end_frame for d in detections]
     for name, cls in library.classes.items():
         results.modes.setdefault(kind, {}).setdefault(name, []).append(
@@ -353,6 +368,8 @@ def table(kind: str, results: Results, classes: Sequence[str]) -> None:
     if gated:
         print("  keyframe gate, left-out motions a keyframe match overlapped: " + ", ".join(
             f"{n} {t.gate_opened}/{t.gated}" for n, t in gated))  # fmt: skip
+        print("  keyframe gate, share of other classes' motion frames inside an open gate: " + ", ".join(
+            f"{n} {t.other_covered / t.other_frames:.1%}" for n, t in gated if t.other_frames))  # fmt: skip
     misses = [(n, t.misses) for n, t in tallies.items() if t.misses]
     for n, m in misses:
         print(f"  missed {n}: " + "; ".join(f"{c} x {why}" for why, c in m.most_common()))
@@ -404,11 +421,13 @@ def main() -> None:
             for f, (library, seconds) in zip(folds, pool.map(run, range(len(folds))), strict=True):
                 print(f"{f.kind} {f.name}: learned in {seconds:.0f} s", file=sys.stderr, flush=True)
                 results.learn_s.append(seconds)
-                measure(library, f, results)
+                measure(library, f, results, f.kind)
+                measure(stream_wide(library), f, results, f"{f.kind} stream-wide")
     classes = [*HDM05_CLASSES, *mocap6.CLASSES]
     for kind in ("HDM05", "CMU", "HDM05 one actor", "CMU one actor"):
-        if kind in results.tallies:
-            table(kind, results, classes)
+        for mode in ("", " stream-wide"):
+            if kind + mode in results.tallies:
+                table(kind + mode, results, classes)
     print("\nlatency at 120 Hz:")
     for key, frames in results.latency.items():
         print(f"  {key + ':':<32} {percentiles(frames, 120.0)}")
