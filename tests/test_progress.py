@@ -297,8 +297,10 @@ def gates(library: Library) -> dict[str, int]:
 
 def gated_and_high(events: list[Detection | ProgressEvent], gated: dict[str, int]) -> int:
     """Every detection of a gated class (name: keyframes) comes after (or with) an event that shows
-    its class's whole hit; every detection's class was shown at least :data:`HIGH` along its
-    template from the detection's first frame on, before it. The detections checked."""
+    a whole hit of its class (one hit, its range growing while its last keyframe holds, may gate
+    several detections of a repeated motion); every detection's class was shown at least
+    :data:`HIGH` along its template from the detection's first frame on, before it. The detections
+    checked."""
     whole: set[str] = set()
     best: dict[str, list[tuple[int, float]]] = {}
     checked = 0
@@ -312,7 +314,6 @@ def gated_and_high(events: list[Detection | ProgressEvent], gated: dict[str, int
         name = item.class_name
         if name in gated:
             assert name in whole, f"{name} {item.start_frame}-{item.end_frame}: no whole hit shown before it"
-            whole.discard(name)  # the next detection needs a hit of its own shown
         shown = [p for frame, p in best.get(name, []) if frame >= item.start_frame]
         assert max(shown, default=0.0) >= HIGH, (name, item.start_frame, item.end_frame, shown)
         checked += 1
@@ -321,10 +322,10 @@ def gated_and_high(events: list[Detection | ProgressEvent], gated: dict[str, int
 
 @pytest.mark.parametrize("pair", CMU_TRIALS, ids=lambda p: p[1].name.split(".")[0])
 def test_on_cmu_trials_detections_come_after_their_progress(pair: tuple[Path, Path]) -> None:
-    """The shipped library (kickLFront1Reps gated by 3 keyframes) on the CMU trials."""
+    """The shipped library (every class keyframes first but ToeTouchOneHand) on the CMU trials."""
     events = detect_progress(read_recording(*pair), shipped(), 120.0)
     gated = gates(shipped())
-    assert gated == {"kickLFront1Reps": 3}
+    assert len(gated) == 17 and "ToeTouchOneHand" not in gated
     assert gated_and_high(events, gated) > 5
 
 
