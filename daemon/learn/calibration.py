@@ -639,8 +639,8 @@ def gated(
 @dataclass(frozen=True)
 class Opening:
     """Where a keyframe gate opens over a fold's stream: the ``ranges`` :func:`gate_ranges` gives,
-    which frames lie inside one (``covered``, shape ``(N,)``) and the frame each match completes at
-    (``completed``, one per match)."""
+    which frames lie inside one (``covered``, shape ``(N,)``) and the frames matches complete at
+    (``completed``: per range start, the first frame a range from it is reported at)."""
 
     ranges: tuple[tuple[int, int], ...]
     covered: npt.NDArray[np.bool_]

@@ -16,6 +16,7 @@ Pure: numpy in, frozen dataclasses out; no I/O.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -498,10 +499,8 @@ def automatic_keyframes(
     for k, (column, feature_set) in enumerate(chosen):
         values = tuple(float(v) for v in most_stable(source, column, SET_SLICES[feature_set], g.fixed))
         stiffness = params[k][1] if k < len(params) else None
-        fixed = sum(v != 0.5 for v in values)
-        keyframes.append(
-            Keyframe(feature_set, values, position, stiffness, min(g.mismatches, max(0, fixed - 1)))
-        )
+        exact = Keyframe(feature_set, values, position, stiffness)
+        keyframes.append(dataclasses.replace(exact, mismatches=min(g.mismatches, exact.max_mismatches)))
         if k < len(params):
             position += params[k][0]
     return KeyframeQuery(name, tuple(keyframes), float(rate), hard.length)
