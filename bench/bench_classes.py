@@ -56,12 +56,11 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from bench.common import arguments
+from bench.common import arguments, shipped_library
 from bench.machine import describe
 from bench.processes import rss_kib
 from daemon.bank import RecognizerBank
-from daemon.errors import MocapdError
-from daemon.library import DTW, GATED, ClassTemplate, Library, default_library_path, load_library
+from daemon.library import DTW, GATED, ClassTemplate, Library
 from daemon.recognizer import Recognizer, gate_automaton, plans, recording_stage
 from daemon.recordings import read_recording
 from daemon.service.app import release_memory
@@ -309,11 +308,7 @@ def table(rows: list[Row]) -> None:
 def main() -> None:
     args = arguments(__doc__, streams=100, ticks=600, most=1000, **{"big-frames": 2000, "big-ticks": 300})
     print(describe())
-    try:
-        shipped = load_library(default_library_path())
-    except MocapdError as e:
-        print(f"no shipped library ({e}); build it with python -m bench.shipped_library")
-        raise SystemExit(1) from None
+    shipped = shipped_library()
     asf, amc = (args.data / p for p in RECORDING)
     motion = read_recording(asf, amc)
     bare = [c.name for c in shipped.classes.values() if c.keyframes is None]

@@ -36,12 +36,11 @@ from collections.abc import Callable
 
 import numpy as np
 
-from bench.common import arguments, best_of
+from bench.common import arguments, best_of, shipped_library
 from bench.machine import describe
 from daemon.bank import RecognizerBank
-from daemon.errors import MocapdError
 from daemon.features.compiler import compiled
-from daemon.library import Library, default_library_path, load_library
+from daemon.library import Library
 from daemon.recognizer import Recognizer, plans
 from daemon.recordings import read_recording
 from replay import JOINT_NAMES, Motion
@@ -220,11 +219,7 @@ def many_streams(library: Library, motions: list[Motion], sizes: list[int], tick
 def main() -> None:
     args = arguments(__doc__, ticks=240, recordings=24, most=400)
     print(describe())
-    try:
-        library = load_library(default_library_path())
-    except MocapdError as e:
-        print(f"no shipped library ({e}); build it with python -m bench.shipped_library")
-        raise SystemExit(1) from None
+    library = shipped_library()
     pairs = recordings(args.data, CMU_SUBSTITUTES)
     chosen = pairs[:: max(1, len(pairs) // args.recordings)][: args.recordings]
     motions = [read_recording(asf, amc) for asf, amc in chosen]

@@ -10,6 +10,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
+from daemon.errors import MocapdError
+from daemon.library import Library, default_library_path, load_library
 from daemon.recordings import motion_features
 from daemon.types import BoolArray, FloatArray
 from replay import KinematicModel, Motion, Skeleton, read_amc, read_asf
@@ -17,6 +19,15 @@ from replay.catalog import CMU_SUBSTITUTES, recordings
 from replay.kinematics import joint_positions
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "mocap"
+
+
+def shipped_library() -> Library:
+    """The library mocapd ships, or exit 1 saying how to build it."""
+    try:
+        return load_library(default_library_path())
+    except MocapdError as e:
+        print(f"no shipped library ({e}); build it with python -m bench.shipped_library")
+        raise SystemExit(1) from None
 
 
 def best_of(repeat: int, run: Callable[[], object]) -> float:
