@@ -4,6 +4,7 @@ of manifests. The recordings are read in place from ../shared/data/mocap, never 
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import functools
 import getpass
@@ -19,7 +20,7 @@ import threading
 import time
 import urllib.error
 import urllib.request
-from collections.abc import Callable, Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -221,6 +222,24 @@ def small_library(where: Path) -> Library:
 
 
 # ------------------------------------------------------------------------ the service's real parts
+
+
+@contextlib.contextmanager
+def raw_publisher(address: str, linger_ms: int = 5000) -> Iterator[Any]:
+    """An XPUB socket connected to a daemon's ZeroMQ poses ``address``, yielded once the daemon's
+    subscription has arrived (so nothing sent is dropped for want of a subscriber); closed after."""
+    import zmq
+
+    ctx = zmq.Context()
+    sock = ctx.socket(zmq.XPUB)
+    sock.setsockopt(zmq.LINGER, linger_ms)
+    try:
+        sock.connect(address)
+        assert sock.poll(10_000) and sock.recv()[:1] == b"\x01", "the daemon did not subscribe"
+        yield sock
+    finally:
+        sock.close()
+        ctx.term()
 
 
 def wait_for(condition: Callable[[], bool], timeout: float, what: str, step: float = 0.02) -> None:

@@ -17,7 +17,6 @@ import msgpack
 import numpy as np
 import paho.mqtt.client as paho
 import pytest
-import zmq
 from paho.mqtt.enums import CallbackAPIVersion
 
 from daemon.config import Config
@@ -28,7 +27,7 @@ from daemon.service.app import Service
 from protocols.messages import PoseMessage, SkeletonMessage, encode
 from protocols.transport import Incoming
 from replay import JOINT_NAMES
-from tests.helpers import DATA, Broker, Daemon, detection_keys, finished, replay, wait_for
+from tests.helpers import DATA, Broker, Daemon, detection_keys, finished, raw_publisher, replay, wait_for
 
 TRIAL = (DATA / "cmu" / "13" / "13.asf", DATA / "cmu" / "13" / "13_30.amc.gz")
 BIG_QUEUE: dict[str, dict[str, object]] = {"service": {"queue_frames": 100_000}}
@@ -75,38 +74,33 @@ def test_nested_values_beside_a_good_stream_stop_nothing(tmp_path: Path, workers
     own topics: the daemon (and every worker) lives, each is refused and counted, none is an
     internal error, and the stream's detections are exactly ``mocapd detect``'s."""
     daemon = Daemon(tmp_path, config=BIG_QUEUE, workers=workers).start()
-    ctx = zmq.Context()
-    sock = ctx.socket(zmq.XPUB)
-    sock.setsockopt(zmq.LINGER, 5000)
-    sock.connect(daemon.poses)
     try:
-        assert sock.poll(10_000), "the daemon did not subscribe"
-        sock.recv()
-        bad = hostile("good")
-        for frames in bad:
-            sock.send_multipart(frames)
-        sent = len(bad)
-        running = replay(*TRIAL, "zmq+" + daemon.poses, stream="good", speed="4")
-        while running.poll() is None:
+        with raw_publisher(daemon.poses) as sock:
+            bad = hostile("good")
             for frames in bad:
                 sock.send_multipart(frames)
-            sent += len(bad)
-            time.sleep(0.25)
-        finished(running)
-        wait_for(lambda: daemon.metrics().get("mocapd_frames_in_total") == 2465, 60, "every pose received")
-        wait_for(lambda: rejected(daemon.metrics()) >= sent, 10, "every hostile message refused")
-        m = daemon.metrics()
-        assert daemon.alive
-        assert rejected(m) == sent and m.get('mocapd_rejects_total{reason="internal"}', 0) == 0
-        if workers > 1:
-            assert sum(v for k, v in m.items() if k.startswith("mocapd_worker_restarts_total")) == 0
-            assert m.get('mocapd_drops_total{reason="worker_down"}', 0) == 0
-        assert daemon.stop() == 0
-        assert detection_keys(daemon.detections_printed()) == expected()
-        assert not [e for e in daemon.logs() if e["level"] == "error"]
+            sent = len(bad)
+            running = replay(*TRIAL, "zmq+" + daemon.poses, stream="good", speed="4")
+            while running.poll() is None:
+                for frames in bad:
+                    sock.send_multipart(frames)
+                sent += len(bad)
+                time.sleep(0.25)
+            finished(running)
+            wait_for(
+                lambda: daemon.metrics().get("mocapd_frames_in_total") == 2465, 60, "every pose received"
+            )
+            wait_for(lambda: rejected(daemon.metrics()) >= sent, 10, "every hostile message refused")
+            m = daemon.metrics()
+            assert daemon.alive
+            assert rejected(m) == sent and m.get('mocapd_rejects_total{reason="internal"}', 0) == 0
+            if workers > 1:
+                assert sum(v for k, v in m.items() if k.startswith("mocapd_worker_restarts_total")) == 0
+                assert m.get('mocapd_drops_total{reason="worker_down"}', 0) == 0
+            assert daemon.stop() == 0
+            assert detection_keys(daemon.detections_printed()) == expected()
+            assert not [e for e in daemon.logs() if e["level"] == "error"]
     finally:
-        sock.close()
-        ctx.term()
         daemon.stop()
 
 

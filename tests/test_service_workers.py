@@ -38,6 +38,7 @@ from tests.helpers import (
     finished,
     hdm05_clip,
     mocapd,
+    raw_publisher,
     replay,
     takes,
     wait_for,
@@ -281,24 +282,18 @@ def test_what_the_front_cannot_route_whole_is_refused_and_counted_once(tmp_path:
     undecoded and are refused by a worker as the single process refuses them; ``/metrics`` sums
     the workers' counts."""
     daemon = Daemon(tmp_path, workers=2).start()
-    ctx = zmq.Context()
-    sock = ctx.socket(zmq.XPUB)
-    sock.setsockopt(zmq.LINGER, 1000)
     try:
-        sock.connect(daemon.poses)
-        assert sock.poll(10_000) and sock.recv()[:1] == b"\x01"
-        sock.send_multipart([b"mocap/x/pose", b"a", b"b"])
-        sock.send_multipart([b"mocap/y/pose", b"\xc1 not msgpack"])
-        sock.send_multipart([b"mocap/z/pose"])
-        wait_for(
-            lambda: daemon.metrics().get('mocapd_rejects_total{reason="undecodable"}') == 3,
-            10,
-            "three undecodable messages counted",
-        )
-        assert daemon.stop() == 0
+        with raw_publisher(daemon.poses, linger_ms=1000) as sock:
+            sock.send_multipart([b"mocap/x/pose", b"a", b"b"])
+            sock.send_multipart([b"mocap/y/pose", b"\xc1 not msgpack"])
+            sock.send_multipart([b"mocap/z/pose"])
+            wait_for(
+                lambda: daemon.metrics().get('mocapd_rejects_total{reason="undecodable"}') == 3,
+                10,
+                "three undecodable messages counted",
+            )
+            assert daemon.stop() == 0
     finally:
-        sock.close()
-        ctx.term()
         daemon.stop()
 
 
@@ -376,29 +371,23 @@ def test_a_message_that_breaks_a_worker_leaves_only_json_on_stderr(tmp_path: Pat
     sent to ``run --workers 2``: whatever the worker makes of it, every line on stderr is one JSON
     object, and the daemon serves on. Before: the worker's traceback, dozens of lines."""
     daemon = Daemon(tmp_path, workers=2).start()
-    ctx = zmq.Context()
-    sock = ctx.socket(zmq.XPUB)
-    sock.setsockopt(zmq.LINGER, 1000)
     try:
-        sock.connect(daemon.poses)
-        assert sock.poll(10_000) and sock.recv()[:1] == b"\x01"
-        body = {"v": nested(1000), "type": "pose", "stream": "deep", "seq": 1, "time": 1.0}
-        sock.send_multipart([b"mocap/deep/pose", msgpack.packb(body)])
+        with raw_publisher(daemon.poses, linger_ms=1000) as sock:
+            body = {"v": nested(1000), "type": "pose", "stream": "deep", "seq": 1, "time": 1.0}
+            sock.send_multipart([b"mocap/deep/pose", msgpack.packb(body)])
 
-        def handled() -> bool:  # the worker failed and was started again, or refused the message
-            logs = daemon.logs()
-            return any(e["event"] == "worker exited" for e in logs) or any(
-                e["event"] == "refused" and e["stream"] == "deep" for e in logs
-            )
+            def handled() -> bool:  # the worker failed and was started again, or refused the message
+                logs = daemon.logs()
+                return any(e["event"] == "worker exited" for e in logs) or any(
+                    e["event"] == "refused" and e["stream"] == "deep" for e in logs
+                )
 
-        wait_for(handled, 30, "the nested message handled")
-        wait_for(lambda: daemon.health()[0] == 200, 30, "serving again")
-        lines = stderr_lines(daemon)
-        failed = [e for e in lines if e["event"] == "internal error"]
-        assert all(e["worker"] == worker_of("deep", 2) for e in failed)
-        assert daemon.stop() == 0
-        stderr_lines(daemon)  # to the end
+            wait_for(handled, 30, "the nested message handled")
+            wait_for(lambda: daemon.health()[0] == 200, 30, "serving again")
+            lines = stderr_lines(daemon)
+            failed = [e for e in lines if e["event"] == "internal error"]
+            assert all(e["worker"] == worker_of("deep", 2) for e in failed)
+            assert daemon.stop() == 0
+            stderr_lines(daemon)  # to the end
     finally:
-        sock.close()
-        ctx.term()
         daemon.stop()
