@@ -931,13 +931,13 @@ def slow_scored(
 class GateFold(NamedTuple):
     """A fold as plain values for :func:`slow_gate`: its candidates, the class of each template, its
     motions, its stream's codes and, for the class gated, each keyframe trial as (generalisation,
-    query, left-out examples of the class kept, examples of other classes kept)."""
+    query, left-out examples of the class kept)."""
 
     candidates: list[FoldCandidate]
     owner: Sequence[int]
     truth: Sequence[tuple[int, int, int]]
     codes: list[int]
-    trials: list[tuple[Generalisation, KeyframeQuery, list[bool], int]]
+    trials: list[tuple[Generalisation, KeyframeQuery, list[bool]]]
 
 
 def slow_gate(
@@ -968,14 +968,14 @@ def slow_gate(
         detections.append(mine)
     tried: list[Generalisation] = []
     for f in folds:
-        for g, _, _, _ in f.trials:
+        for g, _, _ in f.trials:
             if g not in tried:
                 tried.append(g)
 
     def run(g: Generalisation) -> tuple[bool, int, float]:
         qualifies, wrong_g, covered, frames = True, 0, 0, 0
         for f, mine in zip(folds, detections, strict=True):
-            for generalisation, query, kept_examples, _ in f.trials:
+            for generalisation, query, kept_examples in f.trials:
                 if generalisation != g:
                     continue
                 if kept_examples and sum(kept_examples) < min_kept * len(kept_examples):

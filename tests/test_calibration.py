@@ -581,7 +581,7 @@ def test_calibration_leaves_each_actor_out(labelled: Labelled, calibrated: Calib
             assert expected, (f.group, name)
             trials = f.trials[k]
             assert [t.generalisation for t in trials] == list(designs(3))
-            assert all(t.positives.shape == (2,) and 0 <= t.negatives <= 2 for t in trials)
+            assert all(t.positives.shape == (2,) for t in trials)
     # τ: the position by nested folds, the thresholds over all folds
     assert (calibrated.position, dict(calibrated.position_f1)) == choose_position(found)
     assert calibrated.position in POSITIONS and set(calibrated.position_f1) == set(POSITIONS)
@@ -637,7 +637,7 @@ def gate_of(
                 f.owner,
                 f.truth,
                 f.codes.tolist(),
-                [(t.generalisation, t.query, t.positives.tolist(), t.negatives) for t in f.trials[k]],
+                [(t.generalisation, t.query, t.positives.tolist()) for t in f.trials[k]],
             )
             for f in found
         ],
@@ -720,7 +720,7 @@ def test_no_gate_without_folds_or_keyframes_that_hold() -> None:
     fold = fold_of("g", [(0, 0, 9)], [(0.05, 9, 0, 0)], owner=(0,), learned=frozenset({0}))
     assert choose_gate([fold], 0, [0.1]) == (None, "no fold to learn keyframes on: stream-wide DTW")
     assert choose_gate([], 0, [0.1]) == (None, "no fold to learn keyframes on: stream-wide DTW")
-    trial = KeyframeTrial(designs(3)[0], None, np.array([True, False]), 0)  # type: ignore[arg-type]
+    trial = KeyframeTrial(designs(3)[0], None, np.array([True, False]))  # type: ignore[arg-type]
     with_trials = make_fold(
         "g", fold.codes, fold.truth, fold.owner, fold.candidates, fold.learned, {0: (trial,)}
     )

@@ -184,13 +184,11 @@ class Candidate(NamedTuple):
 @dataclass(frozen=True)
 class KeyframeTrial:
     """Keyframes learned with ``generalisation`` in one fold: which of the left-out group's
-    examples of the class they keep (``positives``, ``(P,)``) and how many of its examples of other
-    classes (``negatives``)."""
+    examples of the class they keep (``positives``, ``(P,)``)."""
 
     generalisation: Generalisation
     query: KeyframeQuery
     positives: npt.NDArray[np.bool_]
-    negatives: int
 
 
 @dataclass(frozen=True)
@@ -344,18 +342,13 @@ def folds(
             candidates += stream_candidates(result.quantised, codes, steps, k)
             positives = [m for g, m in examples[name] if g == group]
             if keyframes and positives:
-                negatives = [
-                    m for other, items in examples.items() if other != name for g, m in items if g == group
-                ]
-                pos_sets, neg_sets = clip_sets(positives), clip_sets(negatives)
+                pos_sets = clip_sets(positives)
                 hard = result.hard.template
                 aligned = np.stack([aligned_frames(hard, m) for m in training])
                 made = []
                 for g in tried:
                     query = automatic_keyframes(hard, training, keyframes, name, rate, g, aligned)
-                    kept = keyframes_kept(query, pos_sets, rate)
-                    others = int(keyframes_kept(query, neg_sets, rate).sum())
-                    made.append(KeyframeTrial(g, query, kept, others))
+                    made.append(KeyframeTrial(g, query, keyframes_kept(query, pos_sets, rate)))
                 trials[k] = tuple(made)
         if not any(k in learned for k, _, _ in truth):
             continue
