@@ -24,7 +24,7 @@ detect`` runs (the configuration's defaults).
   from subject 14 and detected on 13_29 and 13_30.
 
 Printed: per class precision and recall (detections), pooled; every missed motion explained (no
-match within τ, with the best cost; keyframe gate closed; beaten by another class's cheaper match;
+match within τ, with the best cost; no keyframe window around it; beaten by another class's cheaper match;
 the motion already taken by a detection); how each class is recognised in each fold's library and,
 for gated classes, the share of the left-out motions a keyframe match overlapped; the latency from
 a motion's last frame to its first right detection and from a detection's last frame to its
@@ -56,8 +56,8 @@ from bench.machine import describe
 from daemon.dtw import local_minima, pack, retrieval_tables, subsequence_codes, to_cost
 from daemon.features import features
 from daemon.frames import FrameClock
-from daemon.library import DTW, GATED, Library, load_library
-from daemon.recognizer import Detection, Recognizer, gate_ranges, same_motion
+from daemon.library import DTW, GATED, ClassTemplate, Library, load_library
+from daemon.recognizer import Detection, Recognizer, keyframe_windows, same_motion
 from daemon.recordings import native_rate, read_recording
 from daemon.templates import expand
 from daemon.tools import mocap6
@@ -269,11 +269,9 @@ def why_missed(library: Library, s: Stream, seg: Segment, detections: Sequence[D
         return f"no match within tau (best {best:.3f} vs {cls.tau:.3f})"
     if cls.mode == GATED:
         assert cls.keyframes is not None
-        ranges = gate_ranges(
-            cls.keyframes, library.rate, RecognitionSettings().max_gap(library.rate), codes.tolist()
-        )
-        if not any(a <= m.end and m.start <= b for m, _ in mine for a, b in ranges):
-            return "keyframe gate closed"
+        spans = class_windows(cls, library.rate, codes.tolist())
+        if not any(a <= m.start and m.end <= b for m, _ in mine for a, b in spans):
+            return "no keyframe window around it"
     for d in detections:
         a, b = clock.index(first, d.start_frame), clock.index(first, d.end_frame)
         if any(same_motion((m.start, m.end), (a, b)) and d.cost < m.cost for m, _ in mine):
@@ -281,6 +279,15 @@ def why_missed(library: Library, s: Stream, seg: Segment, detections: Sequence[D
                 f"beaten by {d.class_name}" if d.class_name != seg.name else "taken by a detection across it"
             )
     return "beaten by a match that was not published"
+
+
+def class_windows(cls: ClassTemplate, rate: float, codes: list[int]) -> list[tuple[int, int]]:
+    """The windows keyframe-first class ``cls`` opens over index-rate ``codes`` (first, last frame)."""
+    assert cls.keyframes is not None
+    made = keyframe_windows(
+        cls.keyframes, cls.hard.length, cls.slack, rate, RecognitionSettings().max_gap(rate), codes
+    )
+    return [(a, b) for a, b, _, _ in made]
 
 
 def stream_wide(library: Library) -> Library:
@@ -315,19 +322,15 @@ def measure(library: Library, fold: Fold, results: Results, kind: str) -> None:
             if cls.mode != GATED:
                 continue
             assert cls.keyframes is not None
-            ranges = gate_ranges(
-                cls.keyframes, library.rate, RecognitionSettings().max_gap(library.rate), codes
-            )
-            covered = np.zeros(len(codes) + 1, dtype=np.int64)
-            for a, b in ranges:  # ranges end at their frame, so marking each [a, b] is a difference array
-                covered[a] += 1
-                covered[b + 1] -= 1
-            inside_gate = np.cumsum(covered)[:-1] > 0
+            spans = class_windows(cls, library.rate, codes)
+            inside_gate = np.zeros(len(codes), dtype=bool)
+            for a, b in spans:
+                inside_gate[a : b + 1] = True
             t = results.tally(kind, name)
             for seg, lo, hi in segments:
                 if seg.name == name:
                     t.gated += 1
-                    t.gate_opened += any(a <= hi and lo <= b for a, b in ranges)
+                    t.gate_opened += any(a <= hi and lo <= b for a, b in spans)
                 else:
                     t.other_frames += hi - lo + 1
                     t.other_covered += int(inside_gate[lo : hi + 1].sum())
@@ -366,9 +369,9 @@ def table(kind: str, results: Results, classes: Sequence[str]) -> None:
     )
     gated = [(n, t) for n, t in tallies.items() if t.gated]
     if gated:
-        print("  keyframe gate, left-out motions a keyframe match overlapped: " + ", ".join(
+        print("  keyframes first, left-out motions a window overlapped: " + ", ".join(
             f"{n} {t.gate_opened}/{t.gated}" for n, t in gated))  # fmt: skip
-        print("  keyframe gate, share of other classes' motion frames inside an open gate: " + ", ".join(
+        print("  keyframes first, share of other classes' motion frames inside a window: " + ", ".join(
             f"{n} {t.other_covered / t.other_frames:.1%}" for n, t in gated if t.other_frames))  # fmt: skip
     misses = [(n, t.misses) for n, t in tallies.items() if t.misses]
     for n, m in misses:

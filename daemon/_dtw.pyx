@@ -347,6 +347,7 @@ cdef class StreamDTW:
         self.cols = np.empty((6, self.total), dtype=np.int64)
         self.costs = np.empty(self.most, dtype=np.int64)
         self.highest = np.empty((self.k, 3), dtype=np.int64)
+        self.active = np.ones(self.k, dtype=np.uint8)
         self.reset()
 
     def reset(self):
@@ -368,8 +369,8 @@ cdef class StreamDTW:
         if f < 0:
             return INF
         cdef Py_ssize_t slot = f % 3
-        if self.toolbox[t] != 0 and self.highest[t, slot] != self.lengths[t] - 1:
-            return INF  # the last row was not written this column
+        if self.highest[t, slot] != self.lengths[t] - 1:
+            return INF  # the last row was not written this column (or the template was inactive)
         return self.cols[2 * slot, self.offsets[t] + self.lengths[t] - 1]
 
     cdef int64_t _start(self, Py_ssize_t t, int64_t f) noexcept nogil:
@@ -387,38 +388,74 @@ cdef class StreamDTW:
         PyMem_Free(found)
         return out
 
+    cdef void _compute(self, Py_ssize_t t, uint64_t code, int64_t f) noexcept nogil:
+        """Template ``t``'s column of frame ``f`` (the two before it in their slots)."""
+        cdef Py_ssize_t o = self.offsets[t], m = self.lengths[t]
+        cdef Py_ssize_t cur = 2 * (f % 3), p1 = 2 * ((f + 2) % 3), p2 = 2 * ((f + 1) % 3)
+        if self.toolbox[t] != 0:
+            self.highest[t, f % 3] = _pruned_column(
+                self._masks[t], self._values[t], self._tables[t], self.widths[t], m, code, f,
+                self.thresholds[t], self.highest[t, (f + 2) % 3], self.highest[t, (f + 1) % 3],
+                &self.cols[cur, o], &self.cols[cur + 1, o], &self.cols[p1, o],
+                &self.cols[p1 + 1, o], &self.cols[p2, o], &self.cols[p2 + 1, o])
+        else:
+            _column(self._masks[t], self._values[t], self._tables[t], self.widths[t], m, code,
+                    False, False, f, &self.costs[0], &self.cols[cur, o], &self.cols[cur + 1, o],
+                    &self.cols[p1, o], &self.cols[p1 + 1, o], &self.cols[p2, o],
+                    &self.cols[p2 + 1, o])
+            self.highest[t, f % 3] = m - 1
+
+    cdef void _clear(self, Py_ssize_t t) noexcept nogil:
+        """Template ``t`` with no column: its three slots empty."""
+        cdef Py_ssize_t r, i, o = self.offsets[t]
+        for r in range(6):
+            for i in range(o, o + self.lengths[t]):
+                self.cols[r, i] = INF if r % 2 == 0 else NO_START
+        for r in range(3):
+            self.highest[t, r] = -1
+
+    cdef bint _minimum(self, Py_ssize_t t, int64_t e, Candidate *out) noexcept nogil:
+        """Whether template ``t``'s Δ at frame ``e`` is a local minimum within its threshold (the
+        frames around it among the last three pushed or replayed); if so it is written to ``out``."""
+        cdef int64_t d = self._last(t, e)
+        if d <= self.thresholds[t] and d < INF and d < self._last(t, e - 1) and d <= self._last(t, e + 1):
+            out.cost = d
+            out.end = e
+            out.member = t
+            out.start = self._start(t, e)
+            return True
+        return False
+
     cdef Py_ssize_t push_into(self, uint64_t code, Candidate *out) noexcept nogil:
-        """:meth:`push` into ``out`` (room for one per template): how many minima."""
-        cdef Py_ssize_t t, o, m, cur, p1, p2, found = 0
-        cdef int64_t f = self.n, d
-        cur = 2 * (f % 3)
-        p1 = 2 * ((f + 2) % 3)
-        p2 = 2 * ((f + 1) % 3)
+        """:meth:`push` into ``out`` (room for one per template): how many minima. A template that
+        is not :attr:`active` gets an empty column (every Δ :data:`INF`)."""
+        cdef Py_ssize_t t, found = 0
+        cdef int64_t f = self.n
         for t in range(self.k):
-            o = self.offsets[t]
-            m = self.lengths[t]
-            if self.toolbox[t] != 0:
-                self.highest[t, f % 3] = _pruned_column(
-                    self._masks[t], self._values[t], self._tables[t], self.widths[t], m, code, f,
-                    self.thresholds[t], self.highest[t, (f + 2) % 3], self.highest[t, (f + 1) % 3],
-                    &self.cols[cur, o], &self.cols[cur + 1, o], &self.cols[p1, o],
-                    &self.cols[p1 + 1, o], &self.cols[p2, o], &self.cols[p2 + 1, o])
+            if self.active[t] != 0:
+                self._compute(t, code, f)
             else:
-                _column(self._masks[t], self._values[t], self._tables[t], self.widths[t], m, code,
-                        False, False, f, &self.costs[0], &self.cols[cur, o], &self.cols[cur + 1, o],
-                        &self.cols[p1, o], &self.cols[p1 + 1, o], &self.cols[p2, o],
-                        &self.cols[p2 + 1, o])
-                self.highest[t, f % 3] = m - 1
+                self.highest[t, f % 3] = -1
         self.n = f + 1
         if f == 0:
             return 0
         for t in range(self.k):
-            d = self._last(t, f - 1)
-            if d <= self.thresholds[t] and d < INF and d < self._last(t, f - 2) and d <= self._last(t, f):
-                out[found].cost = d
-                out[found].end = f - 1
-                out[found].member = t
-                out[found].start = self._start(t, f - 1)
+            if self._minimum(t, f - 1, &out[found]):
+                found += 1
+        return found
+
+    cdef Py_ssize_t replay_into(self, Py_ssize_t t, int64_t a, int64_t lowest, const uint64_t *ring,
+                                Py_ssize_t cap, Candidate *out) noexcept nogil:
+        """Template ``t``'s columns computed anew from frame ``a`` (its Δ :data:`INF` before it) to
+        the last frame pushed, whose codes are ``ring[f % cap]``: the local minima ending at
+        ``lowest`` (at least ``a``) .. the frame before the last into ``out`` (room for one per
+        frame), how many."""
+        cdef int64_t f
+        cdef Py_ssize_t found = 0
+        self._clear(t)
+        for f in range(a, self.n):
+            self._compute(t, ring[f % cap], f)
+            if f > a and f > lowest and self._minimum(t, f - 1, &out[found]):
                 found += 1
         return found
 
@@ -657,37 +694,33 @@ cdef inline void put(int64_t *row, const Candidate *c) noexcept nogil:
 cdef class Competition:
     """The confirmations of one stream of index-rate codes (the algorithm
     :class:`daemon.recognizer.CodeRecognizer`'s docstring states, the same operations in the same
-    order) on C arrays: the stream-wide DTW of every template (``dtw``), the gated classes'
-    keyframe automata (``automata``: an :class:`~daemon._automaton.AutomatonSet` or None), the
+    order) on C arrays: the DTW of every template (``dtw``), the keyframe-first classes' automata
+    (``automata``: an :class:`~daemon._automaton.AutomatonSet` or None) and their windows, the
     candidates' competition and hold. ``owner`` ``(T,)``: each template's class; ``lo``, ``hi``
     ``(T,)``: the templates whose matches may beat its candidates; ``gated`` ``(G,)``: the class of
-    each automaton; ``memory``: the frames candidates and keyframe ranges are remembered
-    (:func:`daemon.recognizer.reach`). A confirmation is (class, start, end, fixed-point cost,
-    template). State: the DTW's columns, the automata's partial matches, and the candidates and
-    ranges of the last ``memory`` frames."""
+    each automaton, ``before``, ``after`` ``(G,)``: the frames its windows open before a match's
+    range and stay open after the frame that completes it; ``back``: how far back a window may
+    open; ``memory``: the frames candidates are remembered (:func:`daemon.recognizer.reach`). A
+    confirmation is (class, start, end, fixed-point cost, template). State: the DTW's columns, the
+    automata's partial matches, the codes of the last ``back`` + 1 frames, and the candidates of
+    the last ``memory`` frames."""
 
     def __cinit__(self):
         self.found = NULL
         self.scratch = NULL
-        self.windows = NULL
         self.held.data = NULL
         self.recent.data = NULL
         self.published.data = NULL
 
     def __dealloc__(self):
-        cdef Py_ssize_t g
         PyMem_Free(self.found)
         PyMem_Free(self.scratch)
-        if self.windows != NULL:
-            for g in range(self.n_gated):
-                PyMem_Free(self.windows[g].data)
-            PyMem_Free(self.windows)
         PyMem_Free(self.held.data)
         PyMem_Free(self.recent.data)
         PyMem_Free(self.published.data)
 
     def __init__(self, StreamDTW dtw, owner, lo, hi, bint compete, int64_t hold, int64_t memory,
-                 automata, gated):
+                 automata, gated, before=(), after=(), int64_t back=0):
         cdef Py_ssize_t g, k = dtw.k
         self.dtw = dtw
         self.owner = np.ascontiguousarray(owner, dtype=np.int64)
@@ -700,23 +733,30 @@ cdef class Competition:
         for g, c in enumerate(gated):
             slot[c] = g
         self.slot = slot
+        self.gated_of = np.array(list(gated) or [0], dtype=np.int64)
         self.n_gated = len(gated)
         if (self.n_gated > 0) != (automata is not None):
             raise ValueError("automata for the gated classes, and only for them")
+        if len(before) != self.n_gated or len(after) != self.n_gated:
+            raise ValueError("before and after need one entry per gated class")
+        if back < 0 or min(before, default=0) < 0 or min(after, default=0) < 0:
+            raise ValueError("a window's frames before and after, and how far back it opens, are >= 0")
         self.automata = automata
         self.compete = compete
         self.hold = hold
         self.memory = memory
-        self.found = <Candidate *> PyMem_Malloc(k * sizeof(Candidate))
+        self.back = back
+        self.ring = np.zeros(back + 1, dtype=np.uint64)
+        self.before = np.ascontiguousarray(before, dtype=np.int64)
+        self.after = np.ascontiguousarray(after, dtype=np.int64)
+        self.seg_s = np.full(max(1, self.n_gated), -1, dtype=np.int64)
+        self.seg_e = np.full(max(1, self.n_gated), -2, dtype=np.int64)
+        self.found_cap = k + back + 1
+        self.found = <Candidate *> PyMem_Malloc(self.found_cap * sizeof(Candidate))
         self.scratch_cap = 8
         self.scratch = <Candidate *> PyMem_Malloc(self.scratch_cap * sizeof(Candidate))
-        self.windows = <Buf *> PyMem_Malloc(max(1, self.n_gated) * sizeof(Buf))
-        if self.found == NULL or self.scratch == NULL or self.windows == NULL:
+        if self.found == NULL or self.scratch == NULL:
             raise MemoryError()
-        for g in range(self.n_gated):
-            self.windows[g].data = NULL
-        for g in range(self.n_gated):
-            buf_init(&self.windows[g], 2)
         cls_lo = np.full(classes, k, dtype=np.int64)
         cls_hi = np.zeros(classes, dtype=np.int64)
         for g in range(k):
@@ -725,6 +765,11 @@ cdef class Competition:
         self.cls_lo = cls_lo
         self.cls_hi = cls_hi
         self.n_classes = classes
+        initial = np.ones(k, dtype=np.uint8)
+        for c in gated:
+            initial[cls_lo[c]:cls_hi[c]] = 0
+        self.initial = initial
+        dtw.active[:] = self.initial
         self.hits = np.full((max(1, self.n_gated), HIT_FIELDS), -1, dtype=np.int64)
         self.hit_frames = [()] * self.n_gated
         self.last_pub = np.full((max(1, self.n_gated), 3), -1, dtype=np.int64)
@@ -735,72 +780,108 @@ cdef class Competition:
 
     @property
     def state_size(self):
-        """Candidates, detections and keyframe ranges remembered."""
-        cdef Py_ssize_t g, n = buf_len(&self.held) + buf_len(&self.recent) + buf_len(&self.published)
-        for g in range(self.n_gated):
-            n += buf_len(&self.windows[g])
-        return n
+        """Candidates and detections remembered."""
+        return buf_len(&self.held) + buf_len(&self.recent) + buf_len(&self.published)
+
+    def windows(self):
+        """Per keyframe-first class (automaton order): its window (first, last frame), or None if
+        it has none open at the last frame pushed."""
+        return [
+            (int(self.seg_s[g]), int(self.seg_e[g])) if self.seg_e[g] >= self.n - 1 >= 0 else None
+            for g in range(self.n_gated)
+        ]
 
     def push(self, uint64_t code):
         """The next code: the confirmations it made, in the order (end, start, class), or None."""
         return self.push_c(code)
 
     cdef list push_c(self, uint64_t code):
-        cdef int64_t j = self.n, first
-        cdef Py_ssize_t found = self.dtw.push_into(code, self.found), i, a, b
-        cdef Candidate y
-        cdef Buf *w
-        cdef int64_t *row
-        self.n += 1
+        cdef int64_t j = self.n, first, a, b
+        cdef Py_ssize_t found = 0, g, t
+        cdef StreamDTW dtw = self.dtw
+        self.ring[j % (self.back + 1)] = code
         if self.automata is not None:
-            for i, reached in self.automata.push(code):
-                w = &self.windows[i]
+            for g, reached in self.automata.push(code):
+                a = j
                 for first, _ in reached:
-                    if buf_len(w) and buf_row(w, -1)[0] == first and buf_row(w, -1)[1] == j - 1:
-                        buf_row(w, -1)[1] = j  # the same match, its range grown by a frame
-                    else:
-                        row = buf_append(w)
-                        row[0] = first
-                        row[1] = j
+                    a = min(a, max(first - self.before[g], j - self.back, 0))
+                found = self._open(g, a, j + self.after[g], j, found)
+            for g in range(self.n_gated):
+                if self.seg_e[g] == j - 1:  # its window closes: its templates' columns are empty from here
+                    for t in range(self.cls_lo[self.gated_class(g)], self.cls_hi[self.gated_class(g)]):
+                        dtw.active[t] = 0
+        found += dtw.push_into(code, &self.found[found])
+        self.n += 1
         if found:
-            for a in range(1, found):  # insertion sort: a handful, all ending at the same frame
-                y = self.found[a]
-                b = a - 1
-                while b >= 0 and before(&y, &self.found[b]):
-                    self.found[b + 1] = self.found[b]
-                    b -= 1
-                self.found[b + 1] = y
-            for a in range(found):
-                self._arrive(&self.found[a])
+            self._sort_found(found)
+            for t in range(found):
+                self._arrive(&self.found[t])
         out = self._decide(j, False) if buf_len(&self.held) else None
         self._forget(j)
         return out
 
+    cdef Py_ssize_t _open(self, Py_ssize_t g, int64_t a, int64_t b, int64_t j, Py_ssize_t found) except -1:
+        """A window ``a`` .. ``b`` of gated class ``g`` reported at frame ``j`` (before its column):
+        the class's open window extended to ``b``, or a new one from ``a`` whose templates' columns
+        are computed from there to frame ``j - 1`` from the ring; the minima that finds (those
+        ending after the last window) go to :attr:`found` after the ``found`` there, and their new
+        count."""
+        cdef Py_ssize_t t, k = self.gated_class(g), need
+        cdef int64_t lowest = self.seg_e[g] + 1
+        cdef Candidate *grown
+        if self.seg_e[g] >= j - 1:
+            if b > self.seg_e[g]:
+                self.seg_e[g] = b
+            return found
+        self.seg_s[g] = a
+        self.seg_e[g] = b
+        need = found + (self.cls_hi[k] - self.cls_lo[k]) * (j - a + 1) + self.dtw.k
+        if need > self.found_cap:
+            grown = <Candidate *> PyMem_Realloc(self.found, 2 * need * sizeof(Candidate))
+            if grown == NULL:
+                raise MemoryError()
+            self.found = grown
+            self.found_cap = 2 * need
+        for t in range(self.cls_lo[k], self.cls_hi[k]):
+            self.dtw.active[t] = 1
+            found += self.dtw.replay_into(t, a, lowest, &self.ring[0], self.back + 1, &self.found[found])
+        return found
+
+    cdef Py_ssize_t gated_class(self, Py_ssize_t g) noexcept nogil:
+        return self.gated_of[g]
+
+    cdef void _sort_found(self, Py_ssize_t found) noexcept nogil:
+        """:attr:`found`'s first ``found`` in the order (cost, end, member, start) (insertion sort:
+        a handful)."""
+        cdef Py_ssize_t a, b
+        cdef Candidate y
+        for a in range(1, found):
+            y = self.found[a]
+            b = a - 1
+            while b >= 0 and before(&y, &self.found[b]):
+                self.found[b + 1] = self.found[b]
+                b -= 1
+            self.found[b + 1] = y
+
     def flush(self):
         """The end of the stream: the confirmations left (as :meth:`push`'s); then a new stream."""
-        cdef Py_ssize_t found, a, b, g
-        cdef Candidate y
+        cdef Py_ssize_t found, a
         out = None
         if self.n:
             found = self.dtw.finish_into(self.found)
-            for a in range(1, found):
-                y = self.found[a]
-                b = a - 1
-                while b >= 0 and before(&y, &self.found[b]):
-                    self.found[b + 1] = self.found[b]
-                    b -= 1
-                self.found[b + 1] = y
+            self._sort_found(found)
             for a in range(found):
                 self._arrive(&self.found[a])
             out = self._decide(self.n - 1, True)
             self.dtw._reset()
+        self.dtw.active[:] = self.initial
         if self.automata is not None:
             self.automata.flush()
+        self.seg_s[:] = -1
+        self.seg_e[:] = -2
         self.hits[:, :] = -1
         self.last_pub[:, :] = -1
         self.hit_frames = [()] * self.n_gated
-        for g in range(self.n_gated):
-            buf_clear(&self.windows[g])
         buf_clear(&self.held)
         buf_clear(&self.recent)
         buf_clear(&self.published)
@@ -847,8 +928,6 @@ cdef class Competition:
         cdef Py_ssize_t i, kept = 0, final = 0, a, b, g, h = buf_len(&self.held)
         cdef Candidate x, y
         cdef int64_t k
-        cdef bint open_
-        cdef Buf *w
         cdef int64_t *row
         cdef Candidate *grown
         if h > self.scratch_cap:
@@ -887,15 +966,6 @@ cdef class Competition:
             k = self.owner[x.member]
             g = self.slot[k]
             if g >= 0:
-                w = &self.windows[g]
-                open_ = False
-                for i in range(buf_len(w)):
-                    row = buf_row(w, i)
-                    if row[0] <= x.end and x.start <= row[1]:
-                        open_ = True
-                        break
-                if not open_:
-                    continue
                 self.last_pub[g, 0] = x.start  # for progress: which keyframe hit gave a detection
                 self.last_pub[g, 1] = x.end
                 self.last_pub[g, 2] = j
@@ -999,13 +1069,9 @@ cdef class Competition:
 
     cdef void _forget(self, int64_t j) noexcept:
         """Drop what no candidate after frame ``j`` can be compared with: rivals and published
-        detections that end more than ``memory`` frames back, and keyframe ranges as old."""
+        detections that end more than ``memory`` frames back."""
         cdef int64_t forget = j - self.memory
-        cdef Py_ssize_t g
         while buf_len(&self.recent) and buf_row(&self.recent, 0)[1] < forget:
             self.recent.head += 1
         while buf_len(&self.published) and buf_row(&self.published, 0)[1] < forget:
             self.published.head += 1
-        for g in range(self.n_gated):
-            while buf_len(&self.windows[g]) and buf_row(&self.windows[g], 0)[1] < forget:
-                self.windows[g].head += 1

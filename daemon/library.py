@@ -10,7 +10,7 @@ A library is a directory::
                                               "iterations", "training": [clip, ...],
                                               "keyframes": [keyframe, ...],
                                               "mode", "mode_reason", "members": [member, ...],
-                                              ["keyframe_source": "published"]}}}
+                                              ["keyframe_source": "published"], ["slack": frames]}}}
     LIB/<name>.npz        soft, soft_weights, quantised, quantised_weights, hard, hard_weights
                           [, member1, member1_weights, ...]
 
@@ -30,6 +30,8 @@ the array ``member<i>`` its quantised template). ``sha256`` holds the SHA-256 of
 on loading, so arrays damaged, swapped or edited are refused. A class's arrays are read only when the
 class is loaded, so a damaged class file does not keep the others from being used.
 
+``slack`` (optional, 0 if absent) is the frames a keyframe-first class's confirmation window opens
+beyond its keyframe match's geometry (:func:`daemon.recognizer.window_extent`).
 ``keyframe_source`` (optional) says where the keyframes come from: absent or ``"learned"``, the
 automatic keyframes learned with the templates; ``"published"``, keyframes given to ``mocapd learn
 --keyframes FILE`` (e.g. the Bonn toolbox's ``manual-keyframes.json``, positions in the columns of
@@ -79,7 +81,7 @@ CLASS_KEYS_V3 = (*CLASS_KEYS_V2, "calibration")
 CLASS_KEYS = (*CLASS_KEYS_V3, "mode", "mode_reason", "members")
 CALIBRATION_KEYS = ("method", "folds", "positives", "negatives", "recall", "precision")
 MEMBER_KEYS = ("tau", "calibration", "examples")
-CLASS_OPTIONAL = ("keyframe_source",)
+CLASS_OPTIONAL = ("keyframe_source", "slack")
 """Optional fields of a version 3 or 4 class entry."""
 CLIP_KEYS_V2 = ("asf", "amc", "start_frame", "end_frame", "frames")
 V2_TAU = "a version 2 library"
@@ -186,6 +188,9 @@ class ClassTemplate:
     """Why that mode (how learning chose it)."""
     variants: tuple[Variant, ...] = ()
     """More templates of the class beside ``quantised`` (one per style: learning chooses how many)."""
+    slack: int = 0
+    """Keyframes first: the frames a window opens beyond its keyframe match's geometry on each side
+    (:func:`daemon.recognizer.window_extent`; learning chooses it by folds)."""
 
     def __post_init__(self) -> None:
         if self.keyframe_source not in KEYFRAME_SOURCES:
@@ -198,6 +203,8 @@ class ClassTemplate:
             raise ValueError(f"mode must be one of {MODES}, got {self.mode!r}")
         if self.mode == GATED and self.keyframes is None:
             raise ValueError(f"class {self.name}: the keyframes mode needs keyframes")
+        if isinstance(self.slack, bool) or not isinstance(self.slack, int) or self.slack < 0:
+            raise ValueError(f"class {self.name}: slack must be frames >= 0, got {self.slack!r:.60}")
 
     @property
     def members(self) -> tuple[tuple[MotionTemplate, float], ...]:
@@ -277,6 +284,7 @@ def load_library(path: str | Path, names: Collection[str] | None = None) -> Libr
                 Variant(t, m["tau"], m["calibration"], m["examples"])
                 for t, m in zip(members, e["members"], strict=True)
             ),
+            e["slack"],
         )
     return Library(rate, classes)
 
@@ -323,6 +331,7 @@ def _read(path: Path) -> tuple[Checker, float, dict[str, dict[str, Any]]]:
         e["keyframe_source"] = check.choice(
             e.get("keyframe_source", LEARNED), f"{where}.keyframe_source", KEYFRAME_SOURCES
         )
+        e["slack"] = check.integer(e.get("slack", 0), f"{where}.slack")
         if e["file"] != f"{name}.npz":
             check.fail(f"{where}.file", f"must be '{name}.npz', got {e['file']!r:.60}")
         members = check.listing(e.get("members", []), f"{where}.members")

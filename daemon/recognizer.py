@@ -3,21 +3,23 @@
 Per frame (DESIGN.md, the data flow): AMC-style channels go through forward kinematics (or joint
 positions arrive as they are), :class:`~daemon.features.FeatureStream` gives the 39 features,
 every k-th frame is kept for the library's rate (30 Hz from 120 Hz), and the frame's code (bit i =
-feature i) goes to :class:`CodeRecognizer`: every template of every class runs as a subsequence DTW
-over the whole stream (thesis Alg. 3.2 with free start; the retrieval cost and steps of
-:func:`daemon.search.retrieval.template_search`), its local minima within τ are candidates, a candidate
-beaten by a cheaper one of the same motion (:func:`same_motion`) is dropped, and one that is not is
-held until no template can still end a cheaper match of its motion (or ``hold_s``), then published
-unless its class is gated by keyframes (:class:`~daemon.automaton.KeyframeAutomaton`'s matches)
-and none overlaps it. Published detections are never taken back.
+feature i) goes to :class:`CodeRecognizer`. Keyframes first: a class in mode ``keyframes`` advances
+its keyframe automaton (:class:`~daemon.automaton.KeyframeAutomaton`, thesis Alg. 4.1 on the runs of
+equal codes, with stiffness windows); a completed match opens a window around its range R(M)
+(:func:`window_extent`), and the class's templates run a subsequence DTW (thesis Alg. 3.2 with free
+start; the retrieval cost and steps of :func:`daemon.search.retrieval.template_search`) over that
+window only, its local minima within τ the class's candidates. A class in mode ``dtw`` runs its DTW
+over the whole stream. A candidate beaten by a cheaper one of the same motion (:func:`same_motion`)
+is dropped, and one that is not is held until no open template can still end a cheaper match of its
+motion (or ``hold_s``), then published. Published detections are never taken back.
 
 Latency. A detection comes out one index frame after its last frame (the frame that shows Δ's
 minimum) once the features' delay (16 frames at 120 Hz) has passed, or later while it is held: at
 most :attr:`Recognizer.latency_frames` native frames after its last frame.
 
-Bounded state. The features keep 33 poses at 120 Hz, each gating automaton the query's span, the DTW
-three columns per template, and the candidates and keyframe ranges of the last :func:`reach`
-frames.
+Bounded state. The features keep 33 poses at 120 Hz, each automaton the query's span, the DTW
+three columns per template and the codes of the longest window's look-back, and the candidates of
+the last :func:`reach` frames.
 
 One live path. :class:`Recognizer` is the one per-stream engine: its state is compiled (a
 :class:`~daemon._live.LiveStream`: forward kinematics, features, decimation; its
@@ -54,7 +56,7 @@ from daemon.dtw import SCALE, Match, RetrievalTables, Steps, pack, retrieval_tab
 from daemon.errors import InputError, MocapdError
 from daemon.features import FeatureStream, features
 from daemon.frames import FrameClock, bridge_frames, bridged_runs, check_native_rate, motion_runs
-from daemon.keyframes import KeyframeQuery
+from daemon.keyframes import KeyframeQuery, query_bounds
 from daemon.library import GATED, ClassTemplate, Library
 from daemon.templates import expand
 from daemon.types import DEFAULT_BRIDGE_S, FloatArray, IntArray, RecognitionSettings
@@ -127,8 +129,8 @@ class MemberPlan:
 @dataclass(frozen=True)
 class ClassPlan:
     """What a stream needs of one class, at the library's rate: its templates (``members``, the
-    class's own first), whether its keyframes gate its matches (``gated``) and the keyframe query's
-    gap cap in frames."""
+    class's own first), whether its keyframes propose its windows (``gated``: keyframes first) and
+    the keyframe query's gap cap in frames."""
 
     template: ClassTemplate
     members: tuple[MemberPlan, ...]
@@ -148,28 +150,86 @@ class ClassPlan:
         return self.template.steps
 
     def automaton(self, rate: float) -> KeyframeAutomaton:
-        """The class's keyframe automaton reporting every match whose range still grows, each frame."""
+        """The class's keyframe automaton reporting every match at the frame that completes it."""
         assert self.template.keyframes is not None
         return gate_automaton(self.template.keyframes, rate, self.max_gap)
 
+    def extent(self) -> tuple[int, int]:
+        """(before, after): the frames a window of the class opens before a keyframe match's range
+        and stays open after the frame that completes it (:func:`window_extent`)."""
+        assert self.template.keyframes is not None
+        return window_extent(self.template.keyframes, self.template.hard.length, self.template.slack)
+
+    def back(self, rate: float) -> int:
+        """How far before the frame that completes a match its window may open: the match's span
+        (the gaps' upper bounds) and :meth:`extent`'s before."""
+        assert self.template.keyframes is not None
+        bounds = query_bounds(self.template.keyframes, rate, self.max_gap)
+        return sum(hi or 0 for _, hi in bounds) + self.extent()[0]
+
+
+def window_extent(query: KeyframeQuery, length: int, slack: int) -> tuple[int, int]:
+    """(before, after) of a keyframe-first class's windows, in frames: a match's first keyframe lies
+    at template column p_1 and its last at p_K of ``length`` columns, and a DTW path with the
+    toolbox's steps takes at most two frames per column, so the motion starts at most 2 p_1 frames
+    before its first keyframe's frame and ends at most 2 (length - 1 - p_K) after its last
+    keyframe's; ``slack`` frames more on each side (learned by folds,
+    :func:`daemon.learn.calibration.choose_slack`)."""
+    first, last = query.keyframes[0].position, query.keyframes[-1].position
+    return 2 * max(0, first) + slack, 2 * max(0, length - 1 - last) + slack
+
 
 def gate_automaton(query: KeyframeQuery, rate: float, max_gap: int) -> KeyframeAutomaton:
-    """The automaton of a keyframe gate: every match reported at each frame its range R(M) reaches,
-    from the frame that completes it while its last keyframe holds (period 1, no Ω^Z components)."""
-    return KeyframeAutomaton(query, rate, max_gap, 1, components=False)
+    """The automaton of a keyframe-first class: every match reported at the frame that completes
+    it, with the start of its hit-relevant range R(M) (period 0, no Ω^Z components)."""
+    return KeyframeAutomaton(query, rate, max_gap, 0, components=False)
 
 
-def gate_ranges(
+def completions(
     query: KeyframeQuery, rate: float, max_gap: int, codes: Sequence[int]
 ) -> list[tuple[int, int]]:
-    """The ranges a keyframe gate opens over a stream of index-rate ``codes``: (start of R(M),
-    frame) for every frame that :func:`gate_automaton` reports a match at, in order."""
+    """(start of R(M), frame) of every keyframe match of ``query`` over index-rate ``codes``, at the
+    frame that completes it, in order."""
     automaton = gate_automaton(query, rate, max_gap)
     out = []
     for j, code in enumerate(codes):
         automaton.push(code)
         out += [(first, j) for first, _ in automaton.reached]
     return out
+
+
+def windows(
+    found: Sequence[tuple[int, int]], before: int, after: int, back: int
+) -> list[tuple[int, int, int, int]]:
+    """The windows a keyframe-first class opens for matches ``found`` ((start of R(M), frame that
+    completes it), in order of frame): (first frame, last frame, frame it opened at, the first frame
+    its candidates may end at). The matches completed at frame j ask for frames
+    max(min first - ``before``, j - ``back``, 0) .. j + ``after``; while the class's window is open
+    (its last frame is j - 1 or later) that extends its end, else a new window opens there: the DTW
+    runs over it from its first frame (so its minima up to frame j - 1 are found at j), and its
+    candidates end after the last window's frames, which were searched already."""
+    out: list[list[int]] = []
+    by_frame: dict[int, int] = {}
+    for first, j in found:
+        a = max(first - before, j - back, 0)
+        by_frame[j] = min(by_frame.get(j, a), a)
+    for j, a in sorted(by_frame.items()):
+        b = j + after
+        if out and out[-1][1] >= j - 1:
+            out[-1][1] = max(out[-1][1], b)
+        else:
+            out.append([a, b, j, max(a, out[-1][1] + 1) if out else a])
+    return [(s, e, at, lowest) for s, e, at, lowest in out]
+
+
+def keyframe_windows(
+    query: KeyframeQuery, length: int, slack: int, rate: float, max_gap: int, codes: Sequence[int]
+) -> list[tuple[int, int, int, int]]:
+    """The :func:`windows` a keyframe-first class with ``query`` over a template of ``length``
+    columns and ``slack`` opens over index-rate ``codes``, as the live recogniser opens them."""
+    before, after = window_extent(query, length, slack)
+    back = sum(hi or 0 for _, hi in query_bounds(query, rate, max_gap)) + before
+    return windows(completions(query, rate, max_gap, codes), before, after, back)
 
 
 _PLANS: dict[tuple[int, tuple[str, ...] | None, float], tuple[weakref.ref[Library], tuple[ClassPlan, ...]]]
@@ -202,12 +262,15 @@ def _make_plans(library: Library, names: Sequence[str], max_gap: int) -> tuple[C
     return tuple(out)
 
 
-def reach(class_plans: Sequence[ClassPlan], hold: int) -> int:
+def reach(class_plans: Sequence[ClassPlan], hold: int, rate: float = 30.0) -> int:
     """Index-rate frames before the frame that emits it that a detection may start at, at most: a
     match spans at most twice its template's columns (the toolbox's steps; longer matches under the
-    thesis' are forgotten as rivals after that long too), then it is held ``hold`` frames after the
-    frame that found it."""
-    return max((2 * m.length for p in class_plans for m in p.members), default=1) + hold + 2
+    thesis' are forgotten as rivals after that long too), or starts in a window that opened at most
+    :meth:`ClassPlan.back` frames before the frame that found it; then it is held ``hold`` frames
+    after that frame."""
+    span = max((2 * m.length for p in class_plans for m in p.members), default=1)
+    back = max((p.back(rate) for p in class_plans if p.gated), default=0)
+    return max(span, back) + hold + 2
 
 
 def same_motion(a: tuple[int, int], b: tuple[int, int]) -> bool:
@@ -230,28 +293,33 @@ class CodeRecognizer:
     The algorithm below runs compiled, in :class:`daemon._dtw.Competition` (:attr:`core`), on C
     arrays; :meth:`push` and :meth:`flush` turn what it confirms into :data:`Confirmation`.
 
-    *Candidates.* Every template of every class runs as a subsequence DTW over the whole stream, one
-    column per frame (:class:`daemon._dtw.StreamDTW`; thesis Alg. 3.2 with free start, the retrieval
-    cost and steps of :func:`daemon.search.retrieval.template_search`). Each local minimum of a template's
-    Δ at or below its τ (below the frame before, not above the frame after) is a candidate, known
-    one frame after its end.
+    *Windows (keyframes first).* A class in mode ``keyframes`` runs its keyframe automaton (Alg.
+    4.1's matches, :class:`~daemon.automaton.KeyframeAutomaton`: runs of codes in each keyframe's
+    set, partial matches held within their stiffness windows) and reports each match at the frame j
+    that completes it, with the start of its hit-relevant range R(M). The matches completed at j ask
+    for the frames from (the earliest R(M) start) - before to j + after (:meth:`ClassPlan.extent`):
+    if the class's window covered frame j - 1, its end moves there; else a new window opens, and the
+    class's templates' DTW columns are computed from its first frame up to j - 1 from the codes kept
+    (their minima there found at j; those ending in the last window's frames were searched
+    already and are skipped). Outside its windows a template's column is empty. A class in mode
+    ``dtw`` has one window: the stream (:func:`windows`).
 
-    *One motion, one detection.* A candidate is beaten by any candidate that comes before it in the
-    order (cost, end, template) and is the :func:`same_motion`: of another class when classes
+    *Candidates.* Each template runs a subsequence DTW over its windows, one column per frame
+    (:class:`daemon._dtw.StreamDTW`; thesis Alg. 3.2 with free start, the retrieval cost and steps of
+    :func:`daemon.search.retrieval.template_search`). Each local minimum of its Δ at or below its τ
+    (below the frame before, not above the frame after; Δ infinite outside the window) is a
+    candidate, known one frame after its end or when its window opens. The candidates of a frame
+    arrive in the order (cost, end, template, start).
+
+    *One motion, one detection.* A candidate is beaten by any candidate that arrived before it,
+    comes before it in that order and is the :func:`same_motion`: of another class when classes
     ``compete`` (the cheaper template is the better explanation), of its own class always (one
     detection per motion). A candidate that is not beaten is held until no template can still end
     a match that would beat it (:meth:`daemon._dtw.StreamDTW.blocks`: costs only grow along a DTW
-    path, so a cell already above its cost cannot), or until ``hold`` frames after the frame that
-    found it, whichever comes first; then it is published, unless its class is ``gated`` and no
-    keyframe match of the class (below) overlaps it, or it is the same motion as a detection
-    already published (after the hold ran out). Candidates and keyframe matches are remembered for
-    :func:`reach` frames.
-
-    *The keyframe gate.* A gated class's automaton reports each keyframe match (Alg. 4.1's matches,
-    :class:`~daemon.automaton.KeyframeAutomaton`) at the frame that completes it and at every frame
-    after while its last keyframe holds, with the start of its hit-relevant range R(M): a candidate
-    of the class passes when one of these ranges (start to the frame reported at), reported by the
-    time it is decided, shares a frame with it (:func:`gate_ranges`)."""
+    path, so a cell already above its cost cannot; a template outside its windows has no cell), or
+    until ``hold`` frames after the frame that found it, whichever comes first; then it is
+    published, unless it is the same motion as a detection already published (after the hold ran
+    out). Candidates are remembered for :func:`reach` frames."""
 
     def __init__(
         self, class_plans: Sequence[ClassPlan], rate: float, settings: RecognitionSettings = DEFAULT_SETTINGS
@@ -295,9 +363,12 @@ class CodeRecognizer:
                 [hi for _, hi in self._rivals],
                 compete,
                 hold,
-                reach(self.plans, hold),
+                reach(self.plans, hold, rate),
                 automata,
                 gated,
+                [self.plans[k].extent()[0] for k in gated],
+                [self.plans[k].extent()[1] for k in gated],
+                max((self.plans[k].back(rate) for k in gated), default=0),
             )
             if dtw is not None
             else None
@@ -530,7 +601,7 @@ class Recognizer:
     def reach(self) -> int:
         """Index-rate frames before the one that emits it that a detection may start at, at most
         (:func:`reach`)."""
-        return reach(self._plans, self._stage.codes.hold)
+        return reach(self._plans, self._stage.codes.hold, self.library.rate)
 
     @property
     def latency_frames(self) -> int:

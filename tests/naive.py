@@ -19,10 +19,10 @@ import numpy.typing as npt
 from daemon import dtw
 from daemon.dtw import INF, SCALE, Match, local_minima, retrieval_cost, subsequence_dtw, suppress
 from daemon.features import features, window_frames
-from daemon.keyframes import Keyframe, KeyframeQuery
+from daemon.keyframes import Keyframe, KeyframeQuery, query_bounds
 from daemon.learn.templates import Generalisation
 from daemon.library import ClassTemplate
-from daemon.recognizer import gate_ranges
+from daemon.recognizer import completions
 from daemon.search.index import SetIndex
 from daemon.search.segments import Segment
 from daemon.templates import expand
@@ -937,7 +937,35 @@ class GateFold(NamedTuple):
     owner: Sequence[int]
     truth: Sequence[tuple[int, int, int]]
     codes: list[int]
-    trials: list[tuple[Generalisation, KeyframeQuery, list[bool]]]
+    trials: list[tuple[Generalisation, KeyframeQuery, list[bool], int]]
+
+
+def slow_windows(
+    found: Sequence[tuple[int, int]], before: int, after: int, back: int
+) -> list[tuple[int, int, int, int]]:
+    """A keyframe-first class's windows read frame by frame: at each frame j that completes matches
+    ``found`` ((R(M) start, j)), the frames from the earliest max(start - before, j - back, 0) to
+    j + after are wanted; if the class's window still covered frame j - 1 its end moves there,
+    else a new one opens whose candidates end after the last one; (first, last, frame opened,
+    first frame a candidate may end at)."""
+    out: list[tuple[int, int, int, int]] = []
+    for j in range(max((at for _, at in found), default=-1) + 1):
+        wanted = [max(first - before, j - back, 0) for first, at in found if at == j]
+        if not wanted:
+            continue
+        if out and out[-1][1] >= j - 1:
+            out[-1] = (out[-1][0], max(out[-1][1], j + after), out[-1][2], out[-1][3])
+        else:
+            start = min(wanted)
+            out.append((start, j + after, j, max(start, out[-1][1] + 1) if out else start))
+    return out
+
+
+def slow_extent(query: KeyframeQuery, length: int, slack: int) -> tuple[int, int]:
+    """Frames a window opens before a match and after its completion: two frames per template
+    column before the first keyframe and after the last, plus ``slack``."""
+    first, last = query.keyframes[0].position, query.keyframes[-1].position
+    return 2 * first + slack, 2 * max(0, length - 1 - last) + slack
 
 
 def slow_gate(
@@ -948,15 +976,18 @@ def slow_gate(
     rate: float,
     max_gap: int,
     spare: int = 0,
-) -> tuple[Generalisation, float] | None:
-    """Class ``k``'s keyframe gate by its definition and the share of other classes' motion frames
-    it opens on, or None. A generalisation holds when in every fold its keyframes keep at least
-    ``min_kept`` of the left-out examples of the class and the class's detections (surviving,
-    within their template's τ) that share a frame with a range its gate opens (:func:`gate_ranges`)
-    still find at least ``min_kept`` of the motions found without it; of a design (all but the
-    mismatches) only the first that holds counts, and it runs with ``spare`` mismatches more (at
-    most 3, if tried). Of those: the fewest wrong detections left, then the smallest share of the
-    frames of other classes' motions that lie in a range, then the first tried."""
+    slacks: Sequence[int] = (0,),
+) -> tuple[Generalisation, float, int] | None:
+    """Class ``k``'s keyframe windows by their definition, the share of other classes' motion
+    frames they cover and their slack, or None. A generalisation holds at a slack when in every
+    fold its keyframes keep at least ``min_kept`` of the left-out examples of the class and the
+    class's detections (surviving, within their template's τ) that lie inside one of its windows
+    (:func:`slow_windows` of the matches the automaton completes) still find at least ``min_kept``
+    of the motions found without it; of a design (all but the mismatches) only the first that
+    holds counts, at the first of ``slacks`` at which it holds, and it runs with ``spare``
+    mismatches more (at most 3, if tried and it holds so). Of those: the fewest wrong detections
+    left, then the smallest share of the frames of other classes' motions inside a window, then the
+    first tried."""
     detections = []
     for f in folds:
         alive = slow_survivors(f.candidates, f.owner, taus)
@@ -968,20 +999,22 @@ def slow_gate(
         detections.append(mine)
     tried: list[Generalisation] = []
     for f in folds:
-        for g, _, _ in f.trials:
+        for g, _, _, _ in f.trials:
             if g not in tried:
                 tried.append(g)
 
-    def run(g: Generalisation) -> tuple[bool, int, float]:
+    def run(g: Generalisation, slack: int) -> tuple[bool, int, float]:
         qualifies, wrong_g, covered, frames = True, 0, 0, 0
         for f, mine in zip(folds, detections, strict=True):
-            for generalisation, query, kept_examples in f.trials:
+            for generalisation, query, kept_examples, length in f.trials:
                 if generalisation != g:
                     continue
                 if kept_examples and sum(kept_examples) < min_kept * len(kept_examples):
                     qualifies = False
-                ranges = gate_ranges(query, rate, max_gap, f.codes)
-                kept = [(x, i) for x, i in mine if any(a <= x[1] and x[3] <= b for a, b in ranges)]
+                before, after = slow_extent(query, length, slack)
+                back = sum(hi or 0 for _, hi in query_bounds(query, rate, max_gap)) + before
+                spans = slow_windows(completions(query, rate, max_gap, f.codes), before, after, back)
+                kept = [(x, i) for x, i in mine if any(a <= x[3] and x[1] <= b for a, b, _, _ in spans)]
                 motions = {i for _, i in mine if i is not None}
                 if len({i for _, i in kept if i is not None}) < min_kept * len(motions) - 1e-9:
                     qualifies = False
@@ -989,7 +1022,9 @@ def slow_gate(
                 for c, first, last in f.truth:
                     if c != k:
                         frames += last - first + 1
-                        covered += sum(any(a <= i <= b for a, b in ranges) for i in range(first, last + 1))
+                        covered += sum(
+                            any(a <= i <= b for a, b, _, _ in spans) for i in range(first, last + 1)
+                        )
         return qualifies, wrong_g, covered / frames if frames else 0.0
 
     best: tuple[int, float, int] | None = None
@@ -999,16 +1034,17 @@ def slow_gate(
         design = dataclasses.replace(g, mismatches=0)
         if design in held:
             continue
-        qualifies, wrong_g, share = run(g)
-        if not qualifies:
+        at = next((s for s in slacks if run(g, s)[0]), None)
+        if at is None:
             continue
+        _, wrong_g, share = run(g, at)
         held.append(design)
         wider = dataclasses.replace(g, mismatches=min(g.mismatches + spare, 3))
-        if spare and wider in tried:
+        if spare and wider in tried and (widened := run(wider, at))[0]:
             g = wider
-            _, wrong_g, share = run(g)
+            _, wrong_g, share = widened
         if best is None or (wrong_g, share, order) < best:
-            best, chosen = (wrong_g, share, order), (g, share)
+            best, chosen = (wrong_g, share, order), (g, share, at)
     return chosen
 
 

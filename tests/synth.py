@@ -519,8 +519,8 @@ def stream_codes(codes: dict[FeatureSet, list[int]]) -> list[int]:
 
 
 @st.composite
-def streams(draw: st.DrawFn) -> dict[FeatureSet, list[int]]:
-    n = draw(st.integers(1, 60))
+def streams(draw: st.DrawFn, shortest: int = 1, longest: int = 60) -> dict[FeatureSet, list[int]]:
+    n = draw(st.integers(shortest, longest))
     out: dict[FeatureSet, list[int]] = {}
     for fs in FEATURE_SETS:
         codes: list[int] = []

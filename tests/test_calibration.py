@@ -34,6 +34,7 @@ from daemon.learn.calibration import (
     MIN_MEMBER,
     POSITIONS,
     ROUNDS,
+    SLACKS,
     SPARES,
     TAKE_GROUPS,
     Calibrated,
@@ -628,7 +629,7 @@ def test_a_class_without_a_fold_keeps_the_given_tau(labelled: Labelled) -> None:
 
 def gate_of(
     found: Sequence[Fold], k: int, taus: Sequence[float | None], spare: int = 0
-) -> tuple[Generalisation, float] | None:
+) -> tuple[Generalisation, float, int] | None:
     """:func:`slow_gate` of real folds, their parts as plain values."""
     return slow_gate(
         [
@@ -637,7 +638,7 @@ def gate_of(
                 f.owner,
                 f.truth,
                 f.codes.tolist(),
-                [(t.generalisation, t.query, t.positives.tolist()) for t in f.trials[k]],
+                [(t.generalisation, t.query, t.positives.tolist(), t.length) for t in f.trials[k]],
             )
             for f in found
         ],
@@ -647,11 +648,13 @@ def gate_of(
         DEFAULT_INDEX_RATE,
         max(1, round(DEFAULT_MAX_GAP_S * DEFAULT_INDEX_RATE)),
         spare,
+        SLACKS,
     )
 
 
 GATE_REASON = (
-    r"keyframes first: \d keyframes, up to \d mismatch(es)?: opened on (\d+)/(\d+) left-out motions and "
+    r"keyframes first: \d keyframes, up to \d mismatch(es)?, windows \d+ frames wider: opened on (\d+)/(\d+) "
+    r"left-out motions and "
     r"\d+\.\d% of other motions' frames \(\d+\.\d matches a minute of them\), (\d+) -> (\d+) wrong detections"
 )
 
@@ -676,17 +679,19 @@ def test_gate_against_its_definition_on_real_folds(
         assert gate is None and why.startswith("no keyframes held on the left-out motions"), why
         return
     assert gate is not None and gate.generalisation == literal[0] and gate.others == pytest.approx(literal[1])
+    assert gate.slack == literal[2]
     shape = re.fullmatch(GATE_REASON, why)
     assert shape is not None, why
     opened, motions, wrong, wrong_gated = map(int, shape.groups()[1:])
     assert (opened, motions, wrong, wrong_gated) == (gate.opened, gate.motions, gate.wrong, gate.wrong_gated)
     assert opened >= MIN_KEPT * motions and wrong_gated <= wrong
-    # with a spare mismatch the gates are ranked as they will run, widened
+    # with a spare mismatch the gates are ranked as they will run, widened where that still holds
     wide, why_wide = choose_gate(found, k, taus, spare=1)
     literal_wide = gate_of(found, k, taus, spare=1)
     assert wide is not None and literal_wide is not None and why_wide.startswith("keyframes first: ")
     assert wide.generalisation == literal_wide[0] and wide.others == pytest.approx(literal_wide[1])
-    assert wide.generalisation.mismatches >= 1 and wide.opened >= MIN_KEPT * wide.motions
+    assert wide.slack == literal_wide[2]
+    assert wide.opened >= MIN_KEPT * wide.motions
 
 
 def test_a_design_that_misses_a_left_out_motion_is_not_chosen(calibrated: Calibrated) -> None:

@@ -298,7 +298,7 @@ def gates(library: Library) -> dict[str, int]:
 def gated_and_high(events: list[Detection | ProgressEvent], gated: dict[str, int]) -> int:
     """Every detection of a gated class (name: keyframes) comes after (or with) an event that shows
     a whole hit of its class (one hit, its range growing while its last keyframe holds, may gate
-    several detections of a repeated motion); every detection's class was shown at least
+    several detections of a repeated motion); every detection of another class was shown at least
     :data:`HIGH` along its template from the detection's first frame on, before it. The detections
     checked."""
     whole: set[str] = set()
@@ -314,6 +314,8 @@ def gated_and_high(events: list[Detection | ProgressEvent], gated: dict[str, int
         name = item.class_name
         if name in gated:
             assert name in whole, f"{name} {item.start_frame}-{item.end_frame}: no whole hit shown before it"
+            checked += 1
+            continue  # its DTW runs from the hit on, over frames already shown: the hit is its progress
         shown = [p for frame, p in best.get(name, []) if frame >= item.start_frame]
         assert max(shown, default=0.0) >= HIGH, (name, item.start_frame, item.end_frame, shown)
         checked += 1

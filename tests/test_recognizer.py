@@ -15,9 +15,9 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from daemon.dtw import SCALE, pack, retrieval_matrix, retrieval_tables, threshold
+from daemon.dtw import INF, SCALE, pack, retrieval_matrix, retrieval_tables, threshold
 from daemon.features import SET_SLICES
-from daemon.keyframes import KeyframeQuery
+from daemon.keyframes import KeyframeQuery, query_bounds
 from daemon.library import ClassTemplate, Library, Variant, default_library_path, load_library
 from daemon.library import given as given_tau
 from daemon.recognizer import (
@@ -35,7 +35,13 @@ from daemon.types import FEATURE_SETS, N_FEATURES, FeatureSet, RecognitionSettin
 from replay import JOINT_NAMES, Motion
 from replay.kinematics import joint_positions
 from tests.helpers import hdm05_clip, pair_id, recording_pairs, small_library, takes
-from tests.naive import keyframe_matches, ref_subsequence, slow_blocks, slow_minimum
+from tests.naive import (
+    keyframe_matches,
+    ref_subsequence,
+    slow_blocks,
+    slow_extent,
+    slow_windows,
+)
 from tests.synth import LOW_BITS, queries, stream_codes, streams
 
 SESSION = "test"
@@ -129,8 +135,10 @@ def test_one_motion_one_detection_and_a_repetition_right_after(library: Library)
 # ------------------------------------------------------------------ candidates and confirmation
 
 
-def random_class(name: str, query: KeyframeQuery, rng: np.random.Generator, tau: float) -> ClassTemplate:
-    m = int(rng.integers(2, 7))
+def random_class(
+    name: str, query: KeyframeQuery, rng: np.random.Generator, tau: float, columns: int | None = None
+) -> ClassTemplate:
+    m = int(rng.integers(2, 7)) if columns is None else columns
     values = np.full((N_FEATURES, m), 0.5)
     for fs in FEATURE_SETS:  # random streams vary the first LOW_BITS features of each set
         low = SET_SLICES[fs].start
@@ -157,18 +165,21 @@ def random_class(name: str, query: KeyframeQuery, rng: np.random.Generator, tau:
 def slow_recognizer(
     codes: list[int], classes: Sequence[ClassTemplate], max_gap: int, compete: bool, hold: int
 ) -> list[tuple[str, int, int, int, int]]:
-    """:class:`CodeRecognizer`'s definition read slowly: each template's subsequence DTW cell by
-    cell over the whole stream (fixed point, :func:`tests.naive.ref_subsequence`); its local minima
-    within its τ, each found one frame after its end (the last frame's at the end); every keyframe
-    match by brute force (Def. 4.4-4.6, gaps capped), reported from the frame that completes it to
-    the last its range reaches; at each frame, the candidates found arrive in the order (cost, end,
-    template): one is dropped when a candidate that arrived before it comes before it in that order
-    and is the same motion (of its class, or of any class when competing) or when it is the same
-    motion as a published detection; else it is held, and drops the held ones it comes before. A
-    held candidate is final after ``hold`` frames or when :func:`tests.naive.slow_blocks` says no
-    template (of its class unless competing) can still end a cheaper match of its motion; the final
-    ones, by (end, start, class), are published unless their class is gated and no keyframe match
-    of it reported by then overlaps them. Each as (class, start, end, cost, frame it comes out at)."""
+    """:class:`CodeRecognizer`'s definition read slowly. A class in mode ``dtw``: each template's
+    subsequence DTW cell by cell over the whole stream (fixed point, :func:`tests.naive.ref_subsequence`).
+    A keyframe-first class: every keyframe match by brute force (Def. 4.4-4.6, gaps capped) gives,
+    at the frame that completes it, the window :func:`tests.naive.slow_windows` opens (the extent of
+    :func:`tests.naive.slow_extent`), and each template's subsequence DTW runs over each window's
+    frames alone (Δ infinite outside), known from the frame the window opened. Each template's
+    local minima within its τ are found one frame after their end, or when their window opens (the
+    last frame's at the end); at each frame, the candidates found arrive in the order (cost, end,
+    template, start): one is dropped when a candidate that arrived before it comes before it in that
+    order and is the same motion (of its class, or of any class when competing) or when it is the
+    same motion as a published detection; else it is held, and drops the held ones it comes before.
+    A held candidate is final after ``hold`` frames or when :func:`tests.naive.slow_blocks` (over
+    the columns known at that frame) says no template (of its class unless competing) can still end
+    a cheaper match of its motion; the final ones are published by (end, start, class). Each as
+    (class, start, end, cost, frame it comes out at)."""
     n = len(codes)
     sets = {
         fs: [
@@ -179,27 +190,65 @@ def slow_recognizer(
     }
     frames = np.array([[(c >> i) & 1 for i in range(N_FEATURES)] for c in codes], dtype=bool)
     owner: list[int] = []
-    full = []
+    full = []  # per template: D and starts over the stream (INF outside its windows), toolbox, τ
+    opened: list[list[int]] = []  # per template and frame: the frame its column became known
+    found: dict[int, list[tuple[int, int, int, int]]] = {}  # frame -> (cost, end, template, start)
     for k, cls in enumerate(classes):
+        spans = [(0, n - 1, 0, 0)]
+        if cls.mode == "keyframes" and cls.keyframes is not None:
+            before, after = slow_extent(cls.keyframes, cls.hard.length, cls.slack)
+            back = sum(hi or 0 for _, hi in query_bounds(cls.keyframes, 30.0, max_gap)) + before
+            matches = keyframe_matches(sets, cls.keyframes, max_gap)
+            spans = [
+                (a, min(b, n - 1), at, lowest)
+                for a, b, at, lowest in slow_windows([(f, at) for f, at, _ in matches], before, after, back)
+            ]
         for template, tau in cls.members:
+            u = len(owner)
+            owner.append(k)
             t = expand(template)
             tables = retrieval_tables(t.values, t.weights)
-            d, s = ref_subsequence(
-                [[int(v) for v in row] for row in retrieval_matrix(tables, pack(frames))], "toolbox"
-            )
-            full.append((d, s, True, threshold(tau)))
-            owner.append(k)
-    found: dict[int, list[tuple[int, int, int, int]]] = {}  # frame -> (cost, end, template, start)
-    for u, (d, s, _, thr) in enumerate(full):
-        last = d[-1]
-        for e in range(n):
-            if slow_minimum(last, thr, e, n - 1 if e == n - 1 else e + 1):
-                found.setdefault(min(e + 1, n), []).append((last[e], e, u, s[-1][e]))
-    matches = {
-        k: keyframe_matches(sets, cls.keyframes, max_gap)
-        for k, cls in enumerate(classes)
-        if cls.mode == "keyframes" and cls.keyframes is not None
-    }
+            thr = threshold(tau)
+            d_all = [[INF] * n for _ in range(t.weights.shape[0])]
+            s_all = [[-1] * n for _ in range(t.weights.shape[0])]
+            known = [n + 1] * n
+            for a, b, at, lowest in spans:
+                cost = retrieval_matrix(tables, pack(frames[a : b + 1]))
+                d, st = ref_subsequence([[int(v) for v in row] for row in cost], "toolbox")
+                for i in range(len(d)):  # the frames before ``lowest``: the last window's columns
+                    for c in range(lowest - a, b - a + 1):
+                        d_all[i][a + c] = d[i][c]
+                        s_all[i][a + c] = st[i][c] + a if st[i][c] >= 0 else -1
+                last = d[-1]
+                for c in range(lowest - a, b - a + 1):
+                    known[a + c] = at
+                    e = a + c
+                    prev = last[c - 1] if c > 0 else INF
+                    nxt = None if e == n - 1 else INF if e == b else last[c + 1]
+                    if (
+                        last[c] < INF
+                        and last[c] <= thr
+                        and last[c] < prev
+                        and (nxt is None or last[c] <= nxt)
+                    ):
+                        found.setdefault(n if e == n - 1 else max(e + 1, at), []).append(
+                            (last[c], e, u, st[-1][c] + a)
+                        )
+            full.append((d_all, s_all, True, thr))
+            opened.append(known)
+
+    def columns_at(j: int) -> list[tuple[list[list[int]], list[list[int]], bool, int]]:
+        """The templates' matrices with the columns j - 1 and j as known at frame j."""
+        out = []
+        for (d, st, toolbox, thr), known in zip(full, opened, strict=True):
+            hidden = [c for c in (j - 1, j) if 0 <= c < n and known[c] > j]
+            if hidden:
+                d = [row[:] for row in d]
+                for row in d:
+                    for c in hidden:
+                        row[c] = INF
+            out.append((d, st, toolbox, thr))
+        return out
 
     def same(x: tuple[int, int, int, int], y: tuple[int, int, int, int]) -> bool:
         shared = set(range(x[3], x[1] + 1)) & set(range(y[3], y[1] + 1))
@@ -217,25 +266,21 @@ def slow_recognizer(
                 held = [x for x in held if not (y < x and same(x, y))] + [y]
         frame = min(j, n - 1)
         final = []
+        view = columns_at(j) if held and j < n else full
         for x in list(held):
             k = owner[x[2]]
             lo, hi = (0, len(full)) if compete else (owner.index(k), len(owner) - owner[::-1].index(k))
-            if j == n or j > x[1] + hold or not slow_blocks(full, x[0], x[3], x[1], j, lo, hi):
+            if j == n or j > x[1] + hold or not slow_blocks(view, x[0], x[3], x[1], j, lo, hi):
                 final.append(x)
                 held.remove(x)
         for x in sorted(final, key=lambda x: (x[1], x[3], owner[x[2]])):
             k = owner[x[2]]
-            if k in matches and not any(
-                first <= x[1] and max(min(last, frame), at) >= x[3] and at <= frame
-                for first, at, last in matches[k]
-            ):
-                continue
             published.append(x)
             out.append((classes[k].name, x[3], x[1], x[0], frame))
     return out
 
 
-@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@settings(max_examples=120, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(
     streams(),
     queries(),
@@ -247,6 +292,7 @@ def slow_recognizer(
     st.integers(0, 6),
     st.sampled_from(["keyframes", "dtw"]),
     st.booleans(),
+    st.integers(0, 4),
 )
 def test_confirmations_equal_the_definition(
     codes: dict[FeatureSet, list[int]],
@@ -259,13 +305,14 @@ def test_confirmations_equal_the_definition(
     hold: int,
     mode: str,
     two: bool,
+    slack: int,
 ) -> None:
-    """Random code streams, two classes (one gated or not and its keyframes tolerant, one of them
-    with two templates): the recogniser equals :func:`slow_recognizer`; nothing comes out before
-    its last frame."""
+    """Random code streams, two classes (one keyframes-first or not and its keyframes tolerant, one
+    of them with two templates, windows ``slack`` frames wider): the recogniser equals
+    :func:`slow_recognizer`; nothing comes out before its last frame."""
     rng = np.random.default_rng(seed)
-    a = random_class("a", q1, rng, tau)
-    b = dataclasses.replace(random_class("b", q2, rng, tau), mode=mode)
+    a = dataclasses.replace(random_class("a", q1, rng, tau), slack=slack)
+    b = dataclasses.replace(random_class("b", q2, rng, tau), mode=mode, slack=slack)
     if two:
         other = random_class("a2", q1, rng, tau * 0.8)
         a = dataclasses.replace(a, variants=(Variant(other.quantised, other.tau, other.provenance, (0,)),))
@@ -285,6 +332,49 @@ def test_confirmations_equal_the_definition(
     assert got == slow_recognizer(stream, classes, max_gap, compete, hold)
     for _, _, end, _, emitted in got:
         assert end <= emitted  # never before its last frame was seen
+
+
+@settings(max_examples=80, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(
+    streams(shortest=40, longest=160),
+    queries(tolerant=True),
+    st.integers(0, 2**32 - 1),
+    st.sampled_from([0.2, 0.35, 0.5]),
+    st.integers(0, 4),
+    st.integers(0, 8),
+    st.integers(0, 6),
+    st.booleans(),
+)
+def test_windows_equal_the_definition(
+    codes: dict[FeatureSet, list[int]],
+    query: KeyframeQuery,
+    seed: int,
+    tau: float,
+    extra: int,
+    slack: int,
+    hold: int,
+    compete: bool,
+) -> None:
+    """Longer streams and a keyframes-first class whose template spans its keyframes (so that its
+    windows open, are extended, close and open again over frames the last one searched), beside a
+    class in mode ``dtw``: the recogniser equals :func:`slow_recognizer`."""
+    rng = np.random.default_rng(seed)
+    columns = query.keyframes[-1].position + 1 + extra
+    a = dataclasses.replace(random_class("a", query, rng, tau, columns), slack=slack)
+    b = dataclasses.replace(random_class("b", query, rng, tau), mode="dtw")
+    classes = [a, b]
+    stream = stream_codes(codes)
+    settings = RecognitionSettings(max_gap_s=4 / 30.0, compete=compete, hold_s=hold / 30.0)
+    recognizer = CodeRecognizer(plans(Library(30.0, {c.name: c for c in classes}), settings), 30.0, settings)
+    got = [
+        (p.name, m.start, m.end, round(m.cost * SCALE), j)
+        for j, c in enumerate(stream)
+        for p, m, _ in recognizer.push(c)
+    ]
+    got += [
+        (p.name, m.start, m.end, round(m.cost * SCALE), len(stream) - 1) for p, m, _ in recognizer.flush()
+    ]
+    assert got == slow_recognizer(stream, classes, 4, compete, hold)
 
 
 # ------------------------------------------------------------------------------- bad frames

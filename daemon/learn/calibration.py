@@ -67,7 +67,7 @@ from daemon.dtw import (
 from daemon.keyframes import KeyframeQuery
 from daemon.learn.templates import Generalisation, aligned_frames, automatic_keyframes, learn
 from daemon.library import Calibration, given
-from daemon.recognizer import gate_ranges
+from daemon.recognizer import completions, keyframe_windows
 from daemon.search.index import SetIndex, build_set_index
 from daemon.search.keyframes import keyframe_search
 from daemon.templates import MotionTemplate, expand
@@ -189,6 +189,8 @@ class KeyframeTrial:
     generalisation: Generalisation
     query: KeyframeQuery
     positives: npt.NDArray[np.bool_]
+    length: int = 1
+    """The columns of the fold's template the keyframes' positions refer to."""
 
 
 @dataclass(frozen=True)
@@ -348,7 +350,7 @@ def folds(
                 made = []
                 for g in tried:
                     query = automatic_keyframes(hard, training, keyframes, name, rate, g, aligned)
-                    made.append(KeyframeTrial(g, query, keyframes_kept(query, pos_sets, rate)))
+                    made.append(KeyframeTrial(g, query, keyframes_kept(query, pos_sets, rate), hard.length))
                 trials[k] = tuple(made)
         if not any(k in learned for k, _, _ in truth):
             continue
@@ -623,35 +625,40 @@ def detected(fold: Fold, taus: Taus, k: int) -> list[tuple[Candidate, int | None
 
 
 def gated(
-    found: Sequence[tuple[Candidate, int | None]], ranges: Sequence[tuple[int, int]]
+    found: Sequence[tuple[Candidate, int | None]], spans: Sequence[tuple[int, int]]
 ) -> list[tuple[Candidate, int | None]]:
-    """The detections that share a frame with one of the gate's ``ranges`` (the live gate)."""
-    return [(x, i) for x, i in found if any(a <= x.end and x.start <= b for a, b in ranges)]
+    """The detections inside one of a keyframe-first class's windows ``spans`` (first, last frame):
+    those its DTW over the windows finds too."""
+    return [(x, i) for x, i in found if any(a <= x.start and x.end <= b for a, b in spans)]
 
 
 @dataclass(frozen=True)
 class Opening:
-    """Where a keyframe gate opens over a fold's stream: the ``ranges`` :func:`gate_ranges` gives,
-    which frames lie inside one (``covered``, shape ``(N,)``) and the frames matches complete at
-    (``completed``: per range start, the first frame a range from it is reported at)."""
+    """Where a keyframe-first class's windows open over a fold's stream: the windows
+    :func:`daemon.recognizer.windows` gives, which frames lie inside one
+    (``covered``, shape ``(N,)``) and the frames keyframe matches complete at (``completed``)."""
 
-    ranges: tuple[tuple[int, int], ...]
+    windows: tuple[tuple[int, int, int, int], ...]
     covered: npt.NDArray[np.bool_]
     completed: tuple[int, ...]
 
+    @property
+    def spans(self) -> list[tuple[int, int]]:
+        return [(a, b) for a, b, _, _ in self.windows]
 
-def opening(query: KeyframeQuery, rate: float, max_gap: int, codes: npt.NDArray[np.uint64]) -> Opening:
-    """The :class:`Opening` of ``query``'s gate over index-rate ``codes`` ``(N,)``."""
-    ranges = gate_ranges(query, rate, max_gap, codes.tolist())
+
+def opening(
+    query: KeyframeQuery, rate: float, max_gap: int, codes: npt.NDArray[np.uint64], length: int, slack: int
+) -> Opening:
+    """The :class:`Opening` of ``query``'s windows over index-rate ``codes`` ``(N,)``, for a template
+    of ``length`` columns and ``slack`` (:func:`daemon.recognizer.window_extent`)."""
+    found = completions(query, rate, max_gap, codes.tolist())
+    made = keyframe_windows(query, length, slack, rate, max_gap, codes.tolist())
     n = len(codes)
-    low = np.full(n + 1, n, dtype=np.int64)  # low[j]: the earliest frame a range ending at j opens
-    completed: dict[int, int] = {}
-    for first, j in ranges:
-        low[j] = min(low[j], first)
-        completed.setdefault(first, j)
-    reach = np.minimum.accumulate(low[::-1])[::-1][:n]  # frame i is covered iff some j >= i opens at <= i
-    covered = reach <= np.arange(n)
-    return Opening(tuple(ranges), covered, tuple(sorted(set(completed.values()))))
+    covered = np.zeros(n, dtype=bool)
+    for a, b, _, _ in made:
+        covered[a : b + 1] = True
+    return Opening(tuple(made), covered, tuple(sorted({j for _, j in found})))
 
 
 @dataclass(frozen=True)
@@ -669,11 +676,13 @@ class GateReport:
     per_minute: float
     wrong: int
     wrong_gated: int
+    slack: int = 0
 
     def describe(self) -> str:
         g = self.generalisation
         return (
-            f"{g.count} keyframes, up to {g.mismatches} mismatch{'es' if g.mismatches != 1 else ''}: "
+            f"{g.count} keyframes, up to {g.mismatches} mismatch{'es' if g.mismatches != 1 else ''}, "
+            f"windows {self.slack} frames wider: "
             f"opened on {self.opened}/{self.motions} left-out motions and {self.others:.1%} of other "
             f"motions' frames ({self.per_minute:.1f} matches a minute of them), {self.wrong} -> "
             f"{self.wrong_gated} wrong detections"
@@ -689,12 +698,14 @@ def gate_report(
     rate: float,
     max_gap: int,
     min_kept: float,
+    slack: int = 0,
 ) -> GateReport | None:
     """What class ``k``'s keyframes learned with ``g`` do in the folds (:class:`GateReport`), or
     None when they do not hold: in some fold they have a hit in fewer than ``min_kept`` of the
-    left-out motions of the class (:func:`retention`), or, gating the class's detections ``base``
-    (per fold group, :func:`detected`) with :func:`daemon.recognizer.gate_ranges` over the fold's
-    stream, find fewer than ``min_kept`` of the motions the ungated ones find."""
+    left-out motions of the class (:func:`retention`), or, keeping of the class's detections
+    ``base`` (per fold group, :func:`detected`) those inside its windows (:func:`opening` with
+    ``slack``) over the fold's stream, find fewer than ``min_kept`` of the motions the stream-wide
+    ones find."""
     if min(retention(found, k, g), default=0.0) < min_kept:
         return None  # it misses whole motions already
     wrong = sum(i is None for d in base.values() for _, i in d)
@@ -704,8 +715,8 @@ def gate_report(
         trial = next((t for t in f.trials.get(k, ()) if t.generalisation == g), None)
         if trial is None:
             continue
-        gate = opening(trial.query, rate, max_gap, f.codes)
-        kept = gated(base[f.group], gate.ranges)
+        gate = opening(trial.query, rate, max_gap, f.codes, trial.length, slack)
+        kept = gated(base[f.group], gate.spans)
         found_motions = {i for _, i in base[f.group] if i is not None}
         if len({i for _, i in kept if i is not None}) < math.ceil(min_kept * len(found_motions) - 1e-9):
             return None
@@ -721,7 +732,7 @@ def gate_report(
         other_matches += sum(bool(others[j]) for j in gate.completed)
     share = other_covered / other_frames if other_frames else 0.0
     per_minute = other_matches / (other_frames / rate / 60) if other_frames else 0.0
-    return GateReport(g, opened, motions, share, per_minute, wrong, wrong_g)
+    return GateReport(g, opened, motions, share, per_minute, wrong, wrong_g, slack)
 
 
 def choose_gate(
@@ -760,14 +771,28 @@ def choose_gate(
         if design in settled:
             continue
         best_kept = max(best_kept, min(retention(found, k, g), default=0.0))
-        report = gate_report(found, k, g, base, rate=rate, max_gap=max_gap, min_kept=min_kept)
+        report = next(
+            (
+                r
+                for slack in SLACKS
+                if (
+                    r := gate_report(
+                        found, k, g, base, rate=rate, max_gap=max_gap, min_kept=min_kept, slack=slack
+                    )
+                )
+            ),
+            None,
+        )
         if report is None:
             continue
         settled.add(design)
         if spare:  # ranked as it will run: tolerating the spare mismatches too
             wider = dataclasses.replace(g, mismatches=min(g.mismatches + spare, MISMATCHES[-1]))
             report = (
-                gate_report(found, k, wider, base, rate=rate, max_gap=max_gap, min_kept=min_kept) or report
+                gate_report(
+                    found, k, wider, base, rate=rate, max_gap=max_gap, min_kept=min_kept, slack=report.slack
+                )
+                or report
             )
         key = (report.wrong_gated, report.others, order)
         if best is None or key < best:
@@ -783,6 +808,11 @@ def choose_gate(
 
 SPARES = (0, 1, 2)
 """The spare mismatches tried by :func:`choose_spare`."""
+SLACKS = (0, 3, 6, 12)
+"""The slacks tried for a design's windows (frames at the index rate; the fewest that keep the
+class's motions are taken)."""
+DEFAULT_SLACK = 6
+"""The slack of keyframes that no fold chose (given to ``mocapd learn``)."""
 DEFAULT_SPARE = 1
 """Spare mismatches without two folds to choose them."""
 

@@ -24,7 +24,7 @@ import numpy as np
 from daemon.dtw import Steps
 from daemon.features import FEATURE_NAMES
 from daemon.keyframes import KeyframeQuery
-from daemon.learn.calibration import Calibrated, calibrate, groups
+from daemon.learn.calibration import DEFAULT_SLACK, Calibrated, calibrate, groups
 from daemon.learn.templates import THESIS_KEYFRAMES, Generalisation, learn
 from daemon.library import (
     DTW,
@@ -127,6 +127,8 @@ def learn_library(
                 mode=DTW if gate is None else GATED,
                 mode_reason=found.reason,
             )
+            if found.keyframes is not None:
+                cls = dataclasses.replace(cls, slack=found.keyframes.slack)
             if found.members is not None and found.second is not None:
                 second = [i for i, c in enumerate(found.members) if c == 1]
                 template = learn([items[i][1] for i in second], delta=delta, keyframes=0).quantised
@@ -151,6 +153,7 @@ def learn_library(
                 keyframe_source=PUBLISHED,
                 mode=GATED,
                 mode_reason="keyframes given to mocapd learn",
+                slack=cls.slack or DEFAULT_SLACK,
             )
         classes[name] = cls
         if progress is not None:
@@ -286,6 +289,8 @@ def save_library(library: Library, path: str | Path, extra: Mapping[str, str] | 
         }
         if c.keyframe_source != LEARNED:
             meta["classes"][name]["keyframe_source"] = c.keyframe_source
+        if c.slack:
+            meta["classes"][name]["slack"] = c.slack
 
     def fill(temp: Path) -> None:
         for name, values in arrays.items():
