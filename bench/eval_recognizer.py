@@ -57,7 +57,7 @@ from daemon.dtw import local_minima, pack, retrieval_tables, subsequence_codes, 
 from daemon.features import features
 from daemon.frames import FrameClock
 from daemon.library import DTW, GATED, ClassTemplate, Library, load_library
-from daemon.recognizer import Detection, Recognizer, keyframe_windows, same_motion
+from daemon.recognizer import Detection, Recognizer, keyframe_windows, same_motion, window_extent
 from daemon.recordings import native_rate, read_recording
 from daemon.templates import expand
 from daemon.tools import mocap6
@@ -284,9 +284,8 @@ def why_missed(library: Library, s: Stream, seg: Segment, detections: Sequence[D
 def class_windows(cls: ClassTemplate, rate: float, codes: list[int]) -> list[tuple[int, int]]:
     """The windows keyframe-first class ``cls`` opens over index-rate ``codes`` (first, last frame)."""
     assert cls.keyframes is not None
-    made = keyframe_windows(
-        cls.keyframes, cls.hard.length, cls.slack, rate, RecognitionSettings().max_gap(rate), codes
-    )
+    extent = window_extent(cls.keyframes, cls.hard.length, cls.slack, cls.extent)
+    made = keyframe_windows(cls.keyframes, extent, rate, RecognitionSettings().max_gap(rate), codes)
     return [(a, b) for a, b, _, _ in made]
 
 

@@ -10,7 +10,8 @@ A library is a directory::
                                               "iterations", "training": [clip, ...],
                                               "keyframes": [keyframe, ...],
                                               "mode", "mode_reason", "members": [member, ...],
-                                              ["keyframe_source": "published"], ["slack": frames]}}}
+                                              ["keyframe_source": "published"], ["slack": frames],
+                                              ["window": [before, after]]}}}
     LIB/<name>.npz        soft, soft_weights, quantised, quantised_weights, hard, hard_weights
                           [, member1, member1_weights, ...]
 
@@ -30,8 +31,10 @@ the array ``member<i>`` its quantised template). ``sha256`` holds the SHA-256 of
 on loading, so arrays damaged, swapped or edited are refused. A class's arrays are read only when the
 class is loaded, so a damaged class file does not keep the others from being used.
 
-``slack`` (optional, 0 if absent) is the frames a keyframe-first class's confirmation window opens
-beyond its keyframe match's geometry (:func:`daemon.recognizer.window_extent`).
+``window`` (optional) is the frames a keyframe-first class's confirmation window opens before a
+keyframe match's range and after the frame that completes it, as its training examples needed
+(absent: from the template's geometry), and ``slack`` (optional, 0 if absent) the frames more on
+each side (:func:`daemon.recognizer.window_extent`).
 ``keyframe_source`` (optional) says where the keyframes come from: absent or ``"learned"``, the
 automatic keyframes learned with the templates; ``"published"``, keyframes given to ``mocapd learn
 --keyframes FILE`` (e.g. the Bonn toolbox's ``manual-keyframes.json``, positions in the columns of
@@ -81,7 +84,7 @@ CLASS_KEYS_V3 = (*CLASS_KEYS_V2, "calibration")
 CLASS_KEYS = (*CLASS_KEYS_V3, "mode", "mode_reason", "members")
 CALIBRATION_KEYS = ("method", "folds", "positives", "negatives", "recall", "precision")
 MEMBER_KEYS = ("tau", "calibration", "examples")
-CLASS_OPTIONAL = ("keyframe_source", "slack")
+CLASS_OPTIONAL = ("keyframe_source", "slack", "window")
 """Optional fields of a version 3 or 4 class entry."""
 CLIP_KEYS_V2 = ("asf", "amc", "start_frame", "end_frame", "frames")
 V2_TAU = "a version 2 library"
@@ -189,8 +192,12 @@ class ClassTemplate:
     variants: tuple[Variant, ...] = ()
     """More templates of the class beside ``quantised`` (one per style: learning chooses how many)."""
     slack: int = 0
-    """Keyframes first: the frames a window opens beyond its keyframe match's geometry on each side
-    (:func:`daemon.recognizer.window_extent`; learning chooses it by folds)."""
+    """Keyframes first: the frames a window opens beyond what the training examples need on each
+    side (:func:`daemon.recognizer.window_extent`; learning chooses it by folds)."""
+    extent: tuple[int, int] | None = None
+    """Keyframes first: the frames before a keyframe match's range and after the frame that
+    completes it that the training examples need (:func:`daemon.recognizer.learned_extent`); None:
+    the template's geometry."""
 
     def __post_init__(self) -> None:
         if self.keyframe_source not in KEYFRAME_SOURCES:
@@ -205,6 +212,13 @@ class ClassTemplate:
             raise ValueError(f"class {self.name}: the keyframes mode needs keyframes")
         if isinstance(self.slack, bool) or not isinstance(self.slack, int) or self.slack < 0:
             raise ValueError(f"class {self.name}: slack must be frames >= 0, got {self.slack!r:.60}")
+        if self.extent is not None and (
+            len(self.extent) != 2
+            or any(isinstance(x, bool) or not isinstance(x, int) or x < 0 for x in self.extent)
+        ):
+            raise ValueError(
+                f"class {self.name}: extent must be two frame counts >= 0, got {self.extent!r:.60}"
+            )
 
     @property
     def members(self) -> tuple[tuple[MotionTemplate, float], ...]:
@@ -285,6 +299,7 @@ def load_library(path: str | Path, names: Collection[str] | None = None) -> Libr
                 for t, m in zip(members, e["members"], strict=True)
             ),
             e["slack"],
+            e["window"],
         )
     return Library(rate, classes)
 
@@ -332,6 +347,13 @@ def _read(path: Path) -> tuple[Checker, float, dict[str, dict[str, Any]]]:
             e.get("keyframe_source", LEARNED), f"{where}.keyframe_source", KEYFRAME_SOURCES
         )
         e["slack"] = check.integer(e.get("slack", 0), f"{where}.slack")
+        window = e.get("window")
+        if window is not None:
+            pair = check.listing(window, f"{where}.window")
+            if len(pair) != 2:
+                check.fail(f"{where}.window", f"must be [before, after], got {len(pair)} entries")
+            window = tuple(check.integer(x, f"{where}.window[{i}]") for i, x in enumerate(pair))
+        e["window"] = window
         if e["file"] != f"{name}.npz":
             check.fail(f"{where}.file", f"must be '{name}.npz', got {e['file']!r:.60}")
         members = check.listing(e.get("members", []), f"{where}.members")

@@ -157,8 +157,9 @@ class ClassPlan:
     def extent(self) -> tuple[int, int]:
         """(before, after): the frames a window of the class opens before a keyframe match's range
         and stays open after the frame that completes it (:func:`window_extent`)."""
-        assert self.template.keyframes is not None
-        return window_extent(self.template.keyframes, self.template.hard.length, self.template.slack)
+        t = self.template
+        assert t.keyframes is not None
+        return window_extent(t.keyframes, t.hard.length, t.slack, t.extent)
 
     def back(self, rate: float) -> int:
         """How far before the frame that completes a match its window may open: the match's span
@@ -168,15 +169,37 @@ class ClassPlan:
         return sum(hi or 0 for _, hi in bounds) + self.extent()[0]
 
 
-def window_extent(query: KeyframeQuery, length: int, slack: int) -> tuple[int, int]:
-    """(before, after) of a keyframe-first class's windows, in frames: a match's first keyframe lies
-    at template column p_1 and its last at p_K of ``length`` columns, and a DTW path with the
-    toolbox's steps takes at most two frames per column, so the motion starts at most 2 p_1 frames
-    before its first keyframe's frame and ends at most 2 (length - 1 - p_K) after its last
+def window_extent(
+    query: KeyframeQuery, length: int, slack: int, extent: tuple[int, int] | None = None
+) -> tuple[int, int]:
+    """(before, after) of a keyframe-first class's windows, in frames: the ``extent`` its training
+    examples need (:func:`learned_extent`), or without one, the template's geometry — its first
+    keyframe at template column p_1 and its last at p_K of ``length`` columns, and a DTW path with
+    the toolbox's steps taking at most two frames per column, the motion starts at most 2 p_1
+    frames before its first keyframe's frame and ends at most 2 (length - 1 - p_K) after its last
     keyframe's; ``slack`` frames more on each side (learned by folds,
-    :func:`daemon.learn.calibration.choose_slack`)."""
+    :func:`daemon.learn.calibration.choose_gate`)."""
+    if extent is not None:
+        return extent[0] + slack, extent[1] + slack
     first, last = query.keyframes[0].position, query.keyframes[-1].position
     return 2 * max(0, first) + slack, 2 * max(0, length - 1 - last) + slack
+
+
+def learned_extent(
+    query: KeyframeQuery, examples: Sequence[Sequence[int]], rate: float, max_gap: int
+) -> tuple[int, int] | None:
+    """The spread of the training examples' timings around their keyframe matches: over the
+    examples (each its index-rate codes) in which ``query`` completes a match, the most frames from
+    the example's first frame to the R(M) start of its first completed match (before) and from the
+    frame that completes it to the example's last frame (after), so that the window of that match
+    (:func:`windows`) holds the whole example; None if no example has a match."""
+    before = after = -1
+    for codes in examples:
+        found = completions(query, rate, max_gap, codes)
+        if found:
+            first, j = min(found, key=lambda m: (m[1], m[0]))
+            before, after = max(before, first), max(after, len(codes) - 1 - j)
+    return None if before < 0 else (before, after)
 
 
 def gate_automaton(query: KeyframeQuery, rate: float, max_gap: int) -> KeyframeAutomaton:
@@ -223,11 +246,15 @@ def windows(
 
 
 def keyframe_windows(
-    query: KeyframeQuery, length: int, slack: int, rate: float, max_gap: int, codes: Sequence[int]
+    query: KeyframeQuery,
+    extent: tuple[int, int],
+    rate: float,
+    max_gap: int,
+    codes: Sequence[int],
 ) -> list[tuple[int, int, int, int]]:
-    """The :func:`windows` a keyframe-first class with ``query`` over a template of ``length``
-    columns and ``slack`` opens over index-rate ``codes``, as the live recogniser opens them."""
-    before, after = window_extent(query, length, slack)
+    """The :func:`windows` a keyframe-first class with ``query`` and windows of ``extent`` (before,
+    after: :func:`window_extent`) opens over index-rate ``codes``, as the live recogniser opens them."""
+    before, after = extent
     back = sum(hi or 0 for _, hi in query_bounds(query, rate, max_gap)) + before
     return windows(completions(query, rate, max_gap, codes), before, after, back)
 

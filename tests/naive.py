@@ -937,7 +937,7 @@ class GateFold(NamedTuple):
     owner: Sequence[int]
     truth: Sequence[tuple[int, int, int]]
     codes: list[int]
-    trials: list[tuple[Generalisation, KeyframeQuery, list[bool], int]]
+    trials: list[tuple[Generalisation, KeyframeQuery, list[bool], int, tuple[int, int] | None]]
 
 
 def slow_windows(
@@ -961,9 +961,14 @@ def slow_windows(
     return out
 
 
-def slow_extent(query: KeyframeQuery, length: int, slack: int) -> tuple[int, int]:
-    """Frames a window opens before a match and after its completion: two frames per template
-    column before the first keyframe and after the last, plus ``slack``."""
+def slow_extent(
+    query: KeyframeQuery, length: int, slack: int, extent: tuple[int, int] | None = None
+) -> tuple[int, int]:
+    """Frames a window opens before a match and after its completion: ``extent`` (the training
+    examples' needs), else two frames per template column before the first keyframe and after the
+    last; plus ``slack``."""
+    if extent is not None:
+        return extent[0] + slack, extent[1] + slack
     first, last = query.keyframes[0].position, query.keyframes[-1].position
     return 2 * first + slack, 2 * max(0, length - 1 - last) + slack
 
@@ -999,19 +1004,19 @@ def slow_gate(
         detections.append(mine)
     tried: list[Generalisation] = []
     for f in folds:
-        for g, _, _, _ in f.trials:
+        for g, _, _, _, _ in f.trials:
             if g not in tried:
                 tried.append(g)
 
     def run(g: Generalisation, slack: int) -> tuple[bool, int, float]:
         qualifies, wrong_g, covered, frames = True, 0, 0, 0
         for f, mine in zip(folds, detections, strict=True):
-            for generalisation, query, kept_examples, length in f.trials:
+            for generalisation, query, kept_examples, length, extent in f.trials:
                 if generalisation != g:
                     continue
                 if kept_examples and sum(kept_examples) < min_kept * len(kept_examples):
                     qualifies = False
-                before, after = slow_extent(query, length, slack)
+                before, after = slow_extent(query, length, slack, extent)
                 back = sum(hi or 0 for _, hi in query_bounds(query, rate, max_gap)) + before
                 spans = slow_windows(completions(query, rate, max_gap, f.codes), before, after, back)
                 kept = [(x, i) for x, i in mine if any(a <= x[3] and x[1] <= b for a, b, _, _ in spans)]

@@ -638,7 +638,7 @@ def gate_of(
                 f.owner,
                 f.truth,
                 f.codes.tolist(),
-                [(t.generalisation, t.query, t.positives.tolist(), t.length) for t in f.trials[k]],
+                [(t.generalisation, t.query, t.positives.tolist(), t.length, t.extent) for t in f.trials[k]],
             )
             for f in found
         ],

@@ -25,9 +25,12 @@ from daemon.recognizer import (
     Detection,
     FrameError,
     Recognizer,
+    completions,
     detect,
     detect_positions,
+    learned_extent,
     plans,
+    windows,
 )
 from daemon.recordings import native_rate, read_recording
 from daemon.templates import MotionTemplate, expand
@@ -196,7 +199,7 @@ def slow_recognizer(
     for k, cls in enumerate(classes):
         spans = [(0, n - 1, 0, 0)]
         if cls.mode == "keyframes" and cls.keyframes is not None:
-            before, after = slow_extent(cls.keyframes, cls.hard.length, cls.slack)
+            before, after = slow_extent(cls.keyframes, cls.hard.length, cls.slack, cls.extent)
             back = sum(hi or 0 for _, hi in query_bounds(cls.keyframes, 30.0, max_gap)) + before
             matches = keyframe_matches(sets, cls.keyframes, max_gap)
             spans = [
@@ -344,6 +347,7 @@ def test_confirmations_equal_the_definition(
     st.integers(0, 8),
     st.integers(0, 6),
     st.booleans(),
+    st.one_of(st.none(), st.tuples(st.integers(0, 12), st.integers(0, 12))),
 )
 def test_windows_equal_the_definition(
     codes: dict[FeatureSet, list[int]],
@@ -354,13 +358,15 @@ def test_windows_equal_the_definition(
     slack: int,
     hold: int,
     compete: bool,
+    extent: tuple[int, int] | None,
 ) -> None:
     """Longer streams and a keyframes-first class whose template spans its keyframes (so that its
-    windows open, are extended, close and open again over frames the last one searched), beside a
-    class in mode ``dtw``: the recogniser equals :func:`slow_recognizer`."""
+    windows open, are extended, close and open again over frames the last one searched), its
+    windows' extent learned or from its geometry, beside a class in mode ``dtw``: the recogniser
+    equals :func:`slow_recognizer`."""
     rng = np.random.default_rng(seed)
     columns = query.keyframes[-1].position + 1 + extra
-    a = dataclasses.replace(random_class("a", query, rng, tau, columns), slack=slack)
+    a = dataclasses.replace(random_class("a", query, rng, tau, columns), slack=slack, extent=extent)
     b = dataclasses.replace(random_class("b", query, rng, tau), mode="dtw")
     classes = [a, b]
     stream = stream_codes(codes)
@@ -375,6 +381,28 @@ def test_windows_equal_the_definition(
         (p.name, m.start, m.end, round(m.cost * SCALE), len(stream) - 1) for p, m, _ in recognizer.flush()
     ]
     assert got == slow_recognizer(stream, classes, 4, compete, hold)
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(streams(shortest=1, longest=30), min_size=1, max_size=4), queries(tolerant=True))
+def test_learned_extent_is_the_examples_spread(
+    examples: list[dict[FeatureSet, list[int]]], query: KeyframeQuery
+) -> None:
+    """Per example (its own stream), the keyframe match completed first (brute force; ties: the
+    earliest R(M) start) needs its R(M) start frames before it and the frames after the frame that
+    completes it to the example's end; the extent is the most of each over the examples with a
+    match, and a window of that extent around that match holds the whole example."""
+    need = []
+    for codes in examples:
+        matches = keyframe_matches(codes, query, 4)
+        if matches:
+            first, at, _ = min(matches, key=lambda m: (m[1], m[0]))
+            need.append((first, len(codes["lower"]) - 1 - at))
+    got = learned_extent(query, [stream_codes(c) for c in examples], 30.0, 4)
+    assert got == (None if not need else (max(b for b, _ in need), max(a for _, a in need)))
+    for codes in examples:
+        made = windows(completions(query, 30.0, 4, stream_codes(codes)), *(got or (0, 0)), 10**6)
+        assert not made or (made[0][0] == 0 and made[0][1] >= len(codes["lower"]) - 1)
 
 
 # ------------------------------------------------------------------------------- bad frames

@@ -67,7 +67,7 @@ from daemon.dtw import (
 from daemon.keyframes import KeyframeQuery
 from daemon.learn.templates import Generalisation, aligned_frames, automatic_keyframes, learn
 from daemon.library import Calibration, given
-from daemon.recognizer import completions, keyframe_windows
+from daemon.recognizer import completions, keyframe_windows, learned_extent, window_extent
 from daemon.search.index import SetIndex, build_set_index
 from daemon.search.keyframes import keyframe_search
 from daemon.templates import MotionTemplate, expand
@@ -191,6 +191,8 @@ class KeyframeTrial:
     positives: npt.NDArray[np.bool_]
     length: int = 1
     """The columns of the fold's template the keyframes' positions refer to."""
+    extent: tuple[int, int] | None = None
+    """What the fold's training examples need of a window (:func:`daemon.recognizer.learned_extent`)."""
 
 
 @dataclass(frozen=True)
@@ -328,6 +330,7 @@ def folds(
     ``generalisations`` (default: :func:`designs` around ``keyframes``)."""
     names = list(examples)
     tried = designs(keyframes) if generalisations is None else tuple(generalisations)
+    max_gap = max(1, round(DEFAULT_MAX_GAP_S * rate))
     order = list(dict.fromkeys(g for items in examples.values() for g, _ in items))
     out = []
     for group in order:
@@ -348,9 +351,12 @@ def folds(
                 hard = result.hard.template
                 aligned = np.stack([aligned_frames(hard, m) for m in training])
                 made = []
+                codes_of = [pack(m).tolist() for m in training]
                 for g in tried:
                     query = automatic_keyframes(hard, training, keyframes, name, rate, g, aligned)
-                    made.append(KeyframeTrial(g, query, keyframes_kept(query, pos_sets, rate), hard.length))
+                    extent = learned_extent(query, codes_of, rate, max_gap)
+                    kept = keyframes_kept(query, pos_sets, rate)
+                    made.append(KeyframeTrial(g, query, kept, hard.length, extent))
                 trials[k] = tuple(made)
         if not any(k in learned for k, _, _ in truth):
             continue
@@ -648,12 +654,14 @@ class Opening:
 
 
 def opening(
-    query: KeyframeQuery, rate: float, max_gap: int, codes: npt.NDArray[np.uint64], length: int, slack: int
+    trial: KeyframeTrial, rate: float, max_gap: int, codes: npt.NDArray[np.uint64], slack: int
 ) -> Opening:
-    """The :class:`Opening` of ``query``'s windows over index-rate ``codes`` ``(N,)``, for a template
-    of ``length`` columns and ``slack`` (:func:`daemon.recognizer.window_extent`)."""
+    """The :class:`Opening` of ``trial``'s windows over index-rate ``codes`` ``(N,)`` with ``slack``
+    (:func:`daemon.recognizer.window_extent`)."""
+    query = trial.query
     found = completions(query, rate, max_gap, codes.tolist())
-    made = keyframe_windows(query, length, slack, rate, max_gap, codes.tolist())
+    extent = window_extent(query, trial.length, slack, trial.extent)
+    made = keyframe_windows(query, extent, rate, max_gap, codes.tolist())
     n = len(codes)
     covered = np.zeros(n, dtype=bool)
     for a, b, _, _ in made:
@@ -715,7 +723,7 @@ def gate_report(
         trial = next((t for t in f.trials.get(k, ()) if t.generalisation == g), None)
         if trial is None:
             continue
-        gate = opening(trial.query, rate, max_gap, f.codes, trial.length, slack)
+        gate = opening(trial, rate, max_gap, f.codes, slack)
         kept = gated(base[f.group], gate.spans)
         found_motions = {i for _, i in base[f.group] if i is not None}
         if len({i for _, i in kept if i is not None}) < math.ceil(min_kept * len(found_motions) - 1e-9):

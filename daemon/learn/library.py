@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from daemon.dtw import Steps
+from daemon.dtw import Steps, pack
 from daemon.features import FEATURE_NAMES
 from daemon.keyframes import KeyframeQuery
 from daemon.learn.calibration import DEFAULT_SLACK, Calibrated, calibrate, groups
@@ -41,9 +41,10 @@ from daemon.library import (
     Variant,
     given,
 )
+from daemon.recognizer import learned_extent
 from daemon.recordings import Examples
 from daemon.storage import check_target, checksum, replace_directory, sync, write_json
-from daemon.types import DEFAULT_INDEX_RATE, BoolArray, TrainingClip
+from daemon.types import DEFAULT_INDEX_RATE, DEFAULT_MAX_GAP_S, BoolArray, TrainingClip
 
 
 @dataclass(frozen=True)
@@ -155,6 +156,10 @@ def learn_library(
                 mode_reason="keyframes given to mocapd learn",
                 slack=cls.slack or DEFAULT_SLACK,
             )
+        if cls.mode == GATED and cls.keyframes is not None:
+            codes = [pack(m).tolist() for _, m in items]
+            max_gap = max(1, round(DEFAULT_MAX_GAP_S * rate))
+            cls = dataclasses.replace(cls, extent=learned_extent(cls.keyframes, codes, rate, max_gap))
         classes[name] = cls
         if progress is not None:
             progress(
@@ -291,6 +296,8 @@ def save_library(library: Library, path: str | Path, extra: Mapping[str, str] | 
             meta["classes"][name]["keyframe_source"] = c.keyframe_source
         if c.slack:
             meta["classes"][name]["slack"] = c.slack
+        if c.extent is not None:
+            meta["classes"][name]["window"] = list(c.extent)
 
     def fill(temp: Path) -> None:
         for name, values in arrays.items():
