@@ -37,6 +37,7 @@ from daemon.learn.calibration import (
     SLACKS,
     SPARES,
     TAKE_GROUPS,
+    WIDER,
     Calibrated,
     Candidate,
     Choice,
@@ -47,6 +48,7 @@ from daemon.learn.calibration import (
     choose_position,
     choose_spare,
     choose_tau,
+    choose_wider,
     clip_costs,
     clip_sets,
     designs,
@@ -604,7 +606,7 @@ def test_calibration_leaves_each_actor_out(labelled: Labelled, calibrated: Calib
         assert cc.reason
         # keyframes first: the stream-wide DTW only where no design holds on the left-out motions
         held = [f for f in found if any(c == k for c, _, _ in f.truth) and k in f.learned]
-        gate, reason = choose_gate(held, k, taus, spare=calibrated.spare)
+        gate, reason = choose_gate(held, k, taus, spare=calibrated.spare, wider=calibrated.wider)
         assert (cc.keyframes, cc.reason) == (gate, reason)
     # the spare mismatches: the fewest whose nested-fold share of motions kept reaches MIN_KEPT
     assert (calibrated.spare, dict(calibrated.spare_kept)) == choose_spare(found, taus)
@@ -612,6 +614,13 @@ def test_calibration_leaves_each_actor_out(labelled: Labelled, calibrated: Calib
     assert shares == sorted(shares)  # a keyframe that tolerates more misses no more motions
     reaching = [s for s in SPARES if calibrated.spare_kept[s] >= MIN_KEPT]
     assert calibrated.spare == (reaching[0] if reaching else SPARES[-1])
+    # the windows' spare width: the fewest steps whose nested-fold share of motions kept reaches MIN_KEPT
+    assert (calibrated.wider, dict(calibrated.wider_kept)) == choose_wider(found, taus)
+    assert set(calibrated.wider_kept) == set(WIDER) and all(
+        0 <= x <= 1 for x in calibrated.wider_kept.values()
+    )
+    reaching = [s for s in WIDER if calibrated.wider_kept[s] >= MIN_KEPT]
+    assert calibrated.wider == (reaching[0] if reaching else WIDER[-1])
 
 
 def test_a_class_without_a_fold_keeps_the_given_tau(labelled: Labelled) -> None:

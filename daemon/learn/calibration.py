@@ -752,6 +752,7 @@ def choose_gate(
     max_gap_s: float = DEFAULT_MAX_GAP_S,
     min_kept: float = MIN_KEPT,
     spare: int = 0,
+    wider: int = 0,
 ) -> tuple[GateReport | None, str]:
     """The keyframe gate of class ``k`` with what it did in the folds, or None (the stream-wide DTW
     alone), and why. Keyframes first is the rule; the stream-wide DTW only where the class's
@@ -759,12 +760,13 @@ def choose_gate(
 
     A keyframe design (:class:`~daemon.learn.templates.Generalisation`, learned in each fold from
     the other groups) *holds* when :func:`gate_report` gives a report at the thresholds ``taus``
-    (gap cap ``max_gap_s``). Of each design only its fewest mismatches that hold count (more only
-    open the gate wider); its keyframes then tolerate ``spare`` mismatches more (at most the most
-    tried, :data:`MISMATCHES`), since a new person misses more than the folds' people
-    (:func:`choose_spare`). Of these widened gates, the one with the fewest wrong detections, then
-    the smallest share of other classes' motion frames inside an open gate, then the earliest
-    tried, is chosen."""
+    (gap cap ``max_gap_s``) with one of :data:`SLACKS` (the first that holds). Of each design only
+    its fewest mismatches that hold count (more only open the gate wider); its windows then open
+    ``wider`` steps of :data:`SLACKS` wider and its keyframes tolerate ``spare`` mismatches more (at
+    most the most tried, :data:`MISMATCHES`), since a new person differs more than the folds'
+    people (:func:`choose_wider`, :func:`choose_spare`). Of these widened gates, the one with the
+    fewest wrong detections, then the smallest share of other classes' motion frames inside a
+    window, then the earliest tried, is chosen."""
     if not found or not any(f.trials.get(k) for f in found):
         return None, "no fold to learn keyframes on: stream-wide DTW"
     base = {f.group: detected(f, taus, k) for f in found}
@@ -794,11 +796,32 @@ def choose_gate(
         if report is None:
             continue
         settled.add(design)
-        if spare:  # ranked as it will run: tolerating the spare mismatches too
-            wider = dataclasses.replace(g, mismatches=min(g.mismatches + spare, MISMATCHES[-1]))
+        if wider:  # windows opened as wide as new people need (choose_wider)
             report = (
                 gate_report(
-                    found, k, wider, base, rate=rate, max_gap=max_gap, min_kept=min_kept, slack=report.slack
+                    found,
+                    k,
+                    g,
+                    base,
+                    rate=rate,
+                    max_gap=max_gap,
+                    min_kept=min_kept,
+                    slack=widened(report.slack, wider),
+                )
+                or report
+            )
+        if spare:  # ranked as it will run: tolerating the spare mismatches too
+            tolerant = dataclasses.replace(g, mismatches=min(g.mismatches + spare, MISMATCHES[-1]))
+            report = (
+                gate_report(
+                    found,
+                    k,
+                    tolerant,
+                    base,
+                    rate=rate,
+                    max_gap=max_gap,
+                    min_kept=min_kept,
+                    slack=report.slack,
                 )
                 or report
             )
@@ -825,6 +848,31 @@ DEFAULT_SPARE = 1
 """Spare mismatches without two folds to choose them."""
 
 
+Inner = list[tuple["Fold", int, GateReport]]
+"""Per class and fold: the gate :func:`choose_gate` chooses without that fold (:func:`inner_gates`)."""
+
+
+def inner_gates(
+    found: Sequence[Fold],
+    taus: Sequence[float | None],
+    *,
+    rate: float = DEFAULT_INDEX_RATE,
+    max_gap_s: float = DEFAULT_MAX_GAP_S,
+    min_kept: float = MIN_KEPT,
+) -> Inner:
+    """Nested folds: for every class and every fold holding its motions, the gate
+    :func:`choose_gate` chooses from the other folds (where one holds)."""
+    inner: Inner = []
+    for k in sorted({c for f in found for c in f.trials}):
+        held = [f for f in found if k in f.trials and k in f.learned]
+        for i, f in enumerate(held):
+            rest = [h for j, h in enumerate(held) if j != i]
+            report, _ = choose_gate(rest, k, taus, rate=rate, max_gap_s=max_gap_s, min_kept=min_kept)
+            if report is not None:
+                inner.append((f, k, report))
+    return inner
+
+
 def choose_spare(
     found: Sequence[Fold],
     taus: Sequence[float | None],
@@ -832,28 +880,24 @@ def choose_spare(
     rate: float = DEFAULT_INDEX_RATE,
     max_gap_s: float = DEFAULT_MAX_GAP_S,
     min_kept: float = MIN_KEPT,
+    inner: Inner | None = None,
 ) -> tuple[int, dict[int, float]]:
     """How many mismatches beyond what the folds need keyframes must tolerate to hold on a group
     never seen, by nested folds: for every class and every fold, the gate :func:`choose_gate`
-    chooses without that fold, widened by each of :data:`SPARES`, is scored by the share of the
-    fold's left-out motions of the class its keyframes hit (pooled over classes and folds); the
-    fewest spare mismatches whose share reaches ``min_kept`` are taken (else the most tried), with
-    the share of each. :data:`DEFAULT_SPARE` with fewer than two folds."""
+    chooses without that fold (``inner``: :func:`inner_gates`, made if not given), widened by each
+    of :data:`SPARES`, is scored by the share of the fold's left-out motions of the class its
+    keyframes hit (pooled over classes and folds); the fewest spare mismatches whose share reaches
+    ``min_kept`` are taken (else the most tried), with the share of each. :data:`DEFAULT_SPARE`
+    with fewer than two folds."""
     if len(found) < 2:
         return DEFAULT_SPARE, {}
-    classes = sorted({c for f in found for c in f.trials})
-    inner: list[tuple[Fold, int, Generalisation]] = []
-    for k in classes:
-        held = [f for f in found if k in f.trials and k in f.learned]
-        for i, f in enumerate(held):
-            rest = [h for j, h in enumerate(held) if j != i]
-            report, _ = choose_gate(rest, k, taus, rate=rate, max_gap_s=max_gap_s, min_kept=min_kept)
-            if report is not None:
-                inner.append((f, k, report.generalisation))
+    if inner is None:
+        inner = inner_gates(found, taus, rate=rate, max_gap_s=max_gap_s, min_kept=min_kept)
     shares = {}
     for spare in SPARES:
         kept = total = 0
-        for f, k, g in inner:
+        for f, k, report in inner:
+            g = report.generalisation
             wider = dataclasses.replace(g, mismatches=min(g.mismatches + spare, MISMATCHES[-1]))
             trial = next((t for t in f.trials[k] if t.generalisation == wider), None)
             if trial is not None:
@@ -861,6 +905,54 @@ def choose_spare(
                 total += len(trial.positives)
         shares[spare] = kept / total if total else 1.0
     return next((s for s in SPARES if shares[s] >= min_kept), SPARES[-1]), shares
+
+
+WIDER = (0, 1, 2)
+"""The steps along :data:`SLACKS` beyond the slack the folds need tried by :func:`choose_wider`."""
+DEFAULT_WIDER = 1
+"""Steps without two folds to choose them."""
+
+
+def widened(slack: int, steps: int) -> int:
+    """``slack`` (one of :data:`SLACKS`) ``steps`` further along them (at most the widest)."""
+    return SLACKS[min(SLACKS.index(slack) + steps, len(SLACKS) - 1)]
+
+
+def choose_wider(
+    found: Sequence[Fold],
+    taus: Sequence[float | None],
+    *,
+    rate: float = DEFAULT_INDEX_RATE,
+    max_gap_s: float = DEFAULT_MAX_GAP_S,
+    min_kept: float = MIN_KEPT,
+    inner: Inner | None = None,
+) -> tuple[int, dict[int, float]]:
+    """How much wider than the folds need a class's windows must open to hold on a group never
+    seen, by nested folds: for every class and every fold, the gate :func:`choose_gate` chooses
+    without that fold (``inner``), its slack widened by each of :data:`WIDER` steps of
+    :data:`SLACKS`, is scored by the share of the motions of the class that its detections find
+    in the fold's stream (:func:`detected`) that they still find inside its windows there (pooled
+    over classes and folds); the fewest steps whose share reaches ``min_kept`` are taken (else the
+    most tried), with the share of each. :data:`DEFAULT_WIDER` with fewer than two folds."""
+    if len(found) < 2:
+        return DEFAULT_WIDER, {}
+    if inner is None:
+        inner = inner_gates(found, taus, rate=rate, max_gap_s=max_gap_s, min_kept=min_kept)
+    max_gap = max(1, round(max_gap_s * rate))
+    shares = {}
+    for steps in WIDER:
+        kept = total = 0
+        for f, k, report in inner:
+            trial = next((t for t in f.trials[k] if t.generalisation == report.generalisation), None)
+            if trial is None:
+                continue
+            base = detected(f, taus, k)
+            motions = {i for _, i in base if i is not None}
+            gate = opening(trial, rate, max_gap, f.codes, widened(report.slack, steps))
+            kept += len({i for _, i in gated(base, gate.spans) if i is not None})
+            total += len(motions)
+        shares[steps] = kept / total if total else 1.0
+    return next((s for s in WIDER if shares[s] >= min_kept), WIDER[-1]), shares
 
 
 # ------------------------------------------------------------------------------------ the result
@@ -884,7 +976,8 @@ class Calibrated:
     """Every class's :class:`ClassCalibration`, the folds they came from (with the templates
     chosen), what the groups were, the position of τ with the nested folds' F1 of each, and the
     keyframes' spare mismatches with the nested folds' share of motions kept of each
-    (:func:`choose_spare`)."""
+    (:func:`choose_spare`), and the steps its windows open wider with the nested folds' share of
+    motions kept inside them of each (:func:`choose_wider`)."""
 
     classes: Mapping[str, ClassCalibration]
     folds: tuple[Fold, ...]
@@ -893,6 +986,8 @@ class Calibrated:
     position_f1: Mapping[float, float]
     spare: int = 0
     spare_kept: Mapping[int, float] = dataclasses.field(default_factory=dict)
+    wider: int = 0
+    wider_kept: Mapping[int, float] = dataclasses.field(default_factory=dict)
 
 
 def _record(
@@ -941,7 +1036,8 @@ def calibrate(
        templates are the final ones' styles), in each fold one template learned from the training
        examples of each style, every template's τ found again; kept if the class's F1 over the
        folds (:func:`scored`) rises.
-    3. The keyframes' spare mismatches (:func:`choose_spare`), then every class's keyframe gate
+    3. The keyframes' spare mismatches and the windows' spare width (:func:`choose_spare`,
+       :func:`choose_wider`, from the same nested folds), then every class's keyframe gate
        (:func:`choose_gate`).
 
     A class without a fold, or whose left-out motions never matched, keeps the given ``tau`` (and
@@ -993,13 +1089,19 @@ def calibrate(
                     f"[class {k + 1}/{len(names)}] {name}: two styles, F1 over the folds "
                     f"{f1(*before):.2f} -> {f1(*after):.2f}"
                 )
-    spare, spare_kept = choose_spare(found, taus, rate=rate, min_kept=min_kept) if keyframes else (0, {})
+    spare, wider = 0, 0
+    spare_kept: dict[int, float] = {}
+    wider_kept: dict[int, float] = {}
+    if keyframes:
+        inner = inner_gates(found, taus, rate=rate, min_kept=min_kept) if len(found) >= 2 else []
+        spare, spare_kept = choose_spare(found, taus, rate=rate, min_kept=min_kept, inner=inner)
+        wider, wider_kept = choose_wider(found, taus, rate=rate, min_kept=min_kept, inner=inner)
     out = {}
     for k, name in enumerate(names):
         held = [f for f in found if any(c == k for c, _, _ in f.truth) and k in f.learned]
         templates = [t for t, c in enumerate(found[0].owner) if c == k] if found else [k]
         if keyframes:
-            gate, reason = choose_gate(held, k, taus, rate=rate, min_kept=min_kept, spare=spare)
+            gate, reason = choose_gate(held, k, taus, rate=rate, min_kept=min_kept, spare=spare, wider=wider)
         else:
             gate, reason = None, "no keyframes asked for: stream-wide DTW"
         records = []
@@ -1017,4 +1119,6 @@ def calibrate(
             members.get(k),
             records[1] if k in members else None,
         )
-    return Calibrated(out, tuple(found), groups_are, position, position_f1, spare, spare_kept)
+    return Calibrated(
+        out, tuple(found), groups_are, position, position_f1, spare, spare_kept, wider, wider_kept
+    )
