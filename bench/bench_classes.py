@@ -36,13 +36,11 @@ frames and the bank times ``--big-ticks`` ticks; every ratio is against 18 class
 measured on the same frames (so 18 classes are also measured on those: the pruned DTW's cost depends
 on the motion), and keyframes first against stream-wide with the same classes on the same frames.
 
-Candidates: the keyframe matches the gated classes' automata raise on the recording (its index-rate
-codes as the live path makes them, :func:`daemon.recognizer.recording_stage`; a match counted once,
-however many frames it keeps growing) per minute of motion, and the frames inside an open gate; per
-library the DTW columns a minute it runs today (one per template per index-rate frame, gated or not:
-keyframes only gate publication, docs/live-recognition.md) against those it would run if a gated
-class's templates ran only while its gate is open. An engine that ran a template's DTW only in its
-class's candidate windows would cost in proportion to the candidates, not to the classes loaded.
+Candidates: the keyframe matches the keyframes-first classes' automata complete on the recording
+(its index-rate codes as the live path makes them, :func:`daemon.recognizer.recording_stage`) per
+minute of motion, and the frames inside their windows (:func:`daemon.recognizer.keyframe_windows`);
+per library the DTW columns a minute stream-wide (one per template per index-rate frame) against
+those keyframes first runs (a keyframes-first class's templates over its windows only).
 """
 
 from __future__ import annotations
@@ -61,7 +59,14 @@ from bench.machine import describe
 from bench.processes import rss_kib
 from daemon.bank import RecognizerBank
 from daemon.library import DTW, GATED, ClassTemplate, Library
-from daemon.recognizer import Recognizer, gate_automaton, plans, recording_stage
+from daemon.recognizer import (
+    Recognizer,
+    completions,
+    keyframe_windows,
+    plans,
+    recording_stage,
+    window_extent,
+)
 from daemon.recordings import read_recording
 from daemon.service.app import release_memory
 from daemon.types import RecognitionSettings
@@ -219,9 +224,11 @@ class Row:
 
 
 def candidates(library: Library, motion: Motion, counts: list[int]) -> None:
-    """The keyframe matches of the library's gated classes on ``motion`` per minute of motion, and
-    the DTW columns a minute of the replicated libraries: run today (every template, every index-rate
-    frame) and if a gated class's templates ran only while its gate is open."""
+    """The keyframe matches of the library's keyframes-first classes on ``motion`` per minute of
+    motion and the frames inside their windows, and the DTW columns a minute of the replicated
+    libraries: every template over every index-rate frame (stream-wide) and each keyframes-first
+    class's templates over its windows only (what runs, replays of frames before a window opened
+    included)."""
     codes, _ = recording_stage(joint_positions(motion), library, RATE)
     minutes = len(motion) / RATE / 60
     max_gap = RecognitionSettings().max_gap(library.rate)
@@ -233,24 +240,18 @@ def candidates(library: Library, motion: Motion, counts: list[int]) -> None:
     for cls in library.classes.values():
         if cls.mode != GATED or cls.keyframes is None:
             continue
-        automaton = gate_automaton(cls.keyframes, library.rate, max_gap)
-        matches: set[tuple[int, int]] = set()
-        open_frames = np.zeros(len(codes) + 1, dtype=np.int64)
-        for j, code in enumerate(codes):
-            automaton.push(code)
-            for first, lo in automaton.reached:  # (first, lo) names a match; reported while it grows
-                matches.add((first, lo))
-                open_frames[first] += 1
-                open_frames[j + 1] -= 1
-        inside = int((np.cumsum(open_frames)[:-1] > 0).sum())
+        matches = completions(cls.keyframes, library.rate, max_gap, codes)
+        extent = window_extent(cls.keyframes, cls.hard.length, cls.slack, cls.extent)
+        made = keyframe_windows(cls.keyframes, extent, library.rate, max_gap, codes)
+        inside = sum(min(b, len(codes) - 1) - a + 1 for a, b, _, _ in made)
         found[cls.name] = (len(matches), inside)
         print(
             f"  {cls.name}: {len(matches)} keyframe matches ({len(matches) / minutes:.1f} a minute), "
-            f"{inside} of {len(codes)} index-rate frames ({inside / len(codes):.0%}) inside an open gate"
+            f"{inside} of {len(codes)} index-rate frames ({inside / len(codes):.0%}) inside a window"
         )
     print(
         f"  {'classes':>7s} {'gated':>5s} {'matches/min':>11s} {'DTW columns/min today':>22s} "
-        f"{'gated DTW only in open gates':>29s}"
+        f"{'keyframes first: DTW in windows':>32s}"
     )
     for count in counts:
         big = in_mode(replicated(library, count), KEYFRAMES_FIRST)
@@ -266,7 +267,7 @@ def candidates(library: Library, motion: Motion, counts: list[int]) -> None:
                 windowed += width * len(codes)
         print(
             f"  {count:7,d} {gated(big):5d} {raised / minutes:11,.0f} {today / minutes:22,.0f} "
-            f"{windowed / minutes:18,.0f} ({windowed / today:.2f})"
+            f"{windowed / minutes:21,.0f} ({windowed / today:.2f})"
         )
 
 
