@@ -243,8 +243,12 @@ def candidates(library: Library, motion: Motion, counts: list[int]) -> None:
         matches = completions(cls.keyframes, library.rate, max_gap, codes)
         extent = window_extent(cls.keyframes, cls.hard.length, cls.slack, cls.extent)
         made = keyframe_windows(cls.keyframes, extent, library.rate, max_gap, codes)
-        inside = sum(min(b, len(codes) - 1) - a + 1 for a, b, _, _ in made)
-        found[cls.name] = (len(matches), inside)
+        covered = np.zeros(len(codes), dtype=bool)
+        for a, b, _, _ in made:
+            covered[a : b + 1] = True
+        inside = int(covered.sum())
+        # the columns computed: a window that opens over frames the last one covered computes them again
+        found[cls.name] = (len(matches), sum(min(b, len(codes) - 1) - a + 1 for a, b, _, _ in made))
         print(
             f"  {cls.name}: {len(matches)} keyframe matches ({len(matches) / minutes:.1f} a minute), "
             f"{inside} of {len(codes)} index-rate frames ({inside / len(codes):.0%}) inside a window"
@@ -260,9 +264,9 @@ def candidates(library: Library, motion: Motion, counts: list[int]) -> None:
             width = len(cls.members)
             today += width * len(codes)
             if cls.mode == GATED:
-                n, inside = found[name.split("#")[0]]
+                n, columns = found[name.split("#")[0]]
                 raised += n
-                windowed += width * inside
+                windowed += width * columns
             else:
                 windowed += width * len(codes)
         print(

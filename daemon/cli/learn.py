@@ -143,8 +143,8 @@ def _learn(args: argparse.Namespace, config: Config) -> int:
         print(
             f"folds:      {len(c.folds)} ({c.groups} left out); tau placed {c.position:g} of the way to the "
             f"next wrong detection; keyframes tolerate {c.spare} mismatch{'es' if c.spare != 1 else ''} more "
-            f"than the folds need, and their windows open {c.wider} step{'s' if c.wider != 1 else ''} of slack "
-            "wider"
+            f"than the folds need, and their windows open {c.wider} step{'s' if c.wider != 1 else ''} "
+            "of slack wider"
         )
     for i, (name, cls) in enumerate(library.classes.items()):
         print(f"{'classes:' if i == 0 else '':<11} {name}: {_mode(cls)}; tau {_describe(cls.provenance)}")

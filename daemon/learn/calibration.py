@@ -184,7 +184,8 @@ class Candidate(NamedTuple):
 @dataclass(frozen=True)
 class KeyframeTrial:
     """Keyframes learned with ``generalisation`` in one fold: which of the left-out group's
-    examples of the class they keep (``positives``, ``(P,)``)."""
+    examples of the class they keep (``positives``, ``(P,)``: a hit in the clip alone and a match
+    completed inside it when the examples come back to back, :func:`kept_in_a_row`)."""
 
     generalisation: Generalisation
     query: KeyframeQuery
@@ -297,6 +298,24 @@ def keyframes_kept(query: KeyframeQuery, clips: ClipSets, rate: float) -> npt.ND
     return np.isin(np.arange(len(lengths)), hits.doc)
 
 
+def kept_in_a_row(
+    query: KeyframeQuery, examples: Sequence[npt.NDArray[np.uint64]], rate: float, max_gap: int
+) -> npt.NDArray[np.bool_]:
+    """For each example (its index-rate codes), whether the live automaton of ``query``
+    (:func:`daemon.recognizer.completions`) completes a match inside it when the examples are
+    performed back to back, as repetitions come in a take (a keyframe that holds from one repetition
+    into the next is one run there, and a clip cut out alone starts every run at its first frame);
+    shape ``(n,)``."""
+    if not examples:
+        return np.zeros(0, dtype=bool)
+    codes = np.concatenate(examples).tolist()
+    ends = np.cumsum([len(e) for e in examples])
+    done = np.zeros(len(examples), dtype=bool)
+    for _, j in completions(query, rate, max_gap, codes):
+        done[int(np.searchsorted(ends, j, side="right"))] = True
+    return done
+
+
 DESIGNS = tuple(Generalisation(w, r, 2, n) for n in (None, 4) for w in (0, 2) for r in (0.5, 1.0, 2.0))
 """The keyframe designs tried (count and mismatches aside): every feature the hard MT keeps or the
 4 it keeps longest, stable over 0 or 2 columns, gaps widened by half, once or twice their spread."""
@@ -352,10 +371,13 @@ def folds(
                 aligned = np.stack([aligned_frames(hard, m) for m in training])
                 made = []
                 codes_of = [pack(m).tolist() for m in training]
+                in_a_row = [pack(m) for m in positives]
                 for g in tried:
                     query = automatic_keyframes(hard, training, keyframes, name, rate, g, aligned)
                     extent = learned_extent(query, codes_of, rate, max_gap)
-                    kept = keyframes_kept(query, pos_sets, rate)
+                    kept = keyframes_kept(query, pos_sets, rate) & kept_in_a_row(
+                        query, in_a_row, rate, max_gap
+                    )
                     made.append(KeyframeTrial(g, query, kept, hard.length, extent))
                 trials[k] = tuple(made)
         if not any(k in learned for k, _, _ in truth):
@@ -420,10 +442,12 @@ def rivals(c: Sequence[Candidate]) -> npt.NDArray[np.bool_]:
     return out
 
 
-def survivors(fold: Fold, taus: Taus) -> npt.NDArray[np.bool_]:
+def survivors(fold: Fold, taus: Taus, present: npt.NDArray[np.bool_] | None = None) -> npt.NDArray[np.bool_]:
     """Which of the fold's candidates are not beaten when the templates' thresholds are ``taus``:
     beaten by a candidate before it in the order (cost, end, template) that is the same motion
-    (:func:`rivals`), of its class or within its own template's τ; shape ``(candidates,)``."""
+    (:func:`rivals`), of its class or within its own template's τ; shape ``(candidates,)``. With
+    ``present`` (shape ``(candidates,)``), only those candidates exist (the others are found by no
+    DTW: outside their keyframe-first class's windows), to beat or to survive."""
     c = fold.candidates
     if not c:
         return np.zeros(0, dtype=bool)
@@ -434,7 +458,9 @@ def survivors(fold: Fold, taus: Taus) -> npt.NDArray[np.bool_]:
     rival = np.array([t is not None for t in taus], dtype=bool)
     live = rival[tpl] & (cost <= limit[tpl])
     beats = np.logical_and(fold.same, (cls[:, None] == cls[None, :]) | live[None, :])
-    return np.asarray(~beats.any(axis=1), dtype=bool)
+    if present is None:
+        return np.asarray(~beats.any(axis=1), dtype=bool)
+    return np.asarray(present & ~(beats & present[None, :]).any(axis=1), dtype=bool)
 
 
 def motion_of(fold: Fold, x: Candidate) -> int | None:
@@ -507,11 +533,14 @@ def thresholds(
     return choices
 
 
-def scored(fold: Fold, taus: Taus, k: int | None = None) -> tuple[int, int, int]:
+def scored(
+    fold: Fold, taus: Taus, k: int | None = None, present: npt.NDArray[np.bool_] | None = None
+) -> tuple[int, int, int]:
     """True positives, false positives and false negatives of ``fold`` (of class ``k`` only, if
-    given) with thresholds ``taus``: a motion is found when a detection within its template's τ
-    lies in it, a detection within its τ that lies in none is false."""
-    keep = survivors(fold, taus)
+    given) with thresholds ``taus`` (and only the candidates ``present``, :func:`survivors`): a
+    motion is found when a detection within its template's τ lies in it, a detection within its τ
+    that lies in none is false."""
+    keep = survivors(fold, taus, present)
     found, fp = set(), 0
     for x, ok in zip(fold.candidates, keep, strict=True):
         t = taus[x.template]
@@ -955,6 +984,63 @@ def choose_wider(
     return next((s for s in WIDER if shares[s] >= min_kept), WIDER[-1]), shares
 
 
+def present_in_windows(
+    fold: Fold, k: int, report: GateReport, *, rate: float, max_gap: int
+) -> npt.NDArray[np.bool_]:
+    """Which of ``fold``'s candidates the live recogniser finds when class ``k`` is keyframes first
+    with ``report``'s keyframes and slack: one of class ``k`` only inside one of its windows over the
+    fold's stream (:func:`opening`), every other one; shape ``(candidates,)``."""
+    present = np.ones(len(fold.candidates), dtype=bool)
+    trial = next((t for t in fold.trials.get(k, ()) if t.generalisation == report.generalisation), None)
+    if trial is None:
+        return present
+    spans = opening(trial, rate, max_gap, fold.codes, report.slack).spans
+    for i, x in enumerate(fold.candidates):
+        if fold.owner[x.template] == k:
+            present[i] = any(a <= x.start and x.end <= b for a, b in spans)
+    return present
+
+
+def settle_modes(
+    found: Sequence[Fold],
+    taus: Taus,
+    gates: Mapping[int, GateReport],
+    *,
+    rate: float = DEFAULT_INDEX_RATE,
+    max_gap_s: float = DEFAULT_MAX_GAP_S,
+) -> dict[int, tuple[float, float]]:
+    """The classes of ``gates`` that keyframes first makes worse for every class together: all of
+    them keyframes first, the F1 of every class's detections over the folds (:func:`scored` with
+    the candidates :func:`present_in_windows`); then, class by class in order, one is set to the
+    stream-wide DTW where that raises the F1 (a rival found only by its own DTW, when its
+    keyframes do not open, lets a wrong detection of another class through; a window that misses
+    a motion loses it). Per class set so: (F1 with it keyframes first, F1 without)."""
+    max_gap = max(1, round(max_gap_s * rate))
+    masks = [
+        {k: present_in_windows(f, k, r, rate=rate, max_gap=max_gap) for k, r in gates.items()} for f in found
+    ]
+
+    def total(chosen: set[int]) -> float:
+        tp = fp = fn = 0
+        for f, mask in zip(found, masks, strict=True):
+            present = np.ones(len(f.candidates), dtype=bool)
+            for k in chosen:
+                present &= mask[k]
+            a, b, c = scored(f, taus, present=present)
+            tp, fp, fn = tp + a, fp + b, fn + c
+        return f1(tp, fp, fn)
+
+    first = set(gates)
+    now = total(first)
+    out = {}
+    for k in sorted(gates):
+        score = total(first - {k})
+        if score > now:
+            out[k] = (now, score)
+            first, now = first - {k}, score
+    return out
+
+
 # ------------------------------------------------------------------------------------ the result
 
 
@@ -1118,6 +1204,17 @@ def calibrate(
             reason,
             members.get(k),
             records[1] if k in members else None,
+        )
+    gates = {k: c.keyframes for k, c in enumerate(out.values()) if c.keyframes is not None}
+    for k, (kf, dtw) in settle_modes(found, taus, gates, rate=rate).items():
+        name = names[k]
+        out[name] = dataclasses.replace(
+            out[name],
+            keyframes=None,
+            reason=(
+                f"keyframes first lost in the folds (every class's F1 {kf:.3f}, {dtw:.3f} with this class "
+                f"by stream-wide DTW; {out[name].reason}): stream-wide DTW"
+            ),
         )
     return Calibrated(
         out, tuple(found), groups_are, position, position_f1, spare, spare_kept, wider, wider_kept
