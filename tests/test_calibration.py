@@ -26,7 +26,8 @@ from hypothesis import settings
 from hypothesis import strategies as st
 
 from daemon.dtw import fixed, pack, retrieval_cost, subsequence_dtw
-from daemon.keyframes import gap_bounds
+from daemon.features import SET_SLICES
+from daemon.keyframes import gap_bounds, query_bounds
 from daemon.learn.calibration import (
     CAP,
     DEFAULT_POSITION,
@@ -42,6 +43,7 @@ from daemon.learn.calibration import (
     Candidate,
     Choice,
     Fold,
+    GateReport,
     KeyframeTrial,
     calibrate,
     choose_gate,
@@ -58,10 +60,12 @@ from daemon.learn.calibration import (
     make_fold,
     outcomes,
     scored,
+    settle_modes,
     stream_candidates,
     survivors,
     thresholds,
     two_clusters,
+    windows_f1,
 )
 from daemon.learn.library import learn_class, save_library
 from daemon.learn.templates import Generalisation, automatic_keyframes, learn, learn_hard
@@ -69,7 +73,7 @@ from daemon.library import DTW, GATED, GIVEN, Calibration, Library, LibraryForma
 from daemon.recordings import ManifestError, read_examples, read_manifest, read_training_manifest
 from daemon.search.store import build_index, save_index
 from daemon.templates import expand
-from daemon.types import DEFAULT_INDEX_RATE, DEFAULT_MAX_GAP_S, BoolArray
+from daemon.types import DEFAULT_INDEX_RATE, DEFAULT_MAX_GAP_S, FEATURE_SETS, BoolArray
 from tests.helpers import (
     HDM_AMC,
     HDM_ASF,
@@ -84,11 +88,14 @@ from tests.helpers import (
 from tests.naive import (
     FoldCandidate,
     GateFold,
+    keyframe_matches,
     ref_local_minima,
+    slow_extent,
     slow_gate,
     slow_outcomes,
     slow_scored,
     slow_survivors,
+    slow_windows,
 )
 
 CLIPS = [
@@ -701,6 +708,98 @@ def test_gate_against_its_definition_on_real_folds(
     assert wide.generalisation == literal_wide[0] and wide.others == pytest.approx(literal_wide[1])
     assert wide.slack == literal_wide[2]
     assert wide.opened >= MIN_KEPT * wide.motions
+
+
+def slow_f1_in_windows(
+    found: Sequence[Fold], taus: list[float | None], gates: dict[int, GateReport], first: set[int]
+) -> float:
+    """Every class's F1 over the folds read directly: a candidate of a class of ``first`` exists
+    only inside one of its windows (brute-force keyframe matches, :func:`tests.naive.slow_windows`);
+    a detection is an existing candidate not beaten by an existing one before it (same motion, of
+    its class or within its own τ), within its τ; right when half of it lies in a motion of its
+    class."""
+    tp = fp = fn = 0
+    for f in found:
+        sets = {
+            fs: [(int(c) >> SET_SLICES[fs].start) & ((1 << (SET_SLICES[fs].stop - SET_SLICES[fs].start)) - 1)
+                 for c in f.codes]
+            for fs in FEATURE_SETS
+        }  # fmt: skip
+        spans: dict[int, list[tuple[int, int]]] = {}
+        for k in first:
+            trial = next(
+                (t for t in f.trials.get(k, ()) if t.generalisation == gates[k].generalisation), None
+            )
+            if trial is None:
+                continue
+            before, after = slow_extent(trial.query, trial.length, gates[k].slack, trial.extent)
+            back = sum(hi or 0 for _, hi in query_bounds(trial.query, 30.0, 60)) + before
+            matches = [(a, at) for a, at, _ in keyframe_matches(sets, trial.query, 60)]
+            spans[k] = [(a, b) for a, b, _, _ in slow_windows(matches, before, after, back)]
+        ordered = sorted((x.cost, x.end, x.template, x.start) for x in f.candidates)
+        exists = [
+            f.owner[t] not in spans or any(a <= start and end <= b for a, b in spans[f.owner[t]])
+            for _, end, t, start in ordered
+        ]
+        found_motions, wrong = set(), 0
+        for i, (cost, end, t, start) in enumerate(ordered):
+            if not exists[i] or taus[t] is None or cost > taus[t]:  # type: ignore[operator]
+                continue
+            beaten = any(
+                exists[j]
+                and (f.owner[t2] == f.owner[t] or (taus[t2] is not None and c2 <= taus[t2]))  # type: ignore[operator]
+                and 2 * (min(end, e2) - max(start, s2) + 1) > min(end - start, e2 - s2) + 1
+                for j, (c2, e2, t2, s2) in enumerate(ordered[:i])
+            )
+            if beaten:
+                continue
+            motion = next(
+                (
+                    m
+                    for m, (c, a, b) in enumerate(f.truth)
+                    if c == f.owner[t] and 2 * (min(end, b) - max(start, a) + 1) >= end - start + 1
+                ),
+                None,
+            )
+            if motion is None:
+                wrong += 1
+            else:
+                found_motions.add(motion)
+        motions = [m for m, (c, _, _) in enumerate(f.truth) if c in f.learned]
+        hit = sum(m in found_motions for m in motions)
+        tp, fp, fn = tp + hit, fp + wrong, fn + len(motions) - hit
+    return 2 * tp / (2 * tp + fp + fn) if tp else 0.0
+
+
+@pytest.mark.parametrize("taus", [[0.3, 0.3], [0.15, 0.4], [0.4, 0.12]])
+def test_modes_settled_by_every_class_f1(calibrated: Calibrated, taus: list[float | None]) -> None:
+    """windows_f1 against its definition read directly for every set of classes keyframes first;
+    settle_modes: every gated class keyframes first, then one by one set to stream-wide DTW where
+    every class's F1 over the folds rises."""
+    found = list(calibrated.folds)
+    gates = {}
+    for k in (0, 1):
+        gate, _ = choose_gate(found, k, taus)
+        if gate is not None:
+            gates[k] = gate
+    assert gates
+    for first in ({0, 1}, {0}, {1}, set()):
+        first &= set(gates)
+        assert windows_f1(found, taus, gates, first) == pytest.approx(
+            slow_f1_in_windows(found, taus, gates, first)
+        )
+    first = set(gates)
+    now = slow_f1_in_windows(found, taus, gates, first)
+    expected = {}
+    for k in sorted(gates):
+        score = slow_f1_in_windows(found, taus, gates, first - {k})
+        if score > now:
+            expected[k] = (now, score)
+            first, now = first - {k}, score
+    got = settle_modes(found, taus, gates)
+    assert got.keys() == expected.keys()
+    for k, (a, b) in got.items():
+        assert (a, b) == pytest.approx(expected[k]) and b > a
 
 
 def test_a_design_that_misses_a_left_out_motion_is_not_chosen(calibrated: Calibrated) -> None:

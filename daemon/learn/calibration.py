@@ -46,7 +46,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import random
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Collection, Mapping, Sequence
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -1001,6 +1001,34 @@ def present_in_windows(
     return present
 
 
+def windows_f1(
+    found: Sequence[Fold],
+    taus: Taus,
+    gates: Mapping[int, GateReport],
+    first: Collection[int],
+    *,
+    rate: float = DEFAULT_INDEX_RATE,
+    max_gap_s: float = DEFAULT_MAX_GAP_S,
+    masks: Sequence[Mapping[int, npt.NDArray[np.bool_]]] | None = None,
+) -> float:
+    """Every class's F1 over the folds (:func:`scored`) when the classes ``first`` are keyframes
+    first with their ``gates`` (their candidates only inside their windows,
+    :func:`present_in_windows`; ``masks``: those per fold and class, if at hand)."""
+    max_gap = max(1, round(max_gap_s * rate))
+    tp = fp = fn = 0
+    for i, f in enumerate(found):
+        present = np.ones(len(f.candidates), dtype=bool)
+        for k in first:
+            present &= (
+                masks[i][k]
+                if masks is not None
+                else present_in_windows(f, k, gates[k], rate=rate, max_gap=max_gap)
+            )
+        a, b, c = scored(f, taus, present=present)
+        tp, fp, fn = tp + a, fp + b, fn + c
+    return f1(tp, fp, fn)
+
+
 def settle_modes(
     found: Sequence[Fold],
     taus: Taus,
@@ -1010,31 +1038,20 @@ def settle_modes(
     max_gap_s: float = DEFAULT_MAX_GAP_S,
 ) -> dict[int, tuple[float, float]]:
     """The classes of ``gates`` that keyframes first makes worse for every class together: all of
-    them keyframes first, the F1 of every class's detections over the folds (:func:`scored` with
-    the candidates :func:`present_in_windows`); then, class by class in order, one is set to the
-    stream-wide DTW where that raises the F1 (a rival found only by its own DTW, when its
-    keyframes do not open, lets a wrong detection of another class through; a window that misses
-    a motion loses it). Per class set so: (F1 with it keyframes first, F1 without)."""
+    them keyframes first, every class's F1 over the folds (:func:`windows_f1`); then, class by
+    class in order, one is set to the stream-wide DTW where that raises the F1 (a rival found only
+    by its own DTW, when its keyframes do not open, lets a wrong detection of another class
+    through; a window that misses a motion loses it). Per class set so: (F1 with it keyframes
+    first, F1 without)."""
     max_gap = max(1, round(max_gap_s * rate))
     masks = [
         {k: present_in_windows(f, k, r, rate=rate, max_gap=max_gap) for k, r in gates.items()} for f in found
     ]
-
-    def total(chosen: set[int]) -> float:
-        tp = fp = fn = 0
-        for f, mask in zip(found, masks, strict=True):
-            present = np.ones(len(f.candidates), dtype=bool)
-            for k in chosen:
-                present &= mask[k]
-            a, b, c = scored(f, taus, present=present)
-            tp, fp, fn = tp + a, fp + b, fn + c
-        return f1(tp, fp, fn)
-
     first = set(gates)
-    now = total(first)
+    now = windows_f1(found, taus, gates, first, masks=masks)
     out = {}
     for k in sorted(gates):
-        score = total(first - {k})
+        score = windows_f1(found, taus, gates, first - {k}, masks=masks)
         if score > now:
             out[k] = (now, score)
             first, now = first - {k}, score
