@@ -28,6 +28,7 @@ from daemon.types import (
     DEFAULT_MAX_GAP_S,
     DEFAULT_NATIVE_RATE,
     MAX_NATIVE_RATE,
+    RecognitionMode,
     RecognitionSettings,
 )
 from protocols.urls import check_zmq_endpoint, parse_etcd_url, parse_mqtt_url
@@ -71,16 +72,17 @@ class RecognizerConfig:
     """The live recogniser (:mod:`daemon.recognizer`): how far an unbounded keyframe gap (stiffness
     0) may reach, in seconds; whether classes compete for a motion (the cheaper template wins); the
     longest a detection is held while another template could still explain its motion more
-    cheaply, in seconds."""
+    cheaply, in seconds; how the classes are found (``mode``, :class:`~daemon.types.RecognitionSettings`)."""
 
     max_gap_s: float = field(default=DEFAULT_MAX_GAP_S, metadata=_positive(3600))
     compete: bool = True
     hold_s: float = field(default=DEFAULT_HOLD_S, metadata=_range(0, 60))
+    mode: RecognitionMode = "library"
 
     def settings(self, classes: Sequence[str] | None = None) -> RecognitionSettings:
         """These settings for the library's ``classes`` (None: all); ValueError for a class named twice."""
         return RecognitionSettings(
-            None if classes is None else tuple(classes), self.max_gap_s, self.compete, self.hold_s
+            None if classes is None else tuple(classes), self.max_gap_s, self.compete, self.hold_s, self.mode
         )
 
 

@@ -259,25 +259,28 @@ def keyframe_windows(
     return windows(completions(query, rate, max_gap, codes), before, after, back)
 
 
-_PLANS: dict[tuple[int, tuple[str, ...] | None, float], tuple[weakref.ref[Library], tuple[ClassPlan, ...]]]
+_PLANS: dict[
+    tuple[int, tuple[str, ...] | None, float, str], tuple[weakref.ref[Library], tuple[ClassPlan, ...]]
+]
 _PLANS = {}
 
 
 def plans(library: Library, settings: RecognitionSettings = DEFAULT_SETTINGS) -> tuple[ClassPlan, ...]:
-    """The plans of the settings' classes (None: all, in the library's order) with their gap cap.
+    """The plans of the settings' classes (None: all, in the library's order) with their gap cap,
+    keyframes first as the settings' ``mode`` says.
     Made once per library object and settings (a stream joining a service costs no template
     preparation)."""
-    key = (id(library), settings.classes, float(settings.max_gap_s))
+    key = (id(library), settings.classes, float(settings.max_gap_s), settings.mode)
     held = _PLANS.get(key)
     if held is not None and held[0]() is library:
         return held[1]
     names = list(library.classes) if settings.classes is None else list(settings.classes)
-    made = _make_plans(library, names, settings.max_gap(library.rate))
+    made = _make_plans(library, names, settings.max_gap(library.rate), settings.mode)
     _PLANS[key] = (weakref.ref(library, lambda _: _PLANS.pop(key, None)), made)
     return made
 
 
-def _make_plans(library: Library, names: Sequence[str], max_gap: int) -> tuple[ClassPlan, ...]:
+def _make_plans(library: Library, names: Sequence[str], max_gap: int, mode: str) -> tuple[ClassPlan, ...]:
     out = []
     for name in names:
         cls = library.get(name)
@@ -285,7 +288,8 @@ def _make_plans(library: Library, names: Sequence[str], max_gap: int) -> tuple[C
         for template, tau in cls.members:
             t = expand(template)
             members.append(MemberPlan(t.values, t.weights, retrieval_tables(t.values, t.weights), tau))
-        out.append(ClassPlan(cls, tuple(members), cls.mode == GATED, max_gap))
+        gated = cls.mode == GATED if mode == "library" else mode == GATED and cls.keyframes is not None
+        out.append(ClassPlan(cls, tuple(members), gated, max_gap))
     return tuple(out)
 
 

@@ -19,6 +19,8 @@ CodeArray = npt.NDArray[np.uint64]
 """A frame's 39 features as one code: bit i = feature i (:data:`daemon.features.FEATURE_NAMES` order)."""
 
 FeatureSet = Literal["lower", "upper", "mix"]
+RecognitionMode = Literal["library", "keyframes", "dtw"]
+"""How the live recogniser finds the classes (config ``recognizer.mode``)."""
 FEATURE_SETS: tuple[FeatureSet, ...] = get_args(FeatureSet)
 """The three feature sets of thesis Table 5.1, segmented and indexed separately, in feature order."""
 
@@ -54,12 +56,15 @@ class RecognitionSettings:
     all, in the library's order), the seconds an unbounded keyframe gap (stiffness 0, thesis ch. 4)
     may span (``max_gap_s``), whether classes ``compete`` for a motion (the cheaper template wins),
     and the seconds a detection may be held while another template could still explain its motion
-    more cheaply (``hold_s``). ValueError for a value out of range."""
+    more cheaply (``hold_s``), and how the classes are found (``mode``: ``library``, each as the
+    library says; ``keyframes``, every class with keyframes keyframes first; ``dtw``, every class
+    by the stream-wide DTW). ValueError for a value out of range."""
 
     classes: tuple[str, ...] | None = None
     max_gap_s: float = DEFAULT_MAX_GAP_S
     compete: bool = True
     hold_s: float = DEFAULT_HOLD_S
+    mode: RecognitionMode = "library"
 
     def __post_init__(self) -> None:
         if self.classes is not None:
@@ -73,6 +78,8 @@ class RecognitionSettings:
             raise InputError(f"compete must be true or false, got {self.compete!r}")
         if not (_seconds(self.hold_s) and self.hold_s >= 0):
             raise InputError(f"hold_s must be seconds >= 0, got {self.hold_s!r}")
+        if self.mode not in get_args(RecognitionMode):
+            raise InputError(f"mode must be one of {', '.join(get_args(RecognitionMode))}, got {self.mode!r}")
 
     def max_gap(self, rate: float) -> int:
         """``max_gap_s`` in frames at ``rate`` Hz, at least 1."""

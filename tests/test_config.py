@@ -140,12 +140,16 @@ def test_recognition_settings(tmp_path: Path) -> None:
         ({"classes": ("squat1Reps", "")}, "classes"),
         ({"classes": ("squat1Reps", 3)}, "classes"),
         ({"classes": ("squat1Reps", "squat1Reps")}, "named twice"),
+        ({"mode": "gated"}, "mode must be one of library, keyframes, dtw"),
     ]
     for fields, message in bad:
         with pytest.raises(ValueError, match=message):
             RecognitionSettings(**fields)
     with pytest.raises(ValueError, match="named twice"):
         config.recognizer.settings(["a", "a"])
+    assert load_config(write(tmp_path, "recognizer:\n  mode: dtw\n")).recognizer.settings().mode == "dtw"
+    with pytest.raises(ConfigError, match=r"recognizer\.mode"):
+        load_config(write(tmp_path, "recognizer:\n  mode: stream\n"))
 
 
 # --------------------------------------------------------------------------------------------------

@@ -91,6 +91,27 @@ def test_push_equals_detect(pair: tuple[Path, Path], shipped: Library) -> None:
     assert pushed(recognizer, m) == got  # flush started a fresh stream
 
 
+@pytest.mark.parametrize("mode", ["dtw", "keyframes"])
+def test_the_mode_setting_overrides_the_library(shipped: Library, mode: str) -> None:
+    """recognizer.mode ``dtw`` finds every class as a library whose classes are all in mode
+    ``dtw`` does, ``keyframes`` every class with keyframes as one whose classes are all keyframes
+    first; ``library`` as the library says."""
+    m = read_recording(*recording_pairs()[0])
+    rate = native_rate(m)
+    relabelled = Library(
+        shipped.rate,
+        {
+            n: dataclasses.replace(c, mode=mode if mode == "dtw" or c.keyframes is not None else "dtw")
+            for n, c in shipped.classes.items()
+        },
+    )
+    forced = detect(m, shipped, rate, session=SESSION, settings=RecognitionSettings(mode=mode))  # type: ignore[arg-type]
+    assert forced == detect(m, relabelled, rate, session=SESSION)
+    assert detect(m, shipped, rate, session=SESSION) == detect(
+        m, shipped, rate, session=SESSION, settings=RecognitionSettings(mode="library")
+    )
+
+
 def test_positions_in_any_joint_order(library: Library) -> None:
     """Joint positions announced in another order, with a joint the features do not use, give the
     detections of the channels they came from; the batch twin on positions agrees."""
