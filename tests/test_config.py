@@ -166,7 +166,7 @@ BAD = [
     (
         "unknown-recognizer",
         "recognizer:\n  gap: 2\n",
-        "recognizer.gap: unknown field (allowed: compete, hold_s, max_gap_s)",
+        "recognizer.gap: unknown field (allowed: compete, hold_s, max_gap_s, mode)",
     ),
     ("gap-zero", "recognizer:\n  max_gap_s: 0\n", "recognizer.max_gap_s"),
     ("gap-string", "recognizer:\n  max_gap_s: 2s\n", "recognizer.max_gap_s"),
