@@ -322,8 +322,8 @@ def main() -> None:
         f"{len(shipped.classes)} classes at {shipped.rate:g} Hz, {templates(shipped)} templates"
     )
     print(
-        f"keyframes first: {len(shipped.classes) - len(bare)} of {len(shipped.classes)} classes have "
-        f"keyframes and are gated; without keyframes, kept stream-wide: {', '.join(bare)}"
+        f"keyframes first: {len(shipped.classes) - len(bare)} of {len(shipped.classes)} classes, as the "
+        f"library says; stream-wide there: {', '.join(bare)}"
     )
     counts = [c for c in COUNTS if c <= args.most]
     small = [c for c in counts if c < BIG]
