@@ -304,6 +304,23 @@ def slow_recognizer(
     return out
 
 
+def confirmations(
+    classes: list[ClassTemplate], stream: list[int], settings: RecognitionSettings, frames: tuple[int, int]
+) -> list[tuple[str, int, int, int, int]]:
+    """A :class:`CodeRecognizer` of ``classes`` over ``stream`` (its hold and gap cap ``frames``):
+    each confirmation as (class, start, end, fixed-point cost, frame it came out at)."""
+    recognizer = CodeRecognizer(plans(Library(30.0, {c.name: c for c in classes}), settings), 30.0, settings)
+    assert (recognizer.hold, recognizer.plans[0].max_gap) == frames
+    got = [
+        (p.name, m.start, m.end, round(m.cost * SCALE), j)
+        for j, c in enumerate(stream)
+        for p, m, _ in recognizer.push(c)
+    ]
+    return got + [
+        (p.name, m.start, m.end, round(m.cost * SCALE), len(stream) - 1) for p, m, _ in recognizer.flush()
+    ]
+
+
 @settings(max_examples=120, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(
     streams(),
@@ -343,16 +360,7 @@ def test_confirmations_equal_the_definition(
     classes = [a, b]
     stream = stream_codes(codes)
     settings = RecognitionSettings(max_gap_s=max_gap / 30.0, compete=compete, hold_s=hold / 30.0)
-    recognizer = CodeRecognizer(plans(Library(30.0, {c.name: c for c in classes}), settings), 30.0, settings)
-    assert (recognizer.hold, recognizer.plans[0].max_gap) == (hold, max_gap)
-    got = [
-        (p.name, m.start, m.end, round(m.cost * SCALE), j)
-        for j, c in enumerate(stream)
-        for p, m, _ in recognizer.push(c)
-    ]
-    got += [
-        (p.name, m.start, m.end, round(m.cost * SCALE), len(stream) - 1) for p, m, _ in recognizer.flush()
-    ]
+    got = confirmations(classes, stream, settings, (hold, max_gap))
     assert got == slow_recognizer(stream, classes, max_gap, compete, hold)
     for _, _, end, _, emitted in got:
         assert end <= emitted  # never before its last frame was seen
@@ -392,15 +400,7 @@ def test_windows_equal_the_definition(
     classes = [a, b]
     stream = stream_codes(codes)
     settings = RecognitionSettings(max_gap_s=4 / 30.0, compete=compete, hold_s=hold / 30.0)
-    recognizer = CodeRecognizer(plans(Library(30.0, {c.name: c for c in classes}), settings), 30.0, settings)
-    got = [
-        (p.name, m.start, m.end, round(m.cost * SCALE), j)
-        for j, c in enumerate(stream)
-        for p, m, _ in recognizer.push(c)
-    ]
-    got += [
-        (p.name, m.start, m.end, round(m.cost * SCALE), len(stream) - 1) for p, m, _ in recognizer.flush()
-    ]
+    got = confirmations(classes, stream, settings, (hold, 4))
     assert got == slow_recognizer(stream, classes, 4, compete, hold)
 
 
