@@ -783,14 +783,6 @@ cdef class Competition:
         """Candidates and detections remembered."""
         return buf_len(&self.held) + buf_len(&self.recent) + buf_len(&self.published)
 
-    def windows(self):
-        """Per keyframe-first class (automaton order): its window (first, last frame), or None if
-        it has none open at the last frame pushed."""
-        return [
-            (int(self.seg_s[g]), int(self.seg_e[g])) if self.seg_e[g] >= self.n - 1 >= 0 else None
-            for g in range(self.n_gated)
-        ]
-
     def push(self, uint64_t code):
         """The next code: the confirmations it made, in the order (end, start, class), or None."""
         return self.push_c(code)

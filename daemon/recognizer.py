@@ -165,8 +165,13 @@ class ClassPlan:
         """How far before the frame that completes a match its window may open: the match's span
         (the gaps' upper bounds) and :meth:`extent`'s before."""
         assert self.template.keyframes is not None
-        bounds = query_bounds(self.template.keyframes, rate, self.max_gap)
-        return sum(hi or 0 for _, hi in bounds) + self.extent()[0]
+        return look_back(self.template.keyframes, rate, self.max_gap, self.extent()[0])
+
+
+def look_back(query: KeyframeQuery, rate: float, max_gap: int, before: int) -> int:
+    """How far before the frame that completes a match of ``query`` its window may open: the
+    match's span (the gaps' upper bounds, unbounded ones capped at ``max_gap``) and ``before``."""
+    return sum(hi or 0 for _, hi in query_bounds(query, rate, max_gap)) + before
 
 
 def window_extent(
@@ -255,8 +260,9 @@ def keyframe_windows(
     """The :func:`windows` a keyframe-first class with ``query`` and windows of ``extent`` (before,
     after: :func:`window_extent`) opens over index-rate ``codes``, as the live recogniser opens them."""
     before, after = extent
-    back = sum(hi or 0 for _, hi in query_bounds(query, rate, max_gap)) + before
-    return windows(completions(query, rate, max_gap, codes), before, after, back)
+    return windows(
+        completions(query, rate, max_gap, codes), before, after, look_back(query, rate, max_gap, before)
+    )
 
 
 _PLANS: dict[

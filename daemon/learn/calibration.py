@@ -700,9 +700,9 @@ def opening(
 
 @dataclass(frozen=True)
 class GateReport:
-    """What a class's keyframe gate did in the folds: ``opened`` of the ``motions`` of the class
-    left out held a keyframe hit; ``others``: the share of the frames of other classes' motions
-    inside an open gate range; ``per_minute``: matches completed inside other classes' motions per
+    """What a class's keyframes did in the folds: ``opened`` of the ``motions`` of the class left
+    out held a keyframe hit; ``others``: the share of the frames of other classes' motions inside
+    one of its windows (with ``slack``); ``per_minute``: matches completed inside other classes' motions per
     minute of them; the class's wrong detections without the gate (``wrong``) and with it
     (``wrong_gated``)."""
 
