@@ -27,7 +27,7 @@ from hypothesis import strategies as st
 
 from daemon.dtw import fixed, pack, retrieval_cost, subsequence_dtw
 from daemon.features import SET_SLICES
-from daemon.keyframes import gap_bounds, query_bounds
+from daemon.keyframes import KeyframeQuery, gap_bounds, query_bounds
 from daemon.learn.calibration import (
     CAP,
     DEFAULT_POSITION,
@@ -56,6 +56,7 @@ from daemon.learn.calibration import (
     designs,
     fold_stream,
     groups,
+    kept_in_a_row,
     keyframes_kept,
     make_fold,
     outcomes,
@@ -73,7 +74,7 @@ from daemon.library import DTW, GATED, GIVEN, Calibration, Library, LibraryForma
 from daemon.recordings import ManifestError, read_examples, read_manifest, read_training_manifest
 from daemon.search.store import build_index, save_index
 from daemon.templates import expand
-from daemon.types import DEFAULT_INDEX_RATE, DEFAULT_MAX_GAP_S, FEATURE_SETS, BoolArray
+from daemon.types import DEFAULT_INDEX_RATE, DEFAULT_MAX_GAP_S, FEATURE_SETS, BoolArray, FeatureSet
 from tests.helpers import (
     HDM_AMC,
     HDM_ASF,
@@ -97,6 +98,7 @@ from tests.naive import (
     slow_survivors,
     slow_windows,
 )
+from tests.synth import queries, stream_codes, streams
 
 CLIPS = [
     ("squat1Reps", "bd", 1),
@@ -800,6 +802,23 @@ def test_modes_settled_by_every_class_f1(calibrated: Calibrated, taus: list[floa
     assert got.keys() == expected.keys()
     for k, (a, b) in got.items():
         assert (a, b) == pytest.approx(expected[k]) and b > a
+
+
+@settings(max_examples=60, deadline=None)
+@hypothesis_given(st.lists(streams(shortest=1, longest=25), min_size=1, max_size=5), queries(tolerant=True))
+def test_kept_in_a_row_is_a_match_completed_inside_each(
+    examples: list[dict[FeatureSet, list[int]]], query: KeyframeQuery
+) -> None:
+    """kept_in_a_row against its definition: the examples back to back as one stream, every
+    keyframe match by brute force (gaps capped at 60 frames), an example kept when a match is
+    complete (its first frame of the last keyframe) inside it."""
+    joined = {fs: [c for e in examples for c in e[fs]] for fs in FEATURE_SETS}
+    ends = np.cumsum([len(e["lower"]) for e in examples])
+    done = [False] * len(examples)
+    for _, at, _ in keyframe_matches(joined, query, 60):
+        done[int(np.searchsorted(ends, at, side="right"))] = True
+    codes = [np.array(stream_codes(e), dtype=np.uint64) for e in examples]
+    assert kept_in_a_row(query, codes, 30.0, 60).tolist() == done
 
 
 def test_a_design_that_misses_a_left_out_motion_is_not_chosen(calibrated: Calibrated) -> None:
