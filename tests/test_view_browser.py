@@ -139,7 +139,9 @@ def test_the_page_shows_a_replay_through_the_daemon(tmp_path: Path, browser: Bro
         for d in detect(read_recording(*TRIAL), load_library(default_library_path()), 120.0)
     ]
     config: dict[str, dict[str, object]] = {
-        "service": {"queue_frames": 100_000},
+        # a detection held to the trial's last frame is published when the daemon flushes the
+        # silent stream: before the view drops the card (10 s)
+        "service": {"queue_frames": 100_000, "idle_s": 3},
         "progress": {"enabled": True},
     }
     broker = None
