@@ -659,6 +659,19 @@ cdef inline void buf_clear(Buf *b) noexcept nogil:
     b.n = 0
 
 
+cdef Candidate *reserve(Candidate *buf, Py_ssize_t *cap, Py_ssize_t need) except NULL:
+    """``buf`` (room for ``cap[0]`` candidates) with room for ``need``: itself, or grown to twice
+    ``need`` (``cap`` updated)."""
+    cdef Candidate *grown
+    if need <= cap[0]:
+        return buf
+    grown = <Candidate *> PyMem_Realloc(buf, 2 * need * sizeof(Candidate))
+    if grown == NULL:
+        raise MemoryError()
+    cap[0] = 2 * need
+    return grown
+
+
 cdef inline bint before(const Candidate *x, const Candidate *y) noexcept nogil:
     """``x`` comes before ``y`` in the order (cost, end, member, start)."""
     if x.cost != y.cost:
@@ -820,7 +833,6 @@ cdef class Competition:
         count."""
         cdef Py_ssize_t t, k = self.gated_class(g), need
         cdef int64_t lowest = self.seg_e[g] + 1
-        cdef Candidate *grown
         if self.seg_e[g] >= j - 1:
             if b > self.seg_e[g]:
                 self.seg_e[g] = b
@@ -828,12 +840,7 @@ cdef class Competition:
         self.seg_s[g] = a
         self.seg_e[g] = b
         need = found + (self.cls_hi[k] - self.cls_lo[k]) * (j - a + 1) + self.dtw.k
-        if need > self.found_cap:
-            grown = <Candidate *> PyMem_Realloc(self.found, 2 * need * sizeof(Candidate))
-            if grown == NULL:
-                raise MemoryError()
-            self.found = grown
-            self.found_cap = 2 * need
+        self.found = reserve(self.found, &self.found_cap, need)
         for t in range(self.cls_lo[k], self.cls_hi[k]):
             self.dtw.active[t] = 1
             found += self.dtw.replay_into(t, a, lowest, &self.ring[0], self.back + 1, &self.found[found])
@@ -921,13 +928,7 @@ cdef class Competition:
         cdef Candidate x, y
         cdef int64_t k
         cdef int64_t *row
-        cdef Candidate *grown
-        if h > self.scratch_cap:
-            grown = <Candidate *> PyMem_Realloc(self.scratch, 2 * h * sizeof(Candidate))
-            if grown == NULL:
-                raise MemoryError()
-            self.scratch = grown
-            self.scratch_cap = 2 * h
+        self.scratch = reserve(self.scratch, &self.scratch_cap, h)
         for i in range(h):
             get(buf_row(&self.held, i), &x)
             if ended or j > x.end + self.hold or not self.dtw.blocks_c(
