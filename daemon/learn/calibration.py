@@ -902,6 +902,18 @@ def inner_gates(
     return inner
 
 
+def fewest_reaching(
+    tried: Sequence[int], kept: Callable[[int], tuple[int, int]], min_kept: float
+) -> tuple[int, dict[int, float]]:
+    """The first of ``tried`` whose share kept (``kept(x)``: motions kept, motions; 1 without any)
+    reaches ``min_kept`` (else the last), with the share of each."""
+    shares = {}
+    for x in tried:
+        held, total = kept(x)
+        shares[x] = held / total if total else 1.0
+    return next((x for x in tried if shares[x] >= min_kept), tried[-1]), shares
+
+
 def choose_spare(
     found: Sequence[Fold],
     taus: Sequence[float | None],
@@ -922,18 +934,19 @@ def choose_spare(
         return DEFAULT_SPARE, {}
     if inner is None:
         inner = inner_gates(found, taus, rate=rate, max_gap_s=max_gap_s, min_kept=min_kept)
-    shares = {}
-    for spare in SPARES:
-        kept = total = 0
+
+    def kept(spare: int) -> tuple[int, int]:
+        held = total = 0
         for f, k, report in inner:
             g = report.generalisation
             wider = dataclasses.replace(g, mismatches=min(g.mismatches + spare, MISMATCHES[-1]))
             trial = next((t for t in f.trials[k] if t.generalisation == wider), None)
             if trial is not None:
-                kept += int(trial.positives.sum())
+                held += int(trial.positives.sum())
                 total += len(trial.positives)
-        shares[spare] = kept / total if total else 1.0
-    return next((s for s in SPARES if shares[s] >= min_kept), SPARES[-1]), shares
+        return held, total
+
+    return fewest_reaching(SPARES, kept, min_kept)
 
 
 WIDER = (0, 1, 2)
@@ -968,20 +981,20 @@ def choose_wider(
     if inner is None:
         inner = inner_gates(found, taus, rate=rate, max_gap_s=max_gap_s, min_kept=min_kept)
     max_gap = max(1, round(max_gap_s * rate))
-    shares = {}
-    for steps in WIDER:
-        kept = total = 0
+
+    def kept(steps: int) -> tuple[int, int]:
+        held = total = 0
         for f, k, report in inner:
             trial = next((t for t in f.trials[k] if t.generalisation == report.generalisation), None)
             if trial is None:
                 continue
             base = detected(f, taus, k)
-            motions = {i for _, i in base if i is not None}
             gate = opening(trial, rate, max_gap, f.codes, widened(report.slack, steps))
-            kept += len({i for _, i in gated(base, gate.spans) if i is not None})
-            total += len(motions)
-        shares[steps] = kept / total if total else 1.0
-    return next((s for s in WIDER if shares[s] >= min_kept), WIDER[-1]), shares
+            held += len({i for _, i in gated(base, gate.spans) if i is not None})
+            total += len({i for _, i in base if i is not None})
+        return held, total
+
+    return fewest_reaching(WIDER, kept, min_kept)
 
 
 def present_in_windows(
