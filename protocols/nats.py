@@ -138,6 +138,9 @@ class NatsTransport:
         self._status: tuple[Outgoing, Outgoing] | None = None
         self._queue: asyncio.Queue[tuple[int, Incoming]] = asyncio.Queue(QUEUE)
         self._consumers: dict[int, asyncio.Task[None]] = {}
+        self._given_up: dict[int, asyncio.Event] = {}
+        # consumers given up that have not finished yet: held, so that none is destroyed pending
+        self._stopping: set[asyncio.Task[None]] = set()
         self._streams: dict[int, set[str]] = {}
         self._partial: set[int] = set()  # partitions taken from a buffer that had lost messages
         self._truncated: set[str] = set()  # streams first seen in the replay of such a buffer
@@ -242,8 +245,8 @@ class NatsTransport:
                     continue  # still there: it goes on where it was
                 except (NatsError, TimeoutError, OSError):
                     pass
-            self._consumers[p].cancel()
-            self._consumers[p] = asyncio.create_task(self._consume(p), name=f"partition {p}")
+            self._give_up(p)
+            self._take(p)
 
     async def _error(self, e: Exception) -> None:
         log.warning("nats error", extra={"fields": {"error": f"{type(e).__name__}: {e}"}})
@@ -325,9 +328,7 @@ class NatsTransport:
         """Consume exactly ``partitions`` from now on; the streams seen in the partitions given up."""
         lost: list[str] = []
         gone = sorted(set(self._consumers) - partitions)
-        tasks = [self._consumers.pop(p) for p in gone]
-        for task in tasks:
-            task.cancel()
+        tasks = [self._give_up(p) for p in gone]
         if tasks:
             # their consumers are deleted on the way out; a server that does not answer must not
             # hold up the membership (the consumers then lapse by their inactivity threshold)
@@ -344,8 +345,23 @@ class NatsTransport:
                 self._truncated.discard(stream)
                 lost.append(stream)
         for p in sorted(partitions - set(self._consumers)):
-            self._consumers[p] = asyncio.create_task(self._consume(p), name=f"partition {p}")
+            self._take(p)
         return lost
+
+    def _take(self, p: int) -> None:
+        given_up = self._given_up[p] = asyncio.Event()
+        self._consumers[p] = asyncio.create_task(self._consume(p, given_up), name=f"partition {p}")
+
+    def _give_up(self, p: int) -> asyncio.Task[None]:
+        """Stop reading partition ``p``: its consumer's task, told to stop. Cancelling alone is not
+        enough: nats-py swallows a cancellation that arrives while it flushes (``_flush_pending``),
+        and a consumer that outlived it would go on reading a partition given up."""
+        task = self._consumers.pop(p)
+        self._given_up.pop(p).set()
+        task.cancel()
+        self._stopping.add(task)
+        task.add_done_callback(self._stopping.discard)
+        return task
 
     @property
     def catching_up(self) -> bool:
@@ -367,21 +383,25 @@ class NatsTransport:
                 self._partition_of.pop(s, None)
                 self._truncated.discard(s)
 
-    async def _consume(self, p: int) -> None:
-        """Read partition ``p`` until cancelled; a consumer that cannot be made (the server away) is
-        tried again every :data:`RETRY_S`."""
-        while True:
+    async def _consume(self, p: int, given_up: asyncio.Event) -> None:
+        """Read partition ``p`` until it is given up; a consumer that cannot be made (the server
+        away) is tried again every :data:`RETRY_S`."""
+        while not given_up.is_set():
             try:
-                await self._read(p)
+                await self._read(p, given_up)
             except (NatsError, TimeoutError, OSError) as e:
                 log.warning("partition not read", extra={"fields": {"partition": p, "error": repr(e)}})
-                await asyncio.sleep(RETRY_S)
+                with contextlib.suppress(TimeoutError):
+                    async with asyncio.timeout(RETRY_S):
+                        await given_up.wait()
 
-    async def _read(self, p: int) -> None:
+    async def _read(self, p: int, given_up: asyncio.Event) -> None:
         assert self._js is not None
         js = self._js
         taken = time.time()
         info = await js.stream_info(BUFFER.format(p))
+        if given_up.is_set():
+            return
         state = info.state
         last = state.last_seq
         position = self._position.get(p)
@@ -406,6 +426,8 @@ class NatsTransport:
 
         async def got(d: Delivery) -> None:
             nonlocal live, expected
+            if given_up.is_set():
+                return
             ack = acknowledgement(d.reply)
             if ack is None or ack.stream != buffer or ack.consumer != name or ack.consumer_seq < expected:
                 if d.status() == b"100":  # the server's flow control, or a heartbeat
@@ -460,8 +482,9 @@ class NatsTransport:
                     inactive_threshold=30.0,
                 ),
             )
-            self._consumer_names[p] = consumer.name
-            await asyncio.Event().wait()  # until the partition is given up (cancelled)
+            if not given_up.is_set():
+                self._consumer_names[p] = consumer.name
+            await given_up.wait()
         finally:
             await reader.unsubscribe(sid)
             if consumer is not None:
