@@ -2,13 +2,16 @@
 live recogniser over the left-out people's motions (issue 20).
 
     python -m bench.eval_recognizer [--data DIR] [--seed 0] [--blend-s 0.25] [--workers 2]
-                                    [--only hdm05,cmu,one] [--keep DIR]
+                                    [--only hdm05,cmu,one] [--keep DIR] [--keyframes FILE]
 
 Every fold writes a training manifest (class, asf, amc, start_frame, end_frame, actor) and runs
 ``mocapd learn --manifest M --out LIB`` in a process of its own, with no other option: no published
 keyframes anywhere, τ, templates and keyframe gates as ``learn`` chooses them. The left-out people's
 motions then go frame by frame through the :class:`~daemon.recognizer.Recognizer` that ``mocapd
-detect`` runs (the configuration's defaults).
+detect`` runs (the configuration's defaults). With ``--keyframes FILE`` (e.g. the thesis' hand-made
+ones, ``../shared/reference/manual-keyframes.json``) ``mocapd learn`` gets ``--keyframes`` with the
+file's keyframes of the fold's classes instead of learning them: what the same engine does with
+keyframes known to hold, to hold a default run's learned ones against.
 
 * **HDM05**, for each of bd, bk, dg: learned from the other two actors' cut clips of the 11 classes;
   the left-out actor's clips joined into one stream in random order (each clip moved on the floor
@@ -26,7 +29,9 @@ detect`` runs (the configuration's defaults).
 Printed: per class precision and recall (detections), pooled; every missed motion explained (no
 match within τ, with the best cost; no keyframe window around it; beaten by another class's cheaper match;
 the motion already taken by a detection); how each class is recognised in each fold's library and,
-for gated classes, the share of the left-out motions a keyframe match overlapped; the latency from
+for gated classes, the share of the left-out motions a keyframe match overlapped, the share of other
+classes' motion frames inside one of its windows and the keyframe matches completed inside other
+classes' motions per minute of them; the latency from
 a motion's last frame to its first right detection and from a detection's last frame to its
 emission (median and p95, at 120 Hz). Nothing here tunes anything on the motions it reports.
 """
@@ -36,6 +41,7 @@ from __future__ import annotations
 import argparse
 import csv
 import dataclasses
+import json
 import math
 import os
 import random
@@ -57,7 +63,14 @@ from daemon.dtw import local_minima, pack, retrieval_tables, subsequence_codes, 
 from daemon.features import features
 from daemon.frames import FrameClock
 from daemon.library import DTW, GATED, ClassTemplate, Library, load_library
-from daemon.recognizer import Detection, Recognizer, keyframe_windows, same_motion, window_extent
+from daemon.recognizer import (
+    Detection,
+    Recognizer,
+    completions,
+    keyframe_windows,
+    same_motion,
+    window_extent,
+)
 from daemon.recordings import native_rate, read_recording
 from daemon.templates import expand
 from daemon.tools import mocap6
@@ -184,9 +197,20 @@ def cmu_folds(data: Path, one: bool) -> list[Fold]:
     return out
 
 
-def learn(fold: Fold, where: Path) -> tuple[Library, float]:
-    """``mocapd learn`` with its defaults on the fold's rows, in a process of its own."""
+def learn(fold: Fold, where: Path, keyframes: Path | None = None) -> tuple[Library, float]:
+    """``mocapd learn`` with its defaults on the fold's rows, in a process of its own; with
+    ``keyframes`` (a file as manual-keyframes.json), those of the fold's classes given to it."""
     where.mkdir(parents=True, exist_ok=True)
+    given: list[str] = []
+    if keyframes is not None:
+        published = json.loads(keyframes.read_text(encoding="utf-8"))
+        names = {r.name for r in fold.rows}
+        published["classes"] = {n: k for n, k in published["classes"].items() if n in names}
+        lengths = published.get("template_length", {})
+        published["template_length"] = {n: v for n, v in lengths.items() if n in names}
+        if published["classes"]:
+            (where / "keyframes.json").write_text(json.dumps(published), encoding="utf-8")
+            given = ["--keyframes", str(where / "keyframes.json")]
     manifest = where / "training.csv"
     with manifest.open("w", newline="", encoding="utf-8") as out:
         w = csv.writer(out)
@@ -198,7 +222,7 @@ def learn(fold: Fold, where: Path) -> tuple[Library, float]:
     library = where / "library"
     began = time.perf_counter()
     done = subprocess.run(
-        [sys.executable, "-m", "daemon", "learn", "--manifest", str(manifest), "--out", str(library)],
+        [sys.executable, "-m", "daemon", "learn", "--manifest", str(manifest), "--out", str(library), *given],
         capture_output=True,
         text=True,
         check=False,
@@ -229,6 +253,8 @@ class Tally:
     gated: int = 0
     other_frames: int = 0
     other_covered: int = 0
+    other_matches: int = 0
+    other_s: float = 0.0
     misses: Counter[str] = field(default_factory=Counter)
 
 
@@ -322,6 +348,8 @@ def measure(library: Library, fold: Fold, results: Results, kind: str) -> None:
                 continue
             assert cls.keyframes is not None
             spans = class_windows(cls, library.rate, codes)
+            max_gap = RecognitionSettings().max_gap(library.rate)
+            completed = [j for _, j in completions(cls.keyframes, library.rate, max_gap, codes)]
             inside_gate = np.zeros(len(codes), dtype=bool)
             for a, b in spans:
                 inside_gate[a : b + 1] = True
@@ -333,6 +361,8 @@ def measure(library: Library, fold: Fold, results: Results, kind: str) -> None:
                 else:
                     t.other_frames += hi - lo + 1
                     t.other_covered += int(inside_gate[lo : hi + 1].sum())
+                    t.other_matches += sum(lo <= j <= hi for j in completed)
+                    t.other_s += (hi - lo + 1) / library.rate
         results.latency[f"{kind} detection"] += [d.emitted_at_frame - d.end_frame for d in detections]
     for name, cls in library.classes.items():
         results.modes.setdefault(kind, {}).setdefault(name, []).append(
@@ -372,6 +402,8 @@ def table(kind: str, results: Results, classes: Sequence[str]) -> None:
             f"{n} {t.gate_opened}/{t.gated}" for n, t in gated))  # fmt: skip
         print("  keyframes first, share of other classes' motion frames inside a window: " + ", ".join(
             f"{n} {t.other_covered / t.other_frames:.1%}" for n, t in gated if t.other_frames))  # fmt: skip
+        print("  keyframes first, matches completed in other classes' motions a minute of them: " + ", ".join(
+            f"{n} {t.other_matches / (t.other_s / 60):.1f}" for n, t in gated if t.other_s))  # fmt: skip
     misses = [(n, t.misses) for n, t in tallies.items() if t.misses]
     for n, m in misses:
         print(f"  missed {n}: " + "; ".join(f"{c} x {why}" for why, c in m.most_common()))
@@ -398,8 +430,16 @@ def main() -> None:
     parser.add_argument(
         "--keep", type=Path, default=None, help="keep each fold's manifest, library and log here"
     )
+    parser.add_argument(
+        "--keyframes",
+        type=Path,
+        default=None,
+        help="give mocapd learn these keyframes (a file as manual-keyframes.json) for the classes it names",
+    )
     args = parser.parse_args()
     print(describe())
+    if args.keyframes is not None:
+        print(f"keyframes given to mocapd learn: {args.keyframes} (for the classes it names)")
     began = time.perf_counter()
     only = set(args.only.split(","))
     rng = random.Random(args.seed)
@@ -417,7 +457,7 @@ def main() -> None:
 
         def run(i: int) -> tuple[Library, float]:
             f = folds[i]
-            return learn(f, root / f"{i:02d} {f.kind} {f.name}".replace(" ", "_"))
+            return learn(f, root / f"{i:02d} {f.kind} {f.name}".replace(" ", "_"), args.keyframes)
 
         with ThreadPoolExecutor(max(1, args.workers)) as pool:
             for f, (library, seconds) in zip(folds, pool.map(run, range(len(folds))), strict=True):
