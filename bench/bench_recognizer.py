@@ -8,7 +8,8 @@ files of ../shared/data/mocap evenly spaced in the catalogue (CMU and HDM05; joi
 positions-in figure computed beforehand, not timed).
 
 One stream: every frame of those recordings pushed one by one (channels in, then positions in),
-frames/s, best of ``--repeat``.
+frames/s, best of ``--repeat``; and what a stream joining costs (a recogniser made for a new
+skeleton, or from one made before: :meth:`Recognizer.fresh`), in ms and in frames of one stream.
 
 Bank: for S streams (1, 10, 50, 100, 200, 250, 300, 400 up to ``--most``), stream k plays
 recording k mod R (channels) from a random frame (looping, renumbered) and joins at a random tick of
@@ -125,9 +126,28 @@ def one_stream(library: Library, motions: list[Motion], positions: list[np.ndarr
             r.flush()
 
     print(f"one stream, {len(library.classes)} classes, {frames} frames:")
+    rates = {}
     for name, run in (("channels in", channels_in), ("positions in", positions_in)):
-        rate = frames / best_of(repeat, run)
+        rate = rates[name] = frames / best_of(repeat, run)
         print(f"  {name:14s} {rate:10,.0f} frames/s  ({1e6 / rate:.0f} us/frame)")
+    joins = 200
+    skeleton = motions[0].skeleton
+    made = Recognizer.for_skeleton(library, skeleton, 120.0, session="bench")
+
+    def new_skeleton() -> None:
+        for _ in range(joins):
+            Recognizer.for_skeleton(library, skeleton, 120.0, session="bench")
+
+    def known_skeleton() -> None:  # a stream joining with a skeleton seen before
+        for _ in range(joins):
+            made.fresh()
+
+    for name, run in (("a new skeleton", new_skeleton), ("a known one", known_skeleton)):
+        seconds = best_of(repeat, run) / joins
+        print(
+            f"  a stream joining, {name + ':':15s} {seconds * 1e3:.2f} ms "
+            f"(= {seconds * rates['channels in']:.0f} frames of one stream)"
+        )
 
 
 def tick_times(step: Callable[[int], object], ticks: int) -> np.ndarray:

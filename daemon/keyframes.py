@@ -15,6 +15,7 @@ Positions are index-rate frames. Pure: Python in, frozen dataclasses out.
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -93,6 +94,7 @@ class KeyframeQuery:
         return out
 
 
+@functools.lru_cache(maxsize=4096)  # a stream's automata are made for every stream that joins
 def gap_bounds(delta: int, stiffness: float) -> tuple[int, int | None]:
     """The distances μ allows (Def. 4.9): (⌈σδ⌉, ⌊δ/σ⌋), or (0, None) = unbounded for σ = 0."""
     if delta < 0:
