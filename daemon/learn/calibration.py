@@ -981,15 +981,18 @@ def choose_wider(
     if inner is None:
         inner = inner_gates(found, taus, rate=rate, max_gap_s=max_gap_s, min_kept=min_kept)
     max_gap = max(1, round(max_gap_s * rate))
+    # per inner gate, its trial in the fold and the class's detections there: the same for every step
+    held_out = [
+        (f, trial, report.slack, detected(f, taus, k))
+        for f, k, report in inner
+        for trial in [next((t for t in f.trials[k] if t.generalisation == report.generalisation), None)]
+        if trial is not None
+    ]
 
     def kept(steps: int) -> tuple[int, int]:
         held = total = 0
-        for f, k, report in inner:
-            trial = next((t for t in f.trials[k] if t.generalisation == report.generalisation), None)
-            if trial is None:
-                continue
-            base = detected(f, taus, k)
-            gate = opening(trial, rate, max_gap, f.codes, widened(report.slack, steps))
+        for f, trial, slack, base in held_out:
+            gate = opening(trial, rate, max_gap, f.codes, widened(slack, steps))
             held += len({i for _, i in gated(base, gate.spans) if i is not None})
             total += len({i for _, i in base if i is not None})
         return held, total
