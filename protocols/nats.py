@@ -136,7 +136,9 @@ class NatsTransport:
         self._nc: NATS | None = None
         self._js: JetStreamContext | None = None
         self._status: tuple[Outgoing, Outgoing] | None = None
-        self._queue: asyncio.Queue[tuple[int, Incoming]] = asyncio.Queue(QUEUE)
+        self._queue: asyncio.Queue[tuple[int, str | None, Incoming]] = asyncio.Queue(QUEUE)
+        # per stream, its messages in the queue: the service has not seen them, so forget() keeps it
+        self._queued: dict[str, int] = {}
         self._consumers: dict[int, asyncio.Task[None]] = {}
         self._given_up: dict[int, asyncio.Event] = {}
         # consumers given up that have not finished yet: held, so that none is destroyed pending
@@ -375,9 +377,11 @@ class NatsTransport:
         return self._partition_of.get(stream)
 
     def forget(self, keep: set[str]) -> None:
-        """Forget the streams not in ``keep`` (those the service no longer holds)."""
+        """Forget the streams not in ``keep`` (those the service no longer holds) that have no
+        message waiting to be taken in: a stream read from a buffer but not yet taken in keeps what
+        is known of it (a truncated history's mark above all, :meth:`partial`)."""
         for streams in self._streams.values():
-            gone = streams - keep
+            gone = {s for s in streams - keep if not self._queued.get(s)}
             streams -= gone
             for s in gone:
                 self._partition_of.pop(s, None)
@@ -455,11 +459,13 @@ class NatsTransport:
                     )
                 else:
                     self.replayed += 1
-            incoming = self._incoming(d, streams, p, truncated=not live and p in self._partial)
+            stream, incoming = self._incoming(d, streams, p, truncated=not live and p in self._partial)
+            if stream is not None:
+                self._queued[stream] = self._queued.get(stream, 0) + 1
             try:
-                self._queue.put_nowait((p, incoming))
+                self._queue.put_nowait((p, stream, incoming))
             except asyncio.QueueFull:
-                await self._queue.put((p, incoming))
+                await self._queue.put((p, stream, incoming))
 
         # A push consumer read by a subscription of the worker's own reader, flow control answered
         # here: nats-py's ordered consumer does the same with its own checks per message, at a fifth
@@ -509,27 +515,30 @@ class NatsTransport:
         )
         self._foreign_logged = now
 
-    def _incoming(self, d: Delivery, streams: set[str], p: int, *, truncated: bool) -> Incoming:
+    def _incoming(
+        self, d: Delivery, streams: set[str], p: int, *, truncated: bool
+    ) -> tuple[str | None, Incoming]:
         """The message as the service takes it in, whatever its subject: ``mocap.p.<p>.<stream>.
         <word>`` as topic ``mocap/<stream>/<word>`` (a stream seen for the first time is noted, and
         noted as ``truncated`` if its first message came from the replay of a partial buffer); any
         other subject (a publisher's, straight into the buffer: too few tokens, bytes that are not
-        UTF-8) as a topic the service refuses and counts (``topic``)."""
+        UTF-8) as a topic the service refuses and counts (``topic``). With the stream (None: no
+        stream's)."""
         now = time.time()
         try:
             subject = d.subject.decode()
         except UnicodeDecodeError:
-            return Incoming(f"nats:{d.subject.decode('utf-8', 'replace')[:200]}", d.data, now)
+            return None, Incoming(f"nats:{d.subject.decode('utf-8', 'replace')[:200]}", d.data, now)
         tokens = subject.split(".")
         if len(tokens) < 5 or tokens[:3] != ["mocap", "p", str(p)] or not all(tokens[3:]):
-            return Incoming(f"nats:{subject[:200]}", d.data, now)
+            return None, Incoming(f"nats:{subject[:200]}", d.data, now)
         stream = ".".join(tokens[3:-1])
         if stream not in streams:
             streams.add(stream)
             self._partition_of[stream] = p
             if truncated:
                 self._truncated.add(stream)
-        return Incoming(f"mocap/{stream}/{tokens[-1]}", d.data, now)
+        return stream, Incoming(f"mocap/{stream}/{tokens[-1]}", d.data, now)
 
     # --------------------------------------------------------------------------- source and sink
 
@@ -541,7 +550,11 @@ class NatsTransport:
 
     async def _messages(self) -> AsyncIterator[Incoming]:
         while True:
-            p, incoming = await self._queue.get()
+            p, stream, incoming = await self._queue.get()
+            if stream is not None:
+                left = self._queued.pop(stream, 1) - 1
+                if left:
+                    self._queued[stream] = left
             if p in self._consumers:  # not of a partition given up since
                 yield incoming
 

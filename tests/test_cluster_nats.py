@@ -13,6 +13,7 @@ import time
 from pathlib import Path
 from typing import Any, cast
 
+import nats
 import paho.mqtt.client as paho
 import pytest
 from hypothesis import given, settings
@@ -20,7 +21,8 @@ from hypothesis import strategies as st
 from nats.aio.msg import Msg
 from paho.mqtt.enums import CallbackAPIVersion
 
-from protocols.nats import Ack, acknowledgement
+from daemon.config import ClusterConfig
+from protocols.nats import Ack, NatsTransport, acknowledgement
 from tests.helpers import wait_for
 from tests.nats_server import NatsServer, partitions
 
@@ -156,3 +158,42 @@ def test_what_is_no_acknowledgement_subject_is_none(reply: bytes) -> None:
 def _message(reply: str) -> Msg:
     """A message as nats-py delivers it, with no client (the metadata needs none)."""
     return Msg(_client=cast(Any, None), subject="mocap.p.3.s.pose", reply=reply)
+
+
+def test_a_stream_read_from_a_partial_buffer_keeps_its_mark_until_it_is_taken_in(tmp_path: Path) -> None:
+    """The service forgets every second the streams its table does not hold; a stream read from a
+    buffer that lost its start but still waiting in the queue must not lose its truncated-history
+    mark then (the cause of extra detections after a takeover)."""
+    server = NatsServer(tmp_path).start()
+    try:
+
+        async def main() -> None:
+            settings = ClusterConfig(nats=server.url, partitions=partitions(), buffer_s=60.0)
+            transport = NatsTransport(settings, instance="t", source=True, sink=False)
+            async with transport:
+                nc = await nats.connect(server.url)
+                await nc.publish("mocap.p.0.gone.pose", b"x")
+                for word in ("skeleton", "pose", "pose"):
+                    await nc.publish(f"mocap.p.0.s1.{word}", b"x")
+                await nc.flush()
+                await nc.jetstream().purge_stream("MOCAPD_BUF_0", seq=2)  # as if aged out
+                await nc.close()
+                await transport.own(frozenset({0}))
+                wait = time.monotonic() + 10
+                while transport.replayed < 3 and time.monotonic() < wait:
+                    await asyncio.sleep(0.01)
+                assert transport.replayed == 3
+                transport.forget(set())  # the table has not taken s1 in yet
+                incoming = aiter(transport)
+                first = await anext(incoming)
+                assert first.topic == "mocap/s1/skeleton"
+                assert transport.partial("s1")  # so the service warms it up
+                assert transport.partition("s1") == 0
+                for _ in range(2):
+                    await anext(incoming)
+                transport.forget(set())  # nothing of it waits: forgotten now
+                assert not transport.partial("s1") and transport.partition("s1") is None
+
+        asyncio.run(main())
+    finally:
+        server.stop()
