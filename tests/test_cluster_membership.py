@@ -225,3 +225,29 @@ async def test_the_watch_comes_back_after_etcd_restarts(etcd: Etcd) -> None:
         async with Membership(etcd.url, "c"):
             await until(lambda: a.members == {"a", "b", "c"}, 5, "a to see c join after the restart")
         await until(lambda: a.members == {"a", "b"}, 5, "a to see c leave")
+
+
+async def test_a_worker_busy_computing_keeps_its_lease_and_its_place(etcd: Etcd) -> None:
+    """The worker's event loop held by computation (recognition, a buffer read) for longer than a
+    TTL: the keep-alives go on from the membership's own thread, so the member is never fenced and
+    the others never see it go."""
+    async with Membership(etcd.url, "busy") as busy:
+        seen: list[frozenset[str]] = []
+
+        async def follow() -> None:
+            async for members in busy.changes():
+                seen.append(members)
+
+        follower = asyncio.create_task(follow(), name="follow busy's changes")
+        await until(lambda: seen == [{"busy"}], 1, "the current set first")
+        problems = []
+        end = time.monotonic() + 1.5 * busy.lease_ttl
+        n = 0
+        while time.monotonic() < end:  # pure Python holding the loop (and the GIL, but for switches)
+            n += sum(i * i for i in range(1000)) % 7
+            problems.append(busy.problem)
+        assert problems and set(problems) == {None}, set(problems)
+        assert (await cluster_status(etcd.url)).names == {"busy"}
+        await asyncio.sleep(0.05)
+        assert seen == [{"busy"}]  # no flap: never fenced, never dropped its partitions
+    follower.cancel()

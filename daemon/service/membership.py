@@ -28,6 +28,12 @@ name meanwhile: ``problem`` says so until it leaves).
 The same holds for the watch: while it is broken (etcd restarting) the view of the others may be
 stale, so ``problem`` is set and this member owns nothing until it has listed and watched again.
 
+The membership runs on an event loop of its own, in a thread of its own: the keep-alives and the
+watch must not wait for whatever the worker's loop is doing (recognition, reading a buffer), or a
+worker busy with its work would miss keep-alives and fence itself, throwing its partitions away.
+Python switches threads at least every 5 ms, so a keep-alive is late by that at most while the
+worker computes. The worker's loop is told of changes (:meth:`Membership.changes`) thread-safely.
+
 etcd's client is ``aetcd`` (asyncio, gRPC; its public API: ``Client``, leases, ``get_prefix``,
 ``transaction``, ``watch_prefix``). :func:`cluster_status` reads the members, their reported statuses
 and their leases' TTLs left, for ``mocapd cluster status``.
@@ -41,8 +47,9 @@ import json
 import math
 import os
 import socket
+import threading
 import time
-from collections.abc import AsyncIterator, Mapping
+from collections.abc import AsyncIterator, Coroutine, Mapping
 from dataclasses import dataclass
 from types import TracebackType
 from typing import Any
@@ -111,9 +118,12 @@ class Membership:
         self._watch_problem: str | None = None
         self._report_problem: str | None = None
         self._watch: Any = None
-        self._changed = asyncio.Event()
+        self._changed = asyncio.Event()  # of the worker's loop
         self._closed = False
-        self._runner: asyncio.Task[None] | None = None
+        self._runner: asyncio.Task[None] | None = None  # of the membership's loop
+        self._home: asyncio.AbstractEventLoop | None = None  # the worker's loop
+        self._loop: asyncio.AbstractEventLoop | None = None  # the membership's, in its thread
+        self._thread: threading.Thread | None = None
 
     # ------------------------------------------------------------------------------- what it tells
 
@@ -183,14 +193,51 @@ class Membership:
         return self._report_problem
 
     def _notify(self) -> None:
+        """Wake :meth:`changes` on the worker's loop (from either thread)."""
+        if self._home is not None and not self._home.is_closed():
+            self._home.call_soon_threadsafe(self._wake)
+
+    def _wake(self) -> None:
         self._changed.set()
         self._changed = asyncio.Event()
+
+    async def _call(self, work: Coroutine[Any, Any, Any]) -> Any:
+        """``work`` run on the membership's loop, awaited from the worker's."""
+        assert self._loop is not None
+        return await asyncio.wrap_future(asyncio.run_coroutine_threadsafe(work, self._loop))
+
+    def _start_loop(self) -> None:
+        self._home = asyncio.get_running_loop()
+        loop = self._loop = asyncio.new_event_loop()
+        self._thread = threading.Thread(
+            target=loop.run_forever, name=f"membership {self.member}", daemon=True
+        )
+        self._thread.start()
+
+    async def _stop_loop(self) -> None:
+        loop, thread = self._loop, self._thread
+        if loop is None or thread is None:
+            return
+        loop.call_soon_threadsafe(loop.stop)
+        await asyncio.to_thread(thread.join, LEAVE_S)
+        if not thread.is_alive():
+            loop.close()
 
     # ---------------------------------------------------------------------------- joining, leaving
 
     async def __aenter__(self) -> Membership:
         """Join: StartupError naming ``cluster.coordinator`` within :data:`STARTUP_S` seconds if
         etcd does not answer or the member's name is already live."""
+        self._start_loop()
+        try:
+            await self._call(self._enter())
+        except BaseException:
+            await self._stop_loop()
+            raise
+        return self
+
+    async def _enter(self) -> None:
+        """:meth:`__aenter__` on the membership's loop."""
         self._client = aetcd.Client(self.host, self.port)
         try:
             async with asyncio.timeout(STARTUP_S):
@@ -210,7 +257,6 @@ class Membership:
             await self._close()
             raise
         self._runner = asyncio.create_task(self._run(), name=f"membership {self.member}")
-        return self
 
     async def __aexit__(
         self, kind: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
@@ -218,6 +264,15 @@ class Membership:
         """Leave at once: revoke the lease (the others see this member go within milliseconds)."""
         self._closed = True
         self._notify()
+        if self._loop is None:
+            return
+        try:
+            await self._call(self._leave())
+        finally:
+            await self._stop_loop()
+
+    async def _leave(self) -> None:
+        """:meth:`__aexit__` on the membership's loop."""
         if self._runner is not None:
             self._runner.cancel()
             with contextlib.suppress(asyncio.CancelledError):
@@ -359,6 +414,9 @@ class Membership:
         if self.problem is not None or self._lease is None:
             self._report_problem = f"not reported: {self.problem or 'no lease'}"
             return
+        await self._call(self._put_status(payload))
+
+    async def _put_status(self, payload: bytes) -> None:
         try:
             async with asyncio.timeout(self.interval):
                 await self._client.put(self._status_key, payload, lease=self._lease)
