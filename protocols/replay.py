@@ -20,9 +20,12 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import os
+import signal
+import threading
 import time
 import uuid
 from collections.abc import Awaitable, Callable
+from typing import Any
 from urllib.parse import urlsplit
 
 import zmq
@@ -37,6 +40,12 @@ from replay.amc import Motion
 SEND_HWM = 10_000_000
 ANNOUNCE_S = 1.0
 """The longest a replay goes without announcing its skeleton."""
+FINISH_S = 10.0
+"""How long a replay that has sent everything waits for it to leave (a peer gone: no longer)."""
+STOPPED_S = 0.5
+"""How long a replay stopped by a signal still gives what it sent to leave: it exits within a
+second of SIGTERM whatever its peer does."""
+STOP_SIGNALS = (signal.SIGTERM, signal.SIGINT)
 
 
 class TargetError(MocapdError, ValueError):
@@ -108,7 +117,8 @@ async def _to_zmq(endpoint: str, items: Items, rate: float, speed: float | None,
     ctx = zmq.asyncio.Context()
     sock = ctx.socket(zmq.XPUB)
     sock.setsockopt(zmq.SNDHWM, SEND_HWM)
-    sock.setsockopt(zmq.LINGER, 10_000)
+    sock.setsockopt(zmq.LINGER, round(1000 * FINISH_S))
+    linger_s = STOPPED_S
     try:
         sock.connect(endpoint)
         # the daemon's subscription arrives once the connection is up (see the module docstring)
@@ -132,9 +142,11 @@ async def _to_zmq(endpoint: str, items: Items, rate: float, speed: float | None,
                     return found
                 found = found or event[:1] == b"\x01"
 
-        return await _send_all(send, items, rate, speed, asked)
+        sent = await _send_all(send, items, rate, speed, asked)
+        linger_s = FINISH_S  # all sent: give it time to leave (a signal or an error: not)
+        return sent
     finally:
-        sock.close(linger=10_000)
+        sock.close(linger=round(1000 * linger_s))
         ctx.term()
 
 
@@ -177,6 +189,9 @@ async def _to_mqtt(
         watcher = asyncio.create_task(watch(), name="replay status watch")
         try:
             sent = await _send_all(send, items, rate, speed, asked)
+        except asyncio.CancelledError:
+            client.drain_within(STOPPED_S)
+            raise
         finally:
             watcher.cancel()
         with contextlib.suppress(TimeoutError):
@@ -189,5 +204,44 @@ async def _to_mqtt(
 def replay(
     url: str, motion: Motion, asf_text: str, *, stream: str, rate: float, speed: float | None, loop: bool
 ) -> int:
-    """:func:`replay_to` run to its end on a fresh event loop (for callers outside asyncio)."""
-    return asyncio.run(replay_to(url, motion, asf_text, stream=stream, rate=rate, speed=speed, loop=loop))
+    """:func:`replay_to` run to its end on a fresh event loop (for callers outside asyncio).
+
+    SIGTERM and SIGINT (unless ignored) stop it through the loop (``loop.add_signal_handler``):
+    the replay is cancelled, gives what it sent :data:`STOPPED_S` to leave, and the signal is then
+    raised again under the handler the caller had, which decides what it means. A signal's
+    handler raising inside the event loop's callbacks would be swallowed by asyncio (it catches what
+    a callback raises, bar KeyboardInterrupt and SystemExit), and the replay would go on."""
+    received: list[int] = []
+
+    async def main() -> int:
+        task = asyncio.current_task()
+        assert task is not None
+        running = asyncio.get_running_loop()
+        previous: dict[signal.Signals, Any] = {}
+
+        def stop(signum: int) -> None:
+            if not received:
+                received.append(signum)
+                task.cancel()
+
+        if threading.current_thread() is threading.main_thread():
+            for signum in STOP_SIGNALS:
+                handler = signal.getsignal(signum)
+                if handler != signal.SIG_IGN:
+                    previous[signum] = handler
+                    running.add_signal_handler(signum, stop, signum)
+        try:
+            return await replay_to(url, motion, asf_text, stream=stream, rate=rate, speed=speed, loop=loop)
+        except asyncio.CancelledError:
+            if not received:
+                raise
+            return 0
+        finally:
+            for number, handler in previous.items():
+                running.remove_signal_handler(number)
+                signal.signal(number, handler)
+
+    sent = asyncio.run(main())
+    if received:
+        signal.raise_signal(received[0])
+    return sent
