@@ -40,8 +40,10 @@ AngleUnit = Literal["deg", "rad"]
 State = Literal["online", "offline"]
 Kind = Literal["skeleton", "pose", "detection", "boundary", "progress", "status"]
 
-STREAM_ID = re.compile(r"[A-Za-z0-9_.:@-]{1,128}")
-"""A stream or instance id: one MQTT topic level (no ``/``, ``+``, ``#``), at most 128 characters."""
+STREAM_ID = re.compile(r"[A-Za-z0-9_:@-]{1,128}")
+"""A stream or instance id: one MQTT topic level (no ``/``, ``+``, ``#``) and one NATS subject
+token (no ``.``, which would split the subject cluster mode routes by), at most 128 characters."""
+ID_RULE = "letters, digits, _:@-, at most 128"
 EPOCH = re.compile(r"[A-Za-z0-9_.:@-]{1,64}")
 """A run of a source (a random id it draws when it starts): letters, digits, ``_.:@-``, at most 64."""
 MAX_SEQ = (1 << 53) - 1
@@ -357,7 +359,8 @@ _POSE_KEYS = (
 
 
 @functools.lru_cache(maxsize=4096)
-def _is_id(text: str) -> bool:
+def is_id(text: str) -> bool:
+    """Whether ``text`` is a valid stream or instance id (:data:`STREAM_ID`)."""
     return STREAM_ID.fullmatch(text) is not None
 
 
@@ -383,7 +386,7 @@ def _plain_pose(body: dict[str, Any]) -> PoseMessage | None:
         or type(data) is not bytes
         or not data
         or len(data) % (12 if positions else 8)
-        or not _is_id(stream)
+        or not is_id(stream)
     ):
         return None
     a = np.frombuffer(data, dtype="<f4" if positions else "<f8")
@@ -418,7 +421,7 @@ class _Fields:
         if not isinstance(value, str):
             raise self.fail(name, f"must be a string, got {type(value).__name__}")
         if pattern is not None and not pattern.fullmatch(value):
-            raise self.fail(name, f"{describe(value)} is not an id (letters, digits, _.:@-, at most 128)")
+            raise self.fail(name, f"{describe(value)} is not an id ({ID_RULE})")
         return value
 
     def integer(self, name: str, low: int | None = None, high: int | None = None) -> int:

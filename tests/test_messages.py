@@ -31,7 +31,7 @@ from protocols.messages import (
 from replay import JOINT_NAMES
 from tests.helpers import DATA, REPO
 
-ids = st.from_regex(r"[A-Za-z0-9_.:@-]{1,20}", fullmatch=True)
+ids = st.from_regex(r"[A-Za-z0-9_:@-]{1,20}", fullmatch=True)
 epochs = st.none() | st.from_regex(r"[A-Za-z0-9_.:@-]{1,64}", fullmatch=True)
 finite = st.floats(allow_nan=False, allow_infinity=False, width=64)
 times = st.floats(0, 4e9)
@@ -231,6 +231,12 @@ POSE = {
         (raw({**POSE, "epoch": 7}), "schema", "pose.epoch"),
         (raw({**POSE, "epoch": "x" * 65}), "schema", "pose.epoch"),
         (raw({**POSE, "stream": "a/b"}), "schema", "pose.stream"),
+        (raw({**POSE, "stream": "a.b"}), "schema", "pose.stream"),  # it would split a NATS subject
+        (
+            raw({"v": 1, "type": "skeleton", "stream": "s.1", "rate": 120, "joints": ["a"]}),
+            "schema",
+            "stream",
+        ),
         (raw({**POSE, "stream": ""}), "schema", "pose.stream"),
         (raw({**POSE, "time": float("nan")}), "non_finite", "pose.time"),
         (raw({**POSE, "positions": b"\0" * 10}), "shape", "pose.positions"),

@@ -1,8 +1,9 @@
-"""``mocapd replay`` stops within a second of SIGTERM on every transport, whatever its peer does:
-over MQTT while it sends as fast as it can (a signal's handler raising inside the event loop's
-callbacks, where paho writes, used to be swallowed by asyncio: a replay went on until a second
-signal), and over ZeroMQ after its subscriber has gone (it used to linger 10 s over what it had
-queued). Real processes, a real mosquitto and real ZeroMQ sockets."""
+"""``mocapd replay`` refuses a stream id no transport carries whole, and stops within a second of
+SIGTERM on every transport, whatever its peer does: over MQTT while it sends as fast as it can (a
+signal's handler raising inside the event loop's callbacks, where paho writes, used to be swallowed
+by asyncio: a replay went on until a second signal), and over ZeroMQ after its subscriber has gone
+(it used to linger 10 s over what it had queued). Real processes, a real mosquitto and real ZeroMQ
+sockets."""
 
 from __future__ import annotations
 
@@ -74,3 +75,13 @@ def test_a_replay_over_zeromq_whose_daemon_has_gone_stops_within_a_second_of_sig
     finally:
         daemon.close()
         ctx.term()
+
+
+def test_a_stream_id_with_a_dot_is_refused_in_one_line_before_anything_is_sent() -> None:
+    """A ``.`` splits a NATS subject: in cluster mode such a stream reconnected for ever."""
+    done = replay(CMU_ASF, CMU_AMC, "mqtt://127.0.0.1:9", stream="a.b")
+    out, err = done.communicate(timeout=60)
+    assert done.returncode == 2 and out == ""
+    assert err.splitlines() == [
+        "mocapd: --stream: 'a.b' is not a stream id (letters, digits, _:@-, at most 128)"
+    ]

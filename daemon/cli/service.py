@@ -104,6 +104,7 @@ def stream_name(amc: Path) -> str:
 
 def _replay(args: argparse.Namespace, config: Config) -> int:
     from daemon.service.app import configure_logging
+    from protocols.messages import ID_RULE, is_id
     from protocols.replay import TargetError, replay
 
     configure_logging(config.logging.level)  # the MQTT client's log lines as JSON, like the daemon's
@@ -111,6 +112,8 @@ def _replay(args: argparse.Namespace, config: Config) -> int:
     rate = native_rate(motion, common.default_native_rate(args, config))
     asf_text = Path(args.asf).read_text(encoding="utf-8", errors="replace")
     stream = stream_name(args.amc) if args.stream is None else args.stream
+    if not is_id(stream):  # the recording's name, unless given
+        raise UsageError(f"{stream!r} is not a stream id ({ID_RULE})", field="--stream")
     try:
         sent = replay(args.to, motion, asf_text, stream=stream, rate=rate, speed=args.speed, loop=args.loop)
     except TargetError as e:
