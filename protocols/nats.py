@@ -15,9 +15,10 @@ through nats-py, whose reader stops for good on one delivered message whose subj
 it cannot decode (any publisher can send one). Each delivery is then taken for what it is: a message
 the partition's buffer delivered (its reply is this consumer's acknowledgement subject) goes to the
 service whatever its subject or contents, which counts it (a subject that is not
-``mocap.p.<p>.<stream>.<word>`` is refused as a ``topic``); the server's flow control and heartbeats
-(status 100, not from the buffer) are answered and not counted; anything else was published on the
-delivery subject directly and is counted as ``drops{reason="nats_foreign"}``.
+``mocap.p.<p>.<stream>.<word>`` with ``p`` the stream's partition, :func:`partition_of`, is refused
+as a ``topic``: a publisher may write to a partition's subject directly); the server's flow control
+and heartbeats (status 100, not from the buffer) are answered and not counted; anything else was
+published on the delivery subject directly and is counted as ``drops{reason="nats_foreign"}``.
 
 Detections and boundaries are stored first in ``MOCAPD_OUT`` (subjects ``mocap.d.<stream>.<word>``)
 with header ``Nats-Msg-Id`` = their id: within the stream's duplicate window the server keeps only the
@@ -108,6 +109,15 @@ def acknowledgement(reply: bytes) -> Ack | None:
     if not (stream_seq.isdigit() and consumer_seq.isdigit() and stream.isascii() and consumer.isascii()):
         return None
     return Ack(stream.decode(), consumer.decode(), int(stream_seq), int(consumer_seq))
+
+
+def partition_of(stream: str, partitions: int) -> int:
+    """The partition nats-server's ``partition(P, 1)`` mapping gives ``stream``'s subjects: the
+    32-bit FNV-1a hash of the id's bytes, modulo P."""
+    h = 0x811C9DC5
+    for byte in stream.encode():
+        h = ((h ^ byte) * 0x01000193) & 0xFFFFFFFF
+    return h % partitions
 
 
 def buffer_subject(partition: int) -> str:
@@ -521,8 +531,9 @@ class NatsTransport:
         """The message as the service takes it in, whatever its subject: ``mocap.p.<p>.<stream>.
         <word>`` as topic ``mocap/<stream>/<word>`` (a stream seen for the first time is noted, and
         noted as ``truncated`` if its first message came from the replay of a partial buffer); any
-        other subject (a publisher's, straight into the buffer: too few tokens, bytes that are not
-        UTF-8) as a topic the service refuses and counts (``topic``). With the stream (None: no
+        other subject (a publisher's, straight into the buffer: another number of tokens, another
+        partition than the stream's, bytes that are not UTF-8) as a topic the service refuses and
+        counts (``topic``). With the stream (None: no
         stream's)."""
         now = time.time()
         try:
@@ -530,9 +541,14 @@ class NatsTransport:
         except UnicodeDecodeError:
             return None, Incoming(f"nats:{d.subject.decode('utf-8', 'replace')[:200]}", d.data, now)
         tokens = subject.split(".")
-        if len(tokens) < 5 or tokens[:3] != ["mocap", "p", str(p)] or not all(tokens[3:]):
+        if (
+            len(tokens) != 5
+            or tokens[:3] != ["mocap", "p", str(p)]
+            or not all(tokens[3:])
+            or partition_of(tokens[3], self.settings.partitions) != p  # published past the mapping
+        ):
             return None, Incoming(f"nats:{subject[:200]}", d.data, now)
-        stream = ".".join(tokens[3:-1])
+        stream = tokens[3]
         if stream not in streams:
             streams.add(stream)
             self._partition_of[stream] = p

@@ -8,6 +8,7 @@ a newer server delivers it, this test says so: the workers could then leave publ
 from __future__ import annotations
 
 import asyncio
+import random
 import threading
 import time
 from pathlib import Path
@@ -22,7 +23,7 @@ from nats.aio.msg import Msg
 from paho.mqtt.enums import CallbackAPIVersion
 
 from daemon.config import ClusterConfig
-from protocols.nats import Ack, NatsTransport, acknowledgement
+from protocols.nats import Ack, NatsTransport, acknowledgement, partition_of
 from tests.helpers import wait_for
 from tests.nats_server import NatsServer, partitions
 
@@ -169,31 +170,70 @@ def test_a_stream_read_from_a_partial_buffer_keeps_its_mark_until_it_is_taken_in
 
         async def main() -> None:
             settings = ClusterConfig(nats=server.url, partitions=partitions(), buffer_s=60.0)
+            stream = next(f"s{i}" for i in range(1000) if partition_of(f"s{i}", partitions()) == 0)
+            elsewhere = next(f"s{i}" for i in range(1000) if partition_of(f"s{i}", partitions()) != 0)
             transport = NatsTransport(settings, instance="t", source=True, sink=False)
             async with transport:
                 nc = await nats.connect(server.url)
                 await nc.publish("mocap.p.0.gone.pose", b"x")
                 for word in ("skeleton", "pose", "pose"):
-                    await nc.publish(f"mocap.p.0.s1.{word}", b"x")
+                    await nc.publish(f"mocap.{stream}.{word}", b"x")
+                await nc.publish(f"mocap.p.0.{elsewhere}.pose", b"x")  # past the mapping: refused
                 await nc.flush()
                 await nc.jetstream().purge_stream("MOCAPD_BUF_0", seq=2)  # as if aged out
                 await nc.close()
                 await transport.own(frozenset({0}))
                 wait = time.monotonic() + 10
-                while transport.replayed < 3 and time.monotonic() < wait:
+                while transport.replayed < 4 and time.monotonic() < wait:
                     await asyncio.sleep(0.01)
-                assert transport.replayed == 3
-                transport.forget(set())  # the table has not taken s1 in yet
+                assert transport.replayed == 4
+                transport.forget(set())  # the table has not taken the stream in yet
                 incoming = aiter(transport)
                 first = await anext(incoming)
-                assert first.topic == "mocap/s1/skeleton"
-                assert transport.partial("s1")  # so the service warms it up
-                assert transport.partition("s1") == 0
+                assert first.topic == f"mocap/{stream}/skeleton"
+                assert transport.partial(stream)  # so the service warms it up
+                assert transport.partition(stream) == 0
                 for _ in range(2):
                     await anext(incoming)
+                assert (await anext(incoming)).topic == f"nats:mocap.p.0.{elsewhere}.pose"
                 transport.forget(set())  # nothing of it waits: forgotten now
-                assert not transport.partial("s1") and transport.partition("s1") is None
+                assert not transport.partial(stream) and transport.partition(stream) is None
 
         asyncio.run(main())
     finally:
         server.stop()
+
+
+def test_partition_of_is_the_servers_mapping(tmp_path: Path) -> None:
+    """Each stream's subjects land in the buffer :func:`partition_of` names (the shipped mapping,
+    on a real nats-server), for ids of every allowed character and length."""
+    rng = random.Random(7)
+    chars = "ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789_:@-"
+    ids = ["a", "s1", "HDM_bd_squat1Reps_001_120", "x" * 128] + [
+        "".join(rng.choice(chars) for _ in range(rng.randint(1, 40))) for _ in range(200)
+    ]
+    server = NatsServer(tmp_path).start()
+    try:
+
+        async def main() -> dict[str, str]:
+            nc = await nats.connect(server.url)
+            landed: dict[str, str] = {}
+
+            async def got(msg: Msg) -> None:
+                landed[msg.subject.split(".")[3]] = msg.subject.split(".")[2]
+
+            await nc.subscribe("mocap.p.*.*.pose", cb=got)
+            for stream in ids:
+                await nc.publish(f"mocap.{stream}.pose", b"x")
+            await nc.flush()
+            deadline = time.monotonic() + 10
+            while len(landed) < len(ids) and time.monotonic() < deadline:
+                await asyncio.sleep(0.01)
+            await nc.close()
+            return landed
+
+        landed = asyncio.run(main())
+    finally:
+        server.stop()
+    p = partitions()
+    assert landed == {s: str(partition_of(s, p)) for s in ids}
