@@ -24,7 +24,10 @@ Detections and boundaries are stored first in ``MOCAPD_OUT`` (subjects ``mocap.d
 with header ``Nats-Msg-Id`` = their id: within the stream's duplicate window the server keeps only the
 first copy and acknowledges a repeat as a duplicate. Only a first copy is then published on
 ``mocap.<stream>.<word>``, where NATS and MQTT subscribers (``mocap/+/detections``) receive it, so a
-detection that two workers compute across a takeover reaches clients once. (The stream's RePublish
+detection that two workers compute across a takeover reaches clients once; a store that does not
+answer is asked again with the same id for :data:`STORE_FOR_S` (an answer that timed out may have
+stored it: publishing then could deliver it twice), and only then is the detection published
+without it, at least once. (The stream's RePublish
 would deliver stored messages to ``mocap.<stream>.<word>`` by itself, but nats-server 2.9.10 does
 not deliver republished messages to MQTT subscribers: verified, ``docs/cluster.md``.) A worker
 killed between the store and the publish loses that detection; the window is one local write.
@@ -72,6 +75,9 @@ QUEUE = 1 << 20
 """Messages received and not yet taken in, at most (then the consumers wait: JetStream's flow
 control holds the rest on the server)."""
 PUBLISH_TIMEOUT_S = 2.0
+STORE_FOR_S = 30.0
+"""How long a detection's store into ``MOCAPD_OUT`` is tried again (with its id: the server keeps one
+copy) before it is published without it, at least once."""
 STARTUP_S = 3.0
 """Entering fails when the server has not answered within this many seconds."""
 CATCH_UP_S = 2.0
@@ -585,21 +591,35 @@ class NatsTransport:
             return
         assert self._js is not None
         parts = message.topic.split("/")
-        try:
-            ack = await self._js.publish(
-                f"mocap.d.{parts[1]}.{parts[2]}",
-                message.payload,
-                timeout=PUBLISH_TIMEOUT_S,
-                headers={"Nats-Msg-Id": message.key},
-            )
-        except (NatsError, TimeoutError) as e:  # unknown whether stored: published (at least once)
-            self.publish_errors += 1
-            log.warning("detection not stored", extra={"fields": {"id": message.key, "error": repr(e)}})
-        else:
+        given_up = time.monotonic() + STORE_FOR_S
+        while True:
+            try:
+                ack = await self._js.publish(
+                    f"mocap.d.{parts[1]}.{parts[2]}",
+                    message.payload,
+                    timeout=PUBLISH_TIMEOUT_S,
+                    headers={"Nats-Msg-Id": message.key},
+                )
+            except (NatsError, TimeoutError) as e:
+                # unknown whether it was stored (perhaps by another worker before): asking again
+                # with the same id tells, where publishing now could deliver it twice
+                self.publish_errors += 1
+                late = time.monotonic() >= given_up
+                log.warning(
+                    "detection not stored: published without the store"
+                    if late
+                    else "detection not stored yet",
+                    extra={"fields": {"id": message.key, "error": repr(e)}},
+                )
+                if late:
+                    break
+                await asyncio.sleep(RETRY_S)
+                continue
             if ack.duplicate:
                 self.duplicates += 1
                 log.debug("duplicate", extra={"fields": {"id": message.key}})
                 return
+            break
         await self._plain(message)
 
     async def _plain(self, message: Outgoing) -> None:

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import asyncio
 import random
+import signal
 import threading
 import time
 from pathlib import Path
@@ -23,7 +24,8 @@ from nats.aio.msg import Msg
 from paho.mqtt.enums import CallbackAPIVersion
 
 from daemon.config import ClusterConfig
-from protocols.nats import Ack, NatsTransport, acknowledgement, partition_of
+from protocols.nats import PUBLISH_TIMEOUT_S, STORE_FOR_S, Ack, NatsTransport, acknowledgement, partition_of
+from protocols.transport import Outgoing
 from tests.helpers import wait_for
 from tests.nats_server import NatsServer, partitions
 
@@ -237,3 +239,45 @@ def test_partition_of_is_the_servers_mapping(tmp_path: Path) -> None:
         server.stop()
     p = partitions()
     assert landed == {s: str(partition_of(s, p)) for s in ids}
+
+
+def test_a_detection_whose_store_times_out_is_not_published_twice(tmp_path: Path) -> None:
+    """A worker recomputes a detection another one published (a takeover) while the server is too
+    slow to answer the store in time (frozen here): it asks the store again with the same id and
+    publishes nothing, where publishing after the timeout delivered the detection twice."""
+    server = NatsServer(tmp_path).start()
+    assert server.process is not None
+    try:
+
+        async def main() -> list[bytes]:
+            settings = ClusterConfig(nats=server.url, partitions=partitions())
+            first = NatsTransport(settings, instance="w1", source=False, sink=True)
+            second = NatsTransport(settings, instance="w2", source=False, sink=True)
+            nc = await nats.connect(server.url)
+            seen: list[bytes] = []
+
+            async def got(msg: Msg) -> None:
+                seen.append(msg.data)
+
+            await nc.subscribe("mocap.s.detections", cb=got)
+            detection = Outgoing("mocap/s/detections", b"d1", reliable=True, key="id-1")
+            async with first, second:
+                await first.publish(detection)
+                await nc.flush()
+                assert server.process is not None
+                server.process.send_signal(signal.SIGSTOP)
+                try:
+                    again = asyncio.create_task(second.publish(detection), name="the recomputed one")
+                    await asyncio.sleep(PUBLISH_TIMEOUT_S + 0.5)  # its store timed out
+                finally:
+                    server.process.send_signal(signal.SIGCONT)
+                await asyncio.wait_for(again, STORE_FOR_S)
+                assert second.publish_errors >= 1 and second.duplicates == 1
+                await asyncio.sleep(0.3)
+            await nc.close()
+            return seen
+
+        assert asyncio.run(main()) == [b"d1"]
+    finally:
+        server.process.send_signal(signal.SIGCONT)
+        server.stop()
