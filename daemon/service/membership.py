@@ -79,6 +79,16 @@ def _address(coordinator: str) -> tuple[str, int]:
     return (f"[{host}]" if ":" in host else host), port
 
 
+async def _finish_tasks() -> None:
+    """Cancel and await every other task of the running loop (the client's, gRPC's), as
+    ``asyncio.run`` does before it closes its loop: none is destroyed pending."""
+    rest = [t for t in asyncio.all_tasks() if t is not asyncio.current_task()]
+    for t in rest:
+        t.cancel()
+    await asyncio.gather(*rest, return_exceptions=True)
+    await asyncio.get_running_loop().shutdown_asyncgens()
+
+
 def _why(exc: BaseException) -> str:
     if isinstance(exc, TimeoutError):
         return "no answer in time"
@@ -218,6 +228,9 @@ class Membership:
         loop, thread = self._loop, self._thread
         if loop is None or thread is None:
             return
+        with contextlib.suppress(TimeoutError):
+            async with asyncio.timeout(LEAVE_S):
+                await self._call(_finish_tasks())
         loop.call_soon_threadsafe(loop.stop)
         await asyncio.to_thread(thread.join, LEAVE_S)
         if not thread.is_alive():
