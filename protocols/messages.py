@@ -110,6 +110,18 @@ class PoseMessage:
 
 
 @dataclass(frozen=True)
+class EndMessage:
+    """The end of a run of ``stream``: its last pose was ``seq`` (of run ``epoch``, None: not
+    said). Sent on the stream's pose topic, after its last pose, so it arrives after them: a daemon
+    recognises what it holds of the stream, publishes its last detections at once and forgets it
+    (without it they wait until the stream has been silent for ``service.idle_s``)."""
+
+    stream: str
+    seq: int
+    epoch: str | None = None
+
+
+@dataclass(frozen=True)
 class DetectionMessage:
     """A detection (:class:`daemon.recognizer.Detection`'s fields; frames are the stream's sequence
     numbers), ``source_time``: the timestamp of the pose whose arrival emitted it, ``emit_time``:
@@ -180,11 +192,20 @@ class StatusMessage:
     started: float
 
 
-Message = SkeletonMessage | PoseMessage | DetectionMessage | BoundaryMessage | ProgressMessage | StatusMessage
+Message = (
+    SkeletonMessage
+    | PoseMessage
+    | EndMessage
+    | DetectionMessage
+    | BoundaryMessage
+    | ProgressMessage
+    | StatusMessage
+)
 
 TOPIC_OF: dict[type[Any], str] = {
     SkeletonMessage: "skeleton",
     PoseMessage: "pose",
+    EndMessage: "pose",  # after the poses, in their order
     DetectionMessage: "detections",
     BoundaryMessage: "boundaries",
     ProgressMessage: "progress",
@@ -231,6 +252,10 @@ def encode(message: Message) -> bytes:
         else:
             assert message.channels is not None
             body["channels"] = np.ascontiguousarray(message.channels, dtype="<f8").tobytes()
+    elif isinstance(message, EndMessage):
+        body |= {"type": "end", "stream": message.stream, "seq": message.seq}
+        if message.epoch is not None:
+            body["epoch"] = message.epoch
     elif isinstance(message, DetectionMessage):
         body |= {
             "type": "detection",
@@ -522,6 +547,12 @@ def _pose(f: _Fields) -> PoseMessage:
     return PoseMessage(stream, seq, time, channels=channels, epoch=epoch)
 
 
+def _end(f: _Fields) -> EndMessage:
+    out = EndMessage(f.text("stream", STREAM_ID), f.integer("seq", low=0, high=MAX_SEQ), f.epoch())
+    f.done()
+    return out
+
+
 def _detection(f: _Fields) -> DetectionMessage:
     out = DetectionMessage(
         f.text("id"),
@@ -605,6 +636,7 @@ def _status(f: _Fields) -> StatusMessage:
 _READERS: dict[str, Callable[[_Fields], Message]] = {
     "skeleton": _skeleton,
     "pose": _pose,
+    "end": _end,
     "detection": _detection,
     "boundary": _boundary,
     "progress": _progress,

@@ -16,10 +16,10 @@ from collections.abc import Iterator
 
 import numpy as np
 
-from protocols.messages import PoseMessage, SkeletonMessage
+from protocols.messages import EndMessage, PoseMessage, SkeletonMessage
 from replay.amc import Motion
 
-Items = Iterator[SkeletonMessage | PoseMessage]
+Items = Iterator[SkeletonMessage | PoseMessage | EndMessage]
 """A replay's messages in the order they go out."""
 
 
@@ -33,14 +33,16 @@ def messages(
 ) -> Items:
     """The skeleton, then one pose per frame (``passes`` times through the recording; None: for
     ever), sequence numbers the AMC frame numbers, each pass's after the last's, all of run
-    ``epoch``; ``time`` is filled when sent."""
+    ``epoch``; ``time`` is filled when sent; then the run's end."""
     yield SkeletonMessage(stream, rate, asf=asf_text, angle_unit="rad", epoch=epoch)
     if not len(motion):
         return
     span = int(motion.frames[-1]) - int(motion.frames[0]) + 1
     done = 0
+    seq = 0
     while passes is None or done < passes:
         for number, row in zip(motion.frames.tolist(), motion.channels, strict=True):
             seq = number + done * span
             yield PoseMessage(stream, seq, 0.0, channels=np.ascontiguousarray(row), epoch=epoch)
         done += 1
+    yield EndMessage(stream, seq, epoch)

@@ -32,7 +32,7 @@ import zmq
 import zmq.asyncio
 
 from daemon.errors import MocapdError
-from protocols.messages import PoseMessage, StatusMessage, WireError, decode, encode, topic
+from protocols.messages import EndMessage, PoseMessage, StatusMessage, WireError, decode, encode, topic
 from protocols.publish import Items, due, messages
 from protocols.transport import Outgoing
 from replay.amc import Motion
@@ -106,6 +106,8 @@ async def _send_all(
             out = Outgoing(topic(m), encode(m))
             i += 1
             sent += 1
+        elif isinstance(m, EndMessage):
+            out = Outgoing(topic(m), encode(m), reliable=True)
         else:
             out = skeleton = Outgoing(topic(m), encode(m), retain=True, reliable=True)
             announced = time.monotonic()

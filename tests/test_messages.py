@@ -17,6 +17,7 @@ from protocols.messages import (
     BoundaryMessage,
     ClassProgress,
     DetectionMessage,
+    EndMessage,
     Message,
     PoseMessage,
     ProgressMessage,
@@ -40,9 +41,13 @@ times = st.floats(0, 4e9)
 @st.composite
 def messages(draw: st.DrawFn) -> Message:
     kind = draw(
-        st.sampled_from(["skeleton-p", "skeleton-c", "pose-p", "pose-c", "det", "bound", "prog", "status"])
+        st.sampled_from(
+            ["skeleton-p", "skeleton-c", "pose-p", "pose-c", "end", "det", "bound", "prog", "status"]
+        )
     )
     stream = draw(ids)
+    if kind == "end":
+        return EndMessage(stream, draw(st.integers(0, 2**53 - 1)), draw(epochs))
     if kind == "skeleton-p":
         joints = tuple(draw(st.lists(ids, min_size=1, max_size=30, unique=True)))
         return SkeletonMessage(
@@ -166,7 +171,7 @@ def test_examples_of_the_schema_document_decode() -> None:
     the JSON-like line above it (bytes fields aside), and re-encodes to the same bytes."""
     text = (REPO / "protocols" / "README.md").read_text(encoding="utf-8")
     pairs = re.findall(r"^    (\{.*\})\n    ([0-9a-f]+)$", text, flags=re.M)
-    assert len(pairs) == 8
+    assert len(pairs) == 9
     kinds = set()
     for shown, hexed in pairs:
         payload = bytes.fromhex(hexed)
@@ -180,7 +185,7 @@ def test_examples_of_the_schema_document_decode() -> None:
                     assert str(body[key]) == value.strip('"').replace("\\n", "\n"), (key, body[key], value)
                 else:
                     assert float(body[key]) == float(value), (key, body[key], value)
-    assert kinds == {"skeleton", "pose", "detection", "boundary", "progress", "status"}
+    assert kinds == {"skeleton", "pose", "end", "detection", "boundary", "progress", "status"}
     skeleton = decode(encode(SkeletonMessage("studio-a", 120.0, JOINT_NAMES)))
     assert (
         isinstance(skeleton, SkeletonMessage)

@@ -79,13 +79,16 @@ def test_zeromq_replay_gives_the_detections_of_detect(tmp_path: Path) -> None:
         finished(replay(*TRIAL, "zmq+" + daemon.poses, speed="max"))
         want = detection_keys(expected(*TRIAL))
         wait_for(lambda: daemon.metrics().get("mocapd_frames_in_total") == 2465, 30, "every pose received")
+        # the replay's end: the stream's last detections at once, not after service.idle_s (30 s)
+        wait_for(lambda: len(collector.detections()) >= len(want), 20, "the last detections")
+        metrics = daemon.metrics()
+        assert metrics['mocapd_stream_events_total{event="ended"}'] == 1 and metrics["mocapd_streams"] == 0
         assert daemon.stop() == 0
-        wait_for(lambda: len(collector.detections()) >= len(want), 10, "the last detections")
         assert detection_keys(collector.detections()) == want
         assert detection_keys(daemon.detections_printed()) == want
         statuses = [m for m in collector.messages if m.get("type") == "status"]
         assert [m["state"] for m in statuses[-1:]] == ["offline"]
-        assert statuses[-1]["streams"] == 1  # the streams it held when it stopped
+        assert statuses[-1]["streams"] == 0  # the stream ended before the daemon stopped
     finally:
         collector.close()
         daemon.stop()

@@ -34,7 +34,7 @@ from daemon.library import Library
 from daemon.recognizer import Recognizer
 from daemon.recordings import read_recording
 from daemon.service.streams import Emitted, Refused, StreamTable
-from protocols.messages import BoundaryMessage, DetectionMessage, PoseMessage, SkeletonMessage
+from protocols.messages import BoundaryMessage, DetectionMessage, EndMessage, PoseMessage, SkeletonMessage
 from protocols.publish import due
 from replay import JOINT_NAMES, Motion
 from replay.amc import DEG
@@ -492,3 +492,58 @@ def test_streams_of_one_skeleton_share_its_tables(library: Library) -> None:
     assert t.bank["a"].model is t.bank["b"].model is not None
     sources = [s.skeleton.source if s.skeleton else None for s in (t.streams["a"], t.streams["b"])]
     assert sources == ["<skeleton of a>", "<skeleton of b>"]
+
+
+@pytest.mark.parametrize("ticked", [0, 200, 10**6], ids=["all queued", "some queued", "none queued"])
+def test_an_end_gives_the_streams_last_detections_once_its_poses_are_recognised(
+    library: Library, ticked: int
+) -> None:
+    """The end of a run, whenever it arrives among the ticks: exactly the detections of a
+    recogniser flushed after the run's last pose (no more once the stream is gone), the stream
+    forgotten as ``ended``; a second end, or one of a stream not held, changes nothing."""
+    t = table(library)
+    announce(t)
+    m = motion()
+    poses = [
+        PoseMessage("s", int(f), 0.0, channels=c, epoch="e1")
+        for f, c in zip(m.frames, m.channels, strict=True)
+    ]
+    for p in poses:
+        t.pose(p, 0.0)
+    out = []
+    for _ in range(ticked):
+        if not t.queued:
+            break
+        out += t.tick()[0]
+    out += t.end(EndMessage("s", poses[-1].seq, "e1"))
+    assert ("s" in t.streams) == bool(t.queued)
+    out += drain(t)
+    assert "s" not in t.streams and t.counts["ended"] == 1 and t.queued == 0
+    assert t.end(EndMessage("s", poses[-1].seq, "e1")) == [] and t.flush_all() == []
+    assert detections(out) == detections_of(library, poses) != []
+
+
+def detections_of(library: Library, poses: list[PoseMessage]) -> list[tuple[str, int, int, float]]:
+    """The poses' frames through a recogniser of their own, flushed after the last."""
+    r = Recognizer.for_skeleton(library, motion().skeleton, 120.0, session="x")
+    found = [d for p in poses for d in r.push(p.seq, p.channels)] + r.flush()
+    return [(d.class_name, d.start_frame, d.end_frame, d.cost) for d in found]
+
+
+def test_the_end_of_another_run(library: Library) -> None:
+    """An end of a replaced run is refused; of a run not taken, ignored; a new run after an end
+    that waits for its queue keeps the stream (the end was the old run's)."""
+    t = table(library)
+    announce(t)
+    m = motion()
+    t.pose(PoseMessage("s", 1, 0.0, channels=m.channels[0], epoch="e1"), 0.0)
+    assert t.end(EndMessage("s", 1, "other")) == [] and "s" in t.streams
+    t.end(EndMessage("s", 1, "e1"))  # one pose queued: it waits
+    t.pose(PoseMessage("s", 1, 0.0, channels=m.channels[0], epoch="e2"), 0.0)  # a new run
+    drain(t)
+    assert "s" in t.streams and t.counts["ended"] == 0
+    with pytest.raises(Refused) as caught:
+        t.end(EndMessage("s", 1, "e1"))
+    assert caught.value.reason == "stale_epoch"
+    t.end(EndMessage("s", 1, "e2"))
+    assert "s" not in t.streams and t.counts["ended"] == 1

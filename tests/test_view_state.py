@@ -57,7 +57,7 @@ def recording(stream: str = "13_30", angle_unit: str = "rad") -> list[Message]:
         assert isinstance(skeleton, SkeletonMessage)
         angles = np.asarray(motion.skeleton.angle_channels)
         items[0] = SkeletonMessage(stream, 120.0, asf=skeleton.asf, angle_unit="deg", epoch="run1")
-        for k, m in enumerate(items[1:], 1):
+        for k, m in enumerate(items[1:-1], 1):  # the poses, before the run's end
             assert isinstance(m, PoseMessage) and m.channels is not None
             c = m.channels.copy()
             c[angles] = np.degrees(c[angles])

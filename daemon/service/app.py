@@ -48,6 +48,7 @@ from daemon.service.metrics import Metrics, open_http, serve_http
 from daemon.service.streams import Emitted, Refused, StreamTable
 from protocols.messages import (
     BoundaryMessage,
+    EndMessage,
     PoseMessage,
     ProgressMessage,
     SkeletonMessage,
@@ -67,6 +68,7 @@ EVENTS = (
     "gaps",
     "gap_frames",
     "idle",
+    "ended",
     "skeleton_changed",
     "restarts",
     "aligning",
@@ -259,13 +261,19 @@ class Service:
                 self.metrics.messages["clear"] += 1
                 return []  # MQTT's way to delete a retained skeleton: nothing to take in
             message = decode(incoming.payload, self.config.service.max_message_bytes)
-            if not isinstance(message, SkeletonMessage | PoseMessage):
+            if not isinstance(message, SkeletonMessage | PoseMessage | EndMessage):
                 raise Refused("type", f"a {type(message).__name__} is not taken in")
-            if message.stream != stream or (parsed[1] == "pose") != isinstance(message, PoseMessage):
+            on_pose_topic = isinstance(message, PoseMessage | EndMessage)
+            if message.stream != stream or (parsed[1] == "pose") != on_pose_topic:
                 raise Refused(
                     "schema", f"a {type(message).__name__} for {message.stream!r} on {incoming.topic!r}"
                 )
             now = time.monotonic()
+            if isinstance(message, EndMessage):
+                out = self.table.end(message)
+                self.metrics.messages["end"] += 1
+                self._work.set()  # the stream goes once its queued poses are recognised
+                return out
             if isinstance(message, PoseMessage):
                 self.table.pose(message, now)
                 self.metrics.messages["pose"] += 1  # taken in: a refused message counts in rejects only

@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import dataclasses
 import fnmatch
+import itertools
 import uuid
 from collections import Counter, deque
 from dataclasses import dataclass, field
@@ -57,6 +58,7 @@ from protocols.messages import (
     BoundaryMessage,
     ClassProgress,
     DetectionMessage,
+    EndMessage,
     PoseMessage,
     ProgressMessage,
     SkeletonMessage,
@@ -147,6 +149,8 @@ class _Stream:
     jump: tuple[int, float] | None = None
     """The last pose refused as ``implausible`` (seq, when), if none was taken since: a pose that
     follows it plausibly confirms the jump."""
+    ending: bool = False
+    """The source said the run ended (an end message): the stream goes once its queue is empty."""
     fed_epoch: str | None = None
     """The epoch of the last pose fed to the recogniser."""
     step: int = 1
@@ -210,6 +214,9 @@ class StreamTable:
         segmentation = SegmentationConfig() if segmentation is None else segmentation
         self.bank = RecognizerBank(library, recognizer.settings())
         self.session = session
+        # a stream's runs in this table, numbered across streams: a stream forgotten (ended, idle)
+        # and taken again is not numbered from 0 again, so its detections' ids stay unique
+        self._generations = itertools.count()
         self.queue_frames = service.queue_frames
         self.max_streams = service.max_streams
         self.bridge_s = service.bridge_s
@@ -227,7 +234,7 @@ class StreamTable:
 
     def _session(self, generation: int, epoch: str | None) -> str:
         """The session of a stream's detections: per run of the source in cluster mode (every
-        worker alike), else per restart in this table."""
+        worker alike), else per run in this table (:attr:`_Stream.generation`)."""
         return f"{self.session}/{epoch or '-'}" if self.cluster else f"{self.session}/{generation}"
 
     @staticmethod
@@ -266,13 +273,14 @@ class StreamTable:
                 angles = np.asarray(skeleton.angle_channels, dtype=np.intp)
         # everything that can refuse the new skeleton first: a refused one leaves the old stream be
         segmenting = self._segmenting(message, skeleton)
+        generation = next(self._generations)
         try:
             recognizer = self.bank.recognizer(
                 message.stream,
                 message.rate,
                 skeleton=skeleton,
                 joint_names=message.joints,
-                session=self._session((old.generation + 1) if old else 0, message.epoch),  # unique per run
+                session=self._session(generation, message.epoch),  # unique per run
             )
         except (InputError, MocapFormatError) as e:
             raise Refused("skeleton", str(e)) from None
@@ -288,7 +296,7 @@ class StreamTable:
             arrivals=np.zeros(horizon),
             width=len(skeleton.channel_names) if skeleton is not None else len(message.joints or ()),
             seen=now,
-            generation=(old.generation + 1) if old else 0,
+            generation=generation,
             segmenting=segmenting,
             epoch=message.epoch,
             step=recognizer.clock.step,
@@ -325,6 +333,7 @@ class StreamTable:
         s.epoch = epoch
         s.last_received = None
         s.seen = now
+        s.ending = False  # an end said of the run before: its poses still go, this run's too
 
     def _parsed(self, asf: str, source: str) -> Skeleton:
         """``asf`` parsed, named ``source``: parsed once for the last :data:`SKELETONS_KEPT` texts
@@ -402,6 +411,23 @@ class StreamTable:
         self._queued += 1
         self._waiting.setdefault(message.stream, s)
 
+    def end(self, message: EndMessage) -> list[Emitted]:
+        """The source ended the run: once the stream's queued poses are recognised (now, or in the
+        :meth:`tick` that takes its last), its last detections and the stream forgotten
+        (``ended``). An end of a stream not held, or of another run than the one taken, changes
+        nothing (:class:`Refused` ``stale_epoch`` for a run replaced already)."""
+        s = self.streams.get(message.stream)
+        if s is None:
+            return []
+        if message.epoch is not None and message.epoch != s.epoch:
+            if message.epoch in s.retired:
+                raise Refused("stale_epoch", f"the end of run {message.epoch!r}, replaced already")
+            return []
+        if s.queue or s.filling:
+            s.ending = True
+            return []
+        return self._remove(message.stream, "ended")
+
     # ------------------------------------------------------------------------------ recognition
 
     def tick(self) -> tuple[list[Emitted], list[tuple[str, str, str]]]:
@@ -473,6 +499,10 @@ class StreamTable:
                 s = self.streams[name]
                 if s.segmenting is not None and name not in taken:
                     out += [self._boundary(name, s, *cut) for cut in s.segmenting.push(frame, values)]
+        for name, _, _ in frames:
+            s = self.streams[name]
+            if s.ending and not s.queue and not s.filling:
+                out += self._remove(name, "ended")
         return out, refused
 
     def _follows(self, name: str, s: _Stream, pose: PoseMessage) -> list[Emitted]:
@@ -595,7 +625,7 @@ class StreamTable:
     def _restart(self, name: str, s: _Stream, epoch: str | None) -> list[Emitted]:
         """End the stream's motion at a long gap or a new run (``epoch``): its detections so far,
         then a fresh recogniser."""
-        s.generation += 1
+        s.generation = next(self._generations)
         detections = self.bank.restart(name, session=self._session(s.generation, epoch))
         out = (
             self._progress_end(name, s)

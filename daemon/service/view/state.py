@@ -32,6 +32,7 @@ from protocols.messages import (
     DEFAULT_MAX_BYTES,
     STREAM_ID,
     DetectionMessage,
+    EndMessage,
     PoseMessage,
     ProgressMessage,
     SkeletonMessage,
@@ -241,6 +242,8 @@ class ViewState:
             self.skeletons.pop(stream, None)
             return []
         message = decode(incoming.payload, self.max_bytes)
+        if word == "pose" and isinstance(message, EndMessage) and message.stream == stream:
+            return []  # a run's end: the stream's last pose is shown until it goes quiet
         wanted = {
             "skeleton": SkeletonMessage,
             "pose": PoseMessage,
