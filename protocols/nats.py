@@ -126,6 +126,30 @@ def partition_of(stream: str, partitions: int) -> int:
     return h % partitions
 
 
+ERRORS_EVERY_S = 10.0
+"""The most often a worker logs the NATS client's errors (a server away gives one every 0.25 s)."""
+
+
+class _Errors:
+    """The NATS client's errors: the last one, and a throttled log of them."""
+
+    def __init__(self) -> None:
+        self.last: str | None = None
+        self._logged = 0.0
+        self._quiet = 0
+
+    def note(self, error: str, *, logging: bool) -> None:
+        self.last = error
+        if not logging:
+            return
+        now = time.monotonic()
+        if self._logged and now - self._logged < ERRORS_EVERY_S:
+            self._quiet += 1
+            return
+        log.warning("nats error", extra={"fields": {"error": error, "not_logged_since": self._quiet}})
+        self._logged, self._quiet = now, 0
+
+
 def buffer_subject(partition: int) -> str:
     return f"mocap.p.{partition}.>"
 
@@ -179,6 +203,7 @@ class NatsTransport:
         """Messages on a delivery subject that no buffer delivered (published there directly)."""
         self._foreign_logged = 0.0
         self._reader: Reader | None = None
+        self._errors = _Errors()
 
     # ------------------------------------------------------------------------------ the connection
 
@@ -204,6 +229,8 @@ class NatsTransport:
             with contextlib.suppress(NatsError, TimeoutError, OSError):
                 await nc.close()
             why = "no answer in time" if isinstance(e, TimeoutError) else str(e) or type(e).__name__
+            if self._errors.last is not None:
+                why += f" (the last error: {self._errors.last})"
             raise StartupError("cluster.nats", f"cannot connect to NATS at {url}: {why}") from None
         self._nc = nc
         self._connected = True
@@ -267,7 +294,10 @@ class NatsTransport:
             self._take(p)
 
     async def _error(self, e: Exception) -> None:
-        log.warning("nats error", extra={"fields": {"error": f"{type(e).__name__}: {e}"}})
+        """nats-py's errors: before the first connection, kept for the startup error's one line
+        (the client retries every quarter second); after it, logged at most one every
+        :data:`ERRORS_EVERY_S`, with how many were not."""
+        self._errors.note(f"{type(e).__name__}: {e}"[:300], logging=self._nc is not None)
 
     async def _ensure_streams(self) -> None:
         """The partitions' buffers and the detections' stream, made or brought to these settings."""

@@ -28,6 +28,8 @@ def test_an_unreachable_bus_or_coordinator_is_named(tmp_path: Path) -> None:
         "run", "--cluster", f"nats://{nowhere}", "--coordinator", f"etcd://{nowhere}", "--metrics-port", "0"
     )
     assert last_line(result).startswith(f"mocapd: cluster.nats: cannot connect to NATS at nats://{nowhere}")
+    assert "ConnectionRefusedError" in last_line(result)  # why, in that one line
+    assert '"nats error"' not in result.stderr  # not a dozen retries' warnings before it
     server = NatsServer(tmp_path).start()
     try:
         result = mocapd(
