@@ -1372,17 +1372,28 @@ class NatsWire:
         return self.call(count())
 
     def inboxes(self) -> list[bytes]:
-        """The subjects the workers' consumers deliver the partitions' buffers on."""
+        """The subjects the workers' consumers deliver the partitions' buffers on, once every
+        buffer has one consumer: while the workers share the partitions out at startup, a worker
+        deletes the consumers of those it gave up, and a message sent to one of those would
+        reach no worker (it would be counted as reaching the daemon, and never be)."""
 
         async def find() -> list[bytes]:
-            found = []
-            for info in await self.js.streams_info():
-                name = info.config.name or ""
-                if name.startswith("MOCAPD_BUF_"):
-                    for consumer in await self.js.consumers_info(name):
-                        if consumer.config.deliver_subject:
-                            found.append(consumer.config.deliver_subject.encode())
-            return sorted(found)
+            deadline = time.monotonic() + 15
+            while True:
+                found: list[list[bytes]] = []
+                for info in await self.js.streams_info():
+                    name = info.config.name or ""
+                    if name.startswith("MOCAPD_BUF_"):
+                        found.append(
+                            [
+                                c.config.deliver_subject.encode()
+                                for c in await self.js.consumers_info(name)
+                                if c.config.deliver_subject
+                            ]
+                        )
+                if all(len(f) == 1 for f in found) or time.monotonic() > deadline:
+                    return sorted(s for f in found for s in f)
+                await asyncio.sleep(0.05)
 
         return self.call(find())
 

@@ -309,6 +309,9 @@ class Broker(ServerProcess):
         return self
 
 
+PORT_RETRIES = 3
+
+
 class Daemon:
     """``mocapd run`` as a real process on free ports: ZeroMQ poses/detections endpoints, the metrics
     port, the MQTT broker ``mqtt`` if given, ``workers`` recognition processes (default one: the
@@ -351,6 +354,7 @@ class Daemon:
         self.stdout_path, self.stderr_path = where / "daemon.out", where / "daemon.err"
         self.env = {**os.environ, **(env or {})}
         self.process: subprocess.Popen[bytes] | None = None
+        self._retries = 0
 
     def start(self, wait: bool = True, *, group: bool = False, command: Sequence[str] = ()) -> Daemon:
         """Start it (``wait``: until ``/healthz`` says ok); ``group``: as the leader of a process
@@ -367,8 +371,24 @@ class Daemon:
             )
         if wait:
             wait_for(lambda: self.health()[0] == 200 or not self.alive, 30, "the daemon's /healthz")
+            if not self.alive and self._ports_taken():
+                return self.start(wait, group=group, command=command)
             assert self.alive, self.stderr_path.read_text()
         return self
+
+    def _ports_taken(self) -> bool:
+        """Whether the daemon just stopped because a port :func:`free_port` gave was taken before
+        it bound it (another process's outgoing connection may get it as its own port): if so, the
+        configuration gets fresh ports, at most :data:`PORT_RETRIES` times."""
+        if self._retries >= PORT_RETRIES or "address already in use" not in self.stderr_path.read_text():
+            return False
+        self._retries += 1
+        sections = json.loads(self.config.read_text(encoding="utf-8"))
+        self.poses = sections["zmq"]["poses"] = f"tcp://127.0.0.1:{free_port()}"
+        self.detections = sections["zmq"]["detections"] = f"tcp://127.0.0.1:{free_port()}"
+        self.metrics_port = sections["metrics"]["port"] = free_port()
+        self.config.write_text(json.dumps(sections), encoding="utf-8")
+        return True
 
     @property
     def alive(self) -> bool:
