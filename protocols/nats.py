@@ -539,9 +539,10 @@ class NatsTransport:
             await given_up.wait()
         finally:
             await reader.unsubscribe(sid)
-            if consumer is not None:
-                with contextlib.suppress(NatsError, TimeoutError, OSError):
-                    await js.delete_consumer(buffer, consumer.name)
+            # by its name: given up while the server made it, the consumer exists without an answer
+            # here, and would push to an inbox nobody reads until its inactivity threshold
+            with contextlib.suppress(NatsError, TimeoutError, OSError):
+                await js.delete_consumer(buffer, name if consumer is None else consumer.name)
 
     def _note_foreign(self, p: int, d: Delivery) -> None:
         """Log a message published on a delivery subject: the first, then at most one every 10 s

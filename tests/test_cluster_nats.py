@@ -268,7 +268,9 @@ def test_a_detection_whose_store_times_out_is_not_published_twice(tmp_path: Path
                 server.process.send_signal(signal.SIGSTOP)
                 try:
                     again = asyncio.create_task(second.publish(detection), name="the recomputed one")
-                    await asyncio.sleep(PUBLISH_TIMEOUT_S + 0.5)  # its store timed out
+                    deadline = time.monotonic() + 10 * PUBLISH_TIMEOUT_S
+                    while not second.publish_errors and time.monotonic() < deadline:
+                        await asyncio.sleep(0.05)  # until its store has timed out
                 finally:
                     server.process.send_signal(signal.SIGCONT)
                 await asyncio.wait_for(again, STORE_FOR_S)
@@ -280,4 +282,36 @@ def test_a_detection_whose_store_times_out_is_not_published_twice(tmp_path: Path
         assert asyncio.run(main()) == [b"d1"]
     finally:
         server.process.send_signal(signal.SIGCONT)
+        server.stop()
+
+
+def test_partitions_given_up_while_their_consumers_are_made_leave_no_consumer(tmp_path: Path) -> None:
+    """A worker that takes partitions and gives them up again at once (members sharing them out
+    at startup) leaves no consumer on the server, even one the server made while the worker had
+    stopped waiting for it: such a consumer pushed to an inbox nobody read, for 30 s."""
+    server = NatsServer(tmp_path).start()
+    try:
+
+        async def main() -> list[int]:
+            settings = ClusterConfig(nats=server.url, partitions=partitions())
+            transport = NatsTransport(settings, instance="w", source=True, sink=False)
+            nc = await nats.connect(server.url)
+            js = nc.jetstream()
+            left = []
+            async with transport:
+                everything = frozenset(range(partitions()))
+                for delay in (0.0, 0.002, 0.005, 0.01, 0.02, 0.05):
+                    await transport.own(everything)
+                    await asyncio.sleep(delay)
+                    await transport.own(frozenset())
+                    await asyncio.sleep(0.5)
+                    consumers = 0
+                    for p in range(partitions()):
+                        consumers += len(await js.consumers_info(f"MOCAPD_BUF_{p}"))
+                    left.append(consumers)
+            await nc.close()
+            return left
+
+        assert asyncio.run(main()) == [0] * 6
+    finally:
         server.stop()
