@@ -149,8 +149,6 @@ class _Stream:
     jump: tuple[int, float] | None = None
     """The last pose refused as ``implausible`` (seq, when), if none was taken since: a pose that
     follows it plausibly confirms the jump."""
-    ending: bool = False
-    """The source said the run ended (an end message): the stream goes once its queue is empty."""
     fed_epoch: str | None = None
     """The epoch of the last pose fed to the recogniser."""
     step: int = 1
@@ -217,6 +215,8 @@ class StreamTable:
         # a stream's runs in this table, numbered across streams: a stream forgotten (ended, idle)
         # and taken again is not numbered from 0 again, so its detections' ids stay unique
         self._generations = itertools.count()
+        self._ending: set[str] = set()
+        """Streams whose source said the run ended (an end message): each goes once its queue is empty."""
         self.queue_frames = service.queue_frames
         self.max_streams = service.max_streams
         self.bridge_s = service.bridge_s
@@ -333,7 +333,7 @@ class StreamTable:
         s.epoch = epoch
         s.last_received = None
         s.seen = now
-        s.ending = False  # an end said of the run before: its poses still go, this run's too
+        self._ending.discard(s.announced.stream)  # an end of the run before: this run's poses go on
 
     def _parsed(self, asf: str, source: str) -> Skeleton:
         """``asf`` parsed, named ``source``: parsed once for the last :data:`SKELETONS_KEPT` texts
@@ -424,7 +424,7 @@ class StreamTable:
                 raise Refused("stale_epoch", f"the end of run {message.epoch!r}, replaced already")
             return []
         if s.queue or s.filling:
-            s.ending = True
+            self._ending.add(message.stream)
             return []
         return self._remove(message.stream, "ended")
 
@@ -499,10 +499,8 @@ class StreamTable:
                 s = self.streams[name]
                 if s.segmenting is not None and name not in taken:
                     out += [self._boundary(name, s, *cut) for cut in s.segmenting.push(frame, values)]
-        for name, _, _ in frames:
-            s = self.streams[name]
-            if s.ending and not s.queue and not s.filling:
-                out += self._remove(name, "ended")
+        for name in [n for n in self._ending if not self.streams[n].queue and not self.streams[n].filling]:
+            out += self._remove(name, "ended")
         return out, refused
 
     def _follows(self, name: str, s: _Stream, pose: PoseMessage) -> list[Emitted]:
@@ -574,6 +572,7 @@ class StreamTable:
 
     def _remove(self, name: str, reason: str | None) -> list[Emitted]:
         s = self.streams.pop(name)
+        self._ending.discard(name)
         self._queued -= len(s.queue) + len(s.filling)
         self._waiting.pop(name, None)
         if reason is not None:
