@@ -26,11 +26,12 @@ import collections
 import contextlib
 import json
 import logging
-import time
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
 from types import TracebackType
 from urllib.parse import unquote, urlsplit
+
+from protocols.transport import Throttle
 
 log = logging.getLogger("mocapd.cluster")
 
@@ -40,7 +41,6 @@ RECONNECT_MIN_S = 0.25
 RECONNECT_MAX_S = 2.0
 CONNECT_S = 2.0
 """How long a connection attempt (TCP, INFO, CONNECT, the first PONG) may take."""
-LOG_EVERY_S = 10.0
 YIELD_EVERY = 64
 """Lines read before the reader lets the other tasks run: a stream reader returns what it has
 buffered without suspending, so a busy connection would otherwise hold the loop (and with it the
@@ -109,8 +109,7 @@ class Reader:
         self.failures = 0
         """Deliveries whose handler raised (each cost that message only)."""
         self.reconnects = 0
-        self._logged = 0.0
-        self._quiet = 0
+        self._failure_log = Throttle()
 
     async def start(self, timeout: float = CONNECT_S) -> Reader:
         """Connect (OSError, TimeoutError or :class:`ProtocolError` if the server cannot be reached
@@ -299,11 +298,9 @@ class Reader:
             await entry[1](delivery)
         except Exception as e:  # a defect of mocapd's: it costs this one message, never the reader
             self.failures += 1
-            now = time.monotonic()
-            if now - self._logged < LOG_EVERY_S and self._logged:
-                self._quiet += 1
+            quiet = self._failure_log.due()
+            if quiet is None:
                 return
-            self._logged, quiet, self._quiet = now, self._quiet, 0
             log.warning(
                 "delivery not handled",
                 extra={"fields": {"error": f"{type(e).__name__}: {e}"[:200], "since_last": quiet}},

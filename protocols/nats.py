@@ -58,7 +58,7 @@ from nats.js.api import (
 from nats.js.errors import Error as JetStreamError
 
 from protocols.deliveries import Delivery, ProtocolError, Reader
-from protocols.transport import Incoming, Outgoing, StartupError
+from protocols.transport import Incoming, Outgoing, StartupError, Throttle
 
 if TYPE_CHECKING:
     from nats.js.client import JetStreamContext
@@ -126,30 +126,6 @@ def partition_of(stream: str, partitions: int) -> int:
     return h % partitions
 
 
-ERRORS_EVERY_S = 10.0
-"""The most often a worker logs the NATS client's errors (a server away gives one every 0.25 s)."""
-
-
-class _Errors:
-    """The NATS client's errors: the last one, and a throttled log of them."""
-
-    def __init__(self) -> None:
-        self.last: str | None = None
-        self._logged = 0.0
-        self._quiet = 0
-
-    def note(self, error: str, *, logging: bool) -> None:
-        self.last = error
-        if not logging:
-            return
-        now = time.monotonic()
-        if self._logged and now - self._logged < ERRORS_EVERY_S:
-            self._quiet += 1
-            return
-        log.warning("nats error", extra={"fields": {"error": error, "not_logged_since": self._quiet}})
-        self._logged, self._quiet = now, 0
-
-
 def buffer_subject(partition: int) -> str:
     return f"mocap.p.{partition}.>"
 
@@ -201,9 +177,10 @@ class NatsTransport:
         """Buffered messages a consumer skipped (none on a healthy server)."""
         self.foreign = 0
         """Messages on a delivery subject that no buffer delivered (published there directly)."""
-        self._foreign_logged = 0.0
+        self._foreign_log = Throttle()
         self._reader: Reader | None = None
-        self._errors = _Errors()
+        self._last_error: str | None = None
+        self._error_log = Throttle()
 
     # ------------------------------------------------------------------------------ the connection
 
@@ -229,8 +206,8 @@ class NatsTransport:
             with contextlib.suppress(NatsError, TimeoutError, OSError):
                 await nc.close()
             why = "no answer in time" if isinstance(e, TimeoutError) else str(e) or type(e).__name__
-            if self._errors.last is not None:
-                why += f" (the last error: {self._errors.last})"
+            if self._last_error is not None:
+                why += f" (the last error: {self._last_error})"
             raise StartupError("cluster.nats", f"cannot connect to NATS at {url}: {why}") from None
         self._nc = nc
         self._connected = True
@@ -295,9 +272,11 @@ class NatsTransport:
 
     async def _error(self, e: Exception) -> None:
         """nats-py's errors: before the first connection, kept for the startup error's one line
-        (the client retries every quarter second); after it, logged at most one every
-        :data:`ERRORS_EVERY_S`, with how many were not."""
-        self._errors.note(f"{type(e).__name__}: {e}"[:300], logging=self._nc is not None)
+        (the client retries every quarter second); after it, logged at most one every 10 s, with
+        how many were not."""
+        self._last_error = f"{type(e).__name__}: {e}"[:300]
+        if self._nc is not None and (quiet := self._error_log.due()) is not None:
+            log.warning("nats error", extra={"fields": {"error": self._last_error, "since_last": quiet}})
 
     async def _ensure_streams(self) -> None:
         """The partitions' buffers and the detections' stream, made or brought to these settings."""
@@ -547,8 +526,7 @@ class NatsTransport:
     def _note_foreign(self, p: int, d: Delivery) -> None:
         """Log a message published on a delivery subject: the first, then at most one every 10 s
         with the count of those not logged."""
-        now = time.monotonic()
-        if self._foreign_logged and now - self._foreign_logged < 10.0:
+        if self._foreign_log.due() is None:
             return
         log.warning(
             "not a delivery",
@@ -560,7 +538,6 @@ class NatsTransport:
                 }
             },
         )
-        self._foreign_logged = now
 
     def _incoming(
         self, d: Delivery, streams: set[str], p: int, *, truncated: bool

@@ -17,12 +17,32 @@ so an unused transport's library is not.
 from __future__ import annotations
 
 import importlib
+import time
 from collections.abc import AsyncIterator
 from dataclasses import dataclass
 from types import TracebackType
 from typing import Any, Protocol
 
 from daemon.errors import MocapdError
+
+
+class Throttle:
+    """A log line that may go out at most once every ``every_s`` seconds: :meth:`due` says whether
+    one may now (the first always may) and how many were held back since the last."""
+
+    def __init__(self, every_s: float = 10.0) -> None:
+        self.every_s = every_s
+        self._last = 0.0
+        self._quiet = 0
+
+    def due(self) -> int | None:
+        """None: not now (counted as held back); else the lines held back since the last."""
+        now = time.monotonic()
+        if self._last and now - self._last < self.every_s:
+            self._quiet += 1
+            return None
+        self._last, quiet, self._quiet = now, self._quiet, 0
+        return quiet
 
 
 class StartupError(MocapdError):
