@@ -242,7 +242,7 @@ def candidates(library: Library, motion: Motion, counts: list[int]) -> None:
             continue
         matches = completions(cls.keyframes, library.rate, max_gap, codes)
         extent = window_extent(cls.keyframes, cls.hard.length, cls.slack, cls.extent)
-        made = keyframe_windows(cls.keyframes, extent, library.rate, max_gap, codes)
+        made = keyframe_windows(cls.keyframes, extent, library.rate, max_gap, matches)
         covered = np.zeros(len(codes), dtype=bool)
         for a, b, _, _ in made:
             covered[a : b + 1] = True

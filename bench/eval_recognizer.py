@@ -295,7 +295,7 @@ def why_missed(library: Library, s: Stream, seg: Segment, detections: Sequence[D
         return f"no match within tau (best {best:.3f} vs {cls.tau:.3f})"
     if cls.mode == GATED:
         assert cls.keyframes is not None
-        spans = class_windows(cls, library.rate, codes.tolist())
+        spans, _ = class_windows(cls, library.rate, codes.tolist())
         if not any(a <= m.start and m.end <= b for m, _ in mine for a, b in spans):
             return "no keyframe window around it"
     for d in detections:
@@ -307,12 +307,17 @@ def why_missed(library: Library, s: Stream, seg: Segment, detections: Sequence[D
     return "beaten by a match that was not published"
 
 
-def class_windows(cls: ClassTemplate, rate: float, codes: list[int]) -> list[tuple[int, int]]:
-    """The windows keyframe-first class ``cls`` opens over index-rate ``codes`` (first, last frame)."""
+def class_windows(
+    cls: ClassTemplate, rate: float, codes: list[int]
+) -> tuple[list[tuple[int, int]], list[tuple[int, int]]]:
+    """The windows keyframe-first class ``cls`` opens over index-rate ``codes`` (first, last frame),
+    and its keyframe matches there (:func:`completions`)."""
     assert cls.keyframes is not None
+    max_gap = RecognitionSettings().max_gap(rate)
+    found = completions(cls.keyframes, rate, max_gap, codes)
     extent = window_extent(cls.keyframes, cls.hard.length, cls.slack, cls.extent)
-    made = keyframe_windows(cls.keyframes, extent, rate, RecognitionSettings().max_gap(rate), codes)
-    return [(a, b) for a, b, _, _ in made]
+    made = keyframe_windows(cls.keyframes, extent, rate, max_gap, found)
+    return [(a, b) for a, b, _, _ in made], found
 
 
 def stream_wide(library: Library) -> Library:
@@ -347,9 +352,8 @@ def measure(library: Library, fold: Fold, results: Results, kind: str) -> None:
             if cls.mode != GATED:
                 continue
             assert cls.keyframes is not None
-            spans = class_windows(cls, library.rate, codes)
-            max_gap = RecognitionSettings().max_gap(library.rate)
-            completed = [j for _, j in completions(cls.keyframes, library.rate, max_gap, codes)]
+            spans, found = class_windows(cls, library.rate, codes)
+            completed = [j for _, j in found]
             inside_gate = np.zeros(len(codes), dtype=bool)
             for a, b in spans:
                 inside_gate[a : b + 1] = True

@@ -255,14 +255,13 @@ def keyframe_windows(
     extent: tuple[int, int],
     rate: float,
     max_gap: int,
-    codes: Sequence[int],
+    found: Sequence[tuple[int, int]],
 ) -> list[tuple[int, int, int, int]]:
     """The :func:`windows` a keyframe-first class with ``query`` and windows of ``extent`` (before,
-    after: :func:`window_extent`) opens over index-rate ``codes``, as the live recogniser opens them."""
+    after: :func:`window_extent`) opens over index-rate codes whose keyframe matches are ``found``
+    (their :func:`completions`), as the live recogniser opens them."""
     before, after = extent
-    return windows(
-        completions(query, rate, max_gap, codes), before, after, look_back(query, rate, max_gap, before)
-    )
+    return windows(found, before, after, look_back(query, rate, max_gap, before))
 
 
 _PLANS: dict[

@@ -690,7 +690,7 @@ def opening(
     query = trial.query
     found = completions(query, rate, max_gap, codes.tolist())
     extent = window_extent(query, trial.length, slack, trial.extent)
-    made = keyframe_windows(query, extent, rate, max_gap, codes.tolist())
+    made = keyframe_windows(query, extent, rate, max_gap, found)
     n = len(codes)
     covered = np.zeros(n, dtype=bool)
     for a, b, _, _ in made:
