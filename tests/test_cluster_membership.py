@@ -179,34 +179,85 @@ async def test_a_killed_member_is_gone_when_its_lease_expires_and_not_before(etc
         victim.wait(5)
 
 
+async def _follow_states(w: Membership, seen: list[frozenset[str]], states: list[str]) -> None:
+    """Record ``w``'s changes() into ``seen`` and, every millisecond, whether it is live, paused or
+    out into ``states`` (each state once per run of it)."""
+
+    async def changes() -> None:
+        async for members in w.changes():
+            seen.append(members)
+
+    async def poll() -> None:
+        while True:
+            state = "out" if w.out else "paused" if w.paused else "live"
+            if not states or states[-1] != state:
+                states.append(state)
+            await asyncio.sleep(0.001)
+
+    async with asyncio.TaskGroup() as tasks:
+        tasks.create_task(changes(), name="follow w's changes")
+        tasks.create_task(poll(), name="poll w's state")
+
+
 @pytest.mark.slow
-async def test_a_member_whose_keep_alives_go_unanswered_fences_itself_and_comes_back(etcd: Etcd) -> None:
-    """etcd frozen (SIGSTOP): the member drops itself from its members (owns nothing) two thirds of
-    a TTL after its last answered keep-alive, before the lease could expire; etcd thawed before the
-    TTL ran out: the lease was kept, the member is back."""
+async def test_a_member_whose_keep_alives_go_unanswered_pauses_and_goes_on_with_nothing_moved(
+    etcd: Etcd,
+) -> None:
+    """etcd frozen (SIGSTOP) until the member pauses, two thirds of a TTL after its last answered
+    keep-alive, then thawed before its lease could expire: the member was paused (it would publish
+    nothing) but never out, its members never changed (a worker keeps its partitions and their
+    state), and it is live again on the same lease."""
     assert etcd.process is not None
     async with Membership(etcd.url, "w") as w:
-        seen: list[tuple[float, frozenset[str]]] = []
-
-        async def follow() -> None:
-            async for members in w.changes():
-                seen.append((time.monotonic(), members))
-
-        follower = asyncio.create_task(follow(), name="follow w's changes")
-        await until(lambda: len(seen) == 1, 1, "the current set")
+        seen: list[frozenset[str]] = []
+        states: list[str] = []
+        follower = asyncio.create_task(_follow_states(w, seen, states), name="follow w")
+        await until(lambda: seen == [{"w"}] and states == ["live"], 1, "the current set")
+        lease = w._lease.id
         etcd.process.send_signal(signal.SIGSTOP)
         frozen = time.monotonic()
         try:
-            await until(lambda: w.problem is not None, w.lease_ttl, "the fence")
-            fenced = time.monotonic() - frozen
-            assert w.members == frozenset() and "keep-alive" in (w.problem or "")
-            await until(lambda: len(seen) == 2, 1, "changes() to yield the fence")
-            assert seen[1][1] == frozenset()
-            assert fenced < 2 * w.interval + 0.05  # from the last answer (before frozen): ≤ 2/3 TTL
+            await until(lambda: w.problem is not None, w.lease_ttl, "the pause")
+            paused = time.monotonic() - frozen
+            assert w.paused and not w.out and "keep-alive" in (w.problem or "")
+            assert w.members == {"w"}
+            assert paused < 2 * w.interval + 0.05  # from the last answer (before frozen): ≤ 2/3 TTL
         finally:
             etcd.process.send_signal(signal.SIGCONT)
-        await until(lambda: w.problem is None, w.lease_ttl + 1, "w to be back")
-        await until(lambda: seen[-1][1] == {"w"}, 1, "changes() to yield w back")
+        await until(lambda: w.problem is None, w.lease_ttl, "w to go on")
+        await asyncio.sleep(0.05)
+        assert states == ["live", "paused", "live"], states
+        assert seen == [{"w"}]  # nothing moved
+        assert w._lease.id == lease
+    follower.cancel()
+
+
+@pytest.mark.slow
+async def test_a_member_unanswered_for_its_whole_lease_is_out_and_joins_again(etcd: Etcd) -> None:
+    """etcd frozen for longer than a TTL: the member pauses, then is out (it owns nothing: another
+    worker may own its partitions now) from a TTL after its last answered keep-alive, and when etcd
+    answers again it owns again: with a new lease, or with its old one when etcd (frozen too) never
+    expired it (a keep-alive sent before the TTL ran out answered alive: nobody saw it go)."""
+    assert etcd.process is not None
+    async with Membership(etcd.url, "w") as w:
+        seen: list[frozenset[str]] = []
+        states: list[str] = []
+        follower = asyncio.create_task(_follow_states(w, seen, states), name="follow w")
+        await until(lambda: seen == [{"w"}], 1, "the current set")
+        etcd.process.send_signal(signal.SIGSTOP)
+        frozen = time.monotonic()
+        try:
+            await until(lambda: w.out, w.lease_ttl + 0.5, "w to be out")
+            out = time.monotonic() - frozen
+            assert w.members == frozenset() and w.problem is not None
+            await until(lambda: seen[-1] == frozenset(), 1, "changes() to yield w out")
+            assert 2 * w.interval <= out < w.lease_ttl + 0.05, out
+        finally:
+            etcd.process.send_signal(signal.SIGCONT)
+        await until(lambda: w.problem is None, 3 * w.lease_ttl, "w to join again")
+        await until(lambda: seen[-1] == {"w"}, 1, "changes() to yield w back")
+        await asyncio.sleep(0.05)
+        assert states[:3] == ["live", "paused", "out"] and states[-1] == "live", states
     follower.cancel()
 
 

@@ -1,18 +1,23 @@
-"""A cluster worker outlives a restart of its NATS server (real processes on loopback): the server's
-memory streams and consumers are gone with it; the worker reconnects, makes them again and goes on
-consuming its partitions, so a recording replayed after the restart gives ``mocapd detect``'s
-detections."""
+"""A cluster worker outlives what its servers do (real processes on loopback): a restart of its NATS
+server (the server's memory streams and consumers are gone with it; the worker reconnects, makes them
+again and goes on consuming its partitions), and an etcd that stops answering for less than a lease
+(the worker pauses, keeps its partitions and every stream's state, and goes on). Either way a
+recording replayed through it gives ``mocapd detect``'s detections."""
 
 from __future__ import annotations
 
 import json
 import os
+import signal
 import subprocess
+import time
+import urllib.error
+import urllib.request
 from pathlib import Path
 
 import pytest
 
-from bench.processes import free_port
+from bench.processes import free_port, scrape
 from daemon.library import default_library_path, load_library
 from daemon.recognizer import detect
 from daemon.recordings import read_recording
@@ -25,19 +30,13 @@ REPO = Path(__file__).resolve().parents[1]
 TRIAL = (DATA / "cmu" / "13" / "13.asf", DATA / "cmu" / "13" / "13_30.amc.gz")
 
 
-@pytest.mark.slow
-def test_a_worker_goes_on_after_the_nats_server_restarts(tmp_path: Path) -> None:
-    (tmp_path / "nats").mkdir()
-    (tmp_path / "etcd").mkdir()
-    server = NatsServer(tmp_path / "nats").start()
-    etcd = Etcd(tmp_path / "etcd").start()
+def _worker(tmp_path: Path, server: NatsServer, etcd: Etcd, metrics_port: int) -> subprocess.Popen[bytes]:
     config = tmp_path / "worker.yaml"
     config.write_text(
-        json.dumps({"service": {"idle_s": 2}, "metrics": {"port": free_port()}}), encoding="utf-8"
+        json.dumps({"service": {"idle_s": 2}, "metrics": {"port": metrics_port}}), encoding="utf-8"
     )
-    err = tmp_path / "worker.err"
-    with err.open("wb") as log:
-        worker = subprocess.Popen(
+    with (tmp_path / "worker.err").open("wb") as log:
+        return subprocess.Popen(
             [
                 str(MOCAPD_SCRIPT),
                 "--config",
@@ -52,6 +51,26 @@ def test_a_worker_goes_on_after_the_nats_server_restarts(tmp_path: Path) -> None
             stderr=log,
             env={**os.environ, "PYTHONPATH": str(REPO)},
         )
+
+
+def _expected() -> list[dict[str, object]]:
+    """``mocapd detect``'s detections of :data:`TRIAL` as a cluster worker sees it replayed: the
+    replay numbers its poses from the AMC's first frame, 1; cluster mode begins the motion at the
+    first multiple of the decimation step, 4 (docs/cluster.md, rule 2)."""
+    m = read_recording(*TRIAL)
+    aligned = Motion(m.source, m.skeleton, m.header, m.frames[3:], m.channels[3:])
+    assert aligned.frames[0] == 4
+    return [d.as_json() for d in detect(aligned, load_library(default_library_path()), 120.0)]
+
+
+@pytest.mark.slow
+def test_a_worker_goes_on_after_the_nats_server_restarts(tmp_path: Path) -> None:
+    (tmp_path / "nats").mkdir()
+    (tmp_path / "etcd").mkdir()
+    server = NatsServer(tmp_path / "nats").start()
+    etcd = Etcd(tmp_path / "etcd").start()
+    worker = _worker(tmp_path, server, etcd, free_port())
+    err = tmp_path / "worker.err"
     collector = None
     try:
         wait_for(lambda: '"partition taken"' in err.read_text(), 30, "the worker's partitions")
@@ -63,12 +82,7 @@ def test_a_worker_goes_on_after_the_nats_server_restarts(tmp_path: Path) -> None
             "replay", "--asf", TRIAL[0], "--amc", TRIAL[1], "--to", server.mqtt_url, "--speed", "4"
         )
         assert result.returncode == 0, result.stderr
-        # the replay numbers its poses from the AMC's first frame, 1; cluster mode begins the motion
-        # at the first multiple of the decimation step, 4 (docs/cluster.md, rule 2)
-        m = read_recording(*TRIAL)
-        aligned = Motion(m.source, m.skeleton, m.header, m.frames[3:], m.channels[3:])
-        assert aligned.frames[0] == 4
-        want = [d.as_json() for d in detect(aligned, load_library(default_library_path()), 120.0)]
+        want = _expected()
         # the stream goes idle (2 s) and is flushed, as detect ends the recording
         wait_for(lambda: len(collector.detections()) >= len(want), 20, "the detections")
         assert detection_keys(collector.detections()) == detection_keys(want)
@@ -77,5 +91,76 @@ def test_a_worker_goes_on_after_the_nats_server_restarts(tmp_path: Path) -> None
             collector.close()
         worker.kill()
         worker.wait(10)
+        etcd.stop()
+        server.stop()
+
+
+def _health(port: int) -> int:
+    try:
+        with urllib.request.urlopen(f"http://127.0.0.1:{port}/healthz", timeout=2) as r:
+            return int(r.status)
+    except urllib.error.HTTPError as e:
+        return int(e.code)
+    except OSError:
+        return 0
+
+
+@pytest.mark.slow
+def test_a_worker_paused_by_an_etcd_that_does_not_answer_keeps_its_streams(tmp_path: Path) -> None:
+    """etcd frozen (SIGSTOP) mid-recording until the worker says it has a problem (two thirds of its
+    lease after its last answered keep-alive), then thawed: the worker paused (published nothing)
+    but gave up no partition and no stream, re-read no buffer, and its detections are ``mocapd
+    detect``'s. Before issue 34 it fenced itself by dropping every partition and re-reading every
+    buffer, and the stream's history read again began mid-motion."""
+    (tmp_path / "nats").mkdir()
+    (tmp_path / "etcd").mkdir()
+    server = NatsServer(tmp_path / "nats").start()
+    etcd = Etcd(tmp_path / "etcd").start()
+    assert etcd.process is not None
+    port = free_port()
+    worker = _worker(tmp_path, server, etcd, port)
+    err = tmp_path / "worker.err"
+    collector = None
+    replay = None
+    try:
+        wait_for(lambda: err.read_text().count('"partition taken"') == 16, 30, "the worker's partitions")
+        collector = MqttCollector(server.mqtt_url, ["mocap/+/detections"], client_id="pause-collector")
+        source = ["--asf", str(TRIAL[0]), "--amc", str(TRIAL[1])]
+        replay = subprocess.Popen(
+            [str(MOCAPD_SCRIPT), "replay", *source, "--to", server.mqtt_url, "--speed", "2"],
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.PIPE,
+            env={**os.environ, "PYTHONPATH": str(REPO)},
+        )
+        wait_for(lambda: scrape(port).get("mocapd_frames_in_total", 0) > 600, 30, "the recording under way")
+        before = scrape(port)
+        etcd.process.send_signal(signal.SIGSTOP)
+        try:
+            wait_for(lambda: _health(port) == 503, 5, "the worker to pause")
+            paused = time.monotonic()
+        finally:
+            etcd.process.send_signal(signal.SIGCONT)
+        wait_for(lambda: _health(port) == 200, 5, "the worker to go on")
+        assert time.monotonic() - paused < 2.0
+        _, stderr = replay.communicate(timeout=60)
+        assert replay.returncode == 0, stderr
+        want = _expected()
+        wait_for(lambda: len(collector.detections()) >= len(want), 20, "the detections")
+        after = scrape(port)
+        assert detection_keys(collector.detections()) == detection_keys(want)
+        for series in (
+            'mocapd_stream_events_total{event="handed_over"}',
+            "mocapd_cluster_replayed_poses_total",
+            "mocapd_cluster_takeovers_total",
+        ):
+            assert after.get(series, 0) == before.get(series, 0), series
+        assert err.read_text().count('"partition taken"') == 16
+    finally:
+        for p in (replay, worker):
+            if p is not None and p.poll() is None:
+                p.kill()
+                p.wait(10)
+        if collector is not None:
+            collector.close()
         etcd.stop()
         server.stop()

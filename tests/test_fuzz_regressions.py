@@ -184,11 +184,14 @@ def test_a_worker_fenced_while_a_keep_alive_was_answered_late_owns_again(etcd: E
     answers 0.3 s late): the member was fenced and, the answer come, live again, but its changes
     never said so (it notified only when the problem differed from what it was when the keep-alive
     was sent, and time alone had changed it meanwhile). The worker kept its lease alive and owned
-    nothing for the rest of the run: 7 of 16 partitions without an owner. Now it owns again."""
+    nothing for the rest of the run: 7 of 16 partitions without an owner. Now it owns again (and
+    since issue 34 the fence is a pause that keeps its partitions: a late answer is no longer
+    guaranteed to make it out, so only being paused is asserted)."""
 
-    async def scenario() -> list[frozenset[str]]:
+    async def scenario() -> tuple[list[frozenset[str]], set[str]]:
         proxy = await DelayProxy(int(etcd.url.rsplit(":", 1)[1])).start()
         seen: list[frozenset[str]] = []
+        states: set[str] = set()
         try:
             async with Membership(f"etcd://127.0.0.1:{proxy.port}", "w1", lease_s=2.0) as m:
 
@@ -196,7 +199,13 @@ def test_a_worker_fenced_while_a_keep_alive_was_answered_late_owns_again(etcd: E
                     async for members in m.changes():
                         seen.append(members)
 
+                async def poll() -> None:
+                    while True:
+                        states.add("out" if m.out else "paused" if m.paused else "live")
+                        await asyncio.sleep(0.001)
+
                 follower = asyncio.create_task(follow())
+                poller = asyncio.create_task(poll())
                 await asyncio.sleep(0.5)
                 proxy.delay = 0.3
                 fence = m._fence_at
@@ -208,12 +217,13 @@ def test_a_worker_fenced_while_a_keep_alive_was_answered_late_owns_again(etcd: E
                 await asyncio.sleep(2.0)
                 assert m.problem is None, m.problem  # live all along at etcd, and here again
                 follower.cancel()
+                poller.cancel()
         finally:
             await proxy.close()
-        return seen
+        return seen, states
 
-    seen = asyncio.run(scenario())
-    assert frozenset({"w1"}) in seen and frozenset() in seen, seen  # fenced, as it should be
+    seen, states = asyncio.run(scenario())
+    assert "paused" in states, states  # fenced (publishing nothing), as it should be
     assert seen[-1] == frozenset({"w1"}), seen  # and live again (before: fenced for good)
 
 

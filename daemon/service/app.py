@@ -354,8 +354,11 @@ class Service:
             if paced and self.table.queued >= limit:
                 # a replayed buffer arrives faster than recognition: wait rather than drop (no stream
                 # can queue more than ``limit`` poses, each tick takes one of every stream)
-                self._room.clear()
-                await self._room.wait()
+                while self.table.queued >= limit:  # also woken by streams forgotten (handed over)
+                    self._room.clear()
+                    with contextlib.suppress(TimeoutError):
+                        async with asyncio.timeout(CATCH_UP_POLL_S):
+                            await self._room.wait()
             elif n % YIELD_EVERY == 0:
                 await asyncio.sleep(0)
 
@@ -369,8 +372,10 @@ class Service:
             self._work.clear()
             deadline = time.perf_counter() + budget
             while self.table.queued:
-                while self.cluster is not None and self.cluster.transport.catching_up:
-                    # a partition just taken: read its buffer first, so that it is live sooner
+                c = self.cluster
+                while c is not None and (c.transport.catching_up or c.holding):
+                    # a partition just taken: read its buffer first, so that it is live sooner; or
+                    # the membership paused (docs/cluster.md): keep every state, publish nothing
                     await asyncio.sleep(CATCH_UP_POLL_S)
                 started = time.perf_counter()
                 emitted, refused = self.table.tick()
@@ -421,6 +426,8 @@ class Service:
             beats += 1
             if self.remind and beats % STATUS_EVERY_S == 0:
                 await self._send(reminder(self._status("online")))
+            if self.cluster is not None and self.cluster.holding:
+                continue  # idle streams go once the membership is sound again (or are handed over)
             now, live = time.monotonic(), dict(self.table.streams)
             last = self.table.evict_idle(now, self.config.service.idle_s)
             for name, s in live.items():

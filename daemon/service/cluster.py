@@ -37,6 +37,8 @@ REPORT_S = 1.0
 SKELETON_PERIOD_S = 1.0
 """How often publishers announce their skeletons at least (``protocols/README.md``)."""
 MARGIN_S = 1.0
+SETTLE_S = 0.25
+"""Partitions gained are taken once the live members have held still this long."""
 
 
 def reach_seconds(library: Library, config: Any) -> float:
@@ -112,36 +114,58 @@ class Cluster:
             return "left the cluster"
         return None if m is None else m.problem
 
+    @property
+    def holding(self) -> bool:
+        """True while this worker must publish nothing: its membership has a problem (paused: its
+        partitions and their state are kept; or out: it owns nothing)."""
+        return self.problem is not None
+
     async def follow(self, table: StreamTable) -> None:
-        """Own what the ring gives this member among the live members, at every change."""
+        """Own what the ring gives this member among the live members, at every change: partitions
+        lost are given up at once, partitions gained are taken once the members have held still for
+        :data:`SETTLE_S` (a member that goes and comes back within it moves nothing, and a joiner
+        takes its partitions after their old owners have seen it and given them up)."""
         m = self._membership
         assert m is not None
         async for members in m.changes():
             if self._left:
                 return
             mine = owned(self.member, members, self.settings.partitions)
-            before = self.transport.owned
-            gained = mine - before
-            if self._assigned:
-                self.takeovers += len(gained)
-            self._assigned = True
-            self.members = members
-            self.changes += 1
-            lost = await self.transport.own(mine)
-            for stream in lost:
-                table.forget(stream)
-            self.log.info(
-                "partitions",
-                extra={
-                    "fields": {
-                        "members": sorted(members),
-                        "owned": sorted(mine),
-                        "gained": sorted(gained),
-                        "lost": sorted(before - mine),
-                        "problem": m.problem,
-                    }
-                },
-            )
+            if mine - self.transport.owned:
+                keep = mine & self.transport.owned
+                if keep != self.transport.owned:
+                    await self._own(keep, members, table)
+                await asyncio.sleep(SETTLE_S)
+                if self._left:
+                    return
+                members = m.members
+                mine = owned(self.member, members, self.settings.partitions)
+            await self._own(mine, members, table)
+
+    async def _own(self, mine: frozenset[int], members: frozenset[str], table: StreamTable) -> None:
+        before = self.transport.owned
+        if mine == before and members == self.members:
+            return
+        gained = mine - before
+        if self._assigned:
+            self.takeovers += len(gained)
+        self._assigned = True
+        self.members = members
+        self.changes += 1
+        for stream in await self.transport.own(mine):
+            table.forget(stream)
+        self.log.info(
+            "partitions",
+            extra={
+                "fields": {
+                    "members": sorted(members),
+                    "owned": sorted(mine),
+                    "gained": sorted(gained),
+                    "lost": sorted(before - mine),
+                    "problem": self.problem,
+                }
+            },
+        )
 
     async def report(self, table: StreamTable, lag: Any) -> None:
         """This worker's status in etcd about once a second: partitions, streams per partition,

@@ -14,19 +14,28 @@ with its default Raft timing (heartbeat 100 ms, election timeout 1000 ms; ``depl
 A ``lease_s`` of 2.0 asks for 2 s and gets 2 s; 0.5 or 1.0 is rounded up to 1 s, which etcd raises
 to 2 s; 2.5 asks for 3 s. :attr:`Membership.lease_ttl` is what etcd granted.
 
-Fencing (how a worker never owns a partition that another worker owns): etcd may give away a
-member's partitions (delete its key) no earlier than TTL after the member *sent* its last answered
-keep-alive. :attr:`Membership.problem` becomes non-None two thirds of a TTL after that moment when no
-newer keep-alive has been answered (at once when etcd says the lease is gone), and
-:attr:`Membership.members` then leaves this member out, so ``ring.owned(member, members, P)`` is
-empty: a worker that takes its partitions from :meth:`Membership.changes` (or checks ``problem``
-before each batch) stops owning anything a third of a TTL (0.67 s by default) before any other
-worker can take over. Keep-alives go on being tried; when one is answered again the member is back,
-and when the lease did expire the member joins again with a new lease (unless another worker took its
-name meanwhile: ``problem`` says so until it leaves).
+Fencing (how a worker never publishes for a partition that another worker owns): etcd may give
+away a member's partitions (delete its key) no earlier than TTL after the member *sent* its last
+answered keep-alive. :attr:`Membership.problem` becomes non-None two thirds of a TTL after that
+moment when no newer keep-alive has been answered (at once when etcd says the lease is gone, or the
+watch of the others breaks): the member is **paused** (:attr:`Membership.paused`). A paused worker
+publishes nothing and recognises nothing, but keeps its partitions and every stream's state: no
+other worker can own them yet. When a keep-alive is answered again before the lease could have
+expired, it goes on where it stopped, having moved nothing (before issue 34 a worker fenced itself
+by dropping every partition and re-reading every buffer, even when the answer came a millisecond
+later). Only when the lease may have expired (TTL after the last answered keep-alive, etcd said it
+did, the member's own key was deleted, or the watch stayed broken for a TTL) is the member **out**
+(:attr:`Membership.out`): :attr:`Membership.members` then leaves it out, so ``ring.owned(member,
+members, P)`` is empty and the worker drops its partitions and their state; the others may own them
+now. Keep-alives go on being tried; when the lease did expire the member joins again with a new
+lease (unless another worker took its name meanwhile: ``problem`` says so until it leaves).
 
-The same holds for the watch: while it is broken (etcd restarting) the view of the others may be
-stale, so ``problem`` is set and this member owns nothing until it has listed and watched again.
+Consistency over availability: while etcd cannot be reached nobody can know who owns what, so
+every worker pauses two thirds of a TTL after its last answered keep-alive and is out a third of a
+TTL later; no detection is published until etcd answers again. The workers then join again and take
+the partitions the ring gives them, replaying each one's buffer (detections of motions that ended
+during the outage arrive late, recomputed from the buffer; motions that began before the buffer's
+start are lost: ``docs/cluster.md``, "When etcd is lost").
 
 The membership runs on an event loop of its own, in a thread of its own: the keep-alives and the
 watch must not wait for whatever the worker's loop is doing (recognition, reading a buffer), or a
@@ -126,6 +135,7 @@ class Membership:
         self._next_keep = 0.0
         self._lease_problem: str | None = None
         self._watch_problem: str | None = None
+        self._watch_broken_at: float | None = None  # monotonic: since when the watch has been broken
         self._report_problem: str | None = None
         self._watch: Any = None
         self._changed = asyncio.Event()  # of the worker's loop
@@ -146,18 +156,14 @@ class Membership:
     def problem(self) -> str | None:
         """None while this member surely holds its lease and sees the others; else why not.
 
-        The worker fences itself by this: while it is set the worker owns no partition — it stops
-        taking in and publishing for every stream and drops its subscriptions — and it owns again
-        only what the ring gives it once it clears. Both follow from taking the partitions from
-        :meth:`changes` (:attr:`members` leaves this member out while ``problem`` is set, and a
-        change is yielded when it becomes set, two thirds of a TTL after the last answered
-        keep-alive: a third of a TTL before etcd could let another member take over)::
+        While it is set the worker publishes nothing (see the module's "Fencing"): it is
+        :attr:`paused` (its lease may still hold: it keeps its partitions and their state) or
+        :attr:`out` (its lease may have expired: :attr:`members` leaves it out, so it owns nothing)::
 
             async for members in membership.changes():
-                mine = ring.owned(membership.member, members, partitions)  # empty while fenced
+                mine = ring.owned(membership.member, members, partitions)  # empty while out
 
-        and, for work already under way, checking ``problem is None`` before publishing each
-        batch. See the module's "Fencing"."""
+        and, for work already under way, checking ``problem is None`` before each batch."""
         if self._closed:
             return "left the cluster"
         if self._runner is None:
@@ -172,18 +178,42 @@ class Membership:
             if self._lease_problem is not None:
                 return self._lease_problem
             return f"no keep-alive answered for {now - self._fence_at + 2 * self.interval:.1f} s"
+        if self.member not in self._seen:
+            return f"etcd deleted the key of {self.member!r}"
         return None
+
+    def _out_at(self) -> float:
+        """Monotonic time from which this member may have lost its lease (or its view of the others
+        is too old to act on), if nothing is answered before."""
+        if self._watch_broken_at is None:
+            return self._expires_at
+        return min(self._expires_at, self._watch_broken_at + self.lease_ttl)
+
+    @property
+    def out(self) -> bool:
+        """True when this member may no longer own anything: left, its tasks ended, its lease may
+        have expired, its key is gone, or the others have not been seen for a TTL."""
+        if self._closed or self._runner is None or self._runner.done():
+            return True
+        return self.member not in self._seen or time.monotonic() >= self._out_at()
+
+    @property
+    def paused(self) -> bool:
+        """True while :attr:`problem` is set but the lease may still hold: publish nothing, keep
+        everything."""
+        return self.problem is not None and not self.out
 
     @property
     def members(self) -> frozenset[str]:
-        """The live members as last seen, this one included while :attr:`problem` is None."""
+        """The live members as last seen, this one included unless it is :attr:`out`."""
         seen = frozenset(self._seen)
-        return seen if self.problem is None else seen - {self.member}
+        return seen - {self.member} if self.out else seen | {self.member}
 
     async def changes(self) -> AsyncIterator[frozenset[str]]:
         """The current :attr:`members` first, then each new set whenever it changes: joins, leaves,
-        expiries, and this member dropping out or coming back (a consumer slower than the changes
-        gets the latest set, not every one between). Ends when the membership is left."""
+        expiries, and this member going out or coming back (a pause changes nothing; a consumer
+        slower than the changes gets the latest set, not every one between). Ends when the
+        membership is left."""
         last: frozenset[str] | None = None
         while not self._closed:
             current = self.members
@@ -192,7 +222,7 @@ class Membership:
                 yield current
                 continue
             changed = self._changed
-            wait = self._fence_at - time.monotonic() if self.member in current else None
+            wait = self._out_at() - time.monotonic() if self.member in current else None
             with contextlib.suppress(TimeoutError):
                 async with asyncio.timeout(None if wait is None else max(wait, 0.001)):
                     await changed.wait()
@@ -341,6 +371,7 @@ class Membership:
             self._members_prefix, start_revision=listing.header.revision + 1
         )
         self._watch_problem = None
+        self._watch_broken_at = None
         self._notify()
 
     async def _run(self) -> None:
@@ -355,7 +386,8 @@ class Membership:
             answered = False
             try:
                 async with asyncio.timeout(self.interval):
-                    if sent >= self._expires_at or self._lease is None:
+                    gone = self._watch_problem is None and self.member not in self._seen
+                    if sent >= self._expires_at or self._lease is None or gone:
                         answered = await self._rejoin()
                     else:
                         reply = await self._lease.refresh()
@@ -407,6 +439,8 @@ class Membership:
                 self._watch_problem = (
                     f"watching the members in etcd at {self.coordinator} failed: {_why(exc)}"
                 )
+            if self._watch_broken_at is None:
+                self._watch_broken_at = time.monotonic()
             self._watch = None
             self._notify()
             await asyncio.sleep(RETRY_S)
