@@ -13,6 +13,7 @@ import subprocess
 import time
 import urllib.error
 import urllib.request
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -33,7 +34,10 @@ TRIAL = (DATA / "cmu" / "13" / "13.asf", DATA / "cmu" / "13" / "13_30.amc.gz")
 def _worker(tmp_path: Path, server: NatsServer, etcd: Etcd, metrics_port: int) -> subprocess.Popen[bytes]:
     config = tmp_path / "worker.yaml"
     config.write_text(
-        json.dumps({"service": {"idle_s": 2}, "metrics": {"port": metrics_port}}), encoding="utf-8"
+        json.dumps(
+            {"service": {"idle_s": 2}, "metrics": {"port": metrics_port}, "logging": {"level": "debug"}}
+        ),
+        encoding="utf-8",
     )
     with (tmp_path / "worker.err").open("wb") as log:
         return subprocess.Popen(
@@ -105,18 +109,18 @@ def _health(port: int) -> int:
         return 0
 
 
-@pytest.mark.slow
-def test_a_worker_paused_by_an_etcd_that_does_not_answer_keeps_its_streams(tmp_path: Path) -> None:
-    """etcd frozen (SIGSTOP) mid-recording until the worker says it has a problem (two thirds of its
-    lease after its last answered keep-alive), then thawed: the worker paused (published nothing)
-    but gave up no partition and no stream, re-read no buffer, and its detections are ``mocapd
-    detect``'s. Before issue 34 it fenced itself by dropping every partition and re-reading every
-    buffer, and the stream's history read again began mid-motion."""
+Disturb = Callable[[Etcd, int], None]
+"""What happens to etcd while a recording plays through the worker (given its metrics port)."""
+
+
+def _through_a_worker(tmp_path: Path, disturb: Disturb) -> tuple[dict[str, float], dict[str, float], str]:
+    """:data:`TRIAL` replayed at twice its speed through one cluster worker, ``disturb`` called once
+    600 of its poses are in: the worker's /metrics before and after it, and the worker's log. Its
+    detections, as an MQTT client receives them, must be ``mocapd detect``'s, each once."""
     (tmp_path / "nats").mkdir()
     (tmp_path / "etcd").mkdir()
     server = NatsServer(tmp_path / "nats").start()
     etcd = Etcd(tmp_path / "etcd").start()
-    assert etcd.process is not None
     port = free_port()
     worker = _worker(tmp_path, server, etcd, port)
     err = tmp_path / "worker.err"
@@ -124,7 +128,7 @@ def test_a_worker_paused_by_an_etcd_that_does_not_answer_keeps_its_streams(tmp_p
     replay = None
     try:
         wait_for(lambda: err.read_text().count('"partition taken"') == 16, 30, "the worker's partitions")
-        collector = MqttCollector(server.mqtt_url, ["mocap/+/detections"], client_id="pause-collector")
+        collector = MqttCollector(server.mqtt_url, ["mocap/+/detections"], client_id="etcd-collector")
         source = ["--asf", str(TRIAL[0]), "--amc", str(TRIAL[1])]
         replay = subprocess.Popen(
             [str(MOCAPD_SCRIPT), "replay", *source, "--to", server.mqtt_url, "--speed", "2"],
@@ -134,27 +138,16 @@ def test_a_worker_paused_by_an_etcd_that_does_not_answer_keeps_its_streams(tmp_p
         )
         wait_for(lambda: scrape(port).get("mocapd_frames_in_total", 0) > 600, 30, "the recording under way")
         before = scrape(port)
-        etcd.process.send_signal(signal.SIGSTOP)
-        try:
-            wait_for(lambda: _health(port) == 503, 5, "the worker to pause")
-            paused = time.monotonic()
-        finally:
-            etcd.process.send_signal(signal.SIGCONT)
-        wait_for(lambda: _health(port) == 200, 5, "the worker to go on")
-        assert time.monotonic() - paused < 2.0
+        disturb(etcd, port)
         _, stderr = replay.communicate(timeout=60)
         assert replay.returncode == 0, stderr
         want = _expected()
-        wait_for(lambda: len(collector.detections()) >= len(want), 20, "the detections")
-        after = scrape(port)
-        assert detection_keys(collector.detections()) == detection_keys(want)
-        for series in (
-            'mocapd_stream_events_total{event="handed_over"}',
-            "mocapd_cluster_replayed_poses_total",
-            "mocapd_cluster_takeovers_total",
-        ):
-            assert after.get(series, 0) == before.get(series, 0), series
-        assert err.read_text().count('"partition taken"') == 16
+        wait_for(lambda: len(collector.detections()) >= len(want), 30, "the detections")
+        time.sleep(0.5)
+        got = collector.detections()
+        assert len({d["id"] for d in got}) == len(got), "a detection delivered twice"
+        assert detection_keys(got) == detection_keys(want)
+        return before, scrape(port), err.read_text()
     finally:
         for p in (replay, worker):
             if p is not None and p.poll() is None:
@@ -164,3 +157,61 @@ def test_a_worker_paused_by_an_etcd_that_does_not_answer_keeps_its_streams(tmp_p
             collector.close()
         etcd.stop()
         server.stop()
+
+
+@pytest.mark.slow
+def test_a_worker_paused_by_an_etcd_that_does_not_answer_keeps_its_streams(tmp_path: Path) -> None:
+    """etcd frozen (SIGSTOP) mid-recording until the worker says it has a problem (two thirds of its
+    lease after its last answered keep-alive), then thawed: the worker paused (published nothing)
+    but gave up no partition and no stream, re-read no buffer, and its detections are ``mocapd
+    detect``'s. Before issue 34 it fenced itself by dropping every partition and re-reading every
+    buffer, and the stream's history read again began mid-motion."""
+
+    def freeze(etcd: Etcd, port: int) -> None:
+        assert etcd.process is not None
+        etcd.process.send_signal(signal.SIGSTOP)
+        try:
+            wait_for(lambda: _health(port) == 503, 5, "the worker to pause")
+            paused = time.monotonic()
+        finally:
+            etcd.process.send_signal(signal.SIGCONT)
+        wait_for(lambda: _health(port) == 200, 5, "the worker to go on")
+        assert time.monotonic() - paused < 2.0
+
+    before, after, log = _through_a_worker(tmp_path, freeze)
+    for series in (
+        'mocapd_stream_events_total{event="handed_over"}',
+        "mocapd_cluster_replayed_poses_total",
+        "mocapd_cluster_takeovers_total",
+    ):
+        assert after.get(series, 0) == before.get(series, 0), series
+    assert log.count('"partition taken"') == 16
+
+
+@pytest.mark.slow
+def test_while_etcd_is_lost_nothing_is_published_and_afterwards_nothing_is_missing(tmp_path: Path) -> None:
+    """Consistency over availability (docs/cluster.md, "When etcd is lost"): etcd killed mid-recording
+    for 4 s, then started again on its data. The worker pauses, is out once its lease may have
+    expired (it gives its partitions up: another worker could own them), publishes nothing from then
+    until etcd answers, then owns its partitions again, reads their buffers and publishes what it
+    recomputes: ``mocapd detect``'s detections, each once (those it had published are suppressed as
+    duplicates by the store)."""
+    window: list[float] = []
+
+    def lose(etcd: Etcd, port: int) -> None:
+        etcd.kill()
+        killed = time.time()
+        wait_for(lambda: _health(port) == 503, 5, "the worker to see etcd gone")
+        time.sleep(4.0)
+        window.extend((killed + 2.0 + 0.1, time.time()))  # out from a lease after the last answer
+        etcd.start(True)
+        wait_for(lambda: _health(port) == 200, 20, "the worker to be back")
+
+    before, after, log = _through_a_worker(tmp_path, lose)
+    out, back = window
+    published = [json.loads(line) for line in log.splitlines() if '"event": "detection"' in line]
+    assert not [d for d in published if out < d["ts"] < back], "published while etcd was lost"
+    assert after['mocapd_stream_events_total{event="handed_over"}'] > before.get(
+        'mocapd_stream_events_total{event="handed_over"}', 0
+    )
+    assert log.count('"partition taken"') == 32  # every partition given up and taken again
