@@ -110,6 +110,7 @@ from paho.mqtt.enums import CallbackAPIVersion
 from bench.common import DATA
 from bench.machine import describe
 from bench.processes import free_port, rss_kib, scrape, wait_port
+from daemon.config import ClusterConfig
 from daemon.frames import FrameClock
 from daemon.library import default_library_path, load_library
 from daemon.recognizer import detect
@@ -307,8 +308,8 @@ SHORT_KEYS: tuple[str | bytes, ...] = tuple(k for k in ODD_KEYS if len(k) <= 4)
 LONG_TEXTS = (129, 300, 1000, 5000, 15000)
 
 
-PARTITIONS = 16
-"""The shipped nats.conf's ``partition(16, ...)`` (the cluster run reads it from there)."""
+PARTITIONS = ClusterConfig().partitions
+"""``cluster.partitions``'s default, of the shipped mappings (the cluster run reads them)."""
 SUBJECT_SAFE = bytes.maketrans(b" \t\n\r\x0b\x0c.", b"_______")
 """Bytes a NATS subject token cannot hold (the protocol's separators, and the token separator) as
 ``_``: a subject is any other bytes, which the server passes on (not UTF-8 included)."""
@@ -599,7 +600,7 @@ class Fuzzer:
         rng = self.rng
         subject = subject_of(m.topic)
         reply = b"fuzz.reply." + str(rng.randrange(100)).encode() if rng.random() < 0.03 else b""
-        stored = nats_stored(subject)
+        stored = nats_stored(subject, self.partitions)
         if rng.random() >= 0.1:
             return [replace(m, topic=subject, reply=reply, reaches=stored)]
         r = rng.random()
@@ -649,7 +650,7 @@ class Fuzzer:
             part + b"a.b.pose",
             part + b"\xc3\xa9" * 700 + b".pose",
             b"mocap.p.%02d.x.pose" % n,
-            b"mocap.p.16.x.pose",
+            b"mocap.p.%d.x.pose" % self.partitions,  # no such partition: no buffer stores it
             b"mocap..pose",
             b".mocap.x.pose",
             b"mocap.x.pose.",
@@ -665,7 +666,11 @@ class Fuzzer:
         if subject.startswith(b"mocap.d."):
             self.ids += 1
             headers = b"NATS/1.0\r\nNats-Msg-Id: fuzz-d-%d\r\n\r\n" % self.ids
-        return [Fuzzed("subject", subject, (payload,), headers=headers, reaches=nats_stored(subject))]
+        return [
+            Fuzzed(
+                "subject", subject, (payload,), headers=headers, reaches=nats_stored(subject, self.partitions)
+            )
+        ]
 
     def inbox(self) -> Fuzzed:
         """A message published on a worker's delivery subject: a pose or junk with no reply,
@@ -1258,8 +1263,9 @@ class NatsWire:
     buffers' counts, the workers' delivery subjects). The good replay publishes over the server's
     MQTT listener itself."""
 
-    def __init__(self, port: int, mqtt_port: int) -> None:
+    def __init__(self, port: int, mqtt_port: int, partitions: int) -> None:
         self.url = f"nats://127.0.0.1:{port}"
+        self.partitions = partitions
         self.good_url = f"mqtt://127.0.0.1:{mqtt_port}"
         self.good = 0
         self.detections: list[dict[str, Any]] = []
@@ -1362,11 +1368,10 @@ class NatsWire:
     def stored(self) -> int:
         """Messages the partitions' buffers ever stored (each buffer's last sequence number)."""
 
-        async def count() -> int:
+        async def count() -> int:  # one by one: the server lists streams a page (256) at a time
             total = 0
-            for info in await self.js.streams_info():
-                if (info.config.name or "").startswith("MOCAPD_BUF_"):
-                    total += info.state.last_seq
+            for p in range(self.partitions):
+                total += (await self.js.stream_info(f"MOCAPD_BUF_{p}")).state.last_seq
             return total
 
         return self.call(count())
@@ -1741,7 +1746,7 @@ def run(
         if nats:
             daemon = Cluster(work, members, lease_s)
             result.members = members
-            wire = NatsWire(daemon.server.port, daemon.server.mqtt_port)
+            wire = NatsWire(daemon.server.port, daemon.server.mqtt_port, daemon.partitions)
             fuzzer.partitions = daemon.partitions
             fuzzer.inboxes = wire.inboxes()
         else:

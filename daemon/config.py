@@ -171,15 +171,16 @@ class StdoutConfig:
 @dataclass(frozen=True)
 class ClusterConfig:
     """Cluster mode (``docs/cluster.md``): the NATS server carrying poses and detections, the etcd
-    holding the membership, the number of partitions (the NATS config's ``partition(P, ...)``
-    mappings must say the same), this member's lease, the seconds each partition's JetStream buffer
-    keeps (0: computed from the lease and the library's reach,
+    holding the membership, the number of partitions (the NATS server's mappings,
+    ``deploy/nats/partitions.conf``, are made from it by ``mocapd cluster mappings``; a worker
+    refuses a server that partitions otherwise), this member's lease, the seconds each partition's
+    JetStream buffer keeps (0: computed from the lease and the library's reach,
     :func:`daemon.service.cluster.buffer_seconds`), and this member's name (empty: host name and
     process id). The coordinator has no default: a worker must be told where the others are."""
 
     nats: str = "nats://127.0.0.1:4222"
     coordinator: str = ""
-    partitions: int = field(default=16, metadata=_range(1, 1024))
+    partitions: int = field(default=256, metadata=_range(1, 1024))
     lease_s: float = field(default=2.0, metadata=_range(0.5, 60))
     buffer_s: float = field(default=0.0, metadata=_range(0, 3600))
     member: str = ""

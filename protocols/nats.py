@@ -38,6 +38,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import os
 import time
 from collections.abc import AsyncIterator
 from dataclasses import dataclass
@@ -45,6 +46,7 @@ from types import TracebackType
 from typing import TYPE_CHECKING
 
 from nats.aio.client import Client as NATS
+from nats.aio.msg import Msg
 from nats.errors import Error as NatsError
 from nats.js.api import (
     AckPolicy,
@@ -124,6 +126,37 @@ def partition_of(stream: str, partitions: int) -> int:
     for byte in stream.encode():
         h = ((h ^ byte) * 0x01000193) & 0xFFFFFFFF
     return h % partitions
+
+
+PROBE = "mocapd.probe"
+"""Subjects a worker publishes at start (``mocapd.probe.<token>``) to read the partition the server's
+mapping gives ``<token>`` (``mocapd.probe.<p>.<token>``), so that a server partitioning by another
+count than ``cluster.partitions`` is refused at once."""
+PROBES = 8
+PROBE_S = 2.0
+
+
+def mappings(partitions: int) -> str:
+    """The NATS server's subject mappings for ``partitions`` partitions: the text of
+    ``deploy/nats/partitions.conf``, which ``deploy/nats/nats.conf`` includes (``mocapd cluster
+    mappings`` prints it from ``cluster.partitions``)."""
+    rule = f"{{{{partition({partitions},1)}}}}.{{{{wildcard(1)}}}}"
+    return (
+        f"# The partitioning of mocapd's streams: {partitions} partitions (cluster.partitions of\n"
+        "# config.yaml). Made by `mocapd cluster mappings`: change the count there and make this file\n"
+        '# again, never by hand (docs/cluster.md, "Partitions").\n'
+        "mappings {\n"
+        f'  "mocap.*.pose": "mocap.p.{rule}.pose"\n'
+        f'  "mocap.*.skeleton": "mocap.p.{rule}.skeleton"\n'
+        f'  "{PROBE}.*": "{PROBE}.{rule}"\n'
+        "}\n"
+    )
+
+
+def counts_matching(found: dict[str, int], most: int = 4096) -> list[int]:
+    """The partition counts of 1 .. ``most`` under which every token of ``found`` falls in the
+    partition given with it."""
+    return [n for n in range(1, most + 1) if all(partition_of(t, n) == p for t, p in found.items())]
 
 
 def buffer_subject(partition: int) -> str:
@@ -213,6 +246,11 @@ class NatsTransport:
         self._connected = True
         self._js = nc.jetstream()
         try:
+            await self._check_partitions()
+        except StartupError:
+            await nc.close()
+            raise
+        try:
             await self._ensure_streams()
         except (NatsError, TimeoutError) as e:
             await nc.close()
@@ -227,6 +265,49 @@ class NatsTransport:
         if self._status is not None:
             await self._plain(self._status[0])
         return self
+
+    async def _check_partitions(self) -> None:
+        """StartupError naming ``cluster.partitions`` unless the server maps :data:`PROBES` probe
+        tokens to the partitions :func:`partition_of` gives them with ``cluster.partitions``."""
+        nc = self._nc
+        assert nc is not None
+        want = self.settings.partitions
+        tokens = {os.urandom(6).hex() for _ in range(PROBES)}
+        found: dict[str, int] = {}
+        done = asyncio.Event()
+
+        async def got(msg: Msg) -> None:
+            *_, p, token = msg.subject.split(".")
+            if token in tokens and p.isdigit():
+                found[token] = int(p)
+                if len(found) == len(tokens):
+                    done.set()
+
+        sub = await nc.subscribe(f"{PROBE}.*.*", cb=got)
+        try:
+            for token in tokens:
+                await nc.publish(f"{PROBE}.{token}", b"")
+            with contextlib.suppress(TimeoutError):
+                async with asyncio.timeout(PROBE_S):
+                    await done.wait()
+        finally:
+            with contextlib.suppress(NatsError, TimeoutError, OSError):
+                await sub.unsubscribe()
+        url = self.settings.nats
+        if len(found) < len(tokens):
+            raise StartupError(
+                "cluster.partitions",
+                f"the NATS server at {url} does not map {PROBE}.*: its config lacks the mappings "
+                f"`mocapd cluster mappings` makes (deploy/nats/partitions.conf)",
+            )
+        if any(partition_of(t, want) != p for t, p in found.items()):
+            theirs = counts_matching(found)
+            said = f"by {theirs[0]}" if len(theirs) == 1 else "by another count"
+            raise StartupError(
+                "cluster.partitions",
+                f"{want} here, but the NATS server at {url} partitions {said}: make its mappings "
+                f"with `mocapd cluster mappings` from the same cluster.partitions",
+            )
 
     async def __aexit__(
         self, kind: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None

@@ -1093,16 +1093,23 @@ def slow_fair_queue(ops: list[tuple[str, str] | None], size: int) -> tuple[list[
     return taken, dropped
 
 
-def slow_rendezvous(members: Sequence[str], partitions: int) -> dict[str, set[int]]:
-    """Rendezvous hashing by its definition: each partition to the first of the members sorted by
-    descending score, then name (``daemon.cluster.ring``'s :func:`score` is the hash itself)."""
+def slow_bounded_rendezvous(members: Sequence[str], partitions: int) -> dict[str, set[int]]:
+    """Rendezvous hashing with bounded loads by its definition: while a partition has no owner, the
+    pair of an unowned partition and a member with fewer than ``ceil(P / N)`` partitions that has
+    the highest score (ties: the smaller name, then the smaller partition) is matched
+    (``daemon.cluster.ring``'s :func:`score` is the hash itself)."""
     from daemon.cluster.ring import score
 
-    out: dict[str, set[int]] = {m: set() for m in members}
-    for p in range(partitions):
-        if members:
-            ranked = sorted(set(members), key=lambda m: (-score(m, p), m))
-            out[ranked[0]].add(p)
+    live = sorted(set(members))
+    out: dict[str, set[int]] = {m: set() for m in live}
+    if not live:
+        return out
+    room = math.ceil(partitions / len(live))
+    free = set(range(partitions))
+    while free:
+        _, m, p = min((-score(m, p), m, p) for m in live if len(out[m]) < room for p in free)
+        out[m].add(p)
+        free.discard(p)
     return out
 
 

@@ -16,6 +16,7 @@ from tests.helpers import ServerProcess
 
 REPO = Path(__file__).resolve().parents[1]
 CONFIG = REPO / "deploy" / "nats" / "nats.conf"
+MAPPINGS = CONFIG.parent / "partitions.conf"
 START_S = 15.0
 
 
@@ -37,8 +38,8 @@ def _replaced(text: str, pattern: str, value: str) -> str:
 
 def partitions() -> int:
     """The P of the shipped mappings' ``partition(P, 1)``."""
-    found = {int(n) for n in re.findall(r"partition\((\d+),", CONFIG.read_text(encoding="utf-8"))}
-    assert len(found) == 1, f"{CONFIG.name}: the mappings disagree on the partitions: {found}"
+    found = {int(n) for n in re.findall(r"partition\((\d+),", MAPPINGS.read_text(encoding="utf-8"))}
+    assert len(found) == 1, f"{MAPPINGS.name}: the mappings disagree on the partitions: {found}"
     return found.pop()
 
 
@@ -59,6 +60,7 @@ class NatsServer(ServerProcess):
         text = _replaced(text, r"^  store_dir: .*$", f"  store_dir: {where / 'jetstream'}")
         text = _replaced(text, r"^  port: 1883$", f"  port: {self.mqtt_port}")
         self.config.write_text(text, encoding="utf-8")
+        shutil.copyfile(MAPPINGS, where / MAPPINGS.name)
         self.process: subprocess.Popen[bytes] | None = None
 
     @property

@@ -10,6 +10,7 @@ import subprocess
 
 from bench.processes import free_port
 from daemon.cluster.ring import assignment
+from daemon.config import ClusterConfig
 from daemon.service.membership import Membership
 from tests.etcd_server import Etcd
 from tests.helpers import assert_ok, assert_one_error_line, mocapd
@@ -77,7 +78,7 @@ async def test_status_of_an_empty_cluster(etcd: Etcd) -> None:
     result = await status("--coordinator", etcd.url, "--json")
     assert_ok(result)
     out = json.loads(result.stdout)
-    assert (out["members"], out["partitions"], out["disagreements"]) == ([], 16, [])
+    assert (out["members"], out["partitions"], out["disagreements"]) == ([], ClusterConfig().partitions, [])
     assert all(row["owner"] is None for row in out["table"])
 
 

@@ -25,7 +25,7 @@ from daemon.recordings import read_recording
 from replay import Motion
 from tests.etcd_server import Etcd
 from tests.helpers import DATA, MOCAPD_SCRIPT, MqttCollector, detection_keys, mocapd, wait_for
-from tests.nats_server import NatsServer
+from tests.nats_server import NatsServer, partitions
 
 REPO = Path(__file__).resolve().parents[1]
 TRIAL = (DATA / "cmu" / "13" / "13.asf", DATA / "cmu" / "13" / "13_30.amc.gz")
@@ -80,7 +80,9 @@ def test_a_worker_goes_on_after_the_nats_server_restarts(tmp_path: Path) -> None
         wait_for(lambda: '"partition taken"' in err.read_text(), 30, "the worker's partitions")
         server.stop()
         server.start()  # the same ports, its streams gone
-        wait_for(lambda: err.read_text().count('"partition taken"') > 16, 30, "the partitions read again")
+        wait_for(
+            lambda: err.read_text().count('"partition taken"') > partitions(), 30, "the partitions read again"
+        )
         collector = MqttCollector(server.mqtt_url, ["mocap/+/detections"], client_id="restart-collector")
         result = mocapd(
             "replay", "--asf", TRIAL[0], "--amc", TRIAL[1], "--to", server.mqtt_url, "--speed", "4"
@@ -127,7 +129,9 @@ def _through_a_worker(tmp_path: Path, disturb: Disturb) -> tuple[dict[str, float
     collector = None
     replay = None
     try:
-        wait_for(lambda: err.read_text().count('"partition taken"') == 16, 30, "the worker's partitions")
+        wait_for(
+            lambda: err.read_text().count('"partition taken"') == partitions(), 30, "the worker's partitions"
+        )
         collector = MqttCollector(server.mqtt_url, ["mocap/+/detections"], client_id="etcd-collector")
         source = ["--asf", str(TRIAL[0]), "--amc", str(TRIAL[1])]
         replay = subprocess.Popen(
@@ -185,7 +189,7 @@ def test_a_worker_paused_by_an_etcd_that_does_not_answer_keeps_its_streams(tmp_p
         "mocapd_cluster_takeovers_total",
     ):
         assert after.get(series, 0) == before.get(series, 0), series
-    assert log.count('"partition taken"') == 16
+    assert log.count('"partition taken"') == partitions()
 
 
 @pytest.mark.slow
@@ -214,4 +218,4 @@ def test_while_etcd_is_lost_nothing_is_published_and_afterwards_nothing_is_missi
     assert after['mocapd_stream_events_total{event="handed_over"}'] > before.get(
         'mocapd_stream_events_total{event="handed_over"}', 0
     )
-    assert log.count('"partition taken"') == 32  # every partition given up and taken again
+    assert log.count('"partition taken"') == 2 * partitions()  # every partition given up and taken again

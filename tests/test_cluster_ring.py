@@ -1,18 +1,17 @@
-"""The partition ring (rendezvous hashing): against its definition, the ownership invariants, the
-fewest moves on joins and leaves, and its balance against the multinomial it should follow."""
+"""The partition ring (rendezvous hashing with bounded loads): against its definition, the
+ownership invariants, the balance it promises, and the moves of joins and leaves."""
 
 from __future__ import annotations
 
 import hashlib
 import random
-from math import comb
 
 import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from daemon.cluster.ring import assignment, owned, owner, score
-from tests.naive import slow_rendezvous
+from daemon.cluster.ring import assignment, owned, room, score
+from tests.naive import slow_bounded_rendezvous
 
 names = st.text(min_size=1, max_size=12)
 member_sets = st.sets(names, max_size=7)
@@ -29,21 +28,21 @@ def test_the_score_is_blake2b_of_the_name_and_the_partition() -> None:
 
 @given(member_sets, partition_counts)
 def test_the_ring_is_its_definition(members: set[str], partitions: int) -> None:
-    reference = slow_rendezvous(sorted(members), partitions)
+    reference = slow_bounded_rendezvous(sorted(members), partitions)
     assert assignment(members, partitions) == {m: frozenset(ps) for m, ps in reference.items()}
-    for p in range(partitions):
-        expected = next((m for m, ps in reference.items() if p in ps), None)
-        assert owner(p, members) == expected
     for m in members:
         assert owned(m, members, partitions) == frozenset(reference[m])
 
 
 @given(member_sets, partition_counts)
-def test_every_partition_has_exactly_one_live_owner(members: set[str], partitions: int) -> None:
+def test_every_partition_has_exactly_one_live_owner_and_none_more_than_its_room(
+    members: set[str], partitions: int
+) -> None:
     got = assignment(members, partitions)
     assert set(got) == members
     counted = sorted(p for ps in got.values() for p in ps)
     assert counted == (list(range(partitions)) if members else [])
+    assert all(len(ps) <= room(len(members), partitions) for ps in got.values())
 
 
 @given(member_sets, names, partition_counts)
@@ -53,28 +52,15 @@ def test_a_member_that_is_not_live_owns_nothing(members: set[str], other: str, p
 
 
 @given(member_sets.filter(bool), st.data(), partition_counts)
-def test_a_leaving_member_moves_only_its_own_partitions(
+def test_a_leaving_member_hands_over_all_it_owned(
     members: set[str], data: st.DataObject, partitions: int
 ) -> None:
     leaving = data.draw(st.sampled_from(sorted(members)))
     before = assignment(members, partitions)
     after = assignment(members - {leaving}, partitions)
-    for m in members - {leaving}:
-        assert before[m] <= after[m]  # nobody loses a partition
-        assert after[m] - before[m] <= before[leaving]  # and gains only the leaver's
-
-
-@given(member_sets, names, partition_counts)
-def test_a_joining_member_takes_partitions_and_nobody_else_gets_any(
-    members: set[str], joining: str, partitions: int
-) -> None:
-    if joining in members:
-        return
-    before = assignment(members, partitions)
-    after = assignment(members | {joining}, partitions)
-    for m in members:
-        assert after[m] <= before[m]  # others only lose, and what they lose goes to the newcomer
-        assert before[m] - after[m] <= after[joining]
+    assert set(after) == members - {leaving}
+    if len(members) > 1:
+        assert before[leaving] <= frozenset().union(*after.values())
 
 
 def test_duplicates_count_once_and_order_does_not_matter() -> None:
@@ -82,7 +68,6 @@ def test_duplicates_count_once_and_order_does_not_matter() -> None:
     assert assignment(members, 16) == assignment(["a", "b", "c"], 16)
     assert assignment(reversed(members), 16) == assignment(members, 16)
     assert assignment([], 16) == {}
-    assert owner(3, []) is None
 
 
 def test_a_negative_partition_count_is_refused() -> None:
@@ -92,36 +77,30 @@ def test_a_negative_partition_count_is_refused() -> None:
         owned("a", ["a"], -1)
 
 
-def multinomial_at_least(n: int, k: int, threshold: int) -> float:
-    """P(the largest of k equal-chance counts of n throws is ≥ threshold), for k = 3 exactly."""
-    assert k == 3
-    return float(
-        sum(
-            comb(n, a) * comb(n - a, b) / 3**n
-            for a in range(n + 1)
-            for b in range(n + 1 - a)
-            if max(a, b, n - a - b) >= threshold
-        )
-    )
-
-
-def test_16_partitions_over_3_members_are_balanced_as_random_throws_are() -> None:
-    """Over 3000 sets of three random names (a fixed seed), the busiest member's load is distributed
-    as the multinomial's maximum (within four standard errors), and each name's share is a third."""
-    rng = random.Random(23)
-    draws = 3000
-    busiest: list[int] = []
-    first_share = 0
-    for _ in range(draws):
-        members = [f"worker-{rng.getrandbits(40):010x}" for _ in range(3)]
-        loads = assignment(members, 16)
-        busiest.append(max(len(ps) for ps in loads.values()))
-        first_share += len(loads[members[0]])
-    for threshold in (8, 9, 10):
-        expected = multinomial_at_least(16, 3, threshold)
-        seen = sum(b >= threshold for b in busiest) / draws
-        error = (expected * (1 - expected) / draws) ** 0.5
-        assert abs(seen - expected) < 4 * error, (threshold, seen, expected)
-    assert abs(first_share / (16 * draws) - 1 / 3) < 0.01
-    assert multinomial_at_least(16, 3, 9) == pytest.approx(0.15, abs=0.005)  # the figure ring.py states
-    assert multinomial_at_least(16, 3, 10) == pytest.approx(0.048, abs=0.005)
+def test_256_partitions_are_balanced_within_a_fifth_at_3_to_10_members_and_moves_stay_few() -> None:
+    """The issue's bound (±20 % of the mean) on every set of 30 random names per size, and what
+    ring.py states: within 16 %, and extra moves (partitions moving between members that neither
+    left nor joined) at most 60 % of the leaver's or joiner's partitions, a fifth on average at
+    most at 3 members. Plain rendezvous hashing fails the bound (the reason for the bounded loads)."""
+    rng = random.Random(34)
+    plain_fails = 0
+    for n in range(3, 11):
+        extra: list[float] = []
+        for _ in range(30):
+            members = [f"worker-{rng.getrandbits(40):010x}" for _ in range(n)]
+            ring = assignment(members, 256)
+            loads = [len(ps) for ps in ring.values()]
+            assert all(abs(load - 256 / n) <= 0.16 * 256 / n for load in loads), (n, loads)
+            plain = [sum(max(members, key=lambda m: score(m, p)) == m for p in range(256)) for m in members]
+            plain_fails += any(abs(load - 256 / n) > 0.2 * 256 / n for load in plain)
+            after = assignment(members[1:], 256)
+            extra.append(sum(len(ring[m] - after[m]) for m in members[1:]) / len(ring[members[0]]))
+            joiner = f"worker-{rng.getrandbits(40):010x}"
+            joined = assignment([*members, joiner], 256)
+            extra.append(
+                (sum(len(ring[m] - joined[m]) for m in members) - len(joined[joiner])) / len(joined[joiner])
+            )
+        assert max(extra) <= 0.6, (n, max(extra))
+        if n == 3:
+            assert sum(extra) / len(extra) <= 0.2
+    assert plain_fails > 120  # of 240 sets of names

@@ -255,7 +255,7 @@ def test_a_worker_reads_on_after_what_nats_py_could_not_decode(tmp_path: Path) -
     cluster = Cluster(tmp_path, 1, lease_s=10.0)  # a busy machine must not fence it: the
     wire = None  # consumers, and the delivery subject this test publishes on, would be made anew
     try:
-        wire = NatsWire(cluster.server.port, cluster.server.mqtt_port)
+        wire = NatsWire(cluster.server.port, cluster.server.mqtt_port, cluster.partitions)
         spied: list[bytes] = []
 
         async def spy(delivery: Delivery) -> None:

@@ -1,6 +1,6 @@
 """``mocapd cluster status``: the live members of a cluster in etcd, the partitions the ring gives
 each and those each reports it owns (disagreements flagged), streams per partition, lag and lease
-left."""
+left. ``mocapd cluster mappings``: the NATS server's subject mappings for ``cluster.partitions``."""
 
 from __future__ import annotations
 
@@ -8,13 +8,13 @@ import argparse
 import json
 from typing import TYPE_CHECKING, Any
 
-from daemon.config import Config
+from daemon.config import ClusterConfig, Config
 from daemon.errors import UsageError
 
 if TYPE_CHECKING:  # the command imports etcd's client only when it runs
     from daemon.service.membership import ClusterStatus
 
-DEFAULT_PARTITIONS = 16
+DEFAULT_PARTITIONS = ClusterConfig().partitions
 """``--partitions`` when neither the option nor the configuration's ``cluster.partitions`` gives it."""
 
 
@@ -30,7 +30,7 @@ def _partition_count(text: str) -> int:
 
 def register(sub: Any) -> None:
     cluster = sub.add_parser("cluster", help="look at a cluster of workers (members in etcd)")
-    cluster_sub = cluster.add_subparsers(required=True, metavar="{status}")
+    cluster_sub = cluster.add_subparsers(required=True, metavar="{status,mappings}")
     status = cluster_sub.add_parser(
         "status",
         help="members, the partitions each owns by the ring and by its own report, streams, lag, lease left",
@@ -53,6 +53,25 @@ def register(sub: Any) -> None:
     )
     status.add_argument("--json", action="store_true", help="print one JSON object instead of text")
     status.set_defaults(func=_status)
+    made = cluster_sub.add_parser(
+        "mappings",
+        help="print the NATS server's subject mappings for the partitions (deploy/nats/partitions.conf)",
+    )
+    made.add_argument(
+        "--partitions",
+        type=_partition_count,
+        default=None,
+        metavar="P",
+        help=f"partitions of the streams (default: cluster.partitions, else {DEFAULT_PARTITIONS})",
+    )
+    made.set_defaults(func=_mappings)
+
+
+def _mappings(args: argparse.Namespace, config: Config) -> int:
+    from protocols.nats import mappings
+
+    print(mappings(args.partitions or _configured(config, "partitions") or DEFAULT_PARTITIONS), end="")
+    return 0
 
 
 def _configured(config: Config, name: str) -> Any:

@@ -1,18 +1,31 @@
-"""Which live member owns which partition: rendezvous (highest random weight) hashing.
+"""Which live member owns which partition: rendezvous (highest random weight) hashing with bounded
+loads.
 
-Each partition ``p`` of ``0 .. partitions-1`` belongs to the member with the highest
-:func:`score` ``(member, p)``, ties (64-bit collisions) to the smallest name. Every member computes
-the same answer from the same set of live members, with no coordination beyond agreeing on that set,
-and a change of the set moves the fewest partitions possible: when a member leaves only its own
-partitions move (each to the member ranked next for it), and when one joins only the partitions it
-now ranks highest for move, all to it. Grafana Mimir's hash ring gives the same guarantees with
-tokens on a circle; with a few members and tens of partitions the direct ranking is as cheap
-(``partitions * members`` hashes) and needs no tokens.
+Every (member, partition) pair has a :func:`score`, a stable hash of both. :func:`assignment` walks
+the pairs from the highest score down and gives each partition to the first member it meets that
+has room, a member's room being ``ceil(P / N)`` partitions of the ``P`` among ``N`` members (the
+greedy matching of consistent hashing with bounded loads, Mirrokni, Thorup and Zadimoghaddam 2018,
+on rendezvous scores). Every member computes the same answer from the same set of live members,
+with no coordination beyond agreeing on that set.
 
-Balance is that of throwing each partition to a uniformly random member: the loads follow a
-multinomial distribution. With 16 partitions and 3 members a member owns 5.3 on average, and the
-busiest owns 9 or more for about one set of three names in seven (15 %) and 10 or more for one in
-twenty (``tests/test_cluster_ring.py`` checks these figures); more partitions even the loads out.
+Balance: no member owns more than ``ceil(P / N)``, so with the default 256 partitions the loads at 3
+to 10 members are within 16 % of the mean (3 members: 84 to 86; 9: 24 to 29; 10: 22 to 26;
+``tests/test_cluster_ring.py``).
+Plain rendezvous hashing (this module before issue 34) throws each partition to a random member:
+with 16 partitions one member of three owned 9 or more for one set of names in seven, and even 256
+partitions leave a member of ten 20 % above the mean for most sets of names.
+
+Moves: when a member leaves, its partitions go to the others, and the others' room grows, so some
+partitions also move between the others (a partition whose higher-ranked member was full before now
+fits there); a member joining takes its partitions from the others, with such moves too. Each move
+costs the partition's buffer read again by its new owner. With 256 partitions, over 30 random sets of
+names, these extra moves were on average 5 % (3 members) to 29 % (10 members) of the partitions of
+the member that left or joined, at worst 54 % (``python -m bench.bench_ring``). Loosening the room to
+``ceil(1.1 P / N)`` halves them but lets a member of ten fall to 14 partitions, 45 % below the mean.
+
+Streams are spread over partitions by a hash of their id (``protocols.nats.partition_of``), so the
+streams per worker balance as the streams' hashes do: evenly with many streams per worker, within
+±20 % only from about 100 streams per worker (docs/cluster.md, "Partitions").
 
 Pure: no I/O, no clock, no randomness; the hash is BLAKE2b, never Python's per-process salted
 ``hash()``, so every process ranks alike.
@@ -37,33 +50,31 @@ def score(member: str, partition: int) -> int:
     return int.from_bytes(digest, "big")
 
 
-def owner(partition: int, members: Iterable[str]) -> str | None:
-    """The member ranked highest for ``partition`` (equal scores: the smallest name); None if there
-    are no members."""
-    best: str | None = None
-    best_score = -1
-    for member in members:
-        s = score(member, partition)
-        if s > best_score or (s == best_score and best is not None and member < best):
-            best, best_score = member, s
-    return best
-
-
 def _check(partitions: int) -> None:
     if partitions < 0:
         raise InputError(f"partitions must be 0 or more, got {partitions}")
 
 
+def room(members: int, partitions: int) -> int:
+    """The most partitions one of ``members`` live members may own: ``ceil(partitions / members)``."""
+    return -(-partitions // members) if members else 0
+
+
 def assignment(members: Iterable[str], partitions: int) -> dict[str, frozenset[int]]:
     """Every member (duplicates once) with the partitions of ``0 .. partitions-1`` it owns, maybe
-    none."""
+    none (module docstring; equal scores: the smaller name first, then the smaller partition)."""
     _check(partitions)
     live = sorted(set(members))
     owned: dict[str, set[int]] = {m: set() for m in live}
-    for p in range(partitions):
-        best = owner(p, live)
-        if best is not None:
-            owned[best].add(p)
+    most = room(len(live), partitions)
+    pairs = sorted((-score(m, p), m, p) for m in live for p in range(partitions))
+    taken: set[int] = set()
+    for _, m, p in pairs:
+        if p not in taken and len(owned[m]) < most:
+            taken.add(p)
+            owned[m].add(p)
+            if len(taken) == partitions:
+                break
     return {m: frozenset(ps) for m, ps in owned.items()}
 
 
@@ -74,4 +85,4 @@ def owned(member: str, members: Iterable[str], partitions: int) -> frozenset[int
     live = set(members)
     if member not in live:
         return frozenset()
-    return frozenset(p for p in range(partitions) if owner(p, live) == member)
+    return assignment(live, partitions)[member]
