@@ -31,7 +31,7 @@ from daemon.types import (
     RecognitionMode,
     RecognitionSettings,
 )
-from protocols.urls import check_zmq_endpoint, parse_etcd_url, parse_mqtt_url
+from protocols.urls import check_zmq_endpoint, parse_etcd_urls, parse_mqtt_url
 
 Units = Literal["asf", "cm"]
 LogLevel = Literal["debug", "info", "warning", "error"]
@@ -472,10 +472,13 @@ def _cross_checks(check: Checker, config: Config) -> None:
         check.fail("cluster.nats", f"must be nats://HOST:PORT (a port in 1..65535), got {cluster.nats!r:.70}")
     clustered = "cluster" in config.service.sources + config.service.sinks
     if (cluster.coordinator or clustered) and not re.fullmatch(r"etcd://[^/\s]+", cluster.coordinator):
-        check.fail("cluster.coordinator", f"must be etcd://HOST[:PORT], got {cluster.coordinator!r:.70}")
+        check.fail(
+            "cluster.coordinator",
+            f"must be etcd://HOST[:PORT][,HOST[:PORT]...], got {cluster.coordinator!r:.70}",
+        )
     if cluster.coordinator:
         try:
-            parse_etcd_url(cluster.coordinator)
+            parse_etcd_urls(cluster.coordinator)
         except InputError as e:
             check.fail("cluster.coordinator", str(e))
     if cluster.member and not INSTANCE.fullmatch(cluster.member):

@@ -53,6 +53,25 @@ def parse_etcd_url(url: str) -> tuple[str, int]:
     return parts.hostname, _port(parts, what, url) or 2379
 
 
+def parse_etcd_urls(text: str) -> list[tuple[str, int]]:
+    """The (host, port) of each member of the coordinator ``etcd://host[:port][,host[:port]...]``
+    (each may also be written ``etcd://host:port``), in the order given, duplicates once;
+    InputError naming the one that is not an etcd address."""
+    what = "an etcd coordinator is etcd://HOST[:PORT][,HOST[:PORT]...]"
+    if not text.startswith("etcd://"):
+        raise InputError(f"{what}, got {text!r}")
+    out: list[tuple[str, int]] = []
+    for piece in text.removeprefix("etcd://").split(","):
+        one = piece if piece.startswith("etcd://") else f"etcd://{piece}"
+        try:
+            address = parse_etcd_url(one)
+        except InputError:
+            raise InputError(f"{what}, got {text!r} (its member {piece!r})") from None
+        if address not in out:
+            out.append(address)
+    return out
+
+
 def split_endpoint(endpoint: str) -> tuple[str, bool]:
     """A ZeroMQ endpoint setting: ``"connect tcp://h:p"`` → (``"tcp://h:p"``, False); a bare endpoint
     binds."""

@@ -16,6 +16,7 @@ import subprocess
 import sys
 import time
 from collections.abc import Callable
+from pathlib import Path
 
 import pytest
 
@@ -23,7 +24,7 @@ from bench.processes import free_port
 from daemon.errors import InputError
 from daemon.service.membership import STARTUP_S, Membership, cluster_status
 from protocols.transport import StartupError
-from tests.etcd_server import Etcd
+from tests.etcd_server import Etcd, EtcdCluster
 from tests.helpers import REPO
 
 SEEN_S = 0.5
@@ -302,3 +303,38 @@ async def test_a_worker_busy_computing_keeps_its_lease_and_its_place(etcd: Etcd)
         await asyncio.sleep(0.05)
         assert seen == [{"busy"}]  # no flap: never fenced, never dropped its partitions
     follower.cancel()
+
+
+@pytest.mark.slow
+async def test_a_killed_etcd_member_costs_no_worker_its_lease(tmp_path: Path) -> None:
+    """The shipped three-member etcd cluster (``deploy/etcd/cluster``), a member given all three and
+    talking to the first: the first killed (kill -9), the member moves to another endpoint with its
+    lease, so it is never out and the others never see it go; what happens after (a join) it sees."""
+    cluster = await asyncio.to_thread(EtcdCluster(tmp_path).start)
+    try:
+        _, *rest = cluster.url.removeprefix("etcd://").split(",")
+        async with Membership(cluster.url, "w") as w, Membership(f"etcd://{','.join(rest)}", "o") as o:
+            seen: list[frozenset[str]] = []
+            states: list[str] = []
+            follower = asyncio.create_task(_follow_states(w, seen, states), name="follow w")
+            await until(lambda: o.members == {"w", "o"} and seen == [{"w", "o"}], 5, "both")
+            watched: list[frozenset[str]] = []
+
+            async def watch_o() -> None:
+                while True:
+                    watched.append(o.members)
+                    await asyncio.sleep(0.005)
+
+            watcher = asyncio.create_task(watch_o(), name="watch o")
+            lease = w._lease.id
+            await asyncio.to_thread(cluster.members[0].kill)
+            await asyncio.sleep(3 * w.lease_ttl)
+            assert "out" not in states, states
+            assert w._lease.id == lease and w.problem is None
+            assert all("w" in m for m in watched)
+            async with Membership(f"etcd://{rest[0]}", "late"):
+                await until(lambda: w.members == {"w", "o", "late"}, 5, "w to see a join after the kill")
+            watcher.cancel()
+            follower.cancel()
+    finally:
+        await asyncio.to_thread(cluster.stop)

@@ -34,7 +34,7 @@ from daemon.service.streams import Refused
 from daemon.types import RecognitionSettings
 from protocols.messages import WireError
 from protocols.transport import StartupError
-from protocols.urls import parse_etcd_url, parse_mqtt_url
+from protocols.urls import parse_etcd_url, parse_etcd_urls, parse_mqtt_url
 from replay import AmcFrame, MocapFormatError, Motion, Skeleton, iter_amc, read_amc, read_asf
 from tests.helpers import DATA
 
@@ -640,6 +640,8 @@ def test_refusals_keep_their_reason_codes_and_sentences() -> None:
         (lambda: parse_mqtt_url("http://h"), "mqtt://"),
         (lambda: parse_etcd_url("http://h:2379"), "etcd://"),
         (lambda: parse_etcd_url("etcd://h:port"), "etcd://"),
+        (lambda: parse_etcd_urls("etcd://a:1,b:port"), "its member 'b:port'"),
+        (lambda: parse_etcd_urls("a:1,b:2"), "etcd://"),
         (lambda: assignment(["a"], -1), "partitions"),
         (lambda: joint_order(["root"]), "must include"),
         (lambda: FrameClock.of(0.0, 30.0), "native rate"),
@@ -654,3 +656,7 @@ def test_what_a_pure_module_refuses_of_its_input_is_a_user_error(
     caller completes with where the value came from."""
     with pytest.raises(InputError, match=says):
         call()
+
+
+def test_a_coordinator_names_its_members_in_order_each_once() -> None:
+    assert parse_etcd_urls("etcd://a:1,b,etcd://c:3,a:1") == [("a", 1), ("b", 2379), ("c", 3)]

@@ -43,9 +43,13 @@ worker busy with its work would miss keep-alives and fence itself, throwing its 
 Python switches threads at least every 5 ms, so a keep-alive is late by that at most while the
 worker computes. The worker's loop is told of changes (:meth:`Membership.changes`) thread-safely.
 
-etcd's client is ``aetcd`` (asyncio, gRPC; its public API: ``Client``, leases, ``get_prefix``,
-``transaction``, ``watch_prefix``). :func:`cluster_status` reads the members, their reported statuses
-and their leases' TTLs left, for ``mocapd cluster status``.
+etcd's client is ``aetcd`` (asyncio, gRPC; its public API: ``Client``, ``leases.Lease``,
+``get_prefix``, ``transaction``, ``watch_prefix``). It talks to one endpoint; ``cluster.coordinator``
+may name several members of an etcd cluster (``etcd://h1:2379,h2:2379,h3:2379``): the membership
+starts with the first that answers and moves to the next when a keep-alive or the watch fails,
+carrying the lease over (a lease is the etcd cluster's, not a member's), so a killed etcd member
+costs a worker one retry (:data:`RETRY_S`), not its lease. :func:`cluster_status` reads the
+members, their reported statuses and their leases' TTLs left, for ``mocapd cluster status``.
 """
 
 from __future__ import annotations
@@ -67,7 +71,7 @@ import aetcd
 
 from daemon.errors import InputError
 from protocols.transport import StartupError
-from protocols.urls import parse_etcd_url
+from protocols.urls import parse_etcd_urls
 
 FIELD = "cluster.coordinator"
 """The configuration field every failure to reach or join etcd names."""
@@ -79,13 +83,14 @@ RETRY_S = 0.2
 """How soon a failed keep-alive or a broken watch is tried again (at most a third of a TTL)."""
 
 
-def _address(coordinator: str) -> tuple[str, int]:
-    """(host, port) of ``etcd://HOST:PORT``, the host bracketed for gRPC if it is IPv6."""
+def _addresses(coordinator: str) -> list[tuple[str, int]]:
+    """(host, port) of each member of ``etcd://HOST:PORT[,HOST:PORT...]``, the host bracketed for
+    gRPC if it is IPv6."""
     try:
-        host, port = parse_etcd_url(coordinator)
+        members = parse_etcd_urls(coordinator)
     except InputError as exc:
         raise StartupError(FIELD, exc.reason) from None
-    return (f"[{host}]" if ":" in host else host), port
+    return [((f"[{host}]" if ":" in host else host), port) for host, port in members]
 
 
 async def _finish_tasks() -> None:
@@ -98,9 +103,21 @@ async def _finish_tasks() -> None:
     await asyncio.get_running_loop().shutdown_asyncgens()
 
 
+def _reraise_if_cancelled(exc: BaseException) -> None:
+    """Re-raise ``exc`` if it is the running task's own cancellation. gRPC raises CancelledError in
+    a call whose channel was closed under it (the other task moved to another endpoint): that is a
+    failed call, and let through it would end the keep-alive or the watch for good, silently (a
+    TaskGroup does not count a cancelled child as failed)."""
+    task = asyncio.current_task()
+    if isinstance(exc, asyncio.CancelledError) and (task is None or task.cancelling()):
+        raise exc
+
+
 def _why(exc: BaseException) -> str:
     if isinstance(exc, TimeoutError):
         return "no answer in time"
+    if isinstance(exc, asyncio.CancelledError):
+        return "its connection was closed"
     return str(exc) or type(exc).__name__
 
 
@@ -114,7 +131,8 @@ class Membership:
         self, coordinator: str, member: str, *, lease_s: float = 2.0, prefix: str = "/mocapd/"
     ) -> None:
         self.coordinator = coordinator
-        self.host, self.port = _address(coordinator)
+        self.endpoints = _addresses(coordinator)
+        self._at = 0  # the endpoint the client talks to
         if not member:
             raise InputError("a member name must not be empty")
         if not (math.isfinite(lease_s) and lease_s > 0):
@@ -280,26 +298,47 @@ class Membership:
         return self
 
     async def _enter(self) -> None:
-        """:meth:`__aenter__` on the membership's loop."""
-        self._client = aetcd.Client(self.host, self.port)
-        try:
-            async with asyncio.timeout(STARTUP_S):
-                if not await self._join():
-                    raise StartupError(
-                        FIELD,
-                        f"a member named {self.member!r} is already live at {self.coordinator} "
-                        f"(its key {self._key.decode()} is held by another worker's lease)",
-                    )
-                await self._list_and_watch()
-        except (aetcd.ClientError, TimeoutError, OSError) as exc:
-            await self._close()
-            raise StartupError(
-                FIELD, f"cannot join through etcd at {self.coordinator}: {_why(exc)}"
-            ) from None
-        except BaseException:
-            await self._close()
-            raise
+        """:meth:`__aenter__` on the membership's loop: each endpoint in turn, for its share of
+        :data:`STARTUP_S`."""
+        why = ""
+        for k in range(len(self.endpoints)):
+            self._at = k
+            self._client = aetcd.Client(*self.endpoints[k])
+            try:
+                async with asyncio.timeout(STARTUP_S / len(self.endpoints)):
+                    if not await self._join():
+                        raise StartupError(
+                            FIELD,
+                            f"a member named {self.member!r} is already live at {self.coordinator} "
+                            f"(its key {self._key.decode()} is held by another worker's lease)",
+                        )
+                    await self._list_and_watch()
+                break
+            except (aetcd.ClientError, TimeoutError, OSError) as exc:
+                await self._close()
+                why = _why(exc)
+            except BaseException:
+                await self._close()
+                raise
+        else:
+            raise StartupError(FIELD, f"cannot join through etcd at {self.coordinator}: {why}")
         self._runner = asyncio.create_task(self._run(), name=f"membership {self.member}")
+
+    async def _switch(self, failed: Any) -> None:
+        """The client ``failed`` (a keep-alive or the watch did not get through): talk to the next
+        endpoint, the lease and the watch carried over (once, whichever task noticed first)."""
+        if failed is not self._client or len(self.endpoints) == 1:
+            return
+        self._at = (self._at + 1) % len(self.endpoints)
+        self._client = aetcd.Client(*self.endpoints[self._at])
+        if self._lease is not None:
+            self._lease = aetcd.leases.Lease(self._lease.id, self._lease.ttl, self._client)
+        self._watch = None
+        try:
+            async with asyncio.timeout(LEAVE_S):
+                await failed.close()
+        except (aetcd.ClientError, TimeoutError, OSError, asyncio.CancelledError) as exc:
+            _reraise_if_cancelled(exc)
 
     async def __aexit__(
         self, kind: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
@@ -384,6 +423,7 @@ class Membership:
             await asyncio.sleep(max(0.0, self._next_keep - time.monotonic()))
             sent = time.monotonic()
             answered = False
+            client = self._client
             try:
                 async with asyncio.timeout(self.interval):
                     gone = self._watch_problem is None and self.member not in self._seen
@@ -399,8 +439,10 @@ class Membership:
                             self._fence_at = self._expires_at = 0.0
                 if answered:
                     self._kept(sent)
-            except (aetcd.ClientError, TimeoutError, OSError) as exc:
+            except (aetcd.ClientError, TimeoutError, OSError, asyncio.CancelledError) as exc:
+                _reraise_if_cancelled(exc)
                 self._lease_problem = f"keep-alive to etcd at {self.coordinator} failed: {_why(exc)}"
+                await self._switch(client)
             if not answered:
                 self._next_keep = time.monotonic() + min(RETRY_S, self.interval)
             # changes() looks again after every keep-alive, answered or not: the problem may have
@@ -423,6 +465,7 @@ class Membership:
     async def _follow(self) -> None:
         """Apply the watch's events to the members seen; list and watch again when it breaks."""
         while True:
+            client = self._client
             try:
                 if self._watch is None:
                     async with asyncio.timeout(max(self.interval, RETRY_S)):
@@ -435,10 +478,12 @@ class Membership:
                         self._seen[name] = event.kv.lease
                     self._notify()
                 self._watch_problem = "the watch of etcd's members ended (watching again)"
-            except (aetcd.ClientError, TimeoutError, OSError) as exc:
+            except (aetcd.ClientError, TimeoutError, OSError, asyncio.CancelledError) as exc:
+                _reraise_if_cancelled(exc)
                 self._watch_problem = (
                     f"watching the members in etcd at {self.coordinator} failed: {_why(exc)}"
                 )
+                await self._switch(client)
             if self._watch_broken_at is None:
                 self._watch_broken_at = time.monotonic()
             self._watch = None
@@ -516,31 +561,37 @@ def read_cluster(coordinator: str, prefix: str = "/mocapd/") -> ClusterStatus:
 async def cluster_status(coordinator: str, prefix: str = "/mocapd/") -> ClusterStatus:
     """The live members at ``coordinator``, their reported statuses and their leases' TTLs left;
     StartupError naming ``cluster.coordinator`` if etcd does not answer within :data:`STARTUP_S`."""
-    host, port = _address(coordinator)
+    endpoints = _addresses(coordinator)
     members_prefix, status_prefix = f"{prefix}members/".encode(), f"{prefix}status/".encode()
-    client = aetcd.Client(host, port)
-    try:
-        async with asyncio.timeout(STARTUP_S):
-            listing = await client.get_prefix(members_prefix)
-            statuses = {
-                bytes(kv.key)[len(status_prefix) :].decode(errors="replace"): _json_object(kv.value)
-                for kv in await client.get_prefix(status_prefix)
-            }
-            members = []
-            for kv in listing:
-                name = bytes(kv.key)[len(members_prefix) :].decode(errors="replace")
-                left = (await client.get_lease_info(kv.lease, keys=False)).TTL if kv.lease else -1
-                members.append(
-                    MemberStatus(
-                        name, statuses.get(name), left if left >= 0 else None, _json_object(kv.value) or {}
+    why = ""
+    for endpoint in endpoints:
+        client = aetcd.Client(*endpoint)
+        try:
+            async with asyncio.timeout(STARTUP_S / len(endpoints)):
+                listing = await client.get_prefix(members_prefix)
+                statuses = {
+                    bytes(kv.key)[len(status_prefix) :].decode(errors="replace"): _json_object(kv.value)
+                    for kv in await client.get_prefix(status_prefix)
+                }
+                members = []
+                for kv in listing:
+                    name = bytes(kv.key)[len(members_prefix) :].decode(errors="replace")
+                    left = (await client.get_lease_info(kv.lease, keys=False)).TTL if kv.lease else -1
+                    members.append(
+                        MemberStatus(
+                            name,
+                            statuses.get(name),
+                            left if left >= 0 else None,
+                            _json_object(kv.value) or {},
+                        )
                     )
-                )
-    except (aetcd.ClientError, TimeoutError, OSError) as exc:
-        raise StartupError(
-            FIELD, f"cannot read the cluster from etcd at {coordinator}: {_why(exc)}"
-        ) from None
-    finally:
-        with contextlib.suppress(aetcd.ClientError, TimeoutError, OSError):
-            async with asyncio.timeout(LEAVE_S):
-                await client.close()
+            break
+        except (aetcd.ClientError, TimeoutError, OSError) as exc:
+            why = _why(exc)
+        finally:
+            with contextlib.suppress(aetcd.ClientError, TimeoutError, OSError):
+                async with asyncio.timeout(LEAVE_S):
+                    await client.close()
+    else:
+        raise StartupError(FIELD, f"cannot read the cluster from etcd at {coordinator}: {why}")
     return ClusterStatus(coordinator, prefix, tuple(sorted(members, key=lambda m: m.name)))
