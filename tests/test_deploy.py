@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from tests.etcd_server import CONFIG, Etcd
+from tests.etcd_server import CLUSTER, CONFIG, Etcd, EtcdCluster
 from tests.helpers import REPO
 
 DEPLOY = REPO / "deploy"
@@ -42,6 +42,42 @@ def test_the_tests_run_the_shipped_etcd_config_changing_only_addresses_and_paths
         "log-outputs",
     }
     assert shipped["listen-client-urls"] == "http://127.0.0.1:2379"  # what README and the unit say
+
+
+ADDRESSES = {
+    "data-dir",
+    "listen-client-urls",
+    "advertise-client-urls",
+    "listen-peer-urls",
+    "initial-advertise-peer-urls",
+    "log-outputs",
+}
+
+
+def test_the_three_member_etcd_is_the_one_member_config_but_for_names_and_addresses(tmp_path: Path) -> None:
+    """The cluster's members are the single config's settings (timing, compaction, quota) with only
+    the name, the addresses and the initial cluster differing; the tests change only addresses and
+    paths of them."""
+    single = yaml.safe_load(CONFIG.read_text(encoding="utf-8"))
+    members = [yaml.safe_load(c.read_text(encoding="utf-8")) for c in CLUSTER]
+    peers = ",".join(f"{m['name']}={m['initial-advertise-peer-urls']}" for m in members)
+    for m in members:
+        assert m["initial-cluster"] == peers
+        differ = {k for k in single.keys() | m.keys() if single.get(k) != m.get(k)}
+        assert (
+            {"name", "initial-cluster"}
+            <= differ
+            <= (ADDRESSES - {"log-outputs"}) | {"name", "initial-cluster"}
+        )
+    cluster = EtcdCluster(tmp_path)
+    for k, member in enumerate(cluster.members):
+        member.client_port, member.peer_port = 30000 + k, 31000 + k
+    for member, shipped in zip(cluster.members, members, strict=True):
+        tested = member.settings()
+        assert {k for k in shipped.keys() | tested.keys() if shipped.get(k) != tested.get(k)} == ADDRESSES | {
+            "initial-cluster"
+        }
+    assert cluster.url == "etcd://127.0.0.1:30000,127.0.0.1:30001,127.0.0.1:30002"
 
 
 def test_the_etcd_unit_runs_the_config_it_is_installed_with() -> None:
