@@ -147,6 +147,7 @@ class Membership:
         self._status_key = f"{prefix}status/{member}".encode()
         self._client: Any = None
         self._lease: Any = None
+        self._lease_dead = False  # etcd said the lease expired
         self._seen: dict[str, int] = {}  # member -> its lease id, as the watch last said
         self._fence_at = 0.0  # monotonic: the member owns nothing from then on, unless kept alive
         self._expires_at = 0.0  # monotonic: the earliest the lease may expire at etcd
@@ -389,6 +390,7 @@ class Membership:
                 await lease.revoke()
             return False
         self._lease = lease
+        self._lease_dead = False
         self.lease_ttl = int(lease.ttl)
         self._kept(sent)
         self._seen[self.member] = lease.id
@@ -427,7 +429,11 @@ class Membership:
             try:
                 async with asyncio.timeout(self.interval):
                     gone = self._watch_problem is None and self.member not in self._seen
-                    if sent >= self._expires_at or self._lease is None or gone:
+                    # past the TTL the lease is asked about, not given up: an election (a killed
+                    # etcd leader) delays answers, and etcd extends every lease when it has a leader
+                    # again, so the old lease may well be alive (joining again would find the
+                    # member's key held by it)
+                    if self._lease is None or self._lease_dead or gone:
                         answered = await self._rejoin()
                     else:
                         reply = await self._lease.refresh()
@@ -437,6 +443,7 @@ class Membership:
                         if not answered:
                             self._lease_problem = f"etcd says the lease of {self.member!r} expired"
                             self._fence_at = self._expires_at = 0.0
+                            self._lease_dead = True
                 if answered:
                     self._kept(sent)
             except (aetcd.ClientError, TimeoutError, OSError, asyncio.CancelledError) as exc:
