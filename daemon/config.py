@@ -31,7 +31,7 @@ from daemon.types import (
     RecognitionMode,
     RecognitionSettings,
 )
-from protocols.urls import check_zmq_endpoint, parse_etcd_urls, parse_mqtt_url
+from protocols.urls import check_zmq_endpoint, parse_etcd_urls, parse_mqtt_url, parse_nats_urls
 
 Units = Literal["asf", "cm"]
 LogLevel = Literal["debug", "info", "warning", "error"]
@@ -182,6 +182,7 @@ class ClusterConfig:
     coordinator: str = ""
     partitions: int = field(default=256, metadata=_range(1, 1024))
     lease_s: float = field(default=2.0, metadata=_range(0.5, 60))
+    replicas: int = field(default=1, metadata=_range(1, 5))
     buffer_s: float = field(default=0.0, metadata=_range(0, 3600))
     member: str = ""
 
@@ -467,9 +468,10 @@ def _cross_checks(check: Checker, config: Config) -> None:
     if config.mqtt.reconnect_min_s > config.mqtt.reconnect_max_s:
         check.fail("mqtt.reconnect_min_s", "must not exceed mqtt.reconnect_max_s")
     cluster = config.cluster
-    nats = re.fullmatch(r"nats://[^/\s]+:(\d+)", cluster.nats)
-    if nats is None or not 1 <= int(nats[1]) <= 65535:
-        check.fail("cluster.nats", f"must be nats://HOST:PORT (a port in 1..65535), got {cluster.nats!r:.70}")
+    try:
+        parse_nats_urls(cluster.nats)
+    except InputError as e:
+        check.fail("cluster.nats", str(e))
     clustered = "cluster" in config.service.sources + config.service.sinks
     if (cluster.coordinator or clustered) and not re.fullmatch(r"etcd://[^/\s]+", cluster.coordinator):
         check.fail(

@@ -26,7 +26,7 @@ import collections
 import contextlib
 import json
 import logging
-from collections.abc import Awaitable, Callable
+from collections.abc import Awaitable, Callable, Sequence
 from dataclasses import dataclass
 from types import TracebackType
 from urllib.parse import unquote, urlsplit
@@ -87,18 +87,23 @@ Handler = Callable[[Delivery], Awaitable[None]]
 
 class Reader:
     """Subscriptions on a NATS server of their own (module docstring), entered with
-    :meth:`start`, left with :meth:`close`; ``url``: ``nats://[user:password@|token@]host:port``."""
+    :meth:`start`, left with :meth:`close`; ``url``: ``nats://[user:password@|token@]host:port``, or
+    several servers of one NATS cluster: the first that answers, then, whenever the connection is
+    lost, the next in turn (the subscriptions are made again there: the cluster routes a consumer's
+    deliveries to whichever server its subscriber is on)."""
 
-    def __init__(self, url: str, name: str) -> None:
-        parts = urlsplit(url)
-        self.host = parts.hostname or "127.0.0.1"
-        self.port = parts.port or 4222
+    def __init__(self, url: str | Sequence[str], name: str) -> None:
+        self.servers: list[tuple[str, int, dict[str, str]]] = []
+        for one in [url] if isinstance(url, str) else url:
+            parts = urlsplit(one)
+            auth: dict[str, str] = {}
+            if parts.username and parts.password is not None:
+                auth = {"user": unquote(parts.username), "pass": unquote(parts.password)}
+            elif parts.username:
+                auth = {"auth_token": unquote(parts.username)}
+            self.servers.append((parts.hostname or "127.0.0.1", parts.port or 4222, auth))
+        self._at = 0  # the server connected to, or tried next
         self.name = name
-        self._auth: dict[str, str] = {}
-        if parts.username and parts.password is not None:
-            self._auth = {"user": unquote(parts.username), "pass": unquote(parts.password)}
-        elif parts.username:
-            self._auth = {"auth_token": unquote(parts.username)}
         self._subs: dict[int, tuple[bytes, Handler]] = {}
         self._sid = 0
         self._writer: asyncio.StreamWriter | None = None
@@ -114,8 +119,18 @@ class Reader:
     async def start(self, timeout: float = CONNECT_S) -> Reader:
         """Connect (OSError, TimeoutError or :class:`ProtocolError` if the server cannot be reached
         or refuses), then read until :meth:`close`."""
-        async with asyncio.timeout(timeout):
-            reader, writer = await self._open()
+        failure: BaseException | None = None
+        for _ in self.servers:
+            try:
+                async with asyncio.timeout(timeout / len(self.servers)):
+                    reader, writer = await self._open()
+                break
+            except (OSError, TimeoutError, ProtocolError) as e:
+                failure = e
+                self._at = (self._at + 1) % len(self.servers)
+        else:
+            assert failure is not None
+            raise failure
         self._task = asyncio.create_task(self._run(reader, writer), name="cluster deliveries")
         return self
 
@@ -165,7 +180,8 @@ class Reader:
         ConnectionError if not connected, TimeoutError after ``timeout``."""
         writer = self._writer
         if writer is None:
-            raise ConnectionError(f"not connected to NATS at {self.host}:{self.port}")
+            host, port, _ = self.servers[self._at]
+            raise ConnectionError(f"not connected to NATS at {host}:{port}")
         pong: asyncio.Future[None] = asyncio.get_running_loop().create_future()
         self._pongs.append(pong)
         writer.write(b"PING\r\n")
@@ -176,7 +192,8 @@ class Reader:
     # ------------------------------------------------------------------------------ connection
 
     async def _open(self) -> tuple[asyncio.StreamReader, asyncio.StreamWriter]:
-        reader, writer = await asyncio.open_connection(self.host, self.port, limit=LINE_LIMIT)
+        host, port, auth = self.servers[self._at]
+        reader, writer = await asyncio.open_connection(host, port, limit=LINE_LIMIT)
         try:
             line = await reader.readuntil(b"\r\n")
             if not line.startswith(b"INFO "):
@@ -193,7 +210,7 @@ class Reader:
                 "protocol": 1,
                 "headers": True,
                 "no_responders": True,
-                **self._auth,
+                **auth,
             }
             writer.write(b"CONNECT %s\r\n" % json.dumps(connect).encode())
             for sid, (subject, _) in self._subs.items():
@@ -244,7 +261,9 @@ class Reader:
                     break
                 except (OSError, EOFError, ValueError, ProtocolError, asyncio.LimitOverrunError) as e:
                     self.problem = f"{why}; reconnecting: {type(e).__name__}: {e}"[:300]
-                    backoff = min(2 * backoff, RECONNECT_MAX_S)
+                    self._at = (self._at + 1) % len(self.servers)
+                    if self._at == 0:  # every server tried once: wait longer
+                        backoff = min(2 * backoff, RECONNECT_MAX_S)
             self.reconnects += 1
             log.info("deliveries reconnected", extra={"fields": {"subscriptions": len(self._subs)}})
 

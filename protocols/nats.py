@@ -61,6 +61,7 @@ from nats.js.errors import Error as JetStreamError
 
 from protocols.deliveries import Delivery, ProtocolError, Reader
 from protocols.transport import Incoming, Outgoing, StartupError, Throttle
+from protocols.urls import parse_nats_urls
 
 if TYPE_CHECKING:
     from nats.js.client import JetStreamContext
@@ -222,11 +223,13 @@ class NatsTransport:
 
     async def __aenter__(self) -> NatsTransport:
         url = self.settings.nats
+        servers = parse_nats_urls(url)
         nc = NATS()
         try:
             async with asyncio.timeout(STARTUP_S):  # the client itself would try for ever
                 await nc.connect(
-                    url,
+                    servers,
+                    dont_randomize=True,  # in the order given, as the deliveries' reader
                     name=self.instance,
                     connect_timeout=2,
                     max_reconnect_attempts=-1,
@@ -255,7 +258,7 @@ class NatsTransport:
         except (NatsError, TimeoutError) as e:
             await nc.close()
             raise StartupError("cluster.nats", f"{url}: JetStream unavailable or refused: {e}") from None
-        self._reader = Reader(url, name=f"{self.instance} deliveries")
+        self._reader = Reader(servers, name=f"{self.instance} deliveries")
         try:
             await self._reader.start(STARTUP_S)
         except (OSError, ValueError, ProtocolError) as e:
@@ -370,7 +373,7 @@ class NatsTransport:
                 storage=StorageType.MEMORY,
                 discard=DiscardPolicy.OLD,
                 max_age=self.buffer_s,
-                num_replicas=1,
+                num_replicas=self.settings.replicas,
             )
             for p in range(self.settings.partitions)
         ]
@@ -384,7 +387,7 @@ class NatsTransport:
                 discard=DiscardPolicy.OLD,
                 max_age=window,
                 duplicate_window=window,
-                num_replicas=1,
+                num_replicas=self.settings.replicas,
             )
         )
         for config in configs:

@@ -53,6 +53,25 @@ def parse_etcd_url(url: str) -> tuple[str, int]:
     return parts.hostname, _port(parts, what, url) or 2379
 
 
+def parse_nats_urls(text: str) -> list[str]:
+    """The servers of ``cluster.nats``: ``nats://HOST:PORT`` or several of one NATS cluster,
+    ``nats://HOST:PORT,nats://HOST:PORT`` (or ``nats://HOST:PORT,HOST:PORT``), each as
+    ``nats://HOST:PORT``, in the order given, duplicates once; InputError naming the one that is not
+    such an address."""
+    what = "must be nats://HOST:PORT[,nats://HOST:PORT...] (a port in 1..65535)"
+    out: list[str] = []
+    for piece in text.split(","):
+        one = piece if piece.startswith("nats://") else f"nats://{piece}"
+        match = re.fullmatch(r"nats://[^/\s,]+:(\d+)", one)
+        if match is None or not 1 <= int(match[1]) <= 65535 or not text.startswith("nats://"):
+            raise InputError(
+                f"{what}, got {text!r:.70}" + (f" (its server {piece!r})" if "," in text else "")
+            )
+        if one not in out:
+            out.append(one)
+    return out
+
+
 def parse_etcd_urls(text: str) -> list[tuple[str, int]]:
     """The (host, port) of each member of the coordinator ``etcd://host[:port][,host[:port]...]``
     (each may also be written ``etcd://host:port``), in the order given, duplicates once;

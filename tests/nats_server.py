@@ -45,22 +45,31 @@ def partitions() -> int:
 
 class NatsServer(ServerProcess):
     """One nats-server on free loopback ports (client, MQTT, monitoring), its JetStream directory and
-    log in ``where``."""
+    log in ``where``; from ``config`` (the shipped single server's by default, or a member of the
+    shipped cluster with ``routes``: the cluster ports of all members, this one's first)."""
 
-    def __init__(self, where: Path) -> None:
+    def __init__(self, where: Path, config: Path = CONFIG, routes: list[int] | None = None) -> None:
         self.where = where
         self.port = free_port()
         self.mqtt_port = free_port()
         self.http_port = free_port()
         self.config = where / "nats.conf"
         self.log = where / "nats.log"
-        text = CONFIG.read_text(encoding="utf-8")
+        text = config.read_text(encoding="utf-8")
         text = _replaced(text, r"^port: \d+$", f"port: {self.port}")
         text = _replaced(text, r"^http: .*$", f"http: 127.0.0.1:{self.http_port}")
         text = _replaced(text, r"^  store_dir: .*$", f"  store_dir: {where / 'jetstream'}")
-        text = _replaced(text, r"^  port: 1883$", f"  port: {self.mqtt_port}")
+        text = _replaced(text, r"^  port: 18\d\d$", f"  port: {self.mqtt_port}")
+        if routes is not None:
+            text = _replaced(text, r"^  port: 62\d\d$", f"  port: {routes[0]}")
+            for k, route in enumerate(sorted(routes)):  # the shipped routes: 6222, 6223, 6224
+                text = _replaced(
+                    text, rf"^    nats-route://127.0.0.1:{6222 + k}$", f"    nats-route://127.0.0.1:{route}"
+                )
         self.config.write_text(text, encoding="utf-8")
-        shutil.copyfile(MAPPINGS, where / MAPPINGS.name)
+        include = re.search(r"^include (\S+)$", text, flags=re.M)
+        assert include is not None, f"{config.name} includes no mappings"
+        shutil.copyfile(MAPPINGS, (where / include[1]).resolve())
         self.process: subprocess.Popen[bytes] | None = None
 
     @property
@@ -87,3 +96,50 @@ class NatsServer(ServerProcess):
 
         wait_for(ready, START_S, "nats-server")
         return self
+
+
+CLUSTER = tuple(CONFIG.parent / "cluster" / f"nats-{i}.conf" for i in (1, 2, 3))
+"""The shipped three-server cluster's configs."""
+
+
+class NatsCluster:
+    """The shipped three-server NATS cluster (``deploy/nats/cluster``) on free loopback ports, each
+    server in ``where/nats-<i>``; :attr:`url` names all three as ``cluster.nats`` takes them."""
+
+    def __init__(self, where: Path, partitions: int | None = None) -> None:
+        routes = [free_port() for _ in CLUSTER]
+        self.servers = []
+        for k, config in enumerate(CLUSTER):
+            home = where / config.stem
+            home.mkdir(parents=True, exist_ok=True)
+            self.servers.append(NatsServer(home, config, routes[k:] + routes[:k]))
+        if partitions is not None:  # the mappings `mocapd cluster mappings --partitions N` makes
+            from protocols.nats import mappings
+
+            (where / MAPPINGS.name).write_text(mappings(partitions), encoding="utf-8")
+
+    @property
+    def url(self) -> str:
+        return ",".join(s.url for s in self.servers)
+
+    def start(self) -> NatsCluster:
+        """All three started, each ready and JetStream's cluster led."""
+        from tests.helpers import wait_for
+
+        for server in self.servers:
+            server.start()
+
+        def led() -> bool:
+            logs = [s.log.read_text(encoding="utf-8", errors="replace") for s in self.servers]
+            return all(
+                "JetStream cluster new metadata leader" in log
+                or "Self is new JetStream cluster metadata leader" in log
+                for log in logs
+            )
+
+        wait_for(led, START_S, "JetStream's cluster to elect its leader")
+        return self
+
+    def stop(self) -> None:
+        for server in self.servers:
+            server.stop()

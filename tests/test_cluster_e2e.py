@@ -256,9 +256,9 @@ def test_takeovers_lose_and_repeat_no_detection(tmp_path: Path) -> None:
             len(w.events("duplicate")) for w in workers[2:]
         )
     finally:
-        for p in (load, burner):
-            if p is not None and p.poll() is None:
-                p.kill()
+        for process in (load, burner):
+            if process is not None and process.poll() is None:
+                process.kill()
         for w in workers:
             w.stop(signal.SIGKILL)
         if mqtt is not None:

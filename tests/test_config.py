@@ -228,7 +228,11 @@ BAD = [
         "got 'mqtt://127.0.0.1:99999'",
     ),
     ("mqtt-port-0", "service:\n  sinks: [mqtt]\nmqtt:\n  url: mqtt://127.0.0.1:0\n", "mqtt.url: an MQTT"),
-    ("nats-port", "cluster:\n  nats: nats://h:70000\n", "cluster.nats: must be nats://HOST:PORT (a port"),
+    (
+        "nats-port",
+        "cluster:\n  nats: nats://h:70000\n",
+        "cluster.nats: must be nats://HOST:PORT[,nats://HOST:PORT...] (a port",
+    ),
     ("etcd-port", "cluster:\n  coordinator: etcd://h:70000\n", "cluster.coordinator: an etcd coordinator"),
     ("workers-too-many", "service:\n  workers: 1000\n", "service.workers: must be 0 (one per core) to "),
     # non-mapping sections

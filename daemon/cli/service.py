@@ -15,6 +15,7 @@ from daemon.config import Config, workers_of, workers_reason
 from daemon.errors import InputError, UsageError
 from daemon.library import default_library_path, load_library
 from daemon.recordings import native_rate, read_recording
+from protocols.urls import parse_nats_urls
 
 if TYPE_CHECKING:
     from daemon.service.replay import Tasks
@@ -186,8 +187,10 @@ def _overridden(args: argparse.Namespace, config: Config) -> Config:
         if args.mqtt is not None:
             raise UsageError("--mqtt and --cluster exclude each other", field="--cluster")
         if args.cluster is not None:
-            if not re.fullmatch(r"nats://[^/\s]+:\d+", args.cluster):
-                raise UsageError(f"must be nats://HOST:PORT, got {args.cluster!r}", field="--cluster")
+            try:
+                parse_nats_urls(args.cluster)
+            except InputError as e:
+                raise UsageError(e.reason, field="--cluster") from None
             cluster = dataclasses.replace(cluster, nats=args.cluster)
         if args.coordinator is not None:
             if not re.fullmatch(r"etcd://[^/\s]+", args.coordinator):
