@@ -41,13 +41,7 @@ def register(sub: Any) -> None:
         metavar="etcd://HOST:PORT",
         help="the cluster's etcd (default: the configuration's cluster.coordinator)",
     )
-    status.add_argument(
-        "--partitions",
-        type=_partition_count,
-        default=None,
-        metavar="P",
-        help=f"partitions of the streams (default: cluster.partitions, else {DEFAULT_PARTITIONS})",
-    )
+    _partitions_option(status)
     status.add_argument(
         "--prefix", default="/mocapd/", help="the cluster's key prefix in etcd (default /mocapd/)"
     )
@@ -57,14 +51,18 @@ def register(sub: Any) -> None:
         "mappings",
         help="print the NATS server's subject mappings for the partitions (deploy/nats/partitions.conf)",
     )
-    made.add_argument(
+    _partitions_option(made)
+    made.set_defaults(func=_mappings)
+
+
+def _partitions_option(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
         "--partitions",
         type=_partition_count,
         default=None,
         metavar="P",
         help=f"partitions of the streams (default: cluster.partitions, else {DEFAULT_PARTITIONS})",
     )
-    made.set_defaults(func=_mappings)
 
 
 def _mappings(args: argparse.Namespace, config: Config) -> int:

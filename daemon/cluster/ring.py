@@ -19,8 +19,8 @@ Moves: when a member leaves, its partitions go to the others, and the others' ro
 partitions also move between the others (a partition whose higher-ranked member was full before now
 fits there); a member joining takes its partitions from the others, with such moves too. Each move
 costs the partition's buffer read again by its new owner. With 256 partitions, over 30 random sets of
-names, these extra moves were on average 5 % (3 members) to 29 % (10 members) of the partitions of
-the member that left or joined, at worst 54 % (``python -m bench.bench_ring``). Loosening the room to
+names, these extra moves were on average 5 % (3 members) to 27 % (8 to 10 members) of the partitions
+of the member that left or joined, at worst 54 % (``python -m bench.bench_ring``). Loosening the room to
 ``ceil(1.1 P / N)`` halves them but lets a member of ten fall to 14 partitions, 45 % below the mean.
 
 Streams are spread over partitions by a hash of their id (``protocols.nats.partition_of``), so the
