@@ -175,8 +175,14 @@ def test_takeovers_lose_and_repeat_no_detection(tmp_path: Path) -> None:
     load = burner = None
     try:
         workers = [Worker(tmp_path, f"w{i}", server.url, etcd.url) for i in (1, 2, 3)]
-        wait_for(lambda: all(w.sees(3) for w in workers), 30, "three workers, each seeing three")
-        assert set().union(*(w.owned() for w in workers)) == set(range(partitions()))
+        wait_for(
+            lambda: (
+                all(w.sees(3) for w in workers)
+                and set().union(*(w.owned() for w in workers)) == set(range(partitions()))
+            ),
+            30,
+            "three workers, each seeing three, owning every partition between them",
+        )
         mqtt = MqttCollector(server.mqtt_url, ["mocap/+/detections"], client_id="e2e-collector")
         nats = NatsCollector(server.url)
         load = subprocess.Popen(

@@ -53,6 +53,24 @@ async def _publish(url: str) -> tuple[str, int]:
     return s.id, s.next - 1
 
 
+async def _led(url: str) -> bool:
+    """Whether every partition's buffer answers (it has a leader again) and has a consumer."""
+    import nats
+
+    nc = await nats.connect(url)
+    try:
+        js = nc.jetstream(timeout=1.0)
+        for p in range(PARTITIONS):
+            info = await js.stream_info(f"MOCAPD_BUF_{p}")
+            if info.state.consumer_count < 1:
+                return False
+        return True
+    except Exception:  # no answer yet (an election), or the server busy
+        return False
+    finally:
+        await nc.close()
+
+
 def _events(log: Path, name: str) -> list[dict[str, Any]]:
     lines = log.read_text(encoding="utf-8", errors="replace").splitlines()
     return [e for e in (json.loads(x) for x in lines if x.startswith("{")) if e.get("event") == name]
@@ -103,10 +121,11 @@ def test_a_worker_goes_on_when_the_nats_server_it_talks_to_is_killed(tmp_path: P
             return time.time() - max(failures, default=0.0) > 12.0
 
         wait_for(settled, 120, "the cluster to settle")
+        wait_for(lambda: asyncio.run(_led(second.url)), 120, "every buffer led and read")
         collector = NatsCollector(second.url)
         stream, last = asyncio.run(_publish(third.url))
         want = detection_keys(expected(*map(str, recording(0)), last))
-        wait_for(lambda: len(collector.messages) >= len(want), 30, "the detections")
+        wait_for(lambda: len(collector.messages) >= len(want), 60, "the detections")
         time.sleep(0.5)
         got = collector.messages
         assert len({d["id"] for d in got}) == len(got), "a detection delivered twice"

@@ -10,7 +10,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from daemon.cluster.ring import assignment, owned, room, score
+from daemon.cluster.ring import assignment, orphaned, owned, room, score
 from tests.naive import slow_bounded_rendezvous
 
 names = st.text(min_size=1, max_size=12)
@@ -61,6 +61,17 @@ def test_a_leaving_member_hands_over_all_it_owned(
     assert set(after) == members - {leaving}
     if len(members) > 1:
         assert before[leaving] <= frozenset().union(*after.values())
+
+
+@given(member_sets, member_sets, partition_counts)
+def test_orphaned_partitions_are_those_whose_owner_before_is_gone(
+    before: set[str], after: set[str], partitions: int
+) -> None:
+    reference = slow_bounded_rendezvous(sorted(before), partitions)
+    gone = {p for m, ps in reference.items() if m not in after for p in ps}
+    unowned = set(range(partitions)) - {p for ps in reference.values() for p in ps}
+    assert orphaned(range(partitions), before, after, partitions) == gone | unowned
+    assert orphaned([], before, after, partitions) == frozenset()
 
 
 def test_duplicates_count_once_and_order_does_not_matter() -> None:

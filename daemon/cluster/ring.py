@@ -86,3 +86,16 @@ def owned(member: str, members: Iterable[str], partitions: int) -> frozenset[int
     if member not in live:
         return frozenset()
     return assignment(live, partitions)[member]
+
+
+def orphaned(
+    partitions: Iterable[int], before: Iterable[str], after: Iterable[str], count: int
+) -> frozenset[int]:
+    """Those of ``partitions`` whose owner among the members ``before`` is not among ``after`` (it
+    left or died), or that had no owner: nobody else can be reading them, so a new owner may take
+    them at once. ``count``: the number of partitions."""
+    _check(count)
+    live = set(after)
+    ring = assignment(before, count)
+    owner = {p: m for m, ps in ring.items() for p in ps}
+    return frozenset(p for p in partitions if owner.get(p) not in live)

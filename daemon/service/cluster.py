@@ -22,7 +22,7 @@ import time
 from types import TracebackType
 from typing import TYPE_CHECKING, Any
 
-from daemon.cluster.ring import owned
+from daemon.cluster.ring import orphaned, owned
 from daemon.config import ClusterConfig
 from daemon.library import Library
 from daemon.recognizer import Recognizer
@@ -122,34 +122,40 @@ class Cluster:
 
     async def follow(self, table: StreamTable) -> None:
         """Own what the ring gives this member among the live members, at every change: partitions
-        lost are given up at once, partitions gained are taken once the members have held still for
-        :data:`SETTLE_S` (a member that goes and comes back within it moves nothing, and a joiner
-        takes its partitions after their old owners have seen it and given them up)."""
+        lost are given up at once, and so are partitions gained from a member that is gone (or from
+        nobody: the first member of a new cluster); partitions gained from a live member (this one
+        joining, another joining, or the loads evened out) are taken once the members have held
+        still for :data:`SETTLE_S`, after their old owner has seen the change and given them up."""
         m = self._membership
         assert m is not None
         async for members in m.changes():
             if self._left:
                 return
-            mine = owned(self.member, members, self.settings.partitions)
-            if mine - self.transport.owned:
-                keep = mine & self.transport.owned
-                if keep != self.transport.owned:
-                    await self._own(keep, members, table)
+            count = self.settings.partitions
+            mine = owned(self.member, members, count)
+            held = self.transport.owned
+            before = self.members if self._assigned else members - {self.member}
+            if waiting := mine - held - orphaned(mine - held, before, members, count):
+                await self._own(mine - waiting, members, table, final=False)  # losses; the gone's
                 await asyncio.sleep(SETTLE_S)
                 if self._left:
                     return
                 members = m.members
-                mine = owned(self.member, members, self.settings.partitions)
+                mine = owned(self.member, members, count)
             await self._own(mine, members, table)
 
-    async def _own(self, mine: frozenset[int], members: frozenset[str], table: StreamTable) -> None:
+    async def _own(
+        self, mine: frozenset[int], members: frozenset[str], table: StreamTable, *, final: bool = True
+    ) -> None:
+        """Consume ``mine``; ``final``: the whole of what the ring gives this member among
+        ``members`` (not the part taken before settling), after which gains count as takeovers."""
         before = self.transport.owned
         if mine == before and members == self.members:
             return
         gained = mine - before
         if self._assigned:
             self.takeovers += len(gained)
-        self._assigned = True
+        self._assigned = self._assigned or final
         self.members = members
         self.changes += 1
         for stream in await self.transport.own(mine):
