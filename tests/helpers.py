@@ -257,6 +257,95 @@ def _accepts(port: int) -> bool:
         return s.connect_ex(("127.0.0.1", port)) == 0
 
 
+def http_get(port: int, path: str) -> tuple[int, str]:
+    """(status, body) of GET ``path`` on a daemon's metrics port on loopback; (0, "") if nothing
+    answers within 2 s."""
+    try:
+        with urllib.request.urlopen(f"http://127.0.0.1:{port}{path}", timeout=2) as r:
+            return r.status, r.read().decode()
+    except urllib.error.HTTPError as e:
+        return e.code, e.read().decode()
+    except OSError:
+        return 0, ""
+
+
+def cluster_worker(
+    where: Path, nats: str, etcd: str, metrics_port: int, cluster: Mapping[str, object] | None = None
+) -> subprocess.Popen[bytes]:
+    """``mocapd run --cluster NATS --coordinator ETCD`` as a process, its configuration
+    (``cluster``: settings of its ``cluster`` section; streams idle after 2 s, debug logs) in
+    ``where/worker.yaml`` and its log in ``where/worker.err``."""
+    config = where / "worker.yaml"
+    sections: dict[str, object] = {
+        "service": {"idle_s": 2},
+        "metrics": {"port": metrics_port},
+        "logging": {"level": "debug"},
+    }
+    if cluster:
+        sections["cluster"] = dict(cluster)
+    config.write_text(json.dumps(sections), encoding="utf-8")
+    with (where / "worker.err").open("wb") as log:
+        return subprocess.Popen(
+            [str(MOCAPD_SCRIPT), "--config", str(config), "run", "--cluster", nats, "--coordinator", etcd],
+            stdout=subprocess.DEVNULL,
+            stderr=log,
+            env={**os.environ, "PYTHONPATH": str(REPO)},
+        )
+
+
+class NatsCollector:
+    """A NATS subscriber on ``mocap.*.detections`` in its own thread: every message as it arrives."""
+
+    def __init__(self, url: str) -> None:
+        import asyncio
+
+        import nats
+
+        self.messages: list[dict[str, Any]] = []
+        self.ready = threading.Event()
+        self.done = threading.Event()
+        self.loop = asyncio.new_event_loop()
+
+        async def main() -> None:
+            nc = await nats.connect(url)
+
+            async def got(msg: Any) -> None:
+                self.messages.append(msgpack.unpackb(msg.data, raw=False))
+
+            await nc.subscribe("mocap.*.detections", cb=got)
+            await nc.flush()
+            self.ready.set()
+            while not self.done.is_set():
+                await asyncio.sleep(0.05)
+            await nc.close()
+
+        self.thread = threading.Thread(target=self.loop.run_until_complete, args=(main(),), daemon=True)
+        self.thread.start()
+        assert self.ready.wait(10), "the NATS collector did not connect"
+
+    def close(self) -> None:
+        self.done.set()
+        self.thread.join(10)
+
+
+@functools.cache
+def looped_detections(asf: str, amc: str, last: int) -> list[dict[str, Any]]:
+    """``mocapd detect``'s detections of a stream that looped the recording for sequence numbers
+    0 .. ``last`` (as :mod:`bench.cluster_load` publishes it)."""
+    import numpy as np
+
+    from daemon.library import default_library_path, load_library
+    from daemon.recognizer import detect
+    from replay import Motion
+
+    motion = read_recording(Path(asf), Path(amc))
+    seqs = np.arange(last + 1)
+    looped = Motion(
+        motion.source, motion.skeleton, motion.header, seqs, motion.channels[seqs % len(motion.channels)]
+    )
+    return [d.as_json() for d in detect(looped, load_library(default_library_path()), 120.0)]
+
+
 class ServerProcess:
     """A server the tests run as a process (``process``, None when stopped): :meth:`stop` sends
     ``sig`` (SIGTERM) and waits, :meth:`kill` is SIGKILL."""
@@ -395,13 +484,7 @@ class Daemon:
         return self.process is not None and self.process.poll() is None
 
     def http(self, path: str) -> tuple[int, str]:
-        try:
-            with urllib.request.urlopen(f"http://127.0.0.1:{self.metrics_port}{path}", timeout=2) as r:
-                return r.status, r.read().decode()
-        except urllib.error.HTTPError as e:
-            return e.code, e.read().decode()
-        except OSError:
-            return 0, ""
+        return http_get(self.metrics_port, path)
 
     def health(self) -> tuple[int, str]:
         return self.http("/healthz")

@@ -11,30 +11,28 @@ a second, those of the stopped one within a second."""
 
 from __future__ import annotations
 
-import asyncio
 import json
 import os
 import signal
 import subprocess
 import sys
-import threading
 import time
 from collections import Counter
-from functools import cache
 from pathlib import Path
 from typing import Any
 
-import msgpack
-import numpy as np
 import pytest
 
 from bench.processes import free_port, scrape
-from daemon.library import default_library_path, load_library
-from daemon.recognizer import detect
-from daemon.recordings import read_recording
-from replay import Motion
 from tests.etcd_server import EtcdCluster
-from tests.helpers import MOCAPD_SCRIPT, MqttCollector, detection_keys, wait_for
+from tests.helpers import (
+    MOCAPD_SCRIPT,
+    MqttCollector,
+    NatsCollector,
+    detection_keys,
+    looped_detections,
+    wait_for,
+)
 from tests.nats_server import NatsServer, partitions
 
 LEASE_S = 4.0
@@ -45,39 +43,6 @@ RATE = 60.0
 """Poses per second per stream (the recordings are 120 Hz: half speed, so the 2 cores keep up)."""
 SECONDS = 30.0
 REPO = Path(__file__).resolve().parents[1]
-
-
-class NatsCollector:
-    """A NATS subscriber on ``mocap.*.detections`` in its own thread: every message as it arrives."""
-
-    def __init__(self, url: str) -> None:
-        import nats
-
-        self.messages: list[dict[str, Any]] = []
-        self.ready = threading.Event()
-        self.done = threading.Event()
-        self.loop = asyncio.new_event_loop()
-
-        async def main() -> None:
-            nc = await nats.connect(url)
-
-            async def got(msg: Any) -> None:
-                self.messages.append(msgpack.unpackb(msg.data, raw=False))
-
-            await nc.subscribe("mocap.*.detections", cb=got)
-            await nc.flush()
-            self.ready.set()
-            while not self.done.is_set():
-                await asyncio.sleep(0.05)
-            await nc.close()
-
-        self.thread = threading.Thread(target=self.loop.run_until_complete, args=(main(),), daemon=True)
-        self.thread.start()
-        assert self.ready.wait(10), "the NATS collector did not connect"
-
-    def close(self) -> None:
-        self.done.set()
-        self.thread.join(10)
 
 
 class Worker:
@@ -140,18 +105,6 @@ class Worker:
         if self.process.poll() is None:
             self.process.send_signal(sig)
             self.process.wait(15)
-
-
-@cache
-def expected(asf: str, amc: str, last: int) -> list[dict[str, Any]]:
-    """``mocapd detect``'s detections of a stream that looped the recording for sequence numbers
-    0 .. ``last``."""
-    motion = read_recording(Path(asf), Path(amc))
-    seqs = np.arange(last + 1)
-    looped = Motion(
-        motion.source, motion.skeleton, motion.header, seqs, motion.channels[seqs % len(motion.channels)]
-    )
-    return [d.as_json() for d in detect(looped, load_library(default_library_path()), 120.0)]
 
 
 def first_live_after(workers: list[Worker], partition: int, after: float) -> float | None:
@@ -245,10 +198,10 @@ def test_takeovers_lose_and_repeat_no_detection(tmp_path: Path) -> None:
         assert {d["id"] for d in mqtt.detections()} == set(ids)
         assert len(sent) == STREAMS
         for stream, s in sent.items():
-            want = detection_keys(expected(s["asf"], s["amc"], s["last"]))
+            want = detection_keys(looped_detections(s["asf"], s["amc"], s["last"]))
             mine = detection_keys([d for d in got if d["stream"] == stream])
             assert sorted(mine) == sorted(want), stream
-        assert sum(len(expected(s["asf"], s["amc"], s["last"])) for s in sent.values()) > 3 * STREAMS
+        assert sum(len(looped_detections(s["asf"], s["amc"], s["last"])) for s in sent.values()) > 3 * STREAMS
         # the killed worker's streams were recognised again from their buffers: what it had
         # published already was computed again, with the same ids, and not published twice
         assert sum(len(w.events("duplicate")) for w in workers) > 0

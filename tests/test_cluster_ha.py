@@ -11,8 +11,6 @@ from __future__ import annotations
 
 import asyncio
 import json
-import os
-import subprocess
 import time
 from pathlib import Path
 from typing import Any
@@ -22,12 +20,9 @@ import pytest
 from bench.cluster_load import RATE, recording, streams
 from bench.processes import free_port, scrape
 from tests.etcd_server import Etcd
-from tests.helpers import MOCAPD_SCRIPT, detection_keys, wait_for
+from tests.helpers import NatsCollector, cluster_worker, detection_keys, http_get, looped_detections, wait_for
 from tests.nats_server import NatsCluster
-from tests.test_cluster_e2e import NatsCollector, expected
-from tests.test_cluster_restart import _health
 
-REPO = Path(__file__).resolve().parents[1]
 PARTITIONS = 16
 """Fewer than the default 256: a clustered JetStream makes a replicated stream in 0.2-0.5 s here
 (its meta leader agrees each with the others), so 257 of them took over a minute to make."""
@@ -82,35 +77,17 @@ def test_a_worker_goes_on_when_the_nats_server_it_talks_to_is_killed(tmp_path: P
     cluster = NatsCluster(tmp_path / "nats", PARTITIONS).start()
     etcd = Etcd(tmp_path / "etcd").start()
     port = free_port()
-    config = tmp_path / "worker.yaml"
-    config.write_text(
-        json.dumps(
-            {
-                "service": {"idle_s": 2},
-                "cluster": {"replicas": 3, "partitions": PARTITIONS},
-                "metrics": {"port": port},
-                "logging": {"level": "debug"},
-            }
-        ),
-        encoding="utf-8",
-    )
+    cluster_settings = {"replicas": 3, "partitions": PARTITIONS}
+    worker = cluster_worker(tmp_path, cluster.url, etcd.url, port, cluster_settings)
     err = tmp_path / "worker.err"
-    with err.open("wb") as log:
-        run = ["run", "--cluster", cluster.url, "--coordinator", etcd.url]
-        worker = subprocess.Popen(
-            [str(MOCAPD_SCRIPT), "--config", str(config), *run],
-            stdout=subprocess.DEVNULL,
-            stderr=log,
-            env={**os.environ, "PYTHONPATH": str(REPO)},
-        )
     collector = None
     try:
         wait_for(lambda: err.read_text().count('"partition taken"') == PARTITIONS, 60, "the partitions")
         first, second, third = cluster.servers
         first.kill()  # the server the worker's connections go to first
         killed = time.monotonic()
-        wait_for(lambda: _health(port) == 503, 10, "the worker to notice")
-        wait_for(lambda: _health(port) == 200, 30, "the worker on another server")
+        wait_for(lambda: http_get(port, "/healthz")[0] == 503, 10, "the worker to notice")
+        wait_for(lambda: http_get(port, "/healthz")[0] == 200, 30, "the worker on another server")
         moved = time.monotonic() - killed
 
         def settled() -> bool:
@@ -124,7 +101,7 @@ def test_a_worker_goes_on_when_the_nats_server_it_talks_to_is_killed(tmp_path: P
         wait_for(lambda: asyncio.run(_led(second.url)), 120, "every buffer led and read")
         collector = NatsCollector(second.url)
         stream, last = asyncio.run(_publish(third.url))
-        want = detection_keys(expected(*map(str, recording(0)), last))
+        want = detection_keys(looped_detections(*map(str, recording(0)), last))
         wait_for(lambda: len(collector.messages) >= len(want), 60, "the detections")
         time.sleep(0.5)
         got = collector.messages

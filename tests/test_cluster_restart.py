@@ -11,8 +11,6 @@ import os
 import signal
 import subprocess
 import time
-import urllib.error
-import urllib.request
 from collections.abc import Callable
 from pathlib import Path
 
@@ -24,37 +22,20 @@ from daemon.recognizer import detect
 from daemon.recordings import read_recording
 from replay import Motion
 from tests.etcd_server import Etcd
-from tests.helpers import DATA, MOCAPD_SCRIPT, MqttCollector, detection_keys, mocapd, wait_for
+from tests.helpers import (
+    DATA,
+    MOCAPD_SCRIPT,
+    MqttCollector,
+    cluster_worker,
+    detection_keys,
+    http_get,
+    mocapd,
+    wait_for,
+)
 from tests.nats_server import NatsServer, partitions
 
 REPO = Path(__file__).resolve().parents[1]
 TRIAL = (DATA / "cmu" / "13" / "13.asf", DATA / "cmu" / "13" / "13_30.amc.gz")
-
-
-def _worker(tmp_path: Path, server: NatsServer, etcd: Etcd, metrics_port: int) -> subprocess.Popen[bytes]:
-    config = tmp_path / "worker.yaml"
-    config.write_text(
-        json.dumps(
-            {"service": {"idle_s": 2}, "metrics": {"port": metrics_port}, "logging": {"level": "debug"}}
-        ),
-        encoding="utf-8",
-    )
-    with (tmp_path / "worker.err").open("wb") as log:
-        return subprocess.Popen(
-            [
-                str(MOCAPD_SCRIPT),
-                "--config",
-                str(config),
-                "run",
-                "--cluster",
-                server.url,
-                "--coordinator",
-                etcd.url,
-            ],
-            stdout=subprocess.DEVNULL,
-            stderr=log,
-            env={**os.environ, "PYTHONPATH": str(REPO)},
-        )
 
 
 def _expected() -> list[dict[str, object]]:
@@ -73,7 +54,7 @@ def test_a_worker_goes_on_after_the_nats_server_restarts(tmp_path: Path) -> None
     (tmp_path / "etcd").mkdir()
     server = NatsServer(tmp_path / "nats").start()
     etcd = Etcd(tmp_path / "etcd").start()
-    worker = _worker(tmp_path, server, etcd, free_port())
+    worker = cluster_worker(tmp_path, server.url, etcd.url, free_port())
     err = tmp_path / "worker.err"
     collector = None
     try:
@@ -101,16 +82,6 @@ def test_a_worker_goes_on_after_the_nats_server_restarts(tmp_path: Path) -> None
         server.stop()
 
 
-def _health(port: int) -> int:
-    try:
-        with urllib.request.urlopen(f"http://127.0.0.1:{port}/healthz", timeout=2) as r:
-            return int(r.status)
-    except urllib.error.HTTPError as e:
-        return int(e.code)
-    except OSError:
-        return 0
-
-
 Disturb = Callable[[Etcd, int], None]
 """What happens to etcd while a recording plays through the worker (given its metrics port)."""
 
@@ -124,7 +95,7 @@ def _through_a_worker(tmp_path: Path, disturb: Disturb) -> tuple[dict[str, float
     server = NatsServer(tmp_path / "nats").start()
     etcd = Etcd(tmp_path / "etcd").start()
     port = free_port()
-    worker = _worker(tmp_path, server, etcd, port)
+    worker = cluster_worker(tmp_path, server.url, etcd.url, port)
     err = tmp_path / "worker.err"
     collector = None
     replay = None
@@ -175,11 +146,11 @@ def test_a_worker_paused_by_an_etcd_that_does_not_answer_keeps_its_streams(tmp_p
         assert etcd.process is not None
         etcd.process.send_signal(signal.SIGSTOP)
         try:
-            wait_for(lambda: _health(port) == 503, 5, "the worker to pause")
+            wait_for(lambda: http_get(port, "/healthz")[0] == 503, 5, "the worker to pause")
             paused = time.monotonic()
         finally:
             etcd.process.send_signal(signal.SIGCONT)
-        wait_for(lambda: _health(port) == 200, 5, "the worker to go on")
+        wait_for(lambda: http_get(port, "/healthz")[0] == 200, 5, "the worker to go on")
         assert time.monotonic() - paused < 2.0
 
     before, after, log = _through_a_worker(tmp_path, freeze)
@@ -205,11 +176,11 @@ def test_while_etcd_is_lost_nothing_is_published_and_afterwards_nothing_is_missi
     def lose(etcd: Etcd, port: int) -> None:
         etcd.kill()
         killed = time.time()
-        wait_for(lambda: _health(port) == 503, 5, "the worker to see etcd gone")
+        wait_for(lambda: http_get(port, "/healthz")[0] == 503, 5, "the worker to see etcd gone")
         time.sleep(4.0)
         window.extend((killed + 2.0 + 0.1, time.time()))  # out from a lease after the last answer
         etcd.start(True)
-        wait_for(lambda: _health(port) == 200, 20, "the worker to be back")
+        wait_for(lambda: http_get(port, "/healthz")[0] == 200, 20, "the worker to be back")
 
     before, after, log = _through_a_worker(tmp_path, lose)
     out, back = window
