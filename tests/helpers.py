@@ -251,6 +251,21 @@ def wait_for(condition: Callable[[], bool], timeout: float, what: str, step: flo
         time.sleep(step)
 
 
+def freeze(process: subprocess.Popen[bytes]) -> None:
+    """SIGSTOP ``process`` and return once every thread of it has stopped: the signal is delivered
+    asynchronously, and a server still running for a moment answers what a test sends it next."""
+
+    def stopped() -> bool:
+        states = []
+        for task in Path(f"/proc/{process.pid}/task").iterdir():
+            with contextlib.suppress(FileNotFoundError):  # a thread that ended meanwhile
+                states.append((task / "stat").read_text().rsplit(")", 1)[1].split()[0])
+        return all(state in ("T", "t") for state in states)
+
+    process.send_signal(signal.SIGSTOP)
+    wait_for(stopped, 5, f"process {process.pid} to stop", step=0.001)
+
+
 def _accepts(port: int) -> bool:
     with socket.socket() as s:
         s.settimeout(0.2)

@@ -25,7 +25,7 @@ from daemon.errors import InputError
 from daemon.service.membership import STARTUP_S, Membership, cluster_status
 from protocols.transport import StartupError
 from tests.etcd_server import Etcd, EtcdCluster
-from tests.helpers import REPO
+from tests.helpers import REPO, freeze
 
 SEEN_S = 0.5
 """A join or leave must reach the others within this (the handover's whole budget is 1 s)."""
@@ -215,7 +215,7 @@ async def test_a_member_whose_keep_alives_go_unanswered_pauses_and_goes_on_with_
         follower = asyncio.create_task(_follow_states(w, seen, states), name="follow w")
         await until(lambda: seen == [{"w"}] and states == ["live"], 1, "the current set")
         lease = w._lease.id
-        etcd.process.send_signal(signal.SIGSTOP)
+        freeze(etcd.process)
         frozen = time.monotonic()
         try:
             await until(lambda: w.problem is not None, w.lease_ttl, "the pause")
@@ -245,7 +245,7 @@ async def test_a_member_unanswered_for_its_whole_lease_is_out_and_joins_again(et
         states: list[str] = []
         follower = asyncio.create_task(_follow_states(w, seen, states), name="follow w")
         await until(lambda: seen == [{"w"}], 1, "the current set")
-        etcd.process.send_signal(signal.SIGSTOP)
+        freeze(etcd.process)
         frozen = time.monotonic()
         try:
             await until(lambda: w.out, w.lease_ttl + 0.5, "w to be out")

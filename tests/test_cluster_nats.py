@@ -26,7 +26,7 @@ from paho.mqtt.enums import CallbackAPIVersion
 from daemon.config import ClusterConfig
 from protocols.nats import PUBLISH_TIMEOUT_S, STORE_FOR_S, Ack, NatsTransport, acknowledgement, partition_of
 from protocols.transport import Outgoing
-from tests.helpers import wait_for
+from tests.helpers import freeze, wait_for
 from tests.nats_server import NatsServer, partitions
 
 
@@ -265,7 +265,7 @@ def test_a_detection_whose_store_times_out_is_not_published_twice(tmp_path: Path
                 await first.publish(detection)
                 await nc.flush()
                 assert server.process is not None
-                server.process.send_signal(signal.SIGSTOP)
+                freeze(server.process)
                 try:
                     again = asyncio.create_task(second.publish(detection), name="the recomputed one")
                     deadline = time.monotonic() + 10 * PUBLISH_TIMEOUT_S

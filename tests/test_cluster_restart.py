@@ -28,6 +28,7 @@ from tests.helpers import (
     MqttCollector,
     cluster_worker,
     detection_keys,
+    freeze,
     http_get,
     mocapd,
     wait_for,
@@ -142,9 +143,9 @@ def test_a_worker_paused_by_an_etcd_that_does_not_answer_keeps_its_streams(tmp_p
     detect``'s. Before issue 34 it fenced itself by dropping every partition and re-reading every
     buffer, and the stream's history read again began mid-motion."""
 
-    def freeze(etcd: Etcd, port: int) -> None:
+    def pause_etcd(etcd: Etcd, port: int) -> None:
         assert etcd.process is not None
-        etcd.process.send_signal(signal.SIGSTOP)
+        freeze(etcd.process)
         try:
             wait_for(lambda: http_get(port, "/healthz")[0] == 503, 5, "the worker to pause")
             paused = time.monotonic()
@@ -153,7 +154,7 @@ def test_a_worker_paused_by_an_etcd_that_does_not_answer_keeps_its_streams(tmp_p
         wait_for(lambda: http_get(port, "/healthz")[0] == 200, 5, "the worker to go on")
         assert time.monotonic() - paused < 2.0
 
-    before, after, log = _through_a_worker(tmp_path, freeze)
+    before, after, log = _through_a_worker(tmp_path, pause_etcd)
     for series in (
         'mocapd_stream_events_total{event="handed_over"}',
         "mocapd_cluster_replayed_poses_total",
