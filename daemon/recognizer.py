@@ -55,6 +55,7 @@ from daemon.automaton import KeyframeAutomaton
 from daemon.dtw import SCALE, Match, RetrievalTables, Steps, pack, retrieval_tables, threshold
 from daemon.errors import InputError, MocapdError
 from daemon.features import FeatureStream, features
+from daemon.features.language import BodyLengths
 from daemon.frames import FrameClock, bridge_frames, bridged_runs, check_native_rate, motion_runs
 from daemon.keyframes import KeyframeQuery, query_bounds
 from daemon.library import GATED, ClassTemplate, Library
@@ -557,21 +558,39 @@ class Recognizer:
             self._width = len(joint_names)
             self._joint_order = joint_order(joint_names)
         self._plans = plans(library, settings)
-        features = FeatureStream(JOINT_NAMES, native_rate)
+        self._features = features = FeatureStream(JOINT_NAMES, native_rate)
+        self.lengths: BodyLengths | None = None
+        """The body lengths the features' thresholds are multiples of, of the current stretch of
+        the stream (measured on its first pose; None before it)."""
+        self._assumed: BodyLengths | None = None
         step = self.clock.step
         if model is not None:
             self._shape: tuple[int, ...] = (self._width,)
             self._live = LiveStream(
-                model.frame_kinematics, features.core, features.thresholds_of, None, self._width, step
+                model.frame_kinematics, features.core, self._thresholds_of, None, self._width, step
             )
         else:
             self._shape = (self._width, 3)
             order = (3 * self._joint_order[:, None] + np.arange(3)).reshape(-1)
-            self._live = LiveStream(None, features.core, features.thresholds_of, order, 3 * self._width, step)
+            self._live = LiveStream(None, features.core, self._thresholds_of, order, 3 * self._width, step)
         self._stage = ClassStage(
             self._plans, library.rate, settings, self.clock, stream=stream, session=self.session
         )
         self._live.attach(self._stage, self._stage.codes.core)
+
+    def _thresholds_of(self, rows: FloatArray) -> FloatArray:
+        """The features' thresholds for a stretch of the stream whose first pose is ``rows``: of its
+        body lengths, or of those :meth:`assume_lengths` gave."""
+        assumed, self._assumed = self._assumed, None
+        self.lengths = assumed if assumed is not None else self._features.lengths_of(rows)
+        return self._features.thresholds_for(self.lengths)
+
+    def assume_lengths(self, lengths: BodyLengths) -> None:
+        """Take ``lengths`` as the body lengths of the stretch the next pose begins, instead of
+        measuring them on it: a stream taken over mid-run (cluster mode) keeps the thresholds its
+        run's first pose gave, without which its features, and its detections' costs, could differ
+        for as long as the run lasts."""
+        self._assumed = lengths
 
     @property
     def _last(self) -> int | None:
