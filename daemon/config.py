@@ -175,8 +175,10 @@ class ClusterConfig:
     ``deploy/nats/partitions.conf``, are made from it by ``mocapd cluster mappings``; a worker
     refuses a server that partitions otherwise), this member's lease, the seconds each partition's
     JetStream buffer keeps (0: computed from the lease and the library's reach,
-    :func:`daemon.service.cluster.buffer_seconds`), and this member's name (empty: host name and
-    process id). The coordinator has no default: a worker must be told where the others are."""
+    :func:`daemon.service.cluster.buffer_seconds`), how often at most a partition's checkpoint is
+    stored (0: never; a new owner then reads the whole buffer, :mod:`daemon.cluster.checkpoints`),
+    and this member's name (empty: host name and process id). The coordinator has no default: a
+    worker must be told where the others are."""
 
     nats: str = "nats://127.0.0.1:4222"
     coordinator: str = ""
@@ -184,6 +186,7 @@ class ClusterConfig:
     lease_s: float = field(default=2.0, metadata=_range(0.5, 60))
     replicas: int = field(default=1, metadata=_range(1, 5))
     buffer_s: float = field(default=0.0, metadata=_range(0, 3600))
+    checkpoint_s: float = field(default=2.0, metadata=_range(0, 600))
     member: str = ""
 
 

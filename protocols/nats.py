@@ -37,10 +37,12 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import json
 import logging
+import math
 import os
 import time
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Mapping
 from dataclasses import dataclass
 from types import TracebackType
 from typing import TYPE_CHECKING
@@ -53,11 +55,13 @@ from nats.js.api import (
     ConsumerConfig,
     DeliverPolicy,
     DiscardPolicy,
+    KeyValueConfig,
     RetentionPolicy,
     StorageType,
     StreamConfig,
 )
 from nats.js.errors import Error as JetStreamError
+from nats.js.errors import KeyNotFoundError
 
 from protocols.deliveries import Delivery, ProtocolError, Reader
 from protocols.transport import Incoming, Outgoing, StartupError, Throttle
@@ -65,6 +69,7 @@ from protocols.urls import parse_nats_urls
 
 if TYPE_CHECKING:
     from nats.js.client import JetStreamContext
+    from nats.js.kv import KeyValue
 
     from daemon.config import ClusterConfig
 
@@ -89,9 +94,41 @@ after the other."""
 CATCH_UP_S = 2.0
 """The longest recognition waits for a taken partition's buffer to be read."""
 RETRY_S = 0.5
+"""How soon a partition's consumer that could not be made is tried again."""
 STOP_S = 2.0
 """The longest giving partitions up waits for their consumers to be deleted."""
-"""How soon a partition's consumer that could not be made is tried again."""
+CHECKPOINTS = "MOCAPD_CHECKPOINTS"
+"""The key-value bucket of the partitions' checkpoints (key: the partition's number; value: the
+buffer sequence after which its new owner starts reading, :mod:`daemon.cluster.checkpoints`)."""
+
+
+LENGTHS = 6
+"""The body lengths of a run (:class:`daemon.features.language.BodyLengths`' six)."""
+
+
+@dataclass(frozen=True, slots=True)
+class Run:
+    """A stream's run in a checkpoint: the source's epoch and the body lengths its recogniser's
+    thresholds are multiples of (None: not known)."""
+
+    epoch: str | None
+    lengths: tuple[float, ...] | None
+
+    @classmethod
+    def of(cls, value: object) -> Run:
+        """The run a checkpoint's JSON gives; TypeError or KeyError if it is not one."""
+        if not isinstance(value, dict):
+            raise TypeError("a run is an object")
+        epoch, lengths = value["epoch"], value["lengths"]
+        if not isinstance(epoch, str | None):
+            raise TypeError("epoch")
+        if lengths is not None:
+            if not isinstance(lengths, list) or len(lengths) != LENGTHS:
+                raise TypeError("lengths")
+            if not all(isinstance(x, float | int) and math.isfinite(x) and x > 0 for x in lengths):
+                raise TypeError("lengths")
+            lengths = tuple(float(x) for x in lengths)
+        return cls(epoch, lengths)
 
 
 @dataclass(frozen=True, slots=True)
@@ -188,6 +225,7 @@ class NatsTransport:
         self._sink = sink
         self._nc: NATS | None = None
         self._js: JetStreamContext | None = None
+        self._checkpoints: KeyValue | None = None
         self._status: tuple[Outgoing, Outgoing] | None = None
         self._queue: asyncio.Queue[tuple[int, str | None, Incoming]] = asyncio.Queue(QUEUE)
         # per stream, its messages in the queue: the service has not seen them, so forget() keeps it
@@ -198,7 +236,9 @@ class NatsTransport:
         self._stopping: set[asyncio.Task[None]] = set()
         self._streams: dict[int, set[str]] = {}
         self._partial: set[int] = set()  # partitions taken from a buffer that had lost messages
-        self._truncated: set[str] = set()  # streams first seen in the replay of such a buffer
+        # streams first seen in the replay of such a buffer (None: every run of theirs), or of a
+        # buffer read from a checkpoint (the run they were in there)
+        self._truncated: dict[str, Run | None] = {}
         self._partition_of: dict[str, int] = {}
         self._position: dict[int, int] = {}  # the last buffer sequence read, per partition
         self._consumer_names: dict[int, str] = {}
@@ -207,6 +247,10 @@ class NatsTransport:
         self._connected = False
         self.replayed = 0
         """Messages read from a buffer that were there before its consumer started."""
+        self.checkpoints = 0
+        """Checkpoints stored."""
+        self.resumed = 0
+        """Partitions taken whose buffer was read from a checkpoint rather than from its start."""
         self.duplicates = 0
         """Detections and boundaries not published because a worker had published them already."""
         self.publish_errors = 0
@@ -403,7 +447,21 @@ class NatsTransport:
                 except JetStreamError:  # there already, made by another worker with other settings
                     await js.update_stream(config)
 
-        failed = [e for e in await asyncio.gather(*map(ensure, configs), return_exceptions=True) if e]
+        async def checkpoints() -> None:
+            async with room:
+                config = KeyValueConfig(
+                    bucket=CHECKPOINTS,
+                    storage=StorageType.MEMORY,
+                    ttl=self.buffer_s,  # older, it names messages the buffer no longer holds
+                    replicas=self.settings.replicas,
+                )
+                try:
+                    self._checkpoints = await js.create_key_value(config)
+                except JetStreamError:  # there already, made by another worker with other settings
+                    self._checkpoints = await js.key_value(CHECKPOINTS)
+
+        ensured = [*map(ensure, configs), checkpoints()]
+        failed = [e for e in await asyncio.gather(*ensured, return_exceptions=True) if e]
         if failed:
             raise failed[0]
 
@@ -439,12 +497,23 @@ class NatsTransport:
     def owned(self) -> frozenset[int]:
         return frozenset(self._consumers)
 
-    def partial(self, stream: str) -> bool:
-        """Whether ``stream`` was first seen in the replay of a buffer that had already lost
-        messages (to its age limit), so that its history here may begin mid-motion (the service then
-        suppresses what a truncated history could get wrong). A stream first seen live, or in a
-        buffer that holds the partition's whole history, is seen from its start."""
-        return stream in self._truncated
+    def partial(self, stream: str, epoch: str | None) -> bool:
+        """Whether run ``epoch`` of ``stream`` was first seen in the replay of a buffer that had
+        already lost messages (to its age limit), or of a buffer read from a checkpoint that the run
+        had been fed before, so that its history here may begin mid-motion (the service then
+        suppresses what a truncated history could get wrong). A stream first seen live, in a buffer
+        that holds the partition's whole history, or in a run begun after the checkpoint, is seen
+        from its start."""
+        if stream not in self._truncated:
+            return False
+        run = self._truncated[stream]
+        return run is None or run.epoch == epoch
+
+    def lengths(self, stream: str, epoch: str | None) -> tuple[float, ...] | None:
+        """The body lengths the checkpoint that run ``epoch`` of ``stream`` was read from gives it
+        (None: none, or not read from a checkpoint)."""
+        run = self._truncated.get(stream)
+        return None if run is None or run.epoch != epoch else run.lengths
 
     async def own(self, partitions: frozenset[int]) -> list[str]:
         """Consume exactly ``partitions`` from now on; the streams seen in the partitions given up."""
@@ -464,7 +533,7 @@ class NatsTransport:
             self._consumer_names.pop(p, None)
             for stream in self._streams.pop(p, set()):
                 self._partition_of.pop(stream, None)
-                self._truncated.discard(stream)
+                self._truncated.pop(stream, None)
                 lost.append(stream)
         for p in sorted(partitions - set(self._consumers)):
             self._take(p)
@@ -496,6 +565,67 @@ class NatsTransport:
         """The owned partition ``stream`` came in on (None: none seen)."""
         return self._partition_of.get(stream)
 
+    def streams_of(self, p: int) -> frozenset[str]:
+        """The streams seen in owned partition ``p``."""
+        return frozenset(self._streams.get(p, ()))
+
+    def read_up_to(self, p: int) -> int | None:
+        """The sequence of the last message read from owned partition ``p``'s buffer, if the
+        partition is live (its buffer read) and none of its streams' messages waits here to be taken
+        in; else None."""
+        if p not in self._consumers or p in self._behind:
+            return None
+        if any(self._queued.get(s) for s in self._streams.get(p, ())):
+            return None
+        return self._position.get(p)
+
+    async def checkpoint(self, p: int, position: int, runs: Mapping[str, Run]) -> None:
+        """Store partition ``p``'s checkpoint: its next owner reads its buffer from after
+        ``position``, suppresses the warm-up of ``runs`` (those fed before it) and gives their
+        recognisers their body lengths (:mod:`daemon.cluster.checkpoints`). A store that fails is
+        logged and skipped: the older checkpoint, or none, costs a longer read only."""
+        kv = self._checkpoints
+        if kv is None:
+            return
+        value = {
+            "after": position,
+            "runs": {s: {"epoch": r.epoch, "lengths": r.lengths} for s, r in runs.items()},
+        }
+        try:
+            await kv.put(str(p), json.dumps(value).encode())
+            self.checkpoints += 1
+        except (NatsError, TimeoutError) as e:
+            if (quiet := self._error_log.due()) is not None:
+                log.warning(
+                    "checkpoint not stored",
+                    extra={"fields": {"partition": p, "error": repr(e), "since_last": quiet}},
+                )
+
+    async def _checkpoint_of(self, p: int) -> tuple[int, dict[str, Run]] | None:
+        """Partition ``p``'s stored checkpoint (:meth:`checkpoint`'s position and runs; None: none,
+        or unreadable)."""
+        kv = self._checkpoints
+        if kv is None:
+            return None
+        try:
+            entry = await kv.get(str(p))
+        except KeyNotFoundError:
+            return None
+        except (NatsError, TimeoutError) as e:
+            log.warning("checkpoint not read", extra={"fields": {"partition": p, "error": repr(e)}})
+            return None
+        try:
+            value = json.loads(entry.value or b"")
+            after, runs = value["after"], {s: Run.of(r) for s, r in value["runs"].items()}
+            if not isinstance(after, int):
+                raise TypeError("after")
+        except (ValueError, TypeError, KeyError, AttributeError) as e:
+            log.warning(
+                "checkpoint not read", extra={"fields": {"partition": p, "error": f"malformed: {e!r}"}}
+            )
+            return None
+        return after, runs
+
     def forget(self, keep: set[str]) -> None:
         """Forget the streams not in ``keep`` (those the service no longer holds) that have no
         message waiting to be taken in: a stream read from a buffer but not yet taken in keeps what
@@ -505,7 +635,7 @@ class NatsTransport:
             streams -= gone
             for s in gone:
                 self._partition_of.pop(s, None)
-                self._truncated.discard(s)
+                self._truncated.pop(s, None)
 
     async def _consume(self, p: int, given_up: asyncio.Event) -> None:
         """Read partition ``p`` until it is given up; a consumer that cannot be made (the server
@@ -531,13 +661,29 @@ class NatsTransport:
         position = self._position.get(p)
         if position is not None and position > last:
             position = None  # the server lost the buffer (a restart): from its start again
-        if state.first_seq > 1:
+        fed_before: dict[str, Run] | None = None  # read from a checkpoint: the runs fed before it
+        if position is None:
+            checkpoint = await self._checkpoint_of(p)
+            if given_up.is_set():
+                return
+            # from after the checkpoint, if the buffer holds what follows it (else from its start)
+            if checkpoint is not None and state.first_seq <= checkpoint[0] + 1 and checkpoint[0] <= last:
+                position, fed_before = checkpoint
+                self.resumed += 1
+        if state.first_seq > 1 and fed_before is None:  # its streams' histories may begin mid-way
             self._partial.add(p)
-        if state.messages:
+        if state.messages and (position is None or position < last):
             self._behind[p] = time.monotonic()
         log.info(
             "partition taken",
-            extra={"fields": {"partition": p, "buffered": state.messages, "partial": state.first_seq > 1}},
+            extra={
+                "fields": {
+                    "partition": p,
+                    "buffered": state.messages,
+                    "partial": p in self._partial,
+                    "from": 1 if position is None else position + 1,
+                }
+            },
         )
         nc, reader = self._nc, self._reader
         assert nc is not None and reader is not None
@@ -579,7 +725,7 @@ class NatsTransport:
                     )
                 else:
                     self.replayed += 1
-            stream, incoming = self._incoming(d, streams, p, truncated=not live and p in self._partial)
+            stream, incoming = self._incoming(d, streams, p, replayed=not live, fed_before=fed_before)
             if stream is not None:
                 self._queued[stream] = self._queued.get(stream, 0) + 1
             try:
@@ -635,11 +781,18 @@ class NatsTransport:
         )
 
     def _incoming(
-        self, d: Delivery, streams: set[str], p: int, *, truncated: bool
+        self,
+        d: Delivery,
+        streams: set[str],
+        p: int,
+        *,
+        replayed: bool,
+        fed_before: Mapping[str, Run] | None,
     ) -> tuple[str | None, Incoming]:
         """The message as the service takes it in, whatever its subject: ``mocap.p.<p>.<stream>.
         <word>`` as topic ``mocap/<stream>/<word>`` (a stream seen for the first time is noted, and
-        noted as ``truncated`` if its first message came from the replay of a partial buffer); any
+        noted as truncated, :meth:`partial`, if its first message was ``replayed`` from a buffer that
+        had lost messages, or from after a checkpoint ``fed_before`` had it); any
         other subject (a publisher's, straight into the buffer: another number of tokens, another
         partition than the stream's, bytes that are not UTF-8) as a topic the service refuses and
         counts (``topic``). With the stream (None: no
@@ -661,8 +814,10 @@ class NatsTransport:
         if stream not in streams:
             streams.add(stream)
             self._partition_of[stream] = p
-            if truncated:
-                self._truncated.add(stream)
+            if replayed and p in self._partial:
+                self._truncated[stream] = None
+            elif replayed and fed_before is not None and stream in fed_before:
+                self._truncated[stream] = fed_before[stream]
         return stream, Incoming(f"mocap/{stream}/{tokens[-1]}", d.data, now)
 
     # --------------------------------------------------------------------------- source and sink

@@ -222,6 +222,7 @@ class Service:
         self.published = 0
         self._work = asyncio.Event()
         self._room = asyncio.Event()
+        self._publishing = 0  # batches of emitted messages being published
         self._entered = False
         if cluster is not None:
             self.metrics.cluster = self._cluster_series
@@ -287,8 +288,13 @@ class Service:
             out = self.table.skeleton(message, now)
             if self.relay_per_s:
                 self._relay(incoming, stream, None, now)
-            if known is None and self.cluster is not None and self.cluster.transport.partial(stream):
-                self.table.warm_up(stream)  # taken over from a buffer that lost the run's start
+            if (
+                known is None
+                and self.cluster is not None
+                and self.cluster.transport.partial(stream, message.epoch)
+            ):
+                # taken over mid-run: from a buffer that lost the run's start, or from a checkpoint
+                self.table.warm_up(stream, self.cluster.transport.lengths(stream, message.epoch))
             self.metrics.messages["skeleton"] += 1
             if before != message:  # not a repeated announcement
                 self.events.info("skeleton", {"stream": stream, "kind": message.kind, "rate": message.rate})
@@ -346,8 +352,7 @@ class Service:
         paced = self.cluster is not None
         limit = max(1, self.config.service.queue_frames // 2)
         async for incoming in source:
-            for e in self.receive(incoming):
-                await self.publish(e)
+            await self.publish_all(self.receive(incoming))
             if self._relays:
                 await self._pass_on()
             n += 1
@@ -383,12 +388,28 @@ class Service:
                     self.events.warn(stream, problem, why)
                 done = time.perf_counter()
                 stage.observe(done - started)
-                for e in emitted:
-                    await self.publish(e)
+                await self.publish_all(emitted)
                 self._room.set()
                 if done > deadline:
                     await asyncio.sleep(0)
                     deadline = time.perf_counter() + budget
+
+    @property
+    def settled(self) -> bool:
+        """Whether everything the table has emitted has been published (cluster checkpoints are
+        taken only then)."""
+        return not self._publishing
+
+    async def publish_all(self, emitted: list[Emitted]) -> None:
+        """``emitted`` published in turn (:attr:`settled` is false until the last is)."""
+        if not emitted:
+            return
+        self._publishing += 1
+        try:
+            for e in emitted:
+                await self.publish(e)
+        finally:
+            self._publishing -= 1
 
     async def publish(self, e: Emitted) -> None:
         started = time.perf_counter()
@@ -434,8 +455,7 @@ class Service:
                 if name not in self.table.streams:  # per stream, throttled like the other such lines
                     fields = {"stream": name, "reason": "idle", "silent_s": round(now - s.seen, 1)}
                     self.events.info("stream forgotten", fields | {"poses": s.received})
-            for e in last:
-                await self.publish(e)
+            await self.publish_all(last)
             self.metrics.keep(self.table.streams)
             for gone in self._relayed.keys() - self.table.streams.keys():
                 del self._relayed[gone]
@@ -466,6 +486,8 @@ class Service:
             ("takeovers", "Partitions taken over after the first assignment", "counter", c.takeovers),
             ("replayed_poses", "Messages read from a partition's buffer on taking it", "counter", t.replayed),
             ("duplicates_suppressed", "Detections another worker had published", "counter", t.duplicates),
+            ("checkpoints", "Partition checkpoints stored", "counter", t.checkpoints),
+            ("resumed_partitions", "Partitions taken, read from a checkpoint", "counter", t.resumed),
             (
                 "warmup_suppressed",
                 "Detections suppressed in a taken-over stream's warm-up",
@@ -531,6 +553,11 @@ class Service:
                     if self.cluster is not None:
                         group.create_task(self.cluster.follow(self.table), name="cluster membership")
                         group.create_task(self.cluster.report(self.table, self._lag), name="cluster status")
+                        if self.config.cluster.checkpoint_s > 0:
+                            group.create_task(
+                                self.cluster.checkpoint(self.table, lambda: self.settled),
+                                name="cluster checkpoints",
+                            )
                     for name, factory in extra:
                         group.create_task(factory(), name=name)
                     group.create_task(self._shutdown(stop, intakes), name="shutdown")

@@ -15,18 +15,24 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import dataclasses
 import logging
+import math
 import os
 import socket
 import time
+from collections import deque
+from collections.abc import Callable
 from types import TracebackType
 from typing import TYPE_CHECKING, Any
 
+from daemon.cluster.checkpoints import Fed, Sample, resume_after
 from daemon.cluster.ring import orphaned, owned
 from daemon.config import ClusterConfig
 from daemon.library import Library
 from daemon.recognizer import Recognizer
 from daemon.service.membership import Membership
+from protocols.nats import Run
 from replay import JOINT_NAMES
 
 if TYPE_CHECKING:
@@ -39,6 +45,8 @@ SKELETON_PERIOD_S = 1.0
 MARGIN_S = 1.0
 SETTLE_S = 0.25
 """Partitions gained are taken once the live members have held still this long."""
+SAMPLE_S = 0.5
+"""How often the owned partitions are looked at for a checkpoint's sample."""
 
 
 def reach_seconds(library: Library, config: Any) -> float:
@@ -172,6 +180,73 @@ class Cluster:
                 }
             },
         )
+
+    async def checkpoint(self, table: StreamTable, settled: Callable[[], bool]) -> None:
+        """Store each owned partition's checkpoint (:mod:`daemon.cluster.checkpoints`) at most every
+        ``cluster.checkpoint_s``: every :data:`SAMPLE_S`, while this worker holds its partitions
+        and ``settled()`` (nothing emitted waits to be published), each partition whose messages
+        read have all been taken in and recognised is sampled, and the newest sample every stream
+        has been fed twice its warm-up and two seconds of frames since is its checkpoint."""
+        samples: dict[int, deque[Sample]] = {}
+        stored: dict[int, tuple[int, float]] = {}  # partition -> (position, when stored)
+        keep = int(self.transport.buffer_s / SAMPLE_S) + 2
+        while not self._left:
+            await asyncio.sleep(SAMPLE_S)
+            owned_now = self.transport.owned
+            for p in samples.keys() - owned_now:
+                del samples[p]
+                stored.pop(p, None)
+            if self.holding or not settled():
+                continue
+            now = time.monotonic()
+            due: list[tuple[int, Sample]] = []
+            for p in owned_now:
+                sample = self._sample(p, table)
+                if sample is None:
+                    continue
+                kept = samples.setdefault(p, deque(maxlen=keep))
+                if not kept or kept[-1].position != sample.position or kept[-1].fed != sample.fed:
+                    kept.append(sample)
+                last = stored.get(p)
+                if last is not None and now - last[1] < self.settings.checkpoint_s:
+                    continue
+                need = {s: self._need(table, s) for s in sample.fed}
+                chosen = resume_after(kept, sample.fed, need)
+                if chosen is None:
+                    continue
+                while kept[0] is not chosen:  # older samples are of no more use
+                    kept.popleft()
+                if last is None or last[0] != chosen.position:
+                    stored[p] = (chosen.position, now)
+                    due.append((p, chosen))
+            for p, chosen in due:
+                runs = {name: Run(fed.run[1], fed.lengths) for name, fed in chosen.fed.items()}
+                await self.transport.checkpoint(p, chosen.position, runs)
+
+    def _sample(self, p: int, table: StreamTable) -> Sample | None:
+        """Partition ``p`` now, if settled: every message read taken in, no pose of its streams
+        waiting in the table."""
+        position = self.transport.read_up_to(p)
+        if position is None:
+            return None
+        fed: dict[str, Fed] = {}
+        for name in self.transport.streams_of(p):
+            s = table.streams.get(name)
+            if s is None:
+                continue
+            if s.queue:
+                return None
+            lengths = table.bank[name].lengths
+            shape = None if lengths is None or s.last_fed is None else dataclasses.astuple(lengths)
+            fed[name] = Fed((s.generation, s.epoch), -1 if s.last_fed is None else s.last_fed, shape)
+        return Sample(position, fed)
+
+    @staticmethod
+    def _need(table: StreamTable, name: str) -> int:
+        """Frames stream ``name`` must have been fed since a checkpoint: twice its warm-up, a
+        skeleton announcement and a second's margin (as :func:`needed_seconds`)."""
+        s = table.streams[name]
+        return 2 * s.warmup + 2 * math.ceil(s.announced.rate)
 
     async def report(self, table: StreamTable, lag: Any) -> None:
         """This worker's status in etcd about once a second: partitions, streams per partition,
