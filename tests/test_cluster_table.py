@@ -15,11 +15,11 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from daemon.config import RecognizerConfig, ServiceConfig
+from daemon.config import RecognizerConfig, SegmentationConfig, ServiceConfig
 from daemon.library import Library, default_library_path, load_library
 from daemon.recordings import read_recording
 from daemon.service.streams import StreamTable
-from protocols.messages import DetectionMessage, PoseMessage, SkeletonMessage
+from protocols.messages import BoundaryMessage, DetectionMessage, PoseMessage, SkeletonMessage
 from tests.helpers import DATA
 
 ASF, AMC = DATA / "cmu" / "13" / "13.asf", DATA / "cmu" / "13" / "13_30.amc.gz"
@@ -151,3 +151,33 @@ def test_a_takeover_given_its_runs_body_lengths_gives_the_whole_runs_costs_howev
     given, limit = detections(560, whole_lengths[0])
     after = [d for d in whole if cast(int, d[2]) >= limit]
     assert len(after) > 20 and given == after
+
+
+def test_boundary_ids_are_the_runs_not_the_tables() -> None:
+    """In cluster mode a behaviour boundary's id, like a detection's, depends on the source's run
+    (its epoch), not on how many streams the worker's table made before: two workers cutting the
+    same run give the same ids (the store then keeps one), another run other ids."""
+
+    def boundaries(before: int, epoch: str) -> list[tuple[str, int]]:
+        t = StreamTable(
+            library(),
+            session="cluster",
+            service=ServiceConfig(queue_frames=100_000),
+            segmentation=SegmentationConfig("pca"),
+            cluster=True,
+        )
+        asf = ASF.read_text()
+        for k in range(before):  # streams made before: another generation for "s"
+            t.skeleton(SkeletonMessage(f"other{k}", 120.0, asf=asf, angle_unit="rad", epoch="x"), 0.0)
+        t.skeleton(SkeletonMessage("s", 120.0, asf=asf, angle_unit="rad", epoch=epoch), 0.0)
+        frames = read_recording(ASF, AMC).channels
+        out = []
+        for seq, c in enumerate(frames):
+            t.pose(PoseMessage("s", seq, seq / 120, channels=c, epoch=epoch), seq / 120)
+            out += t.tick()[0]
+        out += t.flush_all()
+        return [(e.message.id, e.message.frame) for e in out if isinstance(e.message, BoundaryMessage)]
+
+    first = boundaries(0, "run1")
+    assert first and boundaries(3, "run1") == first
+    assert {i for i, _ in boundaries(0, "run2")}.isdisjoint(i for i, _ in first)

@@ -671,7 +671,7 @@ class StreamTable:
         return Emitted(message, arrived)
 
     def _boundary(self, name: str, s: _Stream, frame: int, known: int, b: Boundary) -> Emitted:
-        key = f"{self.session}/{s.generation}/{name}/boundary/{b.method}/{frame}"
+        key = f"{self._session(s.generation, s.epoch)}/{name}/boundary/{b.method}/{frame}"
         message = BoundaryMessage(
             str(uuid.uuid5(uuid.NAMESPACE_URL, key)), name, frame, b.method, b.score, 0.0
         )
