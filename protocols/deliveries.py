@@ -156,12 +156,18 @@ class Reader:
         """Deliver every message on ``subject`` to ``handler`` (awaited in turn, on the read loop:
         a handler that waits holds the rest back); once this returns, the server has the
         subscription. The subscription's id."""
+        sid = self.register(subject, handler)
+        await self.flush(timeout)
+        return sid
+
+    def register(self, subject: str, handler: Handler) -> int:
+        """:meth:`subscribe` without waiting for the server (nor failing when not connected: the
+        subscription is made on the next connection)."""
         self._sid += 1
         sid = self._sid
         self._subs[sid] = (subject.encode(), handler)
         if self._writer is not None:
             self._writer.write(b"SUB %s %d\r\n" % (subject.encode(), sid))
-        await self.flush(timeout)
         return sid
 
     async def unsubscribe(self, sid: int) -> None:

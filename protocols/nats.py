@@ -97,6 +97,11 @@ RETRY_S = 0.5
 """How soon a partition's consumer that could not be made is tried again."""
 STOP_S = 2.0
 """The longest giving partitions up waits for their consumers to be deleted."""
+STRAYS = ("mocap.*.*.pose", "mocap.*.*.skeleton")
+"""Pose and skeleton subjects of four tokens, which no mapping partitions and no buffer stores (a
+native NATS publisher's stream id with a dot, a partition's subject cut short): the owner of
+partition 0 reads them, so that they are counted as refused instead of vanishing. Longer subjects
+outside ``mocap.p.`` cannot be told from the partitions' by a subscription, and are not."""
 CHECKPOINTS = "MOCAPD_CHECKPOINTS"
 """The key-value bucket of the partitions' checkpoints (key: the partition's number; value: the
 buffer sequence after which its new owner starts reading, :mod:`daemon.cluster.checkpoints`)."""
@@ -260,6 +265,7 @@ class NatsTransport:
         """Messages on a delivery subject that no buffer delivered (published there directly)."""
         self._foreign_log = Throttle()
         self._reader: Reader | None = None
+        self._strays: list[int] = []  # the reader's subscriptions to STRAYS
         self._last_error: str | None = None
         self._error_log = Throttle()
 
@@ -537,7 +543,31 @@ class NatsTransport:
                 lost.append(stream)
         for p in sorted(partitions - set(self._consumers)):
             self._take(p)
+        await self._watch_strays(0 in partitions)
         return lost
+
+    async def _watch_strays(self, watch: bool) -> None:
+        """Subscribe to :data:`STRAYS` while this worker owns partition 0 (one worker counts them),
+        unsubscribe otherwise (not waiting for the server: a reader not connected subscribes when
+        it is again)."""
+        reader = self._reader
+        if reader is None or watch == bool(self._strays):
+            return
+        if not watch:
+            for sid in self._strays:
+                await reader.unsubscribe(sid)
+            self._strays = []
+            return
+        self._strays = [reader.register(subject, self._stray) for subject in STRAYS]
+
+    async def _stray(self, d: Delivery) -> None:
+        """A pose or skeleton on a subject no buffer stores: taken in as the topic it is, which the
+        service refuses and counts (``topic``)."""
+        incoming = Incoming(f"nats:{d.subject.decode('utf-8', 'replace')[:200]}", d.data, time.time())
+        try:
+            self._queue.put_nowait((0, None, incoming))
+        except asyncio.QueueFull:
+            await self._queue.put((0, None, incoming))
 
     def _take(self, p: int) -> None:
         given_up = self._given_up[p] = asyncio.Event()

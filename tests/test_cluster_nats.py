@@ -8,6 +8,7 @@ a newer server delivers it, this test says so: the workers could then leave publ
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import random
 import signal
 import threading
@@ -313,5 +314,45 @@ def test_partitions_given_up_while_their_consumers_are_made_leave_no_consumer(tm
             return left
 
         assert asyncio.run(main()) == [0] * 6
+    finally:
+        server.stop()
+
+
+def test_poses_no_buffer_stores_are_read_by_the_owner_of_partition_0(tmp_path: Path) -> None:
+    """A native NATS publisher's ``mocap.a.b.pose`` (a stream id with a dot) or ``mocap.p.3.pose``
+    (a partition's subject cut short) is neither mapped nor stored: the owner of partition 0 takes
+    it in as the topic it is (the service refuses and counts it), and only while it owns 0."""
+    server = NatsServer(tmp_path).start()
+    try:
+
+        async def main() -> tuple[list[str], list[str]]:
+            settings = ClusterConfig(nats=server.url, partitions=partitions())
+            transport = NatsTransport(settings, instance="t", source=True, sink=False)
+            async with transport:
+                nc = await nats.connect(server.url)
+                incoming = aiter(transport)
+
+                async def publish_and_read() -> list[str]:
+                    await asyncio.sleep(0.3)  # the subscriptions made (or given up)
+                    for subject in ("mocap.a.b.pose", "mocap.p.3.pose", "mocap.a.b.skeleton"):
+                        await nc.publish(subject, b"x")
+                    await nc.flush()
+                    got: list[str] = []
+                    with contextlib.suppress(TimeoutError):
+                        async with asyncio.timeout(1.0):
+                            while len(got) < 3:
+                                got.append((await anext(incoming)).topic)
+                    return got
+
+                await transport.own(frozenset({0}))
+                owning = await publish_and_read()
+                await transport.own(frozenset({1}))
+                not_owning = await publish_and_read()
+                await nc.close()
+            return owning, not_owning
+
+        owning, not_owning = asyncio.run(main())
+        assert owning == ["nats:mocap.a.b.pose", "nats:mocap.p.3.pose", "nats:mocap.a.b.skeleton"]
+        assert not_owning == []
     finally:
         server.stop()
