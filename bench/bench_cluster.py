@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import dataclasses
 import json
 import os
 import signal
@@ -122,15 +123,21 @@ class Wire:
 
 
 class Load:
-    """S looping streams (sequence numbers go on across runs), their skeletons every second."""
+    """S looping streams (sequence numbers go on across runs), their skeletons every second; at
+    ``rate`` Hz (the recordings' 120 Hz, or every k-th frame of them announced at 120 / k Hz)."""
 
-    def __init__(self, wire: Wire, n: int, prefix: str) -> None:
+    def __init__(self, wire: Wire, n: int, prefix: str, rate: float = RATE) -> None:
         self.wire = wire
+        self.rate = rate
         self.items = streams(n)
+        every = max(1, round(RATE / rate))
         for s in self.items:
             s.id = f"{prefix}{s.id}"
+            m = s.motion
+            s.motion = dataclasses.replace(m, frames=m.frames[::every], channels=m.channels[::every])
             skeleton = msgpack.unpackb(s.skeleton[1], raw=False)
             skeleton["stream"] = s.id
+            skeleton["rate"] = rate
             s.skeleton = (f"mocap/{s.id}/skeleton", msgpack.packb(skeleton))
 
     def run(self, seconds: float, stop: threading.Event | None = None) -> int:
@@ -138,10 +145,10 @@ class Load:
         time.sleep(0.3)
         start = announced = time.monotonic()
         sent = 0
-        for tick in range(int(seconds * RATE)):
+        for tick in range(int(seconds * self.rate)):
             if stop is not None and stop.is_set():
                 break
-            wait = start + tick / RATE - time.monotonic()
+            wait = start + tick / self.rate - time.monotonic()
             if wait > 0:
                 time.sleep(wait)
             now = time.time()
@@ -160,7 +167,11 @@ class Load:
 
 
 class Worker:
-    def __init__(self, where: Path, name: str, nats: str, etcd: str) -> None:
+    """``mocapd run --cluster`` as a process; ``settings``: more of its environment (``MOCAPD_...``)."""
+
+    def __init__(
+        self, where: Path, name: str, nats: str, etcd: str, settings: dict[str, str] | None = None
+    ) -> None:
         self.name = name
         self.port = free_port()
         self.err = where / f"{name}.err"
@@ -170,6 +181,7 @@ class Worker:
             "MOCAPD_SERVICE_IDLE_S": "2",
             "MOCAPD_LOGGING_LEVEL": "info",
             "PYTHONPATH": str(REPO),
+            **(settings or {}),
         }
         mocapd = str(Path(sys.executable).parent / "mocapd")
         with self.err.open("ab") as err:
