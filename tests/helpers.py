@@ -284,6 +284,48 @@ def http_get(port: int, path: str) -> tuple[int, str]:
         return 0, ""
 
 
+def cluster_load(to: str, streams: int, seconds: float, rate: float) -> subprocess.Popen[str]:
+    """:mod:`bench.cluster_load` publishing ``streams`` looping streams at ``rate`` Hz for
+    ``seconds`` to ``to`` (``mqtt://`` or ``nats://``), as a process: what it sent, a JSON object,
+    on its stdout."""
+    options = ["--streams", str(streams), "--seconds", str(seconds), "--rate", str(rate)]
+    return subprocess.Popen(
+        [sys.executable, "-m", "bench.cluster_load", "--to", to, *options],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        cwd=REPO,
+        env={**os.environ, "PYTHONPATH": str(REPO)},
+    )
+
+
+def burner() -> subprocess.Popen[bytes]:
+    """A CPU-bound process (the load a test runs beside)."""
+    return subprocess.Popen([sys.executable, "-c", "while True: pass"])
+
+
+def log_events(log: Path, name: str) -> list[dict[str, Any]]:
+    """The JSON log lines of event ``name`` in a daemon's log file ``log``."""
+    lines = log.read_text(encoding="utf-8", errors="replace").splitlines()
+    return [e for e in (json.loads(x) for x in lines if x.startswith("{")) if e.get("event") == name]
+
+
+def stop_all(*parts: Any) -> None:
+    """What a test started, in turn: a process killed (if it runs) and waited for, a collector
+    closed, a server stopped; None passed over."""
+    for part in parts:
+        if part is None:
+            continue
+        if isinstance(part, subprocess.Popen):
+            if part.poll() is None:
+                part.kill()
+                part.wait(10)
+        elif hasattr(part, "stop"):
+            part.stop()
+        else:
+            part.close()
+
+
 def cluster_worker(
     where: Path, nats: str, etcd: str, metrics_port: int, cluster: Mapping[str, object] | None = None
 ) -> subprocess.Popen[bytes]:

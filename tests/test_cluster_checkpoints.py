@@ -7,14 +7,10 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import json
-import os
 import signal
-import subprocess
-import sys
 import time
 from collections import Counter
 from pathlib import Path
-from typing import Any
 
 import nats
 import pytest
@@ -27,7 +23,16 @@ from bench.processes import free_port, scrape
 from daemon.cluster.checkpoints import Fed, Sample, far_enough, resume_after
 from protocols.nats import CHECKPOINTS, partition_of
 from tests.etcd_server import Etcd
-from tests.helpers import MqttCollector, cluster_worker, detection_keys, looped_detections, wait_for
+from tests.helpers import (
+    MqttCollector,
+    cluster_load,
+    cluster_worker,
+    detection_keys,
+    log_events,
+    looped_detections,
+    stop_all,
+    wait_for,
+)
 from tests.nats_server import NatsServer, partitions
 
 REPO = Path(__file__).resolve().parents[1]
@@ -84,7 +89,6 @@ STREAMS = 2
 RATE = 360.0
 """Poses per second per stream: three times the recordings' 120 Hz, so that the streams are fed
 the twice-a-warm-up a checkpoint needs (35 s of frames with the shipped library) in 12 s."""
-LOAD = ["--streams", str(STREAMS), "--seconds", "30", "--rate", str(RATE)]
 
 
 def _fed_before(url: str, names: list[str]) -> set[str]:
@@ -107,11 +111,6 @@ def _fed_before(url: str, names: list[str]) -> set[str]:
     return asyncio.run(read())
 
 
-def _events(log: Path, name: str) -> list[dict[str, Any]]:
-    lines = log.read_text(encoding="utf-8", errors="replace").splitlines()
-    return [e for e in (json.loads(x) for x in lines if x.startswith("{")) if e.get("event") == name]
-
-
 @pytest.mark.slow
 def test_a_new_owner_reads_the_buffer_from_the_checkpoint_and_misses_nothing(tmp_path: Path) -> None:
     """One worker with a 120 s buffer recognises two streams looping real recordings at three times
@@ -128,17 +127,12 @@ def test_a_new_owner_reads_the_buffer_from_the_checkpoint_and_misses_nothing(tmp
     second = load = collector = None
     try:
         wait_for(
-            lambda: len(_events(tmp_path / "w1" / "worker.err", "partition taken")) == partitions(), 30, "w1"
+            lambda: len(log_events(tmp_path / "w1" / "worker.err", "partition taken")) == partitions(),
+            30,
+            "w1",
         )
         collector = MqttCollector(server.mqtt_url, ["mocap/+/detections"], client_id="checkpoint-collector")
-        load = subprocess.Popen(
-            [sys.executable, "-m", "bench.cluster_load", "--to", server.mqtt_url, *LOAD],
-            stdout=subprocess.PIPE,
-            stderr=subprocess.PIPE,
-            text=True,
-            cwd=REPO,
-            env={**os.environ, "PYTHONPATH": str(REPO)},
-        )
+        load = cluster_load(server.mqtt_url, STREAMS, 30, RATE)
         names = [stream_id(i, RECORDINGS[i][1]) for i in range(STREAMS)]
         wait_for(
             lambda: _fed_before(server.url, names) == set(names), 30, "checkpoints past the streams' starts"
@@ -165,7 +159,7 @@ def test_a_new_owner_reads_the_buffer_from_the_checkpoint_and_misses_nothing(tmp
 
         used = {partition_of(stream, partitions()) for stream in sent}
         taken = [
-            e for e in _events(tmp_path / "w2" / "worker.err", "partition taken") if e["partition"] in used
+            e for e in log_events(tmp_path / "w2" / "worker.err", "partition taken") if e["partition"] in used
         ]
         assert taken and all(e["from"] > 1 and e["ts"] > killed for e in taken), taken
         m = scrape(ports[1])
@@ -173,11 +167,4 @@ def test_a_new_owner_reads_the_buffer_from_the_checkpoint_and_misses_nothing(tmp
         # what it read of the buffers is what followed the checkpoints, not all they held
         assert 0 < m["mocapd_cluster_replayed_poses_total"] < sum(e["buffered"] for e in taken)
     finally:
-        for p in (load, first, second):
-            if p is not None and p.poll() is None:
-                p.kill()
-                p.wait(10)
-        if collector is not None:
-            collector.close()
-        etcd.stop()
-        server.stop()
+        stop_all(load, first, second, collector, etcd, server)

@@ -15,7 +15,6 @@ import json
 import os
 import signal
 import subprocess
-import sys
 import time
 from collections import Counter
 from pathlib import Path
@@ -29,9 +28,13 @@ from tests.helpers import (
     MOCAPD_SCRIPT,
     MqttCollector,
     NatsCollector,
+    cluster_load,
     detection_keys,
     looped_detections,
     wait_for,
+)
+from tests.helpers import (
+    burner as burner_process,
 )
 from tests.nats_server import NatsServer, partitions
 
@@ -138,27 +141,8 @@ def test_takeovers_lose_and_repeat_no_detection(tmp_path: Path) -> None:
         )
         mqtt = MqttCollector(server.mqtt_url, ["mocap/+/detections"], client_id="e2e-collector")
         nats = NatsCollector(server.url)
-        load = subprocess.Popen(
-            [
-                sys.executable,
-                "-m",
-                "bench.cluster_load",
-                "--to",
-                server.mqtt_url,
-                "--streams",
-                str(STREAMS),
-                "--seconds",
-                str(SECONDS),
-                "--rate",
-                str(RATE),
-            ],
-            stdout=subprocess.PIPE,
-            stderr=subprocess.PIPE,
-            text=True,
-            cwd=REPO,
-            env={**os.environ, "PYTHONPATH": str(REPO)},
-        )
-        burner = subprocess.Popen([sys.executable, "-c", "while True: pass"])  # the load beside it
+        load = cluster_load(server.mqtt_url, STREAMS, SECONDS, RATE)
+        burner = burner_process()  # the load beside it
         w1, w2, _ = workers
         time.sleep(6)
         etcd.members[0].kill()  # the member every worker talks to first

@@ -10,17 +10,24 @@ not hidden here: the recording starts once the cluster has recovered."""
 from __future__ import annotations
 
 import asyncio
-import json
 import time
 from pathlib import Path
-from typing import Any
 
 import pytest
 
 from bench.cluster_load import RATE, recording, streams
 from bench.processes import free_port, scrape
 from tests.etcd_server import Etcd
-from tests.helpers import NatsCollector, cluster_worker, detection_keys, http_get, looped_detections, wait_for
+from tests.helpers import (
+    NatsCollector,
+    cluster_worker,
+    detection_keys,
+    http_get,
+    log_events,
+    looped_detections,
+    stop_all,
+    wait_for,
+)
 from tests.nats_server import NatsCluster
 
 PARTITIONS = 16
@@ -66,11 +73,6 @@ async def _led(url: str) -> bool:
         await nc.close()
 
 
-def _events(log: Path, name: str) -> list[dict[str, Any]]:
-    lines = log.read_text(encoding="utf-8", errors="replace").splitlines()
-    return [e for e in (json.loads(x) for x in lines if x.startswith("{")) if e.get("event") == name]
-
-
 @pytest.mark.slow
 def test_a_worker_goes_on_when_the_nats_server_it_talks_to_is_killed(tmp_path: Path) -> None:
     (tmp_path / "etcd").mkdir()
@@ -94,7 +96,7 @@ def test_a_worker_goes_on_when_the_nats_server_it_talks_to_is_killed(tmp_path: P
             """The buffers the killed server led have new leaders: the worker's consumers are all
             made again (no "partition not read" for 12 s, two of its 5 s attempts and more). On
             this machine some took 30 s and more (JetStream's elections on 2.9.10)."""
-            failures = [e["ts"] for e in _events(err, "partition not read")]
+            failures = [e["ts"] for e in log_events(err, "partition not read")]
             return time.time() - max(failures, default=0.0) > 12.0
 
         wait_for(settled, 120, "the cluster to settle")
@@ -110,9 +112,4 @@ def test_a_worker_goes_on_when_the_nats_server_it_talks_to_is_killed(tmp_path: P
         assert scrape(port)["mocapd_cluster_partitions"] == PARTITIONS
         assert moved < 10, moved
     finally:
-        if collector is not None:
-            collector.close()
-        worker.kill()
-        worker.wait(10)
-        etcd.stop()
-        cluster.stop()
+        stop_all(collector, worker, etcd, cluster)

@@ -31,6 +31,7 @@ from tests.helpers import (
     freeze,
     http_get,
     mocapd,
+    stop_all,
     wait_for,
 )
 from tests.nats_server import NatsServer, partitions
@@ -75,12 +76,7 @@ def test_a_worker_goes_on_after_the_nats_server_restarts(tmp_path: Path) -> None
         wait_for(lambda: len(collector.detections()) >= len(want), 20, "the detections")
         assert detection_keys(collector.detections()) == detection_keys(want)
     finally:
-        if collector is not None:
-            collector.close()
-        worker.kill()
-        worker.wait(10)
-        etcd.stop()
-        server.stop()
+        stop_all(collector, worker, etcd, server)
 
 
 Disturb = Callable[[Etcd, int], None]
@@ -125,14 +121,7 @@ def _through_a_worker(tmp_path: Path, disturb: Disturb) -> tuple[dict[str, float
         assert detection_keys(got) == detection_keys(want)
         return before, scrape(port), err.read_text()
     finally:
-        for p in (replay, worker):
-            if p is not None and p.poll() is None:
-                p.kill()
-                p.wait(10)
-        if collector is not None:
-            collector.close()
-        etcd.stop()
-        server.stop()
+        stop_all(replay, worker, collector, etcd, server)
 
 
 @pytest.mark.slow
