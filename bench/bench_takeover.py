@@ -2,6 +2,7 @@
 with checkpoints (``docs/cluster.md``, "Checkpoints"; issue 34).
 
     python -m bench.bench_takeover [--per-worker 10,30,100] [--buffers 10,60] [--rate 30]
+    python -m bench.bench_takeover --handovers 20 [--streams 60]
 
 A nats-server from ``deploy/nats/nats.conf`` and an etcd from ``deploy/etcd`` on loopback ports. For
 each buffer length, checkpoints off and on (``cluster.checkpoint_s`` 0 and 2) and streams per worker
@@ -13,6 +14,12 @@ reach and 2 s), then one worker killed (kill -9). Per partition of the killed wo
 streams: from the kill to the first live pose its new owner consumed (the lease's expiry, the
 buffer read from its start or from its checkpoint, the catching up); the time until the survivor's
 queue was back to a pose per stream; the buffered messages it read again.
+
+``--handovers N``: instead, three workers (default settings) and ``--streams`` streams at 120 Hz;
+N times a worker stopped with SIGTERM and, in turn, N times one killed with -9, a new worker started
+after each; per partition of the stopped or killed worker that carries streams, the time from the
+signal to its first live pose at its new owner: their p50, p99 and maximum per kind (issue 34's
+aims: SIGTERM within 1 s, kill -9 within the lease and a second).
 """
 
 from __future__ import annotations
@@ -109,6 +116,52 @@ def one(
             x.stop(signal.SIGKILL)
 
 
+def handovers(work: Path, server: NatsServer, etcd: Etcd, wire: Wire, n: int, size: int) -> None:
+    reset(server.url)
+    workers = [Worker(work, f"h-{i}", server.url, etcd.url) for i in range(3)]
+    load = Load(wire, size, "h-")
+    stop = threading.Event()
+    thread = threading.Thread(target=load.run, args=(3600.0, stop), daemon=True)
+    thread.start()
+    times: dict[str, list[float]] = {"SIGTERM": [], "kill -9": []}
+    started = 3
+    try:
+        wait(lambda: all(x.sees(3) for x in workers), 30)
+        time.sleep(3)
+        for k in range(2 * n):
+            what, sig = ("SIGTERM", signal.SIGTERM) if k < n else ("kill -9", signal.SIGKILL)
+            victim = workers[k % 3]
+            owned, at = victim.owned(), time.time()
+            victim.stop(sig)
+            survivors = [x for x in workers if x is not victim]
+            carrying = owned & used(workers)
+            wait(lambda: all(live_after(survivors, p, at) is not None for p in carrying), 30)  # noqa: B023
+            lives = [t - at for p in carrying if (t := live_after(survivors, p, at)) is not None]
+            times[what] += lives
+            most = max(lives, default=0.0)
+            print(
+                f"{what} {k % n + 1}: {len(lives)} partitions live again, the last {most:.2f} s after",
+                flush=True,
+            )
+            workers[k % 3] = Worker(work, f"h-{started}", server.url, etcd.url)
+            started += 1
+            wait(lambda: all(x.sees(3) for x in workers) and all(x.owned() for x in workers), 30)
+            time.sleep(2)  # the joiner's partitions taken and live
+    finally:
+        stop.set()
+        thread.join(10)
+        for x in workers:
+            x.stop(signal.SIGKILL)
+    for what, got in times.items():
+        if got:
+            a = np.array(got)
+            print(
+                f"{what}: {a.size} partition handovers in {n} events; first live pose p50 "
+                f"{np.percentile(a, 50):.2f} s, p99 {np.percentile(a, 99):.2f} s, max {a.max():.2f} s",
+                flush=True,
+            )
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -117,6 +170,8 @@ def main() -> None:
     parser.add_argument("--buffers", default="10,60", help="cluster.buffer_s values")
     parser.add_argument("--rate", type=float, default=30.0, help="poses per second per stream")
     parser.add_argument("--after", type=float, default=AFTER_S, help="seconds published beyond the buffer")
+    parser.add_argument("--handovers", type=int, default=0, help="SIGTERM and kill -9 handovers instead")
+    parser.add_argument("--streams", type=int, default=60, help="streams for --handovers")
     args = parser.parse_args()
     print(describe())
     work = Path(tempfile.mkdtemp(prefix="bench-takeover-"))
@@ -125,6 +180,19 @@ def main() -> None:
     server = NatsServer(work / "nats").start()
     etcd = Etcd(work / "etcd").start()
     wire = Wire(server.url)
+    try:
+        if args.handovers:
+            print(f"{partitions()} partitions, 3 workers, lease 2 s, {args.streams} streams at 120 Hz")
+            handovers(work, server, etcd, wire, args.handovers, args.streams)
+        else:
+            matrix(work, server, etcd, wire, args)
+    finally:
+        wire.close()
+        etcd.stop()
+        server.stop()
+
+
+def matrix(work: Path, server: NatsServer, etcd: Etcd, wire: Wire, args: argparse.Namespace) -> None:
     print(
         f"{partitions()} partitions, 2 workers, lease 2 s, {args.rate:g} poses/s per stream; kill -9 of one "
         f"after buffer + {args.after:g} s; times from the kill"
@@ -141,18 +209,12 @@ def main() -> None:
         "replayed",
     )
     print(" ".join(f"{h:>10s}" for h in head), flush=True)
-    try:
-        for buffer_s in [float(x) for x in args.buffers.split(",")]:
-            for every_s in (0.0, 2.0):
-                for per in [int(x) for x in args.per_worker.split(",")]:
-                    print(
-                        one(work, server, etcd, wire, per, buffer_s, every_s, args.rate, args.after),
-                        flush=True,
-                    )
-    finally:
-        wire.close()
-        etcd.stop()
-        server.stop()
+    for buffer_s in [float(x) for x in args.buffers.split(",")]:
+        for every_s in (0.0, 2.0):
+            for per in [int(x) for x in args.per_worker.split(",")]:
+                print(
+                    one(work, server, etcd, wire, per, buffer_s, every_s, args.rate, args.after), flush=True
+                )
 
 
 if __name__ == "__main__":
