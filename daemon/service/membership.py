@@ -49,8 +49,9 @@ may name several members of an etcd cluster (``etcd://h1:2379,h2:2379,h3:2379``)
 starts with the first that answers and moves to the next when a keep-alive or the watch fails,
 carrying the lease over (a lease is the etcd cluster's, not a member's), so a killed etcd member
 costs a worker the time to find the next one (the failed call's timeout, then :data:`RETRY_S`: up
-to 1.6 s measured under load, a pause when it outlasts two thirds of the lease), not its lease. :func:`cluster_status` reads the
-members, their reported statuses and their leases' TTLs left, for ``mocapd cluster status``.
+to 1.6 s measured under load, a pause when it outlasts two thirds of the lease), not its lease.
+:func:`cluster_status` reads the members, their reported statuses and their leases' TTLs left, for
+``mocapd cluster status``.
 """
 
 from __future__ import annotations
