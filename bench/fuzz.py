@@ -162,7 +162,8 @@ class Fuzzed:
     topic's bytes (over NATS the subject), the frames after the topic (one normally; ZeroMQ framing
     faults have none or two) and the MQTT QoS; over NATS its header block and reply subject, and
     whether a worker counts it (:func:`nats_stored`, or for a message on a delivery subject whether
-    it is anything but the server's flow control)."""
+    it is anything but the server's flow control), and whether it reaches a worker as a ``stray``
+    (:func:`nats_stray`: on a plain subscription, not from a buffer)."""
 
     kind: str
     topic: bytes
@@ -171,6 +172,7 @@ class Fuzzed:
     headers: bytes | None = None
     reply: bytes = b""
     reaches: bool = True
+    stray: bool = False
 
 
 @dataclass
@@ -369,6 +371,21 @@ def nats_stored(subject: bytes, partitions: int = PARTITIONS) -> bool:
         len(tokens) >= 4
         and tokens[:2] == [b"mocap", b"p"]
         and tokens[2] in {str(p).encode() for p in range(partitions)}
+    )
+
+
+def nats_stray(subject: bytes, partitions: int = PARTITIONS) -> bool:
+    """Whether a worker reads a message on ``subject`` that no buffer stores: a pose or skeleton
+    subject of four tokens (``mocap.<a>.<b>.pose``), which the owner of partition 0 subscribes to
+    (``protocols.nats.STRAYS``; core NATS delivers it whatever its headers, and any token bytes),
+    unless a buffer stores it."""
+    tokens = subject.split(b".")
+    return (
+        len(tokens) == 4
+        and all(tokens)
+        and tokens[0] == b"mocap"
+        and tokens[3] in (b"pose", b"skeleton")
+        and not nats_stored(subject, partitions)
     )
 
 
@@ -601,20 +618,22 @@ class Fuzzer:
         subject = subject_of(m.topic)
         reply = b"fuzz.reply." + str(rng.randrange(100)).encode() if rng.random() < 0.03 else b""
         stored = nats_stored(subject, self.partitions)
+        stray = nats_stray(subject, self.partitions)  # read on a plain subscription: every copy
+        m = replace(m, topic=subject, reply=reply, reaches=stored or stray, stray=stray)
         if rng.random() >= 0.1:
-            return [replace(m, topic=subject, reply=reply, reaches=stored)]
+            return [m]
         r = rng.random()
         if r < 0.15:  # twice with one id: JetStream stores the first copy only
             self.ids += 1
             block = b"NATS/1.0\r\nNats-Msg-Id: fuzz-%d-%d\r\n\r\n" % (self.ids, rng.getrandbits(32))
-            first = replace(m, topic=subject, headers=block, reply=reply, reaches=stored)
-            return [first, replace(first, reaches=False)]
+            first = replace(m, headers=block)
+            return [first, replace(first, reaches=stray)]
         if r < 0.25:
             self.ids += 1
             block = b"NATS/1.0\r\nNats-Msg-Id: fuzz-%d-%d\r\n\r\n" % (self.ids, rng.getrandbits(32))
-            return [replace(m, topic=subject, headers=block, reply=reply, reaches=stored)]
+            return [replace(m, headers=block)]
         block, kept = rng.choice(HEADER_BLOCKS)
-        return [replace(m, topic=subject, headers=block, reply=reply, reaches=stored and kept)]
+        return [replace(m, headers=block, reaches=(stored and kept) or stray)]
 
     def nats_only(self) -> list[Fuzzed]:
         """A message only NATS can carry: on a subject straight into a partition's buffer (of a
@@ -662,13 +681,19 @@ class Fuzzer:
             b"MOCAP." + name + b".pose",
         )
         subject = rng.choice(subjects)
+        stray = nats_stray(subject, self.partitions)
         headers = None
         if subject.startswith(b"mocap.d."):
             self.ids += 1
             headers = b"NATS/1.0\r\nNats-Msg-Id: fuzz-d-%d\r\n\r\n" % self.ids
         return [
             Fuzzed(
-                "subject", subject, (payload,), headers=headers, reaches=nats_stored(subject, self.partitions)
+                "subject",
+                subject,
+                (payload,),
+                headers=headers,
+                reaches=nats_stored(subject, self.partitions) or stray,
+                stray=stray,
             )
         ]
 
@@ -1822,7 +1847,7 @@ def _fuzz(
             elif message.kind == "inbox":
                 result.fuzz_inbox += 1
             else:
-                result.fuzz_stored += result.transport == "nats"
+                result.fuzz_stored += result.transport == "nats" and not message.stray
                 result.fuzz_routed += 1
             if i % 16 == 0:
                 wire.pump()

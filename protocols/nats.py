@@ -266,6 +266,7 @@ class NatsTransport:
         self._foreign_log = Throttle()
         self._reader: Reader | None = None
         self._strays: list[int] = []  # the reader's subscriptions to STRAYS
+        self._partition_tokens = frozenset(str(p).encode() for p in range(settings.partitions))
         self._last_error: str | None = None
         self._error_log = Throttle()
 
@@ -562,7 +563,11 @@ class NatsTransport:
 
     async def _stray(self, d: Delivery) -> None:
         """A pose or skeleton on a subject no buffer stores: taken in as the topic it is, which the
-        service refuses and counts (``topic``)."""
+        service refuses and counts (``topic``). ``mocap.p.<p>.pose`` with ``p`` a partition is a
+        buffer's (its consumer delivers it), and passed over here."""
+        tokens = d.subject.split(b".")
+        if tokens[1] == b"p" and tokens[2] in self._partition_tokens:
+            return
         incoming = Incoming(f"nats:{d.subject.decode('utf-8', 'replace')[:200]}", d.data, time.time())
         try:
             self._queue.put_nowait((0, None, incoming))

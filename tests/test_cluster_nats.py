@@ -319,9 +319,10 @@ def test_partitions_given_up_while_their_consumers_are_made_leave_no_consumer(tm
 
 
 def test_poses_no_buffer_stores_are_read_by_the_owner_of_partition_0(tmp_path: Path) -> None:
-    """A native NATS publisher's ``mocap.a.b.pose`` (a stream id with a dot) or ``mocap.p.3.pose``
-    (a partition's subject cut short) is neither mapped nor stored: the owner of partition 0 takes
-    it in as the topic it is (the service refuses and counts it), and only while it owns 0."""
+    """A native NATS publisher's ``mocap.a.b.pose`` (a stream id with a dot) or ``mocap.p.999.pose``
+    (a partition's subject cut short, of no partition) is neither mapped nor stored: the owner of
+    partition 0 takes it in as the topic it is (the service refuses and counts it), and only while
+    it owns 0. ``mocap.p.3.pose`` is partition 3's buffer's, and not taken a second time."""
     server = NatsServer(tmp_path).start()
     try:
 
@@ -334,7 +335,12 @@ def test_poses_no_buffer_stores_are_read_by_the_owner_of_partition_0(tmp_path: P
 
                 async def publish_and_read() -> list[str]:
                     await asyncio.sleep(0.3)  # the subscriptions made (or given up)
-                    for subject in ("mocap.a.b.pose", "mocap.p.3.pose", "mocap.a.b.skeleton"):
+                    for subject in (
+                        "mocap.a.b.pose",
+                        "mocap.p.3.pose",
+                        "mocap.p.999.pose",
+                        "mocap.a.b.skeleton",
+                    ):
                         await nc.publish(subject, b"x")
                     await nc.flush()
                     got: list[str] = []
@@ -352,7 +358,7 @@ def test_poses_no_buffer_stores_are_read_by_the_owner_of_partition_0(tmp_path: P
             return owning, not_owning
 
         owning, not_owning = asyncio.run(main())
-        assert owning == ["nats:mocap.a.b.pose", "nats:mocap.p.3.pose", "nats:mocap.a.b.skeleton"]
+        assert owning == ["nats:mocap.a.b.pose", "nats:mocap.p.999.pose", "nats:mocap.a.b.skeleton"]
         assert not_owning == []
     finally:
         server.stop()

@@ -132,7 +132,10 @@ async def test_the_view_on_mqtt_shows_what_the_broker_carries(tmp_path: Path, br
     (made,) = [m for m in rest if m["type"] == "stream"]
     assert made == {"type": "stream", "stream": "studio-a", "kind": "positions", "rate": 120.0}
     poses = [p for m in rest if m["type"] == "poses" for p in m["poses"]]
-    assert 2 * 30 * 0.8 <= len(poses) <= 2 * 30 + 2  # 240 poses, at most 30 a second sent
+    # 240 poses sent, at most 30 a second drawn (by arrival: how many depends on how evenly a busy
+    # machine delivers them, so below that only that both seconds of the stream are drawn)
+    seqs = [p["seq"] for p in poses]
+    assert len(poses) <= 2 * 30 + 2 and seqs == sorted(seqs) and seqs[0] <= 120 < seqs[-1]
     assert poses[0]["p"][:6] == [0, 10 * (poses[0]["seq"] - 1), 0, 0, 10 * (poses[0]["seq"] + 4), 0]  # mm
     assert [m["id"] for m in rest if m["type"] == "detection"] == ["id-1"]  # the repeat dropped
     (progress,) = [m for m in rest if m["type"] == "progress"]
