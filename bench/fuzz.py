@@ -57,8 +57,9 @@ Checks (exit status 1 if one fails):
   (``rejects{reason="internal"}``); every line of its stderr is one JSON object, none an error, a
   traceback or a Python warning;
 * every message counted once: the messages that reached the daemon (the fuzzed ones a ZeroMQ
-  subscription or an MQTT subscription lets through, over NATS those a partition's buffer stored
-  and those published on a delivery subject but forged flow control; and the good stream's) equal
+  subscription or an MQTT subscription lets through, over NATS those a partition's buffer stored,
+  the four-token pose and skeleton subjects no buffer stores (:func:`nats_stray`) and those
+  published on a delivery subject but forged flow control; and the good stream's) equal
   ``mocapd_messages_in_total{type}`` (taken in) + ``mocapd_rejects_total{reason}`` (refused) +
   the drops before a message is looked at (:data:`INTAKE_DROPS`: ``mqtt_incoming_full``,
   ``nats_foreign``, ``nats_internal``); the other drops (``lagging``, ``recognizer_<problem>``:
