@@ -13,22 +13,30 @@ import urllib.error
 import urllib.request
 from pathlib import Path
 
+_HANDED_OUT: set[int] = set()
+
 
 def free_port() -> int:
     """A TCP port on loopback nobody listens on now, below the kernel's ephemeral range: a port the
     kernel hands out (bind to 0) can be taken by any process's outgoing connection before the
-    daemon binds it (seen in CI: "address already in use" for a port just found free)."""
+    daemon binds it (seen in CI: "address already in use" for a port just found free). Never the
+    same port twice in a process: ports drawn for servers not yet started are free too (CI: a fresh
+    three-server NATS cluster's MQTT listener found its port "already in use", most likely drawn
+    for another of its twelve ports; 12 draws of 12,000 collide once in about 180)."""
     try:
         low = int(Path("/proc/sys/net/ipv4/ip_local_port_range").read_text().split()[0])
     except (OSError, ValueError, IndexError):
         low = 32768
     for _ in range(100):
         port = random.randrange(max(1024, low - 12000), low)
+        if port in _HANDED_OUT:
+            continue
         with socket.socket() as s:
             try:
                 s.bind(("127.0.0.1", port))
             except OSError:
                 continue
+            _HANDED_OUT.add(port)
             return port
     raise RuntimeError("no free loopback port below the ephemeral range")
 
