@@ -15,7 +15,7 @@ position is read from its start).
 Why positions and not the recognisers' whole state: the state is a function of the last warm-up's
 poses but for one thing, the body lengths the features' thresholds are multiples of, measured on the
 stretch's first pose (a recogniser started elsewhere gave another cost to 1 detection in 37 of a
-looped recording, ``tests/test_cluster_checkpoints.py``). So a checkpoint stores those lengths with
+looped recording, ``tests/test_cluster_table.py``). So a checkpoint stores those lengths with
 each run, and rebuilding the rest costs the replay of two warm-ups per stream, whatever the buffer's
 length, with no serialised form of the compiled recognisers that could drift from the running ones.
 
