@@ -110,6 +110,74 @@ cdef class AutomatonCore:
     def state_size(self):
         return sum(len(p) for p in self._partials) + len(self._matches)
 
+    def state(self):
+        """What :meth:`restore` needs to go on as this automaton would: (frames, idle, reached, the
+        open runs, the partial matches of each gap, the matches, the last hit and its frame, the
+        runs). Runs are shared (a partial match links the open run it was extended by, and later
+        matches hold the same runs), so they are one list, ``(start, end)`` each, and everything
+        else names them by their place in it (-1: none); a partial match is (runs, lo, first,
+        linked)."""
+        cdef dict places = {}
+        cdef list runs = []
+
+        def place(run):
+            if run is None:
+                return -1
+            key = id(run)
+            if key not in places:
+                places[key] = len(runs)
+                runs.append(((<Run> run).start, (<Run> run).end))
+            return places[key]
+
+        def partial(p):
+            if p is None:
+                return None
+            cdef Partial q = <Partial> p
+            return ([place(r) for r in q.runs], q.lo, q.first, place(q.linked))
+
+        open_ = [place(r) for r in self._open]
+        partials = [[partial(p) for p in ps] for ps in self._partials]
+        matches = [partial(m) for m in self._matches]
+        hit = partial(self._hit)
+        return (self._t, self._idle, [list(r) for r in self.reached], open_, partials, matches, hit, self._hit_t, runs)
+
+    def restore(self, state):
+        """Take over a :meth:`state` of an automaton of the same keyframes; ValueError if it does
+        not fit."""
+        t, idle, reached, open_, partials, matches, hit, hit_t, runs = state
+        if len(open_) != self._k or len(partials) != self._k - 1:
+            raise ValueError(f"automaton: {self._k} keyframes expected, got {len(open_)}")
+        made = []
+        cdef Run r
+        for start, end in runs:
+            r = Run(start)
+            r.end = end
+            made.append(r)
+
+        def run(i):
+            if i == -1:
+                return None
+            if not 0 <= i < len(made):
+                raise ValueError(f"automaton: run {i} of {len(made)}")
+            return made[i]
+
+        def partial(p):
+            if p is None:
+                return None
+            members, lo, first, linked = p
+            q = Partial(tuple(run(i) for i in members), lo, first)
+            q.linked = run(linked)
+            return q
+
+        self._t = t
+        self._idle = idle
+        self.reached = [tuple(x) for x in reached]
+        self._open = [run(i) for i in open_]
+        self._partials = [[partial(p) for p in ps] for ps in partials]
+        self._matches = [partial(m) for m in matches]
+        self._hit = partial(hit)
+        self._hit_t = hit_t
+
     @property
     def frames(self):
         return self._t
@@ -314,6 +382,16 @@ cdef class AutomatonSet:
     def core(self, Py_ssize_t k):
         """Automaton ``k``."""
         return self._cores[k]
+
+    def state(self):
+        """Each automaton's :meth:`AutomatonCore.state`."""
+        return [(<AutomatonCore> a).state() for a in self._cores]
+
+    def restore(self, state):
+        if len(state) != self._n:
+            raise ValueError(f"{self._n} automata expected, got {len(state)}")
+        for a, s in zip(self._cores, state):
+            (<AutomatonCore> a).restore(s)
 
     def push(self, uint64_t code):
         """Push ``code`` to every automaton; (index, reached) of those whose :attr:`reached` is not

@@ -6,7 +6,7 @@ int64 fixed-point costs with the same tie order, so the results are the same int
 costs come from the template's retrieval tables (popcount of the differing fixed bits)."""
 
 from cpython.mem cimport PyMem_Free, PyMem_Malloc, PyMem_Realloc
-from libc.string cimport memmove
+from libc.string cimport memcpy, memmove
 from libc.stdint cimport int64_t, uint64_t
 
 import numpy as np
@@ -354,6 +354,27 @@ cdef class StreamDTW:
         """A new stream: no frame seen."""
         self._reset()
 
+    def state(self):
+        """What :meth:`restore` needs to go on as this DTW would: (frames, the columns, each slot's
+        highest row, the templates computing columns), arrays as bytes."""
+        return (
+            self.n, np.asarray(self.cols).tobytes(), np.asarray(self.highest).tobytes(),
+            np.asarray(self.active).tobytes(),
+        )
+
+    def restore(self, state):
+        """Take over a :meth:`state` of a DTW of the same templates; ValueError if it does not fit."""
+        n, cols, highest, active = state
+        c = np.frombuffer(cols, dtype=np.int64)
+        h = np.frombuffer(highest, dtype=np.int64)
+        a = np.frombuffer(active, dtype=np.uint8)
+        if c.shape[0] != 6 * self.total or h.shape[0] != 3 * self.k or a.shape[0] != self.k or n < 0:
+            raise ValueError(f"DTW: the state of {self.k} templates of {self.total} rows in all expected")
+        np.asarray(self.cols)[...] = c.reshape(6, self.total)
+        np.asarray(self.highest)[...] = h.reshape(self.k, 3)
+        np.asarray(self.active)[...] = a
+        self.n = n
+
     cdef void _reset(self) noexcept nogil:
         cdef Py_ssize_t r, i
         for r in range(6):
@@ -659,6 +680,23 @@ cdef inline void buf_clear(Buf *b) noexcept nogil:
     b.n = 0
 
 
+cdef bytes buf_bytes(Buf *b):
+    """The rows held, oldest first, as int64 bytes."""
+    return (<char *> &b.data[b.head * b.stride])[:buf_len(b) * b.stride * sizeof(int64_t)]
+
+
+cdef int buf_load(Buf *b, bytes rows) except -1:
+    """Hold exactly ``rows`` (:func:`buf_bytes` of a buffer of the same stride)."""
+    cdef Py_ssize_t size = b.stride * sizeof(int64_t), i, n = len(rows) // size
+    cdef const char *src = rows
+    if len(rows) % size:
+        raise ValueError(f"competition: candidates of {b.stride} values expected")
+    buf_clear(b)
+    for i in range(n):
+        memcpy(buf_append(b), &src[i * size], size)
+    return 0
+
+
 cdef Candidate *reserve(Candidate *buf, Py_ssize_t *cap, Py_ssize_t need) except NULL:
     """``buf`` (room for ``cap[0]`` candidates) with room for ``need``: itself, or grown to twice
     ``need`` (``cap`` updated)."""
@@ -861,6 +899,56 @@ cdef class Competition:
                 self.found[b + 1] = self.found[b]
                 b -= 1
             self.found[b + 1] = y
+
+    def state(self):
+        """What :meth:`restore` needs to go on as this competition would: (frames, the ring of
+        codes, each gated class's window, hit and last detection, the hit's keyframe frames, the
+        held, recent and published candidates as int64 bytes, the DTW's :meth:`StreamDTW.state`,
+        the automata's :meth:`~daemon._automaton.AutomatonSet.state` or None)."""
+        return (
+            self.n,
+            np.asarray(self.ring).tobytes(),
+            np.asarray(self.seg_s).tobytes(),
+            np.asarray(self.seg_e).tobytes(),
+            np.asarray(self.hits).tobytes(),
+            np.asarray(self.last_pub).tobytes(),
+            [list(f) for f in self.hit_frames],
+            buf_bytes(&self.held),
+            buf_bytes(&self.recent),
+            buf_bytes(&self.published),
+            self.dtw.state(),
+            None if self.automata is None else self.automata.state(),
+        )
+
+    def restore(self, state):
+        """Take over a :meth:`state` of a competition of the same templates, classes and settings;
+        ValueError naming the part that does not fit."""
+        n, ring, seg_s, seg_e, hits, last_pub, hit_frames, held, recent, published, dtw, automata = state
+        for name, view, data, dtype in (
+            ("codes", self.ring, ring, np.uint64),
+            ("windows", self.seg_s, seg_s, np.int64),
+            ("windows", self.seg_e, seg_e, np.int64),
+            ("hits", self.hits, hits, np.int64),
+            ("detections", self.last_pub, last_pub, np.int64),
+        ):
+            if len(data) != np.asarray(view).nbytes:
+                raise ValueError(f"competition: {name} of another shape ({len(data)} bytes)")
+        if len(hit_frames) != self.n_gated or (automata is None) != (self.automata is None) or n < 0:
+            raise ValueError(f"competition: {self.n_gated} classes gated by keyframes expected")
+        self.dtw.restore(dtw)
+        if self.automata is not None:
+            self.automata.restore(automata)
+        np.asarray(self.ring)[...] = np.frombuffer(ring, dtype=np.uint64)
+        np.asarray(self.seg_s)[...] = np.frombuffer(seg_s, dtype=np.int64)
+        np.asarray(self.seg_e)[...] = np.frombuffer(seg_e, dtype=np.int64)
+        np.asarray(self.hits)[...] = np.frombuffer(hits, dtype=np.int64).reshape(np.asarray(self.hits).shape)
+        np.asarray(self.last_pub)[...] = np.frombuffer(last_pub, dtype=np.int64).reshape(
+            np.asarray(self.last_pub).shape)
+        self.hit_frames = [tuple(f) for f in hit_frames]
+        buf_load(&self.held, held)
+        buf_load(&self.recent, recent)
+        buf_load(&self.published, published)
+        self.n = n
 
     def flush(self):
         """The end of the stream: the confirmations left (as :meth:`push`'s); then a new stream."""

@@ -257,6 +257,29 @@ cdef class FeatureCore:
         self.emitted = 0
         self.previous = 0
 
+    def state(self):
+        """What :meth:`restore` needs to go on as this stream would: (n, emitted, previous, the
+        thresholds and the ring as float64 bytes)."""
+        return (self.n, self.emitted, self.previous, np.asarray(self._thresholds).tobytes(), self.ring.tobytes())
+
+    def restore(self, state):
+        """Take over a :meth:`state` of a core of the same program and ``keep``; ValueError naming
+        the part that does not fit."""
+        n, emitted, previous, thresholds, ring = state
+        t = np.frombuffer(thresholds, dtype=np.float64)
+        r = np.frombuffer(ring, dtype=np.float64)
+        if t.shape[0] != max(1, self.code.n_slots):
+            raise ValueError(f"features: {max(1, self.code.n_slots)} thresholds expected, got {t.shape[0]}")
+        if r.shape[0] != self.ring.size:
+            raise ValueError(f"features: a ring of {self.ring.size} values expected, got {r.shape[0]}")
+        if not 0 <= emitted <= n or not 0 <= previous < (1 << 64):
+            raise ValueError("features: frames emitted must lie between 0 and those stored")
+        self.ring[...] = r.reshape(self.ring.shape)
+        self._thresholds = t.copy()
+        self.n = n
+        self.emitted = emitted
+        self.previous = previous
+
     def push(self, const double[::1] rows):
         """Hold the next pose (finite components, flat ``3j + c``); the code of the frame that became
         final (``latency`` frames back), or -1."""

@@ -78,6 +78,19 @@ cdef class LiveStream:
         self.stage = stage
         self.competition = competition
 
+    def state(self):
+        """What :meth:`restore` needs to go on as this stream would, but for its features' and its
+        competition's own states: (frames seen since the decimation began, started, last)."""
+        return (self.seen, self.started, self.last)
+
+    def restore(self, state):
+        seen, started, last = state
+        if seen < 0:
+            raise ValueError("live stream: frames seen must be >= 0")
+        self.seen = seen
+        self.started = started
+        self.last = last
+
     def push_channels(self, const double[::1] channels, const double[::1] cos, const double[::1] sin):
         """A checked channel frame (finite, ``width`` values) with its half angles' cosines and sines:
         the index-rate code it gives, :data:`NOTHING` or :data:`NON_FINITE`."""

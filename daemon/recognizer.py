@@ -38,13 +38,17 @@ equals pushing the frames one by one (tests).
 
 from __future__ import annotations
 
+import dataclasses
+import hashlib
 import uuid
 import weakref
+import zlib
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from itertools import accumulate
 from typing import Any, Literal
 
+import msgpack
 import numpy as np
 import numpy.typing as npt
 
@@ -68,6 +72,14 @@ DEFAULT_SETTINGS = RecognitionSettings()
 """``config.yaml``'s defaults, all classes."""
 
 FrameProblem = Literal["shape", "non_finite", "type", "repeat", "back", "jump"]
+
+
+STATE_VERSION = 1
+"""The form of :meth:`Recognizer.state`; a state of another is refused."""
+
+
+class StateError(MocapdError, ValueError):
+    """A recogniser's state (:meth:`Recognizer.state`) that this recogniser cannot go on from."""
 
 
 class FrameError(MocapdError, ValueError):
@@ -429,6 +441,12 @@ class CodeRecognizer:
         found = self._core.push(code)
         return self.confirmations(found) if found else []
 
+    def restore_frames(self, frames: int) -> None:
+        """Without classes, the one state: the frames pushed (:attr:`frames`)."""
+        if type(frames) is not int or frames < 0:
+            raise ValueError("frames pushed must be an int >= 0")
+        self._n = frames
+
     def flush(self) -> list[Confirmation]:
         if self._core is None:
             self._n = 0
@@ -591,6 +609,83 @@ class Recognizer:
         run's first pose gave, without which its features, and its detections' costs, could differ
         for as long as the run lasts."""
         self._assumed = lengths
+
+    def state(self) -> bytes:
+        """The stream's whole state, as bytes another worker's recogniser of the same stream and
+        input (:meth:`restored`) goes on from, giving the detections, ids included, that this one
+        would: the session, the body lengths, the motion's first frame, and the compiled stages'
+        own (the features' ring and hysteresis, the decimation, the DTW columns, the automata's
+        runs and partial matches, the candidates held and remembered; daemon/_features.pyx,
+        daemon/_live.pyx, daemon/_dtw.pyx, daemon/_automaton.pyx). msgpack, zlib-compressed."""
+        core = self._stage.codes.core
+        lengths = [self.lengths, self._assumed]
+        return zlib.compress(
+            msgpack.packb(
+                {
+                    "version": STATE_VERSION,
+                    "shape": self._shape_key(),
+                    "session": self.session,
+                    "lengths": [None if x is None else list(dataclasses.astuple(x)) for x in lengths],
+                    "first": self._stage.first,
+                    "live": self._live.state(),
+                    "features": self._live.features.state(),
+                    "codes": self._stage.codes.frames if core is None else core.state(),
+                }
+            ),
+            1,
+        )
+
+    def restored(self, state: bytes) -> Recognizer:
+        """A recogniser of the same stream and input as this one (:meth:`fresh`) in ``state`` (what
+        :meth:`state` gave, here or in another process with the same library and settings):
+        :class:`StateError` if it is damaged or of another library, settings, rate or input, and
+        this recogniser is unchanged either way."""
+        try:
+            got = msgpack.unpackb(zlib.decompress(state))
+            if not isinstance(got, dict):
+                raise StateError("not a recogniser's state", field="state")
+        except (zlib.error, ValueError, msgpack.UnpackException) as e:
+            raise StateError(f"not a recogniser's state ({e})", field="state") from None
+        if got.get("version") != STATE_VERSION:
+            version = got.get("version")
+            raise StateError(f"version {version!r}, expected {STATE_VERSION}", field="state.version")
+        if got.get("shape") != self._shape_key():
+            raise StateError(
+                "of another library, settings, rate or input than this stream's", field="state.shape"
+            )
+        r = self.fresh(got["session"])
+        try:
+            lengths = [None if x is None else BodyLengths(*x) for x in got["lengths"]]
+            r.lengths, r._assumed = lengths
+            r._stage.first = got["first"]
+            r._live.restore(got["live"])
+            r._live.features.restore(got["features"])
+            core = r._stage.codes.core
+            if core is None:
+                r._stage.codes.restore_frames(got["codes"])
+            else:
+                core.restore(got["codes"])
+        except (KeyError, TypeError, ValueError) as e:
+            raise StateError(str(e), field="state") from None
+        return r
+
+    def _shape_key(self) -> str:
+        """What a state must have been taken under to fit this recogniser: a digest of the input
+        (rate, width, shape), the settings, and the classes' plans (names, gating, templates'
+        lengths and τ; the library's templates themselves are the cluster's to keep the same)."""
+        codes = self._stage.codes
+        key = (
+            self.native_rate,
+            self._shape,
+            self.clock.step,
+            repr(self.settings),
+            codes.names,
+            codes.keyframes,
+            codes.lengths,
+            codes.taus,
+            self._live.features.ring.shape,
+        )
+        return hashlib.sha256(repr(key).encode()).hexdigest()[:32]
 
     @property
     def _last(self) -> int | None:

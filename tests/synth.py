@@ -9,16 +9,21 @@ the tokens and their ``float`` values.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import random
 import string
 from dataclasses import dataclass
 
+import numpy as np
 from hypothesis import strategies as st
 
 from daemon.features import SET_SLICES
 from daemon.keyframes import Keyframe, KeyframeQuery
-from daemon.types import FEATURE_SETS, FeatureSet
+from daemon.library import ClassTemplate
+from daemon.library import given as given_tau
+from daemon.templates import MotionTemplate
+from daemon.types import FEATURE_SETS, N_FEATURES, FeatureSet
 
 ROT = ("rx", "ry", "rz")
 ROOT_CHANNELS = ("tx", "ty", "tz", "rx", "ry", "rz")
@@ -559,3 +564,32 @@ def queries(
         keyframes.append(Keyframe(fs, tuple(low + high), position, stiffness, mismatches))
         position += draw(st.sampled_from([0, 0, 1, 2, 4, 7]))  # equal positions: zero gaps
     return KeyframeQuery("random", tuple(keyframes), 30.0)
+
+
+def random_class(
+    name: str, query: KeyframeQuery, rng: np.random.Generator, tau: float, columns: int | None = None
+) -> ClassTemplate:
+    """A class of a random template of 2 to 6 columns (``columns`` if given) over the features the
+    random :func:`streams` vary, with ``query`` as its keyframes and ``tau``."""
+    m = int(rng.integers(2, 7)) if columns is None else columns
+    values = np.full((N_FEATURES, m), 0.5)
+    for fs in FEATURE_SETS:  # random streams vary the first LOW_BITS features of each set
+        low = SET_SLICES[fs].start
+        values[low : low + LOW_BITS] = rng.choice([0.0, 0.5, 1.0], size=(LOW_BITS, m))
+        values[low + LOW_BITS : SET_SLICES[fs].stop] = rng.choice(
+            [0.0, 0.5], size=(SET_SLICES[fs].stop - low - LOW_BITS, m), p=[0.2, 0.8]
+        )
+    template = MotionTemplate(values, rng.uniform(0.6, 2.2, size=m))
+    return ClassTemplate(
+        name,
+        template,
+        template,
+        template,
+        dataclasses.replace(query, name=name),
+        tau,
+        0.1,
+        "toolbox",
+        1,
+        (),
+        given_tau(tau),
+    )

@@ -19,7 +19,6 @@ from daemon.dtw import INF, SCALE, pack, retrieval_matrix, retrieval_tables, thr
 from daemon.features import SET_SLICES
 from daemon.keyframes import KeyframeQuery, query_bounds
 from daemon.library import ClassTemplate, Library, Variant, default_library_path, load_library
-from daemon.library import given as given_tau
 from daemon.recognizer import (
     CodeRecognizer,
     Detection,
@@ -33,7 +32,7 @@ from daemon.recognizer import (
     windows,
 )
 from daemon.recordings import native_rate, read_recording
-from daemon.templates import MotionTemplate, expand
+from daemon.templates import expand
 from daemon.types import FEATURE_SETS, N_FEATURES, FeatureSet, RecognitionSettings
 from replay import JOINT_NAMES, Motion
 from replay.kinematics import joint_positions
@@ -45,7 +44,7 @@ from tests.naive import (
     slow_extent,
     slow_windows,
 )
-from tests.synth import LOW_BITS, queries, stream_codes, streams
+from tests.synth import queries, random_class, stream_codes, streams
 
 SESSION = "test"
 
@@ -157,33 +156,6 @@ def test_one_motion_one_detection_and_a_repetition_right_after(library: Library)
 
 
 # ------------------------------------------------------------------ candidates and confirmation
-
-
-def random_class(
-    name: str, query: KeyframeQuery, rng: np.random.Generator, tau: float, columns: int | None = None
-) -> ClassTemplate:
-    m = int(rng.integers(2, 7)) if columns is None else columns
-    values = np.full((N_FEATURES, m), 0.5)
-    for fs in FEATURE_SETS:  # random streams vary the first LOW_BITS features of each set
-        low = SET_SLICES[fs].start
-        values[low : low + LOW_BITS] = rng.choice([0.0, 0.5, 1.0], size=(LOW_BITS, m))
-        values[low + LOW_BITS : SET_SLICES[fs].stop] = rng.choice(
-            [0.0, 0.5], size=(SET_SLICES[fs].stop - low - LOW_BITS, m), p=[0.2, 0.8]
-        )
-    template = MotionTemplate(values, rng.uniform(0.6, 2.2, size=m))
-    return ClassTemplate(
-        name,
-        template,
-        template,
-        template,
-        dataclasses.replace(query, name=name),
-        tau,
-        0.1,
-        "toolbox",
-        1,
-        (),
-        given_tau(tau),
-    )
 
 
 def slow_recognizer(
