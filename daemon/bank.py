@@ -172,6 +172,12 @@ class RecognizerBank:
         self._streams[stream] = old.fresh(session)
         return out
 
+    def restore(self, stream: str, state: bytes) -> None:
+        """Put ``stream``'s recogniser in ``state`` (:meth:`Recognizer.state`, here or on another
+        worker): :class:`~daemon.recognizer.StateError`, the recogniser unchanged, if it does not
+        fit it. KeyError if it is not in the bank."""
+        self._streams[stream] = self._streams[stream].restored(state)
+
     def push(self, frames: Sequence[Frame]) -> BankResult:
         """Advance each stream named in ``frames`` by its frame: the detections and the refused frames
         (a refused frame changes nothing). ValueError (nothing done) if a stream is not in the bank or

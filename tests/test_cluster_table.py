@@ -12,13 +12,14 @@ from functools import cache
 from typing import cast
 
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from daemon.config import RecognizerConfig, SegmentationConfig, ServiceConfig
 from daemon.library import Library, default_library_path, load_library
 from daemon.recordings import read_recording
-from daemon.service.streams import StreamTable
+from daemon.service.streams import Refused, StreamTable
 from protocols.messages import BoundaryMessage, DetectionMessage, PoseMessage, SkeletonMessage
 from tests.helpers import DATA
 
@@ -151,6 +152,76 @@ def test_a_takeover_given_its_runs_body_lengths_gives_the_whole_runs_costs_howev
     given, limit = detections(560, whole_lengths[0])
     after = [d for d in whole if cast(int, d[2]) >= limit]
     assert len(after) > 20 and given == after
+
+
+@settings(max_examples=10, deadline=None)
+@given(st.integers(0, 2 * 2465), st.integers(0, 12), st.integers(0, 3), st.booleans())
+def test_a_stream_resumed_from_its_state_goes_on_as_the_table_it_left(
+    cut: int, gap: int, where: int, degrees: bool
+) -> None:
+    """A stream's state (:meth:`StreamTable.state`) taken at any pose and resumed by another table
+    (a worker that takes the partition over from a checkpoint): the detections of both tables
+    together are those of one table fed every pose, ids, costs and frames alike, also with a gap
+    bridged across the cut (``gap`` poses missing, ``where`` of them before it) and angles in
+    degrees. Nothing is suppressed: the state leaves nothing to warm up."""
+    frames = channels().copy()
+    asf = ASF.read_text()
+    unit = "rad"
+    if degrees:
+        frames[:, read_recording(ASF, AMC).skeleton.angle_channels] /= np.pi / 180
+        unit = "deg"
+    missing = set(range(max(0, cut - min(where, gap)), max(0, cut - min(where, gap)) + gap))
+    seqs = [q for q in range(len(frames)) if q not in missing]
+
+    def feed(t: StreamTable, part: list[int]) -> list[DetectionMessage]:
+        out = []
+        for q in part:
+            t.pose(PoseMessage("s", q, q / 120, channels=frames[q], epoch="run1"), q / 120)
+            out += t.tick()[0]
+        return [e.message for e in out if isinstance(e.message, DetectionMessage)]
+
+    def started() -> StreamTable:
+        t = table()
+        t.skeleton(SkeletonMessage("s", 120.0, asf=asf, angle_unit=unit, epoch="run1"), 0.0)
+        return t
+
+    def flushed(t: StreamTable) -> list[DetectionMessage]:
+        return [e.message for e in t.flush_all() if isinstance(e.message, DetectionMessage)]
+
+    one = started()
+    want = feed(one, seqs) + flushed(one)
+    assert len(want) > 10
+    first = started()
+    before = [q for q in seqs if q < cut]
+    got = feed(first, before)
+    second = table()
+    assert second.resume(first.state("s"), cut / 120) == "s"
+    got += feed(second, [q for q in seqs if q >= cut]) + flushed(second)
+    assert [key(d) for d in got] == [key(d) for d in want]
+    assert second.counts["warmup_suppressed"] == 0
+
+
+def test_a_damaged_or_foreign_stream_state_is_refused_and_takes_nothing() -> None:
+    t = table()
+    t.skeleton(SkeletonMessage("s", 120.0, asf=ASF.read_text(), angle_unit="rad", epoch="run1"), 0.0)
+    for q in range(300):
+        t.pose(PoseMessage("s", q, q / 120, channels=channels()[q], epoch="run1"), q / 120)
+        t.tick()
+    state = t.state("s")
+    other = StreamTable(library(), session="cluster", recognizer=RecognizerConfig(hold_s=2.0), cluster=True)
+    for what, table_, data in (
+        ("damaged", table(), state[:-40]),
+        ("foreign", other, state),
+        ("held already", t, state),
+    ):
+        before = set(table_.streams)
+        with pytest.raises(Refused) as e:
+            table_.resume(data, 0.0)
+        assert e.value.reason == "state", what
+        assert set(table_.streams) == before, what
+    t.pose(PoseMessage("s", 300, 300 / 120, channels=channels()[300], epoch="run1"), 2.5)
+    with pytest.raises(ValueError, match="poses waiting"):
+        t.state("s")
 
 
 def test_boundary_ids_are_the_runs_not_the_tables() -> None:

@@ -43,6 +43,7 @@ from collections import Counter, deque
 from dataclasses import dataclass, field
 from typing import Literal
 
+import msgpack
 import numpy as np
 
 from daemon.bank import RecognizerBank
@@ -63,6 +64,8 @@ from protocols.messages import (
     PoseMessage,
     ProgressMessage,
     SkeletonMessage,
+    decode,
+    encode,
 )
 from replay import MocapFormatError, Skeleton, parse_asf
 from replay.amc import DEG
@@ -320,6 +323,72 @@ class StreamTable:
             s.warming = True
             if lengths is not None:
                 self.bank[name].assume_lengths(BodyLengths(*lengths))
+
+    def state(self, name: str) -> bytes:
+        """Stream ``name``'s state, from which another worker's table goes on as this one would
+        (:meth:`resume`): its announcement, its recogniser's state
+        (:meth:`~daemon.recognizer.Recognizer.state`), the sequence numbers received and fed, the
+        last frame fed (a gap after it is bridged from it), its runs, and its warm-up. Taken when
+        none of its poses waits (a queued pose is the reader's to deliver again). Not carried:
+        the segmenter's and the progress' states (the stream's behaviour boundaries and progress
+        begin anew where it is resumed)."""
+        s = self.streams[name]
+        if s.queue or s.filling:
+            raise ValueError(f"stream {name!r} has poses waiting")
+        fed = s.last_fed
+        return msgpack.packb(
+            {
+                "announced": encode(s.announced),
+                "recognizer": self.bank[name].state(),
+                "epoch": s.epoch,
+                "retired": list(s.retired),
+                "last_received": s.last_received,
+                "received": s.received,
+                "last_fed": fed,
+                "last_values": None if s.last_values is None else s.last_values.astype(np.float64).tobytes(),
+                "last_time": None if fed is None else float(s.times[fed % len(s.times)]),
+                "fed_epoch": s.fed_epoch,
+                "warming": s.warming,
+                "suppress_before": s.suppress_before,
+            }
+        )
+
+    def resume(self, state: bytes, now: float) -> str:
+        """Take a stream in the :meth:`state` another table gave (cluster mode: a partition taken
+        over from a checkpoint); its name. :class:`Refused` (``state``) if the state is damaged, of
+        a stream held here already, or does not fit this table's library and settings: nothing is
+        taken then."""
+        try:
+            got = msgpack.unpackb(state)
+            announced = decode(got["announced"])
+            if not isinstance(announced, SkeletonMessage):
+                raise TypeError("the announcement is not a skeleton")
+            name = announced.stream
+            if name in self.streams:
+                raise ValueError(f"stream {name!r} is held here already")
+            last_values = got["last_values"]
+            values = None if last_values is None else np.frombuffer(last_values, dtype=np.float64).copy()
+            fields = {k: got[k] for k in ("epoch", "last_received", "received", "last_fed", "fed_epoch")}
+            fields |= {"warming": bool(got["warming"]), "suppress_before": got["suppress_before"]}
+            retired, last_time, recognizer = got["retired"], got["last_time"], got["recognizer"]
+        except (ValueError, TypeError, KeyError, msgpack.UnpackException, MocapdError) as e:
+            raise Refused("state", f"not a stream's state: {e}") from None
+        self.skeleton(announced, now)
+        try:
+            self.bank.restore(name, recognizer)
+        except MocapdError as e:
+            self._remove(name, None)
+            raise Refused("state", f"stream {name!r}: {e}") from None
+        s = self.streams[name]
+        for k, v in fields.items():
+            setattr(s, k, v)
+        s.retired.extend(retired)
+        s.last_values = values
+        s.posed = now
+        if s.last_fed is not None and last_time is not None:
+            s.times[s.last_fed % len(s.times)] = last_time
+        self._follow(s, self.bank[name])
+        return name
 
     def forget(self, name: str) -> None:
         """Drop ``name`` without publishing anything (cluster mode: another worker owns it now)."""
