@@ -9,7 +9,7 @@ from __future__ import annotations
 import dataclasses
 import uuid
 from functools import cache
-from typing import cast
+from typing import Literal, cast
 
 import numpy as np
 import pytest
@@ -166,7 +166,7 @@ def test_a_stream_resumed_from_its_state_goes_on_as_the_table_it_left(
     degrees. Nothing is suppressed: the state leaves nothing to warm up."""
     frames = channels().copy()
     asf = ASF.read_text()
-    unit = "rad"
+    unit: Literal["deg", "rad"] = "rad"
     if degrees:
         frames[:, read_recording(ASF, AMC).skeleton.angle_channels] /= np.pi / 180
         unit = "deg"

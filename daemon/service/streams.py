@@ -336,7 +336,7 @@ class StreamTable:
         if s.queue or s.filling:
             raise ValueError(f"stream {name!r} has poses waiting")
         fed = s.last_fed
-        return msgpack.packb(
+        state: bytes = msgpack.packb(
             {
                 "announced": encode(s.announced),
                 "recognizer": self.bank[name].state(),
@@ -352,6 +352,7 @@ class StreamTable:
                 "suppress_before": s.suppress_before,
             }
         )
+        return state
 
     def resume(self, state: bytes, now: float) -> str:
         """Take a stream in the :meth:`state` another table gave (cluster mode: a partition taken
