@@ -38,7 +38,6 @@ equals pushing the frames one by one (tests).
 
 from __future__ import annotations
 
-import dataclasses
 import hashlib
 import uuid
 import weakref
@@ -59,7 +58,6 @@ from daemon.automaton import KeyframeAutomaton
 from daemon.dtw import SCALE, Match, RetrievalTables, Steps, pack, retrieval_tables, threshold
 from daemon.errors import InputError, MocapdError
 from daemon.features import FeatureStream, features
-from daemon.features.language import BodyLengths
 from daemon.frames import FrameClock, bridge_frames, bridged_runs, check_native_rate, motion_runs
 from daemon.keyframes import KeyframeQuery, query_bounds
 from daemon.library import GATED, ClassTemplate, Library
@@ -576,56 +574,37 @@ class Recognizer:
             self._width = len(joint_names)
             self._joint_order = joint_order(joint_names)
         self._plans = plans(library, settings)
-        self._features = features = FeatureStream(JOINT_NAMES, native_rate)
-        self.lengths: BodyLengths | None = None
-        """The body lengths the features' thresholds are multiples of, of the current stretch of
-        the stream (measured on its first pose; None before it)."""
-        self._assumed: BodyLengths | None = None
+        features = FeatureStream(JOINT_NAMES, native_rate)
         step = self.clock.step
         if model is not None:
             self._shape: tuple[int, ...] = (self._width,)
             self._live = LiveStream(
-                model.frame_kinematics, features.core, self._thresholds_of, None, self._width, step
+                model.frame_kinematics, features.core, features.thresholds_of, None, self._width, step
             )
         else:
             self._shape = (self._width, 3)
             order = (3 * self._joint_order[:, None] + np.arange(3)).reshape(-1)
-            self._live = LiveStream(None, features.core, self._thresholds_of, order, 3 * self._width, step)
+            self._live = LiveStream(None, features.core, features.thresholds_of, order, 3 * self._width, step)
         self._stage = ClassStage(
             self._plans, library.rate, settings, self.clock, stream=stream, session=self.session
         )
         self._live.attach(self._stage, self._stage.codes.core)
 
-    def _thresholds_of(self, rows: FloatArray) -> FloatArray:
-        """The features' thresholds for a stretch of the stream whose first pose is ``rows``: of its
-        body lengths, or of those :meth:`assume_lengths` gave."""
-        assumed, self._assumed = self._assumed, None
-        self.lengths = assumed if assumed is not None else self._features.lengths_of(rows)
-        return self._features.thresholds_for(self.lengths)
-
-    def assume_lengths(self, lengths: BodyLengths) -> None:
-        """Take ``lengths`` as the body lengths of the stretch the next pose begins, instead of
-        measuring them on it: a stream taken over mid-run (cluster mode) keeps the thresholds its
-        run's first pose gave, without which its features, and its detections' costs, could differ
-        for as long as the run lasts."""
-        self._assumed = lengths
-
     def state(self) -> bytes:
         """The stream's whole state, as bytes another worker's recogniser of the same stream and
         input (:meth:`restored`) goes on from, giving the detections, ids included, that this one
-        would: the session, the body lengths, the motion's first frame, and the compiled stages'
-        own (the features' ring and hysteresis, the decimation, the DTW columns, the automata's
-        runs and partial matches, the candidates held and remembered; daemon/_features.pyx,
-        daemon/_live.pyx, daemon/_dtw.pyx, daemon/_automaton.pyx). msgpack, zlib-compressed."""
+        would: the session, the motion's first frame, and the compiled stages' own (the features'
+        ring, thresholds (multiples of body lengths measured on the stretch's first pose) and
+        hysteresis, the decimation, the DTW columns, the automata's runs and partial matches, the
+        candidates held and remembered; daemon/_features.pyx, daemon/_live.pyx, daemon/_dtw.pyx,
+        daemon/_automaton.pyx). msgpack, zlib-compressed."""
         core = self._stage.codes.core
-        lengths = [self.lengths, self._assumed]
         return zlib.compress(
             msgpack.packb(
                 {
                     "version": STATE_VERSION,
                     "shape": self._shape_key(),
                     "session": self.session,
-                    "lengths": [None if x is None else list(dataclasses.astuple(x)) for x in lengths],
                     "first": self._stage.first,
                     "live": self._live.state(),
                     "features": self._live.features.state(),
@@ -655,8 +634,6 @@ class Recognizer:
             )
         r = self.fresh(got["session"])
         try:
-            lengths = [None if x is None else BodyLengths(*x) for x in got["lengths"]]
-            r.lengths, r._assumed = lengths
             r._stage.first = got["first"]
             r._live.restore(got["live"])
             r._live.features.restore(got["features"])

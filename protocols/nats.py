@@ -37,9 +37,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import json
 import logging
-import math
 import os
 import time
 from collections.abc import AsyncIterator, Mapping
@@ -47,6 +45,7 @@ from dataclasses import dataclass
 from types import TracebackType
 from typing import TYPE_CHECKING
 
+import msgpack
 from nats.aio.client import Client as NATS
 from nats.aio.msg import Msg
 from nats.errors import Error as NatsError
@@ -104,36 +103,10 @@ partition 0 reads them, so that they are counted as refused instead of vanishing
 outside ``mocap.p.`` cannot be told from the partitions' by a subscription, and are not."""
 CHECKPOINTS = "MOCAPD_CHECKPOINTS"
 """The key-value bucket of the partitions' checkpoints (key: the partition's number; value: the
-buffer sequence after which its new owner starts reading, :mod:`daemon.cluster.checkpoints`)."""
-
-
-LENGTHS = 6
-"""The body lengths of a run (:class:`daemon.features.language.BodyLengths`' six)."""
-
-
-@dataclass(frozen=True, slots=True)
-class Run:
-    """A stream's run in a checkpoint: the source's epoch and the body lengths its recogniser's
-    thresholds are multiples of (None: not known)."""
-
-    epoch: str | None
-    lengths: tuple[float, ...] | None
-
-    @classmethod
-    def of(cls, value: object) -> Run:
-        """The run a checkpoint's JSON gives; TypeError or KeyError if it is not one."""
-        if not isinstance(value, dict):
-            raise TypeError("a run is an object")
-        epoch, lengths = value["epoch"], value["lengths"]
-        if not isinstance(epoch, str | None):
-            raise TypeError("epoch")
-        if lengths is not None:
-            if not isinstance(lengths, list) or len(lengths) != LENGTHS:
-                raise TypeError("lengths")
-            if not all(isinstance(x, float | int) and math.isfinite(x) and x > 0 for x in lengths):
-                raise TypeError("lengths")
-            lengths = tuple(float(x) for x in lengths)
-        return cls(epoch, lengths)
+buffer sequence after which its new owner starts reading, and the states of the partition's streams
+then, :meth:`NatsTransport.checkpoint`)."""
+ROOM = 4096
+"""Bytes of a server's largest message kept free for a checkpoint's key and headers."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -232,7 +205,8 @@ class NatsTransport:
         self._js: JetStreamContext | None = None
         self._checkpoints: KeyValue | None = None
         self._status: tuple[Outgoing, Outgoing] | None = None
-        self._queue: asyncio.Queue[tuple[int, str | None, Incoming]] = asyncio.Queue(QUEUE)
+        # (partition, buffer sequence (-1: a stray), stream, the message)
+        self._queue: asyncio.Queue[tuple[int, int, str | None, Incoming]] = asyncio.Queue(QUEUE)
         # per stream, its messages in the queue: the service has not seen them, so forget() keeps it
         self._queued: dict[str, int] = {}
         self._consumers: dict[int, asyncio.Task[None]] = {}
@@ -241,11 +215,14 @@ class NatsTransport:
         self._stopping: set[asyncio.Task[None]] = set()
         self._streams: dict[int, set[str]] = {}
         self._partial: set[int] = set()  # partitions taken from a buffer that had lost messages
-        # streams first seen in the replay of such a buffer (None: every run of theirs), or of a
-        # buffer read from a checkpoint (the run they were in there)
-        self._truncated: dict[str, Run | None] = {}
+        # streams first seen in the replay of such a buffer, or whose checkpoint's state was refused
+        self._truncated: set[str] = set()
+        # streams of a checkpoint read, not yet taken in: their states (the service takes them)
+        self._states: dict[str, bytes] = {}
         self._partition_of: dict[str, int] = {}
         self._position: dict[int, int] = {}  # the last buffer sequence read, per partition
+        self._taken: dict[int, int] = {}  # the last buffer sequence the service took in, per partition
+        self._stopped = False
         self._consumer_names: dict[int, str] = {}
         self._behind: dict[int, float] = {}  # partitions still reading their buffer: since when
         self._drain_s = 1.0
@@ -504,23 +481,23 @@ class NatsTransport:
     def owned(self) -> frozenset[int]:
         return frozenset(self._consumers)
 
-    def partial(self, stream: str, epoch: str | None) -> bool:
-        """Whether run ``epoch`` of ``stream`` was first seen in the replay of a buffer that had
-        already lost messages (to its age limit), or of a buffer read from a checkpoint that the run
-        had been fed before, so that its history here may begin mid-motion (the service then
+    def partial(self, stream: str) -> bool:
+        """Whether ``stream`` was first seen in the replay of a buffer that had already lost
+        messages (to its age limit, no checkpoint to start from), or its checkpoint's state was
+        refused (:meth:`refused`), so that its history here may begin mid-motion (the service then
         suppresses what a truncated history could get wrong). A stream first seen live, in a buffer
-        that holds the partition's whole history, or in a run begun after the checkpoint, is seen
-        from its start."""
-        if stream not in self._truncated:
-            return False
-        run = self._truncated[stream]
-        return run is None or run.epoch == epoch
+        that holds the partition's whole history, or resumed from a checkpoint, is whole."""
+        return stream in self._truncated
 
-    def lengths(self, stream: str, epoch: str | None) -> tuple[float, ...] | None:
-        """The body lengths the checkpoint that run ``epoch`` of ``stream`` was read from gives it
-        (None: none, or not read from a checkpoint)."""
-        run = self._truncated.get(stream)
-        return None if run is None or run.epoch != epoch else run.lengths
+    def state(self, stream: str) -> bytes | None:
+        """The state the checkpoint its partition was read from gives ``stream``, once: the service
+        resumes the stream from it before taking in its first message (None: none)."""
+        return self._states.pop(stream, None)
+
+    def refused(self, stream: str) -> None:
+        """``stream``'s state could not be resumed: it is taken as a truncated history
+        (:meth:`partial`)."""
+        self._truncated.add(stream)
 
     async def own(self, partitions: frozenset[int]) -> list[str]:
         """Consume exactly ``partitions`` from now on; the streams seen in the partitions given up."""
@@ -537,10 +514,12 @@ class NatsTransport:
             self._partial.discard(p)
             self._behind.pop(p, None)
             self._position.pop(p, None)
+            self._taken.pop(p, None)
             self._consumer_names.pop(p, None)
             for stream in self._streams.pop(p, set()):
                 self._partition_of.pop(stream, None)
-                self._truncated.pop(stream, None)
+                self._truncated.discard(stream)
+                self._states.pop(stream, None)
                 lost.append(stream)
         for p in sorted(partitions - set(self._consumers)):
             self._take(p)
@@ -570,9 +549,9 @@ class NatsTransport:
             return
         incoming = Incoming(f"nats:{d.subject.decode('utf-8', 'replace')[:200]}", d.data, time.time())
         try:
-            self._queue.put_nowait((0, None, incoming))
+            self._queue.put_nowait((0, -1, None, incoming))
         except asyncio.QueueFull:
-            await self._queue.put((0, None, incoming))
+            await self._queue.put((0, -1, None, incoming))
 
     def _take(self, p: int) -> None:
         given_up = self._given_up[p] = asyncio.Event()
@@ -604,41 +583,43 @@ class NatsTransport:
         """The streams seen in owned partition ``p``."""
         return frozenset(self._streams.get(p, ()))
 
-    def read_up_to(self, p: int) -> int | None:
-        """The sequence of the last message read from owned partition ``p``'s buffer, if the
-        partition is live (its buffer read) and none of its streams' messages waits here to be taken
-        in; else None."""
-        if p not in self._consumers or p in self._behind:
-            return None
-        if any(self._queued.get(s) for s in self._streams.get(p, ())):
-            return None
-        return self._position.get(p)
+    def stop_taking(self) -> None:
+        """Give the service no more messages (a worker handing its partitions over): what was read
+        and not taken in is the new owners' to read."""
+        self._stopped = True
 
-    async def checkpoint(self, p: int, position: int, runs: Mapping[str, Run]) -> None:
+    def taken_up_to(self, p: int) -> int | None:
+        """The sequence of the last message of owned partition ``p``'s buffer that the service has
+        taken in (None: none yet): the position of a checkpoint taken now."""
+        return self._taken.get(p) if p in self._consumers else None
+
+    async def checkpoint(self, p: int, position: int, states: Mapping[str, bytes]) -> bool:
         """Store partition ``p``'s checkpoint: its next owner reads its buffer from after
-        ``position``, suppresses the warm-up of ``runs`` (those fed before it) and gives their
-        recognisers their body lengths (:mod:`daemon.cluster.checkpoints`). A store that fails is
-        logged and skipped: the older checkpoint, or none, costs a longer read only."""
-        kv = self._checkpoints
-        if kv is None:
-            return
-        value = {
-            "after": position,
-            "runs": {s: {"epoch": r.epoch, "lengths": r.lengths} for s, r in runs.items()},
-        }
+        ``position`` and resumes its streams from ``states`` (each stream's
+        :meth:`daemon.service.streams.StreamTable.state` when the message at ``position`` had been
+        taken in). Whether it was stored: one that fails, or is larger than the server's largest
+        message, is logged and skipped (the older checkpoint, or none, costs a longer read only)."""
+        kv, nc = self._checkpoints, self._nc
+        if kv is None or nc is None:
+            return False
+        value = msgpack.packb({"after": position, "streams": dict(states)})
         try:
-            await kv.put(str(p), json.dumps(value).encode())
-            self.checkpoints += 1
-        except (NatsError, TimeoutError) as e:
+            if len(value) > nc.max_payload - ROOM:
+                raise ValueError(f"{len(value)} bytes, more than the server's messages hold")
+            await kv.put(str(p), value)
+        except (NatsError, TimeoutError, ValueError) as e:
             if (quiet := self._error_log.due()) is not None:
                 log.warning(
                     "checkpoint not stored",
                     extra={"fields": {"partition": p, "error": repr(e), "since_last": quiet}},
                 )
+            return False
+        self.checkpoints += 1
+        return True
 
-    async def _checkpoint_of(self, p: int) -> tuple[int, dict[str, Run]] | None:
-        """Partition ``p``'s stored checkpoint (:meth:`checkpoint`'s position and runs; None: none,
-        or unreadable)."""
+    async def _checkpoint_of(self, p: int) -> tuple[int, dict[str, bytes]] | None:
+        """Partition ``p``'s stored checkpoint (:meth:`checkpoint`'s position and states; None:
+        none, or unreadable)."""
         kv = self._checkpoints
         if kv is None:
             return None
@@ -650,16 +631,18 @@ class NatsTransport:
             log.warning("checkpoint not read", extra={"fields": {"partition": p, "error": repr(e)}})
             return None
         try:
-            value = json.loads(entry.value or b"")
-            after, runs = value["after"], {s: Run.of(r) for s, r in value["runs"].items()}
-            if not isinstance(after, int):
-                raise TypeError("after")
-        except (ValueError, TypeError, KeyError, AttributeError) as e:
+            value = msgpack.unpackb(entry.value or b"")
+            after, states = value["after"], value["streams"]
+            if not isinstance(after, int) or not isinstance(states, dict):
+                raise TypeError("after, streams")
+            if not all(isinstance(k, str) and isinstance(v, bytes) for k, v in states.items()):
+                raise TypeError("a stream's state")
+        except (ValueError, TypeError, KeyError, AttributeError, msgpack.UnpackException) as e:
             log.warning(
                 "checkpoint not read", extra={"fields": {"partition": p, "error": f"malformed: {e!r}"}}
             )
             return None
-        return after, runs
+        return after, states
 
     def forget(self, keep: set[str]) -> None:
         """Forget the streams not in ``keep`` (those the service no longer holds) that have no
@@ -670,7 +653,8 @@ class NatsTransport:
             streams -= gone
             for s in gone:
                 self._partition_of.pop(s, None)
-                self._truncated.pop(s, None)
+                self._truncated.discard(s)
+                self._states.pop(s, None)
 
     async def _consume(self, p: int, given_up: asyncio.Event) -> None:
         """Read partition ``p`` until it is given up; a consumer that cannot be made (the server
@@ -696,16 +680,16 @@ class NatsTransport:
         position = self._position.get(p)
         if position is not None and position > last:
             position = None  # the server lost the buffer (a restart): from its start again
-        fed_before: dict[str, Run] | None = None  # read from a checkpoint: the runs fed before it
+        states: dict[str, bytes] | None = None  # read from a checkpoint: its streams' states
         if position is None:
             checkpoint = await self._checkpoint_of(p)
             if given_up.is_set():
                 return
             # from after the checkpoint, if the buffer holds what follows it (else from its start)
             if checkpoint is not None and state.first_seq <= checkpoint[0] + 1 and checkpoint[0] <= last:
-                position, fed_before = checkpoint
+                position, states = checkpoint
                 self.resumed += 1
-        if state.first_seq > 1 and fed_before is None:  # its streams' histories may begin mid-way
+        if state.first_seq > 1 and states is None:  # its streams' histories may begin mid-way
             self._partial.add(p)
         if state.messages and (position is None or position < last):
             self._behind[p] = time.monotonic()
@@ -760,13 +744,13 @@ class NatsTransport:
                     )
                 else:
                     self.replayed += 1
-            stream, incoming = self._incoming(d, streams, p, replayed=not live, fed_before=fed_before)
+            stream, incoming = self._incoming(d, streams, p, replayed=not live, states=states)
             if stream is not None:
                 self._queued[stream] = self._queued.get(stream, 0) + 1
             try:
-                self._queue.put_nowait((p, stream, incoming))
+                self._queue.put_nowait((p, seq, stream, incoming))
             except asyncio.QueueFull:
-                await self._queue.put((p, stream, incoming))
+                await self._queue.put((p, seq, stream, incoming))
 
         # A push consumer read by a subscription of the worker's own reader, flow control answered
         # here: nats-py's ordered consumer does the same with its own checks per message, at a fifth
@@ -822,12 +806,13 @@ class NatsTransport:
         p: int,
         *,
         replayed: bool,
-        fed_before: Mapping[str, Run] | None,
+        states: Mapping[str, bytes] | None,
     ) -> tuple[str | None, Incoming]:
         """The message as the service takes it in, whatever its subject: ``mocap.p.<p>.<stream>.
         <word>`` as topic ``mocap/<stream>/<word>`` (a stream seen for the first time is noted, and
         noted as truncated, :meth:`partial`, if its first message was ``replayed`` from a buffer that
-        had lost messages, or from after a checkpoint ``fed_before`` had it); any
+        had lost messages, or given its state, :meth:`state`, if the checkpoint the buffer was read
+        from after has it); any
         other subject (a publisher's, straight into the buffer: another number of tokens, another
         partition than the stream's, bytes that are not UTF-8) as a topic the service refuses and
         counts (``topic``). With the stream (None: no
@@ -850,9 +835,9 @@ class NatsTransport:
             streams.add(stream)
             self._partition_of[stream] = p
             if replayed and p in self._partial:
-                self._truncated[stream] = None
-            elif replayed and fed_before is not None and stream in fed_before:
-                self._truncated[stream] = fed_before[stream]
+                self._truncated.add(stream)
+            elif states is not None and stream in states:  # replayed or live: after the checkpoint
+                self._states[stream] = states[stream]
         return stream, Incoming(f"mocap/{stream}/{tokens[-1]}", d.data, now)
 
     # --------------------------------------------------------------------------- source and sink
@@ -865,12 +850,16 @@ class NatsTransport:
 
     async def _messages(self) -> AsyncIterator[Incoming]:
         while True:
-            p, stream, incoming = await self._queue.get()
+            p, seq, stream, incoming = await self._queue.get()
             if stream is not None:
                 left = self._queued.pop(stream, 1) - 1
                 if left:
                     self._queued[stream] = left
+            if self._stopped:
+                continue
             if p in self._consumers:  # not of a partition given up since
+                if seq >= 0:  # the service takes it in before it asks for the next: no await between
+                    self._taken[p] = seq
                 yield incoming
 
     def sink(self) -> NatsTransport | None:

@@ -194,13 +194,13 @@ def test_a_stream_read_from_a_partial_buffer_keeps_its_mark_until_it_is_taken_in
                 incoming = aiter(transport)
                 first = await anext(incoming)
                 assert first.topic == f"mocap/{stream}/skeleton"
-                assert transport.partial(stream, None)  # so the service warms it up
+                assert transport.partial(stream)  # so the service warms it up
                 assert transport.partition(stream) == 0
                 for _ in range(2):
                     await anext(incoming)
                 assert (await anext(incoming)).topic == f"nats:mocap.p.0.{elsewhere}.pose"
                 transport.forget(set())  # nothing of it waits: forgotten now
-                assert not transport.partial(stream, None) and transport.partition(stream) is None
+                assert not transport.partial(stream) and transport.partition(stream) is None
 
         asyncio.run(main())
     finally:

@@ -6,10 +6,9 @@ not on the process."""
 
 from __future__ import annotations
 
-import dataclasses
 import uuid
 from functools import cache
-from typing import Literal, cast
+from typing import Literal
 
 import numpy as np
 import pytest
@@ -114,44 +113,6 @@ def test_the_buffer_a_takeover_needs() -> None:
         3.0 + 1 + 2 * reach_seconds(library(), shorter) + 1, 1
     )
     assert buffer_seconds(ClusterConfig(buffer_s=5.0), library(), config) == 5.0
-
-
-def test_a_takeover_given_its_runs_body_lengths_gives_the_whole_runs_costs_however_long_it_runs() -> None:
-    """The features' thresholds are multiples of body lengths measured on a run's first pose, the
-    one state of a recogniser that outlasts its warm-up: a worker that takes a stream over at 560
-    of a recording looped four times, with the default hold, measures other lengths, and one
-    detection three loops later gets another cost; given the run's lengths (a checkpoint's), it
-    publishes the whole run's detections from its warm-up on, costs and all."""
-    frames = np.concatenate([read_recording(ASF, AMC).channels] * 4)
-
-    def detections(first: int, lengths: tuple[float, ...] | None) -> tuple[list[tuple[object, ...]], int]:
-        t = StreamTable(
-            library(), session="cluster", service=ServiceConfig(queue_frames=100_000), cluster=True
-        )
-        t.skeleton(SkeletonMessage("s", 120.0, asf=ASF.read_text(), angle_unit="rad", epoch="run1"), 0.0)
-        if first:
-            t.warm_up("s", lengths)
-        out = []
-        for seq in range(first, len(frames)):
-            t.pose(PoseMessage("s", seq, seq / 120, channels=frames[seq], epoch="run1"), seq / 120)
-            out += t.tick()[0]
-        limit = t.streams["s"].suppress_before or 0
-        if first == 0:
-            lengths_then = t.bank["s"].lengths
-            assert lengths_then is not None
-            whole_lengths.append(dataclasses.astuple(lengths_then))
-        out += t.flush_all()
-        return [key(e.message) for e in out if isinstance(e.message, DetectionMessage)], limit
-
-    whole_lengths: list[tuple[float, ...]] = []
-    whole, _ = detections(0, None)
-    measured, limit = detections(560, None)
-    assert measured != [
-        d for d in whole if cast(int, d[2]) >= limit
-    ]  # a cost differs (the cause of this test)
-    given, limit = detections(560, whole_lengths[0])
-    after = [d for d in whole if cast(int, d[2]) >= limit]
-    assert len(after) > 20 and given == after
 
 
 @settings(max_examples=10, deadline=None)

@@ -13,7 +13,7 @@ import numpy as np
 from daemon._features import FeatureCore
 from daemon.errors import InputError
 from daemon.features.compiler import compiled, unpack
-from daemon.features.language import BodyLengths, body_lengths
+from daemon.features.language import body_lengths
 from daemon.types import BoolArray, FloatArray
 from replay.joints import JOINT_NAMES
 
@@ -61,15 +61,7 @@ class FeatureStream:
 
     def thresholds_of(self, rows: FloatArray) -> FloatArray:
         """The flat thresholds of a stream whose first pose is ``rows`` (flat, ``3j + c``)."""
-        return self.thresholds_for(self.lengths_of(rows))
-
-    def lengths_of(self, rows: FloatArray) -> BodyLengths:
-        """The body lengths of pose ``rows`` (flat, ``3j + c``)."""
-        return body_lengths(rows.reshape(-1, 3), self._program.joint_names)
-
-    def thresholds_for(self, lengths: BodyLengths) -> FloatArray:
-        """The flat thresholds of a stream whose first pose has body lengths ``lengths``."""
-        return self._program.flat_thresholds(lengths)
+        return self._program.flat_thresholds(body_lengths(rows.reshape(-1, 3), self._program.joint_names))
 
     def push(self, pose: FloatArray) -> list[BoolArray]:
         """Add the next pose; return the vectors that became final (at most one)."""

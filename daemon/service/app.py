@@ -270,6 +270,8 @@ class Service:
                     "schema", f"a {type(message).__name__} for {message.stream!r} on {incoming.topic!r}"
                 )
             now = time.monotonic()
+            if self.cluster is not None and stream not in self.table.streams:
+                self._resume(stream, now)
             if isinstance(message, EndMessage):
                 out = self.table.end(message)
                 self.metrics.messages["end"] += 1
@@ -288,13 +290,8 @@ class Service:
             out = self.table.skeleton(message, now)
             if self.relay_per_s:
                 self._relay(incoming, stream, None, now)
-            if (
-                known is None
-                and self.cluster is not None
-                and self.cluster.transport.partial(stream, message.epoch)
-            ):
-                # taken over mid-run: from a buffer that lost the run's start, or from a checkpoint
-                self.table.warm_up(stream, self.cluster.transport.lengths(stream, message.epoch))
+            if known is None and self.cluster is not None and self.cluster.transport.partial(stream):
+                self.table.warm_up(stream)  # taken over mid-run from a buffer that lost the run's start
             self.metrics.messages["skeleton"] += 1
             if before != message:  # not a repeated announcement
                 self.events.info("skeleton", {"stream": stream, "kind": message.kind, "rate": message.rate})
@@ -314,6 +311,22 @@ class Service:
         finally:
             self.metrics.stage["decode"].observe(time.perf_counter() - started)
         return []
+
+    def _resume(self, stream: str, now: float) -> None:
+        """Cluster mode: take ``stream`` in the state its partition's checkpoint gives it, if the
+        partition was read from one (``docs/cluster.md``, "Checkpoints"); a state refused is
+        counted (``state``) and the stream taken as a truncated history."""
+        assert self.cluster is not None
+        transport = self.cluster.transport
+        state = transport.state(stream)
+        if state is None:
+            return
+        try:
+            self.table.resume(state, now)
+        except Refused as e:
+            self.rejects[e.reason] += 1
+            self.events.warn(stream, e.reason, str(e))
+            transport.refused(stream)
 
     def _relay(self, incoming: Incoming, stream: str, seq: int | None, now: float) -> None:
         """Pass a taken-in pose (``seq``) or skeleton (None) on for viewers (``zmq.relay_per_s``):
@@ -590,8 +603,10 @@ class Service:
             },
         )
         if self.cluster is not None:
-            # leave first (the lease revoked: the others take over at once), then publish nothing:
-            # a flush would publish end-of-motion detections the continuing streams do not give
+            # the last checkpoints, then leave (the lease revoked: the others take over at once),
+            # then publish nothing: a flush would publish end-of-motion detections the continuing
+            # streams do not give
+            await self.cluster.hand_over(self.table, lambda: self.settled)
             await self.cluster.leave()
             for task in intakes:
                 task.cancel()

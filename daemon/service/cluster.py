@@ -15,24 +15,19 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import dataclasses
 import logging
-import math
 import os
 import socket
 import time
-from collections import deque
 from collections.abc import Callable
 from types import TracebackType
 from typing import TYPE_CHECKING, Any
 
-from daemon.cluster.checkpoints import Fed, Sample, resume_after
 from daemon.cluster.ring import orphaned, owned
 from daemon.config import ClusterConfig
 from daemon.library import Library
 from daemon.recognizer import Recognizer
 from daemon.service.membership import Membership
-from protocols.nats import Run
 from replay import JOINT_NAMES
 
 if TYPE_CHECKING:
@@ -46,7 +41,9 @@ MARGIN_S = 1.0
 SETTLE_S = 0.25
 """Partitions gained are taken once the live members have held still this long."""
 SAMPLE_S = 0.5
-"""How often the owned partitions are looked at for a checkpoint's sample."""
+"""How often the owned partitions are looked at for a checkpoint."""
+HAND_OVER_S = 1.0
+"""The longest a worker told to stop waits for its last checkpoints (:meth:`Cluster.hand_over`)."""
 
 
 def reach_seconds(library: Library, config: Any) -> float:
@@ -91,6 +88,7 @@ class Cluster:
         self._membership: Membership | None = None
         self._assigned = False
         self._left = False
+        self._handing_over = False
 
     async def __aenter__(self) -> Cluster:
         s = self.settings
@@ -182,71 +180,76 @@ class Cluster:
         )
 
     async def checkpoint(self, table: StreamTable, settled: Callable[[], bool]) -> None:
-        """Store each owned partition's checkpoint (:mod:`daemon.cluster.checkpoints`) at most every
-        ``cluster.checkpoint_s``: every :data:`SAMPLE_S`, while this worker holds its partitions
-        and ``settled()`` (nothing emitted waits to be published), each partition whose messages
-        read have all been taken in and recognised is sampled, and the newest sample every stream
-        has been fed twice its warm-up and two seconds of frames since is its checkpoint."""
-        samples: dict[int, deque[Sample]] = {}
+        """Store each owned partition's checkpoint (``docs/cluster.md``, "Checkpoints") at most
+        every ``cluster.checkpoint_s``, looked at every :data:`SAMPLE_S`: while this worker holds its
+        partitions and ``settled()`` (nothing emitted waits to be published), a partition none of
+        whose streams has a pose waiting, and that took something in since its last one."""
         stored: dict[int, tuple[int, float]] = {}  # partition -> (position, when stored)
-        keep = int(self.transport.buffer_s / SAMPLE_S) + 2
-        while not self._left:
+        while not self._left and not self._handing_over:
             await asyncio.sleep(SAMPLE_S)
-            owned_now = self.transport.owned
-            for p in samples.keys() - owned_now:
-                del samples[p]
-                stored.pop(p, None)
-            if self.holding or not settled():
-                continue
+            for p in stored.keys() - self.transport.owned:
+                del stored[p]
             now = time.monotonic()
-            due: list[tuple[int, Sample]] = []
-            for p in owned_now:
-                sample = self._sample(p, table)
-                if sample is None:
-                    continue
-                kept = samples.setdefault(p, deque(maxlen=keep))
-                if not kept or kept[-1].position != sample.position or kept[-1].fed != sample.fed:
-                    kept.append(sample)
+            for p in sorted(self.transport.owned):
                 last = stored.get(p)
                 if last is not None and now - last[1] < self.settings.checkpoint_s:
                     continue
-                need = {s: self._need(table, s) for s in sample.fed}
-                chosen = resume_after(kept, sample.fed, need)
-                if chosen is None:
+                if self._left or self._handing_over or self.holding or not settled():
+                    break
+                taken = self.states(p, table)
+                if taken is None or (last is not None and taken[0] == last[0]):
                     continue
-                while kept[0] is not chosen:  # older samples are of no more use
-                    kept.popleft()
-                if last is None or last[0] != chosen.position:
-                    stored[p] = (chosen.position, now)
-                    due.append((p, chosen))
-            for p, chosen in due:
-                runs = {name: Run(fed.run[1], fed.lengths) for name, fed in chosen.fed.items()}
-                await self.transport.checkpoint(p, chosen.position, runs)
+                if await self.transport.checkpoint(p, *taken):
+                    stored[p] = (taken[0], now)
 
-    def _sample(self, p: int, table: StreamTable) -> Sample | None:
-        """Partition ``p`` now, if settled: every message read taken in, no pose of its streams
-        waiting in the table."""
-        position = self.transport.read_up_to(p)
+    def states(self, p: int, table: StreamTable) -> tuple[int, dict[str, bytes]] | None:
+        """Partition ``p``'s checkpoint now: the buffer sequence of the last message taken in, and
+        the state of each of its streams in the table (:meth:`StreamTable.state`); None if nothing
+        was taken in yet or a pose of one of its streams waits."""
+        position = self.transport.taken_up_to(p)
         if position is None:
             return None
-        fed: dict[str, Fed] = {}
+        states: dict[str, bytes] = {}
         for name in self.transport.streams_of(p):
             s = table.streams.get(name)
             if s is None:
                 continue
-            if s.queue:
+            if s.queue or s.filling:
                 return None
-            lengths = table.bank[name].lengths
-            shape = None if lengths is None or s.last_fed is None else dataclasses.astuple(lengths)
-            fed[name] = Fed((s.generation, s.epoch), -1 if s.last_fed is None else s.last_fed, shape)
-        return Sample(position, fed)
+            states[name] = table.state(name)
+        return position, states
 
-    @staticmethod
-    def _need(table: StreamTable, name: str) -> int:
-        """Frames stream ``name`` must have been fed since a checkpoint: twice its warm-up, a
-        skeleton announcement and a second's margin (as :func:`needed_seconds`)."""
-        s = table.streams[name]
-        return 2 * s.warmup + 2 * math.ceil(s.announced.rate)
+    async def hand_over(self, table: StreamTable, settled: Callable[[], bool]) -> None:
+        """SIGTERM, before :meth:`leave`: take nothing more in, wait (at most :data:`HAND_OVER_S`)
+        until every pose taken in is recognised and published, and store every owned partition's
+        checkpoint then, so that the new owners resume its streams where this worker left them
+        and read only what it did not take in. A partition still busy when the time is up keeps
+        its last periodic checkpoint."""
+        if self._left or self._membership is None or self.settings.checkpoint_s <= 0:
+            return
+        self._handing_over = True
+        started = time.monotonic()
+        self.transport.stop_taking()
+        with contextlib.suppress(TimeoutError):
+            async with asyncio.timeout(HAND_OVER_S):
+                while not (settled() and not table.queued):
+                    await asyncio.sleep(0.005)
+        owned = sorted(self.transport.owned)
+        due = [(p, taken) for p in owned if (taken := self.states(p, table)) is not None]
+        stored: list[bool] = []
+        with contextlib.suppress(TimeoutError):
+            async with asyncio.timeout(max(0.1, HAND_OVER_S - (time.monotonic() - started))):
+                stored = await asyncio.gather(*(self.transport.checkpoint(p, *t) for p, t in due))
+        self.log.info(
+            "handed over",
+            extra={
+                "fields": {
+                    "partitions": len(owned),
+                    "checkpoints": sum(stored),
+                    "took_s": round(time.monotonic() - started, 4),
+                }
+            },
+        )
 
     async def report(self, table: StreamTable, lag: Any) -> None:
         """This worker's status in etcd about once a second: partitions, streams per partition,

@@ -51,7 +51,6 @@ from daemon.behaviours import Boundary, JointRotations, PcaSegmenter, PpcaSegmen
 from daemon.behaviours import online_segmenter as make_segmenter
 from daemon.config import ProgressConfig, RecognizerConfig, SegmentationConfig, ServiceConfig
 from daemon.errors import InputError, MocapdError, printable
-from daemon.features.language import BodyLengths
 from daemon.frames import bridge, bridge_frames
 from daemon.library import Library
 from daemon.progress import ProgressEvent, StreamProgress
@@ -314,15 +313,12 @@ class StreamTable:
         if self.progress.enabled:
             s.progress = StreamProgress(recognizer.stage, recognizer.native_rate, self.progress.per_s)
 
-    def warm_up(self, name: str, lengths: tuple[float, ...] | None = None) -> None:
+    def warm_up(self, name: str) -> None:
         """``name``'s history here is truncated (cluster mode: taken over mid-run): suppress the
-        detections that start within its warm-up of its first fed pose; ``lengths``: the body
-        lengths its run's first pose gave (a checkpoint's), for its recogniser to take."""
+        detections that start within its warm-up of its first fed pose."""
         s = self.streams.get(name)
         if s is not None and s.last_fed is None:
             s.warming = True
-            if lengths is not None:
-                self.bank[name].assume_lengths(BodyLengths(*lengths))
 
     def state(self, name: str) -> bytes:
         """Stream ``name``'s state, from which another worker's table goes on as this one would
