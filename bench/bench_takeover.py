@@ -9,8 +9,8 @@ each buffer length, checkpoints off and on (``cluster.checkpoint_s`` 0 and 2) an
 S: the buffers and checkpoints of the run before deleted, two workers, 2 S looping streams of real
 recordings (:class:`bench.bench_cluster.Load`, every 120 / ``rate``-th frame announced at ``rate``
 Hz, so that a hundred streams per worker fit this machine) published over NATS for the buffer's
-length and 40 s more (the buffers full, the checkpoints 35 s behind: twice the shipped library's
-reach and 2 s), then one worker killed (kill -9). Per partition of the killed worker that carries
+length and 40 s more (the buffers full, the last checkpoint at most ``checkpoint_s`` behind), then
+one worker killed (kill -9). Per partition of the killed worker that carries
 streams: from the kill to the first live pose its new owner consumed (the lease's expiry, the
 buffer read from its start or from its checkpoint, the catching up); the time until the survivor's
 queue was back to a pose per stream; the buffered messages it read again.

@@ -176,7 +176,8 @@ class ClusterConfig:
     refuses a server that partitions otherwise), this member's lease, the seconds each partition's
     JetStream buffer keeps (0: computed from the lease and the library's reach,
     :func:`daemon.service.cluster.buffer_seconds`), how often at most a partition's checkpoint is
-    stored (0: never; a new owner then reads the whole buffer, :mod:`daemon.cluster.checkpoints`),
+    stored (0: never; a new owner then rebuilds the streams from the whole buffer,
+    :meth:`daemon.service.cluster.Cluster.checkpoint`),
     and this member's name (empty: host name and process id). The coordinator has no default: a
     worker must be told where the others are."""
 

@@ -190,7 +190,7 @@ def test_a_damaged_or_foreign_state_is_refused_and_changes_nothing() -> None:
         "candidates cut": zlib.compress(
             msgpack.packb({**unpacked, "codes": [*codes[:7], b"\x01" * 12, *codes[8:]]})
         ),
-        "no lengths": zlib.compress(msgpack.packb({k: v for k, v in unpacked.items() if k != "lengths"})),
+        "no first frame": zlib.compress(msgpack.packb({k: v for k, v in unpacked.items() if k != "first"})),
     }
     for what, data in damaged.items():
         with pytest.raises(StateError) as e:
