@@ -31,6 +31,7 @@ from dataclasses import dataclass
 from types import TracebackType
 from urllib.parse import unquote, urlsplit
 
+from protocols.endpoints import each_in_turn
 from protocols.transport import Throttle
 
 log = logging.getLogger("mocapd.cluster")
@@ -119,18 +120,13 @@ class Reader:
     async def start(self, timeout: float = CONNECT_S) -> Reader:
         """Connect (OSError, TimeoutError or :class:`ProtocolError` if the server cannot be reached
         or refuses), then read until :meth:`close`."""
-        failure: BaseException | None = None
-        for _ in self.servers:
-            try:
-                async with asyncio.timeout(timeout / len(self.servers)):
-                    reader, writer = await self._open()
-                break
-            except (OSError, TimeoutError, ProtocolError) as e:
-                failure = e
-                self._at = (self._at + 1) % len(self.servers)
-        else:
-            assert failure is not None
-            raise failure
+        first = self._at
+
+        async def attempt(k: int, _: object) -> tuple[asyncio.StreamReader, asyncio.StreamWriter]:
+            self._at = (first + k) % len(self.servers)
+            return await self._open()
+
+        reader, writer = await each_in_turn(self.servers, attempt, timeout, (OSError, ProtocolError))
         self._task = asyncio.create_task(self._run(reader, writer), name="cluster deliveries")
         return self
 

@@ -120,11 +120,14 @@ def test_a_new_owner_reads_the_buffer_from_the_checkpoint_and_misses_nothing(tmp
 
 
 @pytest.mark.slow
-def test_a_worker_told_to_stop_hands_its_streams_over_in_their_state(tmp_path: Path) -> None:
-    """Two workers, four streams looping real recordings, one worker's partitions holding some of
-    them: SIGTERM to it stores the last checkpoint of each partition it recognised, after taking
-    nothing more in, and the other worker resumes those streams from it, reading less than a
-    second of their poses from the buffers; the detections are ``mocapd detect``'s, each once."""
+def test_a_worker_hands_its_streams_over_in_their_state_to_a_joiner_and_when_told_to_stop(
+    tmp_path: Path,
+) -> None:
+    """Four streams looping real recordings on one worker, a; a second worker, b, joins: a stores
+    the last checkpoint of each partition it gives b, and b resumes those streams from it; then
+    SIGTERM to a: it takes nothing more in, stores the last checkpoint of each partition it
+    recognised, and b resumes those streams too. Each time b reads less than a second of the taken
+    streams' poses from the buffers, and the detections are ``mocapd detect``'s, each once."""
     for d in ("nats", "etcd", "a", "b"):
         (tmp_path / d).mkdir()
     server = NatsServer(tmp_path / "nats").start()
@@ -133,23 +136,25 @@ def test_a_worker_told_to_stop_hands_its_streams_over_in_their_state(tmp_path: P
     names = [stream_id(i, RECORDINGS[i][1]) for i in range(streams)]
     mine = owned("a", {"a", "b"}, partitions())
     leaving = [n for n in names if partition_of(n, partitions()) in mine]
-    assert leaving and len(leaving) < streams  # both workers recognise some
+    joined = [n for n in names if n not in leaving]
+    assert leaving and joined  # both workers recognise some
     ports = [free_port(), free_port()]
     settings = {"partitions": partitions(), "buffer_s": 60, "checkpoint_s": 1}
     a = cluster_worker(tmp_path / "a", server.url, etcd.url, ports[0], settings | {"member": "a"})
     b = load = collector = None
+    a_log, b_log = tmp_path / "a" / "worker.err", tmp_path / "b" / "worker.err"
     try:
-        wait_for(
-            lambda: len(log_events(tmp_path / "a" / "worker.err", "partition taken")) == partitions(), 30, "a"
-        )
+        everything = partitions()
+        wait_for(lambda: len(log_events(a_log, "partition taken")) == everything, 30, "a")
+        collector = MqttCollector(server.mqtt_url, ["mocap/+/detections"], client_id="handover-collector")
+        load = cluster_load(server.mqtt_url, streams, 30, RATE)
+        wait_for(lambda: _checkpointed(server.url, names) == set(names), 30, "a's checkpoints")
+        time.sleep(3.0)  # poses past the periodic checkpoints: the joiner's is the hand-over's
         b = cluster_worker(tmp_path / "b", server.url, etcd.url, ports[1], settings | {"member": "b"})
         share = partitions() - len(mine)
-        wait_for(lambda: len(log_events(tmp_path / "b" / "worker.err", "partition taken")) == share, 30, "b")
-        collector = MqttCollector(server.mqtt_url, ["mocap/+/detections"], client_id="handover-collector")
-        load = cluster_load(server.mqtt_url, streams, 25, RATE)
-        wait_for(lambda: _checkpointed(server.url, leaving) == set(leaving), 30, "a's checkpoints")
-        time.sleep(4.0)  # poses past the periodic checkpoints: the last one is the hand-over's
-        replayed = scrape(ports[1])["mocapd_cluster_replayed_poses_total"]
+        wait_for(lambda: len(log_events(b_log, "partition taken")) == share, 30, "b")
+        time.sleep(4.0)
+        at_join = scrape(ports[1])
         a.send_signal(signal.SIGTERM)
         assert a.wait(10) == 0
         termed = time.time()
@@ -168,18 +173,21 @@ def test_a_worker_told_to_stop_hands_its_streams_over_in_their_state(tmp_path: P
         for stream in sent:
             assert sorted(detection_keys([d for d in got if d["stream"] == stream])) == sorted(want[stream])
 
-        (handed,) = log_events(tmp_path / "a" / "worker.err", "handed over")
+        given = {partition_of(n, partitions()) for n in joined}
+        (gave,) = [e for e in log_events(a_log, "partitions") if e["lost"]]
+        assert gave["checkpoints"] == len(given)
+        (handed,) = log_events(a_log, "handed over")
         used = {partition_of(n, partitions()) for n in leaving}
         assert handed["checkpoints"] == len(used)
-        taken = [
-            e
-            for e in log_events(tmp_path / "b" / "worker.err", "partition taken")
-            if e["partition"] in used and e["ts"] > termed - 1
-        ]
-        assert len(taken) == len(used) and all(e["from"] > 1 for e in taken), taken
+        taken = log_events(b_log, "partition taken")
+        for partitions_, after in ((given, 0.0), (used, termed - 1)):
+            these = [e for e in taken if e["partition"] in partitions_ and e["ts"] > after]
+            assert len(these) == len(partitions_) and all(e["from"] > 1 for e in these), these
         m = scrape(ports[1])
-        assert m["mocapd_cluster_resumed_partitions_total"] == len(used)
-        assert m["mocapd_cluster_replayed_poses_total"] - replayed < RATE * len(leaving)
+        assert m["mocapd_cluster_resumed_partitions_total"] == len(given) + len(used)
+        assert at_join["mocapd_cluster_replayed_poses_total"] < RATE * len(joined)
+        replayed = m["mocapd_cluster_replayed_poses_total"] - at_join["mocapd_cluster_replayed_poses_total"]
+        assert replayed < RATE * len(leaving)
         assert m.get('mocapd_rejects_total{reason="state"}', 0) == 0
     finally:
         stop_all(load, a, b, collector, etcd, server)

@@ -564,7 +564,9 @@ class Service:
                     if http is not None:
                         group.create_task(serve_http(http), name="http")
                     if self.cluster is not None:
-                        group.create_task(self.cluster.follow(self.table), name="cluster membership")
+                        group.create_task(
+                            self.cluster.follow(self.table, lambda: self.settled), name="cluster membership"
+                        )
                         group.create_task(self.cluster.report(self.table, self._lag), name="cluster status")
                         if self.config.cluster.checkpoint_s > 0:
                             group.create_task(

@@ -126,12 +126,14 @@ class Cluster:
         partitions and their state are kept; or out: it owns nothing)."""
         return self.problem is not None
 
-    async def follow(self, table: StreamTable) -> None:
+    async def follow(self, table: StreamTable, settled: Callable[[], bool]) -> None:
         """Own what the ring gives this member among the live members, at every change: partitions
-        lost are given up at once, and so are partitions gained from a member that is gone (or from
-        nobody: the first member of a new cluster); partitions gained from a live member (this one
-        joining, another joining, or the loads evened out) are taken once the members have held
-        still for :data:`SETTLE_S`, after their old owner has seen the change and given them up."""
+        lost are given up at once (each, when ``settled()`` and its streams have no pose waiting,
+        with a last checkpoint, as :meth:`hand_over` stores, for the member that takes it), and so
+        are partitions gained from a member that is gone (or from nobody: the first member of a new
+        cluster); partitions gained from a live member (this one joining, another joining, or the
+        loads evened out) are taken once the members have held still for :data:`SETTLE_S`, after
+        their old owner has seen the change and given them up."""
         m = self._membership
         assert m is not None
         async for members in m.changes():
@@ -142,16 +144,22 @@ class Cluster:
             held = self.transport.owned
             before = self.members if self._assigned else members - {self.member}
             if waiting := mine - held - orphaned(mine - held, before, members, count):
-                await self._own(mine - waiting, members, table, final=False)  # losses; the gone's
+                await self._own(mine - waiting, members, table, settled, final=False)  # losses; the gone's
                 await asyncio.sleep(SETTLE_S)
                 if self._left:
                     return
                 members = m.members
                 mine = owned(self.member, members, count)
-            await self._own(mine, members, table)
+            await self._own(mine, members, table, settled)
 
     async def _own(
-        self, mine: frozenset[int], members: frozenset[str], table: StreamTable, *, final: bool = True
+        self,
+        mine: frozenset[int],
+        members: frozenset[str],
+        table: StreamTable,
+        settled: Callable[[], bool],
+        *,
+        final: bool = True,
     ) -> None:
         """Consume ``mine``; ``final``: the whole of what the ring gives this member among
         ``members`` (not the part taken before settling), after which gains count as takeovers."""
@@ -164,6 +172,13 @@ class Cluster:
         self._assigned = self._assigned or final
         self.members = members
         self.changes += 1
+        lost = sorted(before - mine)
+        handed = 0
+        if lost and self.settings.checkpoint_s > 0 and not self.holding and settled():
+            due = [(p, taken) for p in lost if (taken := self.states(p, table)) is not None]
+            with contextlib.suppress(TimeoutError):
+                async with asyncio.timeout(SETTLE_S / 2):  # given up before the taker reads it
+                    handed = sum(await asyncio.gather(*(self.transport.checkpoint(p, *t) for p, t in due)))
         for stream in await self.transport.own(mine):
             table.forget(stream)
         self.log.info(
@@ -173,7 +188,8 @@ class Cluster:
                     "members": sorted(members),
                     "owned": sorted(mine),
                     "gained": sorted(gained),
-                    "lost": sorted(before - mine),
+                    "lost": lost,
+                    "checkpoints": handed,
                     "problem": self.problem,
                 }
             },

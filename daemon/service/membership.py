@@ -72,6 +72,7 @@ from typing import Any
 import aetcd
 
 from daemon.errors import InputError
+from protocols.endpoints import each_in_turn
 from protocols.transport import StartupError
 from protocols.urls import parse_etcd_urls
 
@@ -303,28 +304,28 @@ class Membership:
     async def _enter(self) -> None:
         """:meth:`__aenter__` on the membership's loop: each endpoint in turn, for its share of
         :data:`STARTUP_S`."""
-        why = ""
-        for k in range(len(self.endpoints)):
+
+        async def attempt(k: int, endpoint: tuple[str, int]) -> None:
             self._at = k
-            self._client = aetcd.Client(*self.endpoints[k])
+            self._client = aetcd.Client(*endpoint)
             try:
-                async with asyncio.timeout(STARTUP_S / len(self.endpoints)):
-                    if not await self._join():
-                        raise StartupError(
-                            FIELD,
-                            f"a member named {self.member!r} is already live at {self.coordinator} "
-                            f"(its key {self._key.decode()} is held by another worker's lease)",
-                        )
-                    await self._list_and_watch()
-                break
-            except (aetcd.ClientError, TimeoutError, OSError) as exc:
-                await self._close()
-                why = _why(exc)
+                if not await self._join():
+                    raise StartupError(
+                        FIELD,
+                        f"a member named {self.member!r} is already live at {self.coordinator} "
+                        f"(its key {self._key.decode()} is held by another worker's lease)",
+                    )
+                await self._list_and_watch()
             except BaseException:
                 await self._close()
                 raise
-        else:
-            raise StartupError(FIELD, f"cannot join through etcd at {self.coordinator}: {why}")
+
+        try:
+            await each_in_turn(self.endpoints, attempt, STARTUP_S, (aetcd.ClientError, OSError))
+        except (aetcd.ClientError, TimeoutError, OSError) as exc:
+            raise StartupError(
+                FIELD, f"cannot join through etcd at {self.coordinator}: {_why(exc)}"
+            ) from None
         self._runner = asyncio.create_task(self._run(), name=f"membership {self.member}")
 
     async def _switch(self, failed: Any) -> None:
@@ -570,37 +571,35 @@ def read_cluster(coordinator: str, prefix: str = "/mocapd/") -> ClusterStatus:
 async def cluster_status(coordinator: str, prefix: str = "/mocapd/") -> ClusterStatus:
     """The live members at ``coordinator``, their reported statuses and their leases' TTLs left;
     StartupError naming ``cluster.coordinator`` if etcd does not answer within :data:`STARTUP_S`."""
-    endpoints = _addresses(coordinator)
     members_prefix, status_prefix = f"{prefix}members/".encode(), f"{prefix}status/".encode()
-    why = ""
-    for endpoint in endpoints:
+
+    async def read(_: int, endpoint: tuple[str, int]) -> list[MemberStatus]:
         client = aetcd.Client(*endpoint)
         try:
-            async with asyncio.timeout(STARTUP_S / len(endpoints)):
-                listing = await client.get_prefix(members_prefix)
-                statuses = {
-                    bytes(kv.key)[len(status_prefix) :].decode(errors="replace"): _json_object(kv.value)
-                    for kv in await client.get_prefix(status_prefix)
-                }
-                members = []
-                for kv in listing:
-                    name = bytes(kv.key)[len(members_prefix) :].decode(errors="replace")
-                    left = (await client.get_lease_info(kv.lease, keys=False)).TTL if kv.lease else -1
-                    members.append(
-                        MemberStatus(
-                            name,
-                            statuses.get(name),
-                            left if left >= 0 else None,
-                            _json_object(kv.value) or {},
-                        )
+            listing = await client.get_prefix(members_prefix)
+            statuses = {
+                bytes(kv.key)[len(status_prefix) :].decode(errors="replace"): _json_object(kv.value)
+                for kv in await client.get_prefix(status_prefix)
+            }
+            members = []
+            for kv in listing:
+                name = bytes(kv.key)[len(members_prefix) :].decode(errors="replace")
+                left = (await client.get_lease_info(kv.lease, keys=False)).TTL if kv.lease else -1
+                members.append(
+                    MemberStatus(
+                        name, statuses.get(name), left if left >= 0 else None, _json_object(kv.value) or {}
                     )
-            break
-        except (aetcd.ClientError, TimeoutError, OSError) as exc:
-            why = _why(exc)
+                )
+            return members
         finally:
             with contextlib.suppress(aetcd.ClientError, TimeoutError, OSError):
                 async with asyncio.timeout(LEAVE_S):
                     await client.close()
-    else:
-        raise StartupError(FIELD, f"cannot read the cluster from etcd at {coordinator}: {why}")
+
+    try:
+        members = await each_in_turn(_addresses(coordinator), read, STARTUP_S, (aetcd.ClientError, OSError))
+    except (aetcd.ClientError, TimeoutError, OSError) as exc:
+        raise StartupError(
+            FIELD, f"cannot read the cluster from etcd at {coordinator}: {_why(exc)}"
+        ) from None
     return ClusterStatus(coordinator, prefix, tuple(sorted(members, key=lambda m: m.name)))
