@@ -175,10 +175,7 @@ class Cluster:
         lost = sorted(before - mine)
         handed = 0
         if lost and self.settings.checkpoint_s > 0 and not self.holding and settled():
-            due = [(p, taken) for p in lost if (taken := self.states(p, table)) is not None]
-            with contextlib.suppress(TimeoutError):
-                async with asyncio.timeout(SETTLE_S / 2):  # given up before the taker reads it
-                    handed = sum(await asyncio.gather(*(self.transport.checkpoint(p, *t) for p, t in due)))
+            handed = await self._last_checkpoints(lost, table, SETTLE_S / 2)  # before the taker reads
         for stream in await self.transport.own(mine):
             table.forget(stream)
         self.log.info(
@@ -251,21 +248,28 @@ class Cluster:
                 while not (settled() and not table.queued):
                     await asyncio.sleep(0.005)
         owned = sorted(self.transport.owned)
-        due = [(p, taken) for p in owned if (taken := self.states(p, table)) is not None]
-        stored: list[bool] = []
-        with contextlib.suppress(TimeoutError):
-            async with asyncio.timeout(max(0.1, HAND_OVER_S - (time.monotonic() - started))):
-                stored = await asyncio.gather(*(self.transport.checkpoint(p, *t) for p, t in due))
+        left = max(0.1, HAND_OVER_S - (time.monotonic() - started))
+        stored = await self._last_checkpoints(owned, table, left)
         self.log.info(
             "handed over",
             extra={
                 "fields": {
                     "partitions": len(owned),
-                    "checkpoints": sum(stored),
+                    "checkpoints": stored,
                     "took_s": round(time.monotonic() - started, 4),
                 }
             },
         )
+
+    async def _last_checkpoints(self, partitions: list[int], table: StreamTable, seconds: float) -> int:
+        """The checkpoints of ``partitions`` now (:meth:`states`; those with a pose waiting
+        passed over), stored at once within ``seconds``: how many were stored."""
+        due = [(p, taken) for p in partitions if (taken := self.states(p, table)) is not None]
+        stored: list[bool] = []
+        with contextlib.suppress(TimeoutError):
+            async with asyncio.timeout(seconds):
+                stored = await asyncio.gather(*(self.transport.checkpoint(p, *t) for p, t in due))
+        return sum(stored)
 
     async def report(self, table: StreamTable, lag: Any) -> None:
         """This worker's status in etcd about once a second: partitions, streams per partition,
