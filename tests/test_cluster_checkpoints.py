@@ -9,9 +9,11 @@ import asyncio
 import contextlib
 import json
 import signal
+import subprocess
 import time
 from collections import Counter
 from pathlib import Path
+from typing import Any
 
 import msgpack
 import nats
@@ -61,6 +63,25 @@ def _checkpointed(url: str, names: list[str]) -> set[str]:
     return asyncio.run(read())
 
 
+def _each_once_as_detect(load: subprocess.Popen[str], collector: MqttCollector) -> tuple[dict[str, Any], int]:
+    """Once ``load`` has ended: the detections ``collector`` received are ``mocapd detect``'s on
+    what it sent, each once. What it sent, and how many detections that is."""
+    out, err = load.communicate(timeout=60)
+    assert load.returncode == 0, err
+    sent: dict[str, Any] = json.loads(out)
+    want = {
+        stream: detection_keys(looped_detections(s["asf"], s["amc"], s["last"])) for stream, s in sent.items()
+    }
+    total = sum(len(w) for w in want.values())
+    wait_for(lambda: len(collector.detections()) >= total, 40, "the detections")
+    time.sleep(1.0)
+    got = collector.detections()
+    assert not [i for i, n in Counter(d["id"] for d in got).items() if n > 1], "a detection twice"
+    for stream in sent:
+        assert sorted(detection_keys([d for d in got if d["stream"] == stream])) == sorted(want[stream])
+    return sent, total
+
+
 @pytest.mark.slow
 def test_a_new_owner_reads_the_buffer_from_the_checkpoint_and_misses_nothing(tmp_path: Path) -> None:
     """One worker with a 120 s buffer recognises two streams looping real recordings; once it has
@@ -90,20 +111,7 @@ def test_a_new_owner_reads_the_buffer_from_the_checkpoint_and_misses_nothing(tmp
         first.wait(10)
         killed = time.time()
         second = cluster_worker(tmp_path / "w2", server.url, etcd.url, ports[1], settings)
-        out, err = load.communicate(timeout=60)
-        assert load.returncode == 0, err
-        sent = json.loads(out)
-        want = {
-            stream: detection_keys(looped_detections(s["asf"], s["amc"], s["last"]))
-            for stream, s in sent.items()
-        }
-        total = sum(len(w) for w in want.values())
-        wait_for(lambda: len(collector.detections()) >= total, 40, "the detections")
-        time.sleep(1.0)
-        got = collector.detections()
-        assert not [i for i, n in Counter(d["id"] for d in got).items() if n > 1], "a detection twice"
-        for stream in sent:
-            assert sorted(detection_keys([d for d in got if d["stream"] == stream])) == sorted(want[stream])
+        sent, total = _each_once_as_detect(load, collector)
         assert total > 2 * STREAMS
 
         used = {partition_of(stream, partitions()) for stream in sent}
@@ -158,20 +166,8 @@ def test_a_worker_hands_its_streams_over_in_their_state_to_a_joiner_and_when_tol
         a.send_signal(signal.SIGTERM)
         assert a.wait(10) == 0
         termed = time.time()
-        out, err = load.communicate(timeout=60)
-        assert load.returncode == 0, err
-        sent = json.loads(out)
-        want = {
-            stream: detection_keys(looped_detections(s["asf"], s["amc"], s["last"]))
-            for stream, s in sent.items()
-        }
-        total = sum(len(w) for w in want.values())
-        wait_for(lambda: len(collector.detections()) >= total, 40, "the detections")
-        time.sleep(1.0)
-        got = collector.detections()
-        assert not [i for i, n in Counter(d["id"] for d in got).items() if n > 1], "a detection twice"
-        for stream in sent:
-            assert sorted(detection_keys([d for d in got if d["stream"] == stream])) == sorted(want[stream])
+        _, total = _each_once_as_detect(load, collector)
+        assert total > len(names)
 
         given = {partition_of(n, partitions()) for n in joined}
         (gave,) = [e for e in log_events(a_log, "partitions") if e["lost"]]
