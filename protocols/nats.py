@@ -63,7 +63,7 @@ from nats.js.errors import Error as JetStreamError
 from nats.js.errors import KeyNotFoundError
 
 from protocols.deliveries import Delivery, ProtocolError, Reader
-from protocols.transport import Incoming, Outgoing, StartupError, Throttle
+from protocols.transport import STATE_TOPIC, Incoming, Outgoing, StartupError, Throttle
 from protocols.urls import parse_nats_urls
 
 if TYPE_CHECKING:
@@ -217,8 +217,6 @@ class NatsTransport:
         self._partial: set[int] = set()  # partitions taken from a buffer that had lost messages
         # streams first seen in the replay of such a buffer, or whose checkpoint's state was refused
         self._truncated: set[str] = set()
-        # streams of a checkpoint read, not yet taken in: their states (the service takes them)
-        self._states: dict[str, bytes] = {}
         self._partition_of: dict[str, int] = {}
         self._position: dict[int, int] = {}  # the last buffer sequence read, per partition
         self._taken: dict[int, int] = {}  # the last buffer sequence the service took in, per partition
@@ -489,11 +487,6 @@ class NatsTransport:
         that holds the partition's whole history, or resumed from a checkpoint, is whole."""
         return stream in self._truncated
 
-    def state(self, stream: str) -> bytes | None:
-        """The state the checkpoint its partition was read from gives ``stream``, once: the service
-        resumes the stream from it before taking in its first message (None: none)."""
-        return self._states.pop(stream, None)
-
     def refused(self, stream: str) -> None:
         """``stream``'s state could not be resumed: it is taken as a truncated history
         (:meth:`partial`)."""
@@ -519,7 +512,6 @@ class NatsTransport:
             for stream in self._streams.pop(p, set()):
                 self._partition_of.pop(stream, None)
                 self._truncated.discard(stream)
-                self._states.pop(stream, None)
                 lost.append(stream)
         for p in sorted(partitions - set(self._consumers)):
             self._take(p)
@@ -654,7 +646,19 @@ class NatsTransport:
             for s in gone:
                 self._partition_of.pop(s, None)
                 self._truncated.discard(s)
-                self._states.pop(s, None)
+
+    async def _resume(self, p: int, position: int, states: Mapping[str, bytes]) -> None:
+        """Partition ``p`` taken from a checkpoint at ``position``: its streams' ``states`` go to
+        the service first (:data:`STATE_TOPIC`), and reading goes on after ``position`` (also when
+        the consumer is made again)."""
+        self._position[p] = position
+        streams = self._streams.setdefault(p, set())
+        now = time.time()
+        for stream, state in states.items():
+            streams.add(stream)
+            self._partition_of[stream] = p
+            self._queued[stream] = self._queued.get(stream, 0) + 1
+            await self._queue.put((p, -1, stream, Incoming(STATE_TOPIC + stream, state, now)))
 
     async def _consume(self, p: int, given_up: asyncio.Event) -> None:
         """Read partition ``p`` until it is given up; a consumer that cannot be made (the server
@@ -689,6 +693,7 @@ class NatsTransport:
             if checkpoint is not None and state.first_seq <= checkpoint[0] + 1 and checkpoint[0] <= last:
                 position, states = checkpoint
                 self.resumed += 1
+                await self._resume(p, position, states)
         if state.first_seq > 1 and states is None:  # its streams' histories may begin mid-way
             self._partial.add(p)
         if state.messages and (position is None or position < last):
@@ -744,7 +749,7 @@ class NatsTransport:
                     )
                 else:
                     self.replayed += 1
-            stream, incoming = self._incoming(d, streams, p, replayed=not live, states=states)
+            stream, incoming = self._incoming(d, streams, p, replayed=not live)
             if stream is not None:
                 self._queued[stream] = self._queued.get(stream, 0) + 1
             try:
@@ -806,13 +811,11 @@ class NatsTransport:
         p: int,
         *,
         replayed: bool,
-        states: Mapping[str, bytes] | None,
     ) -> tuple[str | None, Incoming]:
         """The message as the service takes it in, whatever its subject: ``mocap.p.<p>.<stream>.
         <word>`` as topic ``mocap/<stream>/<word>`` (a stream seen for the first time is noted, and
         noted as truncated, :meth:`partial`, if its first message was ``replayed`` from a buffer that
-        had lost messages, or given its state, :meth:`state`, if the checkpoint the buffer was read
-        from after has it); any
+        had lost messages); any
         other subject (a publisher's, straight into the buffer: another number of tokens, another
         partition than the stream's, bytes that are not UTF-8) as a topic the service refuses and
         counts (``topic``). With the stream (None: no
@@ -836,8 +839,6 @@ class NatsTransport:
             self._partition_of[stream] = p
             if replayed and p in self._partial:
                 self._truncated.add(stream)
-            elif states is not None and stream in states:  # replayed or live: after the checkpoint
-                self._states[stream] = states[stream]
         return stream, Incoming(f"mocap/{stream}/{tokens[-1]}", d.data, now)
 
     # --------------------------------------------------------------------------- source and sink

@@ -56,6 +56,13 @@ class StartupError(MocapdError):
         self.setting = setting
 
 
+STATE_TOPIC = "cluster:state/"
+"""Cluster mode: the topic, with the stream's id after it, of a stream's state from the checkpoint a
+taken partition was read from, which the service resumes the stream from before its next message.
+No publisher can send it: the cluster transport gives a buffer's messages ``mocap/`` or ``nats:``
+topics."""
+
+
 @dataclass(frozen=True)
 class Incoming:
     """A message received on ``topic`` at ``received`` (``time.time()``)."""

@@ -26,7 +26,7 @@ from paho.mqtt.enums import CallbackAPIVersion
 
 from daemon.config import ClusterConfig
 from protocols.nats import PUBLISH_TIMEOUT_S, STORE_FOR_S, Ack, NatsTransport, acknowledgement, partition_of
-from protocols.transport import Outgoing
+from protocols.transport import STATE_TOPIC, Outgoing
 from tests.helpers import freeze, wait_for
 from tests.nats_server import NatsServer, partitions
 
@@ -162,6 +162,48 @@ def test_what_is_no_acknowledgement_subject_is_none(reply: bytes) -> None:
 def _message(reply: str) -> Msg:
     """A message as nats-py delivers it, with no client (the metadata needs none)."""
     return Msg(_client=cast(Any, None), subject="mocap.p.3.s.pose", reply=reply)
+
+
+def test_a_partition_taken_from_a_checkpoint_gives_every_streams_state_first(tmp_path: Path) -> None:
+    """A partition taken from a checkpoint: the state of each of its streams comes to the service
+    before any message of the buffer, a silent stream's too (so that the new owner holds it, evicts
+    it when idle and carries it into its own checkpoints); the buffer is read from after the
+    checkpoint, and a stream's state waiting in the queue keeps the stream known."""
+    server = NatsServer(tmp_path).start()
+    try:
+
+        async def main() -> None:
+            settings = ClusterConfig(nats=server.url, partitions=partitions(), buffer_s=60.0)
+            talking, silent = [f"s{i}" for i in range(10_000) if partition_of(f"s{i}", partitions()) == 0][:2]
+            transport = NatsTransport(settings, instance="t", source=True, sink=False)
+            async with transport:
+                nc = await nats.connect(server.url)
+                for seq in range(3):
+                    await nc.publish(f"mocap.{talking}.pose", f"{seq}".encode())
+                await nc.flush()
+                await nc.close()
+                states = {talking: b"state of the talking one", silent: b"state of the silent one"}
+                assert await transport.checkpoint(0, 1, states)
+                await transport.own(frozenset({0}))
+                wait = time.monotonic() + 10
+                while transport.partition(silent) is None and time.monotonic() < wait:
+                    await asyncio.sleep(0.01)
+                transport.forget(set())  # their states not taken in yet: both are still known
+                assert transport.partition(silent) == transport.partition(talking) == 0
+                incoming = aiter(transport)
+                first = [await anext(incoming) for _ in range(2)]
+                assert sorted((m.topic, m.payload) for m in first) == sorted(
+                    (STATE_TOPIC + s, state) for s, state in states.items()
+                )
+                rest = [await anext(incoming) for _ in range(2)]  # from after the checkpoint
+                assert [(m.topic, m.payload) for m in rest] == [
+                    (f"mocap/{talking}/pose", b"%d" % q) for q in (1, 2)
+                ]
+                assert transport.resumed == 1 and transport.taken_up_to(0) == 3
+
+        asyncio.run(main())
+    finally:
+        server.stop()
 
 
 def test_a_stream_read_from_a_partial_buffer_keeps_its_mark_until_it_is_taken_in(tmp_path: Path) -> None:

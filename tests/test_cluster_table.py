@@ -156,7 +156,9 @@ def test_a_stream_resumed_from_its_state_goes_on_as_the_table_it_left(
     before = [q for q in seqs if q < cut]
     got = feed(first, before)
     second = table()
-    assert second.resume(first.state("s"), cut / 120) == "s"
+    silent = first.streams["s"].seen
+    assert second.resume(first.state("s", silent + 1.5), 100.0) == "s"
+    assert second.streams["s"].seen == pytest.approx(100.0 - 1.5)  # as long silent as it was
     got += feed(second, [q for q in seqs if q >= cut]) + flushed(second)
     assert [key(d) for d in got] == [key(d) for d in want]
     assert second.counts["warmup_suppressed"] == 0
@@ -168,7 +170,7 @@ def test_a_damaged_or_foreign_stream_state_is_refused_and_takes_nothing() -> Non
     for q in range(300):
         t.pose(PoseMessage("s", q, q / 120, channels=channels()[q], epoch="run1"), q / 120)
         t.tick()
-    state = t.state("s")
+    state = t.state("s", 3.0)
     other = StreamTable(library(), session="cluster", recognizer=RecognizerConfig(hold_s=2.0), cluster=True)
     for what, table_, data in (
         ("damaged", table(), state[:-40]),
@@ -182,7 +184,7 @@ def test_a_damaged_or_foreign_stream_state_is_refused_and_takes_nothing() -> Non
         assert set(table_.streams) == before, what
     t.pose(PoseMessage("s", 300, 300 / 120, channels=channels()[300], epoch="run1"), 2.5)
     with pytest.raises(ValueError, match="poses waiting"):
-        t.state("s")
+        t.state("s", 3.0)
 
 
 def test_boundary_ids_are_the_runs_not_the_tables() -> None:

@@ -59,7 +59,7 @@ from protocols.messages import (
     parse_topic,
     topic,
 )
-from protocols.transport import Incoming, Outgoing, StartupError, Transport, make
+from protocols.transport import STATE_TOPIC, Incoming, Outgoing, StartupError, Transport, make
 
 if TYPE_CHECKING:
     from daemon.service.cluster import Cluster
@@ -250,6 +250,9 @@ class Service:
         detections). Refusals are counted and logged, never raised; so is any other exception that
         one message sets off (``internal``), so that no message can stop an intake."""
         started = time.perf_counter()
+        if incoming.topic.startswith(STATE_TOPIC) and self.cluster is not None:
+            self._resume(incoming.topic.removeprefix(STATE_TOPIC), incoming.payload)
+            return []
         parsed = parse_topic(incoming.topic)
         stream = parsed[0] if parsed else "?"
         try:
@@ -270,8 +273,6 @@ class Service:
                     "schema", f"a {type(message).__name__} for {message.stream!r} on {incoming.topic!r}"
                 )
             now = time.monotonic()
-            if self.cluster is not None and stream not in self.table.streams:
-                self._resume(stream, now)
             if isinstance(message, EndMessage):
                 out = self.table.end(message)
                 self.metrics.messages["end"] += 1
@@ -312,21 +313,19 @@ class Service:
             self.metrics.stage["decode"].observe(time.perf_counter() - started)
         return []
 
-    def _resume(self, stream: str, now: float) -> None:
-        """Cluster mode: take ``stream`` in the state its partition's checkpoint gives it, if the
-        partition was read from one (``docs/cluster.md``, "Checkpoints"); a state refused is
-        counted (``state``) and the stream taken as a truncated history."""
+    def _resume(self, stream: str, state: bytes) -> None:
+        """Cluster mode: take ``stream`` in ``state``, from the checkpoint its partition was taken
+        from (``docs/cluster.md``, "Checkpoints"), unless it is held already (its state here is as
+        new); a state refused is counted (``state``) and the stream taken as a truncated history."""
         assert self.cluster is not None
-        transport = self.cluster.transport
-        state = transport.state(stream)
-        if state is None:
+        if stream in self.table.streams:
             return
         try:
-            self.table.resume(state, now)
+            self.table.resume(state, time.monotonic())
         except Refused as e:
             self.rejects[e.reason] += 1
             self.events.warn(stream, e.reason, str(e))
-            transport.refused(stream)
+            self.cluster.transport.refused(stream)
 
     def _relay(self, incoming: Incoming, stream: str, seq: int | None, now: float) -> None:
         """Pass a taken-in pose (``seq``) or skeleton (None) on for viewers (``zmq.relay_per_s``):

@@ -229,7 +229,7 @@ class Cluster:
                 continue
             if s.queue or s.filling:
                 return None
-            states[name] = table.state(name)
+            states[name] = table.state(name, time.monotonic())
         return position, states
 
     async def hand_over(self, table: StreamTable, settled: Callable[[], bool]) -> None:

@@ -320,11 +320,12 @@ class StreamTable:
         if s is not None and s.last_fed is None:
             s.warming = True
 
-    def state(self, name: str) -> bytes:
-        """Stream ``name``'s state, from which another worker's table goes on as this one would
-        (:meth:`resume`): its announcement, its recogniser's state
+    def state(self, name: str, now: float) -> bytes:
+        """Stream ``name``'s state at ``now``, from which another worker's table goes on as this one
+        would (:meth:`resume`): its announcement, its recogniser's state
         (:meth:`~daemon.recognizer.Recognizer.state`), the sequence numbers received and fed, the
-        last frame fed (a gap after it is bridged from it), its runs, and its warm-up. Taken when
+        last frame fed (a gap after it is bridged from it), its runs, its warm-up, and how long it
+        has been silent (for its eviction when idle). Taken when
         none of its poses waits (a queued pose is the reader's to deliver again). Not carried:
         the segmenter's and the progress' states (the stream's behaviour boundaries and progress
         begin anew where it is resumed)."""
@@ -346,6 +347,7 @@ class StreamTable:
                 "fed_epoch": s.fed_epoch,
                 "warming": s.warming,
                 "suppress_before": s.suppress_before,
+                "silent_s": max(0.0, now - s.seen),
             }
         )
         return state
@@ -368,6 +370,7 @@ class StreamTable:
             fields = {k: got[k] for k in ("epoch", "last_received", "received", "last_fed", "fed_epoch")}
             fields |= {"warming": bool(got["warming"]), "suppress_before": got["suppress_before"]}
             retired, last_time, recognizer = got["retired"], got["last_time"], got["recognizer"]
+            silent = float(got["silent_s"])
         except (ValueError, TypeError, KeyError, msgpack.UnpackException, MocapdError) as e:
             raise Refused("state", f"not a stream's state: {e}") from None
         self.skeleton(announced, now)
@@ -382,6 +385,7 @@ class StreamTable:
         s.retired.extend(retired)
         s.last_values = values
         s.posed = now
+        s.seen = now - silent
         if s.last_fed is not None and last_time is not None:
             s.times[s.last_fed % len(s.times)] = last_time
         self._follow(s, self.bank[name])
