@@ -6,8 +6,8 @@ the 2 cores. Three workers start; the etcd member they talk to is killed (kill -
 moves), then one worker is killed (kill -9), one stopped (SIGTERM), a new one started, all while the
 streams go on. Every stream's detections, as an
 MQTT client and a NATS client receive them, are ``mocapd detect``'s on the frames sent, each
-delivered once; the partitions of the killed worker are consumed live again within the lease and
-a second, those of the stopped one within a second."""
+delivered once; the killed worker is seen gone within the lease and a second, its partitions are
+consumed live again within a second after that, those of the stopped one within a second."""
 
 from __future__ import annotations
 
@@ -163,14 +163,24 @@ def test_takeovers_lose_and_repeat_no_detection(tmp_path: Path) -> None:
         time.sleep(6)  # the streams go idle (3 s): their owners flush them, as detect ends a recording
 
         # takeovers: the first live pose of every partition of the killed and the stopped worker
-        # that streams hash to (a partition with none has no pose to consume)
+        # that streams hash to (a partition with none has no pose to consume). The killed one's
+        # lease runs out a TTL after its last keep-alive and etcd revokes it at its next check
+        # (every 500 ms), on a loaded machine later still: measured from when the survivors saw it
+        # gone, as the stopped one's from the signal
         used = {e["partition"] for w in workers for e in w.events("partition live")}
-        for owned, at, bound in ((killed_owned, killed_at, LEASE_S + 1.0), (stopped_owned, stopped_at, 1.0)):
+        gone = min(
+            e["ts"]
+            for w in workers
+            for e in w.events("partitions")
+            if e["ts"] > killed_at and "w1" not in e["members"]
+        )
+        assert gone - killed_at <= LEASE_S + 1.0, f"w1 seen gone {gone - killed_at:.2f} s after the kill"
+        for owned, at in ((killed_owned, gone), (stopped_owned, stopped_at)):
             assert owned & used
             for p in owned & used:
                 live = first_live_after(workers, p, at)
                 assert live is not None, f"partition {p} was never consumed again"
-                assert live - at <= bound, f"partition {p} taken {live - at:.2f} s after, more than {bound}"
+                assert live - at <= 1.0, f"partition {p} taken {live - at:.2f} s after, more than 1 s"
 
         # the etcd member killed moved no partition: the workers paused at most, kept their leases
         moved = [e for w in workers for e in w.events("partitions") if etcd_killed <= e["ts"] < killed_at]
@@ -186,11 +196,11 @@ def test_takeovers_lose_and_repeat_no_detection(tmp_path: Path) -> None:
             mine = detection_keys([d for d in got if d["stream"] == stream])
             assert sorted(mine) == sorted(want), stream
         assert sum(len(looped_detections(s["asf"], s["amc"], s["last"])) for s in sent.values()) > 3 * STREAMS
-        # the killed worker's streams were recognised again from their buffers: what it had
-        # published already was computed again, with the same ids, and not published twice
-        assert sum(len(w.events("duplicate")) for w in workers) > 0
-        # the survivors' /metrics say so too
+        # the killed and the stopped worker's streams were resumed from checkpoints and recognised
+        # on from their buffers: what the killed one had published since its last checkpoint was
+        # computed again, with the same ids, and not published twice (each id once, above)
         m = [w.metrics() for w in (workers[2], workers[3])]
+        assert sum(x["mocapd_cluster_resumed_partitions_total"] for x in m) > 0
         assert [x["mocapd_cluster_members"] for x in m] == [2, 2]
         assert sum(x["mocapd_cluster_partitions"] for x in m) == partitions()
         assert sum(x["mocapd_cluster_takeovers_total"] for x in m) > 0
