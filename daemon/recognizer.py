@@ -621,10 +621,10 @@ class Recognizer:
         this recogniser is unchanged either way."""
         try:
             got = msgpack.unpackb(zlib.decompress(state))
-            if not isinstance(got, dict):
-                raise StateError("not a recogniser's state", field="state")
         except (zlib.error, ValueError, msgpack.UnpackException) as e:
             raise StateError(f"not a recogniser's state ({e})", field="state") from None
+        if not isinstance(got, dict):
+            raise StateError("not a recogniser's state", field="state")
         if got.get("version") != STATE_VERSION:
             version = got.get("version")
             raise StateError(f"version {version!r}, expected {STATE_VERSION}", field="state.version")

@@ -222,15 +222,11 @@ class Cluster:
         position = self.transport.taken_up_to(p)
         if position is None:
             return None
-        states: dict[str, bytes] = {}
-        for name in self.transport.streams_of(p):
-            s = table.streams.get(name)
-            if s is None:
-                continue
-            if s.queue or s.filling:
-                return None
-            states[name] = table.state(name, time.monotonic())
-        return position, states
+        held = [name for name in self.transport.streams_of(p) if name in table.streams]
+        if any(table.waiting(name) for name in held):
+            return None
+        now = time.monotonic()
+        return position, {name: table.state(name, now) for name in held}
 
     async def hand_over(self, table: StreamTable, settled: Callable[[], bool]) -> None:
         """SIGTERM, before :meth:`leave`: take nothing more in, wait (at most :data:`HAND_OVER_S`)

@@ -330,7 +330,7 @@ class StreamTable:
         the segmenter's and the progress' states (the stream's behaviour boundaries and progress
         begin anew where it is resumed)."""
         s = self.streams[name]
-        if s.queue or s.filling:
+        if self.waiting(name):
             raise ValueError(f"stream {name!r} has poses waiting")
         fed = s.last_fed
         state: bytes = msgpack.packb(
@@ -351,6 +351,11 @@ class StreamTable:
             }
         )
         return state
+
+    def waiting(self, name: str) -> bool:
+        """Whether a pose of stream ``name`` waits to be fed (queued, or a frame bridging a gap)."""
+        s = self.streams[name]
+        return bool(s.queue or s.filling)
 
     def resume(self, state: bytes, now: float) -> str:
         """Take a stream in the :meth:`state` another table gave (cluster mode: a partition taken
