@@ -40,7 +40,7 @@ import contextlib
 import logging
 import os
 import time
-from collections.abc import AsyncIterator, Mapping
+from collections.abc import AsyncIterator, Awaitable, Callable, Mapping
 from dataclasses import dataclass
 from types import TracebackType
 from typing import TYPE_CHECKING
@@ -63,6 +63,7 @@ from nats.js.errors import Error as JetStreamError
 from nats.js.errors import KeyNotFoundError
 
 from protocols.deliveries import Delivery, ProtocolError, Reader
+from protocols.merge import Merge, Passed
 from protocols.transport import STATE_TOPIC, Incoming, Outgoing, StartupError, Throttle
 from protocols.urls import parse_nats_urls
 
@@ -107,6 +108,15 @@ buffer sequence after which its new owner starts reading, and the states of the 
 then, :meth:`NatsTransport.checkpoint`)."""
 ROOM = 4096
 """Bytes of a server's largest message kept free for a checkpoint's key and headers."""
+HOLD_S = 1.0
+"""How long a partition's live copy of a message waits for its buffered copy before it is passed
+without it (:mod:`protocols.merge`): the longest the poses of a buffer that elects a new leader are
+late."""
+REMEMBER_S = 10.0
+"""How long a copy passed on one path is remembered, so that its copy on the other is dropped."""
+HELD_MOST = 1 << 16
+"""Live copies held per partition at most (while its buffer replays, or its consumer is made again)."""
+RELEASE_EVERY_S = 0.1
 
 
 @dataclass(frozen=True, slots=True)
@@ -205,8 +215,8 @@ class NatsTransport:
         self._js: JetStreamContext | None = None
         self._checkpoints: KeyValue | None = None
         self._status: tuple[Outgoing, Outgoing] | None = None
-        # (partition, buffer sequence (-1: a stray), stream, the message)
-        self._queue: asyncio.Queue[tuple[int, int, str | None, Incoming]] = asyncio.Queue(QUEUE)
+        # (partition, buffer sequence (-1: none), stream, the message (None: a position only))
+        self._queue: asyncio.Queue[tuple[int, int, str | None, Incoming | None]] = asyncio.Queue(QUEUE)
         # per stream, its messages in the queue: the service has not seen them, so forget() keeps it
         self._queued: dict[str, int] = {}
         self._consumers: dict[int, asyncio.Task[None]] = {}
@@ -244,6 +254,13 @@ class NatsTransport:
         self._partition_tokens = frozenset(str(p).encode() for p in range(settings.partitions))
         self._last_error: str | None = None
         self._error_log = Throttle()
+        self.both_paths = len(parse_nats_urls(settings.nats)) > 1 or settings.replicas > 1
+        """Whether each owned partition is read through a plain subscription of its subject too
+        (:mod:`protocols.merge`): on a NATS cluster, whose servers route a partition's messages
+        while its buffer elects a new leader (set before entering)."""
+        self._merges: dict[int, Merge[Delivery]] = {}
+        self._live: dict[int, int] = {}  # per partition read on both paths, its subscription's id
+        self._releasing: asyncio.Task[None] | None = None
 
     # ------------------------------------------------------------------------------ the connection
 
@@ -296,6 +313,8 @@ class NatsTransport:
             raise StartupError("cluster.nats", f"{url}: cannot read deliveries: {why}") from None
         if self._status is not None:
             await self._plain(self._status[0])
+        if self.both_paths:
+            self._releasing = asyncio.create_task(self._release(), name="cluster live copies")
         return self
 
     async def _check_partitions(self) -> None:
@@ -345,6 +364,8 @@ class NatsTransport:
         self, kind: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
     ) -> None:
         await self.own(frozenset())
+        if self._releasing is not None:
+            self._releasing.cancel()
         if self._reader is not None:
             await self._reader.close()
         nc = self._nc
@@ -504,6 +525,10 @@ class NatsTransport:
             if late:
                 log.warning("partition consumers slow to stop", extra={"fields": {"count": len(late)}})
         for p in gone:
+            self._merges.pop(p, None)
+            sid = self._live.pop(p, None)
+            if sid is not None and self._reader is not None:
+                await self._reader.unsubscribe(sid)
             self._partial.discard(p)
             self._behind.pop(p, None)
             self._position.pop(p, None)
@@ -514,6 +539,11 @@ class NatsTransport:
                 self._truncated.discard(stream)
                 lost.append(stream)
         for p in sorted(partitions - set(self._consumers)):
+            if self.both_paths and self._reader is not None:
+                # subscribed before the consumer starts: what the plain subscription misses at the
+                # start, the buffer has
+                self._merges[p] = Merge(HOLD_S, REMEMBER_S, HELD_MOST)
+                self._live[p] = self._reader.register(buffer_subject(p), self._live_copy(p))
             self._take(p)
         await self._watch_strays(0 in partitions)
         return lost
@@ -544,6 +574,40 @@ class NatsTransport:
             self._queue.put_nowait((0, -1, None, incoming))
         except asyncio.QueueFull:
             await self._queue.put((0, -1, None, incoming))
+
+    def _live_copy(self, p: int) -> Callable[[Delivery], Awaitable[None]]:
+        """The handler of partition ``p``'s plain subscription: each message to the merge."""
+
+        async def got(d: Delivery) -> None:
+            merge = self._merges.get(p)
+            if merge is not None:
+                await self._pass(p, merge.push(_key(d), d, time.monotonic()), replayed=False)
+
+        return got
+
+    async def _release(self) -> None:
+        """Pass, every :data:`RELEASE_EVERY_S`, the live copies held for :data:`HOLD_S` whose
+        buffered copies have not come."""
+        while True:
+            await asyncio.sleep(RELEASE_EVERY_S)
+            now = time.monotonic()
+            for p, merge in list(self._merges.items()):
+                await self._pass(p, merge.release(now), replayed=False)
+
+    async def _pass(self, p: int, passed: list[Passed[Delivery]], *, replayed: bool) -> None:
+        """Queue what the merge passed (a marker: the buffer sequence alone)."""
+        for seq, d in passed:
+            if d is None:
+                item: tuple[int, int, str | None, Incoming | None] = (p, seq, None, None)
+            else:
+                stream, incoming = self._incoming(d, self._streams.setdefault(p, set()), p, replayed=replayed)
+                if stream is not None:
+                    self._queued[stream] = self._queued.get(stream, 0) + 1
+                item = (p, seq, stream, incoming)
+            try:
+                self._queue.put_nowait(item)
+            except asyncio.QueueFull:
+                await self._queue.put(item)
 
     def _take(self, p: int) -> None:
         given_up = self._given_up[p] = asyncio.Event()
@@ -582,7 +646,11 @@ class NatsTransport:
 
     def taken_up_to(self, p: int) -> int | None:
         """The sequence of the last message of owned partition ``p``'s buffer that the service has
-        taken in (None: none yet): the position of a checkpoint taken now."""
+        taken in (None: none yet, or a message taken in after it came on the plain subscription
+        alone and may yet come from the buffer): the position of a checkpoint taken now."""
+        merge = self._merges.get(p)
+        if merge is not None and merge.awaiting(time.monotonic()):
+            return None
         return self._taken.get(p) if p in self._consumers else None
 
     async def checkpoint(self, p: int, position: int, states: Mapping[str, bytes]) -> bool:
@@ -676,6 +744,9 @@ class NatsTransport:
         assert self._js is not None
         js = self._js
         taken = time.time()
+        merge = self._merges.get(p)
+        if merge is not None:  # the live copies wait until the buffer has replayed what precedes them
+            merge.replaying = True
         info = await js.stream_info(BUFFER.format(p))
         if given_up.is_set():
             return
@@ -696,7 +767,8 @@ class NatsTransport:
                 await self._resume(p, position, states)
         if state.first_seq > 1 and states is None:  # its streams' histories may begin mid-way
             self._partial.add(p)
-        if state.messages and (position is None or position < last):
+        replay = bool(state.messages) and (position is None or position < last)
+        if replay:
             self._behind[p] = time.monotonic()
         log.info(
             "partition taken",
@@ -713,7 +785,6 @@ class NatsTransport:
         assert nc is not None and reader is not None
         live = False
         expected = 1  # the consumer's next delivery sequence
-        streams = self._streams.setdefault(p, set())
         buffer = BUFFER.format(p)
         inbox = nc.new_inbox()
         name = f"mocapd-{p}-{inbox.rsplit('.', 1)[-1]}"  # known before the first delivery comes
@@ -733,9 +804,15 @@ class NatsTransport:
                 self._note_foreign(p, d)
                 return
             seq, delivered = ack.stream_seq, ack.consumer_seq
-            if delivered != expected:  # lost on the way (never on one server)
+            if delivered != expected:  # lost on the way (a connection that moved): read them again
                 self.gaps += delivered - expected
-                log.warning("buffer gap", extra={"fields": {"partition": p, "expected": expected}})
+                again = self._position.get(p, 0) + 1
+                log.warning(
+                    "buffer gap", extra={"fields": {"partition": p, "expected": expected, "again": again}}
+                )
+                self._give_up(p)
+                self._take(p)
+                return
             expected = delivered + 1
             self._position[p] = seq
             if not live:
@@ -749,13 +826,15 @@ class NatsTransport:
                     )
                 else:
                     self.replayed += 1
-            stream, incoming = self._incoming(d, streams, p, replayed=not live)
-            if stream is not None:
-                self._queued[stream] = self._queued.get(stream, 0) + 1
-            try:
-                self._queue.put_nowait((p, seq, stream, incoming))
-            except asyncio.QueueFull:
-                await self._queue.put((p, seq, stream, incoming))
+            if merge is None:
+                await self._pass(p, [(seq, d)], replayed=not live)
+                return
+            now = time.monotonic()
+            passed = merge.push(_key(d), d, now, seq)
+            if merge.replaying and seq >= last:
+                merge.replaying = False
+                passed += merge.release(now)
+            await self._pass(p, passed, replayed=not live)
 
         # A push consumer read by a subscription of the worker's own reader, flow control answered
         # here: nats-py's ordered consumer does the same with its own checks per message, at a fifth
@@ -780,6 +859,8 @@ class NatsTransport:
             )
             if not given_up.is_set():
                 self._consumer_names[p] = consumer.name
+                if merge is not None and not replay:
+                    merge.replaying = False
             await given_up.wait()
         finally:
             await reader.unsubscribe(sid)
@@ -861,7 +942,8 @@ class NatsTransport:
             if p in self._consumers:  # not of a partition given up since
                 if seq >= 0:  # the service takes it in before it asks for the next: no await between
                     self._taken[p] = seq
-                yield incoming
+                if incoming is not None:
+                    yield incoming
 
     def sink(self) -> NatsTransport | None:
         return self if self._sink else None
@@ -910,6 +992,12 @@ class NatsTransport:
             return
         with contextlib.suppress(NatsError):
             await self._nc.publish(message.topic.replace("/", "."), message.payload)
+
+
+def _key(d: Delivery) -> int | None:
+    """A delivered message's key in its partition's merge (None: a skeleton, which publishers
+    announce again identically, :mod:`protocols.merge`)."""
+    return None if d.subject.endswith(b".skeleton") else hash((d.subject, d.data))
 
 
 def transport(settings: ClusterConfig, *, instance: str, source: bool, sink: bool) -> NatsTransport:

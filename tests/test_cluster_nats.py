@@ -25,7 +25,15 @@ from nats.aio.msg import Msg
 from paho.mqtt.enums import CallbackAPIVersion
 
 from daemon.config import ClusterConfig
-from protocols.nats import PUBLISH_TIMEOUT_S, STORE_FOR_S, Ack, NatsTransport, acknowledgement, partition_of
+from protocols.nats import (
+    HOLD_S,
+    PUBLISH_TIMEOUT_S,
+    STORE_FOR_S,
+    Ack,
+    NatsTransport,
+    acknowledgement,
+    partition_of,
+)
 from protocols.transport import STATE_TOPIC, Outgoing
 from tests.helpers import freeze, wait_for
 from tests.nats_server import NatsServer, partitions
@@ -200,6 +208,57 @@ def test_a_partition_taken_from_a_checkpoint_gives_every_streams_state_first(tmp
                     (f"mocap/{talking}/pose", b"%d" % q) for q in (1, 2)
                 ]
                 assert transport.resumed == 1 and transport.taken_up_to(0) == 3
+
+        asyncio.run(main())
+    finally:
+        server.stop()
+
+
+def test_read_on_both_paths_each_message_comes_once_and_what_the_buffer_lost_comes_live(
+    tmp_path: Path,
+) -> None:
+    """A partition read through its buffer and a plain subscription (as on a NATS cluster,
+    :mod:`protocols.merge`): what the buffer held before the take is replayed, each message after
+    it comes once, in order, at the buffer's positions; when the buffer stores nothing more (here
+    deleted; on a cluster, a buffer electing a new leader after its server died) the messages still
+    come, through the plain subscription, once each, and no checkpoint position claims them."""
+    server = NatsServer(tmp_path).start()
+    try:
+
+        async def main() -> None:
+            settings = ClusterConfig(nats=server.url, partitions=partitions(), buffer_s=60.0)
+            stream = next(f"s{i}" for i in range(1000) if partition_of(f"s{i}", partitions()) == 0)
+            transport = NatsTransport(settings, instance="t", source=True, sink=False)
+            transport.both_paths = True  # one server: a cluster's servers would set it
+            async with transport:
+                nc = await nats.connect(server.url)
+
+                async def publish(seqs: range) -> None:
+                    for seq in seqs:
+                        await nc.publish(f"mocap.{stream}.pose", b"%d" % seq)
+                    await nc.flush()
+
+                async def read(n: int, within: float = 10.0) -> list[bytes]:
+                    incoming = aiter(transport)  # one that timed out is closed
+                    async with asyncio.timeout(within):
+                        return [(await anext(incoming)).payload for _ in range(n)]
+
+                await publish(range(3))
+                await transport.own(frozenset({0}))
+                assert await read(3) == [b"0", b"1", b"2"]  # replayed
+                await publish(range(3, 8))
+                assert await read(5) == [b"%d" % q for q in range(3, 8)]
+                with pytest.raises(TimeoutError):  # nothing twice
+                    await read(1, 2 * HOLD_S)
+                assert transport.taken_up_to(0) == 8
+
+                await nc.jetstream().delete_stream("MOCAPD_BUF_0")
+                await publish(range(8, 13))
+                assert await read(5) == [b"%d" % q for q in range(8, 13)]
+                with pytest.raises(TimeoutError):
+                    await read(1, 2 * HOLD_S)
+                assert transport.taken_up_to(0) is None  # a checkpoint now would claim too little
+                await nc.close()
 
         asyncio.run(main())
     finally:
