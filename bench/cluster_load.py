@@ -1,8 +1,8 @@
 """A publisher of many looping streams for cluster mode (``tests/test_cluster_e2e.py``,
 ``bench/bench_cluster.py``): real CMU and HDM05 recordings, stream ``i`` looping recording
 ``i mod n`` (:data:`RECORDINGS`) with its sequence numbers continuing across loops and an epoch of its
-own, its skeleton announced every second (retained over MQTT), its poses at ``rate`` Hz, all the
-streams' poses of one tick sent together; over MQTT (``mqtt://HOST:PORT``, e.g. NATS's MQTT port)
+own, its skeleton announced every second (over MQTT at QoS 0, not retained), its poses at ``rate``
+Hz, all the streams' poses of one tick sent together; over MQTT (``mqtt://HOST:PORT``, e.g. NATS's MQTT port)
 or NATS (``nats://HOST:PORT``). At the end it prints one JSON object: per stream its recording, epoch
 and first and last sequence numbers sent.
 
@@ -124,7 +124,9 @@ async def over_mqtt(url: str, items: list[Stream], seconds: float, rate: float) 
         raise TimeoutError(f"no MQTT connection to {url}")
 
     async def send(name: str, payload: bytes, skeleton: bool) -> None:
-        client.publish(name, payload, qos=1 if skeleton else 0, retain=skeleton)
+        # QoS 0, not retained: a NATS cluster's MQTT listener stores QoS 1 and retained messages in
+        # JetStream while it holds the connection (docs/cluster.md), which a killed server stalls
+        client.publish(name, payload, qos=0)
 
     try:
         await run(send, items, seconds, rate)

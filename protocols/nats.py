@@ -60,7 +60,7 @@ from nats.js.api import (
     StreamConfig,
 )
 from nats.js.errors import Error as JetStreamError
-from nats.js.errors import KeyNotFoundError
+from nats.js.errors import KeyNotFoundError, ServiceUnavailableError
 
 from protocols.deliveries import Delivery, ProtocolError, Reader
 from protocols.merge import Merge, Passed
@@ -91,6 +91,8 @@ STARTUP_S = 3.0
 ENSURE_AT_ONCE = 16
 """Streams made (or checked) at once at start: a clustered JetStream takes 0.2-0.5 s for each, one
 after the other."""
+ENSURE_FOR_S = 30.0
+"""How long a worker starting tries to make the buffers while JetStream times out or is unavailable."""
 CATCH_UP_S = 2.0
 """The longest recognition waits for a taken partition's buffer to be read."""
 RETRY_S = 0.5
@@ -241,6 +243,9 @@ class NatsTransport:
         """Checkpoints stored."""
         self.resumed = 0
         """Partitions taken whose buffer was read from a checkpoint rather than from its start."""
+        self.unbuffered = 0
+        """Messages passed from a partition's plain subscription alone (:attr:`both_paths`): its
+        buffer lost them (electing a leader) or had not delivered them within :data:`HOLD_S`."""
         self.duplicates = 0
         """Detections and boundaries not published because a worker had published them already."""
         self.publish_errors = 0
@@ -299,11 +304,22 @@ class NatsTransport:
         except StartupError:
             await nc.close()
             raise
-        try:
-            await self._ensure_streams()
-        except (NatsError, TimeoutError) as e:
-            await nc.close()
-            raise StartupError("cluster.nats", f"{url}: JetStream unavailable or refused: {e}") from None
+        give_up = time.monotonic() + ENSURE_FOR_S
+        while True:
+            try:
+                await self._ensure_streams()
+                break
+            except (NatsError, TimeoutError) as e:
+                # a clustered JetStream answers slowly while it makes many replicated streams (other
+                # workers starting at once), or not while its servers elect a leader: tried again;
+                # a refusal is final
+                again = isinstance(e, (TimeoutError, ServiceUnavailableError))
+                if not again or time.monotonic() >= give_up:
+                    await nc.close()
+                    why = f"{url}: JetStream unavailable or refused: {e}"
+                    raise StartupError("cluster.nats", why) from None
+                log.warning("JetStream not ready", extra={"fields": {"error": repr(e)}})
+                await asyncio.sleep(RETRY_S)
         self._reader = Reader(servers, name=f"{self.instance} deliveries")
         try:
             await self._reader.start(STARTUP_S)
@@ -581,7 +597,7 @@ class NatsTransport:
         async def got(d: Delivery) -> None:
             merge = self._merges.get(p)
             if merge is not None:
-                await self._pass(p, merge.push(_key(d), d, time.monotonic()), replayed=False)
+                await self._pass(p, merge.push(merge_key(d), d, time.monotonic()), replayed=False)
 
         return got
 
@@ -597,6 +613,8 @@ class NatsTransport:
     async def _pass(self, p: int, passed: list[Passed[Delivery]], *, replayed: bool) -> None:
         """Queue what the merge passed (a marker: the buffer sequence alone)."""
         for seq, d in passed:
+            if seq < 0:
+                self.unbuffered += 1
             if d is None:
                 item: tuple[int, int, str | None, Incoming | None] = (p, seq, None, None)
             else:
@@ -830,7 +848,7 @@ class NatsTransport:
                 await self._pass(p, [(seq, d)], replayed=not live)
                 return
             now = time.monotonic()
-            passed = merge.push(_key(d), d, now, seq)
+            passed = merge.push(merge_key(d), d, now, seq)
             if merge.replaying and seq >= last:
                 merge.replaying = False
                 passed += merge.release(now)
@@ -994,7 +1012,7 @@ class NatsTransport:
             await self._nc.publish(message.topic.replace("/", "."), message.payload)
 
 
-def _key(d: Delivery) -> int | None:
+def merge_key(d: Delivery) -> int | None:
     """A delivered message's key in its partition's merge (None: a skeleton, which publishers
     announce again identically, :mod:`protocols.merge`)."""
     return None if d.subject.endswith(b".skeleton") else hash((d.subject, d.data))

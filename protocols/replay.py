@@ -6,7 +6,10 @@ ZeroMQ late joiners: a PUB socket sends nothing to a subscriber whose connection
 replay's first frames would be lost. The replay's socket is an XPUB, which receives the subscriber's
 subscription once the connection is up; the replay waits for it before the skeleton goes out, and
 its high-water mark is large enough that a replay as fast as possible is not dropped at the sender.
-On MQTT the skeleton is retained, so a daemon started later still learns it.
+On MQTT the skeleton is retained (QoS 1), so a daemon started later still learns it; with
+``retain=False`` (``--no-retain``) the skeletons and the end go at QoS 0, not retained, as a NATS
+cluster's MQTT listener needs (``docs/cluster.md``: nats-server 2.9 stores QoS 1 and retained messages
+in JetStream while it holds the publisher's connection, whose later poses a killed server then cost).
 
 A stream's life (``protocols/README.md``): every replay is a new run of its stream, with an epoch of
 its own in its skeleton and poses; the skeleton is announced again every :data:`ANNOUNCE_S` and at
@@ -62,6 +65,7 @@ async def replay_to(
     speed: float | None = 1.0,
     loop: bool = False,
     wait_s: float = 10.0,
+    retain: bool = True,
 ) -> int:
     """Replay ``motion`` onto ``url`` (``zmq+tcp://HOST:PORT``: the daemon's poses socket;
     ``mqtt://HOST:PORT`` or ``mqtts://``: a broker) as ``stream``; the poses sent. :class:`TargetError`
@@ -72,7 +76,7 @@ async def replay_to(
     if scheme.startswith("zmq+"):
         return await _to_zmq(url[len("zmq+") :], items, rate, speed, wait_s)
     if scheme in ("mqtt", "mqtts"):
-        return await _to_mqtt(url, items, stream, rate, speed, wait_s)
+        return await _to_mqtt(url, items, stream, rate, speed, wait_s, retain)
     raise TargetError(f"must be zmq+tcp://HOST:PORT or mqtt://HOST:PORT, got {url!r}")
 
 
@@ -82,9 +86,11 @@ async def _send_all(
     rate: float,
     speed: float | None,
     asked: Callable[[], bool] = lambda: False,
+    retain: bool = True,
 ) -> int:
     """Send every message through ``send(Outgoing)`` (awaited), poses on their due times; the
-    skeleton again every :data:`ANNOUNCE_S` and whenever ``asked()`` says a daemon asks for it."""
+    skeleton again every :data:`ANNOUNCE_S` and whenever ``asked()`` says a daemon asks for it;
+    ``retain``: the skeleton retained and reliable (QoS 1 on MQTT), the end reliable."""
     sent = 0
     start = time.monotonic()
     i = 0
@@ -107,9 +113,9 @@ async def _send_all(
             i += 1
             sent += 1
         elif isinstance(m, EndMessage):
-            out = Outgoing(topic(m), encode(m), reliable=True)
+            out = Outgoing(topic(m), encode(m), reliable=retain)
         else:
-            out = skeleton = Outgoing(topic(m), encode(m), retain=True, reliable=True)
+            out = skeleton = Outgoing(topic(m), encode(m), retain=retain, reliable=retain)
             announced = time.monotonic()
         await send(out)
     return sent
@@ -153,7 +159,7 @@ async def _to_zmq(endpoint: str, items: Items, rate: float, speed: float | None,
 
 
 async def _to_mqtt(
-    url: str, items: Items, stream: str, rate: float, speed: float | None, wait_s: float
+    url: str, items: Items, stream: str, rate: float, speed: float | None, wait_s: float, retain: bool
 ) -> int:
     from daemon.config import MqttConfig
     from protocols.mqtt import MqttTransport
@@ -190,7 +196,7 @@ async def _to_mqtt(
 
         watcher = asyncio.create_task(watch(), name="replay status watch")
         try:
-            sent = await _send_all(send, items, rate, speed, asked)
+            sent = await _send_all(send, items, rate, speed, asked, retain)
         except asyncio.CancelledError:
             client.drain_within(STOPPED_S)
             raise
@@ -204,7 +210,15 @@ async def _to_mqtt(
 
 
 def replay(
-    url: str, motion: Motion, asf_text: str, *, stream: str, rate: float, speed: float | None, loop: bool
+    url: str,
+    motion: Motion,
+    asf_text: str,
+    *,
+    stream: str,
+    rate: float,
+    speed: float | None,
+    loop: bool,
+    retain: bool = True,
 ) -> int:
     """:func:`replay_to` run to its end on a fresh event loop (for callers outside asyncio).
 
@@ -233,7 +247,9 @@ def replay(
                     previous[signum] = handler
                     running.add_signal_handler(signum, stop, signum)
         try:
-            return await replay_to(url, motion, asf_text, stream=stream, rate=rate, speed=speed, loop=loop)
+            return await replay_to(
+                url, motion, asf_text, stream=stream, rate=rate, speed=speed, loop=loop, retain=retain
+            )
         except asyncio.CancelledError:
             if not received:
                 raise

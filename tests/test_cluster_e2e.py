@@ -1,13 +1,15 @@
-"""Cluster mode end to end, every part real (``docs/cluster.md``): a nats-server from the shipped
-config (JetStream, the MQTT listener, the partitioning mappings), the shipped three-member etcd,
-``mocapd run --cluster ... --coordinator ...`` workers as processes, and a publisher of 30 looping
-streams of real recordings over MQTT into NATS's MQTT port, with a CPU-bound process beside them on
-the 2 cores. Three workers start; the etcd member they talk to is killed (kill -9: no partition
-moves), then one worker is killed (kill -9), one stopped (SIGTERM), a new one started, all while the
-streams go on. Every stream's detections, as an
-MQTT client and a NATS client receive them, are ``mocapd detect``'s on the frames sent, each
-delivered once; the killed worker is seen gone within the lease and a second, its partitions are
-consumed live again within a second after that, those of the stopped one within a second."""
+"""Cluster mode end to end, every part real (``docs/cluster.md``): the shipped three-server NATS
+cluster (JetStream with three replicas of every buffer, the MQTT listener, the partitioning
+mappings), the shipped three-member etcd, ``mocapd run --cluster ... --coordinator ...`` workers as
+processes, and a publisher of 30 looping streams of real recordings over MQTT into the first NATS
+server's MQTT port, with a CPU-bound process beside them on the 2 cores. Three workers start; the
+etcd member they talk to is killed (kill -9: no partition moves), then one worker is killed
+(kill -9), one stopped (SIGTERM), a new one started, and the NATS server leading the most
+partitions' buffers killed (kill -9; the clients talk to another), all while the streams go on.
+Every stream's detections, as an MQTT client and a NATS client receive them, are ``mocapd
+detect``'s on the frames sent, each delivered once; the killed worker is seen gone within the lease
+and a second, its partitions are consumed live again within a second after that, those of the
+stopped one within a second."""
 
 from __future__ import annotations
 
@@ -36,7 +38,7 @@ from tests.helpers import (
 from tests.helpers import (
     burner as burner_process,
 )
-from tests.nats_server import NatsServer, partitions
+from tests.nats_server import NatsCluster
 
 LEASE_S = 4.0
 """Longer than an etcd election under load (1-2 s after its leader is killed), as docs/cluster.md
@@ -45,6 +47,8 @@ STREAMS = 30
 RATE = 60.0
 """Poses per second per stream (the recordings are 120 Hz: half speed, so the 2 cores keep up)."""
 SECONDS = 30.0
+PARTITIONS = 16
+"""Fewer than the default 256: a clustered JetStream makes a replicated stream in 0.2-0.5 s here."""
 REPO = Path(__file__).resolve().parents[1]
 
 
@@ -61,7 +65,7 @@ class Worker:
             json.dumps(
                 {
                     "service": {"idle_s": 3},
-                    "cluster": {"partitions": partitions(), "lease_s": LEASE_S},
+                    "cluster": {"partitions": PARTITIONS, "lease_s": LEASE_S, "replicas": 3},
                     "metrics": {"port": self.metrics_port},
                     "logging": {"level": "debug"},
                 }
@@ -110,6 +114,26 @@ class Worker:
             self.process.wait(15)
 
 
+def most_buffers_led(cluster: NatsCluster) -> int:
+    """The index of the server, not the first (which every client talks to), that leads the most
+    partitions' buffers."""
+    import asyncio
+
+    import nats
+
+    async def leaders() -> list[str | None]:
+        nc = await nats.connect(cluster.servers[0].url)
+        try:
+            js = nc.jetstream(timeout=5.0)
+            infos = [await js.stream_info(f"MOCAPD_BUF_{p}") for p in range(PARTITIONS)]
+            return [i.cluster.leader if i.cluster is not None else None for i in infos]
+        finally:
+            await nc.close()
+
+    led = Counter(asyncio.run(leaders()))
+    return max((1, 2), key=lambda k: led[f"mocapd-nats-{k + 1}"])
+
+
 def first_live_after(workers: list[Worker], partition: int, after: float) -> float | None:
     """When a worker first consumed a live pose of ``partition`` after ``after`` (wall clock)."""
     times = [
@@ -123,20 +147,20 @@ def first_live_after(workers: list[Worker], partition: int, after: float) -> flo
 
 @pytest.mark.slow
 def test_takeovers_lose_and_repeat_no_detection(tmp_path: Path) -> None:
-    (tmp_path / "nats").mkdir()
-    server = NatsServer(tmp_path / "nats").start()
+    cluster = NatsCluster(tmp_path / "nats", PARTITIONS).start()
+    server = cluster.servers[0]  # every client's
     etcd = EtcdCluster(tmp_path / "etcd").start()
     workers: list[Worker] = []
     mqtt = nats = None
     load = burner = None
     try:
-        workers = [Worker(tmp_path, f"w{i}", server.url, etcd.url) for i in (1, 2, 3)]
+        workers = [Worker(tmp_path, f"w{i}", cluster.url, etcd.url) for i in (1, 2, 3)]
         wait_for(
             lambda: (
                 all(w.sees(3) for w in workers)
-                and set().union(*(w.owned() for w in workers)) == set(range(partitions()))
+                and set().union(*(w.owned() for w in workers)) == set(range(PARTITIONS))
             ),
-            30,
+            60,
             "three workers, each seeing three, owning every partition between them",
         )
         mqtt = MqttCollector(server.mqtt_url, ["mocap/+/detections"], client_id="e2e-collector")
@@ -154,8 +178,10 @@ def test_takeovers_lose_and_repeat_no_detection(tmp_path: Path) -> None:
         stopped_owned, stopped_at = w2.owned(), time.time()
         w2.stop(signal.SIGTERM)
         time.sleep(4)
-        w4 = Worker(tmp_path, "w4", server.url, etcd.url)
+        w4 = Worker(tmp_path, "w4", cluster.url, etcd.url)
         workers.append(w4)
+        time.sleep(4)
+        cluster.servers[most_buffers_led(cluster)].kill()
         out, err = load.communicate(timeout=SECONDS + 30)
         burner.kill()
         assert load.returncode == 0, err
@@ -202,12 +228,15 @@ def test_takeovers_lose_and_repeat_no_detection(tmp_path: Path) -> None:
         m = [w.metrics() for w in (workers[2], workers[3])]
         assert sum(x["mocapd_cluster_resumed_partitions_total"] for x in m) > 0
         assert [x["mocapd_cluster_members"] for x in m] == [2, 2]
-        assert sum(x["mocapd_cluster_partitions"] for x in m) == partitions()
+        assert sum(x["mocapd_cluster_partitions"] for x in m) == PARTITIONS
         assert sum(x["mocapd_cluster_takeovers_total"] for x in m) > 0
         assert sum(x["mocapd_cluster_replayed_poses_total"] for x in m) > 0
         assert sum(x["mocapd_cluster_duplicates_suppressed_total"] for x in m) == sum(
             len(w.events("duplicate")) for w in workers[2:]
         )
+        # the poses the killed server's buffers lost while they elected new leaders came through
+        # the partitions' plain subscriptions
+        assert sum(x["mocapd_cluster_unbuffered_total"] for x in m) > 0
     finally:
         for process in (load, burner):
             if process is not None and process.poll() is None:
@@ -219,4 +248,4 @@ def test_takeovers_lose_and_repeat_no_detection(tmp_path: Path) -> None:
         if nats is not None:
             nats.close()
         etcd.stop()
-        server.stop()
+        cluster.stop()

@@ -10,6 +10,7 @@ not hidden here: the recording starts once the cluster has recovered."""
 from __future__ import annotations
 
 import asyncio
+import threading
 import time
 from pathlib import Path
 
@@ -17,9 +18,12 @@ import pytest
 
 from bench.cluster_load import RATE, recording, streams
 from bench.processes import free_port, scrape
+from daemon.config import ClusterConfig
+from protocols.nats import ENSURE_FOR_S, NatsTransport, partition_of
 from tests.etcd_server import Etcd
 from tests.helpers import (
     NatsCollector,
+    burner,
     cluster_worker,
     detection_keys,
     http_get,
@@ -35,10 +39,10 @@ PARTITIONS = 16
 (its meta leader agrees each with the others), so 257 of them took over a minute to make."""
 
 
-async def _publish(url: str) -> tuple[str, int]:
-    """One pass of :mod:`bench.cluster_load`'s first stream over plain NATS at 4 times its rate (the
-    MQTT listener of a server whose peer was just killed drops its clients until its own session
-    streams have leaders again): the stream's id and its last sequence number."""
+async def _publish(url: str, speed: float = 4.0) -> tuple[str, int]:
+    """One pass of :mod:`bench.cluster_load`'s first stream over plain NATS at ``speed`` times its
+    rate (the MQTT listener of a server whose peer was just killed drops its clients until its own
+    session streams have leaders again): the stream's id and its last sequence number."""
     import nats
 
     s = streams(1)[0]
@@ -47,12 +51,36 @@ async def _publish(url: str) -> tuple[str, int]:
         if k % int(RATE) == 0:  # the skeleton announced once a second of poses
             await nc.publish(s.skeleton[0].replace("/", "."), s.skeleton[1])
             await nc.flush()
-            await asyncio.sleep(0.25)
+            await asyncio.sleep(1.0 / speed)
         subject, payload = s.pose()
         await nc.publish(subject.replace("/", "."), payload)
     await nc.flush()
     await nc.close()
     return s.id, s.next - 1
+
+
+async def _led_elsewhere(cluster: NatsCluster, p: int) -> int:
+    """The index of the server leading partition ``p``'s buffer, asked to step down first if that
+    is the first server (the one the worker, the publisher and the subscriber talk to)."""
+    import nats
+
+    nc = await nats.connect(cluster.servers[0].url)
+    try:
+        js = nc.jetstream(timeout=5.0)
+        names = [f"mocapd-nats-{k + 1}" for k in range(len(cluster.servers))]
+        buffer = f"MOCAPD_BUF_{p}"
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline:
+            info = await js.stream_info(buffer)
+            leader = info.cluster.leader if info.cluster is not None else None
+            if leader in names[1:]:
+                return names.index(leader)
+            if leader == names[0]:
+                await nc.request(f"$JS.API.STREAM.LEADER.STEPDOWN.{buffer}", b"", timeout=5.0)
+            await asyncio.sleep(0.5)
+        raise AssertionError(f"{buffer} led by the first server still")
+    finally:
+        await nc.close()
 
 
 async def _led(url: str) -> bool:
@@ -113,3 +141,75 @@ def test_a_worker_goes_on_when_the_nats_server_it_talks_to_is_killed(tmp_path: P
         assert moved < 10, moved
     finally:
         stop_all(collector, worker, etcd, cluster)
+
+
+@pytest.mark.slow
+def test_a_buffers_leader_killed_while_a_recording_plays_costs_no_detection(tmp_path: Path) -> None:
+    """The server leading a partition's buffer is killed (-9) while a recording plays into that
+    partition: the buffer stores nothing until the others elect a new leader (4-5 s on 2.9.10), but
+    the worker also reads the partition's subject directly (:mod:`protocols.merge`), which the
+    surviving servers route throughout, so the detections are still ``mocapd detect``'s, each once
+    (before, the poses of the election were lost and the motions under way with them). A CPU-bound
+    process runs beside them."""
+    (tmp_path / "etcd").mkdir()
+    cluster = NatsCluster(tmp_path / "nats", PARTITIONS).start()
+    etcd = Etcd(tmp_path / "etcd").start()
+    port = free_port()
+    cluster_settings = {"replicas": 3, "partitions": PARTITIONS}
+    worker = cluster_worker(tmp_path, cluster.url, etcd.url, port, cluster_settings)
+    err = tmp_path / "worker.err"
+    collector = load = None
+    try:
+        wait_for(lambda: err.read_text().count('"partition taken"') == PARTITIONS, 60, "the partitions")
+        load = burner()
+        first = cluster.servers[0]
+        leader = asyncio.run(_led_elsewhere(cluster, partition_of(streams(1)[0].id, PARTITIONS)))
+        collector = NatsCollector(first.url)
+        published: list[tuple[str, int]] = []
+        playing = threading.Thread(target=lambda: published.append(asyncio.run(_publish(first.url, 2.0))))
+        playing.start()
+        time.sleep(3.0)
+        cluster.servers[leader].kill()
+        playing.join(60)
+        stream, last = published[0]
+        want = detection_keys(looped_detections(*map(str, recording(0)), last))
+        wait_for(lambda: len(collector.messages) >= len(want), 60, "the detections")
+        time.sleep(0.5)
+        got = collector.messages
+        assert len({d["id"] for d in got}) == len(got), "a detection delivered twice"
+        assert sorted(detection_keys(got)) == sorted(want) and {d["stream"] for d in got} == {stream}
+        metrics = scrape(port)
+        rejects = {k: v for k, v in metrics.items() if k.startswith("mocapd_rejects_total") and v}
+        assert rejects == {}, rejects  # no pose out of order, none twice
+        assert metrics["mocapd_cluster_unbuffered_total"] > 0  # what the buffer lost came so
+    finally:
+        stop_all(load, collector, worker, etcd, cluster)
+
+
+@pytest.mark.slow
+def test_a_worker_starting_while_jetstream_cannot_make_its_buffers_waits_for_it(tmp_path: Path) -> None:
+    """JetStream that times out while it makes the replicated buffers (two of three servers away;
+    or, as seen, three workers started together on a fresh cluster, of which one exited with
+    "JetStream unavailable or refused: nats: timeout") is asked again for up to ``ENSURE_FOR_S``:
+    the worker starts once the servers are back."""
+    cluster = NatsCluster(tmp_path / "nats", PARTITIONS).start()
+    try:
+        first, second, third = cluster.servers
+        second.kill()
+        third.kill()
+
+        async def main() -> None:
+            settings = ClusterConfig(nats=first.url, partitions=PARTITIONS, replicas=3, buffer_s=60.0)
+            transport = NatsTransport(settings, instance="t", source=True, sink=False)
+            entering = asyncio.create_task(transport.__aenter__())
+            await asyncio.sleep(8.0)  # past a JetStream request's timeout (5 s)
+            assert not entering.done()
+            await asyncio.to_thread(second.start)
+            await asyncio.to_thread(third.start)
+            async with asyncio.timeout(ENSURE_FOR_S):
+                await entering
+            await transport.__aexit__(None, None, None)
+
+        asyncio.run(main())
+    finally:
+        cluster.stop()

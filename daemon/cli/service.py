@@ -96,6 +96,12 @@ def register(sub: Any) -> None:
         "--speed", type=speed, default=1.0, metavar="1|X|max", help="1 = real time (default), X times, max"
     )
     rep.add_argument("--loop", action="store_true", help="start over at the end, until interrupted")
+    rep.add_argument(
+        "--no-retain",
+        dest="retain",
+        action="store_false",
+        help="MQTT: the skeleton and the end at QoS 0, not retained (for a NATS cluster's MQTT port)",
+    )
     rep.set_defaults(func=_replay)
 
 
@@ -116,7 +122,16 @@ def _replay(args: argparse.Namespace, config: Config) -> int:
     if not is_id(stream):  # the recording's name, unless given
         raise UsageError(f"{stream!r} is not a stream id ({ID_RULE})", field="--stream")
     try:
-        sent = replay(args.to, motion, asf_text, stream=stream, rate=rate, speed=args.speed, loop=args.loop)
+        sent = replay(
+            args.to,
+            motion,
+            asf_text,
+            stream=stream,
+            rate=rate,
+            speed=args.speed,
+            loop=args.loop,
+            retain=args.retain,
+        )
     except TargetError as e:
         raise UsageError(e.reason, field="--to") from None
     except InputError as e:  # an MQTT URL protocols.urls.parse_mqtt_url refuses

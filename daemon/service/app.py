@@ -501,6 +501,12 @@ class Service:
             ("checkpoints", "Partition checkpoints stored", "counter", t.checkpoints),
             ("resumed_partitions", "Partitions taken, read from a checkpoint", "counter", t.resumed),
             (
+                "unbuffered",
+                "Messages taken from a partition's subject alone: its buffer lost them or was late",
+                "counter",
+                t.unbuffered,
+            ),
+            (
                 "warmup_suppressed",
                 "Detections suppressed in a taken-over stream's warm-up",
                 "counter",

@@ -1,0 +1,86 @@
+"""What reading a partition on both paths costs a worker per message (``protocols/merge.py``).
+
+    python -m bench.bench_merge [--messages 200000] [--streams 100]
+
+Real poses (a CMU recording, as :mod:`bench.cluster_load` publishes them, 581 bytes each) of
+``--streams`` streams, each message delivered twice as on a NATS cluster (the live copy first, then
+the buffered one), through :class:`protocols.merge.Merge` with the keys the transport computes.
+Printed per message, beside a baseline measured in the same run: decoding the pose's msgpack, which
+the service does once per pose whatever the path. Not measured here: what the second delivery costs
+the server and the worker's reader (``protocols/deliveries.py``) once more.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import msgpack
+
+from bench.cluster_load import streams
+from bench.machine import describe
+from protocols.deliveries import Delivery
+from protocols.merge import Merge
+from protocols.nats import HELD_MOST, HOLD_S, REMEMBER_S, merge_key
+
+
+def deliveries(n: int, k: int) -> list[Delivery]:
+    """``n`` poses of ``k`` streams, round robin, as their partition's subscription delivers them."""
+    sources = streams(min(k, 8))
+    out = []
+    for i in range(n):
+        s = sources[i % len(sources)]
+        _, payload = s.pose()
+        stream = f"x{i % k}"
+        out.append(Delivery(f"mocap.p.0.{stream}.pose".encode(), b"", None, payload))
+    return out
+
+
+def per_message(f: object, n: int, repeat: int = 3) -> float:
+    """The best of ``repeat`` runs of ``f()`` in µs per message."""
+    best = float("inf")
+    for _ in range(repeat):
+        started = time.perf_counter()
+        f()  # type: ignore[operator]
+        best = min(best, time.perf_counter() - started)
+    return best / n * 1e6
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--messages", type=int, default=200_000)
+    parser.add_argument("--streams", type=int, default=100)
+    args = parser.parse_args()
+    ds = deliveries(args.messages, args.streams)
+    print(describe())
+    print(f"{len(ds)} poses of {args.streams} streams, {len(ds[0].data)} bytes each")
+
+    def merged() -> None:
+        merge: Merge[Delivery] = Merge(HOLD_S, REMEMBER_S, HELD_MOST)
+        merge.replaying = False
+        now = time.monotonic()
+        for seq, d in enumerate(ds, 1):
+            key = merge_key(Delivery(d.subject, d.reply, d.headers, bytes(d.data)))  # a fresh copy's hash
+            merge.push(key, d, now)
+            merge.push(merge_key(Delivery(d.subject, d.reply, d.headers, bytes(d.data))), d, now, seq)
+            if seq % 10_000 == 0:
+                merge.release(now)
+
+    def copies() -> None:  # the two fresh copies alone, subtracted from the merge's figure
+        for d in ds:
+            Delivery(d.subject, d.reply, d.headers, bytes(d.data))
+            Delivery(d.subject, d.reply, d.headers, bytes(d.data))
+
+    def decoded() -> None:
+        for d in ds:
+            msgpack.unpackb(d.data)
+
+    merge_us = per_message(merged, len(ds)) - per_message(copies, len(ds))
+    decode_us = per_message(decoded, len(ds))
+    print(f"merge, both copies of a message: {merge_us:.2f} µs")
+    ratio = merge_us / decode_us
+    print(f"baseline, msgpack decode of the pose: {decode_us:.2f} µs (the merge {ratio:.2f} times that)")
+
+
+if __name__ == "__main__":
+    main()
