@@ -164,6 +164,29 @@ def test_mqtt_replay_gives_the_detections_of_detect(tmp_path: Path) -> None:
         broker.stop()
 
 
+def test_a_replay_with_no_retain_leaves_no_skeleton_retained(tmp_path: Path) -> None:
+    """``mocapd replay --no-retain`` (for a NATS cluster's MQTT port, docs/cluster.md) announces
+    the skeleton at QoS 0 and leaves nothing retained; without it, a subscriber that comes later
+    still gets the skeleton."""
+    broker = Broker(tmp_path).start()
+    live = MqttCollector(broker.url, ["mocap/+/skeleton"], client_id="live")
+    late = None
+    try:
+        finished(replay(*TRIAL, broker.url, "--no-retain", stream="plain"))
+        finished(replay(*TRIAL, broker.url, stream="kept"))
+        late = MqttCollector(broker.url, ["mocap/+/skeleton"], client_id="late")
+        wait_for(lambda: late is not None and bool(late.messages), 10, "the retained skeleton")
+        time.sleep(0.5)
+        assert {t for t, _ in late.messages} == {"mocap/kept/skeleton"}
+        plain = [q for (t, _), q in zip(live.messages, live.qos, strict=True) if t == "mocap/plain/skeleton"]
+        assert plain and set(plain) == {(0, False)}
+    finally:
+        for collector in (live, late):
+            if collector is not None:
+                collector.close()
+        broker.stop()
+
+
 @pytest.mark.slow
 def test_mqtt_boundaries_of_a_segmented_stream(tmp_path: Path) -> None:
     """With segmentation on, the daemon publishes a replayed stream's behaviour boundaries on
