@@ -263,6 +263,10 @@ class NatsTransport:
         """Whether each owned partition is read through a plain subscription of its subject too
         (:mod:`protocols.merge`): on a NATS cluster, whose servers route a partition's messages
         while its buffer elects a new leader (set before entering)."""
+        # detections and boundaries waiting to be stored and published, in order, with when each came
+        self._outgoing: asyncio.Queue[tuple[Outgoing, float]] = asyncio.Queue()
+        self._storing = 0
+        self._publisher: asyncio.Task[None] | None = None
         self._merges: dict[int, Merge[Delivery]] = {}
         self._live: dict[int, int] = {}  # per partition read on both paths, its subscription's id
         self._releasing: asyncio.Task[None] | None = None
@@ -380,8 +384,9 @@ class NatsTransport:
         self, kind: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
     ) -> None:
         await self.own(frozenset())
-        if self._releasing is not None:
-            self._releasing.cancel()
+        for task in (self._releasing, self._publisher):
+            if task is not None:
+                task.cancel()
         if self._reader is not None:
             await self._reader.close()
         nc = self._nc
@@ -495,7 +500,8 @@ class NatsTransport:
 
     @property
     def pending(self) -> int:
-        return 0
+        """Detections and boundaries not yet stored and published (:meth:`publish`)."""
+        return self._outgoing.qsize() + self._storing
 
     def dropped(self) -> dict[str, int]:
         """Messages on a delivery subject that no buffer delivered (``nats_foreign``) and deliveries
@@ -967,14 +973,34 @@ class NatsTransport:
         return self if self._sink else None
 
     async def publish(self, message: Outgoing) -> None:
+        """Publish ``message``: one with an id (a detection, a boundary) is queued, stored and
+        published in turn by a task of its own, so that a store that does not answer (its leader
+        electing) holds up no recognition (:attr:`pending` counts what waits); others at once."""
         if message.relay:  # the publishers' poses are on the bus already
             return
         if message.key is None:
             await self._plain(message)
             return
-        assert self._js is not None
+        self._outgoing.put_nowait((message, time.monotonic()))
+        if self._publisher is None:
+            self._publisher = asyncio.create_task(self._publish_stored(), name="cluster detections")
+
+    async def _publish_stored(self) -> None:
+        while True:
+            message, queued = await self._outgoing.get()
+            self._storing = 1
+            try:
+                await self._store(message, queued + STORE_FOR_S)
+            except Exception as e:  # a defect of mocapd's: it costs this detection, not the others
+                log.error("detection not published", extra={"fields": {"id": message.key, "error": repr(e)}})
+            finally:
+                self._storing = 0
+
+    async def _store(self, message: Outgoing, given_up: float) -> None:
+        """Store ``message`` in ``MOCAPD_OUT`` under its id, then publish it if it is the first
+        copy; asked again until ``given_up`` (monotonic), then published without the store."""
+        assert self._js is not None and message.key is not None
         parts = message.topic.split("/")
-        given_up = time.monotonic() + STORE_FOR_S
         while True:
             try:
                 ack = await self._js.publish(

@@ -346,7 +346,9 @@ def test_partition_of_is_the_servers_mapping(tmp_path: Path) -> None:
 def test_a_detection_whose_store_times_out_is_not_published_twice(tmp_path: Path) -> None:
     """A worker recomputes a detection another one published (a takeover) while the server is too
     slow to answer the store in time (frozen here): it asks the store again with the same id and
-    publishes nothing, where publishing after the timeout delivered the detection twice."""
+    publishes nothing, where publishing after the timeout delivered the detection twice. Meanwhile
+    publishing holds nothing up (recognition goes on; a stalled intake had its streams evicted as
+    idle while a buffer elected a leader): the detection waits, counted as pending."""
     server = NatsServer(tmp_path).start()
     assert server.process is not None
     try:
@@ -363,19 +365,27 @@ def test_a_detection_whose_store_times_out_is_not_published_twice(tmp_path: Path
 
             await nc.subscribe("mocap.s.detections", cb=got)
             detection = Outgoing("mocap/s/detections", b"d1", reliable=True, key="id-1")
+            async def stored(t: NatsTransport) -> None:
+                async with asyncio.timeout(STORE_FOR_S):
+                    while t.pending:
+                        await asyncio.sleep(0.01)
+
             async with first, second:
                 await first.publish(detection)
+                await stored(first)
                 await nc.flush()
                 assert server.process is not None
                 freeze(server.process)
                 try:
-                    again = asyncio.create_task(second.publish(detection), name="the recomputed one")
+                    async with asyncio.timeout(0.5):  # at once, whatever the store does
+                        await second.publish(detection)
+                    assert second.pending == 1
                     deadline = time.monotonic() + 10 * PUBLISH_TIMEOUT_S
                     while not second.publish_errors and time.monotonic() < deadline:
                         await asyncio.sleep(0.05)  # until its store has timed out
                 finally:
                     server.process.send_signal(signal.SIGCONT)
-                await asyncio.wait_for(again, STORE_FOR_S)
+                await stored(second)
                 assert second.publish_errors >= 1 and second.duplicates == 1
                 await asyncio.sleep(0.3)
             await nc.close()

@@ -408,9 +408,9 @@ class Service:
 
     @property
     def settled(self) -> bool:
-        """Whether everything the table has emitted has been published (cluster checkpoints are
-        taken only then)."""
-        return not self._publishing
+        """Whether everything the table has emitted has been published, none of it waiting in a
+        transport (cluster checkpoints are taken only then)."""
+        return not self._publishing and not any(t.pending for t in self.transports)
 
     async def publish_all(self, emitted: list[Emitted]) -> None:
         """``emitted`` published in turn (:attr:`settled` is false until the last is)."""
