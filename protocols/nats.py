@@ -95,6 +95,11 @@ ENSURE_FOR_S = 30.0
 """How long a worker starting tries to make the buffers while JetStream times out or is unavailable."""
 CATCH_UP_S = 2.0
 """The longest recognition waits for a taken partition's buffer to be read."""
+HEARTBEAT_S = 2.0
+"""A partition's consumer, idle, says so this often (JetStream's idle heartbeat)."""
+SILENT_S = 3 * HEARTBEAT_S
+"""A consumer that delivers nothing, not even a heartbeat, for this long is made again (from the
+last message read): one lost with a server, or deleted."""
 RETRY_S = 0.5
 """How soon a partition's consumer that could not be made is tried again."""
 STOP_S = 2.0
@@ -809,17 +814,19 @@ class NatsTransport:
         assert nc is not None and reader is not None
         live = False
         expected = 1  # the consumer's next delivery sequence
+        heard = time.monotonic()  # the consumer's last delivery or heartbeat
         buffer = BUFFER.format(p)
         inbox = nc.new_inbox()
         name = f"mocapd-{p}-{inbox.rsplit('.', 1)[-1]}"  # known before the first delivery comes
 
         async def got(d: Delivery) -> None:
-            nonlocal live, expected
+            nonlocal live, expected, heard
             if given_up.is_set():
                 return
             ack = acknowledgement(d.reply)
             if ack is None or ack.stream != buffer or ack.consumer != name or ack.consumer_seq < expected:
                 if d.status() == b"100":  # the server's flow control, or a heartbeat
+                    heard = time.monotonic()
                     reply = d.reply if d.reply.startswith(b"$JS.FC.") else d.header(b"Nats-Consumer-Stalled")
                     if reply is not None and reply.startswith(b"$JS.FC."):
                         reader.publish(reply)
@@ -827,6 +834,7 @@ class NatsTransport:
                 self.foreign += 1  # published on the delivery subject, not delivered by the buffer
                 self._note_foreign(p, d)
                 return
+            heard = time.monotonic()
             seq, delivered = ack.stream_seq, ack.consumer_seq
             if delivered != expected:  # lost on the way (a connection that moved): read them again
                 self.gaps += delivered - expected
@@ -877,7 +885,7 @@ class NatsTransport:
                     ack_policy=AckPolicy.NONE,
                     filter_subject=buffer_subject(p),
                     flow_control=True,
-                    idle_heartbeat=5.0,
+                    idle_heartbeat=HEARTBEAT_S,
                     inactive_threshold=30.0,
                 ),
             )
@@ -885,7 +893,14 @@ class NatsTransport:
                 self._consumer_names[p] = consumer.name
                 if merge is not None and not replay:
                     merge.replaying = False
-            await given_up.wait()
+            heard = time.monotonic()
+            while not given_up.is_set():
+                with contextlib.suppress(TimeoutError):
+                    async with asyncio.timeout(HEARTBEAT_S):
+                        await given_up.wait()
+                # a full queue holds the reader (and the heartbeats) back: that is no silence
+                if time.monotonic() - heard > SILENT_S and self._queue.qsize() < QUEUE // 2:
+                    raise TimeoutError(f"no delivery nor heartbeat for {SILENT_S:.0f} s")
         finally:
             await reader.unsubscribe(sid)
             # by its name: given up while the server made it, the consumer exists without an answer

@@ -26,8 +26,10 @@ from paho.mqtt.enums import CallbackAPIVersion
 
 from daemon.config import ClusterConfig
 from protocols.nats import (
+    HEARTBEAT_S,
     HOLD_S,
     PUBLISH_TIMEOUT_S,
+    SILENT_S,
     STORE_FOR_S,
     Ack,
     NatsTransport,
@@ -265,6 +267,48 @@ def test_read_on_both_paths_each_message_comes_once_and_what_the_buffer_lost_com
         server.stop()
 
 
+def test_a_partitions_consumer_that_falls_silent_is_made_again_from_the_last_message_read(
+    tmp_path: Path,
+) -> None:
+    """A consumer that delivers nothing, not even its idle heartbeat, for ``SILENT_S`` (here deleted
+    behind the worker's back; on a cluster, lost with a server) is made again from after the last
+    message read: what was published meanwhile comes, once, in order."""
+    server = NatsServer(tmp_path).start()
+    try:
+
+        async def main() -> None:
+            settings = ClusterConfig(nats=server.url, partitions=partitions(), buffer_s=60.0)
+            stream = next(f"s{i}" for i in range(1000) if partition_of(f"s{i}", partitions()) == 0)
+            transport = NatsTransport(settings, instance="t", source=True, sink=False)
+            async with transport:
+                nc = await nats.connect(server.url)
+                js = nc.jetstream()
+
+                async def read(n: int, within: float) -> list[bytes]:
+                    incoming = aiter(transport)
+                    async with asyncio.timeout(within):
+                        return [(await anext(incoming)).payload for _ in range(n)]
+
+                await transport.own(frozenset({0}))
+                for seq in range(2):
+                    await nc.publish(f"mocap.{stream}.pose", b"%d" % seq)
+                assert await read(2, 10) == [b"0", b"1"]
+                for consumer in await js.consumers_info("MOCAPD_BUF_0"):
+                    await js.delete_consumer("MOCAPD_BUF_0", consumer.name)
+                for seq in range(2, 5):
+                    await nc.publish(f"mocap.{stream}.pose", b"%d" % seq)
+                await nc.flush()
+                assert await read(3, SILENT_S + 3 * HEARTBEAT_S) == [b"2", b"3", b"4"]
+                with pytest.raises(TimeoutError):
+                    await read(1, HEARTBEAT_S)
+                assert transport.taken_up_to(0) == 5
+                await nc.close()
+
+        asyncio.run(main())
+    finally:
+        server.stop()
+
+
 def test_a_stream_read_from_a_partial_buffer_keeps_its_mark_until_it_is_taken_in(tmp_path: Path) -> None:
     """The service forgets every second the streams its table does not hold; a stream read from a
     buffer that lost its start but still waiting in the queue must not lose its truncated-history
@@ -365,6 +409,7 @@ def test_a_detection_whose_store_times_out_is_not_published_twice(tmp_path: Path
 
             await nc.subscribe("mocap.s.detections", cb=got)
             detection = Outgoing("mocap/s/detections", b"d1", reliable=True, key="id-1")
+
             async def stored(t: NatsTransport) -> None:
                 async with asyncio.timeout(STORE_FOR_S):
                     while t.pending:
