@@ -733,6 +733,10 @@ class NatsTransport:
             return None
         return after, states
 
+    def waiting(self) -> frozenset[str]:
+        """The streams with a message waiting to be taken in."""
+        return frozenset(self._queued)
+
     def forget(self, keep: set[str]) -> None:
         """Forget the streams not in ``keep`` (those the service no longer holds) that have no
         message waiting to be taken in: a stream read from a buffer but not yet taken in keeps what

@@ -316,6 +316,7 @@ def test_skeleton_change_repeat_and_eviction(library: Library) -> None:
     flushed = t.skeleton(SkeletonMessage("s", 120.0, JOINT_NAMES), 2.0)  # now positions
     assert t.counts["skeleton_changed"] == 1 and flushed  # the squat's last detections came out
     assert t.evict_idle(3.0, idle_s=5.0) == [] and "s" in t.streams
+    assert t.evict_idle(8.0, idle_s=5.0, waiting={"s"}) == [] and "s" in t.streams  # its poses wait
     assert t.evict_idle(8.0, idle_s=5.0) == [] and "s" not in t.streams
     assert t.counts["idle"] == 1
 

@@ -462,7 +462,8 @@ class Service:
             if self.cluster is not None and self.cluster.holding:
                 continue  # idle streams go once the membership is sound again (or are handed over)
             now, live = time.monotonic(), dict(self.table.streams)
-            last = self.table.evict_idle(now, self.config.service.idle_s)
+            waiting = self.cluster.transport.waiting() if self.cluster is not None else frozenset()
+            last = self.table.evict_idle(now, self.config.service.idle_s, waiting)
             for name, s in live.items():
                 if name not in self.table.streams:  # per stream, throttled like the other such lines
                     fields = {"stream": name, "reason": "idle", "silent_s": round(now - s.seen, 1)}

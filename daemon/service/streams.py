@@ -40,6 +40,7 @@ import fnmatch
 import itertools
 import uuid
 from collections import Counter, deque
+from collections.abc import Collection
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -632,11 +633,14 @@ class StreamTable:
 
     # ------------------------------------------------------------------------------- the end
 
-    def evict_idle(self, now: float, idle_s: float) -> list[Emitted]:
+    def evict_idle(self, now: float, idle_s: float, waiting: Collection[str] = ()) -> list[Emitted]:
         """Flush and forget the streams silent for more than ``idle_s`` seconds whose poses are
-        all recognised."""
+        all recognised, bar those ``waiting`` (messages of theirs wait in a transport: not silent,
+        only not taken in yet)."""
         out = []
-        for name in [n for n, s in self.streams.items() if now - s.seen > idle_s and not s.queue]:
+        for name in [
+            n for n, s in self.streams.items() if now - s.seen > idle_s and not s.queue and n not in waiting
+        ]:
             out += self._remove(name, "idle")
         return out
 
