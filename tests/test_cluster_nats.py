@@ -216,6 +216,7 @@ def test_a_partition_taken_from_a_checkpoint_gives_every_streams_state_first(tmp
         server.stop()
 
 
+@pytest.mark.slow
 def test_read_on_both_paths_each_message_comes_once_and_what_the_buffer_lost_comes_live(
     tmp_path: Path,
 ) -> None:
@@ -267,6 +268,7 @@ def test_read_on_both_paths_each_message_comes_once_and_what_the_buffer_lost_com
         server.stop()
 
 
+@pytest.mark.slow
 def test_a_partitions_consumer_that_falls_silent_is_made_again_from_the_last_message_read(
     tmp_path: Path,
 ) -> None:
