@@ -10,6 +10,7 @@ not hidden here: the recording starts once the cluster has recovered."""
 from __future__ import annotations
 
 import asyncio
+import subprocess
 import threading
 import time
 from pathlib import Path
@@ -101,18 +102,41 @@ async def _led(url: str) -> bool:
         await nc.close()
 
 
-@pytest.mark.slow
-def test_a_worker_goes_on_when_the_nats_server_it_talks_to_is_killed(tmp_path: Path) -> None:
+def _one_worker(tmp_path: Path) -> tuple[NatsCluster, Etcd, subprocess.Popen[bytes], int]:
+    """The shipped three NATS servers, etcd and a worker with ``cluster.replicas: 3``, once the
+    worker has taken every partition: (the servers, etcd, the worker, its metrics port)."""
     (tmp_path / "etcd").mkdir()
     cluster = NatsCluster(tmp_path / "nats", PARTITIONS).start()
     etcd = Etcd(tmp_path / "etcd").start()
     port = free_port()
-    cluster_settings = {"replicas": 3, "partitions": PARTITIONS}
-    worker = cluster_worker(tmp_path, cluster.url, etcd.url, port, cluster_settings)
+    settings = {"replicas": 3, "partitions": PARTITIONS}
+    worker = cluster_worker(tmp_path, cluster.url, etcd.url, port, settings)
+    err = tmp_path / "worker.err"
+    try:
+        wait_for(lambda: err.read_text().count('"partition taken"') == PARTITIONS, 60, "the partitions")
+    except BaseException:
+        stop_all(worker, etcd, cluster)
+        raise
+    return cluster, etcd, worker, port
+
+
+def _each_once_as_detect(collector: NatsCollector, stream: str, last: int) -> None:
+    """What ``collector`` received is ``mocapd detect``'s detections of :func:`_publish`'s stream
+    up to ``last``, each once."""
+    want = detection_keys(looped_detections(*map(str, recording(0)), last))
+    wait_for(lambda: len(collector.messages) >= len(want), 60, "the detections")
+    time.sleep(0.5)
+    got = collector.messages
+    assert len({d["id"] for d in got}) == len(got), "a detection delivered twice"
+    assert sorted(detection_keys(got)) == sorted(want) and {d["stream"] for d in got} == {stream}
+
+
+@pytest.mark.slow
+def test_a_worker_goes_on_when_the_nats_server_it_talks_to_is_killed(tmp_path: Path) -> None:
+    cluster, etcd, worker, port = _one_worker(tmp_path)
     err = tmp_path / "worker.err"
     collector = None
     try:
-        wait_for(lambda: err.read_text().count('"partition taken"') == PARTITIONS, 60, "the partitions")
         first, second, third = cluster.servers
         first.kill()  # the server the worker's connections go to first
         killed = time.monotonic()
@@ -130,13 +154,7 @@ def test_a_worker_goes_on_when_the_nats_server_it_talks_to_is_killed(tmp_path: P
         wait_for(settled, 120, "the cluster to settle")
         wait_for(lambda: asyncio.run(_led(second.url)), 120, "every buffer led and read")
         collector = NatsCollector(second.url)
-        stream, last = asyncio.run(_publish(third.url))
-        want = detection_keys(looped_detections(*map(str, recording(0)), last))
-        wait_for(lambda: len(collector.messages) >= len(want), 60, "the detections")
-        time.sleep(0.5)
-        got = collector.messages
-        assert len({d["id"] for d in got}) == len(got), "a detection delivered twice"
-        assert sorted(detection_keys(got)) == sorted(want) and {d["stream"] for d in got} == {stream}
+        _each_once_as_detect(collector, *asyncio.run(_publish(third.url)))
         assert scrape(port)["mocapd_cluster_partitions"] == PARTITIONS
         assert moved < 10, moved
     finally:
@@ -151,16 +169,9 @@ def test_a_buffers_leader_killed_while_a_recording_plays_costs_no_detection(tmp_
     surviving servers route throughout, so the detections are still ``mocapd detect``'s, each once
     (before, the poses of the election were lost and the motions under way with them). A CPU-bound
     process runs beside them."""
-    (tmp_path / "etcd").mkdir()
-    cluster = NatsCluster(tmp_path / "nats", PARTITIONS).start()
-    etcd = Etcd(tmp_path / "etcd").start()
-    port = free_port()
-    cluster_settings = {"replicas": 3, "partitions": PARTITIONS}
-    worker = cluster_worker(tmp_path, cluster.url, etcd.url, port, cluster_settings)
-    err = tmp_path / "worker.err"
+    cluster, etcd, worker, port = _one_worker(tmp_path)
     collector = load = None
     try:
-        wait_for(lambda: err.read_text().count('"partition taken"') == PARTITIONS, 60, "the partitions")
         load = burner()
         first = cluster.servers[0]
         leader = asyncio.run(_led_elsewhere(cluster, partition_of(streams(1)[0].id, PARTITIONS)))
@@ -171,13 +182,7 @@ def test_a_buffers_leader_killed_while_a_recording_plays_costs_no_detection(tmp_
         time.sleep(3.0)
         cluster.servers[leader].kill()
         playing.join(60)
-        stream, last = published[0]
-        want = detection_keys(looped_detections(*map(str, recording(0)), last))
-        wait_for(lambda: len(collector.messages) >= len(want), 60, "the detections")
-        time.sleep(0.5)
-        got = collector.messages
-        assert len({d["id"] for d in got}) == len(got), "a detection delivered twice"
-        assert sorted(detection_keys(got)) == sorted(want) and {d["stream"] for d in got} == {stream}
+        _each_once_as_detect(collector, *published[0])
         metrics = scrape(port)
         rejects = {k: v for k, v in metrics.items() if k.startswith("mocapd_rejects_total") and v}
         assert rejects == {}, rejects  # no pose out of order, none twice

@@ -13,6 +13,7 @@ import random
 import signal
 import threading
 import time
+from functools import partial
 from pathlib import Path
 from typing import Any, cast
 
@@ -216,6 +217,24 @@ def test_a_partition_taken_from_a_checkpoint_gives_every_streams_state_first(tmp
         server.stop()
 
 
+async def _payloads(transport: NatsTransport, n: int, within: float = 10.0) -> list[bytes]:
+    """The payloads of the next ``n`` messages ``transport`` gives, TimeoutError after ``within``."""
+    incoming = aiter(transport)  # a fresh iterator: one whose wait timed out is closed
+    async with asyncio.timeout(within):
+        return [(await anext(incoming)).payload for _ in range(n)]
+
+
+def _source(url: str) -> NatsTransport:
+    """A worker's transport reading from the server at ``url`` (a 60 s buffer)."""
+    settings = ClusterConfig(nats=url, partitions=partitions(), buffer_s=60.0)
+    return NatsTransport(settings, instance="t", source=True, sink=False)
+
+
+def _of_partition_0() -> str:
+    """A stream id the partitions' mapping puts in partition 0."""
+    return next(f"s{i}" for i in range(1000) if partition_of(f"s{i}", partitions()) == 0)
+
+
 @pytest.mark.slow
 def test_read_on_both_paths_each_message_comes_once_and_what_the_buffer_lost_comes_live(
     tmp_path: Path,
@@ -229,9 +248,7 @@ def test_read_on_both_paths_each_message_comes_once_and_what_the_buffer_lost_com
     try:
 
         async def main() -> None:
-            settings = ClusterConfig(nats=server.url, partitions=partitions(), buffer_s=60.0)
-            stream = next(f"s{i}" for i in range(1000) if partition_of(f"s{i}", partitions()) == 0)
-            transport = NatsTransport(settings, instance="t", source=True, sink=False)
+            stream, transport = _of_partition_0(), _source(server.url)
             transport.both_paths = True  # one server: a cluster's servers would set it
             async with transport:
                 nc = await nats.connect(server.url)
@@ -241,10 +258,7 @@ def test_read_on_both_paths_each_message_comes_once_and_what_the_buffer_lost_com
                         await nc.publish(f"mocap.{stream}.pose", b"%d" % seq)
                     await nc.flush()
 
-                async def read(n: int, within: float = 10.0) -> list[bytes]:
-                    incoming = aiter(transport)  # one that timed out is closed
-                    async with asyncio.timeout(within):
-                        return [(await anext(incoming)).payload for _ in range(n)]
+                read = partial(_payloads, transport)
 
                 await publish(range(3))
                 await transport.own(frozenset({0}))
@@ -279,18 +293,11 @@ def test_a_partitions_consumer_that_falls_silent_is_made_again_from_the_last_mes
     try:
 
         async def main() -> None:
-            settings = ClusterConfig(nats=server.url, partitions=partitions(), buffer_s=60.0)
-            stream = next(f"s{i}" for i in range(1000) if partition_of(f"s{i}", partitions()) == 0)
-            transport = NatsTransport(settings, instance="t", source=True, sink=False)
+            stream, transport = _of_partition_0(), _source(server.url)
             async with transport:
                 nc = await nats.connect(server.url)
                 js = nc.jetstream()
-
-                async def read(n: int, within: float) -> list[bytes]:
-                    incoming = aiter(transport)
-                    async with asyncio.timeout(within):
-                        return [(await anext(incoming)).payload for _ in range(n)]
-
+                read = partial(_payloads, transport)
                 await transport.own(frozenset({0}))
                 for seq in range(2):
                     await nc.publish(f"mocap.{stream}.pose", b"%d" % seq)
@@ -320,7 +327,7 @@ def test_a_stream_read_from_a_partial_buffer_keeps_its_mark_until_it_is_taken_in
 
         async def main() -> None:
             settings = ClusterConfig(nats=server.url, partitions=partitions(), buffer_s=60.0)
-            stream = next(f"s{i}" for i in range(1000) if partition_of(f"s{i}", partitions()) == 0)
+            stream = _of_partition_0()
             elsewhere = next(f"s{i}" for i in range(1000) if partition_of(f"s{i}", partitions()) != 0)
             transport = NatsTransport(settings, instance="t", source=True, sink=False)
             async with transport:
