@@ -117,6 +117,7 @@ class Merge(Generic[T]):
         self._n = 0
         self._released = (0, -math.inf)  # the newest live copy passed alone: its ordinal, when
         self._confirmed = 0  # the newest live copy whose buffered copy came: its ordinal
+        self._unconfirmed_since = math.inf  # the first live copy passed alone since the last confirmed
 
     def push(self, key: int | None, item: T, now: float, seq: int | None = None) -> list[Passed[T]]:
         """Take a message: a buffered copy with its buffer sequence ``seq``, or a live one
@@ -164,6 +165,12 @@ class Merge(Generic[T]):
                 out.append(self._release(now))
         return out
 
+    def stalled(self, now: float, seconds: float) -> bool:
+        """Whether live copies have been passed alone for ``seconds`` with no buffered copy
+        confirming any of them or a later one: the buffer has lost them all, or delivers nothing
+        (a consumer lost with a server)."""
+        return self.awaiting(now) and now - self._unconfirmed_since > seconds
+
     def awaiting(self, now: float) -> bool:
         """Whether a live copy was passed alone after the newest one whose buffered copy came,
         within ``remember_s``: a position taken now would precede a message already taken in."""
@@ -189,5 +196,7 @@ class Merge(Generic[T]):
         first = self._unhold()
         if first.key is not None:
             self._live_passed.add(first.key, now, first.n)
+            if self._released[0] <= self._confirmed:
+                self._unconfirmed_since = now
             self._released = (first.n, now)
         return (-1, first.item)

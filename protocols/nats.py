@@ -99,7 +99,9 @@ HEARTBEAT_S = 2.0
 """A partition's consumer, idle, says so this often (JetStream's idle heartbeat)."""
 SILENT_S = 3 * HEARTBEAT_S
 """A consumer that delivers nothing, not even a heartbeat, for this long is made again (from the
-last message read): one lost with a server, or deleted."""
+last message read): one lost with a server, or deleted; so is one that delivers none of the
+messages its partition's plain subscription brings for this long (its buffer's election lasts
+4-5 s)."""
 RETRY_S = 0.5
 """How soon a partition's consumer that could not be made is tried again."""
 STOP_S = 2.0
@@ -119,7 +121,7 @@ HOLD_S = 1.0
 """How long a partition's live copy of a message waits for its buffered copy before it is passed
 without it (:mod:`protocols.merge`): the longest the poses of a buffer that elects a new leader are
 late."""
-REMEMBER_S = 10.0
+REMEMBER_S = 30.0
 """How long a copy passed on one path is remembered, so that its copy on the other is dropped."""
 HELD_MOST = 1 << 16
 """Live copies held per partition at most (while its buffer replays, or its consumer is made again)."""
@@ -778,8 +780,6 @@ class NatsTransport:
         js = self._js
         taken = time.time()
         merge = self._merges.get(p)
-        if merge is not None:  # the live copies wait until the buffer has replayed what precedes them
-            merge.replaying = True
         info = await js.stream_info(BUFFER.format(p))
         if given_up.is_set():
             return
@@ -803,6 +803,8 @@ class NatsTransport:
         replay = bool(state.messages) and (position is None or position < last)
         if replay:
             self._behind[p] = time.monotonic()
+            if merge is not None:  # the live copies wait until the buffer has replayed what precedes them
+                merge.replaying = True
         log.info(
             "partition taken",
             extra={
@@ -903,8 +905,11 @@ class NatsTransport:
                     async with asyncio.timeout(HEARTBEAT_S):
                         await given_up.wait()
                 # a full queue holds the reader (and the heartbeats) back: that is no silence
-                if time.monotonic() - heard > SILENT_S and self._queue.qsize() < QUEUE // 2:
+                now = time.monotonic()
+                if now - heard > SILENT_S and self._queue.qsize() < QUEUE // 2:
                     raise TimeoutError(f"no delivery nor heartbeat for {SILENT_S:.0f} s")
+                if merge is not None and merge.stalled(now, SILENT_S):
+                    raise TimeoutError(f"nothing of the live messages delivered for {SILENT_S:.0f} s")
         finally:
             await reader.unsubscribe(sid)
             # by its name: given up while the server made it, the consumer exists without an answer

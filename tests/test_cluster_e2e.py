@@ -188,7 +188,16 @@ def test_takeovers_lose_and_repeat_no_detection(tmp_path: Path) -> None:
         burner.kill()
         assert load.returncode == 0, err
         sent = json.loads(out)
-        time.sleep(6)  # the streams go idle (3 s): their owners flush them, as detect ends a recording
+        wants = {n: detection_keys(looped_detections(s["asf"], s["amc"], s["last"])) for n, s in sent.items()}
+
+        def complete() -> bool:
+            """Every stream's detections arrived: the last of each once the stream is idle (3 s),
+            its owner flushing it as detect ends a recording; later where its poses came late."""
+            arrived = Counter(d["stream"] for d in nats.messages)
+            return all(arrived[n] >= len(want) for n, want in wants.items())
+
+        wait_for(complete, 30, "every stream's detections")
+        time.sleep(0.5)  # a repeat, were there one, would have come by now
 
         # takeovers: the first live pose of every partition of the killed and the stopped worker
         # that streams hash to (a partition with none has no pose to consume). The killed one's
@@ -219,11 +228,10 @@ def test_takeovers_lose_and_repeat_no_detection(tmp_path: Path) -> None:
         assert not [i for i, n in ids.items() if n > 1], "a detection delivered twice"
         assert {d["id"] for d in mqtt.detections()} == set(ids)
         assert len(sent) == STREAMS
-        for stream, s in sent.items():
-            want = detection_keys(looped_detections(s["asf"], s["amc"], s["last"]))
+        for stream, want in wants.items():
             mine = detection_keys([d for d in got if d["stream"] == stream])
             assert sorted(mine) == sorted(want), stream
-        assert sum(len(looped_detections(s["asf"], s["amc"], s["last"])) for s in sent.values()) > 3 * STREAMS
+        assert sum(len(want) for want in wants.values()) > 3 * STREAMS
         # the killed and the stopped worker's streams were resumed from checkpoints and recognised
         # on from their buffers: what the killed one had published since its last checkpoint was
         # computed again, with the same ids, and not published twice (each id once, above)

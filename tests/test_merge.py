@@ -174,11 +174,14 @@ def test_a_held_live_copy_waits_while_replaying_and_hold_s_after() -> None:
     merge.replaying = False
     assert merge.release(5.0) == [(-1, "a")]
     assert merge.awaiting(5.0)  # its buffered copy not seen: a position now would precede it
+    assert merge.stalled(5.5, 0.4) and not merge.stalled(5.5, 0.6)  # passed alone since 5.0
     assert merge.push(1, "a", 6.0, seq=7) == [(7, None)]  # the marker
-    assert not merge.awaiting(6.0)
+    assert not merge.awaiting(6.0) and not merge.stalled(6.0, 0.0)
     assert merge.push(2, "b", 7.0) == []
     assert merge.release(7.9) == []
     assert merge.release(8.0) == [(-1, "b")]
+    assert merge.stalled(9.5, 1.0)  # since 8.0, not since 5.0: "a" was confirmed at 6.0
+    assert not merge.stalled(8.5, 1.0)
     assert not merge.awaiting(18.1)  # never confirmed, but older than remember_s
 
 
