@@ -117,7 +117,7 @@ class Merge(Generic[T]):
         self._n = 0
         self._released = (0, -math.inf)  # the newest live copy passed alone: its ordinal, when
         self._confirmed = 0  # the newest live copy whose buffered copy came: its ordinal
-        self._unconfirmed_since = math.inf  # the first live copy passed alone since the last confirmed
+        self._stall_since = math.inf  # the first live copy passed alone since the buffer last matched one
 
     def push(self, key: int | None, item: T, now: float, seq: int | None = None) -> list[Passed[T]]:
         """Take a message: a buffered copy with its buffer sequence ``seq``, or a live one
@@ -145,11 +145,13 @@ class Merge(Generic[T]):
                 out.append(self._release(now))
             self._unhold()
             self._confirmed = max(self._confirmed, match.n)
+            self._stall_since = math.inf
             out.append((seq, item))
             return out
         n = self._live_passed.take(key)
         if n is not None:
             self._confirmed = max(self._confirmed, n)
+            self._stall_since = math.inf
             return [(seq, None)]
         self._buffered_passed.add(key, now)
         return [(seq, item)]
@@ -166,10 +168,14 @@ class Merge(Generic[T]):
         return out
 
     def stalled(self, now: float, seconds: float) -> bool:
-        """Whether live copies have been passed alone for ``seconds`` with no buffered copy
-        confirming any of them or a later one: the buffer has lost them all, or delivers nothing
-        (a consumer lost with a server)."""
-        return self.awaiting(now) and now - self._unconfirmed_since > seconds
+        """Whether live copies have been passed alone for ``seconds`` (since :meth:`rewatch`)
+        without the buffer bringing the copy of any live one: it has lost them all, or delivers
+        nothing (a consumer lost with a server)."""
+        return now - self._stall_since > seconds
+
+    def rewatch(self) -> None:
+        """Start :meth:`stalled` afresh (a consumer made again)."""
+        self._stall_since = math.inf
 
     def awaiting(self, now: float) -> bool:
         """Whether a live copy was passed alone after the newest one whose buffered copy came,
@@ -196,7 +202,6 @@ class Merge(Generic[T]):
         first = self._unhold()
         if first.key is not None:
             self._live_passed.add(first.key, now, first.n)
-            if self._released[0] <= self._confirmed:
-                self._unconfirmed_since = now
+            self._stall_since = min(self._stall_since, now)
             self._released = (first.n, now)
         return (-1, first.item)

@@ -900,6 +900,8 @@ class NatsTransport:
                 if merge is not None and not replay:
                     merge.replaying = False
             heard = time.monotonic()
+            if merge is not None:
+                merge.rewatch()
             while not given_up.is_set():
                 with contextlib.suppress(TimeoutError):
                     async with asyncio.timeout(HEARTBEAT_S):

@@ -182,6 +182,8 @@ def test_a_held_live_copy_waits_while_replaying_and_hold_s_after() -> None:
     assert merge.release(8.0) == [(-1, "b")]
     assert merge.stalled(9.5, 1.0)  # since 8.0, not since 5.0: "a" was confirmed at 6.0
     assert not merge.stalled(8.5, 1.0)
+    merge.rewatch()  # a consumer made again: its own chance
+    assert not merge.stalled(9.5, 1.0)
     assert not merge.awaiting(18.1)  # never confirmed, but older than remember_s
 
 
