@@ -266,7 +266,8 @@ class NatsTransport:
         self._partition_tokens = frozenset(str(p).encode() for p in range(settings.partitions))
         self._last_error: str | None = None
         self._error_log = Throttle()
-        self.both_paths = len(parse_nats_urls(settings.nats)) > 1 or settings.replicas > 1
+        self._servers = parse_nats_urls(settings.nats)
+        self.both_paths = len(self._servers) > 1 or settings.replicas > 1
         """Whether each owned partition is read through a plain subscription of its subject too
         (:mod:`protocols.merge`): on a NATS cluster, whose servers route a partition's messages
         while its buffer elects a new leader (set before entering)."""
@@ -284,8 +285,7 @@ class NatsTransport:
         self._status = (online, offline)
 
     async def __aenter__(self) -> NatsTransport:
-        url = self.settings.nats
-        servers = parse_nats_urls(url)
+        url, servers = self.settings.nats, self._servers
         nc = NATS()
         try:
             async with asyncio.timeout(STARTUP_S):  # the client itself would try for ever

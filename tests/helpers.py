@@ -403,6 +403,32 @@ def looped_detections(asf: str, amc: str, last: int) -> list[dict[str, Any]]:
     return [d.as_json() for d in detect(looped, load_library(default_library_path()), 120.0)]
 
 
+def each_once_as_detect(
+    sent: Mapping[str, Mapping[str, Any]], detections: Callable[[], list[dict[str, Any]]], within: float
+) -> int:
+    """What ``detections()`` gives comes to be ``mocapd detect``'s detections of what was ``sent``
+    (per stream id, its recording's ``asf`` and ``amc`` looped up to sequence number ``last``, as
+    :mod:`bench.cluster_load` prints it), of no other stream, each id once: waits up to ``within``
+    seconds for every stream's count, then a second for a repeat. The detections expected."""
+    wants = {n: detection_keys(looped_detections(s["asf"], s["amc"], s["last"])) for n, s in sent.items()}
+
+    def complete() -> bool:
+        arrived: dict[str, int] = {}
+        for d in detections():
+            arrived[d["stream"]] = arrived.get(d["stream"], 0) + 1
+        return all(arrived.get(n, 0) >= len(want) for n, want in wants.items())
+
+    wait_for(complete, within, "every stream's detections")
+    time.sleep(1.0)
+    got = detections()
+    ids = [d["id"] for d in got]
+    assert len(set(ids)) == len(ids), "a detection delivered twice"
+    assert {d["stream"] for d in got} <= set(sent)
+    for n, want in wants.items():
+        assert sorted(detection_keys([d for d in got if d["stream"] == n])) == sorted(want), n
+    return sum(len(want) for want in wants.values())
+
+
 class ServerProcess:
     """A server the tests run as a process (``process``, None when stopped): :meth:`stop` sends
     ``sig`` (SIGTERM) and waits, :meth:`kill` is SIGKILL."""

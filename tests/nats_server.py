@@ -10,6 +10,7 @@ import re
 import shutil
 import subprocess
 from pathlib import Path
+from typing import Any
 
 from bench.processes import free_port
 from tests.helpers import ServerProcess
@@ -121,6 +122,14 @@ class NatsCluster:
     @property
     def url(self) -> str:
         return ",".join(s.url for s in self.servers)
+
+    async def leader_of(self, stream: str, js: Any) -> int | None:
+        """The index in :attr:`servers` of the server leading JetStream stream ``stream`` (None:
+        none now), asked through the JetStream context ``js`` (each server is named
+        ``mocapd-nats-<i>`` by its shipped config)."""
+        info = await js.stream_info(stream)
+        leader = info.cluster.leader if info.cluster is not None else None
+        return next((k for k in range(len(self.servers)) if leader == f"mocapd-nats-{k + 1}"), None)
 
     def start(self) -> NatsCluster:
         """All three started, each ready and JetStream's cluster led."""

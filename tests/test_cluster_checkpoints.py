@@ -11,7 +11,6 @@ import json
 import signal
 import subprocess
 import time
-from collections import Counter
 from pathlib import Path
 from typing import Any
 
@@ -29,9 +28,8 @@ from tests.helpers import (
     MqttCollector,
     cluster_load,
     cluster_worker,
-    detection_keys,
+    each_once_as_detect,
     log_events,
-    looped_detections,
     stop_all,
     wait_for,
 )
@@ -65,21 +63,12 @@ def _checkpointed(url: str, names: list[str]) -> set[str]:
 
 def _each_once_as_detect(load: subprocess.Popen[str], collector: MqttCollector) -> tuple[dict[str, Any], int]:
     """Once ``load`` has ended: the detections ``collector`` received are ``mocapd detect``'s on
-    what it sent, each once. What it sent, and how many detections that is."""
+    what it sent, each once (:func:`tests.helpers.each_once_as_detect`). What it sent, and how many
+    detections that is."""
     out, err = load.communicate(timeout=60)
     assert load.returncode == 0, err
     sent: dict[str, Any] = json.loads(out)
-    want = {
-        stream: detection_keys(looped_detections(s["asf"], s["amc"], s["last"])) for stream, s in sent.items()
-    }
-    total = sum(len(w) for w in want.values())
-    wait_for(lambda: len(collector.detections()) >= total, 40, "the detections")
-    time.sleep(1.0)
-    got = collector.detections()
-    assert not [i for i, n in Counter(d["id"] for d in got).items() if n > 1], "a detection twice"
-    for stream in sent:
-        assert sorted(detection_keys([d for d in got if d["stream"] == stream])) == sorted(want[stream])
-    return sent, total
+    return sent, each_once_as_detect(sent, collector.detections, 40)
 
 
 @pytest.mark.slow

@@ -26,10 +26,9 @@ from tests.helpers import (
     NatsCollector,
     burner,
     cluster_worker,
-    detection_keys,
+    each_once_as_detect,
     http_get,
     log_events,
-    looped_detections,
     stop_all,
     wait_for,
 )
@@ -68,15 +67,13 @@ async def _led_elsewhere(cluster: NatsCluster, p: int) -> int:
     nc = await nats.connect(cluster.servers[0].url)
     try:
         js = nc.jetstream(timeout=5.0)
-        names = [f"mocapd-nats-{k + 1}" for k in range(len(cluster.servers))]
         buffer = f"MOCAPD_BUF_{p}"
         deadline = time.monotonic() + 30
         while time.monotonic() < deadline:
-            info = await js.stream_info(buffer)
-            leader = info.cluster.leader if info.cluster is not None else None
-            if leader in names[1:]:
-                return names.index(leader)
-            if leader == names[0]:
+            leader = await cluster.leader_of(buffer, js)
+            if leader is not None and leader > 0:
+                return leader
+            if leader == 0:
                 await nc.request(f"$JS.API.STREAM.LEADER.STEPDOWN.{buffer}", b"", timeout=5.0)
             await asyncio.sleep(0.5)
         raise AssertionError(f"{buffer} led by the first server still")
@@ -122,13 +119,10 @@ def _one_worker(tmp_path: Path) -> tuple[NatsCluster, Etcd, subprocess.Popen[byt
 
 def _each_once_as_detect(collector: NatsCollector, stream: str, last: int) -> None:
     """What ``collector`` received is ``mocapd detect``'s detections of :func:`_publish`'s stream
-    up to ``last``, each once."""
-    want = detection_keys(looped_detections(*map(str, recording(0)), last))
-    wait_for(lambda: len(collector.messages) >= len(want), 60, "the detections")
-    time.sleep(0.5)
-    got = collector.messages
-    assert len({d["id"] for d in got}) == len(got), "a detection delivered twice"
-    assert sorted(detection_keys(got)) == sorted(want) and {d["stream"] for d in got} == {stream}
+    up to ``last``, each once, and no other stream's."""
+    asf, amc = map(str, recording(0))
+    sent = {stream: {"asf": asf, "amc": amc, "last": last}}
+    assert each_once_as_detect(sent, lambda: collector.messages, 60) > 0
 
 
 @pytest.mark.slow
