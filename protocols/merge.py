@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import math
 from collections import deque
+from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import Generic, TypeVar
 
@@ -187,6 +188,10 @@ class Merge(Generic[T]):
     def held(self) -> int:
         """Live copies held now."""
         return len(self._fifo)
+
+    def holding(self) -> Iterator[T]:
+        """The live copies held now, oldest first."""
+        return (h.item for h in self._fifo)
 
     def _unhold(self) -> _Held[T]:
         """Remove the oldest held live copy (the first of its key's too)."""

@@ -736,8 +736,16 @@ class NatsTransport:
         return after, states
 
     def waiting(self) -> frozenset[str]:
-        """The streams with a message waiting to be taken in."""
-        return frozenset(self._queued)
+        """The streams with a message waiting to be taken in: queued, or a live copy held for its
+        buffered copy (:mod:`protocols.merge`; held while a buffer replays, however long that takes,
+        and a stream whose poses are held is not silent)."""
+        held = {
+            d.subject.split(b".")[3].decode("utf-8", "replace")
+            for merge in self._merges.values()
+            for d in merge.holding()
+            if d.subject.count(b".") == 4
+        }
+        return frozenset(self._queued).union(held)
 
     def forget(self, keep: set[str]) -> None:
         """Forget the streams not in ``keep`` (those the service no longer holds) that have no
@@ -771,6 +779,9 @@ class NatsTransport:
                 await self._read(p, given_up)
             except (NatsError, TimeoutError, OSError) as e:
                 log.warning("partition not read", extra={"fields": {"partition": p, "error": repr(e)}})
+                merge = self._merges.get(p)
+                if merge is not None:  # no replay comes until a consumer is made: the live path goes on
+                    merge.replaying = False
                 with contextlib.suppress(TimeoutError):
                     async with asyncio.timeout(RETRY_S):
                         await given_up.wait()

@@ -20,6 +20,7 @@ import threading
 import time
 import urllib.error
 import urllib.request
+from collections import Counter
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -425,7 +426,11 @@ def each_once_as_detect(
     assert len(set(ids)) == len(ids), "a detection delivered twice"
     assert {d["stream"] for d in got} <= set(sent)
     for n, want in wants.items():
-        assert sorted(detection_keys([d for d in got if d["stream"] == n])) == sorted(want), n
+        have = Counter(detection_keys([d for d in got if d["stream"] == n]))
+        assert have == Counter(want), (
+            f"{n}: missing {sorted((Counter(want) - have).elements())}, "
+            f"extra {sorted((have - Counter(want)).elements())}"
+        )
     return sum(len(want) for want in wants.values())
 
 

@@ -30,6 +30,7 @@ from protocols.nats import (
     HEARTBEAT_S,
     HOLD_S,
     PUBLISH_TIMEOUT_S,
+    RETRY_S,
     SILENT_S,
     STORE_FOR_S,
     Ack,
@@ -280,6 +281,37 @@ def test_read_on_both_paths_each_message_comes_once_and_what_the_buffer_lost_com
                 await asyncio.sleep(SILENT_S + HEARTBEAT_S)
                 await publish(range(13, 15))
                 assert await read(2, 2 * HOLD_S + 1) == [b"13", b"14"]
+                await nc.close()
+
+        asyncio.run(main())
+    finally:
+        server.stop()
+
+
+def test_a_stream_whose_live_copies_are_held_is_waiting_and_they_come_though_no_buffer_can_be_read(
+    tmp_path: Path,
+) -> None:
+    """A live copy held for its buffered copy keeps its stream from being taken for silent (the
+    service would flush and forget it, and take its later poses for a new stream); and when the
+    buffer cannot be read at all (here deleted before the take; on a cluster, no leader elected
+    yet), the live copies are not held for a replay that cannot come."""
+    server = NatsServer(tmp_path).start()
+    try:
+
+        async def main() -> None:
+            stream, transport = _of_partition_0(), _source(server.url)
+            transport.both_paths = True
+            async with transport:
+                nc = await nats.connect(server.url)
+                await nc.jetstream().delete_stream("MOCAPD_BUF_0")
+                await transport.own(frozenset({0}))
+                await nc.publish(f"mocap.{stream}.pose", b"0")
+                await nc.flush()
+                async with asyncio.timeout(HOLD_S):
+                    while stream not in transport.waiting():
+                        await asyncio.sleep(0.01)
+                assert await _payloads(transport, 1, RETRY_S + 2 * HOLD_S + 1) == [b"0"]
+                assert stream not in transport.waiting()
                 await nc.close()
 
         asyncio.run(main())
