@@ -177,7 +177,8 @@ class ClusterConfig:
     JetStream buffer keeps (0: computed from the lease and the library's reach,
     :func:`daemon.service.cluster.buffer_seconds`), how often at most a partition's checkpoint is
     stored (0: never; a new owner then rebuilds the streams from the whole buffer,
-    :meth:`daemon.service.cluster.Cluster.checkpoint`),
+    :meth:`daemon.service.cluster.Cluster.checkpoint`), how often the leader looks at the streams
+    per member to even them out (0: never, the ring alone; :meth:`daemon.service.cluster.Cluster.lead`),
     and this member's name (empty: host name and process id). The coordinator has no default: a
     worker must be told where the others are."""
 
@@ -188,6 +189,7 @@ class ClusterConfig:
     replicas: int = field(default=1, metadata=_range(1, 5))
     buffer_s: float = field(default=0.0, metadata=_range(0, 3600))
     checkpoint_s: float = field(default=2.0, metadata=_range(0, 600))
+    balance_s: float = field(default=5.0, metadata=_range(0, 600))
     member: str = ""
 
 

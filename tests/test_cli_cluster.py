@@ -11,7 +11,7 @@ import subprocess
 from bench.processes import free_port
 from daemon.cluster.ring import assignment
 from daemon.config import ClusterConfig
-from daemon.service.membership import Membership
+from daemon.service.membership import Balance, Membership
 from tests.etcd_server import Etcd
 from tests.helpers import assert_ok, assert_one_error_line, mocapd
 
@@ -27,12 +27,21 @@ async def status(*args: str) -> subprocess.CompletedProcess[str]:
 
 
 async def test_status_shows_the_ring_and_the_reports_and_flags_disagreements(etcd: Etcd) -> None:
-    ring = assignment(["w1", "w2", "w3"], 8)
+    """The ring as the members own it: evened out by the leader's balance, which every member's
+    watch sees."""
+    names = ["w1", "w2", "w3"]
+    weights = {p: 3 for p in assignment(names, 8)["w1"]}  # all the streams on w1's partitions
+    ring = assignment(names, 8, weights)
+    assert ring != assignment(names, 8)
     async with (
         Membership(etcd.url, "w1", lease_s=LEASE_S) as w1,
         Membership(etcd.url, "w2", lease_s=LEASE_S) as w2,
-        Membership(etcd.url, "w3", lease_s=LEASE_S),
+        Membership(etcd.url, "w3", lease_s=LEASE_S) as w3,
     ):
+        assert await w1.put_balance(Balance(1, weights))
+        async with asyncio.timeout(5):
+            while w3.balance != Balance(1, weights):
+                await asyncio.sleep(0.01)
         one = sorted(ring["w1"])
         await w1.report({"partitions": one, "streams": {str(p): 2 for p in one}, "lag_s": 0.125})
         stolen = sorted(ring["w2"] | {one[0]})  # w2 still holds a partition the ring gave w1
@@ -40,7 +49,12 @@ async def test_status_shows_the_ring_and_the_reports_and_flags_disagreements(etc
         result = await status("--coordinator", etcd.url, "--partitions", "8", "--json")
         assert_ok(result)
         out = json.loads(result.stdout)
-        assert (out["coordinator"], out["prefix"], out["partitions"]) == (etcd.url, "/mocapd/", 8)
+        assert (out["coordinator"], out["prefix"], out["partitions"], out["balance"]) == (
+            etcd.url,
+            "/mocapd/",
+            8,
+            1,
+        )
         members = {m["name"]: m for m in out["members"]}
         assert members.keys() == {"w1", "w2", "w3"}
         assert {name: m["ring"] for name, m in members.items()} == {n: sorted(ps) for n, ps in ring.items()}
@@ -57,7 +71,8 @@ async def test_status_shows_the_ring_and_the_reports_and_flags_disagreements(etc
         assert table[stolen[-1]]["streams"] == 5 + (2 if stolen[-1] in one else 0)
         assert sorted(out["disagreements"]) == sorted(
             [
-                f"w2 reports owning {stolen}, the ring over the live members gives it {sorted(ring['w2'])}",
+                f"w2 reports owning {stolen}, the ring over the live members (with the balance) "
+                f"gives it {sorted(ring['w2'])}",
                 "w3 has not reported",
                 f"partition {one[0]} is reported by w1, w2",
             ]
@@ -66,7 +81,12 @@ async def test_status_shows_the_ring_and_the_reports_and_flags_disagreements(etc
         text = await status("--coordinator", etcd.url, "--partitions", "8")
         assert_ok(text)
         lines = text.stdout.splitlines()
-        assert lines[:3] == [f"cluster:    {etcd.url} (prefix /mocapd/)", "members:    3", "partitions: 8"]
+        assert lines[:4] == [
+            f"cluster:    {etcd.url} (prefix /mocapd/)",
+            "members:    3",
+            "partitions: 8",
+            "balance:    generation 1",
+        ]
         w1_line = next(line for line in lines if line.startswith("w1 "))
         assert w1_line.endswith(f"{' '.join(map(str, one))} / {' '.join(map(str, one))}")
         assert "0.12 s" in w1_line or "0.13 s" in w1_line

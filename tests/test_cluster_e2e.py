@@ -13,6 +13,7 @@ stopped one within a second."""
 
 from __future__ import annotations
 
+import itertools
 import json
 import os
 import signal
@@ -212,7 +213,13 @@ def test_takeovers_lose_and_repeat_no_detection(tmp_path: Path) -> None:
                 assert live - at <= 1.0, f"partition {p} taken {live - at:.2f} s after, more than 1 s"
 
         # the etcd member killed moved no partition: the workers paused at most, kept their leases
-        moved = [e for w in workers for e in w.events("partitions") if etcd_killed <= e["ts"] < killed_at]
+        # (the leader evening the streams out may move some meanwhile: a new balance generation)
+        moved = [
+            e
+            for w in workers
+            for before, e in itertools.pairwise(w.events("partitions"))
+            if etcd_killed <= e["ts"] < killed_at and e["generation"] == before["generation"]
+        ]
         assert not moved, f"partitions moved when an etcd member was killed: {moved}"
 
         assert {d["id"] for d in mqtt.detections()} == {d["id"] for d in nats.messages}

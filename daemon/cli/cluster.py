@@ -99,7 +99,7 @@ def summary(status: ClusterStatus, partitions: int) -> dict[str, Any]:
     per partition its owner, who reports it and its streams, and the disagreements."""
     from daemon.cluster.ring import assignment
 
-    ring = assignment(status.names, partitions)
+    ring = assignment(status.names, partitions, status.balance.weights)
     members: list[dict[str, Any]] = []
     reporters: dict[int, list[str]] = {p: [] for p in range(partitions)}
     streams: dict[int, int] = {}
@@ -117,7 +117,8 @@ def summary(status: ClusterStatus, partitions: int) -> dict[str, Any]:
             disagreements.append(f"{m.name} reports no list of partitions")
         elif reported != expected:
             disagreements.append(
-                f"{m.name} reports owning {reported}, the ring over the live members gives it {expected}"
+                f"{m.name} reports owning {reported}, the ring over the live members "
+                f"(with the balance) gives it {expected}"
             )
         for p in reported or ():
             if p in reporters:
@@ -150,6 +151,7 @@ def summary(status: ClusterStatus, partitions: int) -> dict[str, Any]:
         "coordinator": status.coordinator,
         "prefix": status.prefix,
         "partitions": partitions,
+        "balance": status.balance.generation,
         "members": members,
         "table": table,
         "disagreements": disagreements,
@@ -181,6 +183,7 @@ def _status(args: argparse.Namespace, config: Config) -> int:
     print(f"cluster:    {coordinator} (prefix {args.prefix})")
     print(f"members:    {len(out['members'])}")
     print(f"partitions: {partitions}")
+    print(f"balance:    generation {out['balance']}" + ("" if out["balance"] else " (the ring alone)"))
     if out["members"]:
         print()
         print(f"{'member':<16} {'lease left':>10} {'streams':>7} {'lag':>8}  partitions (ring / reported)")

@@ -23,9 +23,14 @@ names, these extra moves were on average 5 % (3 members) to 27 % (8 to 10 member
 of the member that left or joined, at worst 54 % (``python -m bench.bench_ring``). Loosening the room to
 ``ceil(1.1 P / N)`` halves them but lets a member of ten fall to 14 partitions, 45 % below the mean.
 
-Streams are spread over partitions by a hash of their id (``protocols.nats.partition_of``), so the
-streams per worker balance as the streams' hashes do: evenly with many streams per worker, within
-±20 % only from about 100 streams per worker (docs/cluster.md, "Partitions").
+Streams: they are spread over partitions by a hash of their id (``protocols.nats.partition_of``),
+so the ring alone balances streams per worker only as their hashes do (within ±20 % from about 100
+streams per worker). Given ``weights`` (the streams each partition holds, as the cluster's leader
+last measured and wrote them: ``docs/cluster.md``, "Balance"), :func:`assignment` then evens the
+members' loads out (:func:`even_out`): it moves a partition with streams from a member with more
+to one with fewer (or swaps two), each move or swap strictly lowering the sum of the squared loads,
+and gives back a partition without streams for each one moved so that the partition counts stay
+as the ring made them; it stops when no such move is left.
 
 Pure: no I/O, no clock, no randomness; the hash is BLAKE2b, never Python's per-process salted
 ``hash()``, so every process ranks alike.
@@ -34,7 +39,7 @@ Pure: no I/O, no clock, no randomness; the hash is BLAKE2b, never Python's per-p
 from __future__ import annotations
 
 import hashlib
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable, Mapping
 
 from daemon.errors import InputError
 
@@ -60,9 +65,100 @@ def room(members: int, partitions: int) -> int:
     return -(-partitions // members) if members else 0
 
 
-def assignment(members: Iterable[str], partitions: int) -> dict[str, frozenset[int]]:
+Weights = Mapping[int, int]
+"""Streams per partition (absent: none)."""
+
+
+def assignment(
+    members: Iterable[str], partitions: int, weights: Weights | None = None
+) -> dict[str, frozenset[int]]:
     """Every member (duplicates once) with the partitions of ``0 .. partitions-1`` it owns, maybe
-    none (module docstring; equal scores: the smaller name first, then the smaller partition)."""
+    none (module docstring; equal scores: the smaller name first, then the smaller partition); with
+    ``weights``, the members' streams evened out (:func:`even_out`)."""
+    owned = _ring(members, partitions)
+    if weights:
+        even_out(owned, weights)
+    return {m: frozenset(ps) for m, ps in owned.items()}
+
+
+def loads(owned: Mapping[str, Iterable[int]], weights: Weights) -> dict[str, int]:
+    """Each member's streams: the ``weights`` of the partitions it owns."""
+    return {m: sum(weights.get(p, 0) for p in ps) for m, ps in owned.items()}
+
+
+def spread(counts: Mapping[str, int]) -> float:
+    """How far the fullest or emptiest member is from the mean, as a share of the mean (0: no
+    streams)."""
+    if not counts or not sum(counts.values()):
+        return 0.0
+    mean = sum(counts.values()) / len(counts)
+    return max(max(counts.values()) - mean, mean - min(counts.values())) / mean
+
+
+def even_out(owned: dict[str, set[int]], weights: Weights) -> None:
+    """Move partitions between the members of ``owned`` (in place) until no move of one partition
+    with streams, nor swap of two, from a fuller member to an emptier one lowers the sum of the
+    squared loads (a move of ``w`` streams across a gap of ``g`` does exactly when ``0 < w < g``;
+    the one chosen brings the two loads closest together, ties to the smaller partitions; the
+    fullest pair first, ties to the smaller names). For each partition moved, the emptier member
+    gives back the partition without streams that the fuller one ranks highest, if it has one."""
+
+    def w(p: int) -> int:
+        return weights.get(p, 0)
+
+    load = loads(owned, weights)
+    while True:
+        order = sorted(load, key=lambda m: (load[m], m))
+        step = next(
+            (
+                (hi, lo, found)
+                for hi in reversed(order)
+                for lo in order
+                if load[hi] - load[lo] > 1 and (found := _best(owned[hi], owned[lo], load[hi] - load[lo], w))
+            ),
+            None,
+        )
+        if step is None:
+            return
+        hi, lo, (p, q) = step
+        owned[hi].remove(p)
+        owned[lo].add(p)
+        if q is None:
+            empty = [e for e in owned[lo] if not w(e)]
+            if empty:
+                q = max(empty, key=lambda e: (score(hi, e), -e))
+        if q is not None:
+            owned[lo].remove(q)
+            owned[hi].add(q)
+        moved = w(p) - (0 if q is None else w(q))
+        load[hi] -= moved
+        load[lo] += moved
+
+
+def _best(
+    fuller: set[int], emptier: set[int], gap: int, w: Callable[[int], int]
+) -> tuple[int, int | None] | None:
+    """The move (partition, None) or swap (partition, partition) from ``fuller`` to ``emptier``
+    whose streams ``0 < d < gap`` bring the two closest together (None: no such)."""
+    moves = [(abs(gap - 2 * w(p)), p, -1) for p in fuller if 0 < w(p) < gap]
+    if moves:
+        _, p, _ = min(moves)
+        return p, None
+    swaps = [
+        (abs(gap - 2 * (w(p) - w(q))), p, q)
+        for p in fuller
+        if w(p)
+        for q in emptier
+        if w(q) > 0 and 0 < w(p) - w(q) < gap
+    ]
+    if not swaps:
+        return None
+    _, p, q = min(swaps)
+    return p, q
+
+
+def _ring(members: Iterable[str], partitions: int) -> dict[str, set[int]]:
+    """The ring alone: bounded-load rendezvous hashing over partition counts."""
     _check(partitions)
     live = sorted(set(members))
     owned: dict[str, set[int]] = {m: set() for m in live}
@@ -75,27 +171,33 @@ def assignment(members: Iterable[str], partitions: int) -> dict[str, frozenset[i
             owned[m].add(p)
             if len(taken) == partitions:
                 break
-    return {m: frozenset(ps) for m, ps in owned.items()}
+    return owned
 
 
-def owned(member: str, members: Iterable[str], partitions: int) -> frozenset[int]:
-    """The partitions ``member`` owns among ``members``: none if it is not one of them (a member
-    that is not live owns nothing)."""
+def owned(
+    member: str, members: Iterable[str], partitions: int, weights: Weights | None = None
+) -> frozenset[int]:
+    """The partitions ``member`` owns among ``members`` (with ``weights``, :func:`assignment`):
+    none if it is not one of them (a member that is not live owns nothing)."""
     _check(partitions)
     live = set(members)
     if member not in live:
         return frozenset()
-    return assignment(live, partitions)[member]
+    return assignment(live, partitions, weights)[member]
 
 
 def orphaned(
-    partitions: Iterable[int], before: Iterable[str], after: Iterable[str], count: int
+    partitions: Iterable[int],
+    before: Iterable[str],
+    after: Iterable[str],
+    count: int,
+    weights: Weights | None = None,
 ) -> frozenset[int]:
-    """Those of ``partitions`` whose owner among the members ``before`` is not among ``after`` (it
-    left or died), or that had no owner: nobody else can be reading them, so a new owner may take
-    them at once. ``count``: the number of partitions."""
+    """Those of ``partitions`` whose owner among the members ``before`` (with the ``weights`` of
+    then) is not among ``after`` (it left or died), or that had no owner: nobody else can be
+    reading them, so a new owner may take them at once. ``count``: the number of partitions."""
     _check(count)
     live = set(after)
-    ring = assignment(before, count)
+    ring = assignment(before, count, weights)
     owner = {p: m for m, ps in ring.items() for p in ps}
     return frozenset(p for p in partitions if owner.get(p) not in live)

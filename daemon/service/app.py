@@ -574,6 +574,7 @@ class Service:
                             self.cluster.follow(self.table, lambda: self.settled), name="cluster membership"
                         )
                         group.create_task(self.cluster.report(self.table, self._lag), name="cluster status")
+                        group.create_task(self.cluster.lead(), name="cluster balance")
                         if self.config.cluster.checkpoint_s > 0:
                             group.create_task(
                                 self.cluster.checkpoint(self.table, lambda: self.settled),

@@ -19,15 +19,15 @@ import logging
 import os
 import socket
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable, Mapping
 from types import TracebackType
 from typing import TYPE_CHECKING, Any
 
-from daemon.cluster.ring import orphaned, owned
+from daemon.cluster.ring import assignment, loads, orphaned, owned, spread
 from daemon.config import ClusterConfig
 from daemon.library import Library
 from daemon.recognizer import Recognizer
-from daemon.service.membership import Membership
+from daemon.service.membership import Balance, Membership
 from replay import JOINT_NAMES
 
 if TYPE_CHECKING:
@@ -44,6 +44,42 @@ SAMPLE_S = 0.5
 """How often the owned partitions are looked at for a checkpoint."""
 HAND_OVER_S = 1.0
 """The longest a worker told to stop waits for its last checkpoints (:meth:`Cluster.hand_over`)."""
+TOLERANCE = 0.2
+"""The leader evens the loads out when the fullest or emptiest member is further than this share
+of the mean from it (and evening out brings them closer)."""
+
+
+def measured(
+    statuses: Mapping[str, Mapping[str, Any]], members: Iterable[str], generation: int
+) -> dict[int, int] | None:
+    """The streams per partition the live ``members`` report (a partition reported by two, handed
+    over between reports: the larger count); None unless every one of them reported owning its
+    partitions by the balance of ``generation`` (its losses given up: what it reports is what it
+    holds by that balance)."""
+    counts: dict[int, int] = {}
+    for name in members:
+        status = statuses.get(name)
+        if status is None or status.get("generation") != generation:
+            return None
+        streams = status.get("streams")
+        for k, n in streams.items() if isinstance(streams, dict) else ():
+            if isinstance(k, str) and k.isdigit() and isinstance(n, int) and n > 0:
+                counts[int(k)] = max(counts.get(int(k), 0), n)
+    return counts
+
+
+def rebalance(
+    members: frozenset[str], partitions: int, now: Balance, counts: Mapping[int, int]
+) -> Balance | None:
+    """The balance the leader writes when the members' loads of ``counts`` under ``now`` spread
+    further than :data:`TOLERANCE` from their mean and evening them out by ``counts`` brings them
+    closer (None: keep ``now``)."""
+    spread_now = spread(loads(assignment(members, partitions, now.weights), counts))
+    if spread_now <= TOLERANCE:
+        return None
+    if spread(loads(assignment(members, partitions, counts), counts)) >= spread_now:
+        return None
+    return Balance(now.generation + 1, dict(counts))
 
 
 def reach_seconds(library: Library, config: Any) -> float:
@@ -81,6 +117,8 @@ class Cluster:
         self.transport = transport
         self.log = log
         self.members: frozenset[str] = frozenset()
+        self.balance = Balance()
+        """The leader's balance this worker owns its partitions by (given up what it loses)."""
         self.takeovers = 0
         """Partitions taken after this worker's first assignment (from a member that left or died,
         or given up to one that joined: counted by the taker)."""
@@ -139,38 +177,44 @@ class Cluster:
         async for members in m.changes():
             if self._left:
                 return
-            count = self.settings.partitions
-            mine = owned(self.member, members, count)
+            count, balance = self.settings.partitions, m.balance
+            mine = owned(self.member, members, count, balance.weights)
             held = self.transport.owned
-            before = self.members if self._assigned else members - {self.member}
-            if waiting := mine - held - orphaned(mine - held, before, members, count):
-                await self._own(mine - waiting, members, table, settled, final=False)  # losses; the gone's
+            before, then = (
+                (self.members, self.balance) if self._assigned else (members - {self.member}, balance)
+            )
+            if waiting := mine - held - orphaned(mine - held, before, members, count, then.weights):
+                # losses and the gone's first
+                await self._own(mine - waiting, members, balance, table, settled, final=False)
                 await asyncio.sleep(SETTLE_S)
                 if self._left:
                     return
-                members = m.members
-                mine = owned(self.member, members, count)
-            await self._own(mine, members, table, settled)
+                members, balance = m.members, m.balance
+                mine = owned(self.member, members, count, balance.weights)
+            await self._own(mine, members, balance, table, settled)
 
     async def _own(
         self,
         mine: frozenset[int],
         members: frozenset[str],
+        balance: Balance,
         table: StreamTable,
         settled: Callable[[], bool],
         *,
         final: bool = True,
     ) -> None:
         """Consume ``mine``; ``final``: the whole of what the ring gives this member among
-        ``members`` (not the part taken before settling), after which gains count as takeovers."""
+        ``members`` with ``balance`` (not the part taken before settling), after which gains count
+        as takeovers."""
         before = self.transport.owned
-        if mine == before and members == self.members:
+        if mine == before and members == self.members and balance == self.balance:
             return
         gained = mine - before
         if self._assigned:
             self.takeovers += len(gained)
         self._assigned = self._assigned or final
         self.members = members
+        self.balance = balance
         self.changes += 1
         lost = sorted(before - mine)
         handed = 0
@@ -183,6 +227,7 @@ class Cluster:
             extra={
                 "fields": {
                     "members": sorted(members),
+                    "generation": balance.generation,
                     "owned": sorted(mine),
                     "gained": sorted(gained),
                     "lost": lost,
@@ -267,6 +312,44 @@ class Cluster:
                 stored = await asyncio.gather(*(self.transport.checkpoint(p, *t) for p, t in due))
         return sum(stored)
 
+    async def lead(self) -> None:
+        """While this worker is the cluster's leader (the live member with the smallest name), every
+        ``cluster.balance_s`` (0: never): once every member owns its partitions by the current
+        balance, read the streams per partition they report and write a new balance when
+        :func:`rebalance` says (``docs/cluster.md``, "Balance"). Every worker then owns by it, as by
+        a change of members."""
+        m = self._membership
+        assert m is not None
+        every = self.settings.balance_s
+        while not self._left and every > 0:
+            await asyncio.sleep(every)
+            members, now = m.members, m.balance
+            if self.holding or self._handing_over or not members or self.member != min(members):
+                continue
+            if now != self.balance:
+                continue  # not owned by yet here
+            statuses = await m.statuses()
+            counts = None if statuses is None else measured(statuses, members, now.generation)
+            if counts is None:
+                continue
+            new = rebalance(members, self.settings.partitions, now, counts)
+            if new is None or self._left or self.holding:
+                continue
+            if await m.put_balance(new):
+                self.log.info(
+                    "balanced",
+                    extra={
+                        "fields": {
+                            "generation": new.generation,
+                            "streams": sum(counts.values()),
+                            "before": loads(
+                                assignment(members, self.settings.partitions, now.weights), counts
+                            ),
+                            "after": loads(assignment(members, self.settings.partitions, counts), counts),
+                        }
+                    },
+                )
+
     async def report(self, table: StreamTable, lag: Any) -> None:
         """This worker's status in etcd about once a second: partitions, streams per partition,
         queued poses."""
@@ -284,6 +367,7 @@ class Cluster:
                 await m.report(
                     {
                         "partitions": sorted(self.transport.owned),
+                        "generation": self.balance.generation,
                         "streams": per,
                         "queued": table.queued,
                         "lag_s": lag(),

@@ -65,7 +65,7 @@ import socket
 import threading
 import time
 from collections.abc import AsyncIterator, Coroutine, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from types import TracebackType
 from typing import Any
 
@@ -84,6 +84,36 @@ LEAVE_S = 1.0
 """Leaving waits at most this long for etcd to revoke the lease."""
 RETRY_S = 0.2
 """How soon a failed keep-alive or a broken watch is tried again (at most a third of a TTL)."""
+
+
+@dataclass(frozen=True)
+class Balance:
+    """The streams per partition the cluster's leader last measured (``{prefix}balance``), by which
+    every worker evens the ring's loads out (:func:`daemon.cluster.ring.assignment`);
+    ``generation`` counts the leader's writes (0: none yet, the ring alone)."""
+
+    generation: int = 0
+    weights: Mapping[int, int] = field(default_factory=dict)
+
+    def encode(self) -> bytes:
+        weights = {str(p): n for p, n in sorted(self.weights.items()) if n}
+        return json.dumps({"generation": self.generation, "weights": weights}, separators=(",", ":")).encode()
+
+
+def parse_balance(raw: bytes) -> Balance | None:
+    """The :class:`Balance` that ``raw`` holds (None: not one; a worker then keeps to the ring)."""
+    value = _json_object(raw)
+    if value is None:
+        return None
+    generation, weights = value.get("generation"), value.get("weights")
+    if not isinstance(generation, int) or isinstance(generation, bool) or not isinstance(weights, dict):
+        return None
+    parsed: dict[int, int] = {}
+    for k, n in weights.items():
+        if not (k.isdigit() and isinstance(n, int) and not isinstance(n, bool) and n >= 0):
+            return None
+        parsed[int(k)] = n
+    return Balance(generation, parsed)
 
 
 def _addresses(coordinator: str) -> list[tuple[str, int]]:
@@ -146,6 +176,8 @@ class Membership:
         self.lease_ttl = 0
         """The TTL etcd granted, in whole seconds (0 before entering)."""
         self._members_prefix = f"{prefix}members/".encode()
+        self._balance_key = f"{prefix}balance".encode()
+        self._balance = Balance()
         self._key = self._members_prefix + member.encode()
         self._status_key = f"{prefix}status/{member}".encode()
         self._client: Any = None
@@ -231,20 +263,25 @@ class Membership:
         seen = frozenset(self._seen)
         return seen - {self.member} if self.out else seen | {self.member}
 
+    @property
+    def balance(self) -> Balance:
+        """The leader's last :class:`Balance` as the watch last said."""
+        return self._balance
+
     async def changes(self) -> AsyncIterator[frozenset[str]]:
         """The current :attr:`members` first, then each new set whenever it changes: joins, leaves,
         expiries, and this member going out or coming back (a pause changes nothing; a consumer
-        slower than the changes gets the latest set, not every one between). Ends when the
-        membership is left."""
-        last: frozenset[str] | None = None
+        slower than the changes gets the latest set, not every one between); the set again when
+        the :attr:`balance` changes. Ends when the membership is left."""
+        last: tuple[frozenset[str], Balance] | None = None
         while not self._closed:
-            current = self.members
+            current = (self.members, self._balance)
             if current != last:
                 last = current
-                yield current
+                yield current[0]
                 continue
             changed = self._changed
-            wait = self._out_at() - time.monotonic() if self.member in current else None
+            wait = self._out_at() - time.monotonic() if self.member in current[0] else None
             with contextlib.suppress(TimeoutError):
                 async with asyncio.timeout(None if wait is None else max(wait, 0.001)):
                     await changed.wait()
@@ -407,12 +444,15 @@ class Membership:
         self._lease_problem = None
 
     async def _list_and_watch(self) -> None:
-        listing = await self._client.get_prefix(self._members_prefix)
-        self._seen = {
-            bytes(kv.key)[len(self._members_prefix) :].decode(errors="replace"): kv.lease for kv in listing
-        }
+        """List the members and the balance, and watch the whole prefix from there (the members'
+        statuses come along, passed over)."""
+        listing = await self._client.get_prefix(self.prefix.encode())
+        self._seen = {}
+        self._balance = Balance()
+        for kv in listing:
+            self._saw(bytes(kv.key), kv.value, kv.lease)
         self._watch = await self._client.watch_prefix(
-            self._members_prefix, start_revision=listing.header.revision + 1
+            self.prefix.encode(), start_revision=listing.header.revision + 1
         )
         self._watch_problem = None
         self._watch_broken_at = None
@@ -461,6 +501,21 @@ class Membership:
             # when the problem differed from what it was when the keep-alive was sent)
             self._notify()
 
+    def _saw(self, key: bytes, value: bytes | None, lease: int) -> bool:
+        """A key of the prefix listed, put or (``value`` None) deleted: whether it was a member's
+        or the balance."""
+        if key.startswith(self._members_prefix):
+            name = key[len(self._members_prefix) :].decode(errors="replace")
+            if value is None:
+                self._seen.pop(name, None)
+            else:
+                self._seen[name] = lease
+            return True
+        if key == self._balance_key:
+            self._balance = (None if value is None else parse_balance(value)) or Balance()
+            return True
+        return False
+
     async def _rejoin(self) -> bool:
         """The lease may have expired at etcd: join again with a new one."""
         if self._lease is not None:
@@ -481,12 +536,9 @@ class Membership:
                     async with asyncio.timeout(max(self.interval, RETRY_S)):
                         await self._list_and_watch()
                 async for event in self._watch:
-                    name = bytes(event.kv.key)[len(self._members_prefix) :].decode(errors="replace")
-                    if event.kind == aetcd.EventKind.DELETE:
-                        self._seen.pop(name, None)
-                    else:
-                        self._seen[name] = event.kv.lease
-                    self._notify()
+                    deleted = event.kind == aetcd.EventKind.DELETE
+                    if self._saw(bytes(event.kv.key), None if deleted else event.kv.value, event.kv.lease):
+                        self._notify()
                 self._watch_problem = "the watch of etcd's members ended (watching again)"
             except (aetcd.ClientError, TimeoutError, OSError, asyncio.CancelledError) as exc:
                 _reraise_if_cancelled(exc)
@@ -517,6 +569,38 @@ class Membership:
             self._report_problem = f"not reported: {self.problem or 'no lease'}"
             return
         await self._call(self._put_status(payload))
+
+    async def put_balance(self, balance: Balance) -> bool:
+        """Write ``balance`` (the leader's; under no lease: it outlives any one worker): whether
+        etcd took it within a keep-alive interval."""
+        return bool(await self._call(self._put_balance(balance.encode())))
+
+    async def _put_balance(self, payload: bytes) -> bool:
+        try:
+            async with asyncio.timeout(self.interval):
+                await self._client.put(self._balance_key, payload)
+        except (aetcd.ClientError, TimeoutError, OSError):
+            return False
+        return True
+
+    async def statuses(self) -> dict[str, dict[str, Any]] | None:
+        """The statuses the members reported (:meth:`report`), by name (those not JSON objects
+        left out); None when etcd did not answer within a keep-alive interval."""
+        return await self._call(self._statuses())  # type: ignore[no-any-return]
+
+    async def _statuses(self) -> dict[str, dict[str, Any]] | None:
+        prefix = f"{self.prefix}status/".encode()
+        try:
+            async with asyncio.timeout(self.interval):
+                listing = await self._client.get_prefix(prefix)
+        except (aetcd.ClientError, TimeoutError, OSError):
+            return None
+        out = {}
+        for kv in listing:
+            value = _json_object(kv.value)
+            if value is not None:
+                out[bytes(kv.key)[len(prefix) :].decode(errors="replace")] = value
+        return out
 
     async def _put_status(self, payload: bytes) -> None:
         try:
@@ -549,6 +633,8 @@ class ClusterStatus:
     coordinator: str
     prefix: str
     members: tuple[MemberStatus, ...]
+    balance: Balance = Balance()
+    """The leader's balance (the members own their partitions by it)."""
 
     @property
     def names(self) -> frozenset[str]:
@@ -573,9 +659,11 @@ async def cluster_status(coordinator: str, prefix: str = "/mocapd/") -> ClusterS
     StartupError naming ``cluster.coordinator`` if etcd does not answer within :data:`STARTUP_S`."""
     members_prefix, status_prefix = f"{prefix}members/".encode(), f"{prefix}status/".encode()
 
-    async def read(_: int, endpoint: tuple[str, int]) -> list[MemberStatus]:
+    async def read(_: int, endpoint: tuple[str, int]) -> tuple[list[MemberStatus], Balance]:
         client = aetcd.Client(*endpoint)
         try:
+            written = await client.get(f"{prefix}balance".encode())
+            balance = (None if written is None else parse_balance(written.value)) or Balance()
             listing = await client.get_prefix(members_prefix)
             statuses = {
                 bytes(kv.key)[len(status_prefix) :].decode(errors="replace"): _json_object(kv.value)
@@ -590,16 +678,18 @@ async def cluster_status(coordinator: str, prefix: str = "/mocapd/") -> ClusterS
                         name, statuses.get(name), left if left >= 0 else None, _json_object(kv.value) or {}
                     )
                 )
-            return members
+            return members, balance
         finally:
             with contextlib.suppress(aetcd.ClientError, TimeoutError, OSError):
                 async with asyncio.timeout(LEAVE_S):
                     await client.close()
 
     try:
-        members = await each_in_turn(_addresses(coordinator), read, STARTUP_S, (aetcd.ClientError, OSError))
+        members, balance = await each_in_turn(
+            _addresses(coordinator), read, STARTUP_S, (aetcd.ClientError, OSError)
+        )
     except (aetcd.ClientError, TimeoutError, OSError) as exc:
         raise StartupError(
             FIELD, f"cannot read the cluster from etcd at {coordinator}: {_why(exc)}"
         ) from None
-    return ClusterStatus(coordinator, prefix, tuple(sorted(members, key=lambda m: m.name)))
+    return ClusterStatus(coordinator, prefix, tuple(sorted(members, key=lambda m: m.name)), balance)
