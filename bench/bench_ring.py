@@ -10,7 +10,8 @@ For 3 to 10 members, over ``--sets`` random sets of member names (a fixed seed):
   those (mean and worst);
 - the streams per member, for 10, 30, 100 and 300 streams per member (random stream ids hashed to
   partitions as nats-server does, ``protocols.nats.partition_of``): the busiest member's streams
-  against the mean, median and worst over the sets.
+  against the mean, median and worst over the sets, with the ring alone and evened out by the
+  streams per partition (the leader's balance), and what evening out costs against the ring.
 """
 
 from __future__ import annotations
@@ -19,9 +20,11 @@ import argparse
 import random
 import statistics
 import time
+from collections import Counter
 
 from bench.machine import describe
 from daemon.cluster.ring import assignment, score
+from daemon.cluster.ring import loads as loads_of
 from protocols.nats import partition_of
 
 MEMBERS = range(3, 11)
@@ -51,12 +54,16 @@ def main() -> None:
         f"{'members':>7} {'mean':>6} {'ring least-most':>16} {'rendezvous least-most':>22} "
         f"{'extra moves mean':>17} {'worst':>6}  busiest member's streams / mean, median (worst) "
         + " ".join(f"{s}/member" for s in STREAMS_PER_MEMBER)
+        + "   evened out, worst: "
+        + " ".join(f"{s}/member" for s in STREAMS_PER_MEMBER)
     )
     started = time.perf_counter()
+    timing = [0.0, 0.0]  # evening out, the ring alone
     for n in MEMBERS:
         least = most = plain_least = plain_most = None
         extra: list[float] = []
         busiest: dict[int, list[float]] = {s: [] for s in STREAMS_PER_MEMBER}
+        even: dict[int, list[float]] = {s: [] for s in STREAMS_PER_MEMBER}
         for _ in range(args.sets):
             names = [f"worker-{rng.getrandbits(40):010x}" for _ in range(n)]
             ring = assignment(names, p)
@@ -72,19 +79,26 @@ def main() -> None:
             joined = assignment([*names, joiner], p)
             moved = sum(len(ring[m] - joined[m]) for m in names) - len(joined[joiner])
             extra.append(moved / max(1, len(joined[joiner])))
-            owner = {q: m for m, qs in ring.items() for q in qs}
             for per in STREAMS_PER_MEMBER:
-                count = dict.fromkeys(names, 0)
-                for _ in range(per * n):
-                    count[owner[partition_of(f"s{rng.getrandbits(48):012x}", p)]] += 1
-                busiest[per].append(max(count.values()) / per)
+                weights = Counter(partition_of(f"s{rng.getrandbits(48):012x}", p) for _ in range(per * n))
+                busiest[per].append(max(loads_of(ring, weights).values()) / per)
+                t = time.perf_counter()
+                evened = assignment(names, p, weights)
+                timing[0] += time.perf_counter() - t
+                t = time.perf_counter()
+                assignment(names, p)
+                timing[1] += time.perf_counter() - t
+                even[per].append(max(loads_of(evened, weights).values()) / per)
         balance = " ".join(
             f"{statistics.median(b):.2f} ({max(b):.2f})".rjust(len(f"{s}/member")) for s, b in busiest.items()
         )
+        evened_out = " ".join(f"{max(b):.2f}".rjust(len(f"{s}/member")) for s, b in even.items())
         print(
             f"{n:>7} {p / n:>6.1f} {f'{least}-{most}':>16} {f'{plain_least}-{plain_most}':>22} "
-            f"{statistics.mean(extra):>17.0%} {max(extra):>6.0%}  {balance}"
+            f"{statistics.mean(extra):>17.0%} {max(extra):>6.0%}  {balance}   {evened_out}"
         )
+    each = timing[0] * 1000 / (len(MEMBERS) * args.sets * len(STREAMS_PER_MEMBER))
+    print(f"evening out: {timing[0] / timing[1]:.2f}x the ring's time ({each:.1f} ms an assignment)")
     print(f"took {time.perf_counter() - started:.1f} s")
 
 
