@@ -253,7 +253,7 @@ class Reader:
             except (OSError, EOFError, ValueError, ProtocolError, asyncio.LimitOverrunError) as e:
                 why = f"{type(e).__name__}: {e}"[:200]
             self._disconnected(why)
-            log.warning("deliveries disconnected", extra={"fields": {"error": why}})
+            log.warning("deliveries disconnected", extra={"fields": {"reader": self.name, "error": why}})
             backoff = RECONNECT_MIN_S
             while True:
                 await asyncio.sleep(backoff)
@@ -267,7 +267,10 @@ class Reader:
                     if self._at == 0:  # every server tried once: wait longer
                         backoff = min(2 * backoff, RECONNECT_MAX_S)
             self.reconnects += 1
-            log.info("deliveries reconnected", extra={"fields": {"subscriptions": len(self._subs)}})
+            log.info(
+                "deliveries reconnected",
+                extra={"fields": {"reader": self.name, "subscriptions": len(self._subs)}},
+            )
 
     async def _read(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         """Until the connection ends: each message to its subscription's handler, PING answered,

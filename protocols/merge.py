@@ -24,6 +24,11 @@ between them too early. Both its copies are passed, each in its path's order (th
 like any other), and the stream table takes the second for the repeat it is. What was passed on
 one path is remembered for ``remember_s`` so that its copy on the other is dropped.
 
+The live path itself is two: a plain subscription on the server the worker talks to and another on
+a second server (:class:`Twice` passes the first copy of each message on to the merge), so that the
+server the worker talks to, killed, costs no message while the worker's connections move (its
+buffers' leaders may be electing meanwhile: the buffer has lost them too).
+
 Exact (each message once, every stream's messages in the order they were published) when only the
 buffer loses messages and the live copy of a message comes before its buffered copy (a live copy
 is routed while the buffered one is still being replicated), or when only the live path loses and
@@ -210,3 +215,32 @@ class Merge(Generic[T]):
             self._stall_since = min(self._stall_since, now)
             self._released = (first.n, now)
         return (-1, first.item)
+
+
+class Twice:
+    """The live copies of one partition's messages from two plain subscriptions on two servers
+    (``path`` 0 and 1) made one: :meth:`first` says whether a copy is the first of its message
+    (pass it on) or the other path's copy of one passed already (drop it). Copies are matched by
+    key as a multiset, as :class:`Merge` matches, and a copy is remembered for ``remember_s`` for
+    its twin (a path whose server is away delivers none). Each message once whenever the paths
+    between them deliver it within ``remember_s``; in the order published when neither path lost
+    messages (a message's first copy comes after the first copy of every message before it)."""
+
+    def __init__(self, remember_s: float) -> None:
+        self._passed = (_Remembered(remember_s), _Remembered(remember_s))
+        self.twins = 0
+        """Copies dropped: their twin from the other path was passed."""
+
+    def first(self, key: int | None, path: int, now: float) -> bool:
+        """Whether the copy of ``key`` (None: a message repeated identically, both passed) from
+        ``path`` is the first of its message."""
+        if key is None:
+            return True
+        mine, other = self._passed[path], self._passed[1 - path]
+        mine.forget(now)
+        other.forget(now)
+        if other.take(key) is not None:
+            self.twins += 1
+            return False
+        mine.add(key, now)
+        return True

@@ -63,7 +63,7 @@ from nats.js.errors import Error as JetStreamError
 from nats.js.errors import KeyNotFoundError, ServiceUnavailableError
 
 from protocols.deliveries import Delivery, ProtocolError, Reader
-from protocols.merge import Merge, Passed
+from protocols.merge import Merge, Passed, Twice
 from protocols.transport import STATE_TOPIC, Incoming, Outgoing, StartupError, Throttle
 from protocols.urls import parse_nats_urls
 
@@ -123,6 +123,11 @@ without it (:mod:`protocols.merge`): the longest the poses of a buffer that elec
 late."""
 REMEMBER_S = 30.0
 """How long a copy passed on one path is remembered, so that its copy on the other is dropped."""
+TWIN_S = 2.0
+"""How long a live copy from one plain subscription waits to be matched by its twin from the other
+(:class:`protocols.merge.Twice`; they come milliseconds apart, or not at all while a server is
+away: a twin later still goes to the merge, which takes it for a new live copy, and the stream table
+refuses it as a repeat). Short, because every message is remembered this long."""
 HELD_MOST = 1 << 16
 """Live copies held per partition at most (while its buffer replays, or its consumer is made again)."""
 RELEASE_EVERY_S = 0.1
@@ -276,7 +281,9 @@ class NatsTransport:
         self._storing = 0
         self._publisher: asyncio.Task[None] | None = None
         self._merges: dict[int, Merge[Delivery]] = {}
-        self._live: dict[int, int] = {}  # per partition read on both paths, its subscription's id
+        self._twice: dict[int, Twice] = {}
+        self._second: Reader | None = None  # the second plain subscriptions', on another server
+        self._live: dict[int, tuple[int, int | None]] = {}  # per partition, its plain subscriptions
         self._releasing: asyncio.Task[None] | None = None
 
     # ------------------------------------------------------------------------------ the connection
@@ -338,6 +345,17 @@ class NatsTransport:
             await nc.close()
             why = str(e) or type(e).__name__
             raise StartupError("cluster.nats", f"{url}: cannot read deliveries: {why}") from None
+        if self.both_paths and len(servers) > 1:
+            # on another server from the first: whichever of the two is killed, the other carries
+            # the live copies while the reader of the killed one moves (protocols.merge.Twice)
+            self._second = Reader([*servers[1:], servers[0]], name=f"{self.instance} second copies")
+            try:
+                await self._second.start(STARTUP_S)
+            except (OSError, ValueError, ProtocolError) as e:
+                await self._reader.close()
+                await nc.close()
+                why = str(e) or type(e).__name__
+                raise StartupError("cluster.nats", f"{url}: cannot read deliveries: {why}") from None
         if self._status is not None:
             await self._plain(self._status[0])
         if self.both_paths:
@@ -394,8 +412,9 @@ class NatsTransport:
         for task in (self._releasing, self._publisher):
             if task is not None:
                 task.cancel()
-        if self._reader is not None:
-            await self._reader.close()
+        for reader in (self._reader, self._second):
+            if reader is not None:
+                await reader.close()
         nc = self._nc
         if nc is None:
             return
@@ -513,7 +532,7 @@ class NatsTransport:
     def dropped(self) -> dict[str, int]:
         """Messages on a delivery subject that no buffer delivered (``nats_foreign``) and deliveries
         whose handling raised (``nats_internal``, a defect: that message lost, the reading goes on)."""
-        failures = 0 if self._reader is None else self._reader.failures
+        failures = sum(r.failures for r in (self._reader, self._second) if r is not None)
         return {"nats_foreign": self.foreign, "nats_internal": failures}
 
     def drain_within(self, seconds: float) -> None:
@@ -555,9 +574,11 @@ class NatsTransport:
                 log.warning("partition consumers slow to stop", extra={"fields": {"count": len(late)}})
         for p in gone:
             self._merges.pop(p, None)
-            sid = self._live.pop(p, None)
-            if sid is not None and self._reader is not None:
-                await self._reader.unsubscribe(sid)
+            self._twice.pop(p, None)
+            sids = self._live.pop(p, None)
+            for sid, reader in zip(sids or (), (self._reader, self._second), strict=False):
+                if sid is not None and reader is not None:
+                    await reader.unsubscribe(sid)
             self._partial.discard(p)
             self._behind.pop(p, None)
             self._position.pop(p, None)
@@ -572,7 +593,11 @@ class NatsTransport:
                 # subscribed before the consumer starts: what the plain subscription misses at the
                 # start, the buffer has
                 self._merges[p] = Merge(HOLD_S, REMEMBER_S, HELD_MOST)
-                self._live[p] = self._reader.register(buffer_subject(p), self._live_copy(p))
+                second = None
+                if self._second is not None:
+                    self._twice[p] = Twice(TWIN_S)
+                    second = self._second.register(buffer_subject(p), self._live_copy(p, 1))
+                self._live[p] = (self._reader.register(buffer_subject(p), self._live_copy(p, 0)), second)
             self._take(p)
         await self._watch_strays(0 in partitions)
         return lost
@@ -604,13 +629,17 @@ class NatsTransport:
         except asyncio.QueueFull:
             await self._queue.put((0, -1, None, incoming))
 
-    def _live_copy(self, p: int) -> Callable[[Delivery], Awaitable[None]]:
-        """The handler of partition ``p``'s plain subscription: each message to the merge."""
+    def _live_copy(self, p: int, path: int) -> Callable[[Delivery], Awaitable[None]]:
+        """The handler of partition ``p``'s plain subscription on reader ``path`` (0: the first, 1:
+        the second): each message's first copy to the merge."""
 
         async def got(d: Delivery) -> None:
             merge = self._merges.get(p)
-            if merge is not None:
-                await self._pass(p, merge.push(merge_key(d), d, time.monotonic()), replayed=False)
+            if merge is None:
+                return
+            key, now, twice = merge_key(d), time.monotonic(), self._twice.get(p)
+            if twice is None or twice.first(key, path, now):
+                await self._pass(p, merge.push(key, d, now), replayed=False)
 
         return got
 

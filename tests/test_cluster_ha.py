@@ -13,6 +13,7 @@ import asyncio
 import subprocess
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -62,6 +63,12 @@ async def _publish(url: str, speed: float = 4.0) -> tuple[str, int]:
 async def _led_elsewhere(cluster: NatsCluster, p: int) -> int:
     """The index of the server leading partition ``p``'s buffer, asked to step down first if that
     is the first server (the one the worker, the publisher and the subscriber talk to)."""
+    return await _led_by(cluster, p, lambda k: k > 0)
+
+
+async def _led_by(cluster: NatsCluster, p: int, wanted: Callable[[int], bool]) -> int:
+    """The index of the server leading partition ``p``'s buffer, asked to step down until it is
+    one that is ``wanted``."""
     import nats
 
     nc = await nats.connect(cluster.servers[0].url)
@@ -71,12 +78,12 @@ async def _led_elsewhere(cluster: NatsCluster, p: int) -> int:
         deadline = time.monotonic() + 30
         while time.monotonic() < deadline:
             leader = await cluster.leader_of(buffer, js)
-            if leader is not None and leader > 0:
+            if leader is not None and wanted(leader):
                 return leader
-            if leader == 0:
+            if leader is not None:
                 await nc.request(f"$JS.API.STREAM.LEADER.STEPDOWN.{buffer}", b"", timeout=5.0)
             await asyncio.sleep(0.5)
-        raise AssertionError(f"{buffer} led by the first server still")
+        raise AssertionError(f"{buffer} not led by a server wanted")
     finally:
         await nc.close()
 
@@ -181,6 +188,37 @@ def test_a_buffers_leader_killed_while_a_recording_plays_costs_no_detection(tmp_
         rejects = {k: v for k, v in metrics.items() if k.startswith("mocapd_rejects_total") and v}
         assert rejects == {}, rejects  # no pose out of order, none twice
         assert metrics["mocapd_cluster_unbuffered_total"] > 0  # what the buffer lost came so
+    finally:
+        stop_all(load, collector, worker, etcd, cluster)
+
+
+@pytest.mark.slow
+def test_the_server_a_worker_talks_to_killed_while_leading_a_buffer_costs_no_detection(
+    tmp_path: Path,
+) -> None:
+    """The worst server to lose: the one the worker's connections go to, while it leads the buffer
+    of a partition a recording plays into (published through another server). The buffer stores
+    nothing until a new leader is elected, and the worker's connections move to another server; its
+    second plain subscription, on another server from the start, carries the partition meanwhile
+    (:class:`protocols.merge.Twice`): the detections are ``mocapd detect``'s, each once. A
+    CPU-bound process runs beside them."""
+    cluster, etcd, worker, port = _one_worker(tmp_path)
+    collector = load = None
+    try:
+        load = burner()
+        asyncio.run(_led_by(cluster, partition_of(streams(1)[0].id, PARTITIONS), lambda k: k == 0))
+        second = cluster.servers[1]
+        collector = NatsCollector(second.url)
+        published: list[tuple[str, int]] = []
+        playing = threading.Thread(target=lambda: published.append(asyncio.run(_publish(second.url, 2.0))))
+        playing.start()
+        time.sleep(3.0)
+        cluster.servers[0].kill()
+        playing.join(60)
+        _each_once_as_detect(collector, *published[0])
+        metrics = scrape(port)
+        rejects = {k: v for k, v in metrics.items() if k.startswith("mocapd_rejects_total") and v}
+        assert rejects == {}, rejects
     finally:
         stop_all(load, collector, worker, etcd, cluster)
 

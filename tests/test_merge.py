@@ -12,7 +12,7 @@ from dataclasses import dataclass
 from hypothesis import given
 from hypothesis import strategies as st
 
-from protocols.merge import Merge, Passed
+from protocols.merge import Merge, Passed, Twice
 
 
 @dataclass(frozen=True)
@@ -205,3 +205,46 @@ def test_past_most_the_oldest_held_copy_is_dropped() -> None:
     assert merge.held == 2 and merge.dropped == 1
     merge.replaying = False
     assert merge.release(2.0) == [(-1, "b"), (-1, "c")]
+
+
+@st.composite
+def twin_paths(draw: st.DrawFn) -> tuple[int, list[tuple[float, int, int]], bool]:
+    """``n`` distinct messages published 0.01 s apart, each path delivering them in order, late by
+    a random delay that grows with time (as a connection's queue does) and losing random runs of
+    them (a server away): (n, the copies as (arrival, path, index) in arrival order, whether
+    either path lost one)."""
+    n = draw(st.integers(0, 40))
+    copies: list[tuple[float, int, int]] = []
+    lost = False
+    for path in (0, 1):
+        kept = draw(st.lists(st.booleans(), min_size=n, max_size=n))
+        lost = lost or not all(kept)
+        delay = 0.0
+        for i in range(n):
+            delay += draw(st.floats(0, 0.02))
+            if kept[i]:
+                copies.append((i * 0.01 + delay, path, i))
+    copies.sort()
+    return n, copies, lost
+
+
+@given(twin_paths())
+def test_of_two_live_paths_each_message_is_passed_once_and_in_order_when_neither_lost_one(
+    drawn: tuple[int, list[tuple[float, int, int]], bool],
+) -> None:
+    n, copies, lost = drawn
+    twice = Twice(remember_s=10.0)
+    passed = [i for at, path, i in copies if twice.first(hash(("s", i)), path, at)]
+    assert sorted(passed) == sorted({i for _, _, i in copies})  # every message that came, once
+    if not lost:
+        assert passed == list(range(n))
+    assert twice.twins == len(copies) - len(passed)
+
+
+def test_a_twin_later_than_remember_s_is_passed_again_and_repeated_messages_always() -> None:
+    twice = Twice(remember_s=1.0)
+    assert twice.first(7, 0, 0.0) and not twice.first(7, 1, 0.5)
+    assert twice.first(8, 0, 1.0) and twice.first(8, 1, 2.5)  # forgotten: passed again
+    assert twice.first(None, 0, 3.0) and twice.first(None, 1, 3.0)
+    assert twice.first(9, 0, 4.0) and twice.first(9, 0, 4.0)  # the same message published twice
+    assert not twice.first(9, 1, 4.1) and not twice.first(9, 1, 4.2) and twice.first(9, 1, 4.3)
