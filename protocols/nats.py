@@ -282,6 +282,7 @@ class NatsTransport:
         self._publisher: asyncio.Task[None] | None = None
         self._merges: dict[int, Merge[Delivery]] = {}
         self._twice: dict[int, Twice] = {}
+        self._held_dropped = 0  # live copies the merges of partitions given up dropped past HELD_MOST
         self._second: Reader | None = None  # the second plain subscriptions', on another server
         self._live: dict[int, tuple[int, int | None]] = {}  # per partition, its plain subscriptions
         self._releasing: asyncio.Task[None] | None = None
@@ -530,10 +531,13 @@ class NatsTransport:
         return self._outgoing.qsize() + self._storing
 
     def dropped(self) -> dict[str, int]:
-        """Messages on a delivery subject that no buffer delivered (``nats_foreign``) and deliveries
-        whose handling raised (``nats_internal``, a defect: that message lost, the reading goes on)."""
+        """Messages on a delivery subject that no buffer delivered (``nats_foreign``), deliveries
+        whose handling raised (``nats_internal``, a defect: that message lost, the reading goes on)
+        and live copies held past :data:`HELD_MOST` (``nats_held``: the buffer has them, if it
+        works)."""
         failures = sum(r.failures for r in (self._reader, self._second) if r is not None)
-        return {"nats_foreign": self.foreign, "nats_internal": failures}
+        held = self._held_dropped + sum(m.dropped for m in self._merges.values())
+        return {"nats_foreign": self.foreign, "nats_internal": failures, "nats_held": held}
 
     def drain_within(self, seconds: float) -> None:
         self._drain_s = seconds
@@ -573,7 +577,9 @@ class NatsTransport:
             if late:
                 log.warning("partition consumers slow to stop", extra={"fields": {"count": len(late)}})
         for p in gone:
-            self._merges.pop(p, None)
+            merge = self._merges.pop(p, None)
+            if merge is not None:
+                self._held_dropped += merge.dropped
             self._twice.pop(p, None)
             sids = self._live.pop(p, None)
             for sid, reader in zip(sids or (), (self._reader, self._second), strict=False):

@@ -305,6 +305,9 @@ def test_a_stream_whose_live_copies_are_held_is_waiting_and_they_come_though_no_
                 nc = await nats.connect(server.url)
                 await nc.jetstream().delete_stream("MOCAPD_BUF_0")
                 await transport.own(frozenset({0}))
+                async with asyncio.timeout(10):  # the plain subscription in place: nothing lost
+                    while not await asyncio.to_thread(server.subscribed, "mocap.p.0.>"):
+                        await asyncio.sleep(0.01)
                 await nc.publish(f"mocap.{stream}.pose", b"0")
                 await nc.flush()
                 async with asyncio.timeout(HOLD_S):
