@@ -447,10 +447,16 @@ class Membership:
         """List the members and the balance, and watch the whole prefix from there (the members'
         statuses come along, passed over)."""
         listing = await self._client.get_prefix(self.prefix.encode())
-        self._seen = {}
-        self._balance = Balance()
+        seen, balance = {}, Balance()
         for kv in listing:
-            self._saw(bytes(kv.key), kv.value, kv.lease)
+            key = bytes(kv.key)
+            if key.startswith(self._members_prefix):
+                seen[key[len(self._members_prefix) :].decode(errors="replace")] = kv.lease
+            elif key == self._balance_key:
+                balance = parse_balance(kv.value) or Balance()
+        # each replaced whole: the worker's loop, in another thread, must never see a partial list
+        self._seen = seen
+        self._balance = balance
         self._watch = await self._client.watch_prefix(
             self.prefix.encode(), start_revision=listing.header.revision + 1
         )
