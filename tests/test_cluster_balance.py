@@ -15,7 +15,8 @@ import pytest
 from bench.cluster_load import RECORDINGS, stream_id
 from bench.processes import free_port
 from daemon.cluster.ring import assignment, loads, spread
-from daemon.service.membership import read_cluster
+from daemon.service.cluster import measured, rebalance
+from daemon.service.membership import Balance, read_cluster
 from protocols.nats import partition_of
 from tests.etcd_server import Etcd
 from tests.helpers import (
@@ -98,3 +99,27 @@ def test_the_leader_evens_the_streams_out_and_every_detection_comes_once(tmp_pat
         each_once_as_detect(json.loads(out), collector.detections, 30)
     finally:
         stop_all(heat, load, *workers, collector, etcd, server)
+
+
+def test_the_leader_measures_only_once_every_member_owns_by_the_current_balance() -> None:
+    members = frozenset({"a", "b"})
+    statuses = {
+        "a": {"generation": 3, "streams": {"1": 2, "4": 1, "x": 5}},
+        "b": {"generation": 3, "streams": {"4": 2, "7": 0}},  # 4 handed over between two reports
+        "gone": {"generation": 2, "streams": {"9": 9}},
+    }
+    assert measured(statuses, members, 3) == {1: 2, 4: 2}
+    assert measured(statuses, members, 4) is None  # not owned by yet
+    assert measured(statuses, members | {"c"}, 3) is None  # c has not reported
+
+
+def test_the_leader_writes_a_new_balance_only_past_a_fifth_and_when_it_helps() -> None:
+    members = frozenset({"a", "b", "c"})
+    ring = assignment(members, 64)
+    # all the streams on a's partitions: far past a fifth, and evening out helps
+    skewed = {p: 1 for p in sorted(ring["a"])[:9]}
+    new = rebalance(members, 64, Balance(2, {}), skewed)
+    assert new == Balance(3, skewed)
+    assert rebalance(members, 64, new, skewed) is None  # even by it already
+    # one stream in one partition: no assignment can do better than the ring
+    assert rebalance(members, 64, Balance(), {0: 1}) is None
