@@ -8,9 +8,9 @@ from __future__ import annotations
 
 import json
 import re
-import urllib.request
 import shutil
 import subprocess
+import urllib.request
 from pathlib import Path
 from typing import Any
 
