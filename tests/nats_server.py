@@ -100,13 +100,13 @@ class NatsServer(ServerProcess):
         wait_for(ready, START_S, "nats-server")
         return self
 
-
     def subscribed(self, subject: str) -> bool:
         """Whether a client subscribed ``subject`` (exactly) on this server (its monitoring's
         ``/subsz``): a publisher may rely on its interest from then on."""
         with urllib.request.urlopen(f"http://127.0.0.1:{self.http_port}/subsz?subs=1", timeout=5) as r:
             listed = json.loads(r.read()).get("subscriptions_list") or []
         return any(sub.get("subject") == subject for sub in listed)
+
 
 CLUSTER = tuple(CONFIG.parent / "cluster" / f"nats-{i}.conf" for i in (1, 2, 3))
 """The shipped three-server cluster's configs."""
