@@ -1152,3 +1152,51 @@ def slow_progress_events(
     if last and pushes:
         out.append((pushes[-1][0], ()))
     return out
+
+
+def slow_bvh_positions(
+    joints: Sequence[tuple[int, tuple[float, float, float], Sequence[str]]], row: Sequence[float]
+) -> list[tuple[float, float, float]]:
+    """Every node's position for one frame of a BVH hierarchy, read off the format's definition
+    with 3x3 rotation matrices as lists: ``joints`` as (parent index or -1, offset, channel names)
+    in file order, ``row`` the frame's channel values (degrees). A joint's rotation is the product of
+    its rotation channels in the order listed; its translation is its offset with each position
+    channel replacing that component; ``G = G_parent R``, ``P = P_parent + G_parent t``."""
+
+    def elementary(axis: str, degrees: float) -> list[list[float]]:
+        c, s = math.cos(math.radians(degrees)), math.sin(math.radians(degrees))
+        if axis == "X":
+            return [[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]]
+        if axis == "Y":
+            return [[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]]
+        return [[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]
+
+    def matmul(a: list[list[float]], b: list[list[float]]) -> list[list[float]]:
+        return [[sum(a[i][k] * b[k][j] for k in range(3)) for j in range(3)] for i in range(3)]
+
+    def apply(m: list[list[float]], v: list[float]) -> list[float]:
+        return [sum(m[i][k] * v[k] for k in range(3)) for i in range(3)]
+
+    identity = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]
+    rotations: list[list[list[float]]] = []
+    positions: list[tuple[float, float, float]] = []
+    column = 0
+    for parent, offset, channels in joints:
+        local, t = identity, list(offset)
+        for channel in channels:
+            value = row[column]
+            column += 1
+            axis = channel[0]
+            if channel.endswith("rotation"):
+                local = matmul(local, elementary(axis, value))
+            else:
+                t["XYZ".index(axis)] = value
+        if parent < 0:
+            rotations.append(local)
+            positions.append((t[0], t[1], t[2]))
+        else:
+            moved = apply(rotations[parent], t)
+            p = positions[parent]
+            rotations.append(matmul(rotations[parent], local))
+            positions.append((p[0] + moved[0], p[1] + moved[1], p[2] + moved[2]))
+    return positions
