@@ -1,0 +1,205 @@
+"""Rig maps: a capture rig's joints onto mocapd's 26 standard joints (:data:`replay.JOINT_NAMES`).
+
+A map names, for each standard joint, the rig's nodes that stand for it, in order of preference (the
+first the rig has is taken; an End Site whose offset is zero is no point of its own and is passed
+over). Names are compared without a namespace (``mixamorig:LeftArm`` is ``LeftArm``). The built-in
+maps (:data:`BUILT_IN`) cover the ``Hips/Spine/Chest/UpperArm_L`` scheme (Bandai Namco Research's
+datasets) and the ``LeftUpLeg/LeftLeg/LeftArm/LeftForeArm`` scheme of most BVH exporters and of
+Mixamo; :func:`rig_plan` takes the first whose joints a rig has.
+
+Joints a rig lacks are derived, in proportions of the body (Drillis and Contini's segment lengths
+as shares of the stature: thigh 0.245, forearm 0.146, hand 0.108, head top above the skull's base
+0.130), and each derivation says which of the 39 relational features it reaches:
+
+* ``headtop`` (none in the scheme maps): the head joint plus, along the neck-to-head direction, 0.53
+  thigh lengths. It enters the body-length references (the ``body`` chain) and the horizontal
+  extent of the body (``_NAME_MAP_XZ``), so the features scaled by them move with its estimate.
+* ``lfingers``/``rfingers`` (absent or an End Site at the wrist): the wrist plus, along the
+  elbow-to-wrist direction, 0.74 forearm lengths. ``handLeftHighVel``, ``handRightHighVel`` and the
+  hands-low features read them: a hand bent at the wrist is taken as straight.
+* ``lthumb``/``rthumb`` (when absent): the fingers' point. No feature reads the thumbs.
+* the clavicle joints are the neck, as in the Bonn toolbox (not a derivation: the ASF path does so).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from daemon.types import FloatArray
+from replay.bvh import BvhKinematics, BvhMotion
+from replay.errors import MocapFormatError
+from replay.joints import JOINT_NAMES
+
+HEAD_TOP_PER_THIGH = 0.130 / 0.245
+FINGERS_PER_FOREARM = 0.108 / 0.146
+DERIVABLE = frozenset({"headtop", "lfingers", "rfingers", "lthumb", "rthumb"})
+
+
+@dataclass(frozen=True)
+class RigMap:
+    """A rig's name for each standard joint: candidates in order of preference."""
+
+    name: str
+    points: Mapping[str, tuple[str, ...]]
+
+
+def _sided(template: Mapping[str, tuple[str, ...]]) -> dict[str, tuple[str, ...]]:
+    """A map's left and right joints from one template: ``{s}`` is ``L``/``R``, ``{side}`` is
+    ``Left``/``Right``, ``{x}`` is ``l``/``r``, in the standard name and the candidates alike."""
+    out: dict[str, tuple[str, ...]] = {}
+    for joint, names in template.items():
+        if "{" not in joint:
+            out[joint] = names
+            continue
+        for s, side, x in (("L", "Left", "l"), ("R", "Right", "r")):
+            out[joint.format(x=x)] = tuple(n.format(s=s, side=side, x=x) for n in names)
+    return out
+
+
+BUILT_IN: tuple[RigMap, ...] = (
+    RigMap(
+        "upperarm",  # Hips, Spine, Chest, Neck, Head, Shoulder_L, UpperArm_L, ... (Bandai Namco Research)
+        _sided(
+            {
+                "root": ("Hips",),
+                "{x}hip": ("UpperLeg_{s}",),
+                "{x}knee": ("LowerLeg_{s}",),
+                "{x}ankle": ("Foot_{s}",),
+                "{x}toes": ("Toes_{s}/end", "Toes_{s}"),
+                "belly": ("Spine",),
+                "chest": ("Chest",),
+                "neck": ("Neck",),
+                "head": ("Head",),
+                "headtop": ("Head/end",),
+                "{x}clavicle": ("Neck",),
+                "{x}shoulder": ("UpperArm_{s}",),
+                "{x}elbow": ("LowerArm_{s}",),
+                "{x}wrist": ("Hand_{s}",),
+                "{x}fingers": ("Hand_{s}/end",),
+                "{x}thumb": (),
+            }
+        ),
+    ),
+    RigMap(
+        "leftupleg",  # Hips, LeftUpLeg, LeftLeg, LeftFoot, LeftArm, LeftForeArm, LeftHand (and Mixamo's)
+        _sided(
+            {
+                "root": ("Hips",),
+                "{x}hip": ("{side}UpLeg",),
+                "{x}knee": ("{side}Leg",),
+                "{x}ankle": ("{side}Foot",),
+                "{x}toes": ("{side}Toe_End", "{side}ToeBase/end", "{side}ToeBase", "{side}Toe"),
+                "belly": ("Spine",),
+                "chest": ("Spine2", "Spine1", "Chest"),
+                "neck": ("Neck",),
+                "head": ("Head",),
+                "headtop": ("HeadTop_End", "Head/end"),
+                "{x}clavicle": ("Neck",),
+                "{x}shoulder": ("{side}Arm",),
+                "{x}elbow": ("{side}ForeArm",),
+                "{x}wrist": ("{side}Hand",),
+                "{x}fingers": ("{side}HandMiddle1", "{side}HandIndex1", "{side}Hand/end"),
+                "{x}thumb": ("{side}HandThumb1",),
+            }
+        ),
+    ),
+)
+
+
+def bare(name: str) -> str:
+    """A node name without its namespace: ``mixamorig:LeftArm`` is ``LeftArm``."""
+    return name.rsplit(":", 1)[-1]
+
+
+@dataclass(frozen=True)
+class RigPlan:
+    """A map applied to one rig: for each standard joint (:data:`JOINT_NAMES` order) the index of
+    the rig's node that stands for it, or -1 where it is derived (``derived`` names those)."""
+
+    rig: str
+    nodes: tuple[int, ...]
+    derived: tuple[str, ...]
+
+
+def rig_plan(
+    names: Sequence[str], points: Sequence[bool], source: str, maps: Sequence[RigMap] = BUILT_IN
+) -> RigPlan:
+    """The plan of the first of ``maps`` that finds every standard joint but the derivable ones
+    among a rig's node ``names`` (``points[k]``: whether node ``k`` is a point of its own, not an
+    End Site at its joint); :class:`MocapFormatError` naming ``source`` and the joints the nearest
+    map misses if none fits."""
+    index: dict[str, int] = {}
+    for k, name in enumerate(names):
+        if points[k]:
+            index.setdefault(bare(name), k)
+    best: tuple[int, str, list[str]] | None = None
+    for rig in maps:
+        nodes: list[int] = []
+        missing: list[str] = []
+        derived: list[str] = []
+        for joint in JOINT_NAMES:
+            k = next((index[c] for c in rig.points.get(joint, ()) if c in index), -1)
+            nodes.append(k)
+            if k < 0:
+                (derived if joint in DERIVABLE else missing).append(joint)
+        if not missing:
+            return RigPlan(rig.name, tuple(nodes), tuple(derived))
+        if best is None or len(missing) < best[0]:
+            best = (len(missing), rig.name, missing)
+    assert best is not None
+    raise MocapFormatError(
+        source,
+        None,
+        f"no rig map fits its joints: the nearest ({best[1]}) finds no {', '.join(best[2])}",
+    )
+
+
+def standard_joints(positions: FloatArray, plan: RigPlan) -> FloatArray:
+    """The standard joints of a rig's node ``positions`` shape ``(N, nodes, 3)``: shape ``(N, 26,
+    3)``, those the rig lacks derived (module docstring)."""
+    idx = {j: k for k, j in enumerate(JOINT_NAMES)}
+    out = np.empty((positions.shape[0], len(JOINT_NAMES), 3))
+    for j, k in enumerate(plan.nodes):
+        if k >= 0:
+            out[:, j] = positions[:, k]
+
+    def joint(name: str) -> FloatArray:
+        result: FloatArray = out[:, idx[name]]
+        return result
+
+    def along(start: FloatArray, towards: FloatArray, length: FloatArray) -> FloatArray:
+        direction = towards - start
+        norm = np.linalg.norm(direction, axis=1, keepdims=True)
+        unit = np.divide(direction, norm, out=np.zeros_like(direction), where=norm > 0)
+        moved: FloatArray = towards + unit * length[:, None]
+        return moved
+
+    def distance(a: str, b: str) -> FloatArray:
+        d: FloatArray = np.linalg.norm(joint(a) - joint(b), axis=1)
+        return d
+
+    derived = set(plan.derived)
+    if "headtop" in derived:
+        thigh = 0.5 * (distance("lhip", "lknee") + distance("rhip", "rknee"))
+        out[:, idx["headtop"]] = along(joint("neck"), joint("head"), HEAD_TOP_PER_THIGH * thigh)
+    for x in "lr":
+        if f"{x}fingers" in derived:
+            forearm = distance(f"{x}elbow", f"{x}wrist")
+            out[:, idx[f"{x}fingers"]] = along(
+                joint(f"{x}elbow"), joint(f"{x}wrist"), FINGERS_PER_FOREARM * forearm
+            )
+        if f"{x}thumb" in derived:
+            out[:, idx[f"{x}thumb"]] = joint(f"{x}fingers")
+    return out
+
+
+def bvh_standard_joints(motion: BvhMotion, maps: Sequence[RigMap] = BUILT_IN) -> tuple[FloatArray, RigPlan]:
+    """A BVH recording's standard joints, shape ``(N, 26, 3)`` in its own units, through the first
+    of ``maps`` that fits its rig, and that map's plan."""
+    joints = motion.hierarchy.joints
+    points = [not j.end_site or any(j.offset) for j in joints]
+    plan = rig_plan([j.name for j in joints], points, motion.source, maps)
+    return standard_joints(BvhKinematics(motion.hierarchy).positions(motion.channels), plan), plan

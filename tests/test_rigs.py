@@ -1,0 +1,140 @@
+"""Rig maps (:mod:`replay.rigs`): a BVH rig's joints onto the 26 standard joints, the map chosen by
+the joint names, the joints a rig lacks derived in the body's proportions, and a rig no map fits
+refused naming what is missing. Real data: Bandai Namco Research's motion dataset 2 (``bandai2``,
+CC BY-NC-ND 4.0, read unmodified)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from daemon.features import features
+from daemon.library import default_library_path, load_library
+from daemon.recognizer import detect_positions
+from daemon.types import FloatArray
+from replay import JOINT_NAMES
+from replay.bvh import BvhHierarchy, BvhJoint, BvhKinematics, BvhMotion, parse_bvh, read_bvh
+from replay.errors import MocapFormatError
+from replay.rigs import FINGERS_PER_FOREARM, HEAD_TOP_PER_THIGH, RigMap, bvh_standard_joints, rig_plan
+
+BANDAI = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "mocap" / "bandai2"
+AT = {j: k for k, j in enumerate(JOINT_NAMES)}
+
+
+def test_a_bandai2_rig_maps_its_joints_and_derives_the_head_top_and_the_fingers() -> None:
+    motion = read_bvh(BANDAI / "dataset-2_wave-right-hand_normal_001.bvh.gz")
+    joints, plan = bvh_standard_joints(motion)
+    assert plan.rig == "upperarm"
+    assert set(plan.derived) == {"headtop", "lfingers", "rfingers", "lthumb", "rthumb"}
+    nodes = BvhKinematics(motion.hierarchy).positions(motion.channels)
+    names = motion.hierarchy.names
+    for joint, node in (("root", "Hips"), ("rhip", "UpperLeg_R"), ("lelbow", "LowerArm_L"), ("neck", "Neck")):
+        assert np.array_equal(joints[:, AT[joint]], nodes[:, names.index(node)]), joint
+    assert np.array_equal(joints[:, AT["lclavicle"]], joints[:, AT["neck"]])  # as the toolbox has it
+
+    def length(a: str, b: str) -> FloatArray:
+        d: FloatArray = np.linalg.norm(joints[:, AT[a]] - joints[:, AT[b]], axis=1)
+        return d
+
+    thigh = 0.5 * (length("lhip", "lknee") + length("rhip", "rknee"))
+    np.testing.assert_allclose(length("head", "headtop"), HEAD_TOP_PER_THIGH * thigh)
+    np.testing.assert_allclose(length("rwrist", "rfingers"), FINGERS_PER_FOREARM * length("relbow", "rwrist"))
+    # the fingers continue the forearm; the head top is above the head, standing
+    forearm = joints[:, AT["rwrist"]] - joints[:, AT["relbow"]]
+    hand = joints[:, AT["rfingers"]] - joints[:, AT["rwrist"]]
+    np.testing.assert_allclose(np.cross(forearm, hand), 0, atol=1e-9)
+    assert (joints[:, AT["headtop"], 1] > joints[:, AT["head"], 1] + 10).all()
+    assert np.array_equal(joints[:, AT["rthumb"]], joints[:, AT["rfingers"]])
+
+
+def test_the_39_features_and_the_recogniser_run_on_a_bandai2_take_at_its_30_hz() -> None:
+    motion = read_bvh(BANDAI / "dataset-2_walk_normal_001.bvh.gz")
+    joints, _ = bvh_standard_joints(motion)
+    assert np.isfinite(joints).all()
+    assert features(joints, JOINT_NAMES, motion.rate).shape == (len(joints), 39)
+    library = load_library(default_library_path())
+    for d in detect_positions(joints, np.arange(len(joints)), library, motion.rate):
+        assert 0 <= d.start_frame <= d.end_frame < len(joints)
+
+
+def _rig(names: list[str]) -> BvhMotion:
+    """A one-frame rig of ``names``, each joint a child of the one before, 10 cm apart."""
+    joints = [
+        BvhJoint(n, k - 1, (0.0, 10.0 if k else 0.0, 0.0), ("Zrotation",), k + 1) for k, n in enumerate(names)
+    ]
+    hierarchy = BvhHierarchy("rig.bvh", tuple(joints))
+    return BvhMotion("rig.bvh", hierarchy, 1 / 60, np.zeros((1, len(names))))
+
+
+MIXAMO = [
+    f"mixamorig:{n}"
+    for n in [
+        "Hips",
+        "Spine",
+        "Spine1",
+        "Spine2",
+        "Neck",
+        "Head",
+        "HeadTop_End",
+        "LeftShoulder",
+        "LeftArm",
+        "LeftForeArm",
+        "LeftHand",
+        "RightShoulder",
+        "RightArm",
+        "RightForeArm",
+        "RightHand",
+        "LeftUpLeg",
+        "LeftLeg",
+        "LeftFoot",
+        "LeftToeBase",
+        "LeftToe_End",
+        "RightUpLeg",
+        "RightLeg",
+        "RightFoot",
+        "RightToeBase",
+        "RightToe_End",
+    ]
+]
+
+
+def test_mixamo_names_without_fingers_map_by_the_leftupleg_scheme() -> None:
+    joints, plan = bvh_standard_joints(_rig(MIXAMO))
+    assert plan.rig == "leftupleg"
+    assert set(plan.derived) == {"lfingers", "rfingers", "lthumb", "rthumb"}  # HeadTop_End is there
+    assert plan.nodes[AT["chest"]] == MIXAMO.index("mixamorig:Spine2")
+    assert plan.nodes[AT["ltoes"]] == MIXAMO.index("mixamorig:LeftToe_End")
+    assert np.isfinite(joints).all()
+
+
+def test_a_rig_no_map_fits_is_refused_naming_what_the_nearest_map_misses() -> None:
+    names = [n for n in MIXAMO if "Leg" not in n]
+    with pytest.raises(MocapFormatError) as caught:
+        bvh_standard_joints(_rig(names))
+    message = str(caught.value)
+    assert message.startswith("rig.bvh: no rig map fits its joints: the nearest (leftupleg) finds no ")
+    assert "lhip" in message and "rknee" in message and "\n" not in message
+
+
+def test_an_end_site_at_its_joint_is_no_point_of_its_own() -> None:
+    names = ["Hips", "UpperLeg_L", "Toes_L", "Toes_L/end"]
+    plan = rig_plan(names, [True, True, True, False], "x", maps=[_only_toes()])
+    assert plan.nodes[AT["ltoes"]] == 2
+    plan = rig_plan(names, [True, True, True, True], "x", maps=[_only_toes()])
+    assert plan.nodes[AT["ltoes"]] == 3
+
+
+def _only_toes() -> RigMap:
+    """A map that finds every joint at the hips but the left toes."""
+    return RigMap("toes", {j: ("Hips",) for j in JOINT_NAMES} | {"ltoes": ("Toes_L/end", "Toes_L")})
+
+
+@pytest.mark.parametrize(
+    ("frame_time", "rate"), [("0.0333333", 30.0), ("0.008333", 120.0), ("0.033367", 1 / 0.033367)]
+)
+def test_the_rate_is_the_whole_number_the_frame_time_was_rounded_from(frame_time: str, rate: float) -> None:
+    hierarchy = "HIERARCHY\nROOT a\n{\nOFFSET 0 0 0\nCHANNELS 1 Xposition\n}\n"
+    text = f"{hierarchy}MOTION\nFrames: 1\nFrame Time: {frame_time}\n0\n"
+    assert parse_bvh(text.encode()).rate == rate
