@@ -223,7 +223,7 @@ def _offset(t: _Tokens) -> tuple[float, float, float]:
 
 def _channels(t: _Tokens, at: _Token, joint: str) -> tuple[str, ...]:
     count = t.next("the channel count")
-    if not count.word.isdigit() or not 0 < int(count.word) <= len(CHANNELS):
+    if not (count.word.isascii() and count.word.isdigit()) or not 0 < int(count.word) <= len(CHANNELS):
         raise t.error(count, f"CHANNELS of {joint!r}: a count of 1 to 6 expected, found {count.word!r}")
     names: list[str] = []
     for _ in range(int(count.word)):
@@ -263,7 +263,7 @@ def _motion_header(lines: Sequence[str], start: int, source: str) -> tuple[int, 
             source, min(k if k is not None else start, len(lines) - 1) + 1, "expected 'Frames: N'"
         )
     word = lines[k].strip()[len("Frames:") :].strip()
-    if not word.isdigit() or int(word) > MOST_FRAMES:
+    if not (word.isascii() and word.isdigit()) or int(word) > MOST_FRAMES:
         raise MocapFormatError(
             source, k + 1, f"Frames: a count of 0 to {MOST_FRAMES} expected, found {word!r}"
         )

@@ -188,6 +188,8 @@ MALFORMED = [
     (lambda s: s.replace("\t\tCHANNELS 3 Zrotation Xrotation Yrotation\n", ""), 9, "expected CHANNELS"),
     (lambda s: s.split("MOTION")[0], 16, "no MOTION section"),
     (lambda s: s.replace("Frames: 2", "Frames: two"), 17, "Frames: a count"),
+    (lambda s: s.replace("Frames: 2", "Frames: \u00b2"), 17, "Frames: a count"),  # a digit, not ASCII
+    (lambda s: s.replace("CHANNELS 3", "CHANNELS \u00b3"), 9, "a count of 1 to 6"),
     (lambda s: s.replace("Frames: 2", "Frame: 2"), 17, "expected 'Frames: N'"),
     (lambda s: s.replace("Frame Time: 0.0333333", "Frame Time: 0"), 18, "above 0 seconds"),
     (lambda s: s.replace("Frame Time: 0.0333333", "FrameTime: 0.03"), 18, "expected 'Frame Time"),

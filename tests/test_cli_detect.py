@@ -7,12 +7,15 @@ import json
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from daemon.learn.library import save_library
-from daemon.library import Library
-from daemon.recognizer import detect
+from daemon.library import Library, default_library_path, load_library
+from daemon.recognizer import detect, detect_positions
 from daemon.recordings import native_rate, read_recording
+from replay.bvh import read_bvh
+from replay.rigs import bvh_standard_joints
 from tests.helpers import (
     CMU_AMC,
     CMU_ASF,
@@ -152,3 +155,38 @@ def test_missing_library(tmp_path: Path) -> None:
     asf, amc = squat()
     line = assert_one_error_line(mocapd("detect", "--asf", asf, "--amc", amc, "--library", tmp_path / "none"))
     assert str(tmp_path / "none") in line
+
+
+BANDAI = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "mocap" / "bandai2"
+
+
+def test_a_bvh_recording_is_recognised_as_its_standard_joints_are() -> None:
+    """``--bvh``: a bandai2 take (CC BY-NC-ND 4.0, read unmodified) through its rig map, live, gives
+    the batch twin's detections of its standard joints (frames numbered from 1), at its 30 Hz."""
+    take = BANDAI / "dataset-2_walk_normal_001.bvh.gz"
+    result = mocapd("detect", "--bvh", take, "--json")
+    assert (result.returncode, result.stderr) == (0, "")
+    got = [json.loads(line) for line in result.stdout.splitlines()]
+    motion = read_bvh(take)
+    joints, _ = bvh_standard_joints(motion)
+    stream = "dataset-2_walk_normal_001"
+    expected = detect_positions(
+        joints, np.arange(1, len(joints) + 1), load_library(default_library_path()), 30.0, stream=stream
+    )
+    assert got and [{**d, "id": ""} for d in got] == [{**d.as_json(), "id": ""} for d in expected]
+
+
+@pytest.mark.parametrize(
+    ("extra", "message"),
+    [
+        (("--bvh", "x.bvh", "--asf", "a.asf"), "--bvh: give --bvh, or --asf and --amc, not both"),
+        ((), "--asf: give --asf and --amc (or --bvh)"),
+        (
+            ("--bvh", str(BANDAI / "content_label.txt")),
+            "content_label.txt:1: a BVH file begins with HIERARCHY",
+        ),
+    ],
+)
+def test_bad_bvh_options_and_files(extra: tuple[str, ...], message: str) -> None:
+    line = assert_one_error_line(mocapd("detect", *extra))
+    assert message in line, line

@@ -491,6 +491,22 @@ def test_recording_commands_with_damaged_files(
         run(capsys, where, argv, [target])
 
 
+BVH_TAKE = REPO / ".." / "shared" / "data" / "mocap" / "bandai2" / "dataset-2_walk_normal_001.bvh.gz"
+"""A bandai2 take (CC BY-NC-ND 4.0): damaged here only in memory and in the test's workspace."""
+
+
+@pytest.mark.slow
+@given(data=damaged_recording(BVH_TAKE.read_bytes()), extra=st.sampled_from([[], ["--json"]]))
+@fuzz(150)
+def test_detect_with_a_damaged_bvh(
+    valid: Valid, capsys: pytest.CaptureFixture[str], data: bytes, extra: list[str]
+) -> None:
+    with workspace(valid) as where:
+        target = where / "x.bvh.gz"
+        target.write_bytes(data)
+        run(capsys, where, ["detect", "--bvh", target, *extra], [target])
+
+
 CSV = Opt(
     "--csv", typical("out.csv", "-"), typical("out", "new.csv", "no/such/out.csv", ".", "file/x", ""), True
 )

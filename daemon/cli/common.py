@@ -51,10 +51,30 @@ def rate_option(command: argparse.ArgumentParser, default: float | None, purpose
     )
 
 
-def recording_options(command: argparse.ArgumentParser) -> None:
-    command.add_argument("--asf", type=Path, required=True, help="ASF skeleton file")
-    command.add_argument("--amc", type=Path, required=True, help="AMC motion file, plain or gzip")
+def recording_options(command: argparse.ArgumentParser, *, bvh: bool = False) -> None:
+    """``--asf`` and ``--amc``; with ``bvh``, or ``--bvh`` instead (:func:`bvh_or_asf` checks)."""
+    command.add_argument("--asf", type=Path, required=not bvh, help="ASF skeleton file")
+    command.add_argument("--amc", type=Path, required=not bvh, help="AMC motion file, plain or gzip")
+    if bvh:
+        command.add_argument(
+            "--bvh",
+            type=Path,
+            default=None,
+            help="a BVH recording, plain or gzip, instead of --asf and --amc",
+        )
     native_rate_option(command)
+
+
+def bvh_or_asf(args: argparse.Namespace) -> Path | None:
+    """The ``--bvh`` given (None: ``--asf`` and ``--amc`` are); UsageError for neither or both."""
+    bvh: Path | None = args.bvh
+    if bvh is not None and (args.asf is not None or args.amc is not None):
+        raise UsageError("give --bvh, or --asf and --amc, not both", field="--bvh")
+    if bvh is None and (args.asf is None or args.amc is None):
+        raise UsageError(
+            "give --asf and --amc (or --bvh)", field="--amc" if args.asf is not None else "--asf"
+        )
+    return bvh
 
 
 def native_rate_option(command: argparse.ArgumentParser) -> None:

@@ -8,18 +8,25 @@ import argparse
 import json
 import time
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
+
+import numpy as np
 
 from daemon.cli import common
 from daemon.config import Config
 from daemon.errors import InputError, UsageError
-from daemon.frames import motion_runs
-from daemon.library import default_library_path, load_library
+from daemon.frames import bridge_frames, bridged_runs
+from daemon.library import Library, default_library_path, load_library
 from daemon.plots import timeline_png
 from daemon.progress import ProgressEvent, StreamProgress
 from daemon.recognizer import Detection, Recognizer
 from daemon.recordings import native_rate, read_labels, read_recording
+from daemon.types import FloatArray, IntArray, RecognitionSettings
+from replay.bvh import read_bvh
+from replay.joints import JOINT_NAMES
+from replay.rigs import bvh_standard_joints
 
 
 def speed(text: str) -> float | None:
@@ -38,7 +45,7 @@ def register(sub: Any) -> None:
     cmd = sub.add_parser(
         "detect", help="recognise motions in a recording, frame by frame as a live stream would arrive"
     )
-    common.recording_options(cmd)
+    common.recording_options(cmd, bvh=True)
     cmd.add_argument(
         "--library", type=Path, default=None, help="template library directory (default: the shipped one)"
     )
@@ -72,8 +79,43 @@ def register(sub: Any) -> None:
     cmd.set_defaults(func=_detect)
 
 
-def _stream_name(amc: Path) -> str:
-    return amc.name.removesuffix(".gz").removesuffix(".amc")
+def _stream_name(recording: Path) -> str:
+    return recording.name.removesuffix(".gz").removesuffix(".amc").removesuffix(".bvh")
+
+
+@dataclass(frozen=True)
+class _Recording:
+    """What detect replays: frame numbers, each frame's values for the recogniser, the rate."""
+
+    frames: IntArray
+    values: FloatArray
+    rate: float
+    recognizer: Recognizer
+    angles: IntArray | None = None  # columns of values that are angles (bridged along the shorter arc)
+
+
+def _read(
+    args: argparse.Namespace, config: Config, library: Library, settings: RecognitionSettings, stream: str
+) -> _Recording:
+    """The recording of ``--bvh`` (its rig mapped onto the standard joints, :mod:`replay.rigs`;
+    frames numbered from 1) or of ``--asf`` and ``--amc``, and a recogniser for it."""
+    bvh = common.bvh_or_asf(args)
+    try:
+        if bvh is not None:
+            motion = read_bvh(bvh)
+            joints, _ = bvh_standard_joints(motion)
+            rate = motion.rate
+            recognizer = Recognizer.for_positions(
+                library, JOINT_NAMES, rate, settings=settings, stream=stream
+            )
+            return _Recording(np.arange(1, len(joints) + 1), joints, rate, recognizer)
+        amc = read_recording(args.asf, args.amc)
+        rate = native_rate(amc, common.default_native_rate(args, config))
+        recognizer = Recognizer.for_skeleton(library, amc.skeleton, rate, settings=settings, stream=stream)
+        angles = np.asarray(amc.skeleton.angle_channels, dtype=np.intp)
+        return _Recording(amc.frames, amc.channels, rate, recognizer, angles)
+    except InputError as exc:  # a rate the library's does not divide
+        raise UsageError(str(exc), field="--library") from None
 
 
 def _detect(args: argparse.Namespace, config: Config) -> int:
@@ -87,21 +129,18 @@ def _detect(args: argparse.Namespace, config: Config) -> int:
         if not all(classes):
             raise UsageError(f"an empty class name in '{args.classes}'", field="--classes")
     library = load_library(default_library_path() if args.library is None else args.library, classes)
-    trial = _stream_name(args.amc)
+    source = common.bvh_or_asf(args) or args.amc
+    trial = _stream_name(source)
     truth = [] if args.truth is None else read_labels(args.truth, trial)
-    motion = read_recording(args.asf, args.amc)
-    rate = native_rate(motion, common.default_native_rate(args, config))
     stream = trial if args.stream is None else args.stream
     try:
         settings = config.recognizer.settings(classes)
     except InputError as exc:
         raise UsageError(str(exc), field="--classes") from None
-    try:
-        recognizer = Recognizer.for_skeleton(library, motion.skeleton, rate, settings=settings, stream=stream)
-    except InputError as exc:  # a rate the library's does not divide
-        raise UsageError(str(exc), field="--library") from None
+    motion = _read(args, config, library, settings, stream)
+    recognizer, rate = motion.recognizer, motion.rate
     found: list[Detection] = []
-    first = int(motion.frames[0]) if len(motion) else 0
+    first = int(motion.frames[0]) if len(motion.frames) else 0
     follow = StreamProgress(recognizer.stage, rate, config.progress.per_s) if args.progress else None
 
     def report(detections: list[Detection], events: Sequence[ProgressEvent] = ()) -> None:
@@ -114,8 +153,9 @@ def _detect(args: argparse.Namespace, config: Config) -> int:
     began = time.perf_counter()
     pace = None if args.speed is None else 1.0 / (rate * args.speed)
     # frames missing from the recording are taken as the daemon takes lost poses
-    for run in motion_runs(motion, rate, config.service.bridge_s):
-        for number, channels in zip(run.frames.tolist(), run.channels, strict=True):
+    gap = bridge_frames(config.service.bridge_s, rate)
+    for frames, values in bridged_runs(motion.frames, motion.values, gap, motion.angles):
+        for number, channels in zip(frames.tolist(), values, strict=True):
             if pace is not None:  # by the clock: a late frame does not delay the next ones
                 ahead = began + (number - first) * pace - time.perf_counter()
                 if ahead > 0:
@@ -126,16 +166,17 @@ def _detect(args: argparse.Namespace, config: Config) -> int:
         report(detections, follow.end() if follow is not None else [])
     took = time.perf_counter() - began
     if not args.json:
+        n = len(motion.frames)
         print(
-            f"{len(found)} detections in {len(motion)} frames ({len(motion) / rate:.1f} s at {rate:g} Hz), "
+            f"{len(found)} detections in {n} frames ({n / rate:.1f} s at {rate:g} Hz), "
             f"{len(recognizer.plans)} classes, in {took:.2f} s"
         )
     if args.png is not None:
-        title = f"{args.amc.name}: {len(found)} detections"
+        title = f"{source.name}: {len(found)} detections"
         rows = [(d.class_name, d.start_frame, d.end_frame) for d in found]
         labels = [(t.name, t.start_frame, t.end_frame) for t in truth]
-        frames = (int(motion.frames[0]), int(motion.frames[-1]))
-        common.write_png(args.png, lambda out: timeline_png(rows, labels, frames, rate, out, title))
+        span = (int(motion.frames[0]), int(motion.frames[-1]))
+        common.write_png(args.png, lambda out: timeline_png(rows, labels, span, rate, out, title))
     return 0
 
 
