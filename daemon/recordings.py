@@ -39,7 +39,9 @@ from daemon.types import (
     TrainingClip,
 )
 from replay import JOINT_NAMES, Motion, read_amc, read_asf
+from replay.bvh import read_bvh
 from replay.kinematics import joint_positions
+from replay.rigs import bvh_standard_joints
 
 MAX_ACTOR = 200
 
@@ -145,6 +147,22 @@ def read_features(
     return motion_features(read_recording(asf, amc), rate, default_native_rate)
 
 
+def read_bvh_features(path: str | Path, rate: float | None = None) -> RecordingFeatures:
+    """The features of the BVH recording at ``path`` at ``rate`` Hz (None: its own rate), its rig
+    mapped onto the standard joints (:mod:`replay.rigs`; the file's units taken for centimetres),
+    its frames numbered from 1."""
+    motion = read_bvh(path)
+    joints, _ = bvh_standard_joints(motion)
+    native = motion.rate
+    try:
+        step = 1 if rate is None else decimation_factor(native, rate)
+        matrix = decimate(features(joints, JOINT_NAMES, native), step)
+    except InputError as exc:
+        raise RateError(str(exc), path=path) from None
+    frames = np.arange(1, len(joints) + 1)
+    return RecordingFeatures(matrix, frames[::step], native, step, 1, len(joints))
+
+
 # --------------------------------------------------------------------------------------- manifests
 
 
@@ -174,17 +192,22 @@ class ManifestRow:
     asf: Path
     amc: Path
     extra: Mapping[str, str] = field(default_factory=dict)
+    bvh: Path | None = None
+    """A BVH recording's path (then ``asf_text`` and ``amc_text`` are its path as written, and
+    ``asf`` and ``amc`` are ``bvh``: what a library records of where its examples came from)."""
 
 
 def read_manifest(
-    path: str | Path, required: Sequence[str] = (), optional: Sequence[str] = ()
+    path: str | Path, required: Sequence[str] = (), optional: Sequence[str] = (), *, bvh: bool = False
 ) -> list[ManifestRow]:
-    """The rows of a manifest CSV whose header names the columns ``asf`` and ``amc`` and every column
-    of ``required`` (in any order, among any others; ``optional`` only names the columns an error
-    message mentions). ``extra`` holds each row's other cells by lower-case column name (empty cells
-    of optional columns included). Blank lines are skipped. Raises :class:`ManifestError`."""
+    """The rows of a manifest CSV whose header names the columns ``asf`` and ``amc`` (with ``bvh``:
+    or the column ``bvh`` instead) and every column of ``required`` (in any order, among any others;
+    ``optional`` only names the columns an error message mentions). ``extra`` holds each row's other
+    cells by lower-case column name (empty cells of optional columns included). Blank lines are
+    skipped. Raises :class:`ManifestError`."""
     path = Path(path)
-    columns_wanted = ("asf", "amc", *required)
+    columns_wanted: tuple[str, ...] = ("asf", "amc", *required)
+    files: tuple[str, ...] = ("asf", "amc")
     text = read_text(path, ManifestError)
     reader = csv.reader(io.StringIO(text, newline=""))
     header: list[str] | None = None
@@ -198,6 +221,8 @@ def read_manifest(
                 continue
             if header is None:
                 header = [f.lower() for f in cells]
+                if bvh and "bvh" in header and "asf" not in header and "amc" not in header:
+                    columns_wanted, files = ("bvh", *required), ("bvh",)
                 for name in columns_wanted:
                     if header.count(name) != 1:
                         how = "lacks" if name not in header else "repeats"
@@ -214,14 +239,18 @@ def read_manifest(
             for name, value in texts.items():
                 if not value:
                     raise ManifestError(f"the '{name}' field is blank", path=path, line=line)
-            resolved = {name: path.parent / texts[name] for name in ("asf", "amc")}
+            resolved = {name: path.parent / texts[name] for name in files}
             for name, file in resolved.items():
                 if not file.is_file():
                     raise ManifestError(f"{name} file not found: {file}", path=path, line=line)
-            others = {name: cells[i] for i, name in enumerate(header) if name not in ("asf", "amc")}
-            rows.append(
-                ManifestRow(line, texts["asf"], texts["amc"], resolved["asf"], resolved["amc"], others)
-            )
+            others = {name: cells[i] for i, name in enumerate(header) if name not in files}
+            if "bvh" in resolved:
+                take = resolved["bvh"]
+                rows.append(ManifestRow(line, texts["bvh"], texts["bvh"], take, take, others, bvh=take))
+            else:
+                rows.append(
+                    ManifestRow(line, texts["asf"], texts["amc"], resolved["asf"], resolved["amc"], others)
+                )
     except csv.Error as exc:
         raise ManifestError(f"not valid CSV: {exc}", path=path, line=reader.line_num) from None
     needs = ", ".join([*columns_wanted, *(f"[{c}]" for c in optional)])
@@ -255,7 +284,7 @@ def read_training_manifest(path: str | Path) -> list[TrainingRow]:
     its actor (a blank cell would silently make the ASF a second person); without it, the actor is
     the ASF path resolved (one skeleton file per person, as in HDM05 and CMU). Raises
     :class:`ManifestError` naming the file and line."""
-    rows = read_manifest(path, required=("class",), optional=("start_frame", "end_frame", "actor"))
+    rows = read_manifest(path, required=("class",), optional=("start_frame", "end_frame", "actor"), bvh=True)
     out = []
     for row in rows:
         name = row.extra["class"]
@@ -313,7 +342,10 @@ def read_example(
     """The features of one training example at ``rate``, shape ``(frames, 39)``: computed over the
     whole recording (so velocities at the range's edges see their neighbours), then cut to the
     samples inside the frame range. ``source``: the manifest, for errors."""
-    got = read_features(item.row.asf, item.row.amc, rate, default_native_rate)
+    if item.row.bvh is not None:
+        got = read_bvh_features(item.row.bvh, rate)
+    else:
+        got = read_features(item.row.asf, item.row.amc, rate, default_native_rate)
     first, last, step = got.first_amc_frame, got.last_amc_frame, got.step
     start = first if item.start_frame is None else item.start_frame
     end = last if item.end_frame is None else item.end_frame

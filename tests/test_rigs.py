@@ -5,6 +5,7 @@ CC BY-NC-ND 4.0, read unmodified)."""
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -13,11 +14,13 @@ import pytest
 from daemon.features import features
 from daemon.library import default_library_path, load_library
 from daemon.recognizer import detect_positions
+from daemon.recordings import RateError, read_bvh_features, read_examples, read_training_manifest
 from daemon.types import FloatArray
 from replay import JOINT_NAMES
 from replay.bvh import BvhHierarchy, BvhJoint, BvhKinematics, BvhMotion, parse_bvh, read_bvh
 from replay.errors import MocapFormatError
 from replay.rigs import FINGERS_PER_FOREARM, HEAD_TOP_PER_THIGH, RigMap, bvh_standard_joints, rig_plan
+from tests.helpers import assert_one_error_line, mocapd
 
 BANDAI = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "mocap" / "bandai2"
 AT = {j: k for k, j in enumerate(JOINT_NAMES)}
@@ -138,3 +141,58 @@ def test_the_rate_is_the_whole_number_the_frame_time_was_rounded_from(frame_time
     hierarchy = "HIERARCHY\nROOT a\n{\nOFFSET 0 0 0\nCHANNELS 1 Xposition\n}\n"
     text = f"{hierarchy}MOTION\nFrames: 1\nFrame Time: {frame_time}\n0\n"
     assert parse_bvh(text.encode()).rate == rate
+
+
+def _bvh_manifest(where: Path, rows: list[tuple[str, str, str]]) -> Path:
+    """A training manifest of bandai2 takes: (class, take name, actor) rows."""
+    lines = ["class,bvh,actor", *(f"{c},{BANDAI / f'dataset-2_{t}.bvh.gz'},{actor}" for c, t, actor in rows)]
+    path = where / "train.csv"
+    path.write_text("\n".join(lines) + "\n", encoding="utf-8")
+    return path
+
+
+def test_a_training_manifest_takes_a_bvh_column(tmp_path: Path) -> None:
+    manifest = tmp_path / "train.csv"
+    take = BANDAI / "dataset-2_walk_normal_001.bvh.gz"
+    manifest.write_text(
+        f"class,bvh,actor,start_frame,end_frame\nwalk,{take},normal,31,90\n", encoding="utf-8"
+    )
+    (row,) = read_training_manifest(manifest)
+    assert (row.name, row.actor, row.row.bvh, row.start_frame) == ("walk", "normal", take, 31)
+    examples = read_examples(manifest, rate=30.0)
+    ((clip, matrix),) = examples["walk"]
+    whole = read_bvh_features(take)
+    assert np.array_equal(matrix, whole.matrix[30:90]) and clip.frames == 60
+    with pytest.raises(RateError, match=r"walk_normal_001\.bvh\.gz: 25 Hz is not"):
+        read_bvh_features(take, 25.0)
+
+
+@pytest.mark.slow
+def test_learn_from_bvh_takes_and_detect_in_one(tmp_path: Path) -> None:
+    """``mocapd learn`` on a manifest of bandai2 takes (two actions, two styles as the actors) and
+    ``mocapd detect --bvh`` with what it learned; ``mocapd index`` refuses such a manifest in one line."""
+    rows = [
+        (action, f"{action}_{style}_00{k}", style)
+        for action in ("wave-right-hand", "raise-up-left-hand")
+        for style in ("normal", "active")
+        for k in (1, 2)
+    ]
+    manifest = _bvh_manifest(tmp_path, rows)
+    learned = mocapd(
+        "learn", "--manifest", manifest, "--out", tmp_path / "lib", "--no-calibrate", "--keyframes", "0"
+    )
+    assert learned.returncode == 0, learned.stderr
+    found = mocapd(
+        "detect",
+        "--bvh",
+        BANDAI / "dataset-2_wave-right-hand_normal_003.bvh.gz",
+        "--library",
+        tmp_path / "lib",
+        "--json",
+    )
+    assert found.returncode == 0, found.stderr
+    assert {json.loads(line)["class"] for line in found.stdout.splitlines()} == {"wave-right-hand"}
+    line = assert_one_error_line(
+        mocapd("index", "build", "--manifest", manifest, "--out", tmp_path / "index")
+    )
+    assert "header lacks the column 'asf'" in line

@@ -41,8 +41,8 @@ def register(sub: Any) -> None:
         "--manifest",
         type=Path,
         required=True,
-        help="CSV with columns class, asf, amc and optionally start_frame, end_frame (AMC frames) and "
-        "actor (the person; default: the ASF file)",
+        help="CSV with columns class, asf, amc (or class, bvh) and optionally start_frame, end_frame "
+        "(frames of the recording) and actor (the person; default: the ASF or BVH file)",
     )
     learn.add_argument("--out", type=Path, required=True, help="library directory to write (replaced)")
     common.rate_option(learn, DEFAULT_INDEX_RATE, "learn at this rate (default 30, as the thesis)")
