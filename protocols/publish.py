@@ -13,11 +13,31 @@ with ``loop``; each pose carries the time it was sent and the replay's epoch (on
 from __future__ import annotations
 
 from collections.abc import Iterator
+from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 
-from protocols.messages import EndMessage, PoseMessage, SkeletonMessage
+from daemon.types import FloatArray, IntArray
+from protocols.messages import EndMessage, PoseMessage, SkeletonMessage, Units, Up
 from replay.amc import Motion
+
+
+@dataclass(frozen=True)
+class Positions:
+    """A recording of joint positions (a BVH take through its rig map, :mod:`replay.rigs`):
+    ``frames`` ``(N,)``, ``joints`` ``(N, J, 3)`` named ``names``, ``up`` axis, length ``units``."""
+
+    frames: IntArray
+    joints: FloatArray
+    names: tuple[str, ...]
+    up: Up = "y"
+    units: Units = "cm"
+
+    def __len__(self) -> int:
+        return len(self.frames)
+
 
 Items = Iterator[SkeletonMessage | PoseMessage | EndMessage]
 """A replay's messages in the order they go out."""
@@ -29,20 +49,38 @@ def due(start: float, i: int, rate: float, speed: float | None) -> float:
 
 
 def messages(
-    motion: Motion, asf_text: str, stream: str, rate: float, passes: int | None, epoch: str | None = None
+    motion: Motion | Positions,
+    asf_text: str,
+    stream: str,
+    rate: float,
+    passes: int | None,
+    epoch: str | None = None,
 ) -> Items:
-    """The skeleton, then one pose per frame (``passes`` times through the recording; None: for
-    ever), sequence numbers the AMC frame numbers, each pass's after the last's, all of run
-    ``epoch``; ``time`` is filled when sent; then the run's end."""
-    yield SkeletonMessage(stream, rate, asf=asf_text, angle_unit="rad", epoch=epoch)
+    """The skeleton (``asf_text``'s channels, or ``motion``'s joint names if it is
+    :class:`Positions`), then one pose per frame (``passes`` times through the recording; None: for
+    ever), sequence numbers the frame numbers, each pass's after the last's, all of run ``epoch``;
+    ``time`` is filled when sent; then the run's end."""
+    if isinstance(motion, Positions):
+        yield SkeletonMessage(
+            stream, rate, joints=motion.names, up=motion.up, units=motion.units, epoch=epoch
+        )
+        rows: npt.NDArray[Any] = motion.joints.astype(np.float32)
+    else:
+        yield SkeletonMessage(stream, rate, asf=asf_text, angle_unit="rad", epoch=epoch)
+        rows = motion.channels
     if not len(motion):
         return
     span = int(motion.frames[-1]) - int(motion.frames[0]) + 1
     done = 0
     seq = 0
+    positions = isinstance(motion, Positions)
     while passes is None or done < passes:
-        for number, row in zip(motion.frames.tolist(), motion.channels, strict=True):
+        for number, row in zip(motion.frames.tolist(), rows, strict=True):
             seq = number + done * span
-            yield PoseMessage(stream, seq, 0.0, channels=np.ascontiguousarray(row), epoch=epoch)
+            values = np.ascontiguousarray(row)
+            if positions:
+                yield PoseMessage(stream, seq, 0.0, positions=values, epoch=epoch)
+            else:
+                yield PoseMessage(stream, seq, 0.0, channels=values, epoch=epoch)
         done += 1
     yield EndMessage(stream, seq, epoch)

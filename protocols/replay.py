@@ -36,7 +36,7 @@ import zmq.asyncio
 
 from daemon.errors import MocapdError
 from protocols.messages import EndMessage, PoseMessage, StatusMessage, WireError, decode, encode, topic
-from protocols.publish import Items, due, messages
+from protocols.publish import Items, Positions, due, messages
 from protocols.transport import Outgoing
 from replay.amc import Motion
 
@@ -57,7 +57,7 @@ class TargetError(MocapdError, ValueError):
 
 async def replay_to(
     url: str,
-    motion: Motion,
+    motion: Motion | Positions,
     asf_text: str,
     *,
     stream: str,
@@ -108,7 +108,7 @@ async def _send_all(
             if skeleton is not None and (asked() or time.monotonic() - announced >= ANNOUNCE_S):
                 await send(skeleton)
                 announced = time.monotonic()
-            m = PoseMessage(m.stream, m.seq, time.time(), channels=m.channels, epoch=m.epoch)
+            m = PoseMessage(m.stream, m.seq, time.time(), m.positions, m.channels, m.epoch)
             out = Outgoing(topic(m), encode(m))
             i += 1
             sent += 1
@@ -211,7 +211,7 @@ async def _to_mqtt(
 
 def replay(
     url: str,
-    motion: Motion,
+    motion: Motion | Positions,
     asf_text: str,
     *,
     stream: str,

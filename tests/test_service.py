@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import signal
+import subprocess
 import time
 from functools import cache
 from pathlib import Path
@@ -20,14 +21,17 @@ import zmq
 
 from daemon.behaviours import JointRotations, ppca_forward
 from daemon.library import default_library_path, load_library
-from daemon.recognizer import detect, same_motion
+from daemon.recognizer import detect, detect_positions, same_motion
 from daemon.recordings import read_recording
 from daemon.types import RecognitionSettings
 from protocols.messages import PoseMessage, encode, topic
 from protocols.publish import messages
 from replay import Motion
+from replay.bvh import read_bvh
+from replay.rigs import bvh_standard_joints
 from tests.helpers import (
     DATA,
+    MOCAPD_SCRIPT,
     Broker,
     Daemon,
     MqttCollector,
@@ -391,3 +395,49 @@ def test_the_latency_metric_does_not_trust_the_source_clock(tmp_path: Path) -> N
         sock.close()
         ctx.term()
         daemon.stop()
+
+
+BVH_TAKE = DATA / "bandai2" / "dataset-2_wave-right-hand_normal_001.bvh.gz"
+"""A bandai2 take (CC BY-NC-ND 4.0, read unmodified)."""
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("transport", ["zmq", "mqtt"])
+def test_a_bvh_replay_gives_the_detections_of_detect_bvh(tmp_path: Path, transport: str) -> None:
+    """``mocapd replay --bvh`` sends the take's standard joints as a positions stream (float32 on
+    the wire): a daemon publishes the batch twin's detections of those positions, which are
+    ``mocapd detect --bvh``'s but for the costs' last digits."""
+    broker = Broker(tmp_path).start() if transport == "mqtt" else None
+    daemon = (
+        Daemon(tmp_path, config=BIG_QUEUE)
+        if broker is None
+        else Daemon(tmp_path, sources=["mqtt"], sinks=["mqtt", "stdout"], mqtt=broker.url, config=BIG_QUEUE)
+    ).start()
+    try:
+        to = "zmq+" + daemon.poses if broker is None else broker.url
+        out = finished(
+            subprocess.Popen(
+                [str(MOCAPD_SCRIPT), "replay", "--bvh", str(BVH_TAKE), "--to", to, "--speed", "max"],
+                stdout=subprocess.PIPE,
+                stderr=subprocess.PIPE,
+                text=True,
+            )
+        )
+        take = read_bvh(BVH_TAKE)
+        joints, _ = bvh_standard_joints(take)
+        assert out.startswith(f"replayed {len(joints)} frames of {BVH_TAKE.name}")
+        wire = joints.astype(np.float32).astype(np.float64)
+        stream = "dataset-2_wave-right-hand_normal_001"
+        library = load_library(default_library_path())
+        numbers = np.arange(1, len(joints) + 1)
+        want = [d.as_json() for d in detect_positions(wire, numbers, library, take.rate, stream=stream)]
+        wait_for(lambda: len(daemon.detections_printed()) >= len(want), 30, "the take's detections")
+        assert daemon.stop() == 0
+        assert want and detection_keys(daemon.detections_printed()) == detection_keys(want)
+        cli = [d.as_json() for d in detect_positions(joints, numbers, library, take.rate, stream=stream)]
+        assert [k[:3] + k[4:] for k in detection_keys(cli)] == [k[:3] + k[4:] for k in detection_keys(want)]
+        assert np.allclose([d["cost"] for d in cli], [d["cost"] for d in want], atol=1e-5)
+    finally:
+        daemon.stop()
+        if broker is not None:
+            broker.stop()

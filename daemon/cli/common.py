@@ -65,6 +65,11 @@ def recording_options(command: argparse.ArgumentParser, *, bvh: bool = False) ->
     native_rate_option(command)
 
 
+def stream_name(recording: Path) -> str:
+    """A recording's stream id by default: its file name without ``.amc``/``.bvh`` and ``.gz``."""
+    return recording.name.removesuffix(".gz").removesuffix(".amc").removesuffix(".bvh")
+
+
 def bvh_or_asf(args: argparse.Namespace) -> Path | None:
     """The ``--bvh`` given (None: ``--asf`` and ``--amc`` are); UsageError for neither or both."""
     bvh: Path | None = args.bvh

@@ -79,10 +79,6 @@ def register(sub: Any) -> None:
     cmd.set_defaults(func=_detect)
 
 
-def _stream_name(recording: Path) -> str:
-    return recording.name.removesuffix(".gz").removesuffix(".amc").removesuffix(".bvh")
-
-
 @dataclass(frozen=True)
 class _Recording:
     """What detect replays: frame numbers, each frame's values for the recogniser, the rate."""
@@ -130,7 +126,7 @@ def _detect(args: argparse.Namespace, config: Config) -> int:
             raise UsageError(f"an empty class name in '{args.classes}'", field="--classes")
     library = load_library(default_library_path() if args.library is None else args.library, classes)
     source = common.bvh_or_asf(args) or args.amc
-    trial = _stream_name(source)
+    trial = common.stream_name(source)
     truth = [] if args.truth is None else read_labels(args.truth, trial)
     stream = trial if args.stream is None else args.stream
     try:

@@ -9,13 +9,20 @@ import signal
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+import numpy as np
+
 from daemon.cli import _terminate, common
 from daemon.cli.detect import speed
 from daemon.config import Config, workers_of, workers_reason
 from daemon.errors import InputError, UsageError
 from daemon.library import default_library_path, load_library
 from daemon.recordings import native_rate, read_recording
+from protocols.publish import Positions
 from protocols.urls import parse_nats_urls
+from replay.amc import Motion
+from replay.bvh import read_bvh
+from replay.joints import JOINT_NAMES
+from replay.rigs import bvh_standard_joints
 
 if TYPE_CHECKING:
     from daemon.service.replay import Tasks
@@ -84,7 +91,7 @@ def register(sub: Any) -> None:
     rep = sub.add_parser(
         "replay", help="publish a recording onto the bus as a live stream, paced by the clock"
     )
-    common.recording_options(rep)
+    common.recording_options(rep, bvh=True)
     rep.add_argument(
         "--to",
         required=True,
@@ -105,20 +112,25 @@ def register(sub: Any) -> None:
     rep.set_defaults(func=_replay)
 
 
-def stream_name(amc: Path) -> str:
-    return amc.name.removesuffix(".gz").removesuffix(".amc")
-
-
 def _replay(args: argparse.Namespace, config: Config) -> int:
     from daemon.service.app import configure_logging
     from protocols.messages import ID_RULE, is_id
     from protocols.replay import TargetError, replay
 
     configure_logging(config.logging.level)  # the MQTT client's log lines as JSON, like the daemon's
-    motion = read_recording(args.asf, args.amc)
-    rate = native_rate(motion, common.default_native_rate(args, config))
-    asf_text = Path(args.asf).read_text(encoding="utf-8", errors="replace")
-    stream = stream_name(args.amc) if args.stream is None else args.stream
+    bvh = common.bvh_or_asf(args)
+    motion: Motion | Positions
+    if bvh is not None:
+        # the take's rig mapped onto the standard joints, sent as a positions stream (frames from 1)
+        take = read_bvh(bvh)
+        joints, _ = bvh_standard_joints(take)
+        motion, rate, asf_text = Positions(np.arange(1, len(joints) + 1), joints, JOINT_NAMES), take.rate, ""
+    else:
+        motion = read_recording(args.asf, args.amc)
+        rate = native_rate(motion, common.default_native_rate(args, config))
+        asf_text = Path(args.asf).read_text(encoding="utf-8", errors="replace")
+    source = bvh or args.amc
+    stream = common.stream_name(source) if args.stream is None else args.stream
     if not is_id(stream):  # the recording's name, unless given
         raise UsageError(f"{stream!r} is not a stream id ({ID_RULE})", field="--stream")
     try:
@@ -140,7 +152,7 @@ def _replay(args: argparse.Namespace, config: Config) -> int:
         raise UsageError(
             f"nothing answered at {args.to} (is the daemon or broker running?)", field="--to"
         ) from None
-    print(f"replayed {sent} frames of {args.amc.name} as stream {stream!r} to {args.to}")
+    print(f"replayed {sent} frames of {source.name} as stream {stream!r} to {args.to}")
     return 0
 
 
@@ -189,7 +201,7 @@ def _replay_into(args: argparse.Namespace, config: Config) -> Tasks:
     motion = read_recording(asf, amc)
     rate = native_rate(motion, config.replay.frame_rate_hz)
     asf_text = asf.read_text(encoding="utf-8", errors="replace")
-    stream = stream_name(amc) if args.stream is None else args.stream
+    stream = common.stream_name(amc) if args.stream is None else args.stream
     return replay_then_stop(_own_source(config), motion, asf_text, stream=stream, rate=rate, speed=args.speed)
 
 
