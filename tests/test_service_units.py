@@ -31,7 +31,7 @@ from daemon.config import (
     parse_config,
 )
 from daemon.library import Library
-from daemon.recognizer import Recognizer
+from daemon.recognizer import Recognizer, detect_positions
 from daemon.recordings import read_recording
 from daemon.service.streams import Emitted, Refused, StreamTable
 from protocols.messages import BoundaryMessage, DetectionMessage, EndMessage, PoseMessage, SkeletonMessage
@@ -39,6 +39,7 @@ from protocols.publish import due
 from replay import JOINT_NAMES, Motion
 from replay.amc import DEG
 from replay.kinematics import joint_positions
+from replay.rigs import rig_plan, standard_joints
 from tests.helpers import DATA, hdm05_clip, small_library, takes
 
 ASF, AMC = hdm05_clip("bd", "squat1Reps", takes("squat1Reps", "bd")[1])
@@ -548,3 +549,36 @@ def test_the_end_of_another_run(library: Library) -> None:
     assert caught.value.reason == "stale_epoch"
     t.end(EndMessage("s", 1, "e2"))
     assert "s" not in t.streams and t.counts["ended"] == 1
+
+
+MIXAMO_OF = {
+    "root": "Hips", "lhip": "LeftUpLeg", "lknee": "LeftLeg", "lankle": "LeftFoot", "ltoes": "LeftToe_End",
+    "rhip": "RightUpLeg", "rknee": "RightLeg", "rankle": "RightFoot", "rtoes": "RightToe_End",
+    "belly": "Spine", "chest": "Spine2", "neck": "Neck", "head": "Head", "headtop": "HeadTop_End",
+    "lshoulder": "LeftArm", "lelbow": "LeftForeArm", "lwrist": "LeftHand",
+    "rshoulder": "RightArm", "relbow": "RightForeArm", "rwrist": "RightHand",
+}  # fmt: skip
+"""A Mixamo rig's names for the standard joints it has: no fingers, no thumbs, no clavicle joints."""
+
+
+def test_a_positions_stream_of_a_rigs_names_without_fingers_is_mapped_and_recognised(
+    library: Library,
+) -> None:
+    """A positions stream announced with Mixamo's names (``mixamorig:``, no fingers or thumbs) is
+    taken through its rig map (:mod:`replay.rigs`: the fingers and thumbs derived): the table gives
+    the batch twin's detections of the mapped joints, the squat among them. A rig no map fits is
+    refused as a skeleton, naming what it lacks."""
+    p = joint_positions(motion())
+    names = tuple(f"mixamorig:{n}" for n in MIXAMO_OF.values())
+    rig = p[:, [JOINT_NAMES.index(j) for j in MIXAMO_OF]].astype(np.float32)
+    t = table(library)
+    t.skeleton(SkeletonMessage("s", 120.0, names), 0.0)
+    got = run(t, [PoseMessage("s", k, 0.0, positions=q) for k, q in enumerate(rig, 1)])
+    plan = rig_plan(names, [True] * len(names), "x")
+    mapped = standard_joints(rig.astype(np.float64), plan)
+    want = detect_positions(mapped, np.arange(1, len(mapped) + 1), library, 120.0, session="t")
+    assert [x[:3] for x in got] == [(d.class_name, d.start_frame, d.end_frame) for d in want]
+    assert "squat1Reps" in {x[0] for x in got}
+    with pytest.raises(Refused) as caught:
+        table(library).skeleton(SkeletonMessage("s", 120.0, names[1:]), 0.0)
+    assert caught.value.reason == "skeleton" and "finds no root" in str(caught.value)

@@ -67,9 +67,10 @@ from protocols.messages import (
     decode,
     encode,
 )
-from replay import MocapFormatError, Skeleton, parse_asf
+from replay import JOINT_NAMES, MocapFormatError, Skeleton, parse_asf
 from replay.amc import DEG
 from replay.kinematics import y_up
+from replay.rigs import RigPlan, rig_plan, standard_joints
 
 SKELETONS_KEPT = 64
 """How many announced ASF texts the table keeps parsed."""
@@ -157,6 +158,8 @@ class _Stream:
     """The epoch of the last pose fed to the recogniser."""
     step: int = 1
     """Native frames per index frame (cluster mode begins a motion at a multiple of it)."""
+    rig: RigPlan | None = None
+    """A positions stream of a rig's joint names: how its joints map onto the standard ones."""
     warmup: int = 0
     """Native frames a recogniser that starts mid-motion may get wrong: a detection's reach and the
     features' delay."""
@@ -275,6 +278,14 @@ class StreamTable:
                 raise Refused("skeleton", str(e)) from None
             if message.angle_unit == "deg":
                 angles = np.asarray(skeleton.angle_channels, dtype=np.intp)
+        rig = None
+        joints = message.joints
+        if joints is not None and not set(JOINT_NAMES) <= set(joints):
+            try:  # a rig's names (mixamorig:LeftArm, UpperArm_L, ...): mapped onto the standard joints
+                rig = rig_plan(joints, [True] * len(joints), f"<skeleton of {message.stream}>")
+            except MocapFormatError as e:
+                raise Refused("skeleton", str(e)) from None
+            joints = JOINT_NAMES
         # everything that can refuse the new skeleton first: a refused one leaves the old stream be
         segmenting = self._segmenting(message, skeleton)
         generation = next(self._generations)
@@ -283,7 +294,7 @@ class StreamTable:
                 message.stream,
                 message.rate,
                 skeleton=skeleton,
-                joint_names=message.joints,
+                joint_names=joints,
                 session=self._session(generation, message.epoch),  # unique per run
             )
         except (InputError, MocapFormatError) as e:
@@ -305,6 +316,7 @@ class StreamTable:
             epoch=message.epoch,
             step=recognizer.clock.step,
             warmup=recognizer.clock.lag(recognizer.reach),
+            rig=rig,
         )
         self._follow(s, recognizer)
         return out
@@ -623,6 +635,8 @@ class StreamTable:
     def _values(self, s: _Stream, pose: PoseMessage) -> np.ndarray:
         if pose.positions is not None:
             p = pose.positions.astype(np.float64)
+            if s.rig is not None and p.shape == (s.width, 3):
+                p = standard_joints(p[None], s.rig)[0]
             return y_up(p) if s.announced.up == "z" else p
         assert pose.channels is not None and s.skeleton is not None
         if s.angles is None or len(pose.channels) != len(s.skeleton.channel_names):
