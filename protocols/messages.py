@@ -73,7 +73,8 @@ class WireError(MocapdError, ValueError):
 @dataclass(frozen=True)
 class SkeletonMessage:
     """A stream's announcement. Positions streams: ``joints`` (names, in the order of every pose's
-    coordinates; they must include mocapd's standard joints), ``up`` axis and length ``units``.
+    coordinates; mocapd's standard joints, or a rig's names a rig map fits, :mod:`replay.rigs`),
+    ``up`` axis and length ``units``.
     Channel streams: ``asf``, the text of an ASF file; poses then carry AMC-style channels in its
     channel order, angles in ``angle_unit``. ``rate``: frames per second. ``epoch``: the run of the
     source (None: not said), see :class:`PoseMessage`."""
