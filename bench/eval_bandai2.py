@@ -1,0 +1,145 @@
+"""The user's path on a studio's BVH takes (issue 35): ``mocapd learn`` with its defaults on four
+styles of Bandai Namco Research's motion dataset 2 (``bandai2``, CC BY-NC-ND 4.0, read unmodified),
+then the recogniser over the other three styles' takes joined into one stream.
+
+    python -m bench.eval_bandai2 [--train active,elderly,exhausted,feminine] [--seed 0] [--keep DIR]
+
+The training manifest names each take whole (``class, bvh, actor``, the style as the actor, so that
+calibration leaves one style out) and ``mocapd learn --manifest M --out LIB`` runs in a process of its
+own with no other option. The left-out styles' takes (each rig mapped onto the standard joints,
+:mod:`replay.rigs`) are joined in random order into one 30 Hz stream, each moved on the floor to
+start where the previous one ended, with 0.25 s of linear blending between them, and go through
+the batch twin of the live recogniser (:func:`daemon.recognizer.detect_positions`). A detection is
+right when at least half of it lies inside a take of its class; a take is found when it holds a
+right detection. Printed: per class and pooled precision (detections) and recall (takes), the
+machine and the time. The styles are split alphabetically by default; nothing is tuned on the
+takes reported.
+"""
+
+from __future__ import annotations
+
+import argparse
+import random
+import subprocess
+import sys
+import tempfile
+import time
+from collections import Counter
+from pathlib import Path
+
+import numpy as np
+
+from bench.machine import describe
+from daemon.library import load_library
+from daemon.recognizer import detect_positions
+from daemon.types import FloatArray
+from replay.bvh import read_bvh
+from replay.rigs import bvh_standard_joints
+
+BANDAI = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "mocap" / "bandai2"
+STYLES = ("active", "elderly", "exhausted", "feminine", "masculine", "normal", "youthful")
+BLEND_S = 0.25
+
+
+def takes() -> list[tuple[str, str, Path]]:
+    """Every take as (action, style, path)."""
+    out = []
+    for path in sorted(BANDAI.glob("dataset-2_*.bvh.gz")):
+        action, style, _ = path.name.removeprefix("dataset-2_").removesuffix(".bvh.gz").rsplit("_", 2)
+        out.append((action, style, path))
+    return out
+
+
+def joined(clips: list[tuple[str, Path]], rate: float) -> tuple[FloatArray, list[tuple[str, int, int]]]:
+    """The clips' standard joints in one stream (each moved on the floor to start where the last
+    ended, :data:`BLEND_S` of linear blending between them) and each clip's (class, first, last)
+    frame numbers, from 1."""
+    parts: list[FloatArray] = []
+    spans = []
+    frame = 1
+    for action, path in clips:
+        joints, _ = bvh_standard_joints(read_bvh(path))
+        if parts:
+            last = parts[-1][-1]
+            joints = joints + np.array([last[0, 0] - joints[0, 0, 0], 0.0, last[0, 2] - joints[0, 0, 2]])
+            k = round(BLEND_S * rate)
+            w = (np.arange(1, k + 1) / (k + 1))[:, None, None]
+            parts.append((1 - w) * last + w * joints[0])
+            frame += k
+        parts.append(joints)
+        spans.append((action, frame, frame + len(joints) - 1))
+        frame += len(joints)
+    return np.concatenate(parts), spans
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--train", default="active,elderly,exhausted,feminine")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--keep", type=Path, default=None, help="keep the manifest and library here")
+    args = parser.parse_args()
+    train = set(args.train.split(","))
+    print(describe())
+    where = args.keep or Path(tempfile.mkdtemp(prefix="bandai2-"))
+    where.mkdir(parents=True, exist_ok=True)
+    rows = ["class,bvh,actor"] + [f"{a},{p.resolve()},{s}" for a, s, p in takes() if s in train]
+    (where / "train.csv").write_text("\n".join(rows) + "\n", encoding="utf-8")
+    began = time.perf_counter()
+    learned = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "daemon",
+            "learn",
+            "--manifest",
+            str(where / "train.csv"),
+            "--out",
+            str(where / "lib"),
+        ],
+        capture_output=True,
+        text=True,
+        check=False,
+    )
+    if learned.returncode != 0:
+        raise SystemExit(learned.stderr)
+    learn_s = time.perf_counter() - began
+    library = load_library(where / "lib")
+    clips = [(a, p) for a, s, p in takes() if s not in train]
+    random.Random(args.seed).shuffle(clips)
+    stream, spans = joined(clips, 30.0)
+    found = detect_positions(stream, np.arange(1, len(stream) + 1), library, 30.0)
+
+    def right(cls: str, start: int, end: int) -> bool:
+        return any(c == cls and 2 * (min(end, b) - max(start, a) + 1) >= end - start + 1 for c, a, b in spans)
+
+    detections, correct, takes_of, hit = Counter[str](), Counter[str](), Counter[str](), Counter[str]()
+    for d in found:
+        detections[d.class_name] += 1
+        correct[d.class_name] += right(d.class_name, d.start_frame, d.end_frame)
+    for c, a, b in spans:
+        takes_of[c] += 1
+        hit[c] += any(
+            d.class_name == c
+            and right(c, d.start_frame, d.end_frame)
+            and d.start_frame <= b
+            and d.end_frame >= a
+            for d in found
+        )
+    print(
+        f"trained on {sorted(train)} ({len(rows) - 1} takes, learn {learn_s:.0f} s); "
+        f"detected on {len(clips)} takes of the other styles joined ({len(stream) / 30:.0f} s at 30 Hz)"
+    )
+    print(f"{'class':<22} {'precision':>9} {'recall':>7} {'detections':>10} {'takes':>6}")
+    for c in sorted(takes_of):
+        precision = correct[c] / detections[c] if detections[c] else float("nan")
+        print(f"{c:<22} {precision:>9.2f} {hit[c] / takes_of[c]:>7.2f} {detections[c]:>10} {takes_of[c]:>6}")
+    total = sum(detections.values())
+    print(
+        f"{'pooled':<22} {sum(correct.values()) / total if total else float('nan'):>9.2f} "
+        f"{sum(hit.values()) / sum(takes_of.values()):>7.2f} {total:>10} {sum(takes_of.values()):>6}"
+    )
+    print(f"library and manifest in {where}")
+
+
+if __name__ == "__main__":
+    main()
