@@ -109,6 +109,43 @@ BUILT_IN: tuple[RigMap, ...] = (
 )
 
 
+def parse_rig_map(value: object, source: str) -> RigMap:
+    """A user's rig map from its parsed YAML (``docs/recordings-and-features.md``, "BVH")::
+
+        name: studio-a            # optional (default: the file's name)
+        joints:                   # standard joint: the rig's node, or its nodes in order of preference
+          root: Hips
+          lhip: [LeftUpLeg, L_Thigh]
+          ...
+
+    A standard joint it does not name is derived if it can be, else missing from the rig.
+    :class:`MocapFormatError` naming ``source`` and the field for anything else."""
+
+    def fail(field: str, reason: str) -> MocapFormatError:
+        return MocapFormatError(source, None, f"{field}: {reason}")
+
+    if not isinstance(value, dict):
+        raise fail("the rig map", "must be a mapping with 'joints' (and optionally 'name')")
+    unknown = sorted(str(k) for k in value if k not in ("name", "joints"))
+    if unknown:
+        raise fail(unknown[0], "unknown field (the fields are 'name' and 'joints')")
+    name = value.get("name", source)
+    if not isinstance(name, str) or not name:
+        raise fail("name", "must be a non-empty string")
+    joints = value.get("joints")
+    if not isinstance(joints, dict) or not joints:
+        raise fail("joints", "must map standard joints to the rig's node names")
+    points: dict[str, tuple[str, ...]] = {}
+    for joint, nodes in joints.items():
+        if joint not in JOINT_NAMES:
+            raise fail(f"joints.{joint}", f"not a standard joint (one of {', '.join(JOINT_NAMES)})")
+        listed = [nodes] if isinstance(nodes, str) else nodes
+        if not isinstance(listed, list) or not listed or not all(isinstance(n, str) and n for n in listed):
+            raise fail(f"joints.{joint}", "must be a node name or a non-empty list of them")
+        points[joint] = tuple(bare(n) for n in listed)
+    return RigMap(name, points)
+
+
 def bare(name: str) -> str:
     """A node name without its namespace: ``mixamorig:LeftArm`` is ``LeftArm``."""
     return name.rsplit(":", 1)[-1]

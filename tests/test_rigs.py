@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 
 from daemon.features import features
 from daemon.library import default_library_path, load_library
@@ -19,7 +20,15 @@ from daemon.types import FloatArray
 from replay import JOINT_NAMES
 from replay.bvh import BvhHierarchy, BvhJoint, BvhKinematics, BvhMotion, parse_bvh, read_bvh
 from replay.errors import MocapFormatError
-from replay.rigs import FINGERS_PER_FOREARM, HEAD_TOP_PER_THIGH, RigMap, bvh_standard_joints, rig_plan
+from replay.rigs import (
+    BUILT_IN,
+    FINGERS_PER_FOREARM,
+    HEAD_TOP_PER_THIGH,
+    RigMap,
+    bvh_standard_joints,
+    parse_rig_map,
+    rig_plan,
+)
 from tests.helpers import assert_one_error_line, mocapd
 
 BANDAI = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "mocap" / "bandai2"
@@ -196,3 +205,77 @@ def test_learn_from_bvh_takes_and_detect_in_one(tmp_path: Path) -> None:
         mocapd("index", "build", "--manifest", manifest, "--out", tmp_path / "index")
     )
     assert "header lacks the column 'asf'" in line
+
+
+STUDIO = """name: studio-a
+joints:
+  root: Hips
+  lhip: UpperLeg_L
+  lknee: LowerLeg_L
+  lankle: Foot_L
+  ltoes: [Toes_L/end, Toes_L]
+  rhip: UpperLeg_R
+  rknee: LowerLeg_R
+  rankle: Foot_R
+  rtoes: Toes_R
+  belly: Spine
+  chest: Chest
+  neck: Neck
+  head: Head
+  lclavicle: Shoulder_L
+  rclavicle: Shoulder_R
+  lshoulder: UpperArm_L
+  rshoulder: UpperArm_R
+  lelbow: LowerArm_L
+  relbow: LowerArm_R
+  lwrist: Hand_L
+  rwrist: Hand_R
+"""
+
+
+def test_a_users_rig_map_is_taken_before_the_built_in_ones(tmp_path: Path) -> None:
+    """``--rig FILE``: a map in YAML (here bandai2's rig with the clavicle joints on its shoulder
+    joints, where the built-in map puts them on the neck), the joints it does not name derived."""
+    motion = read_bvh(BANDAI / "dataset-2_wave-right-hand_normal_001.bvh.gz")
+    rig = parse_rig_map(yaml.safe_load(STUDIO), "studio.yaml")
+    joints, plan = bvh_standard_joints(motion, (rig, *BUILT_IN))
+    assert plan.rig == "studio-a" and set(plan.derived) == {
+        "headtop",
+        "lfingers",
+        "rfingers",
+        "lthumb",
+        "rthumb",
+    }
+    shoulder = BvhKinematics(motion.hierarchy).positions(motion.channels)[
+        :, motion.hierarchy.names.index("Shoulder_L")
+    ]
+    assert np.array_equal(joints[:, AT["lclavicle"]], shoulder)
+    path = tmp_path / "studio.yaml"
+    path.write_text(STUDIO, encoding="utf-8")
+    take = BANDAI / "dataset-2_wave-right-hand_normal_001.bvh.gz"
+    result = mocapd("detect", "--bvh", take, "--rig", path, "--json")
+    assert (result.returncode, result.stderr) == (0, "")
+
+
+@pytest.mark.parametrize(
+    ("text", "says"),
+    [
+        ("[Hips]", "the rig map: must be a mapping"),
+        ("joints: {root: Hips}\ncolour: red", "colour: unknown field"),
+        ("joints: {pelvis: Hips}", "joints.pelvis: not a standard joint"),
+        ("joints: {root: []}", "joints.root: must be a node name or a non-empty list"),
+        ("joints: {root: [Hips, 3]}", "joints.root: must be a node name or a non-empty list"),
+        ("name: ''\njoints: {root: Hips}", "name: must be a non-empty string"),
+        ("joints: {}", "joints: must map standard joints"),
+    ],
+)
+def test_a_bad_rig_map_is_one_line_naming_its_field(tmp_path: Path, text: str, says: str) -> None:
+    with pytest.raises(MocapFormatError) as caught:
+        parse_rig_map(yaml.safe_load(text), "rig.yaml")
+    assert str(caught.value) == f"rig.yaml: {says}" or str(caught.value).startswith(f"rig.yaml: {says}")
+    path = tmp_path / "rig.yaml"
+    path.write_text(text, encoding="utf-8")
+    line = assert_one_error_line(
+        mocapd("detect", "--bvh", BANDAI / "dataset-2_walk_normal_001.bvh.gz", "--rig", path)
+    )
+    assert says in line and str(path) in line

@@ -10,12 +10,13 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import IO, Any
 
-from daemon.checks import number_reason
+from daemon.checks import number_reason, read_structured
 from daemon.config import Config
-from daemon.errors import FileAccessError, UsageError
+from daemon.errors import FileAccessError, InputError, UsageError
 from daemon.plots import check_plotting
 from daemon.storage import check_directory, check_output_file, output_file
 from daemon.types import MAX_NATIVE_RATE
+from replay.rigs import BUILT_IN, RigMap, parse_rig_map
 
 STDOUT = "-"
 
@@ -62,12 +63,27 @@ def recording_options(command: argparse.ArgumentParser, *, bvh: bool = False) ->
             default=None,
             help="a BVH recording, plain or gzip, instead of --asf and --amc",
         )
+        command.add_argument(
+            "--rig",
+            type=Path,
+            default=None,
+            metavar="YAML",
+            help="a rig map for --bvh (docs/recordings-and-features.md), tried before the built-in ones",
+        )
     native_rate_option(command)
 
 
 def stream_name(recording: Path) -> str:
     """A recording's stream id by default: its file name without ``.amc``/``.bvh`` and ``.gz``."""
     return recording.name.removesuffix(".gz").removesuffix(".amc").removesuffix(".bvh")
+
+
+def rig_maps(args: argparse.Namespace) -> tuple[RigMap, ...]:
+    """``--rig``'s map (if given), then the built-in ones."""
+    if args.rig is None:
+        return BUILT_IN
+    value = read_structured(args.rig, "yaml", InputError)
+    return (parse_rig_map(value, str(args.rig)), *BUILT_IN)
 
 
 def bvh_or_asf(args: argparse.Namespace) -> Path | None:

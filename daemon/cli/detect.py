@@ -96,10 +96,11 @@ def _read(
     """The recording of ``--bvh`` (its rig mapped onto the standard joints, :mod:`replay.rigs`;
     frames numbered from 1) or of ``--asf`` and ``--amc``, and a recogniser for it."""
     bvh = common.bvh_or_asf(args)
+    maps = common.rig_maps(args)
     try:
         if bvh is not None:
             motion = read_bvh(bvh)
-            joints, _ = bvh_standard_joints(motion)
+            joints, _ = bvh_standard_joints(motion, maps)
             rate = motion.rate
             recognizer = Recognizer.for_positions(
                 library, JOINT_NAMES, rate, settings=settings, stream=stream

@@ -123,7 +123,7 @@ def _replay(args: argparse.Namespace, config: Config) -> int:
     if bvh is not None:
         # the take's rig mapped onto the standard joints, sent as a positions stream (frames from 1)
         take = read_bvh(bvh)
-        joints, _ = bvh_standard_joints(take)
+        joints, _ = bvh_standard_joints(take, common.rig_maps(args))
         motion, rate, asf_text = Positions(np.arange(1, len(joints) + 1), joints, JOINT_NAMES), take.rate, ""
     else:
         motion = read_recording(args.asf, args.amc)
