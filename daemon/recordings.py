@@ -41,7 +41,7 @@ from daemon.types import (
 from replay import JOINT_NAMES, Motion, read_amc, read_asf
 from replay.bvh import read_bvh
 from replay.kinematics import joint_positions
-from replay.rigs import bvh_standard_joints
+from replay.rigs import BUILT_IN, RigMap, bvh_standard_joints
 
 MAX_ACTOR = 200
 
@@ -147,12 +147,14 @@ def read_features(
     return motion_features(read_recording(asf, amc), rate, default_native_rate)
 
 
-def read_bvh_features(path: str | Path, rate: float | None = None) -> RecordingFeatures:
+def read_bvh_features(
+    path: str | Path, rate: float | None = None, maps: Sequence[RigMap] = BUILT_IN
+) -> RecordingFeatures:
     """The features of the BVH recording at ``path`` at ``rate`` Hz (None: its own rate), its rig
-    mapped onto the standard joints (:mod:`replay.rigs`; the file's units taken for centimetres),
-    its frames numbered from 1."""
+    mapped onto the standard joints by the first of ``maps`` that fits (:mod:`replay.rigs`; the
+    file's units taken for centimetres), its frames numbered from 1."""
     motion = read_bvh(path)
-    joints, _ = bvh_standard_joints(motion)
+    joints, _ = bvh_standard_joints(motion, maps)
     native = motion.rate
     try:
         step = 1 if rate is None else decimation_factor(native, rate)
@@ -338,12 +340,13 @@ def read_example(
     *,
     rate: float,
     default_native_rate: float = DEFAULT_NATIVE_RATE,
+    maps: Sequence[RigMap] = BUILT_IN,
 ) -> tuple[TrainingClip, BoolArray]:
     """The features of one training example at ``rate``, shape ``(frames, 39)``: computed over the
     whole recording (so velocities at the range's edges see their neighbours), then cut to the
     samples inside the frame range. ``source``: the manifest, for errors."""
     if item.row.bvh is not None:
-        got = read_bvh_features(item.row.bvh, rate)
+        got = read_bvh_features(item.row.bvh, rate, maps)
     else:
         got = read_features(item.row.asf, item.row.amc, rate, default_native_rate)
     first, last, step = got.first_amc_frame, got.last_amc_frame, got.step
@@ -373,13 +376,15 @@ def read_examples(
     rate: float = DEFAULT_INDEX_RATE,
     progress: Callable[[int, int, TrainingClip], object] | None = None,
     default_native_rate: float = DEFAULT_NATIVE_RATE,
+    maps: Sequence[RigMap] = BUILT_IN,
 ) -> Examples:
     """Every class's training examples from a training manifest, in manifest order, each the clip's
-    provenance and its features at ``rate`` Hz; ``progress(done, total, clip)`` after each."""
+    provenance and its features at ``rate`` Hz (BVH takes through the first of ``maps`` that fits
+    their rig); ``progress(done, total, clip)`` after each."""
     rows = read_training_manifest(path)
     out: Examples = {}
     for i, item in enumerate(rows, start=1):
-        clip, matrix = read_example(item, path, rate=rate, default_native_rate=default_native_rate)
+        clip, matrix = read_example(item, path, rate=rate, default_native_rate=default_native_rate, maps=maps)
         out.setdefault(item.name, []).append((clip, matrix))
         if progress is not None:
             progress(i, len(rows), clip)

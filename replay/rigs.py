@@ -32,6 +32,7 @@ from daemon.types import FloatArray
 from replay.bvh import BvhKinematics, BvhMotion
 from replay.errors import MocapFormatError
 from replay.joints import JOINT_NAMES
+from replay.kinematics import y_up
 
 HEAD_TOP_PER_THIGH = 0.130 / 0.245
 FINGERS_PER_FOREARM = 0.108 / 0.146
@@ -233,10 +234,22 @@ def standard_joints(positions: FloatArray, plan: RigPlan) -> FloatArray:
     return out
 
 
+def up_axis(joints: FloatArray) -> str:
+    """The axis a recording's standard joints ``(N, 26, 3)`` stand along: ``"z"`` when the median
+    root-to-head vector over its frames points most along +z, else ``"y"`` (mocapd's up). A rig
+    that lies along its parent's x at rest, as bandai2's, says nothing at rest: its frames do."""
+    if not len(joints):
+        return "y"
+    up = np.median(joints[:, JOINT_NAMES.index("head")] - joints[:, JOINT_NAMES.index("root")], axis=0)
+    return "z" if up[2] > abs(up[1]) and up[2] > abs(up[0]) else "y"
+
+
 def bvh_standard_joints(motion: BvhMotion, maps: Sequence[RigMap] = BUILT_IN) -> tuple[FloatArray, RigPlan]:
-    """A BVH recording's standard joints, shape ``(N, 26, 3)`` in its own units, through the first
-    of ``maps`` that fits its rig, and that map's plan."""
+    """A BVH recording's standard joints, shape ``(N, 26, 3)`` in its own units, Y up (a rig that
+    stands along Z, :func:`up_axis`, is turned a quarter about X as a Z-up positions stream is),
+    through the first of ``maps`` that fits its rig, and that map's plan."""
     joints = motion.hierarchy.joints
     points = [not j.end_site or any(j.offset) for j in joints]
     plan = rig_plan([j.name for j in joints], points, motion.source, maps)
-    return standard_joints(BvhKinematics(motion.hierarchy).positions(motion.channels), plan), plan
+    standard = standard_joints(BvhKinematics(motion.hierarchy).positions(motion.channels), plan)
+    return (y_up(standard) if up_axis(standard) == "z" else standard), plan

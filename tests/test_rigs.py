@@ -5,6 +5,7 @@ CC BY-NC-ND 4.0, read unmodified)."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -28,6 +29,7 @@ from replay.rigs import (
     bvh_standard_joints,
     parse_rig_map,
     rig_plan,
+    up_axis,
 )
 from tests.helpers import assert_one_error_line, mocapd
 
@@ -179,7 +181,8 @@ def test_a_training_manifest_takes_a_bvh_column(tmp_path: Path) -> None:
 @pytest.mark.slow
 def test_learn_from_bvh_takes_and_detect_in_one(tmp_path: Path) -> None:
     """``mocapd learn`` on a manifest of bandai2 takes (two actions, two styles as the actors) and
-    ``mocapd detect --bvh`` with what it learned; ``mocapd index`` refuses such a manifest in one line."""
+    ``mocapd detect --bvh`` with what it learned, both through a user's rig map; ``mocapd index``
+    refuses such a manifest in one line."""
     rows = [
         (action, f"{action}_{style}_00{k}", style)
         for action in ("wave-right-hand", "raise-up-left-hand")
@@ -187,8 +190,19 @@ def test_learn_from_bvh_takes_and_detect_in_one(tmp_path: Path) -> None:
         for k in (1, 2)
     ]
     manifest = _bvh_manifest(tmp_path, rows)
+    rig = tmp_path / "studio.yaml"  # learned and detected through the same user's map
+    rig.write_text(STUDIO, encoding="utf-8")
     learned = mocapd(
-        "learn", "--manifest", manifest, "--out", tmp_path / "lib", "--no-calibrate", "--keyframes", "0"
+        "learn",
+        "--manifest",
+        manifest,
+        "--out",
+        tmp_path / "lib",
+        "--no-calibrate",
+        "--keyframes",
+        "0",
+        "--rig",
+        rig,
     )
     assert learned.returncode == 0, learned.stderr
     found = mocapd(
@@ -197,6 +211,8 @@ def test_learn_from_bvh_takes_and_detect_in_one(tmp_path: Path) -> None:
         BANDAI / "dataset-2_wave-right-hand_normal_003.bvh.gz",
         "--library",
         tmp_path / "lib",
+        "--rig",
+        rig,
         "--json",
     )
     assert found.returncode == 0, found.stderr
@@ -279,3 +295,23 @@ def test_a_bad_rig_map_is_one_line_naming_its_field(tmp_path: Path, text: str, s
         mocapd("detect", "--bvh", BANDAI / "dataset-2_walk_normal_001.bvh.gz", "--rig", path)
     )
     assert says in line and str(path) in line
+
+
+def test_a_rig_that_stands_along_z_is_turned_to_stand_along_y() -> None:
+    """bandai2's take under a root that turns it a quarter about X (as a Z-up tool exports it): its
+    standard joints come out as the take's own (``up_axis`` from its frames, not its rest pose)."""
+    motion = read_bvh(BANDAI / "dataset-2_walk_normal_001.bvh.gz")
+    world = BvhJoint("World", -1, (0.0, 0.0, 0.0), ("Xrotation",), 1)
+    shifted = tuple(
+        dataclasses.replace(j, parent=j.parent + 1 if j.parent >= 0 else 0) for j in motion.hierarchy.joints
+    )
+    turned = BvhMotion(
+        motion.source,
+        BvhHierarchy(motion.source, (world, *shifted)),
+        motion.frame_time,
+        np.hstack([np.full((len(motion.channels), 1), 90.0), motion.channels]),
+    )
+    upright, _ = bvh_standard_joints(motion)
+    lying, _ = bvh_standard_joints(turned)
+    assert up_axis(upright) == "y"
+    np.testing.assert_allclose(lying, upright, atol=1e-9 * np.abs(upright).max())

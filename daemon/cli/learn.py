@@ -45,6 +45,13 @@ def register(sub: Any) -> None:
         "(frames of the recording) and actor (the person; default: the ASF or BVH file)",
     )
     learn.add_argument("--out", type=Path, required=True, help="library directory to write (replaced)")
+    learn.add_argument(
+        "--rig",
+        type=Path,
+        default=None,
+        metavar="YAML",
+        help="a rig map for the manifest's BVH takes, tried before the built-in ones",
+    )
     common.rate_option(learn, DEFAULT_INDEX_RATE, "learn at this rate (default 30, as the thesis)")
     learn.add_argument("--png", type=Path, default=None, help="directory for a PNG of each class's MTs")
     learn.add_argument(
@@ -115,6 +122,7 @@ def _learn(args: argparse.Namespace, config: Config) -> int:
         rate=args.fps,
         progress=progress,
         default_native_rate=common.default_native_rate(args, config),
+        maps=common.rig_maps(args),
     )
     learned = learn_library(
         examples,
