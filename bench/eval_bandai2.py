@@ -3,17 +3,19 @@ styles of Bandai Namco Research's motion dataset 2 (``bandai2``, CC BY-NC-ND 4.0
 then the recogniser over the other three styles' takes joined into one stream.
 
     python -m bench.eval_bandai2 [--train active,elderly,exhausted,feminine] [--seed 0] [--keep DIR]
+                                 [--cut N]
 
 The training manifest names each take whole (``class, bvh, actor``, the style as the actor, so that
-calibration leaves one style out) and ``mocapd learn --manifest M --out LIB`` runs in a process of its
-own with no other option. The left-out styles' takes (each rig mapped onto the standard joints,
-:mod:`replay.rigs`) are joined in random order into one 30 Hz stream, each moved on the floor to
-start where the previous one ended, with 0.25 s of linear blending between them, and go through
-the batch twin of the live recogniser (:func:`daemon.recognizer.detect_positions`). A detection is
-right when at least half of it lies inside a take of its class; a take is found when it holds a
-right detection. Printed: per class and pooled precision (detections) and recall (takes), the
-machine and the time. The styles are split alphabetically by default; nothing is tuned on the
-takes reported.
+calibration leaves one style out); with ``--cut N``, the first ``N`` single repetitions that
+:func:`daemon.tools.repetitions.cut_run` finds in a take instead (the take whole where it finds
+none). ``mocapd learn --manifest M --out LIB`` runs in a process of its own with no other option.
+The left-out styles' takes (each rig mapped onto the standard joints, :mod:`replay.rigs`) are
+joined in random order into one 30 Hz stream, each moved on the floor to start where the previous
+one ended, with 0.25 s of linear blending between them, and go through the batch twin of the live
+recogniser (:func:`daemon.recognizer.detect_positions`). A detection is right when at least half of
+it lies inside a take of its class; a take is found when it holds a right detection. Printed: per
+class and pooled precision (detections) and recall (takes), the machine and the time. The styles
+are split alphabetically by default; nothing is tuned on the takes reported.
 """
 
 from __future__ import annotations
@@ -30,9 +32,12 @@ from pathlib import Path
 import numpy as np
 
 from bench.machine import describe
+from daemon.features import features
 from daemon.library import load_library
 from daemon.recognizer import detect_positions
+from daemon.tools.repetitions import cut_run
 from daemon.types import FloatArray
+from replay import JOINT_NAMES
 from replay.bvh import read_bvh
 from replay.rigs import bvh_standard_joints
 
@@ -48,6 +53,15 @@ def takes() -> list[tuple[str, str, Path]]:
         action, style, _ = path.name.removeprefix("dataset-2_").removesuffix(".bvh.gz").rsplit("_", 2)
         out.append((action, style, path))
     return out
+
+
+def repetitions(path: Path) -> list[tuple[int, int]]:
+    """The single repetitions :func:`daemon.tools.repetitions.cut_run` finds in a take (frames from
+    1, inclusive), none if it finds none."""
+    motion = read_bvh(path)
+    joints, _ = bvh_standard_joints(motion)
+    found = cut_run(features(joints, JOINT_NAMES, motion.rate), motion.rate, joints)
+    return [(r.start + 1, r.end + 1) for r in found.repetitions]
 
 
 def joined(clips: list[tuple[str, Path]], rate: float) -> tuple[FloatArray, list[tuple[str, int, int]]]:
@@ -77,12 +91,19 @@ def main() -> None:
     parser.add_argument("--train", default="active,elderly,exhausted,feminine")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--keep", type=Path, default=None, help="keep the manifest and library here")
+    parser.add_argument(
+        "--cut", type=int, default=0, metavar="N", help="learn from the first N repetitions of each take"
+    )
     args = parser.parse_args()
     train = set(args.train.split(","))
     print(describe())
     where = args.keep or Path(tempfile.mkdtemp(prefix="bandai2-"))
     where.mkdir(parents=True, exist_ok=True)
-    rows = ["class,bvh,actor"] + [f"{a},{p.resolve()},{s}" for a, s, p in takes() if s in train]
+    rows = ["class,bvh,actor,start_frame,end_frame"]
+    for a, s, p in takes():
+        if s in train:
+            reps = repetitions(p)[: args.cut]
+            rows += [f"{a},{p.resolve()},{s},{b},{e}" for b, e in reps] or [f"{a},{p.resolve()},{s},,"]
     (where / "train.csv").write_text("\n".join(rows) + "\n", encoding="utf-8")
     began = time.perf_counter()
     learned = subprocess.run(
@@ -116,17 +137,17 @@ def main() -> None:
     for d in found:
         detections[d.class_name] += 1
         correct[d.class_name] += right(d.class_name, d.start_frame, d.end_frame)
-    for c, a, b in spans:
-        takes_of[c] += 1
-        hit[c] += any(
-            d.class_name == c
-            and right(c, d.start_frame, d.end_frame)
-            and d.start_frame <= b
-            and d.end_frame >= a
+    for cls, first, last in spans:
+        takes_of[cls] += 1
+        hit[cls] += any(
+            d.class_name == cls
+            and right(cls, d.start_frame, d.end_frame)
+            and d.start_frame <= last
+            and d.end_frame >= first
             for d in found
         )
     print(
-        f"trained on {sorted(train)} ({len(rows) - 1} takes, learn {learn_s:.0f} s); "
+        f"trained on {sorted(train)} ({len(rows) - 1} examples, learn {learn_s:.0f} s); "
         f"detected on {len(clips)} takes of the other styles joined ({len(stream) / 30:.0f} s at 30 Hz)"
     )
     print(f"{'class':<22} {'precision':>9} {'recall':>7} {'detections':>10} {'takes':>6}")
