@@ -81,7 +81,7 @@ def register(sub: Any) -> None:
 
 @dataclass(frozen=True)
 class _Recording:
-    """What detect replays: frame numbers, each frame's values for the recogniser, the rate."""
+    """What detect replays: frame numbers, each frame's values, the rate, the recogniser for them."""
 
     frames: IntArray
     values: FloatArray
@@ -91,11 +91,15 @@ class _Recording:
 
 
 def _read(
-    args: argparse.Namespace, config: Config, library: Library, settings: RecognitionSettings, stream: str
+    args: argparse.Namespace,
+    config: Config,
+    library: Library,
+    settings: RecognitionSettings,
+    stream: str,
+    bvh: Path | None,
 ) -> _Recording:
-    """The recording of ``--bvh`` (its rig mapped onto the standard joints, :mod:`replay.rigs`;
+    """The recording of ``bvh`` (its rig mapped onto the standard joints, :mod:`replay.rigs`;
     frames numbered from 1) or of ``--asf`` and ``--amc``, and a recogniser for it."""
-    bvh = common.bvh_or_asf(args)
     maps = common.rig_maps(args)
     try:
         if bvh is not None:
@@ -126,7 +130,8 @@ def _detect(args: argparse.Namespace, config: Config) -> int:
         if not all(classes):
             raise UsageError(f"an empty class name in '{args.classes}'", field="--classes")
     library = load_library(default_library_path() if args.library is None else args.library, classes)
-    source = common.bvh_or_asf(args) or args.amc
+    bvh = common.bvh_or_asf(args)
+    source = bvh or args.amc
     trial = common.stream_name(source)
     truth = [] if args.truth is None else read_labels(args.truth, trial)
     stream = trial if args.stream is None else args.stream
@@ -134,7 +139,7 @@ def _detect(args: argparse.Namespace, config: Config) -> int:
         settings = config.recognizer.settings(classes)
     except InputError as exc:
         raise UsageError(str(exc), field="--classes") from None
-    motion = _read(args, config, library, settings, stream)
+    motion = _read(args, config, library, settings, stream, bvh)
     recognizer, rate = motion.recognizer, motion.rate
     found: list[Detection] = []
     first = int(motion.frames[0]) if len(motion.frames) else 0
