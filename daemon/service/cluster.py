@@ -316,39 +316,48 @@ class Cluster:
         """While this worker is the cluster's leader (the live member with the smallest name), every
         ``cluster.balance_s`` (0: never): once every member owns its partitions by the current
         balance, read the streams per partition they report and write a new balance when
-        :func:`rebalance` says (``docs/cluster.md``, "Balance"). Every worker then owns by it, as by
-        a change of members."""
+        :func:`rebalance` says so at two looks in a row (``docs/cluster.md``, "Balance": streams
+        that start or end for a moment move nothing). Every worker then owns by it, as by a change
+        of members."""
         m = self._membership
         assert m is not None
         every = self.settings.balance_s
+        wanted = False  # whether the last look wanted a new balance
         while not self._left and every > 0:
             await asyncio.sleep(every)
-            members, now = m.members, m.balance
-            if self.holding or self._handing_over or not members or self.member != min(members):
+            looked = await self._look(m)
+            if looked is None:
+                wanted = False
                 continue
-            if now != self.balance:
-                continue  # not owned by yet here
-            statuses = await m.statuses()
-            counts = None if statuses is None else measured(statuses, members, now.generation)
-            if counts is None:
+            if not wanted:
+                wanted = True
                 continue
-            new = rebalance(members, self.settings.partitions, now, counts)
-            if new is None or self._left or self.holding:
+            members, now, counts, new = looked
+            if self._left or self.holding or not await m.put_balance(new):
                 continue
-            if await m.put_balance(new):
-                self.log.info(
-                    "balanced",
-                    extra={
-                        "fields": {
-                            "generation": new.generation,
-                            "streams": sum(counts.values()),
-                            "before": loads(
-                                assignment(members, self.settings.partitions, now.weights), counts
-                            ),
-                            "after": loads(assignment(members, self.settings.partitions, counts), counts),
-                        }
-                    },
-                )
+            wanted = False
+            p = self.settings.partitions
+            fields = {
+                "generation": new.generation,
+                "streams": sum(counts.values()),
+                "before": loads(assignment(members, p, now.weights), counts),
+                "after": loads(assignment(members, p, counts), counts),
+            }
+            self.log.info("balanced", extra={"fields": fields})
+
+    async def _look(self, m: Membership) -> tuple[frozenset[str], Balance, dict[int, int], Balance] | None:
+        """One look of :meth:`lead`: (the members, the current balance, the streams per partition,
+        the new balance) when this worker leads, every member owns by the current balance and
+        :func:`rebalance` wants a new one; else None."""
+        members, now = m.members, m.balance
+        if not members or self.member != min(members) or self.holding or self._handing_over:
+            return None
+        if now != self.balance:
+            return None  # not owned by yet here
+        statuses = await m.statuses()
+        counts = None if statuses is None else measured(statuses, members, now.generation)
+        new = None if counts is None else rebalance(members, self.settings.partitions, now, counts)
+        return None if counts is None or new is None else (members, now, counts, new)
 
     async def report(self, table: StreamTable, lag: Any) -> None:
         """This worker's status in etcd about once a second: partitions, streams per partition,
