@@ -3,7 +3,8 @@
 A map names, for each standard joint, the rig's nodes that stand for it, in order of preference (the
 first the rig has is taken; an End Site whose offset is zero is no point of its own and is passed
 over). Names are compared without a namespace (``mixamorig:LeftArm`` is ``LeftArm``). The built-in
-maps (:data:`BUILT_IN`) cover the ``Hips/Spine/Chest/UpperArm_L`` scheme (Bandai Namco Research's
+maps (:data:`BUILT_IN`) cover the CMU/HDM05 ASF bone names (as :mod:`replay.convert` writes them),
+the ``Hips/Spine/Chest/UpperArm_L`` scheme (Bandai Namco Research's
 datasets) and the ``LeftUpLeg/LeftLeg/LeftArm/LeftForeArm`` scheme of most BVH exporters and of
 Mixamo; :func:`rig_plan` takes the first whose joints a rig has.
 
@@ -61,6 +62,29 @@ def _sided(template: Mapping[str, tuple[str, ...]]) -> dict[str, tuple[str, ...]
 
 
 BUILT_IN: tuple[RigMap, ...] = (
+    RigMap(
+        "asf",  # CMU/HDM05 bone names, each BVH joint at its bone's start (replay.convert writes them so)
+        _sided(
+            {
+                "root": ("root",),
+                "{x}hip": ("{x}femur",),
+                "{x}knee": ("{x}tibia",),
+                "{x}ankle": ("{x}foot",),
+                "{x}toes": ("{x}toes/end",),
+                "belly": ("upperback",),
+                "chest": ("thorax",),
+                "neck": ("lowerneck",),
+                "head": ("head",),
+                "headtop": ("head/end",),
+                "{x}clavicle": ("{x}clavicle",),
+                "{x}shoulder": ("{x}humerus",),
+                "{x}elbow": ("{x}radius",),
+                "{x}wrist": ("{x}hand",),
+                "{x}fingers": ("{x}fingers/end",),
+                "{x}thumb": ("{x}thumb/end",),
+            }
+        ),
+    ),
     RigMap(
         "upperarm",  # Hips, Spine, Chest, Neck, Head, Shoulder_L, UpperArm_L, ... (Bandai Namco Research)
         _sided(

@@ -1,8 +1,9 @@
-"""Commands on one recording: ``info``, ``positions``, ``features``."""
+"""Commands on one recording: ``info``, ``positions``, ``features``, ``convert``."""
 
 from __future__ import annotations
 
 import argparse
+import gzip
 import json
 from pathlib import Path
 from typing import IO, Any
@@ -15,9 +16,11 @@ from daemon.errors import UsageError
 from daemon.features import FEATURE_NAMES
 from daemon.plots import feature_matrix_png
 from daemon.recordings import RateError, motion_features, native_rate, read_recording
-from daemon.storage import together
+from daemon.storage import check_output_file, output_file, together
 from daemon.types import BoolArray, FloatArray, IntArray
 from replay import JOINT_NAMES, KinematicModel
+from replay.bvh import write_bvh
+from replay.convert import motion_to_bvh
 from replay.kinematics import joint_positions
 
 
@@ -41,6 +44,15 @@ def register(sub: Any) -> None:
     )
     feat.add_argument("--png", type=Path, default=None, help="also draw the feature matrix as this .png file")
     feat.set_defaults(func=_features)
+
+    conv = sub.add_parser(
+        "convert", help="write an ASF/AMC recording as BVH (read back: the same joint positions)"
+    )
+    common.recording_options(conv)
+    conv.add_argument(
+        "--out", type=Path, required=True, help="the BVH file to write (gzip if its name ends in .gz)"
+    )
+    conv.set_defaults(func=_convert)
 
 
 def _info(args: argparse.Namespace, config: Config) -> int:
@@ -133,3 +145,13 @@ def _write_features(out: IO[str], frames: IntArray, matrix: BoolArray) -> None:
     out.write(",".join(("frame", *FEATURE_NAMES)) + "\n")
     digits = np.where(matrix, "1", "0")
     out.writelines(f"{f},{','.join(row)}\n" for f, row in zip(frames.tolist(), digits.tolist(), strict=True))
+
+
+def _convert(args: argparse.Namespace, config: Config) -> int:
+    check_output_file(args.out)
+    motion = read_recording(args.asf, args.amc)
+    text = write_bvh(motion_to_bvh(motion, native_rate(motion, common.default_native_rate(args, config))))
+    with output_file(args.out, "wb") as out:
+        # mtime 0: the same recording gives the same bytes
+        out.write(gzip.compress(text, mtime=0) if args.out.name.endswith(".gz") else text)
+    return 0
