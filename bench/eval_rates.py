@@ -54,7 +54,7 @@ def matched(base: list[Detection], other: list[Detection], k: int) -> tuple[int,
                 continue
             if (
                 abs(o.start_frame * k - d.start_frame) <= tolerance
-                and abs(o.end_frame * k - d.end_frame) <= tolerance + k
+                and abs((o.end_frame + 1) * k - 1 - d.end_frame) <= tolerance  # its frame's last at 120 Hz
             ):
                 used.add(j)
                 hits += 1
