@@ -38,8 +38,7 @@ from daemon.recognizer import detect_positions
 from daemon.tools.repetitions import cut_run
 from daemon.types import FloatArray
 from replay import JOINT_NAMES
-from replay.bvh import read_bvh
-from replay.rigs import bvh_standard_joints
+from replay.rigs import read_bvh_take
 
 BANDAI = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "mocap" / "bandai2"
 STYLES = ("active", "elderly", "exhausted", "feminine", "masculine", "normal", "youthful")
@@ -58,9 +57,8 @@ def takes() -> list[tuple[str, str, Path]]:
 def repetitions(path: Path) -> list[tuple[int, int]]:
     """The single repetitions :func:`daemon.tools.repetitions.cut_run` finds in a take (frames from
     1, inclusive), none if it finds none."""
-    motion = read_bvh(path)
-    joints, _ = bvh_standard_joints(motion)
-    found = cut_run(features(joints, JOINT_NAMES, motion.rate), motion.rate, joints)
+    take = read_bvh_take(path)
+    found = cut_run(features(take.joints, JOINT_NAMES, take.rate), take.rate, take.joints)
     return [(r.start + 1, r.end + 1) for r in found.repetitions]
 
 
@@ -72,7 +70,7 @@ def joined(clips: list[tuple[str, Path]], rate: float) -> tuple[FloatArray, list
     spans = []
     frame = 1
     for action, path in clips:
-        joints, _ = bvh_standard_joints(read_bvh(path))
+        joints = read_bvh_take(path).joints
         if parts:
             last = parts[-1][-1]
             joints = joints + np.array([last[0, 0] - joints[0, 0, 0], 0.0, last[0, 2] - joints[0, 0, 2]])

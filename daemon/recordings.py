@@ -39,9 +39,8 @@ from daemon.types import (
     TrainingClip,
 )
 from replay import JOINT_NAMES, Motion, read_amc, read_asf
-from replay.bvh import read_bvh
 from replay.kinematics import joint_positions
-from replay.rigs import BUILT_IN, RigMap, bvh_standard_joints
+from replay.rigs import BUILT_IN, RigMap, read_bvh_take
 
 MAX_ACTOR = 200
 
@@ -153,16 +152,13 @@ def read_bvh_features(
     """The features of the BVH recording at ``path`` at ``rate`` Hz (None: its own rate), its rig
     mapped onto the standard joints by the first of ``maps`` that fits (:mod:`replay.rigs`; the
     file's units taken for centimetres), its frames numbered from 1."""
-    motion = read_bvh(path)
-    joints, _ = bvh_standard_joints(motion, maps)
-    native = motion.rate
+    take = read_bvh_take(path, maps)
     try:
-        step = 1 if rate is None else decimation_factor(native, rate)
-        matrix = decimate(features(joints, JOINT_NAMES, native), step)
+        step = 1 if rate is None else decimation_factor(take.rate, rate)
+        matrix = decimate(features(take.joints, JOINT_NAMES, take.rate), step)
     except InputError as exc:
         raise RateError(str(exc), path=path) from None
-    frames = np.arange(1, len(joints) + 1)
-    return RecordingFeatures(matrix, frames[::step], native, step, 1, len(joints))
+    return RecordingFeatures(matrix, take.frames[::step], take.rate, step, 1, len(take.joints))
 
 
 # --------------------------------------------------------------------------------------- manifests

@@ -335,12 +335,29 @@ class BvhKinematics:
             self._plan.append((k, positions, rotations))
         self._offsets = np.array([j.offset for j in hierarchy.joints], dtype=np.float64).reshape(-1, 3)
 
-    def positions(self, channels: FloatArray) -> FloatArray:
-        """Every node's position (End Sites included): ``channels`` shape ``(N, C)`` gives shape
-        ``(N, nodes, 3)``, in the file's units."""
+    def _rows(self, channels: FloatArray) -> FloatArray:
         rows = np.asarray(channels, dtype=np.float64)
         if rows.ndim != 2 or rows.shape[1] != self.width:
             raise ValueError(f"channels must have shape (N, {self.width}), got {rows.shape}")
+        return rows
+
+    def _local(
+        self, rows: FloatArray, rotations: list[tuple[int, int]], cos: FloatArray, sin: FloatArray
+    ) -> FloatArray:
+        """A joint's rotation relative to its parent from its rotation channels: shape ``(4, N)``."""
+        local = np.zeros((4, rows.shape[0]))
+        local[0] = 1.0
+        for axis, column in rotations:  # R = R(c1) @ R(c2) @ ...: each next one on the right
+            e = np.zeros((4, rows.shape[0]))
+            e[0] = cos[column]
+            e[1 + axis] = sin[column]
+            local = quaternion_multiply(local, e)
+        return local
+
+    def positions(self, channels: FloatArray) -> FloatArray:
+        """Every node's position (End Sites included): ``channels`` shape ``(N, C)`` gives shape
+        ``(N, nodes, 3)``, in the file's units."""
+        rows = self._rows(channels)
         n = rows.shape[0]
         half = np.radians(rows.T) * 0.5  # (C, N)
         cos, sin = np.cos(half), np.sin(half)
@@ -349,13 +366,7 @@ class BvhKinematics:
         pos = np.zeros((3, len(joints), n))
         for k, positions, rotations in self._plan:
             joint = joints[k]
-            local = np.zeros((4, n))
-            local[0] = 1.0
-            for axis, column in rotations:  # R = R(c1) @ R(c2) @ ...: each next one on the right
-                e = np.zeros((4, n))
-                e[0] = cos[column]
-                e[1 + axis] = sin[column]
-                local = quaternion_multiply(local, e)
+            local = self._local(rows, rotations, cos, sin)
             t = np.repeat(self._offsets[k][:, None], n, axis=1)
             for axis, column in positions:
                 t[axis] = rows[:, column]
@@ -367,6 +378,16 @@ class BvhKinematics:
                 rot[:, k] = quaternion_multiply(rot[:, parent], local)
                 pos[:, k] = pos[:, parent] + quaternion_rotate(rot[:, parent], t)
         return np.ascontiguousarray(pos.transpose(2, 1, 0))
+
+    def local_rotations(self, channels: FloatArray) -> FloatArray:
+        """Every node's rotation relative to its parent as a unit quaternion ``(w, x, y, z)`` (the
+        identity for an End Site or a joint without rotation channels): ``channels`` shape ``(N,
+        C)`` gives shape ``(N, nodes, 4)``."""
+        rows = self._rows(channels)
+        half = np.radians(rows.T) * 0.5
+        cos, sin = np.cos(half), np.sin(half)
+        local = np.stack([self._local(rows, rotations, cos, sin) for k, _, rotations in self._plan])
+        return np.ascontiguousarray(local.transpose(2, 0, 1))
 
     def positions_frame(self, channels: FloatArray) -> FloatArray:
         """:meth:`positions` of one frame: shape ``(C,)`` gives shape ``(nodes, 3)``, bit for bit

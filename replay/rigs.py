@@ -26,11 +26,12 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
-from daemon.types import FloatArray
-from replay.bvh import BvhKinematics, BvhMotion
+from daemon.types import FloatArray, IntArray
+from replay.bvh import BvhKinematics, BvhMotion, read_bvh
 from replay.errors import MocapFormatError
 from replay.joints import JOINT_NAMES
 from replay.kinematics import y_up
@@ -277,3 +278,23 @@ def bvh_standard_joints(motion: BvhMotion, maps: Sequence[RigMap] = BUILT_IN) ->
     plan = rig_plan([j.name for j in joints], points, motion.source, maps)
     standard = standard_joints(BvhKinematics(motion.hierarchy).positions(motion.channels), plan)
     return (y_up(standard) if up_axis(standard) == "z" else standard), plan
+
+
+@dataclass(frozen=True)
+class BvhTake:
+    """A BVH recording as mocapd takes it: its standard ``joints`` shape ``(N, 26, 3)``
+    (:func:`bvh_standard_joints`), their ``frames`` numbered from 1, its ``rate`` and the rig map's
+    ``plan``."""
+
+    source: str
+    joints: FloatArray
+    frames: IntArray
+    rate: float
+    plan: RigPlan
+
+
+def read_bvh_take(path: str | Path, maps: Sequence[RigMap] = BUILT_IN) -> BvhTake:
+    """The BVH file at ``path`` through the first of ``maps`` that fits its rig."""
+    motion = read_bvh(path)
+    joints, plan = bvh_standard_joints(motion, maps)
+    return BvhTake(motion.source, joints, np.arange(1, len(joints) + 1, dtype=np.int64), motion.rate, plan)

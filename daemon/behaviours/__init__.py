@@ -51,7 +51,13 @@ from daemon.behaviours.ppca import (
     ppca_forward,
     ppca_segment,
 )
-from daemon.behaviours.quaternions import PAPER_BONES, JointRotations, RotationStream, consistent_signs
+from daemon.behaviours.quaternions import (
+    PAPER_BONES,
+    JointRotations,
+    RigRotations,
+    RotationStream,
+    consistent_signs,
+)
 from daemon.behaviours.scoring import match_boundaries
 
 __all__ = [
@@ -76,6 +82,7 @@ __all__ = [
     "PpcaParams",
     "PpcaResult",
     "PpcaSegmenter",
+    "RigRotations",
     "RotationStream",
     "analyse",
     "consistent_signs",

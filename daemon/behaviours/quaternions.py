@@ -30,7 +30,10 @@ from daemon.behaviours.common import check_finite
 from daemon.errors import InputError
 from daemon.types import FloatArray
 from replay.asf import ROTATION_DOFS, Skeleton
+from replay.bvh import ROTATIONS, BvhHierarchy, BvhKinematics
+from replay.joints import JOINT_NAMES
 from replay.kinematics import KinematicModel
+from replay.rigs import RigPlan
 
 
 def _dot(a: FloatArray, b: FloatArray) -> FloatArray:
@@ -138,6 +141,38 @@ class JointRotations:
     def stream(self) -> RotationStream:
         """A new per-frame stream of this representation."""
         return RotationStream(self)
+
+
+RIG_JOINTS = (
+    *("belly", "chest", "head", "lshoulder", "lelbow", "rshoulder", "relbow"),
+    *("lhip", "lknee", "lankle", "rhip", "rknee", "rankle"),
+)
+"""The standard joints whose BVH joints turn :data:`PAPER_BONES` (a BVH joint sits at its bone's
+start: ``lhumerus`` turns at ``lshoulder``); ``lowerback`` has none of its own (it starts at the
+root, whose rotation is the body's)."""
+
+
+class RigRotations:
+    """:class:`JointRotations` of a BVH rig: the frame vectors of the rig's joints that stand for
+    :data:`RIG_JOINTS` (through a rig map's ``plan``, :mod:`replay.rigs`) and have rotation channels,
+    their local rotations (:meth:`replay.bvh.BvhKinematics.local_rotations`) made sign-consistent."""
+
+    def __init__(self, hierarchy: BvhHierarchy, plan: RigPlan) -> None:
+        self.kinematics = BvhKinematics(hierarchy)
+        joints = hierarchy.joints
+        picked = [plan.nodes[JOINT_NAMES.index(j)] for j in RIG_JOINTS]
+        self.nodes = tuple(k for k in picked if k >= 0 and any(c in ROTATIONS for c in joints[k].channels))
+        if not self.nodes:
+            raise InputError(f"{hierarchy.source}: no joint of the rig has rotation channels")
+        self.bones: tuple[str, ...] = tuple(joints[k].name for k in self.nodes)
+        self.dims = 4 * len(self.nodes)
+
+    def __call__(self, channels: npt.ArrayLike) -> FloatArray:
+        """``channels`` shape ``(N, C)`` (a BVH motion's, degrees) gives shape ``(N, D)``."""
+        c = np.asarray(channels, dtype=np.float64)
+        check_finite(c, "channels")
+        q = self.kinematics.local_rotations(c)[:, list(self.nodes)]
+        return consistent_signs(q).reshape(q.shape[0], self.dims)
 
 
 class RotationStream:

@@ -63,14 +63,19 @@ def recording_options(command: argparse.ArgumentParser, *, bvh: bool = False) ->
             default=None,
             help="a BVH recording, plain or gzip, instead of --asf and --amc",
         )
-        command.add_argument(
-            "--rig",
-            type=Path,
-            default=None,
-            metavar="YAML",
-            help="a rig map for --bvh (docs/recordings-and-features.md), tried before the built-in ones",
-        )
+        rig_option(command)
     native_rate_option(command)
+
+
+def rig_option(command: argparse.ArgumentParser) -> None:
+    """``--rig YAML``: a user's rig map for BVH recordings (:func:`rig_maps`)."""
+    command.add_argument(
+        "--rig",
+        type=Path,
+        default=None,
+        metavar="YAML",
+        help="a rig map for BVH recordings (docs/recordings-and-features.md), tried before the built-in ones",
+    )
 
 
 def stream_name(recording: Path) -> str:

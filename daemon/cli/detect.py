@@ -24,9 +24,8 @@ from daemon.progress import ProgressEvent, StreamProgress
 from daemon.recognizer import Detection, Recognizer
 from daemon.recordings import native_rate, read_labels, read_recording
 from daemon.types import FloatArray, IntArray, RecognitionSettings
-from replay.bvh import read_bvh
 from replay.joints import JOINT_NAMES
-from replay.rigs import bvh_standard_joints
+from replay.rigs import read_bvh_take
 
 
 def speed(text: str) -> float | None:
@@ -103,13 +102,11 @@ def _read(
     maps = common.rig_maps(args)
     try:
         if bvh is not None:
-            motion = read_bvh(bvh)
-            joints, _ = bvh_standard_joints(motion, maps)
-            rate = motion.rate
+            take = read_bvh_take(bvh, maps)
             recognizer = Recognizer.for_positions(
-                library, JOINT_NAMES, rate, settings=settings, stream=stream
+                library, JOINT_NAMES, take.rate, settings=settings, stream=stream
             )
-            return _Recording(np.arange(1, len(joints) + 1), joints, rate, recognizer)
+            return _Recording(take.frames, take.joints, take.rate, recognizer)
         amc = read_recording(args.asf, args.amc)
         rate = native_rate(amc, common.default_native_rate(args, config))
         recognizer = Recognizer.for_skeleton(library, amc.skeleton, rate, settings=settings, stream=stream)

@@ -14,30 +14,32 @@ from daemon.cli import common
 from daemon.config import Config
 from daemon.errors import UsageError
 from daemon.features import FEATURE_NAMES
+from daemon.features.catalog import features_reading
 from daemon.plots import feature_matrix_png
-from daemon.recordings import RateError, motion_features, native_rate, read_recording
+from daemon.recordings import RateError, motion_features, native_rate, read_bvh_features, read_recording
 from daemon.storage import check_output_file, output_file, together
 from daemon.types import BoolArray, FloatArray, IntArray
 from replay import JOINT_NAMES, KinematicModel
 from replay.bvh import write_bvh
 from replay.convert import motion_to_bvh
 from replay.kinematics import joint_positions
+from replay.rigs import BvhTake, read_bvh_take
 
 
 def register(sub: Any) -> None:
     info = sub.add_parser("info", help="describe a recording: frames, duration, bones, joints")
-    common.recording_options(info)
+    common.recording_options(info, bvh=True)
     info.add_argument("--json", action="store_true", help="print one JSON object instead of text")
     info.set_defaults(func=_info)
 
     pos = sub.add_parser("positions", help="write joint positions as CSV: frame,joint,x,y,z")
-    common.recording_options(pos)
+    common.recording_options(pos, bvh=True)
     pos.add_argument("--csv", type=Path, required=True, help="output CSV ('-' for stdout)")
     pos.add_argument("--cm", action="store_true", help="centimetres (ASF length / :units length x 2.54)")
     pos.set_defaults(func=_positions)
 
     feat = sub.add_parser("features", help="write the 39 relational features as CSV: frame,<names>")
-    common.recording_options(feat)
+    common.recording_options(feat, bvh=True)
     feat.add_argument("--csv", type=Path, required=True, help="output CSV ('-' for stdout)")
     common.rate_option(
         feat, None, "output rate (default: the native rate, at which features are always computed)"
@@ -56,6 +58,9 @@ def register(sub: Any) -> None:
 
 
 def _info(args: argparse.Namespace, config: Config) -> int:
+    bvh = common.bvh_or_asf(args)
+    if bvh is not None:
+        return _bvh_info(bvh, read_bvh_take(bvh, common.rig_maps(args)), args.json)
     motion = read_recording(args.asf, args.amc)
     skeleton = motion.skeleton
     if motion.header.frame_rate is not None:
@@ -99,8 +104,37 @@ def _info(args: argparse.Namespace, config: Config) -> int:
     return 0
 
 
+def _bvh_info(path: Path, take: BvhTake, as_json: bool) -> int:
+    """``info --bvh``: the take, the rig map that fits it, and each joint derived with the features
+    it reaches (:func:`daemon.features.catalog.features_reading`)."""
+    derived = {j: list(features_reading(j)) for j in take.plan.derived}
+    summary = {
+        "bvh": str(path),
+        "frames": len(take.frames),
+        "frame_rate_hz": take.rate,
+        "duration_s": len(take.frames) / take.rate,
+        "rig_map": take.plan.rig,
+        "joints": list(JOINT_NAMES),
+        "derived": derived,
+    }
+    if as_json:
+        print(json.dumps(summary))
+        return 0
+    print(f"bvh:        {path}")
+    print(f"frames:     {len(take.frames)} ({len(take.frames) / take.rate:.3f} s at {take.rate:g} Hz)")
+    print(f"rig map:    {take.plan.rig}")
+    for joint, reached in derived.items():
+        print(f"derived:    {joint} (reaches {', '.join(reached) or 'no feature'})")
+    return 0
+
+
 def _positions(args: argparse.Namespace, config: Config) -> int:
     common.check_csv_output(args.csv)
+    bvh = common.bvh_or_asf(args)
+    if bvh is not None:  # in the file's units, taken for centimetres
+        take = read_bvh_take(bvh, common.rig_maps(args))
+        common.write_csv(args.csv, lambda out: _write_positions(out, take.frames, take.joints))
+        return 0
     motion = read_recording(args.asf, args.amc)
     joints = joint_positions(motion, "cm" if args.cm or config.replay.units == "cm" else "asf")
     common.write_csv(args.csv, lambda out: _write_positions(out, motion.frames, joints))
@@ -125,15 +159,20 @@ def _features(args: argparse.Namespace, config: Config) -> int:
     common.check_csv_output(args.csv)
     if args.png is not None:
         common.check_png_output(args.png)
-    motion = read_recording(args.asf, args.amc)
+    bvh = common.bvh_or_asf(args)
     try:
-        got = motion_features(motion, args.fps, common.default_native_rate(args, config))
+        if bvh is not None:
+            got = read_bvh_features(bvh, args.fps, common.rig_maps(args))
+        else:
+            got = motion_features(
+                read_recording(args.asf, args.amc), args.fps, common.default_native_rate(args, config)
+            )
     except RateError as exc:
         raise UsageError(exc.reason, field="--fps") from None
     with together():  # an interrupted run leaves both the previous CSV and PNG
         common.write_csv(args.csv, lambda out: _write_features(out, got.frames, got.matrix))
         if args.png is not None:
-            title = f"{args.amc.name}: {len(got.frames)} frames at {got.rate:g} Hz"
+            title = f"{(bvh or args.amc).name}: {len(got.frames)} frames at {got.rate:g} Hz"
             common.write_png(
                 args.png, lambda out: feature_matrix_png(got.matrix, got.frames, out, title, got.rate)
             )

@@ -17,7 +17,7 @@ from daemon.dtw import STEPS
 from daemon.errors import UsageError
 from daemon.keyframes import KeyframeError, KeyframeQuery, parse_keyframe_queries
 from daemon.library import load_library
-from daemon.recordings import RateError, display_path, read_features, read_manifest
+from daemon.recordings import RateError, display_path, read_bvh_features, read_features, read_manifest
 from daemon.search.index import (
     Hits,
     QueryError,
@@ -57,11 +57,14 @@ ADAPTIVE_FUZZY = (
 def register(sub: Any) -> None:
     index = sub.add_parser("index", help="build or describe a motion index (inverted lists of F-segments)")
     index_sub = index.add_subparsers(required=True, metavar="{build,info}")
-    build = index_sub.add_parser("build", help="index the recordings of a manifest CSV (columns asf, amc)")
-    build.add_argument("--manifest", type=Path, required=True, help="CSV with columns asf and amc")
+    build = index_sub.add_parser(
+        "build", help="index the recordings of a manifest CSV (columns asf and amc, or bvh)"
+    )
+    build.add_argument("--manifest", type=Path, required=True, help="CSV with columns asf and amc, or bvh")
     build.add_argument("--out", type=Path, required=True, help="index directory to write (replaced)")
     common.rate_option(build, DEFAULT_INDEX_RATE, "index rate (default 30)")
     common.native_rate_option(build)
+    common.rig_option(build)
     build.set_defaults(func=_index_build)
     info = index_sub.add_parser("info", help="describe an index: documents, frames, segments, size")
     info.add_argument("index", type=Path, help="index directory")
@@ -88,9 +91,10 @@ def register(sub: Any) -> None:
     )
     mode.add_argument(
         "--example",
-        nargs=4,
-        metavar=("ASF", "AMC", "START", "END"),
-        help=f"query by example: a recording and its AMC frames START..END, {ADAPTIVE_FUZZY}",
+        nargs="+",
+        metavar="ASF AMC|BVH START END",
+        help=f"query by example: a recording (ASF and AMC, or a BVH take) and its frames START..END "
+        f"(AMC frame numbers; a BVH's from 1), {ADAPTIVE_FUZZY}",
     )
     search.add_argument(
         "--class", dest="class_name", help="with --keyframes or --library: the class to search"
@@ -132,6 +136,7 @@ def register(sub: Any) -> None:
     common.native_rate_option(search)
     search.add_argument("--limit", type=int, default=None, help="print at most this many hits")
     search.add_argument("--json", action="store_true", help="one JSON object per hit and line")
+    common.rig_option(search)
     search.set_defaults(func=_search)
 
 
@@ -140,7 +145,7 @@ def register(sub: Any) -> None:
 
 def _index_build(args: argparse.Namespace, config: Config) -> int:
     began = time.perf_counter()
-    rows = read_manifest(args.manifest)
+    rows = read_manifest(args.manifest, bvh=True)
     check_index_target(args.out)  # before the long part
 
     def progress(done: int, total: int, document: Document) -> None:
@@ -157,6 +162,7 @@ def _index_build(args: argparse.Namespace, config: Config) -> int:
         progress=progress,
         default_native_rate=common.default_native_rate(args, config),
         base=args.manifest.parent,
+        maps=common.rig_maps(args),
     )
     save_index(index, args.out)
     seconds = time.perf_counter() - began
@@ -232,11 +238,12 @@ def _search(args: argparse.Namespace, config: Config) -> int:
         "--steps": args.steps is not None,
         "--example": args.example is not None,
         "--native-fps": args.native_fps is not None,
+        "--rig": args.rig is not None,
     }
     allowed = {
         "--library": {"--class", "--extend", "--tau", "--steps"},
         "--keyframes": {"--class", "--extend"},
-        "--example": {"--features", "--fuzzy", "--plain", "--mismatch", "--example", "--native-fps"},
+        "--example": {"--features", "--fuzzy", "--plain", "--mismatch", "--example", "--native-fps", "--rig"},
     }[mode]
     wrong = [k for k, v in given.items() if v and k not in allowed]
     if wrong:
@@ -350,7 +357,11 @@ def _search_keyframes(args: argparse.Namespace, index: MotionIndex) -> tuple[lis
 
 
 def _search_example(args: argparse.Namespace, config: Config, index: MotionIndex) -> tuple[list[Row], str]:
-    asf, amc, start_text, end_text = args.example
+    if len(args.example) not in (3, 4):
+        raise UsageError(
+            f"--example takes ASF AMC START END or BVH START END, got {len(args.example)} values"
+        )
+    *files, start_text, end_text = args.example
     if args.features is None:
         raise UsageError("--example needs --features NAME,NAME,...")
     try:
@@ -365,8 +376,12 @@ def _search_example(args: argparse.Namespace, config: Config, index: MotionIndex
         ) from None
     if args.fuzzy < 0:
         raise UsageError(f"--fuzzy must not be negative, got {args.fuzzy}")
+    amc = Path(files[-1])
     try:
-        got = read_features(asf, amc, index.rate, common.default_native_rate(args, config))
+        if len(files) == 1:
+            got = read_bvh_features(amc, index.rate, common.rig_maps(args))
+        else:
+            got = read_features(files[0], amc, index.rate, common.default_native_rate(args, config))
     except RateError as exc:
         raise UsageError(f"{exc.reason} (the index rate)", path=amc) from None
     if not got.first_amc_frame <= first <= last <= got.last_amc_frame:

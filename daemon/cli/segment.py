@@ -9,12 +9,16 @@ import time
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from daemon import behaviours as bh
 from daemon.cli import common
 from daemon.config import Config
 from daemon.errors import InputError, UsageError
 from daemon.plots import segmentation_png
 from daemon.recordings import continuous, native_rate, read_boundaries, read_recording
+from replay.bvh import read_bvh
+from replay.rigs import bvh_standard_joints
 
 
 def register(sub: Any) -> None:
@@ -24,9 +28,9 @@ def register(sub: Any) -> None:
         description="Cut a recording where one behaviour ends and the next begins, without training "
         "(Barbič et al., GI 2004). Every window is in seconds (the paper's frames at 120 Hz in the "
         "help), scaled to the recording's rate; the defaults are the paper's. A cut is printed as the "
-        "AMC frame number where the new behaviour starts.",
+        "AMC frame number (a BVH's frames count from 1) where the new behaviour starts.",
     )
-    common.recording_options(cmd)
+    common.recording_options(cmd, bvh=True)
     cmd.add_argument("--method", choices=bh.METHODS, default="ppca", help="the method (default: ppca)")
     cmd.add_argument(
         "--json", action="store_true", help='one JSON object per cut: {"frame", "method", "score"}'
@@ -116,19 +120,28 @@ def params(args: argparse.Namespace) -> bh.PcaParams | bh.PpcaParams | bh.GmmPar
 def _segment(args: argparse.Namespace, config: Config) -> int:
     if args.png is not None:
         common.check_png_output(args.png)
-    trial = args.amc.name.removesuffix(".gz").removesuffix(".amc")
-    motion = read_recording(args.asf, args.amc)
-    rate = native_rate(motion, common.default_native_rate(args, config))
-    motion = continuous(motion, config.service.bridge_s, rate)
+    bvh = common.bvh_or_asf(args)
+    source: Path = bvh or args.amc
+    trial = common.stream_name(source)
+    rotations: bh.JointRotations | bh.RigRotations
+    if bvh is not None:  # frames from 1, at the file's rate
+        take = read_bvh(bvh)
+        rotations = bh.RigRotations(take.hierarchy, bvh_standard_joints(take, common.rig_maps(args))[1])
+        rate, frame_numbers, channels = take.rate, np.arange(1, len(take.channels) + 1), take.channels
+    else:
+        motion = read_recording(args.asf, args.amc)
+        rate = native_rate(motion, common.default_native_rate(args, config))
+        motion = continuous(motion, config.service.bridge_s, rate)
+        rotations = bh.JointRotations(motion.skeleton)
+        frame_numbers, channels = motion.frames, motion.channels
     bands = [] if args.truth is None else read_boundaries(args.truth, trial, rate=rate)
     began = time.perf_counter()
-    rotations = bh.JointRotations(motion.skeleton)
     try:
-        result = bh.analyse(rotations(motion.channels), rate, args.method, params=params(args))
+        result = bh.analyse(rotations(channels), rate, args.method, params=params(args))
     except InputError as exc:  # a window too short or long for the rate, a share out of range, ...
         raise UsageError(str(exc), field=f"--method {args.method}") from None
     took = time.perf_counter() - began
-    frames = motion.frames.tolist()
+    frames = frame_numbers.tolist()
     cuts = [int(frames[b.frame]) for b in result.boundaries]
     for b, frame in zip(result.boundaries, cuts, strict=True):
         if args.json:
@@ -139,9 +152,9 @@ def _segment(args: argparse.Namespace, config: Config) -> int:
                 flush=True,
             )
     if not args.json:
-        seconds = len(motion) / rate
+        seconds = len(frames) / rate
         print(
-            f"{len(cuts)} cuts by {args.method} in {len(motion)} frames ({seconds:.1f} s at {rate:g} Hz), "
+            f"{len(cuts)} cuts by {args.method} in {len(frames)} frames ({seconds:.1f} s at {rate:g} Hz), "
             f"{len(rotations.bones)} joints, in {took:.2f} s"
         )
         if bands:
@@ -149,7 +162,7 @@ def _segment(args: argparse.Namespace, config: Config) -> int:
             precision, recall = hits / len(cuts) if cuts else 0.0, hits / len(bands)
             print(f"truth: {hits} of {len(bands)} boundaries, precision {precision:.2f}, recall {recall:.2f}")
     if args.png is not None:
-        title = f"{args.amc.name}: behaviour segmentation by {args.method} (Barbič et al. 2004)"
+        title = f"{source.name}: behaviour segmentation by {args.method} (Barbič et al. 2004)"
         span = (int(frames[0]), int(frames[-1]))
         common.write_png(args.png, lambda out: segmentation_png(out, title, rate, span, [result], bands))
     return 0

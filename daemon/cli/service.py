@@ -9,8 +9,6 @@ import signal
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-import numpy as np
-
 from daemon.cli import _terminate, common
 from daemon.cli.detect import speed
 from daemon.config import Config, workers_of, workers_reason
@@ -20,9 +18,8 @@ from daemon.recordings import native_rate, read_recording
 from protocols.publish import Positions
 from protocols.urls import parse_nats_urls
 from replay.amc import Motion
-from replay.bvh import read_bvh
 from replay.joints import JOINT_NAMES
-from replay.rigs import bvh_standard_joints
+from replay.rigs import read_bvh_take
 
 if TYPE_CHECKING:
     from daemon.service.replay import Tasks
@@ -122,9 +119,8 @@ def _replay(args: argparse.Namespace, config: Config) -> int:
     motion: Motion | Positions
     if bvh is not None:
         # the take's rig mapped onto the standard joints, sent as a positions stream (frames from 1)
-        take = read_bvh(bvh)
-        joints, _ = bvh_standard_joints(take, common.rig_maps(args))
-        motion, rate, asf_text = Positions(np.arange(1, len(joints) + 1), joints, JOINT_NAMES), take.rate, ""
+        take = read_bvh_take(bvh, common.rig_maps(args))
+        motion, rate, asf_text = Positions(take.frames, take.joints, JOINT_NAMES), take.rate, ""
     else:
         motion = read_recording(args.asf, args.amc)
         rate = native_rate(motion, common.default_native_rate(args, config))

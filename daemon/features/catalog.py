@@ -10,6 +10,7 @@ from collections.abc import Iterator
 from typing import Any
 
 from daemon.features.language import (
+    REFERENCE_PAIRS,
     Absolute,
     AngleToVertical,
     Difference,
@@ -288,3 +289,22 @@ def catalog_joints() -> set[str]:
     """The joints the catalog reads: those its signals name and the toolbox's name map (lowest and
     highest points)."""
     return set(TOOLBOX_JOINTS).union(*(_signal_joints(t.signal) for f in CATALOG for t in f.tests))
+
+
+def features_reading(joint: str) -> tuple[str, ...]:
+    """The features whose value depends on ``joint``'s position: a test's signal names it, ranges
+    over the toolbox's name map it is in (lowest or highest point), or is scaled by a body length
+    measured from it (:class:`~daemon.features.language.BodyLengths`)."""
+
+    def reads(test: Test) -> bool:
+        ranged = any(
+            (isinstance(s, HeightAboveLowest) and joint not in s.exclude) or isinstance(s, VerticalExtent)
+            for s in _subsignals(test.signal)
+        )
+        return (
+            joint in _signal_joints(test.signal)
+            or (ranged and joint in TOOLBOX_JOINTS)
+            or any(joint in pair for pair in REFERENCE_PAIRS.get(test.reference, ()))
+        )
+
+    return tuple(f.name for f in CATALOG if any(reads(t) for t in f.tests))

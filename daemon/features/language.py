@@ -197,15 +197,23 @@ class BodyLengths:
         return 1.0 if reference == "one" else float(getattr(self, reference))
 
 
-_BODY_CHAIN = (
-    ("rankle", "rknee"),
-    ("rknee", "rhip"),
-    ("root", "belly"),
-    ("belly", "chest"),
-    ("chest", "neck"),
-    ("neck", "head"),
-    ("head", "headtop"),
-)
+REFERENCE_PAIRS: dict[str, tuple[tuple[str, str], ...]] = {
+    "h_R": (("relbow", "rshoulder"),),
+    "h_L": (("lshoulder", "lelbow"),),
+    "shoulder_width": (("rshoulder", "lshoulder"),),
+    "hip_width": (("rhip", "lhip"),),
+    "chest": (("chest", "neck"),),
+    "body": (
+        ("rankle", "rknee"),
+        ("rknee", "rhip"),
+        ("root", "belly"),
+        ("belly", "chest"),
+        ("chest", "neck"),
+        ("neck", "head"),
+        ("head", "headtop"),
+    ),
+}
+"""Each body length (but ``one``) as the joint pairs whose distances it sums."""
 
 
 def body_lengths(frame: FloatArray, joint_names: Sequence[str]) -> BodyLengths:
@@ -213,17 +221,10 @@ def body_lengths(frame: FloatArray, joint_names: Sequence[str]) -> BodyLengths:
     idx = {n: i for i, n in enumerate(joint_names)}
     pose = np.asarray(frame, dtype=np.float64).tolist()
 
-    def d(a: str, b: str) -> float:
-        return _distance(pose[idx[a]], pose[idx[b]])
+    def length(pairs: tuple[tuple[str, str], ...]) -> float:
+        total = 0.0
+        for a, b in pairs:
+            total = total + _distance(pose[idx[a]], pose[idx[b]])
+        return total
 
-    body = 0.0
-    for a, b in _BODY_CHAIN:
-        body = body + d(a, b)
-    return BodyLengths(
-        h_R=d("relbow", "rshoulder"),
-        h_L=d("lshoulder", "lelbow"),
-        shoulder_width=d("rshoulder", "lshoulder"),
-        hip_width=d("rhip", "lhip"),
-        chest=d("chest", "neck"),
-        body=body,
-    )
+    return BodyLengths(**{name: length(pairs) for name, pairs in REFERENCE_PAIRS.items()})

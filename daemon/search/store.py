@@ -29,7 +29,7 @@ from numpy.lib import format as npy_format
 from daemon.checks import Checker
 from daemon.errors import MocapdError
 from daemon.features import SET_SLICES
-from daemon.recordings import ManifestRow, display_path, read_features
+from daemon.recordings import ManifestRow, display_path, read_bvh_features, read_features
 from daemon.search.index import SetIndex, build_set_index
 from daemon.storage import check_target, checksum, read_meta, replace_directory, sync, write_json
 from daemon.types import (
@@ -41,6 +41,7 @@ from daemon.types import (
     FeatureSet,
     IntArray,
 )
+from replay.rigs import BUILT_IN, RigMap
 
 FORMAT = "mocapd-index"
 VERSION = 2
@@ -126,11 +127,19 @@ def index_from_matrices(
 
 
 def read_document(
-    row: ManifestRow, *, rate: float = DEFAULT_INDEX_RATE, default_native_rate: float = DEFAULT_NATIVE_RATE
+    row: ManifestRow,
+    *,
+    rate: float = DEFAULT_INDEX_RATE,
+    default_native_rate: float = DEFAULT_NATIVE_RATE,
+    maps: Sequence[RigMap] = BUILT_IN,
 ) -> tuple[Document, BoolArray]:
     """One recording's :class:`Document` and its features at ``rate``, shape ``(frames, 39)``
-    (:func:`daemon.recordings.read_features`)."""
-    got = read_features(row.asf, row.amc, rate, default_native_rate)
+    (:func:`daemon.recordings.read_features`; a BVH row's through the first of ``maps`` that fits,
+    its frames from 1)."""
+    if row.bvh is not None:
+        got = read_bvh_features(row.bvh, rate, maps)
+    else:
+        got = read_features(row.asf, row.amc, rate, default_native_rate)
     document = Document(
         amc=row.amc_text,
         asf=row.asf_text,
@@ -150,6 +159,7 @@ def build_index(
     progress: Progress | None = None,
     default_native_rate: float = DEFAULT_NATIVE_RATE,
     base: str | Path = "",
+    maps: Sequence[RigMap] = BUILT_IN,
 ) -> MotionIndex:
     """The index of the manifest's recordings at ``rate`` Hz; ``progress(done, total, document)`` is
     called after each recording; ``base``: the manifest's directory. Raises
@@ -158,7 +168,7 @@ def build_index(
     documents: list[Document] = []
     matrices: list[BoolArray] = []
     for i, row in enumerate(rows, start=1):
-        document, matrix = read_document(row, rate=rate, default_native_rate=default_native_rate)
+        document, matrix = read_document(row, rate=rate, default_native_rate=default_native_rate, maps=maps)
         documents.append(document)
         matrices.append(matrix)
         if progress is not None:
