@@ -60,7 +60,7 @@ import numpy as np
 from bench.common import DATA
 from bench.machine import describe
 from daemon.dtw import local_minima, pack, retrieval_tables, subsequence_codes, to_cost
-from daemon.features import features
+from daemon.features import sampled_features
 from daemon.frames import FrameClock
 from daemon.library import DTW, GATED, ClassTemplate, Library, load_library
 from daemon.recognizer import (
@@ -274,7 +274,7 @@ def why_missed(library: Library, s: Stream, seg: Segment, detections: Sequence[D
     batch twin's features)."""
     clock = FrameClock.of(s.rate, library.rate)
     first = int(s.motion.frames[0])
-    codes = pack(features(joint_positions(s.motion), JOINT_NAMES, s.rate)[:: clock.step])
+    codes = pack(sampled_features(joint_positions(s.motion), JOINT_NAMES, s.rate, clock.step))
     lo, hi = clock.index(first, seg.start), clock.index(first, seg.end)
     cls = library.classes[seg.name]
     best = math.inf
@@ -334,7 +334,7 @@ def measure(library: Library, fold: Fold, results: Results, kind: str) -> None:
             t.right += any(inside(d.start_frame, d.end_frame, d.class_name, seg) for seg in s.truth)
         clock = FrameClock.of(s.rate, library.rate)
         first = int(s.motion.frames[0])
-        codes = pack(features(joint_positions(s.motion), JOINT_NAMES, s.rate)[:: clock.step]).tolist()
+        codes = pack(sampled_features(joint_positions(s.motion), JOINT_NAMES, s.rate, clock.step)).tolist()
         segments = [(seg, clock.index(first, seg.start), clock.index(first, seg.end)) for seg in s.truth]
         for seg in s.truth:
             if seg.name not in library.classes:

@@ -1,6 +1,6 @@
 # cython: language_level=3, boundscheck=False, wraparound=False, initializedcheck=False, cdivision=True
-"""The live path's frame step in compiled code: a stream's state (:class:`LiveStream`: forward
-kinematics or the announced joint order, the features, the decimation, and the class stage's
+"""The live path's frame step in compiled code: a stream's state (:class:`LiveStream`: the
+decimation, forward kinematics or the announced joint order, the features, and the class stage's
 compiled competition it hands its index-rate codes to), and :func:`push_many`, one frame of each of
 many streams in one call, in passes over all of them, forward kinematics and the feature program by
 blocks of streams (daemon/recognizer.py says what each step is)."""
@@ -24,7 +24,7 @@ cdef enum:
     C_NON_FINITE_CHANNELS = -3
 
 NOTHING = C_NOTHING
-"""No index-rate code this frame (the features' delay, or a frame the decimation skips)."""
+"""No index-rate code this frame (the features' delay, or a frame the decimation leaves)."""
 NON_FINITE = C_NON_FINITE
 """A standard joint is not finite (after forward kinematics)."""
 NON_FINITE_CHANNELS = C_NON_FINITE_CHANNELS
@@ -32,10 +32,11 @@ NON_FINITE_CHANNELS = C_NON_FINITE_CHANNELS
 
 
 cdef class LiveStream:
-    """One stream: ``kinematics`` (channel frames; None for joint positions, gathered by ``order``,
-    the flat index of each standard joint coordinate in the frame), its ``features`` (thresholds
-    from ``lengths(rows)``, a callable, on the first frame) and every ``step``-th feature vector
-    passed on."""
+    """One stream: of every ``step``-th frame from the first (the index frames; the others are
+    counted and left), the pose by ``kinematics`` (channel frames; None for joint positions,
+    gathered by ``order``, the flat index of each standard joint coordinate in the frame) into its
+    ``features`` at the index rate (thresholds from ``lengths(rows)``, a callable, on the first
+    frame), whose every vector is an index-rate code."""
 
     cdef readonly object kinematics
     cdef FrameKinematics _kinematics
@@ -80,7 +81,7 @@ cdef class LiveStream:
 
     def state(self):
         """What :meth:`restore` needs to go on as this stream would, but for its features' and its
-        competition's own states: (frames seen since the decimation began, started, last)."""
+        competition's own states: (frames taken since the decimation began, started, last)."""
         return (self.seen, self.started, self.last)
 
     def restore(self, state):
@@ -106,21 +107,28 @@ cdef class LiveStream:
         return self._positions(&positions[0])
 
     def flush(self):
-        """The codes the end of the stream gives (the features' last frames, decimated); then a fresh
+        """The codes the end of the stream gives (the features' last index frames); then a fresh
         stream."""
-        out = []
-        for code in self.features.flush():
-            if self.seen % self.step == 0:
-                out.append(code)
-            self.seen += 1
+        out = list(self.features.flush())
         self.seen = 0
         return out
 
+    cdef bint _keeps(self):
+        """Whether the stream's next frame is an index frame."""
+        return self.seen % self.step == 0
+
     cdef int64_t _channels(self, const double *channels, const double *cos, const double *sin):
-        return self._advance() if self._pose_channels(channels, cos, sin) else C_NON_FINITE
+        cdef bint keep = self._keeps()
+        if keep and not self._pose_channels(channels, cos, sin):
+            return C_NON_FINITE
+        self.seen += 1
+        return self._advance() if keep else C_NOTHING
 
     cdef int64_t _positions(self, const double *positions):
-        return self._advance() if self._pose_positions(positions) else C_NON_FINITE
+        if not self._pose_positions(positions):
+            return C_NON_FINITE
+        self.seen += 1
+        return self._advance() if (self.seen - 1) % self.step == 0 else C_NOTHING
 
     cdef bint _pose_channels(self, const double *channels, const double *cos, const double *sin):
         """Forward kinematics of a channel frame into ``rows``: whether every joint is finite."""
@@ -145,16 +153,13 @@ cdef class LiveStream:
             self.features.set_thresholds(self.lengths(self.rows_array))
         return self.features.prepare(&self.rows[0])
 
-    cdef int64_t _decimate(self, int64_t code):
-        """A final frame's code: passed on if it is a kept frame, else :data:`NOTHING`."""
-        self.seen += 1
-        return code if (self.seen - 1) % self.step == 0 else C_NOTHING
-
     cdef int64_t _advance(self):
+        """The index frame's pose in ``rows`` to the features: the code that became final, or
+        :data:`NOTHING`."""
         if self.features.n == 0:
             self.features.set_thresholds(self.lengths(self.rows_array))
         cdef int64_t code = self.features.push_ptr(&self.rows[0])
-        return C_NOTHING if code < 0 else self._decimate(code)
+        return C_NOTHING if code < 0 else code
 
 
 cdef inline bint fast_values(object frame, LiveStream s, Py_buffer *view):
@@ -206,8 +211,9 @@ def push_many(list frames, refused, dict streams=None):
     over all of them (:meth:`FrameKinematics.joints_many`); (4) each pose into its features' ring,
     with the smoothed velocities of the frame that became final; (5) the feature program over those
     frames, by blocks of one program, each instruction over all of them
-    (:meth:`Bytecode.run_many`); (6) each frame's hysteresis, decimation and, for an index-rate
-    code, its compiled competition. Python runs per frame only for a refusal, a
+    (:meth:`Bytecode.run_many`); (6) each frame's hysteresis and, for an index-rate code, its
+    compiled competition. Steps (2) to (5) take the index frames alone (each stream's every
+    ``step``-th frame); the others are checked and counted. Python runs per frame only for a refusal, a
     stream's first frame and a confirmation. ``refused``: the exception class ``_check`` raises for
     a frame it refuses. With ``streams`` (name to recogniser) the frames are ``(name, number,
     values)``. ValueError, before anything is done, for a recogniser (or name) with two frames or a
@@ -221,6 +227,7 @@ def push_many(list frames, refused, dict streams=None):
     cdef Py_ssize_t *waiting = <Py_ssize_t *> PyMem_Malloc((n + 1) * sizeof(Py_ssize_t))
     cdef uint64_t *f1 = <uint64_t *> PyMem_Malloc((n + 1) * sizeof(uint64_t))
     cdef uint64_t *f2 = <uint64_t *> PyMem_Malloc((n + 1) * sizeof(uint64_t))
+    cdef char *keeps = <char *> PyMem_Malloc((n + 1) * sizeof(char))
     cdef PyObject **lives = <PyObject **> PyMem_Malloc((n + 1) * sizeof(PyObject *))
     cdef const double *P[BLOCK]
     cdef const double *S[BLOCK]
@@ -247,7 +254,7 @@ def push_many(list frames, refused, dict streams=None):
     global _tick
     try:
         if (pos == NULL or nums == NULL or codes == NULL or ts == NULL or offs == NULL or waiting == NULL
-                or f1 == NULL or f2 == NULL or lives == NULL):
+                or f1 == NULL or f2 == NULL or keeps == NULL or lives == NULL):
             raise MemoryError()
         # (0) the recognisers, each once
         _tick += 1
@@ -266,7 +273,7 @@ def push_many(list frames, refused, dict streams=None):
             if s.mark == _tick:
                 twice = True
             s.mark = _tick
-            if s._kinematics is not None:
+            if s._kinematics is not None and s._keeps():  # only an index frame's pose is computed
                 total += s.width
         if twice or (unknown is not None and len(set(unknown)) != len(unknown)):
             raise ValueError("at most one frame per stream in one push")
@@ -303,6 +310,7 @@ def push_many(list frames, refused, dict streams=None):
                 if not fast_values(values, s, &view):
                     raise AssertionError("a checked frame is C-contiguous doubles of the stream's shape")
             src = <const double *> view.buf
+            keeps[taken] = s._keeps()
             if s._kinematics is None:
                 code = C_NOTHING if s._pose_positions(src) else C_NON_FINITE
             else:
@@ -312,10 +320,11 @@ def push_many(list frames, refused, dict streams=None):
                         finite = False
                         break
                 code = C_NOTHING if finite else C_NON_FINITE_CHANNELS
-                if finite:
-                    memcpy(&flat[total], src, s.width * sizeof(double))
-                offs[taken] = total
-                total += s.width
+                if keeps[taken]:
+                    if finite:
+                        memcpy(&flat[total], src, s.width * sizeof(double))
+                    offs[taken] = total
+                    total += s.width
             PyBuffer_Release(&view)
             pos[taken] = i
             nums[taken] = num
@@ -328,7 +337,7 @@ def push_many(list frames, refused, dict streams=None):
             sin = np.sin(half)
         # (3) the channel frames' forward kinematics, BLOCK frames of one skeleton at a time
         for k in range(taken):
-            if codes[k] == C_NOTHING and (<LiveStream> lives[pos[k]])._kinematics is not None:
+            if codes[k] == C_NOTHING and keeps[k] and (<LiveStream> lives[pos[k]])._kinematics is not None:
                 waiting[pending] = k
                 pending += 1
         first = 0
@@ -360,7 +369,7 @@ def push_many(list frames, refused, dict streams=None):
         pending = 0
         for k in range(taken):
             ts[k] = -1
-            if codes[k] != C_NOTHING:
+            if codes[k] != C_NOTHING or not keeps[k]:
                 continue
             ts[k] = (<LiveStream> lives[pos[k]])._prepare()
             if ts[k] >= 0:
@@ -403,12 +412,11 @@ def push_many(list frames, refused, dict streams=None):
                 s.stage.start(num)
                 s.started = True
             s.last = num
+            s.seen += 1
             t = ts[k]
             if t < 0:
                 continue
-            code = s._decimate(s.features.finish(t, f1[k], f2[k]))
-            if code == C_NOTHING:
-                continue
+            code = s.features.finish(t, f1[k], f2[k])
             if s.competition is not None:
                 found = s.competition.push_c(<uint64_t> code)
                 if found is not None:
@@ -424,6 +432,7 @@ def push_many(list frames, refused, dict streams=None):
         PyMem_Free(waiting)
         PyMem_Free(f1)
         PyMem_Free(f2)
+        PyMem_Free(keeps)
         PyMem_Free(lives)
     if len(errors) > 1:
         errors.sort(key=_position)

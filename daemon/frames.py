@@ -8,9 +8,11 @@
   batch twin of the stream table's bridging). So a lost pose moves no later frame: index frames are
   sampled by frame number.
 - *Index frames*, at the library's rate, counted from 0 at the motion's first frame: every
-  ``step``-th frame (the toolbox's ``1:4:end`` at 120 Hz, reference facts section 0), whose
-  features come out ``delay`` frames after it (the velocity windows are centred;
-  :func:`daemon.features.latency_frames`) (:class:`FrameClock`).
+  ``step``-th frame (the toolbox's ``1:4:end`` at 120 Hz, reference facts section 0). The features
+  are computed on the poses of the index frames alone (:func:`daemon.features.sampled_features`),
+  so an index frame's come out ``delay`` frames after it: the look-ahead of the centred velocity
+  windows at the index rate, in index frames (:func:`daemon.features.latency_frames`), times
+  ``step`` (:class:`FrameClock`).
 """
 
 from __future__ import annotations
@@ -52,7 +54,8 @@ class FrameClock:
         """The clock of a stream at ``native_rate`` Hz for a library at ``index_rate`` Hz; ValueError
         unless features are computed at ``native_rate`` and ``index_rate`` divides it."""
         check_native_rate(native_rate)
-        return cls(decimation_factor(native_rate, index_rate), latency_frames(native_rate))
+        step = decimation_factor(native_rate, index_rate)
+        return cls(step, latency_frames(native_rate / step) * step)
 
     def start(self, first: int, j: int) -> int:
         """The frame number of index frame ``j``."""

@@ -1,9 +1,11 @@
 """The live recogniser: poses of one stream in, detections out, one frame at a time.
 
-Per frame (DESIGN.md, the data flow): AMC-style channels go through forward kinematics (or joint
-positions arrive as they are), :class:`~daemon.features.FeatureStream` gives the 39 features,
-every k-th frame is kept for the library's rate (30 Hz from 120 Hz), and the frame's code (bit i =
-feature i) goes to :class:`CodeRecognizer`. Keyframes first: a class in mode ``keyframes`` advances
+Per frame (DESIGN.md, the data flow): every k-th frame is kept for the library's rate (30 Hz from
+120 Hz; the others are counted and left); a kept frame's AMC-style channels go through forward
+kinematics (or joint positions arrive as they are), :class:`~daemon.features.FeatureStream` at the
+library's rate gives the 39 features of the kept poses (:func:`daemon.features.sampled_features`:
+the same bits at any native rate the library's divides), and the frame's code (bit i = feature i)
+goes to :class:`CodeRecognizer`. Keyframes first: a class in mode ``keyframes`` advances
 its keyframe automaton (:class:`~daemon.automaton.KeyframeAutomaton`, thesis Alg. 4.1 on the runs of
 equal codes, with stiffness windows); a completed match opens a window around its range R(M)
 (:func:`window_extent`), and the class's templates run a subsequence DTW (thesis Alg. 3.2 with free
@@ -14,10 +16,10 @@ is dropped, and one that is not is held until no open template can still end a c
 motion (or ``hold_s``), then published. Published detections are never taken back.
 
 Latency. A detection comes out one index frame after its last frame (the frame that shows Δ's
-minimum) once the features' delay (16 frames at 120 Hz) has passed, or later while it is held: at
-most :attr:`Recognizer.latency_frames` native frames after its last frame.
+minimum) once the features' delay (5 index frames, 20 frames at 120 Hz) has passed, or later while
+it is held: at most :attr:`Recognizer.latency_frames` native frames after its last frame.
 
-Bounded state. The features keep 33 poses at 120 Hz, each automaton the query's span, the DTW
+Bounded state. The features keep 10 poses at 30 Hz, each automaton the query's span, the DTW
 three columns per template and the codes of the longest window's look-back, and the candidates of
 the last :func:`reach` frames.
 
@@ -57,7 +59,7 @@ from daemon._live import NON_FINITE, LiveStream, push_many
 from daemon.automaton import KeyframeAutomaton
 from daemon.dtw import SCALE, Match, RetrievalTables, Steps, pack, retrieval_tables, threshold
 from daemon.errors import InputError, MocapdError
-from daemon.features import FeatureStream, features
+from daemon.features import FeatureStream, sampled_features
 from daemon.frames import FrameClock, bridge_frames, bridged_runs, check_native_rate, motion_runs
 from daemon.keyframes import KeyframeQuery, query_bounds
 from daemon.library import GATED, ClassTemplate, Library
@@ -574,8 +576,8 @@ class Recognizer:
             self._width = len(joint_names)
             self._joint_order = joint_order(joint_names)
         self._plans = plans(library, settings)
-        features = FeatureStream(JOINT_NAMES, native_rate)
         step = self.clock.step
+        features = FeatureStream(JOINT_NAMES, native_rate / step)  # on the index frames' poses alone
         if model is not None:
             self._shape: tuple[int, ...] = (self._width,)
             self._live = LiveStream(
@@ -927,7 +929,7 @@ def recording_stage(
     by the live path's :class:`~daemon.frames.FrameClock`, and the live path's :class:`ClassStage`
     for them (not started)."""
     clock = FrameClock.of(native_rate, library.rate)
-    codes: list[int] = pack(features(positions, JOINT_NAMES, native_rate)[:: clock.step]).tolist()
+    codes: list[int] = pack(sampled_features(positions, JOINT_NAMES, native_rate, clock.step)).tolist()
     stage = ClassStage(
         plans(library, settings), library.rate, settings, clock, stream=stream, session=session
     )

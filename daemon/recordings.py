@@ -26,7 +26,7 @@ import numpy as np
 
 from daemon.checks import csv_records, read_text
 from daemon.errors import InputError, MocapdError
-from daemon.features import decimate, decimation_factor, features
+from daemon.features import decimation_factor, sampled_features
 from daemon.frames import motion_runs
 from daemon.types import (
     CLASS_NAME,
@@ -122,13 +122,14 @@ def sampling_step(
 def motion_features(
     motion: Motion, rate: float | None = None, default_native_rate: float = DEFAULT_NATIVE_RATE
 ) -> RecordingFeatures:
-    """The features of ``motion`` at ``rate`` Hz (None: the native rate): computed at the native rate
-    from the joints in centimetres, then every k-th frame from the first."""
+    """The features of ``motion`` at ``rate`` Hz (None: the native rate): those of the poses of every
+    k-th frame from the first, joints in centimetres (:func:`daemon.features.sampled_features`, as
+    the recogniser computes them)."""
     step = sampling_step(motion, rate, default_native_rate)
     native = native_rate(motion, default_native_rate)
     motion = continuous(motion, default_native_rate=default_native_rate)
     try:
-        matrix = decimate(features(joint_positions(motion), JOINT_NAMES, native), step)
+        matrix = sampled_features(joint_positions(motion), JOINT_NAMES, native, step)
     except InputError as exc:
         raise RecordingError(str(exc), path=motion.source) from None
     return RecordingFeatures(
@@ -155,7 +156,7 @@ def read_bvh_features(
     take = read_bvh_take(path, maps)
     try:
         step = 1 if rate is None else decimation_factor(take.rate, rate)
-        matrix = decimate(features(take.joints, JOINT_NAMES, take.rate), step)
+        matrix = sampled_features(take.joints, JOINT_NAMES, take.rate, step)
     except InputError as exc:
         raise RateError(str(exc), path=path) from None
     return RecordingFeatures(matrix, take.frames[::step], take.rate, step, 1, len(take.joints))

@@ -669,12 +669,12 @@ def template_brute_force(
 
 def naive_features(asf: Path, amc: Path, step: int = 1, native_rate: float = 120.0) -> BoolArray:
     """A recording's features written out from the parts (reader, forward kinematics in centimetres,
-    the batch features at the native rate, every ``step``-th row from the first), independently of
-    :mod:`daemon.recordings`: shape ``(N, 39)``."""
+    every ``step``-th pose from the first, the batch features at ``native_rate / step``),
+    independently of :mod:`daemon.recordings`: shape ``(N, 39)``."""
     skeleton = read_asf(asf)
     model = KinematicModel(skeleton)
     joints = model.joints(model.positions(read_amc(amc, skeleton).channels, "cm"))
-    out: BoolArray = features(joints, JOINT_NAMES, native_rate)[::step]
+    out: BoolArray = features(joints[::step], JOINT_NAMES, native_rate / step)
     return out
 
 

@@ -7,6 +7,7 @@ the library functions give."""
 from __future__ import annotations
 
 import csv
+import dataclasses
 import io
 import json
 from pathlib import Path
@@ -20,7 +21,7 @@ from daemon.features.batch import features
 from daemon.features.catalog import CATALOG, features_reading
 from daemon.recordings import read_bvh_features, read_recording
 from replay import JOINT_NAMES
-from replay.bvh import read_bvh
+from replay.bvh import read_bvh, write_bvh
 from replay.rigs import bvh_standard_joints, read_bvh_take
 from tests.helpers import DATA, assert_ok, mocapd, pair_id, recording_pairs
 
@@ -142,3 +143,30 @@ def test_segment_cuts_a_converted_recording_where_it_cuts_the_amc(converted: tup
         joints(motion.channels)[:, np.ravel([[4 * k + c for c in range(4)] for k in order])], 120.0, "ppca"
     )
     assert cuts == [b.frame + 1 for b in result.boundaries] and cuts
+
+
+def test_a_take_in_metres_is_recognised_as_in_centimetres(tmp_path: Path) -> None:
+    """The features are scale-free (every threshold a multiple of a body length), so a studio's
+    BVH in metres gives the detections of the same take in centimetres."""
+    take = read_bvh(BANDAI / "dataset-2_wave-both-hands_normal_001.bvh.gz")
+    metres = np.array(take.channels)
+    columns = [k for k, name in enumerate(take.hierarchy.channel_names) if name.endswith("position")]
+    metres[:, columns] *= 0.01
+    joints = tuple(
+        dataclasses.replace(j, offset=(0.01 * j.offset[0], 0.01 * j.offset[1], 0.01 * j.offset[2]))
+        for j in take.hierarchy.joints
+    )
+    hierarchy = dataclasses.replace(take.hierarchy, joints=joints)
+    (tmp_path / "m.bvh").write_bytes(
+        write_bvh(dataclasses.replace(take, hierarchy=hierarchy, channels=metres))
+    )
+    in_m = mocapd("detect", "--bvh", tmp_path / "m.bvh", "--json", "--stream", "s")
+    in_cm = mocapd(
+        "detect", "--bvh", BANDAI / "dataset-2_wave-both-hands_normal_001.bvh.gz", "--json", "--stream", "s"
+    )
+    assert_ok(in_m)
+
+    def found(output: str) -> list[tuple[str, int, int]]:
+        return [(r["class"], r["start_frame"], r["end_frame"]) for r in map(json.loads, output.splitlines())]
+
+    assert found(in_m.stdout) == found(in_cm.stdout) and found(in_cm.stdout)

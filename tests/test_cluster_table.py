@@ -101,13 +101,13 @@ def test_a_takeover_mid_run_gives_the_whole_runs_detections_after_its_warm_up(fi
 
 
 def test_the_buffer_a_takeover_needs() -> None:
-    """docs/cluster.md: lease + 1 s + twice the reach + 1 s; 37.5 s with the shipped library."""
+    """docs/cluster.md: lease + 1 s + twice the reach + 1 s; 37.9 s with the shipped library."""
     from daemon.config import ClusterConfig, Config
     from daemon.service.cluster import buffer_seconds, needed_seconds, reach_seconds
 
     config = Config()
-    assert round(reach_seconds(library(), config), 1) == 16.7
-    assert needed_seconds(ClusterConfig(), library(), config) == 37.5
+    assert round(reach_seconds(library(), config), 1) == 16.9
+    assert needed_seconds(ClusterConfig(), library(), config) == 37.9
     shorter = Config(recognizer=RecognizerConfig(hold_s=HOLD_S))
     assert needed_seconds(ClusterConfig(lease_s=3.0), library(), shorter) == round(
         3.0 + 1 + 2 * reach_seconds(library(), shorter) + 1, 1

@@ -22,9 +22,11 @@ from tests.helpers import DATA
 
 
 def test_clock_of_rates() -> None:
-    assert FrameClock.of(120.0, 30.0) == FrameClock(4, latency_frames(120.0)) == FrameClock(4, 16)
+    """The features are those of the index frames' poses: their delay is the look-ahead at the index
+    rate (5 index frames at 30 Hz), in native frames."""
+    assert FrameClock.of(120.0, 30.0) == FrameClock(4, 4 * latency_frames(30.0)) == FrameClock(4, 20)
     assert FrameClock.of(30.0, 30.0) == FrameClock(1, 5)
-    assert FrameClock.of(60.0, 30.0).step == 2
+    assert FrameClock.of(60.0, 30.0) == FrameClock(2, 10)
     for native, index in ((100.0, 30.0), (math.nan, 30.0), (0.0, 30.0), (-120.0, 30.0), (1e6, 30.0)):
         with pytest.raises(ValueError):
             FrameClock.of(native, index)
@@ -73,18 +75,19 @@ def test_clock_equals_an_enumeration_of_the_frames(step: int, delay: int, first:
 @pytest.mark.parametrize("every", [1, 2], ids=["120 Hz", "60 Hz"])
 def test_clock_agrees_with_the_features_delay(every: int) -> None:
     """The frame whose push gives each index frame's features, as the live path's
-    :class:`~daemon.features.FeatureStream` gives them, is the clock's."""
+    :class:`~daemon.features.FeatureStream` gives them (at the index rate, on the index frames'
+    poses alone), is the clock's."""
     m = read_recording(DATA / "cmu" / "02" / "02.asf", DATA / "cmu" / "02" / "02_01.amc.gz")
     positions = joint_positions(m)[::every][:200]
     rate = 120.0 / every
     clock = FrameClock.of(rate, 30.0)
-    stream = FeatureStream(JOINT_NAMES, rate)
+    stream = FeatureStream(JOINT_NAMES, rate / clock.step)
     first = 1000
     last = first + len(positions) - 1
-    gave: list[int] = []  # the frame whose push gave each vector, in order
-    for number, pose in enumerate(positions, start=first):
-        gave += [number] * len(stream.push(pose))
-    gave += [last] * len(stream.flush())
-    assert len(gave) == len(positions)
-    index_frames = gave[:: clock.step]
+    index_frames: list[int] = []  # the frame whose push gave each vector, in order
+    for k, pose in enumerate(positions):
+        if k % clock.step == 0:
+            index_frames += [first + k] * len(stream.push(pose))
+    index_frames += [last] * len(stream.flush())
+    assert len(index_frames) == len(positions[:: clock.step])
     assert index_frames == [clock.known(first, j, last) for j in range(len(index_frames))]

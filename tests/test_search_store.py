@@ -87,7 +87,7 @@ def test_documents(built: Built) -> None:
 
 @pytest.mark.parametrize("feature_set", FEATURE_SETS)
 def test_segments_are_each_clips_own_segmentation(built: Built, feature_set: FeatureSet) -> None:
-    """Per document, the index's segments equal ``segment(decimate(features(joints), 4), set)`` of the
+    """Per document, the index's segments equal ``segment(features(joints[::4], 30 Hz), set)`` of the
     clip computed here, and their AMC frames are the clip's 30 Hz samples."""
     index = built.index
     s = index.sets[feature_set]

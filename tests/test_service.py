@@ -20,13 +20,14 @@ import pytest
 import zmq
 
 from daemon.behaviours import JointRotations, ppca_forward
+from daemon.frames import FrameClock
 from daemon.library import default_library_path, load_library
-from daemon.recognizer import detect, detect_positions, same_motion
+from daemon.recognizer import Recognizer, detect, detect_positions, same_motion
 from daemon.recordings import read_recording
 from daemon.types import RecognitionSettings
 from protocols.messages import PoseMessage, encode, topic
 from protocols.publish import messages
-from replay import Motion
+from replay import JOINT_NAMES, Motion
 from replay.bvh import read_bvh
 from replay.rigs import bvh_standard_joints
 from tests.helpers import (
@@ -129,19 +130,37 @@ def held(where: Path, hold: float) -> list[dict[str, Any]]:
 @pytest.mark.slow
 def test_the_hold_end_to_end(tmp_path: Path) -> None:
     """Through two real daemons over ZeroMQ, ``recognizer.hold_s`` 0 and 2: each publishes what
-    ``mocapd detect`` gives with the same hold; without a hold every detection comes out one index
-    frame after its last frame is seen (the features' delay, then the frame that shows Δ's
-    minimum), with one a detection is held while another template could still explain its motion
-    more cheaply, at most 2 s; in both, no two detections are the same motion. On CMU 13_30 the
-    hold changes what comes out: a cheaper match of a motion that comes later wins."""
+    ``mocapd detect`` gives with the same hold; without a hold every detection of a stream-wide
+    class comes out one index frame after its last frame is seen (the features' delay, then the
+    frame that shows Δ's minimum; a keyframes-first class's when its keyframes have matched,
+    within the recogniser's reach), with one a detection is held while another template could
+    still explain its motion more cheaply, at most 2 s; in both, no two detections are the same
+    motion. On CMU 13_30 the hold changes what comes out: a cheaper match of a motion that comes
+    later wins."""
     got = {hold: held(tmp_path / f"hold{hold:g}", hold) for hold in (0.0, 2.0)}
+    clock = FrameClock.of(120.0, 30.0)
+    delay = clock.delay  # the features' (20 native frames)
+    library = load_library(default_library_path())
     for hold, detections in got.items():
-        bound = 16 + (round(hold * 30) + 2) * 4  # native frames: features, the minimum's frame, the hold
-        assert all(0 <= d["emitted_at_frame"] - d["end_frame"] <= bound for d in detections)
+        bound = delay + (round(hold * 30) + 2) * 4  # native frames: features, the minimum's frame, the hold
+        # a keyframes-first class's detection waits for its keyframes, at most the recogniser's reach
+        reach = Recognizer(
+            library, 120.0, joint_names=JOINT_NAMES, settings=RecognitionSettings(hold_s=hold)
+        ).reach
+        for d in detections:
+            gated = library.classes[d["class"]].mode == "keyframes"
+            assert 0 <= d["emitted_at_frame"] - d["end_frame"] <= (clock.lag(reach) if gated else bound), d
         ranges = [(d["start_frame"], d["end_frame"]) for d in detections]
         assert not any(same_motion(a, b) for i, a in enumerate(ranges) for b in ranges[i + 1 :])
-    assert max(d["emitted_at_frame"] - d["end_frame"] for d in got[0.0]) <= 16 + 4
-    assert max(d["emitted_at_frame"] - d["end_frame"] for d in got[2.0]) > 16 + 4
+    assert (
+        max(
+            d["emitted_at_frame"] - d["end_frame"]
+            for d in got[0.0]
+            if library.classes[d["class"]].mode == "dtw"
+        )
+        <= delay + 4
+    )
+    assert max(d["emitted_at_frame"] - d["end_frame"] for d in got[2.0]) > delay + 4
     assert detection_keys(got[0.0]) != detection_keys(got[2.0])
 
 

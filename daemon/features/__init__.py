@@ -26,7 +26,14 @@ This package re-exports the names the rest of mocapd imports.
 
 from daemon.features.batch import feature_tracks, features, hysteresis
 from daemon.features.catalog import FEATURE_NAMES, SET_SLICES
-from daemon.features.stream import Decimator, FeatureStream, decimate, decimation_factor, latency_frames
+from daemon.features.stream import (
+    Decimator,
+    FeatureStream,
+    decimate,
+    decimation_factor,
+    latency_frames,
+    sampled_features,
+)
 from daemon.features.velocity import smoothed_velocity, window_frames
 
 __all__ = [
@@ -40,6 +47,7 @@ __all__ = [
     "features",
     "hysteresis",
     "latency_frames",
+    "sampled_features",
     "smoothed_velocity",
     "window_frames",
 ]

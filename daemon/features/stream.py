@@ -12,6 +12,7 @@ import numpy as np
 
 from daemon._features import FeatureCore
 from daemon.errors import InputError
+from daemon.features.batch import features
 from daemon.features.compiler import compiled, unpack
 from daemon.features.language import body_lengths
 from daemon.types import BoolArray, FloatArray
@@ -105,6 +106,18 @@ def decimation_factor(native_hz: float, target_hz: float) -> int:
     if factor < 1 or not math.isclose(native_hz / factor, target_hz, rel_tol=1e-9):
         raise InputError(f"{target_hz:g} Hz is not the native {native_hz:g} Hz divided by a whole number")
     return factor
+
+
+def sampled_features(
+    positions: FloatArray, joint_names: Sequence[str], native_hz: float, step: int
+) -> BoolArray:
+    """The features at ``native_hz / step`` Hz as every recogniser, index and template of mocapd
+    takes them: of every ``step``-th pose from the first, ``positions[::step]`` shape ``(N, J, 3)``
+    (so the velocity windows and the hysteresis run on the same instants whatever the native rate,
+    and a recording at 120 Hz gives the bits it gives resampled to 30 Hz). Shape
+    ``(ceil(N / step), 39)``. Not the toolbox's ``1:4:end`` of the native rate's matrix
+    (:func:`decimate`): its windows span native frames, so the bits change with the rate."""
+    return features(positions[::step], joint_names, native_hz / step)
 
 
 def decimate(matrix: BoolArray, factor: int) -> BoolArray:
