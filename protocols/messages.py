@@ -76,8 +76,11 @@ class SkeletonMessage:
     coordinates; mocapd's standard joints, or a rig's names a rig map fits, :mod:`replay.rigs`),
     ``up`` axis and length ``units``.
     Channel streams: ``asf``, the text of an ASF file; poses then carry AMC-style channels in its
-    channel order, angles in ``angle_unit``. ``rate``: frames per second. ``epoch``: the run of the
-    source (None: not said), see :class:`PoseMessage`."""
+    channel order, angles in ``angle_unit``. BVH streams: ``bvh``, the ``HIERARCHY`` section of a
+    BVH file (a rig a built-in map fits, :mod:`replay.rigs`); poses then carry its channel rows as
+    a BVH file's ``MOTION`` lines do (degrees, lengths in ``units``), ``up`` the axis it stands
+    along, so that a bridge forwards a BVH broadcast unchanged. ``rate``: frames per second. ``epoch``:
+    the run of the source (None: not said), see :class:`PoseMessage`."""
 
     stream: str
     rate: float
@@ -87,10 +90,11 @@ class SkeletonMessage:
     asf: str | None = None
     angle_unit: AngleUnit = "deg"
     epoch: str | None = None
+    bvh: str | None = None
 
     @property
-    def kind(self) -> Literal["positions", "channels"]:
-        return "channels" if self.asf is not None else "positions"
+    def kind(self) -> Literal["positions", "channels", "bvh"]:
+        return "channels" if self.asf is not None else "bvh" if self.bvh is not None else "positions"
 
 
 @dataclass(frozen=True)
@@ -241,6 +245,8 @@ def encode(message: Message) -> bytes:
             body["epoch"] = message.epoch
         if message.asf is not None:
             body |= {"asf": message.asf, "angle_unit": message.angle_unit}
+        elif message.bvh is not None:
+            body |= {"bvh": message.bvh, "up": message.up, "units": message.units}
         else:
             assert message.joints is not None
             body |= {"joints": list(message.joints), "up": message.up, "units": message.units}
@@ -513,8 +519,18 @@ def _skeleton(f: _Fields) -> SkeletonMessage:
     epoch = f.epoch()
     asf = f.take("asf", required=False)
     joints = f.take("joints", required=False)
-    if (asf is None) == (joints is None):
-        raise f.fail("joints", "a skeleton carries either 'joints' (positions) or 'asf' (channels)")
+    bvh = f.take("bvh", required=False)
+    if [asf, joints, bvh].count(None) != 2:
+        raise f.fail(
+            "joints", "a skeleton carries either 'joints' (positions), 'asf' (channels) or 'bvh' (channels)"
+        )
+    if bvh is not None:
+        if not isinstance(bvh, str) or not bvh.strip():
+            raise f.fail("bvh", "must be the text of a BVH hierarchy")
+        up = f.choice("up", get_args(Up), "y")
+        units = f.choice("units", get_args(Units), "cm")
+        f.done()
+        return SkeletonMessage(stream, rate, up=up, units=units, bvh=bvh, epoch=epoch)  # type: ignore[arg-type]
     if asf is not None:
         if not isinstance(asf, str) or not asf.strip():
             raise f.fail("asf", "must be the text of an ASF file")

@@ -39,6 +39,25 @@ class Positions:
         return len(self.frames)
 
 
+@dataclass(frozen=True)
+class BvhChannels:
+    """A BVH take as it is (a bridge forwarding a BVH broadcast): its ``hierarchy`` (the
+    ``HIERARCHY`` text), ``frames`` ``(N,)``, ``channels`` ``(N, C)`` as its ``MOTION`` rows hold
+    them, the ``up`` axis it stands along and its length ``units``."""
+
+    hierarchy: str
+    frames: IntArray
+    channels: FloatArray
+    up: Up = "y"
+    units: Units = "cm"
+
+    def __len__(self) -> int:
+        return len(self.frames)
+
+
+Recording = Motion | Positions | BvhChannels
+"""What a replay sends: AMC channels, joint positions, or a BVH take's channels."""
+
 Items = Iterator[SkeletonMessage | PoseMessage | EndMessage]
 """A replay's messages in the order they go out."""
 
@@ -49,22 +68,27 @@ def due(start: float, i: int, rate: float, speed: float | None) -> float:
 
 
 def messages(
-    motion: Motion | Positions,
+    motion: Recording,
     asf_text: str,
     stream: str,
     rate: float,
     passes: int | None,
     epoch: str | None = None,
 ) -> Items:
-    """The skeleton (``asf_text``'s channels, or ``motion``'s joint names if it is
-    :class:`Positions`), then one pose per frame (``passes`` times through the recording; None: for
-    ever), sequence numbers the frame numbers, each pass's after the last's, all of run ``epoch``;
-    ``time`` is filled when sent; then the run's end."""
+    """The skeleton (``asf_text``'s channels, ``motion``'s joint names if it is :class:`Positions`,
+    its hierarchy if it is :class:`BvhChannels`), then one pose per frame (``passes`` times through
+    the recording; None: for ever), sequence numbers the frame numbers, each pass's after the
+    last's, all of run ``epoch``; ``time`` is filled when sent; then the run's end."""
     if isinstance(motion, Positions):
         yield SkeletonMessage(
             stream, rate, joints=motion.names, up=motion.up, units=motion.units, epoch=epoch
         )
         rows: npt.NDArray[Any] = motion.joints.astype(np.float32)
+    elif isinstance(motion, BvhChannels):
+        yield SkeletonMessage(
+            stream, rate, up=motion.up, units=motion.units, bvh=motion.hierarchy, epoch=epoch
+        )
+        rows = motion.channels
     else:
         yield SkeletonMessage(stream, rate, asf=asf_text, angle_unit="rad", epoch=epoch)
         rows = motion.channels

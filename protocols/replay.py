@@ -36,9 +36,8 @@ import zmq.asyncio
 
 from daemon.errors import MocapdError
 from protocols.messages import EndMessage, PoseMessage, StatusMessage, WireError, decode, encode, topic
-from protocols.publish import Items, Positions, due, messages
+from protocols.publish import Items, Recording, due, messages
 from protocols.transport import Outgoing
-from replay.amc import Motion
 
 SEND_HWM = 10_000_000
 ANNOUNCE_S = 1.0
@@ -57,7 +56,7 @@ class TargetError(MocapdError, ValueError):
 
 async def replay_to(
     url: str,
-    motion: Motion | Positions,
+    motion: Recording,
     asf_text: str,
     *,
     stream: str,
@@ -211,7 +210,7 @@ async def _to_mqtt(
 
 def replay(
     url: str,
-    motion: Motion | Positions,
+    motion: Recording,
     asf_text: str,
     *,
     stream: str,

@@ -105,11 +105,8 @@ def read_bvh(path: str | Path) -> BvhMotion:
 
 def parse_bvh(data: bytes, source: str = "<bvh>") -> BvhMotion:
     """A BVH file's bytes (module docstring)."""
-    text = data.decode("latin-1")
-    lines = text.replace("\r\n", "\n").replace("\r", "\n").split("\n")
-    motion_at = next((k for k, line in enumerate(lines) if line.strip().upper() == "MOTION"), None)
-    tokens = [_Token(word, k + 1) for k, line in enumerate(lines[:motion_at]) for word in _words(line)]
-    hierarchy = _parse_hierarchy(tokens, source, len(lines) if motion_at is None else motion_at + 1)
+    lines = _lines(data.decode("latin-1"))
+    hierarchy, motion_at = _hierarchy_of(lines, source)
     if motion_at is None:
         raise MocapFormatError(source, len(lines), "no MOTION section after the hierarchy")
     frames, frame_time, first = _motion_header(lines, motion_at + 1, source)
@@ -399,11 +396,11 @@ class BvhKinematics:
         return out
 
 
-def write_bvh(motion: BvhMotion) -> bytes:
-    """``motion`` as a BVH file (tabs, LF; numbers written in full, ``repr``, so that reading it back
-    gives the same values)."""
+def hierarchy_text(hierarchy: BvhHierarchy) -> str:
+    """The ``HIERARCHY`` section of ``hierarchy`` (tabs, LF, numbers in full: ``repr``), what a
+    skeleton message carries on the wire (:func:`parse_bvh_hierarchy` reads it back)."""
     out: list[str] = ["HIERARCHY"]
-    joints = motion.hierarchy.joints
+    joints = hierarchy.joints
     children: dict[int, list[int]] = {}
     for k, j in enumerate(joints):
         children.setdefault(j.parent, []).append(k)
@@ -426,6 +423,30 @@ def write_bvh(motion: BvhMotion) -> bytes:
 
     for root in children.get(-1, []):
         out.extend(block(root, 0))
+    return "\n".join(out) + "\n"
+
+
+def parse_bvh_hierarchy(text: str, source: str = "<bvh>") -> BvhHierarchy:
+    """The hierarchy of a BVH text: its ``HIERARCHY`` section (a ``MOTION`` section after it, if
+    any, is not read). :class:`MocapFormatError` naming ``source`` and the line if malformed."""
+    return _hierarchy_of(_lines(text), source)[0]
+
+
+def _lines(text: str) -> list[str]:
+    return text.replace("\r\n", "\n").replace("\r", "\n").split("\n")
+
+
+def _hierarchy_of(lines: list[str], source: str) -> tuple[BvhHierarchy, int | None]:
+    """The hierarchy of a BVH file's ``lines`` and the index of its ``MOTION`` line (None: none)."""
+    motion_at = next((k for k, line in enumerate(lines) if line.strip().upper() == "MOTION"), None)
+    tokens = [_Token(word, k + 1) for k, line in enumerate(lines[:motion_at]) for word in _words(line)]
+    return _parse_hierarchy(tokens, source, len(lines) if motion_at is None else motion_at + 1), motion_at
+
+
+def write_bvh(motion: BvhMotion) -> bytes:
+    """``motion`` as a BVH file (tabs, LF; numbers written in full, ``repr``, so that reading it back
+    gives the same values)."""
+    out = [hierarchy_text(motion.hierarchy).rstrip("\n")]
     out += ["MOTION", f"Frames: {len(motion.channels)}", f"Frame Time: {motion.frame_time!r}"]
     out += [" ".join(repr(float(v)) for v in row) for row in motion.channels]
     return ("\n".join(out) + "\n").encode("ascii")

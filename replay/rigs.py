@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from daemon.types import FloatArray, IntArray
-from replay.bvh import BvhKinematics, BvhMotion, read_bvh
+from replay.bvh import BvhHierarchy, BvhKinematics, BvhMotion, read_bvh
 from replay.errors import MocapFormatError
 from replay.joints import JOINT_NAMES
 from replay.kinematics import y_up
@@ -269,15 +269,46 @@ def up_axis(joints: FloatArray) -> str:
     return "z" if up[2] > abs(up[1]) and up[2] > abs(up[0]) else "y"
 
 
+def hierarchy_plan(hierarchy: BvhHierarchy, maps: Sequence[RigMap] = BUILT_IN) -> RigPlan:
+    """The plan of the first of ``maps`` that fits a BVH hierarchy (an End Site at its joint is no
+    point of its own)."""
+    joints = hierarchy.joints
+    points = [not j.end_site or any(j.offset) for j in joints]
+    return rig_plan([j.name for j in joints], points, hierarchy.source, maps)
+
+
 def bvh_standard_joints(motion: BvhMotion, maps: Sequence[RigMap] = BUILT_IN) -> tuple[FloatArray, RigPlan]:
     """A BVH recording's standard joints, shape ``(N, 26, 3)`` in its own units, Y up (a rig that
     stands along Z, :func:`up_axis`, is turned a quarter about X as a Z-up positions stream is),
     through the first of ``maps`` that fits its rig, and that map's plan."""
-    joints = motion.hierarchy.joints
-    points = [not j.end_site or any(j.offset) for j in joints]
-    plan = rig_plan([j.name for j in joints], points, motion.source, maps)
+    joints, plan, _ = _standard(motion, maps)
+    return joints, plan
+
+
+def _standard(motion: BvhMotion, maps: Sequence[RigMap]) -> tuple[FloatArray, RigPlan, str]:
+    """:func:`bvh_standard_joints` and the axis the rig stands along."""
+    plan = hierarchy_plan(motion.hierarchy, maps)
     standard = standard_joints(BvhKinematics(motion.hierarchy).positions(motion.channels), plan)
-    return (y_up(standard) if up_axis(standard) == "z" else standard), plan
+    up = up_axis(standard)
+    return (y_up(standard) if up == "z" else standard), plan, up
+
+
+class BvhPoses:
+    """A BVH stream's poses one at a time (the wire's BVH skeletons): a channel row, shape ``(C,)``
+    as a ``MOTION`` line holds it, to the standard joints, shape ``(26, 3)``, bit for bit a row of
+    :func:`bvh_standard_joints` of the same frames (``up``: the axis the rig stands along, which a
+    stream says in advance)."""
+
+    def __init__(self, hierarchy: BvhHierarchy, up: str = "y", maps: Sequence[RigMap] = BUILT_IN) -> None:
+        self.kinematics = BvhKinematics(hierarchy)
+        self.plan = hierarchy_plan(hierarchy, maps)
+        self.width = self.kinematics.width
+        self.up = up
+
+    def joints(self, channels: FloatArray) -> FloatArray:
+        p = standard_joints(self.kinematics.positions_frame(channels)[None], self.plan)[0]
+        out: FloatArray = y_up(p) if self.up == "z" else p
+        return out
 
 
 @dataclass(frozen=True)
@@ -291,10 +322,15 @@ class BvhTake:
     frames: IntArray
     rate: float
     plan: RigPlan
+    up: str = "y"
+    """The axis the rig stands along in the file (its joints are turned to Y up)."""
+    motion: BvhMotion | None = None
+    """The file as read."""
 
 
 def read_bvh_take(path: str | Path, maps: Sequence[RigMap] = BUILT_IN) -> BvhTake:
     """The BVH file at ``path`` through the first of ``maps`` that fits its rig."""
     motion = read_bvh(path)
-    joints, plan = bvh_standard_joints(motion, maps)
-    return BvhTake(motion.source, joints, np.arange(1, len(joints) + 1, dtype=np.int64), motion.rate, plan)
+    joints, plan, up = _standard(motion, maps)
+    frames = np.arange(1, len(joints) + 1, dtype=np.int64)
+    return BvhTake(motion.source, joints, frames, motion.rate, plan, up, motion)

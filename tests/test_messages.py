@@ -42,7 +42,18 @@ times = st.floats(0, 4e9)
 def messages(draw: st.DrawFn) -> Message:
     kind = draw(
         st.sampled_from(
-            ["skeleton-p", "skeleton-c", "pose-p", "pose-c", "end", "det", "bound", "prog", "status"]
+            [
+                "skeleton-p",
+                "skeleton-c",
+                "skeleton-b",
+                "pose-p",
+                "pose-c",
+                "end",
+                "det",
+                "bound",
+                "prog",
+                "status",
+            ]
         )
     )
     stream = draw(ids)
@@ -64,6 +75,15 @@ def messages(draw: st.DrawFn) -> Message:
             draw(st.floats(1, 1000)),
             asf=draw(st.text(min_size=1).filter(str.strip)),
             angle_unit=draw(st.sampled_from(["deg", "rad"])),
+            epoch=draw(epochs),
+        )
+    if kind == "skeleton-b":
+        return SkeletonMessage(
+            stream,
+            draw(st.floats(1, 1000)),
+            up=draw(st.sampled_from(["y", "z"])),
+            units=draw(st.sampled_from(["m", "cm", "mm"])),
+            bvh=draw(st.text(min_size=1).filter(str.strip)),
             epoch=draw(epochs),
         )
     if kind == "pose-p":
@@ -195,6 +215,13 @@ def test_examples_of_the_schema_document_decode() -> None:
     asf = (DATA / "cmu" / "13" / "13.asf").read_text()
     channels = decode(encode(SkeletonMessage("s", 120.0, asf=asf, angle_unit="rad")))
     assert isinstance(channels, SkeletonMessage) and channels.kind == "channels" and channels.asf == asf
+    hierarchy = "HIERARCHY\nROOT Hips\n{\n\tOFFSET 0 0 0\n\tCHANNELS 3 Xposition Yposition Zposition\n}\n"
+    bvh = decode(encode(SkeletonMessage("s", 100.0, up="z", units="m", bvh=hierarchy)))
+    assert (
+        isinstance(bvh, SkeletonMessage)
+        and bvh.kind == "bvh"
+        and (bvh.bvh, bvh.up, bvh.units) == (hierarchy, "z", "m")
+    )
     assert topic(skeleton) == "mocap/studio-a/skeleton"
     assert topic(StatusMessage("i1", "online", "0.1.0", 0, 0.0)) == "mocapd/i1/status"
     assert parse_topic("mocap/a/b/c") is None and parse_topic("other/a/pose") is None
@@ -251,6 +278,13 @@ POSE = {
         (raw({**POSE, "channels": b"\0" * 8}), "schema", "either"),
         (raw({**POSE, "extra": 1}), "schema", "unknown field(s) extra"),
         (raw({"v": 1, "type": "skeleton", "stream": "s", "rate": 120}), "schema", "either"),
+        (
+            raw({"v": 1, "type": "skeleton", "stream": "s", "rate": 120, "joints": ["a"], "bvh": "H"}),
+            "schema",
+            "either",
+        ),
+        (raw({"v": 1, "type": "skeleton", "stream": "s", "rate": 120, "bvh": " "}), "schema", "skeleton.bvh"),
+        (raw({"v": 1, "type": "skeleton", "stream": "s", "rate": 120, "bvh": 3}), "schema", "skeleton.bvh"),
         (raw({"v": 1, "type": "skeleton", "stream": "s", "rate": 0, "joints": ["a"]}), "schema", "positive"),
         (
             raw({"v": 1, "type": "skeleton", "stream": "s", "rate": 120, "joints": ["a", "a"]}),

@@ -29,7 +29,7 @@ from protocols.messages import PoseMessage, encode, topic
 from protocols.publish import messages
 from replay import JOINT_NAMES, Motion
 from replay.bvh import read_bvh
-from replay.rigs import bvh_standard_joints
+from replay.rigs import BUILT_IN, bvh_standard_joints
 from tests.helpers import (
     DATA,
     MOCAPD_SCRIPT,
@@ -418,25 +418,40 @@ def test_the_latency_metric_does_not_trust_the_source_clock(tmp_path: Path) -> N
 
 BVH_TAKE = DATA / "bandai2" / "dataset-2_wave-right-hand_normal_001.bvh.gz"
 """A bandai2 take (CC BY-NC-ND 4.0, read unmodified)."""
+UPPERARM = next(m for m in BUILT_IN if m.name == "upperarm")
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("transport", ["zmq", "mqtt"])
-def test_a_bvh_replay_gives_the_detections_of_detect_bvh(tmp_path: Path, transport: str) -> None:
-    """``mocapd replay --bvh`` sends the take's standard joints as a positions stream (float32 on
-    the wire): a daemon publishes the batch twin's detections of those positions, which are
-    ``mocapd detect --bvh``'s but for the costs' last digits."""
+@pytest.mark.parametrize(
+    ("transport", "as_positions"),
+    [("zmq", False), ("mqtt", False), ("zmq", True)],
+    ids=["zmq", "mqtt", "rig"],
+)
+def test_a_bvh_replay_gives_the_detections_of_detect_bvh(
+    tmp_path: Path, transport: str, as_positions: bool
+) -> None:
+    """``mocapd replay --bvh`` sends the take as it is, its hierarchy in the skeleton and its
+    channel rows in the poses (float64 on the wire): a daemon maps the rig as ``mocapd detect
+    --bvh`` does and publishes its detections, costs and all. With ``--rig`` (a user's map, which
+    the daemon does not know) it sends the mapped standard joints as a positions stream (float32):
+    the batch twin's detections of those, ``detect --bvh``'s but for the costs' last digits."""
     broker = Broker(tmp_path).start() if transport == "mqtt" else None
     daemon = (
         Daemon(tmp_path, config=BIG_QUEUE)
         if broker is None
         else Daemon(tmp_path, sources=["mqtt"], sinks=["mqtt", "stdout"], mqtt=broker.url, config=BIG_QUEUE)
     ).start()
+    rig = tmp_path / "rig.yaml"  # the built-in map of bandai2's scheme, given as a user's
+    rig.write_text(
+        "joints:\n" + "".join(f"  {j}: [{', '.join(n)}]\n" for j, n in UPPERARM.points.items() if n),
+        encoding="utf-8",
+    )
     try:
         to = "zmq+" + daemon.poses if broker is None else broker.url
+        command = [str(MOCAPD_SCRIPT), "replay", "--bvh", str(BVH_TAKE), "--to", to, "--speed", "max"]
         out = finished(
             subprocess.Popen(
-                [str(MOCAPD_SCRIPT), "replay", "--bvh", str(BVH_TAKE), "--to", to, "--speed", "max"],
+                command + (["--rig", str(rig)] if as_positions else []),
                 stdout=subprocess.PIPE,
                 stderr=subprocess.PIPE,
                 text=True,
@@ -445,15 +460,15 @@ def test_a_bvh_replay_gives_the_detections_of_detect_bvh(tmp_path: Path, transpo
         take = read_bvh(BVH_TAKE)
         joints, _ = bvh_standard_joints(take)
         assert out.startswith(f"replayed {len(joints)} frames of {BVH_TAKE.name}")
-        wire = joints.astype(np.float32).astype(np.float64)
         stream = "dataset-2_wave-right-hand_normal_001"
         library = load_library(default_library_path())
         numbers = np.arange(1, len(joints) + 1)
+        cli = [d.as_json() for d in detect_positions(joints, numbers, library, take.rate, stream=stream)]
+        wire = joints.astype(np.float32).astype(np.float64) if as_positions else joints
         want = [d.as_json() for d in detect_positions(wire, numbers, library, take.rate, stream=stream)]
         wait_for(lambda: len(daemon.detections_printed()) >= len(want), 30, "the take's detections")
         assert daemon.stop() == 0
         assert want and detection_keys(daemon.detections_printed()) == detection_keys(want)
-        cli = [d.as_json() for d in detect_positions(joints, numbers, library, take.rate, stream=stream)]
         assert [k[:3] + k[4:] for k in detection_keys(cli)] == [k[:3] + k[4:] for k in detection_keys(want)]
         assert np.allclose([d["cost"] for d in cli], [d["cost"] for d in want], atol=1e-5)
     finally:

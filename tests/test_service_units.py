@@ -38,8 +38,10 @@ from protocols.messages import BoundaryMessage, DetectionMessage, EndMessage, Po
 from protocols.publish import due
 from replay import JOINT_NAMES, Motion
 from replay.amc import DEG
+from replay.bvh import hierarchy_text, parse_bvh, write_bvh
+from replay.convert import motion_to_bvh
 from replay.kinematics import joint_positions
-from replay.rigs import rig_plan, standard_joints
+from replay.rigs import bvh_standard_joints, rig_plan, standard_joints
 from tests.helpers import DATA, hdm05_clip, small_library, takes
 
 ASF, AMC = hdm05_clip("bd", "squat1Reps", takes("squat1Reps", "bd")[1])
@@ -582,3 +584,26 @@ def test_a_positions_stream_of_a_rigs_names_without_fingers_is_mapped_and_recogn
     with pytest.raises(Refused) as caught:
         table(library).skeleton(SkeletonMessage("s", 120.0, names[1:]), 0.0)
     assert caught.value.reason == "skeleton" and "finds no root" in str(caught.value)
+
+
+def test_a_bvh_stream_is_taken_through_its_rig_as_the_take_is(library: Library) -> None:
+    """A skeleton carrying a BVH hierarchy (here the squat clip written as BVH, ASF bone names) and
+    poses carrying its channel rows: the table gives the batch twin's detections of the take's
+    standard joints, costs and all (the channels are float64 on the wire). A pose of another width
+    is refused as ``shape``; a hierarchy no rig map fits, as ``skeleton``."""
+    take = parse_bvh(write_bvh(motion_to_bvh(motion(), 120.0)), "squat")
+    joints, _ = bvh_standard_joints(take)
+    t = table(library)
+    t.skeleton(SkeletonMessage("s", 120.0, bvh=hierarchy_text(take.hierarchy)), 0.0)
+    got = run(t, [PoseMessage("s", k, 0.0, channels=c) for k, c in enumerate(take.channels, 1)])
+    want = detect_positions(joints, np.arange(1, len(joints) + 1), library, 120.0, session="t")
+    assert got == [(d.class_name, d.start_frame, d.end_frame, d.cost) for d in want]
+    assert "squat1Reps" in {x[0] for x in got}
+    t.skeleton(SkeletonMessage("s", 120.0, bvh=hierarchy_text(take.hierarchy)), 0.0)
+    with pytest.raises(Refused) as caught:
+        t.pose(PoseMessage("s", 1, 0.0, channels=take.channels[0][:-1]), 0.0)
+    assert caught.value.reason == "shape"
+    lone = "HIERARCHY\nROOT Pelvis\n{\n\tOFFSET 0 0 0\n\tCHANNELS 3 Xposition Yposition Zposition\n}\n"
+    with pytest.raises(Refused) as caught:
+        t.skeleton(SkeletonMessage("s", 120.0, bvh=lone), 0.0)
+    assert caught.value.reason == "skeleton" and "no rig map fits" in str(caught.value)

@@ -31,9 +31,12 @@ from protocols.messages import (
 from protocols.publish import messages
 from protocols.transport import Incoming
 from replay import JOINT_NAMES
+from replay.bvh import BvhKinematics, hierarchy_text, read_bvh
+from replay.rigs import bvh_standard_joints
 from tests.helpers import DATA, joints_cm
 
 ASF, AMC = DATA / "cmu" / "13" / "13.asf", DATA / "cmu" / "13" / "13_30.amc.gz"
+BANDAI_TAKE = DATA / "bandai2" / "dataset-2_raise-up-left-hand_youthful_002.bvh.gz"
 XSS = ("<script>window.__xss=1</script>", '<img src=x onerror="window.__xss=1">')
 
 
@@ -98,6 +101,26 @@ def test_a_positions_stream_is_gathered_by_name_in_cm_y_up() -> None:
     want = np.array([[by_name[j][0], by_name[j][2], -by_name[j][1]] for j in JOINT_NAMES])
     np.testing.assert_allclose(np.array(pose["p"]).reshape(26, 3) / 10, want, atol=0.0501)
     assert all(0 <= a < 26 and 0 <= b < 26 and a != b for a, b in BONE_INDICES)
+
+
+def test_a_bvh_stream_and_a_rigs_positions_are_drawn_through_the_rig_map() -> None:
+    """The view draws what the daemon recognises: a BVH stream's channel rows (a bandai2 take,
+    CC BY-NC-ND 4.0, read unmodified) and a positions stream of the rig's own names, each through
+    its rig map (:mod:`replay.rigs`), in whole millimetres."""
+    take = read_bvh(BANDAI_TAKE)
+    joints, _ = bvh_standard_joints(take)
+    state = ViewState(30.0)
+    state.take(wire(SkeletonMessage("b", 30.0, bvh=hierarchy_text(take.hierarchy))), 0.0)
+    (made, pose) = state.take(wire(PoseMessage("b", 7, 0.0, channels=take.channels[6])), 0.0)
+    assert made == {"type": "stream", "stream": "b", "kind": "bvh", "rate": 30.0}
+    np.testing.assert_allclose(np.array(pose["p"]).reshape(26, 3) / 10, joints[6], atol=0.0501)
+    points = [k for k, j in enumerate(take.hierarchy.joints) if not j.end_site or any(j.offset)]
+    names = tuple(take.hierarchy.joints[k].name for k in points)  # its End Sites at their joints left out
+    nodes = BvhKinematics(take.hierarchy).positions(take.channels[6:7])[0, points].astype(np.float32)
+    state.take(wire(SkeletonMessage("r", 30.0, names)), 0.0)
+    (made, pose) = state.take(wire(PoseMessage("r", 7, 0.0, positions=nodes)), 0.0)
+    assert made["kind"] == "positions"
+    np.testing.assert_allclose(np.array(pose["p"]).reshape(26, 3) / 10, joints[6], atol=0.06)
 
 
 def test_rate_lag_and_missing_poses() -> None:
@@ -168,12 +191,12 @@ def test_what_cannot_be_used_is_refused_and_listed_as_text() -> None:
     assert state.refusals["schema"] == 3 and sum(state.refusals.values()) == 7
     (d,) = state.take(wire(other), 20.0)[1:]
     assert d["class"] == XSS[0]  # kept as it came (the page shows it as text)
-    # a pose of a skeleton it does not fit, and a skeleton lacking the standard joints
+    # a pose of a skeleton it does not fit, and a skeleton neither of the standard joints nor of a rig
     state.take(wire(SkeletonMessage("p", 120.0, JOINT_NAMES)), 30.0)
     (s, r) = state.take(wire(PoseMessage("p", 1, 1.0, np.zeros((3, 3), np.float32))), 30.0)
     assert (s["type"], r["reason"]) == ("stream", "shape")
     (r,) = state.take(wire(SkeletonMessage("q", 120.0, ("root", "lhip"))), 30.0)
-    assert r["reason"] == "schema" and "must include" in str(r["detail"])
+    assert r["reason"] == "schema" and "no rig map fits" in str(r["detail"])
 
 
 def test_statuses_and_their_clearing() -> None:

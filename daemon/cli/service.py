@@ -15,9 +15,10 @@ from daemon.config import Config, workers_of, workers_reason
 from daemon.errors import InputError, UsageError
 from daemon.library import default_library_path, load_library
 from daemon.recordings import native_rate, read_recording
-from protocols.publish import Positions
+from protocols.messages import Up
+from protocols.publish import BvhChannels, Positions, Recording
 from protocols.urls import parse_nats_urls
-from replay.amc import Motion
+from replay.bvh import hierarchy_text
 from replay.joints import JOINT_NAMES
 from replay.rigs import read_bvh_take
 
@@ -116,11 +117,16 @@ def _replay(args: argparse.Namespace, config: Config) -> int:
 
     configure_logging(config.logging.level)  # the MQTT client's log lines as JSON, like the daemon's
     bvh = common.bvh_or_asf(args)
-    motion: Motion | Positions
-    if bvh is not None:
-        # the take's rig mapped onto the standard joints, sent as a positions stream (frames from 1)
+    motion: Recording
+    if bvh is not None:  # frames from 1
         take = read_bvh_take(bvh, common.rig_maps(args))
-        motion, rate, asf_text = Positions(take.frames, take.joints, JOINT_NAMES), take.rate, ""
+        rate, asf_text = take.rate, ""
+        if args.rig is None:  # as it is: the daemon maps the rig as detect does
+            assert take.motion is not None
+            up: Up = "z" if take.up == "z" else "y"
+            motion = BvhChannels(hierarchy_text(take.motion.hierarchy), take.frames, take.motion.channels, up)
+        else:  # a user's rig map, which the daemon does not know: its standard joints
+            motion = Positions(take.frames, take.joints, JOINT_NAMES)
     else:
         motion = read_recording(args.asf, args.amc)
         rate = native_rate(motion, common.default_native_rate(args, config))

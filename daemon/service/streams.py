@@ -69,8 +69,9 @@ from protocols.messages import (
 )
 from replay import JOINT_NAMES, MocapFormatError, Skeleton, parse_asf
 from replay.amc import DEG
+from replay.bvh import parse_bvh_hierarchy
 from replay.kinematics import y_up
-from replay.rigs import RigPlan, rig_plan, standard_joints
+from replay.rigs import BvhPoses, RigPlan, rig_plan, standard_joints
 
 SKELETONS_KEPT = 64
 """How many announced ASF texts the table keeps parsed."""
@@ -160,6 +161,8 @@ class _Stream:
     """Native frames per index frame (cluster mode begins a motion at a multiple of it)."""
     rig: RigPlan | None = None
     """A positions stream of a rig's joint names: how its joints map onto the standard ones."""
+    bvh: BvhPoses | None = None
+    """A BVH stream: its channel rows to the standard joints."""
     warmup: int = 0
     """Native frames a recogniser that starts mid-motion may get wrong: a detection's reach and the
     features' delay."""
@@ -236,6 +239,7 @@ class StreamTable:
         self.progress = ProgressConfig() if progress is None else progress
         self._queued = 0
         self._skeletons: dict[str, Skeleton] = {}  # by ASF text, least recently announced first
+        self._bvhs: dict[tuple[str, str], BvhPoses] = {}  # by BVH hierarchy text and up axis, likewise
         self._waiting: dict[str, _Stream] = {}  # the streams with queued poses, in arrival order
         self.cluster = cluster
 
@@ -278,9 +282,15 @@ class StreamTable:
                 raise Refused("skeleton", str(e)) from None
             if message.angle_unit == "deg":
                 angles = np.asarray(skeleton.angle_channels, dtype=np.intp)
-        rig = None
+        rig = bvh = None
         joints = message.joints
-        if joints is not None and not set(JOINT_NAMES) <= set(joints):
+        if message.bvh is not None:
+            try:
+                bvh = self._bvh(message.bvh, message.up, f"<skeleton of {message.stream}>")
+            except MocapFormatError as e:
+                raise Refused("skeleton", str(e)) from None
+            joints = JOINT_NAMES
+        elif joints is not None and not set(JOINT_NAMES) <= set(joints):
             try:  # a rig's names (mixamorig:LeftArm, UpperArm_L, ...): mapped onto the standard joints
                 rig = rig_plan(joints, [True] * len(joints), f"<skeleton of {message.stream}>")
             except MocapFormatError as e:
@@ -309,7 +319,13 @@ class StreamTable:
             turns=None if skeleton is None else np.asarray(skeleton.angle_channels, dtype=np.intp),
             times=np.zeros(horizon),
             arrivals=np.zeros(horizon),
-            width=len(skeleton.channel_names) if skeleton is not None else len(message.joints or ()),
+            width=(
+                len(skeleton.channel_names)
+                if skeleton is not None
+                else bvh.width
+                if bvh is not None
+                else len(message.joints or ())
+            ),
             seen=now,
             generation=generation,
             segmenting=segmenting,
@@ -317,6 +333,7 @@ class StreamTable:
             step=recognizer.clock.step,
             warmup=recognizer.clock.lag(recognizer.reach),
             rig=rig,
+            bvh=bvh,
         )
         self._follow(s, recognizer)
         return out
@@ -438,6 +455,18 @@ class StreamTable:
             self._skeletons.pop(next(iter(self._skeletons)))
         return dataclasses.replace(skeleton, source=source)
 
+    def _bvh(self, hierarchy: str, up: str, source: str) -> BvhPoses:
+        """A BVH stream's poses of ``hierarchy`` (parsed once for the last :data:`SKELETONS_KEPT`
+        texts, as ASF texts are)."""
+        key = (hierarchy, up)
+        poses = self._bvhs.pop(key, None)
+        if poses is None:
+            poses = BvhPoses(parse_bvh_hierarchy(hierarchy, source), up)
+        self._bvhs[key] = poses
+        if len(self._bvhs) > SKELETONS_KEPT:
+            self._bvhs.pop(next(iter(self._bvhs)))
+        return poses
+
     def _segmenting(self, message: SkeletonMessage, skeleton: Skeleton | None) -> _Segmenting | None:
         """A segmenter for a channel stream that the segmentation patterns name (None: none)."""
         method = self.segmentation
@@ -457,7 +486,7 @@ class StreamTable:
         if s is None:
             raise Refused("no_skeleton", f"stream {message.stream!r} has announced no skeleton")
         kind = s.announced.kind
-        if (message.positions is None) != (kind == "channels"):
+        if (message.positions is None) != (kind != "positions"):
             raise Refused(
                 "shape", f"a {kind} stream got a pose of {'channels' if kind == 'positions' else 'positions'}"
             )
@@ -465,7 +494,7 @@ class StreamTable:
         got = 0 if values is None else len(values)
         width = s.width
         if got != width:
-            what = "channels" if kind == "channels" else "joints"
+            what = "joints" if kind == "positions" else "channels"
             raise Refused("shape", f"{got} {what}, the skeleton announced {width}")
         if message.epoch is not None and message.epoch != s.epoch:
             if s.epoch is None:
@@ -638,7 +667,10 @@ class StreamTable:
             if s.rig is not None and p.shape == (s.width, 3):
                 p = standard_joints(p[None], s.rig)[0]
             return y_up(p) if s.announced.up == "z" else p
-        assert pose.channels is not None and s.skeleton is not None
+        assert pose.channels is not None
+        if s.bvh is not None:
+            return s.bvh.joints(pose.channels)
+        assert s.skeleton is not None
         if s.angles is None or len(pose.channels) != len(s.skeleton.channel_names):
             return pose.channels  # radians, or a wrong length the bank refuses
         c = pose.channels.copy()

@@ -44,7 +44,9 @@ from protocols.messages import (
 from protocols.transport import Incoming
 from replay import JOINT_NAMES, MocapFormatError, parse_asf
 from replay.amc import DEG
+from replay.bvh import parse_bvh_hierarchy
 from replay.kinematics import KinematicModel, y_up
+from replay.rigs import BvhPoses, RigPlan, rig_plan, standard_joints
 
 Event = dict[str, Any]
 """One JSON message for the browsers."""
@@ -107,8 +109,14 @@ class Drawer:
         self.model: KinematicModel | None = None
         self.angles: npt.NDArray[np.intp] | None = None
         self.order: npt.NDArray[np.intp] | None = None
+        self.rig: RigPlan | None = None
+        self.bvh: BvhPoses | None = None
         try:
-            if skeleton.asf is not None:
+            if skeleton.bvh is not None:
+                source = f"<skeleton of {skeleton.stream}>"
+                self.bvh = BvhPoses(parse_bvh_hierarchy(skeleton.bvh, source), skeleton.up)
+                self.width = self.bvh.width
+            elif skeleton.asf is not None:
                 parsed = parse_asf(skeleton.asf.splitlines(), f"<skeleton of {skeleton.stream}>")
                 self.model = skeleton_model(parsed)
                 self.width = len(parsed.channel_names)
@@ -116,8 +124,12 @@ class Drawer:
                     self.angles = np.asarray(parsed.angle_channels, dtype=np.intp)
             else:
                 assert skeleton.joints is not None
-                self.order = joint_order(skeleton.joints)
                 self.width = len(skeleton.joints)
+                if set(JOINT_NAMES) <= set(skeleton.joints):
+                    self.order = joint_order(skeleton.joints)
+                else:  # a rig's names, as the daemon maps them (replay.rigs)
+                    points = [True] * len(skeleton.joints)
+                    self.rig = rig_plan(skeleton.joints, points, f"<skeleton of {skeleton.stream}>")
         except (InputError, MocapFormatError) as e:
             raise WireError("schema", f"skeleton: {e}") from None
         self.up = skeleton.up
@@ -126,6 +138,11 @@ class Drawer:
     def joints(self, pose: PoseMessage) -> npt.NDArray[np.float64]:
         """The 26 standard joints of ``pose``, shape ``(26, 3)``; WireError ``shape`` if the pose is
         not of this skeleton."""
+        if self.bvh is not None:
+            if pose.channels is None or len(pose.channels) != self.width:
+                raise WireError("shape", f"a pose of {self.width} channels expected")
+            joints: npt.NDArray[np.float64] = self.bvh.joints(pose.channels.astype(np.float64)) * self.scale
+            return joints
         if self.model is not None:
             if pose.channels is None or len(pose.channels) != self.width:
                 raise WireError("shape", f"a pose of {self.width} channels expected")
@@ -134,10 +151,13 @@ class Drawer:
                 c[self.angles] *= DEG
             out: npt.NDArray[np.float64] = self.model.joints(self.model.positions_frame(c, "cm"))
             return out
-        assert self.order is not None
         if pose.positions is None or len(pose.positions) != self.width:
             raise WireError("shape", f"a pose of {self.width} joints expected")
-        p = pose.positions[self.order].astype(np.float64) * self.scale
+        if self.rig is not None:
+            p = standard_joints(pose.positions.astype(np.float64)[None], self.rig)[0] * self.scale
+        else:
+            assert self.order is not None
+            p = pose.positions[self.order].astype(np.float64) * self.scale
         return y_up(p) if self.up == "z" else p
 
 
@@ -305,7 +325,7 @@ class ViewState:
     def _drawer(self, message: SkeletonMessage) -> Drawer:
         """The drawer of ``message`` (many streams announce the same skeleton: made once for the
         last :data:`DRAWERS_KEPT`)."""
-        key = (message.asf, message.angle_unit, message.joints, message.up, message.units)
+        key = (message.asf, message.angle_unit, message.joints, message.up, message.units, message.bvh)
         drawer = self._drawers.pop(key, None) or Drawer(message)
         self._drawers[key] = drawer
         while len(self._drawers) > DRAWERS_KEPT:
@@ -473,6 +493,7 @@ def _unepoched(message: SkeletonMessage) -> SkeletonMessage:
         message.units,
         message.asf,
         message.angle_unit,
+        bvh=message.bvh,
     )
 
 
