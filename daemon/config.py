@@ -60,11 +60,13 @@ def transport_section(module: str, *, source: bool) -> dict[str, Any]:
 
 @dataclass(frozen=True)
 class ReplayConfig:
-    """How recordings are read: the frame rate assumed when an AMC file does not state one, and the
-    units of joint positions."""
+    """How recordings are read: the frame rate assumed when an AMC file does not state one, the
+    units of joint positions, and the users' rig maps (YAML files, docs/recordings-and-features.md,
+    "BVH"), tried before the built-in ones for BVH recordings and for positions and BVH streams."""
 
     frame_rate_hz: float = field(default=DEFAULT_NATIVE_RATE, metadata=_positive(MAX_NATIVE_RATE))
     units: Units = "asf"
+    rig_maps: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)

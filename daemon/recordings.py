@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from daemon.checks import csv_records, read_text
+from daemon.checks import csv_records, read_structured, read_text
 from daemon.errors import InputError, MocapdError
 from daemon.features import decimation_factor, sampled_features
 from daemon.frames import motion_runs
@@ -40,7 +40,7 @@ from daemon.types import (
 )
 from replay import JOINT_NAMES, Motion, read_amc, read_asf
 from replay.kinematics import joint_positions
-from replay.rigs import BUILT_IN, RigMap, read_bvh_take
+from replay.rigs import BUILT_IN, RigMap, parse_rig_map, read_bvh_take
 
 MAX_ACTOR = 200
 
@@ -160,6 +160,13 @@ def read_bvh_features(
     except InputError as exc:
         raise RateError(str(exc), path=path) from None
     return RecordingFeatures(matrix, take.frames[::step], take.rate, step, 1, len(take.joints))
+
+
+def read_rig_maps(paths: Sequence[str | Path]) -> tuple[RigMap, ...]:
+    """The rig maps of the YAML files at ``paths``, in order, then the built-in ones
+    (:data:`replay.rigs.BUILT_IN`); an error naming the file and the field for a bad one."""
+    users = (parse_rig_map(read_structured(Path(p), "yaml", InputError), str(p)) for p in paths)
+    return (*users, *BUILT_IN)
 
 
 # --------------------------------------------------------------------------------------- manifests

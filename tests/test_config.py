@@ -181,7 +181,11 @@ BAD = [
         "progress:\n  floor: 0.2\n",
         "progress.floor: unknown field (allowed: enabled, per_s)",
     ),
-    ("unknown-replay", "replay:\n  fps: 60\n", "replay.fps: unknown field (allowed: frame_rate_hz, units)"),
+    (
+        "unknown-replay",
+        "replay:\n  fps: 60\n",
+        "replay.fps: unknown field (allowed: frame_rate_hz, rig_maps, units)",
+    ),
     ("misspelt", "replay:\n  frame_rate: 60\n", "replay.frame_rate: unknown field"),
     # wrong types and non-positive frame rates
     ("rate-string", "replay:\n  frame_rate_hz: '120'\n", "replay.frame_rate_hz"),

@@ -269,6 +269,13 @@ def test_a_users_rig_map_is_taken_before_the_built_in_ones(tmp_path: Path) -> No
     take = BANDAI / "dataset-2_wave-right-hand_normal_001.bvh.gz"
     result = mocapd("detect", "--bvh", take, "--rig", path, "--json")
     assert (result.returncode, result.stderr) == (0, "")
+    config = tmp_path / "config.yaml"  # the same map from the configuration (replay.rig_maps)
+    config.write_text(f"replay:\n  rig_maps: [{path}]\n", encoding="utf-8")
+    for how in (["--rig", str(path)], []):
+        where: list[str | Path] = [] if how else ["--config", config]
+        info = mocapd(*where, "info", "--bvh", take, *how, "--json")
+        assert info.returncode == 0 and json.loads(info.stdout)["rig_map"] == "studio-a", info.stderr
+    assert json.loads(mocapd("info", "--bvh", take, "--json").stdout)["rig_map"] == "upperarm"
 
 
 @pytest.mark.parametrize(

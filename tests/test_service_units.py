@@ -41,7 +41,7 @@ from replay.amc import DEG
 from replay.bvh import hierarchy_text, parse_bvh, write_bvh
 from replay.convert import motion_to_bvh
 from replay.kinematics import joint_positions
-from replay.rigs import bvh_standard_joints, rig_plan, standard_joints
+from replay.rigs import BUILT_IN, bvh_standard_joints, parse_rig_map, rig_plan, standard_joints
 from tests.helpers import DATA, hdm05_clip, small_library, takes
 
 ASF, AMC = hdm05_clip("bd", "squat1Reps", takes("squat1Reps", "bd")[1])
@@ -607,3 +607,20 @@ def test_a_bvh_stream_is_taken_through_its_rig_as_the_take_is(library: Library) 
     with pytest.raises(Refused) as caught:
         t.skeleton(SkeletonMessage("s", 120.0, bvh=lone), 0.0)
     assert caught.value.reason == "skeleton" and "no rig map fits" in str(caught.value)
+
+
+def test_a_positions_stream_of_names_only_a_users_rig_map_knows_is_mapped_by_it(library: Library) -> None:
+    """``replay.rig_maps`` reach the table (``rigs``): a stream announcing names no built-in map
+    fits is refused without the user's map and recognised with it, as the batch twin does."""
+    p = joint_positions(motion())
+    names = tuple(f"node{k}" for k in range(len(JOINT_NAMES)))
+    user = parse_rig_map({"joints": dict(zip(JOINT_NAMES, names, strict=True))}, "studio.yaml")
+    with pytest.raises(Refused) as caught:
+        table(library).skeleton(SkeletonMessage("s", 120.0, names), 0.0)
+    assert caught.value.reason == "skeleton"
+    t = StreamTable(library, session="t", service=ServiceConfig(queue_frames=100_000), rigs=(user, *BUILT_IN))
+    t.skeleton(SkeletonMessage("s", 120.0, names), 0.0)
+    wire = p.astype(np.float32)
+    got = run(t, [PoseMessage("s", k, 0.0, positions=q) for k, q in enumerate(wire, 1)])
+    want = detect_positions(wire.astype(np.float64), np.arange(1, len(p) + 1), library, 120.0, session="t")
+    assert got == [(d.class_name, d.start_frame, d.end_frame, d.cost) for d in want] and got

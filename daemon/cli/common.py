@@ -10,13 +10,14 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import IO, Any
 
-from daemon.checks import number_reason, read_structured
+from daemon.checks import number_reason
 from daemon.config import Config
-from daemon.errors import FileAccessError, InputError, UsageError
+from daemon.errors import FileAccessError, UsageError
 from daemon.plots import check_plotting
+from daemon.recordings import read_rig_maps
 from daemon.storage import check_directory, check_output_file, output_file
 from daemon.types import MAX_NATIVE_RATE
-from replay.rigs import BUILT_IN, RigMap, parse_rig_map
+from replay.rigs import RigMap
 
 STDOUT = "-"
 
@@ -83,12 +84,10 @@ def stream_name(recording: Path) -> str:
     return recording.name.removesuffix(".gz").removesuffix(".amc").removesuffix(".bvh")
 
 
-def rig_maps(args: argparse.Namespace) -> tuple[RigMap, ...]:
-    """``--rig``'s map (if given), then the built-in ones."""
-    if args.rig is None:
-        return BUILT_IN
-    value = read_structured(args.rig, "yaml", InputError)
-    return (parse_rig_map(value, str(args.rig)), *BUILT_IN)
+def rig_maps(args: argparse.Namespace, config: Config) -> tuple[RigMap, ...]:
+    """``--rig``'s map (if given), the configuration's (``replay.rig_maps``), then the built-in
+    ones."""
+    return read_rig_maps([*([] if args.rig is None else [args.rig]), *config.replay.rig_maps])
 
 
 def bvh_or_asf(args: argparse.Namespace) -> Path | None:

@@ -99,7 +99,7 @@ def _read(
 ) -> _Recording:
     """The recording of ``bvh`` (its rig mapped onto the standard joints, :mod:`replay.rigs`;
     frames numbered from 1) or of ``--asf`` and ``--amc``, and a recogniser for it."""
-    maps = common.rig_maps(args)
+    maps = common.rig_maps(args, config)
     try:
         if bvh is not None:
             take = read_bvh_take(bvh, maps)

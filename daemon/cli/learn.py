@@ -122,7 +122,7 @@ def _learn(args: argparse.Namespace, config: Config) -> int:
         rate=args.fps,
         progress=progress,
         default_native_rate=common.default_native_rate(args, config),
-        maps=common.rig_maps(args),
+        maps=common.rig_maps(args, config),
     )
     learned = learn_library(
         examples,

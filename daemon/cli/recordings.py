@@ -60,7 +60,7 @@ def register(sub: Any) -> None:
 def _info(args: argparse.Namespace, config: Config) -> int:
     bvh = common.bvh_or_asf(args)
     if bvh is not None:
-        return _bvh_info(bvh, read_bvh_take(bvh, common.rig_maps(args)), args.json)
+        return _bvh_info(bvh, read_bvh_take(bvh, common.rig_maps(args, config)), args.json)
     motion = read_recording(args.asf, args.amc)
     skeleton = motion.skeleton
     if motion.header.frame_rate is not None:
@@ -132,7 +132,7 @@ def _positions(args: argparse.Namespace, config: Config) -> int:
     common.check_csv_output(args.csv)
     bvh = common.bvh_or_asf(args)
     if bvh is not None:  # in the file's units, taken for centimetres
-        take = read_bvh_take(bvh, common.rig_maps(args))
+        take = read_bvh_take(bvh, common.rig_maps(args, config))
         common.write_csv(args.csv, lambda out: _write_positions(out, take.frames, take.joints))
         return 0
     motion = read_recording(args.asf, args.amc)
@@ -162,7 +162,7 @@ def _features(args: argparse.Namespace, config: Config) -> int:
     bvh = common.bvh_or_asf(args)
     try:
         if bvh is not None:
-            got = read_bvh_features(bvh, args.fps, common.rig_maps(args))
+            got = read_bvh_features(bvh, args.fps, common.rig_maps(args, config))
         else:
             got = motion_features(
                 read_recording(args.asf, args.amc), args.fps, common.default_native_rate(args, config)

@@ -162,7 +162,7 @@ def _index_build(args: argparse.Namespace, config: Config) -> int:
         progress=progress,
         default_native_rate=common.default_native_rate(args, config),
         base=args.manifest.parent,
-        maps=common.rig_maps(args),
+        maps=common.rig_maps(args, config),
     )
     save_index(index, args.out)
     seconds = time.perf_counter() - began
@@ -379,7 +379,7 @@ def _search_example(args: argparse.Namespace, config: Config, index: MotionIndex
     amc = Path(files[-1])
     try:
         if len(files) == 1:
-            got = read_bvh_features(amc, index.rate, common.rig_maps(args))
+            got = read_bvh_features(amc, index.rate, common.rig_maps(args, config))
         else:
             got = read_features(files[0], amc, index.rate, common.default_native_rate(args, config))
     except RateError as exc:

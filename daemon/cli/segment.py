@@ -18,7 +18,7 @@ from daemon.errors import InputError, UsageError
 from daemon.plots import segmentation_png
 from daemon.recordings import continuous, native_rate, read_boundaries, read_recording
 from replay.bvh import read_bvh
-from replay.rigs import bvh_standard_joints
+from replay.rigs import hierarchy_plan
 
 
 def register(sub: Any) -> None:
@@ -126,7 +126,8 @@ def _segment(args: argparse.Namespace, config: Config) -> int:
     rotations: bh.JointRotations | bh.RigRotations
     if bvh is not None:  # frames from 1, at the file's rate
         take = read_bvh(bvh)
-        rotations = bh.RigRotations(take.hierarchy, bvh_standard_joints(take, common.rig_maps(args))[1])
+        plan = hierarchy_plan(take.hierarchy, common.rig_maps(args, config))
+        rotations = bh.RigRotations(take.hierarchy, plan)
         rate, frame_numbers, channels = take.rate, np.arange(1, len(take.channels) + 1), take.channels
     else:
         motion = read_recording(args.asf, args.amc)

@@ -119,7 +119,7 @@ def _replay(args: argparse.Namespace, config: Config) -> int:
     bvh = common.bvh_or_asf(args)
     motion: Recording
     if bvh is not None:  # frames from 1
-        take = read_bvh_take(bvh, common.rig_maps(args))
+        take = read_bvh_take(bvh, common.rig_maps(args, config))
         rate, asf_text = take.rate, ""
         if args.rig is None:  # as it is: the daemon maps the rig as detect does
             assert take.motion is not None

@@ -43,8 +43,10 @@ def register(sub: Any) -> None:
 
 def _view(args: argparse.Namespace, config: Config) -> int:
     from daemon.cli import package_version
+    from daemon.recordings import read_rig_maps
     from daemon.service.view.server import serve_view
     from daemon.service.view.settings import view_settings
 
     settings = view_settings(args.bus, args.host, args.port, args.metrics, args.poses_per_s)
-    return serve_view(settings, version=package_version())
+    rigs = read_rig_maps(config.replay.rig_maps)  # the daemon's, so that the view maps rigs as it does
+    return serve_view(settings, version=package_version(), rigs=rigs)

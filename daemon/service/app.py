@@ -44,6 +44,7 @@ import numpy as np
 from daemon.config import Config, ConfigError, transports_named
 from daemon.errors import MocapdError, printable
 from daemon.library import Library
+from daemon.recordings import read_rig_maps
 from daemon.service.metrics import Metrics, open_http, serve_http
 from daemon.service.streams import Emitted, Refused, StreamTable
 from protocols.messages import (
@@ -211,6 +212,7 @@ class Service:
             segmentation=config.segmentation,
             progress=config.progress,
             cluster=cluster is not None,
+            rigs=read_rig_maps(config.replay.rig_maps),
         )
         self.rejects: Counter[str] = Counter()
         self.remind = remind

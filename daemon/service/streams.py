@@ -40,7 +40,7 @@ import fnmatch
 import itertools
 import uuid
 from collections import Counter, deque
-from collections.abc import Collection
+from collections.abc import Collection, Sequence
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -71,7 +71,7 @@ from replay import JOINT_NAMES, MocapFormatError, Skeleton, parse_asf
 from replay.amc import DEG
 from replay.bvh import parse_bvh_hierarchy
 from replay.kinematics import y_up
-from replay.rigs import BvhPoses, RigPlan, rig_plan, standard_joints
+from replay.rigs import BUILT_IN, BvhPoses, RigMap, RigPlan, rig_plan, standard_joints
 
 SKELETONS_KEPT = 64
 """How many announced ASF texts the table keeps parsed."""
@@ -216,8 +216,11 @@ class StreamTable:
         segmentation: SegmentationConfig | None = None,
         progress: ProgressConfig | None = None,
         cluster: bool = False,
+        rigs: Sequence[RigMap] = BUILT_IN,
     ) -> None:
         service = ServiceConfig() if service is None else service
+        self.rigs = tuple(rigs)
+        """The rig maps positions and BVH streams are mapped by, the first that fits."""
         recognizer = RecognizerConfig() if recognizer is None else recognizer
         segmentation = SegmentationConfig() if segmentation is None else segmentation
         self.bank = RecognizerBank(library, recognizer.settings())
@@ -292,7 +295,7 @@ class StreamTable:
             joints = JOINT_NAMES
         elif joints is not None and not set(JOINT_NAMES) <= set(joints):
             try:  # a rig's names (mixamorig:LeftArm, UpperArm_L, ...): mapped onto the standard joints
-                rig = rig_plan(joints, [True] * len(joints), f"<skeleton of {message.stream}>")
+                rig = rig_plan(joints, [True] * len(joints), f"<skeleton of {message.stream}>", self.rigs)
             except MocapFormatError as e:
                 raise Refused("skeleton", str(e)) from None
             joints = JOINT_NAMES
@@ -461,7 +464,7 @@ class StreamTable:
         key = (hierarchy, up)
         poses = self._bvhs.pop(key, None)
         if poses is None:
-            poses = BvhPoses(parse_bvh_hierarchy(hierarchy, source), up)
+            poses = BvhPoses(parse_bvh_hierarchy(hierarchy, source), up, self.rigs)
         self._bvhs[key] = poses
         if len(self._bvhs) > SKELETONS_KEPT:
             self._bvhs.pop(next(iter(self._bvhs)))

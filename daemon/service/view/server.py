@@ -29,6 +29,7 @@ import signal
 import socket
 import time
 from collections import deque
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -40,6 +41,7 @@ from daemon.service.view.settings import ViewSettings
 from daemon.service.view.state import Event, ViewState, daemon_health
 from protocols.transport import Incoming
 from protocols.watch import Watch
+from replay.rigs import BUILT_IN, RigMap
 
 STATIC = Path(__file__).resolve().parent / "static"
 MAX_PENDING = 512
@@ -116,11 +118,18 @@ class Client:
 class ViewServer:
     """The view of ``settings``: :meth:`run` until the stop event is set."""
 
-    def __init__(self, settings: ViewSettings, *, version: str, logger: logging.Logger) -> None:
+    def __init__(
+        self,
+        settings: ViewSettings,
+        *,
+        version: str,
+        logger: logging.Logger,
+        rigs: Sequence[RigMap] = BUILT_IN,
+    ) -> None:
         self.settings = settings
         self.version = version
         self.log = logger
-        self.state = ViewState(settings.poses_per_s)
+        self.state = ViewState(settings.poses_per_s, rigs=rigs)
         self.watch = Watch(settings.bus)
         self.clients: dict[int, Client] = {}
         self.health: Event | None = None
@@ -320,7 +329,7 @@ async def _secured(request: web.Request, response: web.StreamResponse) -> None:
     response.headers.update(SECURITY)
 
 
-def serve_view(settings: ViewSettings, *, version: str) -> int:
+def serve_view(settings: ViewSettings, *, version: str, rigs: Sequence[RigMap] = BUILT_IN) -> int:
     """Run the view until SIGTERM/SIGINT; the exit status (0)."""
     from daemon.service.app import configure_logging
 
@@ -336,7 +345,7 @@ def serve_view(settings: ViewSettings, *, version: str) -> int:
 
         for signum in (signal.SIGTERM, signal.SIGINT):
             loop.add_signal_handler(signum, on_signal, signum)
-        await ViewServer(settings, version=version, logger=logger).run(stop)
+        await ViewServer(settings, version=version, logger=logger, rigs=rigs).run(stop)
 
     asyncio.run(main())
     return 0

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import math
 from collections import Counter, OrderedDict, deque
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -46,7 +47,7 @@ from replay import JOINT_NAMES, MocapFormatError, parse_asf
 from replay.amc import DEG
 from replay.bvh import parse_bvh_hierarchy
 from replay.kinematics import KinematicModel, y_up
-from replay.rigs import BvhPoses, RigPlan, rig_plan, standard_joints
+from replay.rigs import BUILT_IN, BvhPoses, RigMap, RigPlan, rig_plan, standard_joints
 
 Event = dict[str, Any]
 """One JSON message for the browsers."""
@@ -104,7 +105,7 @@ def text(value: str, limit: int = TEXT_CHARS) -> str:
 class Drawer:
     """A skeleton's way from a pose to the standard joints (centimetres, y up, shape ``(26, 3)``)."""
 
-    def __init__(self, skeleton: SkeletonMessage) -> None:
+    def __init__(self, skeleton: SkeletonMessage, rigs: Sequence[RigMap] = BUILT_IN) -> None:
         self.kind = skeleton.kind
         self.model: KinematicModel | None = None
         self.angles: npt.NDArray[np.intp] | None = None
@@ -114,7 +115,7 @@ class Drawer:
         try:
             if skeleton.bvh is not None:
                 source = f"<skeleton of {skeleton.stream}>"
-                self.bvh = BvhPoses(parse_bvh_hierarchy(skeleton.bvh, source), skeleton.up)
+                self.bvh = BvhPoses(parse_bvh_hierarchy(skeleton.bvh, source), skeleton.up, rigs)
                 self.width = self.bvh.width
             elif skeleton.asf is not None:
                 parsed = parse_asf(skeleton.asf.splitlines(), f"<skeleton of {skeleton.stream}>")
@@ -129,7 +130,7 @@ class Drawer:
                     self.order = joint_order(skeleton.joints)
                 else:  # a rig's names, as the daemon maps them (replay.rigs)
                     points = [True] * len(skeleton.joints)
-                    self.rig = rig_plan(skeleton.joints, points, f"<skeleton of {skeleton.stream}>")
+                    self.rig = rig_plan(skeleton.joints, points, f"<skeleton of {skeleton.stream}>", rigs)
         except (InputError, MocapFormatError) as e:
             raise WireError("schema", f"skeleton: {e}") from None
         self.up = skeleton.up
@@ -216,7 +217,9 @@ class ViewState:
         idle_s: float = IDLE_S,
         max_streams: int = MAX_STREAMS,
         max_bytes: int = DEFAULT_MAX_BYTES,
+        rigs: Sequence[RigMap] = BUILT_IN,
     ) -> None:
+        self.rigs = tuple(rigs)
         self.interval = 1.0 / poses_per_s
         self.poses_per_s = poses_per_s
         self.idle_s = idle_s
@@ -326,7 +329,7 @@ class ViewState:
         """The drawer of ``message`` (many streams announce the same skeleton: made once for the
         last :data:`DRAWERS_KEPT`)."""
         key = (message.asf, message.angle_unit, message.joints, message.up, message.units, message.bvh)
-        drawer = self._drawers.pop(key, None) or Drawer(message)
+        drawer = self._drawers.pop(key, None) or Drawer(message, self.rigs)
         self._drawers[key] = drawer
         while len(self._drawers) > DRAWERS_KEPT:
             self._drawers.popitem(last=False)
