@@ -383,7 +383,7 @@ class BvhKinematics:
         rows = self._rows(channels)
         half = np.radians(rows.T) * 0.5
         cos, sin = np.cos(half), np.sin(half)
-        local = np.stack([self._local(rows, rotations, cos, sin) for k, _, rotations in self._plan])
+        local = np.stack([self._local(rows, rotations, cos, sin) for _, _, rotations in self._plan])
         return np.ascontiguousarray(local.transpose(2, 0, 1))
 
     def positions_frame(self, channels: FloatArray) -> FloatArray:

@@ -131,7 +131,7 @@ def _bvh_info(path: Path, take: BvhTake, as_json: bool) -> int:
 def _positions(args: argparse.Namespace, config: Config) -> int:
     common.check_csv_output(args.csv)
     bvh = common.bvh_or_asf(args)
-    if bvh is not None:  # in the file's units, taken for centimetres
+    if bvh is not None:  # in the file's own units
         take = read_bvh_take(bvh, common.rig_maps(args, config))
         common.write_csv(args.csv, lambda out: _write_positions(out, take.frames, take.joints))
         return 0
