@@ -22,7 +22,7 @@ from replay import JOINT_NAMES
 from replay.bvh import write_bvh
 from replay.convert import motion_to_bvh
 from replay.kinematics import joint_positions
-from tests.helpers import assert_ok, hdm05_clip, mocapd, pair_id, recording_pairs
+from tests.helpers import assert_ok, assert_one_error_line, hdm05_clip, mocapd, pair_id, recording_pairs
 
 TRIALS = ("13_29", "86_01", "02_05")
 CLIPS = (("bd", "squat1Reps", 1), ("dg", "hopBothLegs1hops", 22), ("bd", "kickLFront1Reps", 1))
@@ -97,3 +97,12 @@ def test_mocapd_detect_of_a_take_written_at_30_hz_gives_the_detections_at_120_hz
     assert want and [c for c, _, _ in got] == [c for c, _, _ in want]
     for (_, s, e), (_, s0, e0) in zip(got, want, strict=True):
         assert abs(s - s0) < 1e-9 and abs(e - e0) <= 1 / 30
+
+
+def test_a_take_at_a_rate_the_librarys_does_not_divide_is_one_line_naming_it(tmp_path: Path) -> None:
+    """100 Hz (Xsens, Rokoko) is not yet read (issue 35): one line naming the file and both rates."""
+    (asf, amc) = next(p for p in recording_pairs() if pair_id(p) == "02_01")
+    take = tmp_path / "at100.bvh"
+    take.write_bytes(write_bvh(motion_to_bvh(read_recording(asf, amc), 100.0)))
+    line = assert_one_error_line(mocapd("detect", "--bvh", take))
+    assert line.startswith(f"mocapd: {take}: ") and "100 Hz" in line and "30 Hz" in line

@@ -112,8 +112,10 @@ def _read(
         recognizer = Recognizer.for_skeleton(library, amc.skeleton, rate, settings=settings, stream=stream)
         angles = np.asarray(amc.skeleton.angle_channels, dtype=np.intp)
         return _Recording(amc.frames, amc.channels, rate, recognizer, angles)
-    except InputError as exc:  # a rate the library's does not divide
-        raise UsageError(str(exc), field="--library") from None
+    except InputError as exc:  # a rate the library's does not divide: named with the recording
+        raise UsageError(
+            f"{exc} (the library's rate must divide the recording's)", path=bvh or args.amc
+        ) from None
 
 
 def _detect(args: argparse.Namespace, config: Config) -> int:
