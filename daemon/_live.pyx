@@ -125,10 +125,11 @@ cdef class LiveStream:
         return self._advance() if keep else C_NOTHING
 
     cdef int64_t _positions(self, const double *positions):
-        if not self._pose_positions(positions):
+        cdef bint keep = self._keeps()
+        if not self._pose_positions(positions):  # every frame's joints checked, as push_many does
             return C_NON_FINITE
         self.seen += 1
-        return self._advance() if (self.seen - 1) % self.step == 0 else C_NOTHING
+        return self._advance() if keep else C_NOTHING
 
     cdef bint _pose_channels(self, const double *channels, const double *cos, const double *sin):
         """Forward kinematics of a channel frame into ``rows``: whether every joint is finite."""

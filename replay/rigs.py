@@ -172,6 +172,16 @@ def parse_rig_map(value: object, source: str) -> RigMap:
     return RigMap(name, points)
 
 
+def names_plan(names: Sequence[str], source: str, maps: Sequence[RigMap] = BUILT_IN) -> RigPlan | None:
+    """How a positions stream's announced joint ``names`` map onto the standard joints: None when
+    they include the standard joints' own names (taken as they are), else the plan of the first of
+    ``maps`` that fits (every announced joint a point of its own); :class:`MocapFormatError` naming
+    ``source`` if none does."""
+    if set(JOINT_NAMES) <= set(names):
+        return None
+    return rig_plan(names, [True] * len(names), source, maps)
+
+
 def bare(name: str) -> str:
     """A node name without its namespace: ``mixamorig:LeftArm`` is ``LeftArm``."""
     return name.rsplit(":", 1)[-1]

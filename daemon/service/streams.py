@@ -40,9 +40,9 @@ import fnmatch
 import itertools
 import uuid
 from collections import Counter, deque
-from collections.abc import Collection, Sequence
+from collections.abc import Callable, Collection, Sequence
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import Literal, TypeVar
 
 import msgpack
 import numpy as np
@@ -71,10 +71,25 @@ from replay import JOINT_NAMES, MocapFormatError, Skeleton, parse_asf
 from replay.amc import DEG
 from replay.bvh import parse_bvh_hierarchy
 from replay.kinematics import y_up
-from replay.rigs import BUILT_IN, BvhPoses, RigMap, RigPlan, rig_plan, standard_joints
+from replay.rigs import BUILT_IN, BvhPoses, RigMap, RigPlan, names_plan, standard_joints
+
+K = TypeVar("K")
+V = TypeVar("V")
 
 SKELETONS_KEPT = 64
-"""How many announced ASF texts the table keeps parsed."""
+"""How many announced ASF texts (and BVH hierarchies) the table keeps parsed."""
+
+
+def _remembered(cache: dict[K, V], key: K, make: Callable[[], V]) -> V:
+    """``cache[key]``, made by ``make`` if missing, kept as the most recently used of the last
+    :data:`SKELETONS_KEPT` keys (a dict keeps its insertion order: the first is the oldest)."""
+    value = cache.pop(key, None)
+    if value is None:
+        value = make()
+    cache[key] = value
+    if len(cache) > SKELETONS_KEPT:
+        cache.pop(next(iter(cache)))
+    return value
 
 
 class Refused(MocapdError):
@@ -293,12 +308,13 @@ class StreamTable:
             except MocapFormatError as e:
                 raise Refused("skeleton", str(e)) from None
             joints = JOINT_NAMES
-        elif joints is not None and not set(JOINT_NAMES) <= set(joints):
+        elif joints is not None:
             try:  # a rig's names (mixamorig:LeftArm, UpperArm_L, ...): mapped onto the standard joints
-                rig = rig_plan(joints, [True] * len(joints), f"<skeleton of {message.stream}>", self.rigs)
+                rig = names_plan(joints, f"<skeleton of {message.stream}>", self.rigs)
             except MocapFormatError as e:
                 raise Refused("skeleton", str(e)) from None
-            joints = JOINT_NAMES
+            if rig is not None:
+                joints = JOINT_NAMES
         # everything that can refuse the new skeleton first: a refused one leaves the old stream be
         segmenting = self._segmenting(message, skeleton)
         generation = next(self._generations)
@@ -450,25 +466,17 @@ class StreamTable:
     def _parsed(self, asf: str, source: str) -> Skeleton:
         """``asf`` parsed, named ``source``: parsed once for the last :data:`SKELETONS_KEPT` texts
         (many streams announce the same skeleton, and every stream again after a restart)."""
-        skeleton = self._skeletons.pop(asf, None)
-        if skeleton is None:
-            skeleton = parse_asf(asf.splitlines(), source)
-        self._skeletons[asf] = skeleton
-        if len(self._skeletons) > SKELETONS_KEPT:
-            self._skeletons.pop(next(iter(self._skeletons)))
+        skeleton = _remembered(self._skeletons, asf, lambda: parse_asf(asf.splitlines(), source))
         return dataclasses.replace(skeleton, source=source)
 
     def _bvh(self, hierarchy: str, up: str, source: str) -> BvhPoses:
         """A BVH stream's poses of ``hierarchy`` (parsed once for the last :data:`SKELETONS_KEPT`
         texts, as ASF texts are)."""
-        key = (hierarchy, up)
-        poses = self._bvhs.pop(key, None)
-        if poses is None:
-            poses = BvhPoses(parse_bvh_hierarchy(hierarchy, source), up, self.rigs)
-        self._bvhs[key] = poses
-        if len(self._bvhs) > SKELETONS_KEPT:
-            self._bvhs.pop(next(iter(self._bvhs)))
-        return poses
+        return _remembered(
+            self._bvhs,
+            (hierarchy, up),
+            lambda: BvhPoses(parse_bvh_hierarchy(hierarchy, source), up, self.rigs),
+        )
 
     def _segmenting(self, message: SkeletonMessage, skeleton: Skeleton | None) -> _Segmenting | None:
         """A segmenter for a channel stream that the segmentation patterns name (None: none)."""

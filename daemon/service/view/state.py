@@ -47,7 +47,7 @@ from replay import JOINT_NAMES, MocapFormatError, parse_asf
 from replay.amc import DEG
 from replay.bvh import parse_bvh_hierarchy
 from replay.kinematics import KinematicModel, y_up
-from replay.rigs import BUILT_IN, BvhPoses, RigMap, RigPlan, rig_plan, standard_joints
+from replay.rigs import BUILT_IN, BvhPoses, RigMap, RigPlan, names_plan, standard_joints
 
 Event = dict[str, Any]
 """One JSON message for the browsers."""
@@ -126,11 +126,10 @@ class Drawer:
             else:
                 assert skeleton.joints is not None
                 self.width = len(skeleton.joints)
-                if set(JOINT_NAMES) <= set(skeleton.joints):
+                # a rig's names mapped as the daemon maps them (replay.rigs), the standard ones gathered
+                self.rig = names_plan(skeleton.joints, f"<skeleton of {skeleton.stream}>", rigs)
+                if self.rig is None:
                     self.order = joint_order(skeleton.joints)
-                else:  # a rig's names, as the daemon maps them (replay.rigs)
-                    points = [True] * len(skeleton.joints)
-                    self.rig = rig_plan(skeleton.joints, points, f"<skeleton of {skeleton.stream}>", rigs)
         except (InputError, MocapFormatError) as e:
             raise WireError("schema", f"skeleton: {e}") from None
         self.up = skeleton.up
