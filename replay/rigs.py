@@ -323,19 +323,24 @@ class BvhPoses:
 
 @dataclass(frozen=True)
 class BvhTake:
-    """A BVH recording as mocapd takes it: its standard ``joints`` shape ``(N, 26, 3)``
-    (:func:`bvh_standard_joints`), their ``frames`` numbered from 1, its ``rate`` and the rig map's
-    ``plan``."""
+    """A BVH recording as mocapd takes it: the file as read (``motion``), its standard ``joints``
+    shape ``(N, 26, 3)`` (:func:`bvh_standard_joints`), their ``frames`` numbered from 1, the rig
+    map's ``plan`` and the axis ``up`` the rig stands along in the file (its joints are turned to
+    Y up)."""
 
-    source: str
+    motion: BvhMotion
     joints: FloatArray
     frames: IntArray
-    rate: float
     plan: RigPlan
     up: str = "y"
-    """The axis the rig stands along in the file (its joints are turned to Y up)."""
-    motion: BvhMotion | None = None
-    """The file as read."""
+
+    @property
+    def source(self) -> str:
+        return self.motion.source
+
+    @property
+    def rate(self) -> float:
+        return self.motion.rate
 
 
 def read_bvh_take(path: str | Path, maps: Sequence[RigMap] = BUILT_IN) -> BvhTake:
@@ -343,4 +348,4 @@ def read_bvh_take(path: str | Path, maps: Sequence[RigMap] = BUILT_IN) -> BvhTak
     motion = read_bvh(path)
     joints, plan, up = _standard(motion, maps)
     frames = np.arange(1, len(joints) + 1, dtype=np.int64)
-    return BvhTake(motion.source, joints, frames, motion.rate, plan, up, motion)
+    return BvhTake(motion, joints, frames, plan, up)

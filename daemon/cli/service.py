@@ -122,7 +122,6 @@ def _replay(args: argparse.Namespace, config: Config) -> int:
         take = read_bvh_take(bvh, common.rig_maps(args, config))
         rate, asf_text = take.rate, ""
         if args.rig is None:  # as it is: the daemon maps the rig as detect does
-            assert take.motion is not None
             up: Up = "z" if take.up == "z" else "y"
             motion = BvhChannels(hierarchy_text(take.motion.hierarchy), take.frames, take.motion.channels, up)
         else:  # a user's rig map, which the daemon does not know: its standard joints
