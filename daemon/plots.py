@@ -3,10 +3,12 @@ extra: ``pip install 'mocapd[plot]'``)."""
 
 from __future__ import annotations
 
+import contextlib
 import signal
-import sys
-from collections.abc import Mapping, Sequence
+import threading
+from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
+from types import FrameType
 from typing import IO, Any
 
 import numpy as np
@@ -25,22 +27,42 @@ class PlotUnavailable(MocapdError, RuntimeError):
     """matplotlib is not installed."""
 
 
-def _pyplot() -> Any:
-    # SIGINT and SIGTERM wait until matplotlib is imported: one in the middle of importing its
-    # extension modules left them half made (an ImportError here, then a crash as Python exits)
-    held = {signal.SIGINT, signal.SIGTERM}
-    blocked = hasattr(signal, "pthread_sigmask") and "matplotlib.pyplot" not in sys.modules
-    before = signal.pthread_sigmask(signal.SIG_BLOCK, held) if blocked else set()
-    try:
-        import matplotlib
+@contextlib.contextmanager
+def _signals_held() -> Iterator[None]:
+    """SIGINT and SIGTERM wait until the block is left, then act as they would have. Their Python
+    handlers are swapped for a recorder rather than the signals blocked: a signal blocked in the main
+    thread still reaches another thread (OpenBLAS's workers), and Python then runs the handler in the
+    main thread in the middle of the block all the same."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    caught: list[int] = []
 
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
+    def hold(signum: int, frame: FrameType | None) -> None:
+        caught.append(signum)
+
+    numbers = [n for n in (signal.SIGINT, signal.SIGTERM) if signal.getsignal(n) is not None]
+    before = {number: signal.signal(number, hold) for number in numbers}
+    try:
+        yield
+    finally:
+        for number, handler in before.items():
+            signal.signal(number, handler)
+        for signum in dict.fromkeys(caught):
+            signal.raise_signal(signum)
+
+
+def _pyplot() -> Any:
+    # a signal in the middle of importing matplotlib's extension modules left them half made (an
+    # ImportError here, then a crash as Python exits): it waits until the import is over
+    try:
+        with _signals_held():
+            import matplotlib
+
+            matplotlib.use("Agg")
+            import matplotlib.pyplot as plt
     except ImportError:
         raise PlotUnavailable("writing PNG needs matplotlib: pip install 'mocapd[plot]'") from None
-    finally:
-        if blocked:
-            signal.pthread_sigmask(signal.SIG_SETMASK, before)
     return plt
 
 

@@ -173,6 +173,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             sys.stdout.flush()
             return status
         except MocapdError as exc:
+            if _RECEIVED:  # the error may be the signal's doing; the user asked to stop anyway
+                raise
             _say(str(exc))
             return EXIT_USAGE
         except BrokenPipeError:
