@@ -3,12 +3,12 @@ styles of Bandai Namco Research's motion dataset 2 (``bandai2``, CC BY-NC-ND 4.0
 then the recogniser over the other three styles' takes joined into one stream.
 
     python -m bench.eval_bandai2 [--train active,elderly,exhausted,feminine] [--seed 0] [--keep DIR]
-                                 [--cut N]
+                                 [--repetitions N]
 
 The training manifest names each take whole (``class, bvh, actor``, the style as the actor, so that
-calibration leaves one style out); with ``--cut N``, the first ``N`` single repetitions that
-:func:`daemon.tools.repetitions.cut_run` finds in a take instead (the take whole where it finds
-none). ``mocapd learn --manifest M --out LIB`` runs in a process of its own with no other option.
+calibration leaves one style out). ``mocapd learn --manifest M --out LIB`` runs in a process of its
+own with no other option (with ``--repetitions N``, that option of ``mocapd learn`` as well: 0
+learns every class from whole takes).
 The left-out styles' takes (each rig mapped onto the standard joints, :mod:`replay.rigs`) are
 joined in random order into one 30 Hz stream, each moved on the floor to start where the previous
 one ended, with 0.25 s of linear blending between them, and go through the batch twin of the live
@@ -32,12 +32,9 @@ from pathlib import Path
 import numpy as np
 
 from bench.machine import describe
-from daemon.features import features
 from daemon.library import load_library
 from daemon.recognizer import detect_positions
-from daemon.tools.repetitions import cut_run
 from daemon.types import FloatArray
-from replay import JOINT_NAMES
 from replay.rigs import read_bvh_take
 
 BANDAI = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "mocap" / "bandai2"
@@ -52,14 +49,6 @@ def takes() -> list[tuple[str, str, Path]]:
         action, style, _ = path.name.removeprefix("dataset-2_").removesuffix(".bvh.gz").rsplit("_", 2)
         out.append((action, style, path))
     return out
-
-
-def repetitions(path: Path) -> list[tuple[int, int]]:
-    """The single repetitions :func:`daemon.tools.repetitions.cut_run` finds in a take (frames from
-    1, inclusive), none if it finds none."""
-    take = read_bvh_take(path)
-    found = cut_run(features(take.joints, JOINT_NAMES, take.rate), take.rate, take.joints)
-    return [(r.start + 1, r.end + 1) for r in found.repetitions]
 
 
 def joined(clips: list[tuple[str, Path]], rate: float) -> tuple[FloatArray, list[tuple[str, int, int]]]:
@@ -90,18 +79,14 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--keep", type=Path, default=None, help="keep the manifest and library here")
     parser.add_argument(
-        "--cut", type=int, default=0, metavar="N", help="learn from the first N repetitions of each take"
+        "--repetitions", type=int, default=None, metavar="N", help="give mocapd learn --repetitions N"
     )
     args = parser.parse_args()
     train = set(args.train.split(","))
     print(describe())
     where = args.keep or Path(tempfile.mkdtemp(prefix="bandai2-"))
     where.mkdir(parents=True, exist_ok=True)
-    rows = ["class,bvh,actor,start_frame,end_frame"]
-    for a, s, p in takes():
-        if s in train:
-            reps = repetitions(p)[: args.cut]
-            rows += [f"{a},{p.resolve()},{s},{b},{e}" for b, e in reps] or [f"{a},{p.resolve()},{s},,"]
+    rows = ["class,bvh,actor"] + [f"{a},{p.resolve()},{s}" for a, s, p in takes() if s in train]
     (where / "train.csv").write_text("\n".join(rows) + "\n", encoding="utf-8")
     began = time.perf_counter()
     learned = subprocess.run(
@@ -114,6 +99,7 @@ def main() -> None:
             str(where / "train.csv"),
             "--out",
             str(where / "lib"),
+            *([] if args.repetitions is None else ["--repetitions", str(args.repetitions)]),
         ],
         capture_output=True,
         text=True,
@@ -122,6 +108,9 @@ def main() -> None:
     if learned.returncode != 0:
         raise SystemExit(learned.stderr)
     learn_s = time.perf_counter() - began
+    print(
+        "".join(line for line in learned.stderr.splitlines(keepends=True) if line.startswith("[repetitions]"))
+    )
     library = load_library(where / "lib")
     clips = [(a, p) for a, s, p in takes() if s not in train]
     random.Random(args.seed).shuffle(clips)
@@ -145,7 +134,8 @@ def main() -> None:
             for d in found
         )
     print(
-        f"trained on {sorted(train)} ({len(rows) - 1} examples, learn {learn_s:.0f} s); "
+        f"trained on {sorted(train)} ({len(rows) - 1} takes, "
+        f"{sum(len(c.training) for c in library.classes.values())} examples, learn {learn_s:.0f} s); "
         f"detected on {len(clips)} takes of the other styles joined ({len(stream) / 30:.0f} s at 30 Hz)"
     )
     print(f"{'class':<22} {'precision':>9} {'recall':>7} {'detections':>10} {'takes':>6}")

@@ -35,6 +35,7 @@ from daemon.types import (
     DEFAULT_NATIVE_RATE,
     Band,
     BoolArray,
+    FloatArray,
     IntArray,
     TrainingClip,
 )
@@ -92,7 +93,8 @@ def continuous(
 class RecordingFeatures:
     """A recording's features at ``native_rate / step`` Hz: ``matrix`` shape ``(N, 39)`` and the AMC
     frame number of each row, ``frames`` shape ``(N,)`` (every ``step``-th frame from the first); the
-    recording has AMC frames ``first_amc_frame .. last_amc_frame``."""
+    recording has AMC frames ``first_amc_frame .. last_amc_frame``. ``heading`` shape ``(N,)``: the
+    body's heading at each row (radians, unwrapped; :func:`body_heading`)."""
 
     matrix: BoolArray
     frames: IntArray
@@ -100,6 +102,7 @@ class RecordingFeatures:
     step: int
     first_amc_frame: int
     last_amc_frame: int
+    heading: FloatArray
 
     @property
     def rate(self) -> float:
@@ -128,12 +131,19 @@ def motion_features(
     step = sampling_step(motion, rate, default_native_rate)
     native = native_rate(motion, default_native_rate)
     motion = continuous(motion, default_native_rate=default_native_rate)
+    joints = joint_positions(motion)
     try:
-        matrix = sampled_features(joint_positions(motion), JOINT_NAMES, native, step)
+        matrix = sampled_features(joints, JOINT_NAMES, native, step)
     except InputError as exc:
         raise RecordingError(str(exc), path=motion.source) from None
     return RecordingFeatures(
-        matrix, motion.frames[::step], native, step, int(motion.frames[0]), int(motion.frames[-1])
+        matrix,
+        motion.frames[::step],
+        native,
+        step,
+        int(motion.frames[0]),
+        int(motion.frames[-1]),
+        _heading(joints[::step]),
     )
 
 
@@ -159,7 +169,22 @@ def read_bvh_features(
         matrix = sampled_features(take.joints, JOINT_NAMES, take.rate, step)
     except InputError as exc:
         raise RateError(str(exc), path=path) from None
-    return RecordingFeatures(matrix, take.frames[::step], take.rate, step, 1, len(take.joints))
+    return RecordingFeatures(
+        matrix, take.frames[::step], take.rate, step, 1, len(take.joints), _heading(take.joints[::step])
+    )
+
+
+def body_heading(joints: FloatArray, left: int, right: int) -> FloatArray:
+    """The body's heading in the floor plane at each frame, shape ``(n,)`` in radians, unwrapped:
+    the direction of the line from joint ``right`` to joint ``left`` (the hips) of ``joints`` shape
+    ``(n, J, 3)``, y up."""
+    across = joints[:, left] - joints[:, right]
+    out: FloatArray = np.unwrap(np.arctan2(across[:, 2], across[:, 0]))
+    return out
+
+
+def _heading(joints: FloatArray) -> FloatArray:
+    return body_heading(joints, JOINT_NAMES.index("lhip"), JOINT_NAMES.index("rhip"))
 
 
 def read_rig_maps(paths: Sequence[str | Path]) -> tuple[RigMap, ...]:
@@ -349,6 +374,14 @@ def read_example(
     """The features of one training example at ``rate``, shape ``(frames, 39)``: computed over the
     whole recording (so velocities at the range's edges see their neighbours), then cut to the
     samples inside the frame range. ``source``: the manifest, for errors."""
+    got, j0, j1, clip = _example_rows(item, source, rate, default_native_rate, maps)
+    return clip, got.matrix[j0 : j1 + 1]
+
+
+def _example_rows(
+    item: TrainingRow, source: str | Path, rate: float, default_native_rate: float, maps: Sequence[RigMap]
+) -> tuple[RecordingFeatures, int, int, TrainingClip]:
+    """The recording's features, the first and last of its rows the example holds, and its clip."""
     if item.row.bvh is not None:
         got = read_bvh_features(item.row.bvh, rate, maps)
     else:
@@ -368,10 +401,46 @@ def read_example(
             f"frames {start}..{end} hold no sample at {rate:g} Hz", path=source, line=item.row.line
         )
     clip = TrainingClip(item.row.asf_text, item.row.amc_text, start, end, j1 - j0 + 1, item.actor)
-    return clip, got.matrix[j0 : j1 + 1]
+    return got, j0, j1, clip
 
 
 Examples = dict[str, list[tuple[TrainingClip, BoolArray]]]
+
+
+@dataclass(frozen=True)
+class ExampleRows:
+    """A training example as read: its ``clip``, its features ``matrix`` shape ``(n, 39)``, the AMC
+    frame number of each row ``frames`` shape ``(n,)`` and the body's ``heading`` at each row shape
+    ``(n,)`` (:func:`body_heading`)."""
+
+    clip: TrainingClip
+    matrix: BoolArray
+    frames: IntArray
+    heading: FloatArray
+
+
+def read_example_rows(
+    path: str | Path,
+    *,
+    rate: float = DEFAULT_INDEX_RATE,
+    progress: Callable[[int, int, TrainingClip], object] | None = None,
+    default_native_rate: float = DEFAULT_NATIVE_RATE,
+    maps: Sequence[RigMap] = BUILT_IN,
+) -> dict[str, list[ExampleRows]]:
+    """Every class's training examples from a training manifest, in manifest order, at ``rate`` Hz
+    (BVH takes through the first of ``maps`` that fits their rig); ``progress(done, total, clip)``
+    after each."""
+    rows = read_training_manifest(path)
+    out: dict[str, list[ExampleRows]] = {}
+    for i, item in enumerate(rows, start=1):
+        got, j0, j1, clip = _example_rows(item, path, rate, default_native_rate, maps)
+        at = slice(j0, j1 + 1)
+        out.setdefault(item.name, []).append(
+            ExampleRows(clip, got.matrix[at], got.frames[at], got.heading[at])
+        )
+        if progress is not None:
+            progress(i, len(rows), clip)
+    return out
 
 
 def read_examples(
@@ -382,17 +451,11 @@ def read_examples(
     default_native_rate: float = DEFAULT_NATIVE_RATE,
     maps: Sequence[RigMap] = BUILT_IN,
 ) -> Examples:
-    """Every class's training examples from a training manifest, in manifest order, each the clip's
-    provenance and its features at ``rate`` Hz (BVH takes through the first of ``maps`` that fits
-    their rig); ``progress(done, total, clip)`` after each."""
-    rows = read_training_manifest(path)
-    out: Examples = {}
-    for i, item in enumerate(rows, start=1):
-        clip, matrix = read_example(item, path, rate=rate, default_native_rate=default_native_rate, maps=maps)
-        out.setdefault(item.name, []).append((clip, matrix))
-        if progress is not None:
-            progress(i, len(rows), clip)
-    return out
+    """:func:`read_example_rows`, each example as its clip's provenance and its features."""
+    read = read_example_rows(
+        path, rate=rate, progress=progress, default_native_rate=default_native_rate, maps=maps
+    )
+    return {name: [(e.clip, e.matrix) for e in items] for name, items in read.items()}
 
 
 def sample_index(frames: IntArray, first: int, last: int) -> IntArray:

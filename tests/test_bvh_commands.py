@@ -19,7 +19,9 @@ from daemon import behaviours as bh
 from daemon.features import FEATURE_NAMES
 from daemon.features.batch import features
 from daemon.features.catalog import CATALOG, features_reading
-from daemon.recordings import read_bvh_features, read_recording
+from daemon.library import load_library
+from daemon.recordings import read_bvh_features, read_example_rows, read_recording
+from daemon.tools.repetitions import periodic_examples
 from replay import JOINT_NAMES
 from replay.bvh import read_bvh, write_bvh
 from replay.rigs import bvh_standard_joints, read_bvh_take
@@ -170,3 +172,40 @@ def test_a_take_in_metres_is_recognised_as_in_centimetres(tmp_path: Path) -> Non
         return [(r["class"], r["start_frame"], r["end_frame"]) for r in map(json.loads, output.splitlines())]
 
     assert found(in_m.stdout) == found(in_cm.stdout) and found(in_cm.stdout)
+
+
+def test_learn_cuts_takes_of_a_periodic_action_into_single_repetitions(tmp_path: Path) -> None:
+    """``mocapd learn`` with its defaults on whole takes: walking (a periodic action) is learned from
+    the first 2 single repetitions of each take, each named by its frames and equal to those rows of
+    the take's features; the turning walks and the raised hands stay whole takes. With
+    ``--repetitions 0`` every class is learned from the whole takes."""
+    actions = ("walk", "walk-turn-left", "raise-up-both-hands")
+    rows = [
+        f"{a},{BANDAI / f'dataset-2_{a}_{s}_00{t}.bvh.gz'},{s}"
+        for a in actions
+        for s in ("active", "normal")
+        for t in (1, 2)
+    ]
+    manifest = tmp_path / "takes.csv"
+    manifest.write_text("\n".join(["class,bvh,actor", *rows]) + "\n", encoding="utf-8")
+    result = mocapd("learn", "--manifest", manifest, "--out", tmp_path / "lib")
+    assert result.returncode == 0, result.stderr
+    cut = [line for line in result.stderr.splitlines() if line.startswith("[repetitions]")]
+    assert cut == ["[repetitions] walk: 4 of 4 examples cut into 8 single repetitions"]
+    library = load_library(tmp_path / "lib")
+    examples = periodic_examples(read_example_rows(manifest), 30.0, 2)
+    walks = library.classes["walk"].training
+    assert walks == tuple(clip for clip, _ in examples["walk"])
+    assert len(walks) == 8 and all(c.amc == walks[2 * (i // 2)].amc for i, c in enumerate(walks))
+    for clip, matrix in examples["walk"]:
+        whole = read_bvh_features(clip.amc, 30.0).matrix
+        assert clip.frames == clip.end_frame - clip.start_frame + 1 and clip.frames < len(whole)
+        assert np.array_equal(matrix, whole[clip.start_frame - 1 : clip.end_frame])
+        assert 0.5 * 30 <= clip.frames <= 2 * 30  # one step cycle: about a second
+    for name in actions[1:]:
+        assert [(c.start_frame, c.frames) for c in library.classes[name].training] == [
+            (1, len(read_bvh_features(c.amc, 30.0).matrix)) for c in library.classes[name].training
+        ]
+    plain = mocapd("learn", "--manifest", manifest, "--out", tmp_path / "whole", "--repetitions", "0")
+    assert plain.returncode == 0 and "[repetitions]" not in plain.stderr
+    assert len(load_library(tmp_path / "whole").classes["walk"].training) == 4

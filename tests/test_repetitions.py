@@ -17,7 +17,7 @@ from hypothesis import strategies as st
 
 from daemon.errors import FileAccessError
 from daemon.plots import repetitions_png
-from daemon.recordings import read_recording, read_training_manifest
+from daemon.recordings import body_heading, read_recording, read_training_manifest
 from daemon.tools.mocap6 import (
     CLASSES,
     SEGMENTS,
@@ -31,7 +31,14 @@ from daemon.tools.mocap6 import (
     rows_csv,
     trial_recording,
 )
-from daemon.tools.repetitions import cut_run, difference_function, estimate_period, run_signal
+from daemon.tools.repetitions import (
+    MAX_TURN_DEG,
+    cut_examples,
+    cut_run,
+    difference_function,
+    estimate_period,
+    run_signal,
+)
 from daemon.types import BoolArray, FloatArray, IntArray
 from replay import JOINT_NAMES
 from replay.kinematics import joint_positions
@@ -105,6 +112,57 @@ def test_periodic_features_alone_are_cut_into_k_pieces(seed: int, period: int, k
     inner = got.repetitions[1:-1]
     assert all(abs(r.length - period) <= 2 for r in inner)
     assert all(abs(r.length - period) <= 0.3 * period for r in got.repetitions)
+
+
+# ------------------------------------------------------------------ periodic classes in learning
+
+
+@SETTINGS
+@given(
+    st.integers(0, 2**32 - 1),
+    st.lists(st.sampled_from(["periodic", "turning", "still"]), min_size=1, max_size=6),
+    st.integers(1, 3),
+)
+def test_a_class_is_cut_when_half_its_examples_repeat_a_cycle_without_turning(
+    seed: int, kinds: list[str], count: int
+) -> None:
+    """Against the rule written out: an example gives repetitions when it repeats a cycle (4 to 8
+    times here) and its heading spans at most MAX_TURN_DEG; the class is cut when at least half of
+    its examples give some, each then its first ``count``, all at the phase of the first one cut."""
+    rng = np.random.default_rng(seed)
+    pattern, _, _ = periodic_run(seed, 30, 8, 0.0)
+    examples = []
+    for i, kind in enumerate(kinds):
+        features = pattern[: 30 * int(rng.integers(4, 9))]
+        n = len(features)
+        sway = np.radians(rng.uniform(-1, 1) * (MAX_TURN_DEG / 3)) * np.sin(np.arange(n) / 7 + i)
+        if kind == "still":
+            features = np.repeat(features[:1], n, axis=0)
+        turn = np.radians(rng.uniform(MAX_TURN_DEG + 5, 180)) * np.arange(n) / (n - 1)
+        examples.append((features, sway + (turn if kind == "turning" else 0.0)))
+    got = cut_examples(examples, RATE, count)
+    if 2 * kinds.count("periodic") < len(kinds):
+        assert got is None
+        return
+    assert got is not None and len(got) == len(kinds)
+    for kind, cut in zip(kinds, got, strict=True):
+        if kind != "periodic":
+            assert cut.repetitions == () and cut.reason
+            assert cut.reason.startswith("turning (") == (kind == "turning")
+            continue
+        assert (len(cut.repetitions), cut.reason) == (count, "")
+        assert all(abs(r.length - 30) <= 2 for r in cut.repetitions)
+    starts = [examples[i][0][c.repetitions[0].start] for i, c in enumerate(got) if c.repetitions]
+    assert all(np.array_equal(s, starts[0]) for s in starts)
+
+
+def test_body_heading_turns_with_the_hips() -> None:
+    """The heading of hips turning a full circle and a half about y, unwrapped: 0 to 3π."""
+    angle = np.linspace(0, 3 * np.pi, 50)
+    joints = np.zeros((50, 2, 3))
+    joints[:, 0, 0], joints[:, 0, 2] = np.cos(angle), np.sin(angle)
+    joints[:, :, 1] = 90.0
+    assert np.allclose(body_heading(joints, 0, 1), angle)
 
 
 @SETTINGS

@@ -33,6 +33,17 @@ def positive_float(text: str) -> float:
     return value
 
 
+def non_negative_int(text: str) -> int:
+    """An option value that must be a whole number, 0 or more."""
+    try:
+        value = int(text)
+    except ValueError:
+        value = -1
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be a whole number, 0 or more, got '{text}'")
+    return value
+
+
 def native_rate(text: str) -> float:
     """An option value that must be a capture rate: a positive number up to the highest rate
     features are computed at."""

@@ -17,8 +17,9 @@ from daemon.keyframes import KeyframeError, KeyframeQuery, parse_keyframe_querie
 from daemon.learn.library import check_library_target, learn_library, save_library
 from daemon.library import GATED, Calibration, ClassTemplate
 from daemon.plots import template_png
-from daemon.recordings import read_examples, read_training_manifest
+from daemon.recordings import read_example_rows, read_training_manifest
 from daemon.storage import together
+from daemon.tools.repetitions import periodic_examples
 from daemon.types import DEFAULT_INDEX_RATE, TrainingClip
 
 
@@ -86,6 +87,15 @@ def register(sub: Any) -> None:
         default="toolbox",
         help="DTW steps for retrieval: toolbox (1,1),(1,2),(2,1) (default) or thesis (1,0),(0,1),(1,1)",
     )
+    learn.add_argument(
+        "--repetitions",
+        type=common.non_negative_int,
+        default=2,
+        metavar="N",
+        help="learn a periodic class (takes of walking, waving, ...: most of its examples hold two or more "
+        "repetitions of one cycle and keep their heading) from the first N single repetitions of each "
+        "example (default 2; 0: every example whole)",
+    )
     common.native_rate_option(learn)
     learn.set_defaults(func=_learn)
 
@@ -117,12 +127,19 @@ def _learn(args: argparse.Namespace, config: Config) -> int:
             flush=True,
         )
 
-    examples = read_examples(
+    rows = read_example_rows(
         args.manifest,
         rate=args.fps,
         progress=progress,
         default_native_rate=common.default_native_rate(args, config),
         maps=common.rig_maps(args, config),
+    )
+    examples = (
+        periodic_examples(
+            rows, args.fps, args.repetitions, lambda line: print(line, file=sys.stderr, flush=True)
+        )
+        if args.repetitions
+        else {name: [(e.clip, e.matrix) for e in items] for name, items in rows.items()}
     )
     learned = learn_library(
         examples,

@@ -53,14 +53,17 @@ Pure: numpy in, frozen dataclasses out; no I/O. Distances take ``O(n²)`` memory
 
 from __future__ import annotations
 
+import dataclasses
 import math
-from collections.abc import Sequence
+from collections import Counter
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
 
-from daemon.types import N_FEATURES, FloatArray
+from daemon.recordings import ExampleRows, Examples
+from daemon.types import N_FEATURES, BoolArray, FloatArray
 
 MIN_PERIOD_S = 0.4
 MAX_PERIOD_S = 5.0
@@ -369,3 +372,87 @@ def cut_run(
     cuts = sorted({c for rep in chain.repetitions for c in (rep.start, rep.end)})
     mismatch = float(distances[reference, cuts].mean()) / scale
     return Cutting(n, rate, period, reference, tuple(cuts), chain.repetitions, mismatch)
+
+
+# ------------------------------------------------------------------- periodic classes in learning
+
+MAX_TURN_DEG = 45.0
+"""An example whose body heading spans more than this is one motion that turns (a walk with a
+turn), not a run of one cycle repeated: the cycles of walking, running or waving come back to their
+heading. Half a quarter turn, so that a walk's sway (a few tens of degrees) stays below it."""
+
+
+@dataclass(frozen=True)
+class ExampleCut:
+    """How one training example of a periodic class is learned: the single repetitions it gives
+    (samples of the example, both inclusive; empty: the example is learned whole) and why it gives
+    none ("" if it gives some): "turning (…)", "no cycle (…)" or "a single cycle"."""
+
+    repetitions: tuple[Repetition, ...]
+    reason: str = ""
+
+
+def cut_examples(
+    examples: Sequence[tuple[npt.ArrayLike, npt.ArrayLike]], rate: float, count: int
+) -> tuple[ExampleCut, ...] | None:
+    """The first ``count`` single repetitions of each of a class's examples, each ``(features (n,
+    39), heading (n,))`` at ``rate`` Hz (:func:`body_heading`), if the class is periodic, else None.
+
+    An example gives repetitions when :func:`cut_run` finds at least two in it and its heading spans
+    at most :data:`MAX_TURN_DEG`; the class is periodic when at least half of its examples give
+    some. Its other examples stay whole. Every example after the first that gives repetitions is
+    cut at the phase of that first one (``anchor``), so that the template averages like with like."""
+    cuts: list[ExampleCut] = []
+    anchor: BoolArray | None = None
+    for features, heading in examples:
+        h = np.asarray(heading, dtype=np.float64)
+        turn = math.degrees(float(h.max() - h.min())) if h.size else 0.0
+        if turn > MAX_TURN_DEG:
+            cuts.append(ExampleCut((), f"turning ({turn:.0f}°)"))
+            continue
+        found = cut_run(features, rate, anchor=anchor)
+        if len(found.repetitions) < 2:
+            cuts.append(ExampleCut((), f"no cycle ({found.reason})" if found.reason else "a single cycle"))
+            continue
+        if anchor is None:
+            anchor = np.asarray(features, dtype=bool)[found.reference]
+        cuts.append(ExampleCut(found.repetitions[:count]))
+    return tuple(cuts) if 2 * sum(bool(c.repetitions) for c in cuts) >= len(cuts) and cuts else None
+
+
+def periodic_examples(
+    rows: Mapping[str, Sequence[ExampleRows]],
+    rate: float,
+    count: int,
+    report: Callable[[str], object] | None = None,
+) -> Examples:
+    """Every class's examples as learning takes them: a periodic class's (:func:`cut_examples`) as
+    the first ``count`` single repetitions of each, each then an example of its own whose clip names
+    its frames, the others' whole. ``report(line)`` says how each periodic class was cut."""
+    out: Examples = {}
+    for name, items in rows.items():
+        cuts = cut_examples([(e.matrix, e.heading) for e in items], rate, count)
+        out[name] = []
+        for k, e in enumerate(items):
+            pieces = () if cuts is None else cuts[k].repetitions
+            out[name] += [
+                (
+                    dataclasses.replace(
+                        e.clip,
+                        start_frame=int(e.frames[r.start]),
+                        end_frame=int(e.frames[r.end]),
+                        frames=r.end - r.start + 1,
+                    ),
+                    e.matrix[r.start : r.end + 1],
+                )
+                for r in pieces
+            ] or [(e.clip, e.matrix)]
+        if report is not None and cuts is not None:
+            whole = [c.reason.split(" (")[0] for c in cuts if not c.repetitions]
+            why = ", ".join(f"{reason}: {n}" for reason, n in sorted(Counter(whole).items()))
+            report(
+                f"[repetitions] {name}: {len(cuts) - len(whole)} of {len(cuts)} examples cut into "
+                f"{len(out[name]) - len(whole)} single repetitions"
+                + (f"; {len(whole)} kept whole ({why})" if whole else "")
+            )
+    return out
