@@ -17,6 +17,7 @@ class LiveStream:
     features: FeatureCore
     width: int
     step: int
+    per: int
     seen: int
     started: bool
     last: int
@@ -28,6 +29,7 @@ class LiveStream:
         order: npt.NDArray[np.intp] | None,
         width: int,
         step: int,
+        per: int = 1,
     ) -> None: ...
     def push_channels(
         self,

@@ -32,8 +32,9 @@ NON_FINITE_CHANNELS = C_NON_FINITE_CHANNELS
 
 
 cdef class LiveStream:
-    """One stream: of every ``step``-th frame from the first (the index frames; the others are
-    counted and left), the pose by ``kinematics`` (channel frames; None for joint positions,
+    """One stream: of every ``step``-th frame from the first, or with ``per`` > 1 of frame
+    ``round(j·step/per)`` for each index frame ``j`` (the index frames; the others are counted and
+    left; :class:`daemon.frames.FrameClock`), the pose by ``kinematics`` (channel frames; None for joint positions,
     gathered by ``order``, the flat index of each standard joint coordinate in the frame) into its
     ``features`` at the index rate (thresholds from ``lengths(rows)``, a callable, on the first
     frame), whose every vector is an index-rate code."""
@@ -44,27 +45,36 @@ cdef class LiveStream:
     cdef object lengths
     cdef object rows_array
     cdef double[::1] rows
+    cdef object before_array
+    cdef double[::1] before  # with per > 1: the pose of the frame before an index frame's instant
     cdef int64_t[::1] order
     cdef readonly Py_ssize_t width
-    cdef readonly int64_t step, seen
+    cdef readonly int64_t step, per, seen
     cdef public bint started  # whether the stream has had a frame (then ``last`` is its number)
     cdef int64_t mark  # the last push_many call with a frame of the stream
     cdef public int64_t last
     cdef object stage
     cdef Competition competition
 
-    def __init__(self, kinematics, FeatureCore features, lengths, order, Py_ssize_t width, int64_t step):
+    def __init__(
+        self, kinematics, FeatureCore features, lengths, order, Py_ssize_t width, int64_t step, int64_t per=1
+    ):
         self.kinematics = kinematics
         self._kinematics = kinematics
         self.features = features
         self.lengths = lengths
         self.rows_array = np.zeros(features.code.n_rows)
         self.rows = self.rows_array
+        self.before_array = np.zeros(features.code.n_rows)
+        self.before = self.before_array
         self.order = np.ascontiguousarray(order if order is not None else [], dtype=np.int64)
         if kinematics is None and self.order.shape[0] != features.code.n_rows:
             raise ValueError("joint positions need the place of every standard joint coordinate")
         self.width = width
+        if not step >= per >= 1:
+            raise ValueError(f"live stream: step {step} and per {per} need step >= per >= 1")
         self.step = step
+        self.per = per
         self.seen = 0
         self.started = False
         self.last = 0
@@ -81,13 +91,23 @@ cdef class LiveStream:
 
     def state(self):
         """What :meth:`restore` needs to go on as this stream would, but for its features' and its
-        competition's own states: (frames taken since the decimation began, started, last)."""
-        return (self.seen, self.started, self.last)
+        competition's own states: (frames taken since the decimation began, started, last), and with
+        ``per`` > 1 the pose kept for the next index frame's instant (bytes)."""
+        if self.per == 1:
+            return (self.seen, self.started, self.last)
+        return (self.seen, self.started, self.last, self.before_array.tobytes())
 
     def restore(self, state):
-        seen, started, last = state
+        if len(state) != (3 if self.per == 1 else 4):
+            raise ValueError("live stream: a state of another rate")
+        seen, started, last = state[:3]
         if seen < 0:
             raise ValueError("live stream: frames seen must be >= 0")
+        if self.per > 1:
+            kept = np.frombuffer(state[3], dtype=np.float64)
+            if kept.shape[0] != self.before.shape[0]:
+                raise ValueError("live stream: a kept pose of another size")
+            self.before_array[:] = kept
         self.seen = seen
         self.started = started
         self.last = last
@@ -114,13 +134,54 @@ cdef class LiveStream:
         return out
 
     cdef bint _keeps(self):
-        """Whether the stream's next frame is an index frame."""
-        return self.seen % self.step == 0
+        """Whether the stream's next frame is an index frame's: the first at or after its instant
+        (daemon.frames.FrameClock)."""
+        if self.per == 1:
+            return self.seen % self.step == 0
+        return (self.seen * self.per // self.step) * self.step > (self.seen - 1) * self.per
+
+    cdef bint _precedes(self):
+        """Whether the frame after the next is an index frame's whose instant lies between them
+        (the next frame's pose is then kept to blend)."""
+        cdef int64_t j
+        if self.per == 1:
+            return False
+        j = (self.seen + 1) * self.per // self.step
+        return j * self.step > self.seen * self.per and (j * self.step) % self.per != 0
+
+    cdef bint _needs(self):
+        """Whether the next frame's pose is computed."""
+        return self._keeps() or self._precedes()
+
+    cdef void _blend(self):
+        """The frame's pose in ``rows``: kept if the next index frame's instant follows it; made the
+        pose at the index frame's instant if that lies before it, ``before + w·(pose - before)`` with
+        ``w`` = the instant's fraction of a frame, as :func:`daemon.features.sample_poses` does."""
+        cdef Py_ssize_t k
+        cdef int64_t r = 0
+        cdef double w, v
+        cdef bint keep
+        if self.per == 1:
+            return
+        keep = self._precedes()
+        if self._keeps():
+            r = ((self.seen * self.per // self.step) * self.step) % self.per
+        if r == 0 and not keep:
+            return
+        w = <double> r / <double> self.per
+        for k in range(self.rows.shape[0]):
+            v = self.rows[k]
+            if r != 0:
+                self.rows[k] = self.before[k] + w * (v - self.before[k])
+            if keep:
+                self.before[k] = v
 
     cdef int64_t _channels(self, const double *channels, const double *cos, const double *sin):
         cdef bint keep = self._keeps()
-        if keep and not self._pose_channels(channels, cos, sin):
-            return C_NON_FINITE
+        if self._needs():
+            if not self._pose_channels(channels, cos, sin):
+                return C_NON_FINITE
+            self._blend()
         self.seen += 1
         return self._advance() if keep else C_NOTHING
 
@@ -128,6 +189,7 @@ cdef class LiveStream:
         cdef bint keep = self._keeps()
         if not self._pose_positions(positions):  # every frame's joints checked, as push_many does
             return C_NON_FINITE
+        self._blend()
         self.seen += 1
         return self._advance() if keep else C_NOTHING
 
@@ -214,7 +276,8 @@ def push_many(list frames, refused, dict streams=None):
     frames, by blocks of one program, each instruction over all of them
     (:meth:`Bytecode.run_many`); (6) each frame's hysteresis and, for an index-rate code, its
     compiled competition. Steps (2) to (5) take the index frames alone (each stream's every
-    ``step``-th frame); the others are checked and counted. Python runs per frame only for a refusal, a
+    ``step``-th frame; at a rate the library's does not divide, the frames around their instants,
+    blended); the others are checked and counted. Python runs per frame only for a refusal, a
     stream's first frame and a confirmation. ``refused``: the exception class ``_check`` raises for
     a frame it refuses. With ``streams`` (name to recogniser) the frames are ``(name, number,
     values)``. ValueError, before anything is done, for a recogniser (or name) with two frames or a
@@ -274,7 +337,7 @@ def push_many(list frames, refused, dict streams=None):
             if s.mark == _tick:
                 twice = True
             s.mark = _tick
-            if s._kinematics is not None and s._keeps():  # only an index frame's pose is computed
+            if s._kinematics is not None and s._needs():  # only the poses index frames take are computed
                 total += s.width
         if twice or (unknown is not None and len(set(unknown)) != len(unknown)):
             raise ValueError("at most one frame per stream in one push")
@@ -311,7 +374,7 @@ def push_many(list frames, refused, dict streams=None):
                 if not fast_values(values, s, &view):
                     raise AssertionError("a checked frame is C-contiguous doubles of the stream's shape")
             src = <const double *> view.buf
-            keeps[taken] = s._keeps()
+            keeps[taken] = s._needs()
             if s._kinematics is None:
                 code = C_NOTHING if s._pose_positions(src) else C_NON_FINITE
             else:
@@ -372,7 +435,11 @@ def push_many(list frames, refused, dict streams=None):
             ts[k] = -1
             if codes[k] != C_NOTHING or not keeps[k]:
                 continue
-            ts[k] = (<LiveStream> lives[pos[k]])._prepare()
+            s = <LiveStream> lives[pos[k]]
+            s._blend()
+            if not s._keeps():
+                continue
+            ts[k] = s._prepare()
             if ts[k] >= 0:
                 waiting[pending] = k
                 pending += 1

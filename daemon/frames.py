@@ -8,11 +8,12 @@
   batch twin of the stream table's bridging). So a lost pose moves no later frame: index frames are
   sampled by frame number.
 - *Index frames*, at the library's rate, counted from 0 at the motion's first frame: every
-  ``step``-th frame (the toolbox's ``1:4:end`` at 120 Hz, reference facts section 0). The features
-  are computed on the poses of the index frames alone (:func:`daemon.features.sampled_features`),
-  so an index frame's come out ``delay`` frames after it: the look-ahead of the centred velocity
-  windows at the index rate, in index frames (:func:`daemon.features.latency_frames`), times
-  ``step`` (:class:`FrameClock`).
+  ``step``-th frame (the toolbox's ``1:4:end`` at 120 Hz, reference facts section 0), or, at a rate
+  the library's does not divide, the frame nearest each index frame's instant (100 Hz for 30 Hz:
+  frames 0, 3, 7, 10, 13, 17, ...). The features are computed on the poses of the index frames
+  alone (:func:`daemon.features.sampled_features`), so an index frame's come out when the index
+  frame ``lead`` after it is pushed: the look-ahead of the centred velocity windows at the index
+  rate (:func:`daemon.features.latency_frames`; :class:`FrameClock`).
 """
 
 from __future__ import annotations
@@ -24,7 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from daemon.errors import InputError
-from daemon.features import decimation_factor, latency_frames
+from daemon.features import last_sample, latency_frames, sampling_ratio
 from daemon.types import DEFAULT_BRIDGE_S, MAX_NATIVE_RATE, FloatArray, IntArray
 from replay.amc import Motion
 
@@ -38,32 +39,43 @@ def check_native_rate(rate: float) -> None:
 @dataclass(frozen=True)
 class FrameClock:
     """Frame numbers ↔ index frames of one motion whose first frame is ``first`` (an argument of
-    each translation): index frame ``j`` is frame ``first + j·step``, and its features are known
-    when frame ``first + j·step + delay`` is pushed (the motion's last frame, if that comes first).
-    ``step`` >= 1, ``delay`` >= 0."""
+    each translation): ``step`` frames hold ``per`` index frames (lowest terms; ``per`` = 1 at a rate
+    the library's divides). Index frame ``j``'s instant is ``j·step/per`` frames after the first; it
+    is frame ``first + ceil(j·step/per)``, the first at or after its instant, whose push gives its
+    pose (the pose at its instant, :func:`daemon.features.sample_poses`), and its features are
+    known when index frame ``j + lead``'s frame is pushed (the motion's last frame, if that comes
+    first). ``step`` >= ``per`` >= 1, ``lead`` >= 0."""
 
     step: int
-    delay: int
+    lead: int
+    per: int = 1
 
     def __post_init__(self) -> None:
-        if self.step < 1 or self.delay < 0:
-            raise ValueError(f"a frame clock needs step >= 1 and delay >= 0, got {self.step}, {self.delay}")
+        if not self.step >= self.per >= 1 or self.lead < 0 or math.gcd(self.step, self.per) != 1:
+            raise ValueError(
+                f"a frame clock needs step >= per >= 1 in lowest terms and lead >= 0, got step "
+                f"{self.step}, per {self.per}, lead {self.lead}"
+            )
 
     @classmethod
     def of(cls, native_rate: float, index_rate: float) -> FrameClock:
         """The clock of a stream at ``native_rate`` Hz for a library at ``index_rate`` Hz; ValueError
-        unless features are computed at ``native_rate`` and ``index_rate`` divides it."""
+        unless features are computed at ``native_rate`` and ``index_rate`` does not exceed it."""
         check_native_rate(native_rate)
-        step = decimation_factor(native_rate, index_rate)
-        return cls(step, latency_frames(native_rate / step) * step)
+        step, per = sampling_ratio(native_rate, index_rate)
+        return cls(step, latency_frames(native_rate * per / step), per)
 
     def start(self, first: int, j: int) -> int:
         """The frame number of index frame ``j``."""
-        return first + j * self.step
+        return first + (j * self.step + self.per - 1) // self.per
 
     def index(self, first: int, number: int) -> int:
         """The index frame that frame ``number`` (>= ``first``) falls in: the last one at or before it."""
-        return (number - first) // self.step
+        return last_sample(number - first, self.step, self.per)
+
+    def keeps(self, first: int, number: int) -> bool:
+        """Whether frame ``number`` is an index frame's (its push gives the index frame's pose)."""
+        return self.start(first, self.index(first, number)) == number
 
     def span(self, first: int, start: int, end: int, now: int) -> tuple[int, int]:
         """Index frames ``start .. end`` (inclusive) as frame numbers: from index frame ``start``'s
@@ -73,13 +85,19 @@ class FrameClock:
 
     def known(self, first: int, j: int, last: int) -> int:
         """The frame whose push gives index frame ``j``'s features, in a motion ending at frame
-        ``last``: ``delay`` frames after it, or ``last`` (the motion's end gives the rest)."""
-        return min(self.start(first, j) + self.delay, last)
+        ``last``: index frame ``j + lead``'s, or ``last`` (the motion's end gives the rest)."""
+        return min(self.start(first, j + self.lead), last)
 
     def lag(self, index_frames: int) -> int:
         """Frames from an index frame to the push that gives the features of the index frame
-        ``index_frames`` after it: ``index_frames·step + delay``."""
-        return index_frames * self.step + self.delay
+        ``index_frames`` after it, at most (``(index_frames + lead)·step`` when ``per`` = 1)."""
+        k = index_frames + self.lead
+        return max(self.start(0, j + k) - self.start(0, j) for j in range(self.per))
+
+    @property
+    def delay(self) -> int:
+        """Frames from an index frame to the push that gives its features, at most."""
+        return self.lag(0)
 
 
 def bridge_frames(bridge_s: float, rate: float) -> int:

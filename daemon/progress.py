@@ -165,7 +165,7 @@ def read(stage: ClassStage, floor: float = FLOOR) -> Snapshot:
     found = core.progress(floor)
     if not found:
         return ()
-    first, step, codes = stage.first, stage.clock.step, stage.codes
+    first, clock, codes = stage.first, stage.clock, stage.codes
     names, counts, lengths, taus, plans_ = (
         codes.names,
         codes.keyframes,
@@ -176,8 +176,8 @@ def read(stage: ClassStage, floor: float = FLOOR) -> Snapshot:
     out = []
     for k, u, i, d, frames in found:
         matched: tuple[int, ...] = ()
-        if frames:  # index frames to frame numbers, as FrameClock.start
-            matched = tuple(first + f * step for f in frames)
+        if frames:
+            matched = tuple(clock.start(first, f) for f in frames)
         if u >= 0:
             m = lengths[u]
             out.append(
@@ -294,11 +294,11 @@ def detect_progress_positions(
     clock = stage.clock
     follow = StreamProgress(stage, native_rate, per_s, floor=floor)
     first, last = int(numbers[0]), int(numbers[-1])
-    pushed = [j for j in range(len(codes)) if clock.start(first, j) + clock.delay <= last]
+    pushed = [j for j in range(len(codes)) if clock.start(first, j + clock.lead) <= last]
     stage.start(first)
     out: list[Detection | ProgressEvent] = []
     for j in pushed:
-        number = clock.start(first, j) + clock.delay
+        number = clock.start(first, j + clock.lead)
         detections = stage.push(number, codes[j])
         out += follow.observe(number)
         out += detections

@@ -576,17 +576,19 @@ class Recognizer:
             self._width = len(joint_names)
             self._joint_order = joint_order(joint_names)
         self._plans = plans(library, settings)
-        step = self.clock.step
-        features = FeatureStream(JOINT_NAMES, native_rate / step)  # on the index frames' poses alone
+        step, per = self.clock.step, self.clock.per
+        features = FeatureStream(JOINT_NAMES, native_rate * per / step)  # on the index frames' poses alone
         if model is not None:
             self._shape: tuple[int, ...] = (self._width,)
             self._live = LiveStream(
-                model.frame_kinematics, features.core, features.thresholds_of, None, self._width, step
+                model.frame_kinematics, features.core, features.thresholds_of, None, self._width, step, per
             )
         else:
             self._shape = (self._width, 3)
             order = (3 * self._joint_order[:, None] + np.arange(3)).reshape(-1)
-            self._live = LiveStream(None, features.core, features.thresholds_of, order, 3 * self._width, step)
+            self._live = LiveStream(
+                None, features.core, features.thresholds_of, order, 3 * self._width, step, per
+            )
         self._stage = ClassStage(
             self._plans, library.rate, settings, self.clock, stream=stream, session=self.session
         )
@@ -656,7 +658,7 @@ class Recognizer:
         key = (
             self.native_rate,
             self._shape,
-            self.clock.step,
+            (self.clock.step, self.clock.per),
             repr(self.settings),
             codes.names,
             codes.keyframes,
@@ -929,7 +931,9 @@ def recording_stage(
     by the live path's :class:`~daemon.frames.FrameClock`, and the live path's :class:`ClassStage`
     for them (not started)."""
     clock = FrameClock.of(native_rate, library.rate)
-    codes: list[int] = pack(sampled_features(positions, JOINT_NAMES, native_rate, clock.step)).tolist()
+    codes: list[int] = pack(
+        sampled_features(positions, JOINT_NAMES, native_rate, clock.step, clock.per)
+    ).tolist()
     stage = ClassStage(
         plans(library, settings), library.rate, settings, clock, stream=stream, session=session
     )

@@ -26,7 +26,7 @@ import numpy as np
 
 from daemon.checks import csv_records, read_structured, read_text
 from daemon.errors import InputError, MocapdError
-from daemon.features import decimation_factor, sampled_features
+from daemon.features import last_sample, sample_rows, sampled_features, sampling_ratio
 from daemon.frames import motion_runs
 from daemon.types import (
     CLASS_NAME,
@@ -91,8 +91,9 @@ def continuous(
 
 @dataclass(frozen=True)
 class RecordingFeatures:
-    """A recording's features at ``native_rate / step`` Hz: ``matrix`` shape ``(N, 39)`` and the AMC
-    frame number of each row, ``frames`` shape ``(N,)`` (every ``step``-th frame from the first); the
+    """A recording's features at ``native_rate · per / step`` Hz: ``matrix`` shape ``(N, 39)`` and the
+    AMC frame number of each row, ``frames`` shape ``(N,)`` (every ``step``-th frame from the first, or
+    the frames :func:`daemon.features.sample_rows` names when ``per`` > 1); the
     recording has AMC frames ``first_amc_frame .. last_amc_frame``. ``heading`` shape ``(N,)``: the
     body's heading at each row (radians, unwrapped; :func:`body_heading`)."""
 
@@ -100,26 +101,31 @@ class RecordingFeatures:
     frames: IntArray
     native_rate: float
     step: int
+    per: int
     first_amc_frame: int
     last_amc_frame: int
     heading: FloatArray
 
     @property
     def rate(self) -> float:
-        return self.native_rate / self.step
+        return self.native_rate * self.per / self.step
+
+    def rows(self, first: int, last: int) -> tuple[int, int]:
+        """The first and last rows whose frames lie in AMC frames ``first .. last`` (the first after
+        the last if none does)."""
+        begin, step, per = self.first_amc_frame, self.step, self.per
+        return last_sample(first - begin - 1, step, per) + 1, last_sample(last - begin, step, per)
 
 
-def sampling_step(
-    motion: Motion, rate: float | None, default_native_rate: float = DEFAULT_NATIVE_RATE
-) -> int:
-    """How many native frames of ``motion`` make one frame at ``rate`` (None: 1). Raises
-    :class:`RateError` naming the file if ``rate`` does not divide the native rate."""
+def _sampling(native: float, rate: float | None, source: str | Path) -> tuple[int, int]:
+    """``(step, per)`` from the native rate to ``rate`` (None: the native rate), or a
+    :class:`RateError` naming ``source``."""
     if rate is None:
-        return 1
+        return 1, 1
     try:
-        return decimation_factor(native_rate(motion, default_native_rate), rate)
+        return sampling_ratio(native, rate)
     except InputError as exc:
-        raise RateError(str(exc), path=motion.source) from None
+        raise RateError(str(exc), path=source) from None
 
 
 def motion_features(
@@ -128,22 +134,24 @@ def motion_features(
     """The features of ``motion`` at ``rate`` Hz (None: the native rate): those of the poses of every
     k-th frame from the first, joints in centimetres (:func:`daemon.features.sampled_features`, as
     the recogniser computes them)."""
-    step = sampling_step(motion, rate, default_native_rate)
     native = native_rate(motion, default_native_rate)
+    step, per = _sampling(native, rate, motion.source)
     motion = continuous(motion, default_native_rate=default_native_rate)
     joints = joint_positions(motion)
     try:
-        matrix = sampled_features(joints, JOINT_NAMES, native, step)
+        matrix = sampled_features(joints, JOINT_NAMES, native, step, per)
     except InputError as exc:
         raise RecordingError(str(exc), path=motion.source) from None
+    rows = sample_rows(len(joints), step, per)
     return RecordingFeatures(
         matrix,
-        motion.frames[::step],
+        motion.frames[rows],
         native,
         step,
+        per,
         int(motion.frames[0]),
         int(motion.frames[-1]),
-        _heading(joints[::step]),
+        _heading(joints[rows]),
     )
 
 
@@ -164,13 +172,14 @@ def read_bvh_features(
     mapped onto the standard joints by the first of ``maps`` that fits (:mod:`replay.rigs`; the
     file's units taken for centimetres), its frames numbered from 1."""
     take = read_bvh_take(path, maps)
+    step, per = _sampling(take.rate, rate, path)
     try:
-        step = 1 if rate is None else decimation_factor(take.rate, rate)
-        matrix = sampled_features(take.joints, JOINT_NAMES, take.rate, step)
+        matrix = sampled_features(take.joints, JOINT_NAMES, take.rate, step, per)
     except InputError as exc:
         raise RateError(str(exc), path=path) from None
+    rows = sample_rows(len(take.joints), step, per)
     return RecordingFeatures(
-        matrix, take.frames[::step], take.rate, step, 1, len(take.joints), _heading(take.joints[::step])
+        matrix, take.frames[rows], take.rate, step, per, 1, len(take.joints), _heading(take.joints[rows])
     )
 
 
@@ -386,7 +395,7 @@ def _example_rows(
         got = read_bvh_features(item.row.bvh, rate, maps)
     else:
         got = read_features(item.row.asf, item.row.amc, rate, default_native_rate)
-    first, last, step = got.first_amc_frame, got.last_amc_frame, got.step
+    first, last = got.first_amc_frame, got.last_amc_frame
     start = first if item.start_frame is None else item.start_frame
     end = last if item.end_frame is None else item.end_frame
     if start < first or end > last:
@@ -395,7 +404,7 @@ def _example_rows(
             path=source,
             line=item.row.line,
         )
-    j0, j1 = -(-(start - first) // step), (end - first) // step
+    j0, j1 = got.rows(start, end)
     if j1 < j0:
         raise ManifestError(
             f"frames {start}..{end} hold no sample at {rate:g} Hz", path=source, line=item.row.line

@@ -667,14 +667,35 @@ def template_brute_force(
 # ---------------------------------------------------------------------------- recording to features
 
 
-def naive_features(asf: Path, amc: Path, step: int = 1, native_rate: float = 120.0) -> BoolArray:
+def slow_sample_poses(positions: FloatArray, step: int, per: int = 1) -> FloatArray:
+    """The pose at each instant ``j·step/per`` frames (exact fractions) while it is not past the
+    last frame, one by one: the frame there, or the blend ``a + w·(b - a)`` of the frames around it,
+    ``w`` the instant's fraction of a frame. Shape ``(M, J, 3)``."""
+    out = []
+    j = 0
+    while Fraction(j * step, per) <= len(positions) - 1:
+        t = Fraction(j * step, per)
+        below, w = int(t), t - int(t)
+        if w == 0:
+            out.append(positions[below])
+        else:
+            a, b = positions[below], positions[below + 1]
+            out.append(a + (w.numerator / w.denominator) * (b - a))
+        j += 1
+    return np.array(out).reshape(-1, *positions.shape[1:])
+
+
+def naive_features(
+    asf: Path, amc: Path, step: int = 1, native_rate: float = 120.0, per: int = 1
+) -> BoolArray:
     """A recording's features written out from the parts (reader, forward kinematics in centimetres,
-    every ``step``-th pose from the first, the batch features at ``native_rate / step``),
-    independently of :mod:`daemon.recordings`: shape ``(N, 39)``."""
+    the poses at the instants ``j·step/per`` frames from the first (:func:`slow_sample_poses`), the
+    batch features at ``native_rate · per / step``), independently of :mod:`daemon.recordings`:
+    shape ``(N, 39)``."""
     skeleton = read_asf(asf)
     model = KinematicModel(skeleton)
     joints = model.joints(model.positions(read_amc(amc, skeleton).channels, "cm"))
-    out: BoolArray = features(joints[::step], JOINT_NAMES, native_rate / step)
+    out: BoolArray = features(slow_sample_poses(joints, step, per), JOINT_NAMES, native_rate * per / step)
     return out
 
 

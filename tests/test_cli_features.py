@@ -5,8 +5,10 @@ from __future__ import annotations
 
 import csv
 import gzip
+import math
 import re
 from dataclasses import dataclass
+from fractions import Fraction
 from pathlib import Path
 
 import numpy as np
@@ -191,8 +193,22 @@ def test_png(tmp_path: Path, cmu_csv: FeatureCsv) -> None:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("fps", ["50", "7", "240"])
-def test_fps_that_does_not_divide_the_native_rate(tmp_path: Path, fps: str) -> None:
+@pytest.mark.parametrize(("fps", "step", "per"), [("50", 12, 5), ("7", 120, 7)])
+def test_fps_that_does_not_divide_the_native_rate_blends_the_poses(
+    fps: str, step: int, per: int, tmp_path: Path, cmu_motion: Motion
+) -> None:
+    """``--fps F`` where F does not divide 120 Hz: the features of the poses at the instants of F
+    Hz, each blended from the two frames around it, numbered by the first frame at or after it."""
+    table = run_features(tmp_path / "out.csv", CMU_ASF, CMU_AMC, "--fps", fps)
+    n = len(cmu_motion)
+    instants = [Fraction(j * step, per) for j in range(n) if Fraction(j * step, per) <= n - 1]
+    assert table.frames.tolist() == [int(cmu_motion.frames[0]) + math.ceil(t) for t in instants]
+    np.testing.assert_array_equal(table.matrix, naive_features(CMU_ASF, CMU_AMC, step, per=per))
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("fps", ["240", "1000"])
+def test_fps_above_the_native_rate(tmp_path: Path, fps: str) -> None:
     out = tmp_path / "out.csv"
     line = assert_one_error_line(
         mocapd("features", "--asf", CMU_ASF, "--amc", CMU_AMC, "--csv", out, "--fps", fps)

@@ -153,7 +153,7 @@ def test_fps_that_does_not_divide_the_native_rate(manifest: Path, tmp_path: Path
     result = mocapd("index", "build", "--manifest", manifest, "--out", out, "--fps", "25")
     first = manifest.parent / os.path.relpath(PATHS[0][1], manifest.parent)  # as resolved, unnormalised
     line = assert_one_error_line(result)
-    assert line == f"mocapd: {first}: 25 Hz is not the native 120 Hz divided by a whole number"
+    assert line == f"mocapd: {first}: an index needs a rate that divides the native 120 Hz, not 25 Hz"
     assert not out.exists()
 
 

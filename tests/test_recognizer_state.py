@@ -147,14 +147,19 @@ def test_a_recogniser_restored_mid_recording_gives_detects_detections(
     assert pushed(r, m.frames.tolist(), m.channels, at) == want
 
 
-def test_a_positions_recogniser_restored_mid_recording_gives_detects_detections() -> None:
+@pytest.mark.parametrize("rate", [None, 100.0], ids=["native", "100 Hz"])
+def test_a_positions_recogniser_restored_mid_recording_gives_detects_detections(rate: float | None) -> None:
+    """Also as a 100 Hz stream, moved before each of four frames in a row: one of them follows the
+    frame whose pose the next index frame's instant is blended from (the state carries it)."""
     m = motion(PAIRS[0])
-    rate = native_rate(m)
+    rate = native_rate(m) if rate is None else rate
     positions = joint_positions(m)
     want = detect_positions(positions, m.frames, shipped(), rate, stream="s", session=SESSION)
+    assert want
     r = Recognizer.for_positions(shipped(), JOINT_NAMES, rate, stream="s", session=SESSION)
     frames = m.frames.tolist()
-    assert pushed(r, frames, positions, {len(frames) // 3, len(frames) // 2}) == want
+    third = len(frames) // 3
+    assert pushed(r, frames, positions, {third, third + 1, third + 2, third + 3, len(frames) // 2}) == want
 
 
 def test_a_damaged_or_foreign_state_is_refused_and_changes_nothing() -> None:

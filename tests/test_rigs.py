@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import yaml
 
-from daemon.features import features
+from daemon.features import features, sample_count
 from daemon.library import default_library_path, load_library
 from daemon.recognizer import detect_positions
 from daemon.recordings import RateError, read_bvh_features, read_examples, read_training_manifest
@@ -174,8 +174,9 @@ def test_a_training_manifest_takes_a_bvh_column(tmp_path: Path) -> None:
     ((clip, matrix),) = examples["walk"]
     whole = read_bvh_features(take)
     assert np.array_equal(matrix, whole.matrix[30:90]) and clip.frames == 60
-    with pytest.raises(RateError, match=r"walk_normal_001\.bvh\.gz: 25 Hz is not"):
-        read_bvh_features(take, 25.0)
+    with pytest.raises(RateError, match=r"walk_normal_001\.bvh\.gz: 60 Hz is above the native 30 Hz"):
+        read_bvh_features(take, 60.0)
+    assert read_bvh_features(take, 25.0).matrix.shape == (sample_count(len(whole.matrix), 6, 5), 39)
 
 
 @pytest.mark.slow

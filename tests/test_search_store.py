@@ -139,7 +139,7 @@ def test_other_rate() -> None:
 
 def test_rate_that_does_not_divide_the_native_rate() -> None:
     asf, amc = PATHS[0]
-    with pytest.raises(RateError, match="25 Hz is not the native 120 Hz") as caught:
+    with pytest.raises(RateError, match="needs a rate that divides the native 120 Hz, not 25 Hz") as caught:
         build_index([ManifestRow(2, str(asf), str(amc), asf, amc)], rate=25.0)
     assert str(caught.value).startswith(f"{amc}: ")
 

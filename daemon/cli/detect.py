@@ -112,9 +112,9 @@ def _read(
         recognizer = Recognizer.for_skeleton(library, amc.skeleton, rate, settings=settings, stream=stream)
         angles = np.asarray(amc.skeleton.angle_channels, dtype=np.intp)
         return _Recording(amc.frames, amc.channels, rate, recognizer, angles)
-    except InputError as exc:  # a rate the library's does not divide: named with the recording
+    except InputError as exc:  # a recording slower than the library: named with the recording
         raise UsageError(
-            f"{exc} (the library's rate must divide the recording's)", path=bvh or args.amc
+            f"{exc} (the library's rate must not exceed the recording's)", path=bvh or args.amc
         ) from None
 
 

@@ -31,8 +31,13 @@ from daemon.features.stream import (
     FeatureStream,
     decimate,
     decimation_factor,
+    last_sample,
     latency_frames,
+    sample_count,
+    sample_poses,
+    sample_rows,
     sampled_features,
+    sampling_ratio,
 )
 from daemon.features.velocity import smoothed_velocity, window_frames
 
@@ -46,8 +51,13 @@ __all__ = [
     "feature_tracks",
     "features",
     "hysteresis",
+    "last_sample",
     "latency_frames",
+    "sample_count",
+    "sample_poses",
+    "sample_rows",
     "sampled_features",
+    "sampling_ratio",
     "smoothed_velocity",
     "window_frames",
 ]

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from fractions import Fraction
 
 import numpy as np
 
@@ -15,7 +16,7 @@ from daemon.errors import InputError
 from daemon.features.batch import features
 from daemon.features.compiler import compiled, unpack
 from daemon.features.language import body_lengths
-from daemon.types import BoolArray, FloatArray
+from daemon.types import BoolArray, FloatArray, IntArray
 from replay.joints import JOINT_NAMES
 
 
@@ -108,16 +109,78 @@ def decimation_factor(native_hz: float, target_hz: float) -> int:
     return factor
 
 
+MAX_PER = 1000
+"""The most index frames a whole number of native frames may hold (a rate ratio's denominator)."""
+
+
+def sampling_ratio(native_hz: float, target_hz: float) -> tuple[int, int]:
+    """``(step, per)``: ``step`` native frames make ``per`` frames at ``target_hz``, in lowest terms
+    (``(4, 1)`` for 120 -> 30 Hz, ``(10, 3)`` for 100 -> 30 Hz); the target must not exceed the
+    native rate."""
+    if not (math.isfinite(target_hz) and target_hz > 0):
+        raise InputError(f"target frame rate must be a positive number, got {target_hz}")
+    ratio = native_hz / target_hz
+    if not (math.isfinite(ratio) and ratio >= 1 - 1e-9):
+        raise InputError(f"{target_hz:g} Hz is above the native {native_hz:g} Hz")
+    fraction = Fraction(ratio).limit_denominator(MAX_PER)
+    step, per = fraction.numerator, fraction.denominator
+    if not math.isclose(native_hz * per / step, target_hz, rel_tol=1e-9):
+        raise InputError(
+            f"{target_hz:g} Hz is not the native {native_hz:g} Hz times a ratio of whole numbers"
+        )
+    return step, per
+
+
+def sample_count(n: int, step: int, per: int = 1) -> int:
+    """How many index frames ``n`` native frames hold: those whose instant ``j·step/per`` (in native
+    frames from the first) is at most the last frame's."""
+    return 0 if n <= 0 else (n - 1) * per // step + 1
+
+
+def sample_rows(n: int, step: int, per: int = 1) -> IntArray:
+    """The native frame (from 0) that stands for each index frame among ``n``: the first at or after
+    its instant, ``ceil(j·step/per)`` (the one whose arrival gives its pose); every ``step``-th
+    frame when ``per`` = 1. Shape ``(M,)``, ``M`` = :func:`sample_count`."""
+    j = np.arange(sample_count(n, step, per), dtype=np.int64)
+    out: IntArray = (j * step + per - 1) // per
+    return out
+
+
+def last_sample(m: int, step: int, per: int = 1) -> int:
+    """The index frame native frame ``m`` (from 0) falls in: the last one whose instant is at or
+    before it (-1 before 0)."""
+    return m * per // step
+
+
+def sample_poses(positions: FloatArray, step: int, per: int = 1) -> FloatArray:
+    """The poses at the index frames' instants, shape ``(M, J, 3)`` of ``positions`` ``(N, J, 3)``:
+    every ``step``-th pose when ``per`` = 1; else at instant ``t = j·step/per`` the pose ``a + w·(b -
+    a)`` between frames ``a = floor(t)`` and ``b = a + 1``, ``w = t - a`` (``r/per`` for the
+    remainder ``r`` of ``j·step / per``), or frame ``t`` itself when it falls on one. The live path
+    (:class:`daemon._live.LiveStream`) blends the same doubles the same way."""
+    if per == 1:
+        out: FloatArray = positions[::step]
+        return out
+    ticks = np.arange(sample_count(len(positions), step, per), dtype=np.int64) * step
+    below, remainder = ticks // per, ticks % per
+    poses: FloatArray = positions[below].copy()
+    between = remainder > 0
+    a, b = poses[between], positions[below[between] + 1]
+    poses[between] = a + (remainder[between] / per)[:, None, None] * (b - a)
+    return poses
+
+
 def sampled_features(
-    positions: FloatArray, joint_names: Sequence[str], native_hz: float, step: int
+    positions: FloatArray, joint_names: Sequence[str], native_hz: float, step: int, per: int = 1
 ) -> BoolArray:
-    """The features at ``native_hz / step`` Hz as every recogniser, index and template of mocapd
-    takes them: of every ``step``-th pose from the first, ``positions[::step]`` shape ``(N, J, 3)``
-    (so the velocity windows and the hysteresis run on the same instants whatever the native rate,
-    and a recording at 120 Hz gives the bits it gives resampled to 30 Hz). Shape
-    ``(ceil(N / step), 39)``. Not the toolbox's ``1:4:end`` of the native rate's matrix
-    (:func:`decimate`): its windows span native frames, so the bits change with the rate."""
-    return features(positions[::step], joint_names, native_hz / step)
+    """The features at ``native_hz · per / step`` Hz as every recogniser, index and template of
+    mocapd takes them: of the poses at the index frames' instants alone (:func:`sample_poses`: every
+    ``step``-th pose from the first when ``per`` = 1) of ``positions`` shape ``(N, J, 3)`` (so the
+    velocity windows and the hysteresis run on the same instants whatever the native rate, and a
+    recording at 120 Hz gives the bits it gives resampled to 30 Hz). Shape ``(M, 39)``. Not the
+    toolbox's ``1:4:end`` of the native rate's matrix (:func:`decimate`): its windows span native
+    frames, so the bits change with the rate."""
+    return features(sample_poses(positions, step, per), joint_names, native_hz * per / step)
 
 
 def decimate(matrix: BoolArray, factor: int) -> BoolArray:

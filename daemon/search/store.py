@@ -29,7 +29,7 @@ from numpy.lib import format as npy_format
 from daemon.checks import Checker
 from daemon.errors import MocapdError
 from daemon.features import SET_SLICES
-from daemon.recordings import ManifestRow, display_path, read_bvh_features, read_features
+from daemon.recordings import ManifestRow, RateError, display_path, read_bvh_features, read_features
 from daemon.search.index import SetIndex, build_set_index
 from daemon.storage import check_target, checksum, read_meta, replace_directory, sync, write_json
 from daemon.types import (
@@ -140,6 +140,11 @@ def read_document(
         got = read_bvh_features(row.bvh, rate, maps)
     else:
         got = read_features(row.asf, row.amc, rate, default_native_rate)
+    if got.per != 1:  # an index's documents sample every step-th frame (its format's "step")
+        raise RateError(
+            f"an index needs a rate that divides the native {got.native_rate:g} Hz, not {rate:g} Hz",
+            path=row.bvh if row.bvh is not None else row.amc,
+        )
     document = Document(
         amc=row.amc_text,
         asf=row.asf_text,

@@ -25,6 +25,7 @@ from pathlib import Path
 
 from daemon.checks import csv_records
 from daemon.errors import MocapdError
+from daemon.features import sample_rows
 from daemon.recordings import RecordingFeatures, motion_features, read_recording, sample_index
 from daemon.tools.repetitions import Cutting, cut_run
 from daemon.types import DEFAULT_INDEX_RATE, BoolArray, IntArray
@@ -158,7 +159,7 @@ def cut_trial(
     :class:`Mocap6Error` naming the labels file and line if a run lies outside the recording."""
     anchors = {} if anchors is None else anchors
     features = motion_features(motion, rate)
-    joints = joint_positions(motion)[:: features.step]
+    joints = joint_positions(motion)[sample_rows(len(motion.frames), features.step, features.per)]
     runs = []
     for segment in segments:
         if segment.trial != trial or segment.label not in classes:
