@@ -34,6 +34,7 @@ from daemon.features import (
     feature_tracks,
     features,
     latency_frames,
+    sampling_ratio,
 )
 from daemon.search.segments import Segmenter, segment
 from daemon.stages import run
@@ -363,6 +364,37 @@ def test_decimation_factor(native: float, target: float, factor: int) -> None:
 def test_decimation_factor_rejects_a_rate_that_does_not_divide(target: float) -> None:
     with pytest.raises(ValueError, match=r"frame rate|divided by a whole number"):
         decimation_factor(120.0, target)
+
+
+@pytest.mark.parametrize(
+    ("native", "target", "ratio"),
+    [
+        (120.0, 30.0, (4, 1)),
+        (100.0, 30.0, (10, 3)),
+        (120.0, 50.0, (12, 5)),
+        (59.94, 30.0, (999, 500)),
+        (30.0, 30.0, (1, 1)),
+    ],
+)
+def test_sampling_ratio_in_lowest_terms(native: float, target: float, ratio: tuple[int, int]) -> None:
+    assert sampling_ratio(native, target) == ratio
+
+
+@pytest.mark.parametrize(
+    ("target", "message"),
+    [
+        (240.0, "above the native"),
+        (1e-7, "by more than"),
+        (0.0, "positive"),
+        (-30.0, "positive"),
+        (math.nan, "positive"),
+        (math.inf, "positive"),
+        (120.0 / 1.0000001, "ratio of whole numbers"),
+    ],
+)
+def test_sampling_ratio_refuses(target: float, message: str) -> None:
+    with pytest.raises(ValueError, match=message):
+        sampling_ratio(120.0, target)
 
 
 def test_decimator_rejects_a_factor_below_one() -> None:

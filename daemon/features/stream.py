@@ -111,6 +111,8 @@ def decimation_factor(native_hz: float, target_hz: float) -> int:
 
 MAX_PER = 1000
 """The most index frames a whole number of native frames may hold (a rate ratio's denominator)."""
+MAX_STEP = 1e6
+"""The most native frames to one index frame (beyond it, frame counts overflow 64 bits)."""
 
 
 def sampling_ratio(native_hz: float, target_hz: float) -> tuple[int, int]:
@@ -122,6 +124,10 @@ def sampling_ratio(native_hz: float, target_hz: float) -> tuple[int, int]:
     ratio = native_hz / target_hz
     if not (math.isfinite(ratio) and ratio >= 1 - 1e-9):
         raise InputError(f"{target_hz:g} Hz is above the native {native_hz:g} Hz")
+    if ratio > MAX_STEP:
+        raise InputError(
+            f"{target_hz:g} Hz is below the native {native_hz:g} Hz by more than {MAX_STEP:g} times"
+        )
     fraction = Fraction(ratio).limit_denominator(MAX_PER)
     step, per = fraction.numerator, fraction.denominator
     if not math.isclose(native_hz * per / step, target_hz, rel_tol=1e-9):
