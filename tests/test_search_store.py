@@ -124,7 +124,7 @@ def test_index_from_matrices_checks_its_input(built: Built) -> None:
         index_from_matrices(mats, docs[:3], 30.0)
     with pytest.raises(ValueError, match=r"document 1 .*expected \(14, 39\)"):
         index_from_matrices([mats[0], mats[1][:-1], *mats[2:]], docs, 30.0)
-    with pytest.raises(ValueError, match="120 Hz / 4 is not 60 Hz"):
+    with pytest.raises(ValueError, match="120 Hz every 4 frames is not 60 Hz"):
         index_from_matrices(mats, docs, 60.0)
 
 
@@ -137,10 +137,29 @@ def test_other_rate() -> None:
     assert index.amc_frames(0, 27, 27) == (55, 56)
 
 
-def test_rate_that_does_not_divide_the_native_rate() -> None:
+def test_rate_that_does_not_divide_the_native_rate(tmp_path: Path) -> None:
+    """25 Hz of 120 Hz: 5 index frames in 24 AMC frames, each the first frame at or after its
+    instant, the features of the poses blended at the instants (the recogniser's); saved with its
+    ``per`` and read back. A rate above the native one is refused naming the file."""
     asf, amc = PATHS[0]
-    with pytest.raises(RateError, match="needs a rate that divides the native 120 Hz, not 25 Hz") as caught:
-        build_index([ManifestRow(2, str(asf), str(amc), asf, amc)], rate=25.0)
+    index = build_index([ManifestRow(2, str(asf), str(amc), asf, amc)], rate=25.0)
+    (doc,) = index.documents
+    n = doc.last_amc_frame - doc.first_amc_frame + 1
+    assert (doc.step, doc.per, doc.frames) == (24, 5, (n - 1) * 5 // 24 + 1)
+    starts = [index.amc_frames(0, j, j)[0] - doc.first_amc_frame for j in range(doc.frames)]
+    assert starts == [-(-j * 24 // 5) for j in range(doc.frames)]
+    assert index.amc_frames(0, 0, doc.frames - 1) == (doc.first_amc_frame, doc.last_amc_frame)
+    again = index_from_matrices([naive_features(asf, amc, 24, per=5)], index.documents, 25.0)
+    for feature_set in FEATURE_SETS:
+        for a in ARRAYS:
+            np.testing.assert_array_equal(
+                getattr(again.sets[feature_set], a), getattr(index.sets[feature_set], a)
+            )
+    save_index(index, tmp_path / "idx")
+    assert load_index(tmp_path / "idx").documents == index.documents
+    assert '"per": 5' in (tmp_path / "idx" / "index.json").read_text(encoding="utf-8")
+    with pytest.raises(RateError, match="240 Hz is above the native 120 Hz") as caught:
+        build_index([ManifestRow(2, str(asf), str(amc), asf, amc)], rate=240.0)
     assert str(caught.value).startswith(f"{amc}: ")
 
 
@@ -330,6 +349,9 @@ def test_load_bad_json(saved: Path, tmp_path: Path) -> None:
         ({"documents.0.frames": "35"}, "documents[0].frames"),
         ({"documents.1.frames": 15}, "documents[1].frames"),
         ({"documents.0.step": 0}, "documents[0].step"),
+        ({"documents.0.per": 5}, "documents[0].per"),  # more index frames than frames
+        ({"documents.0.per": 2}, "documents[0].per"),  # 2 in 4: not in lowest terms
+        ({"documents.0.per": 0}, "documents[0].per"),
         ({"documents.0.native_rate": "120"}, "documents[0].native_rate"),
         ({"rate": 1}, "documents[0].step"),  # the documents' steps no longer give the rate
         ({"documents.1.native_rate": 60.0}, "documents[1].step"),

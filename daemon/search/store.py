@@ -28,8 +28,8 @@ from numpy.lib import format as npy_format
 
 from daemon.checks import Checker
 from daemon.errors import MocapdError
-from daemon.features import SET_SLICES
-from daemon.recordings import ManifestRow, RateError, display_path, read_bvh_features, read_features
+from daemon.features import SET_SLICES, sample_count
+from daemon.recordings import ManifestRow, display_path, read_bvh_features, read_features
 from daemon.search.index import SetIndex, build_set_index
 from daemon.storage import check_target, checksum, read_meta, replace_directory, sync, write_json
 from daemon.types import (
@@ -61,9 +61,11 @@ class IndexFormatError(MocapdError, ValueError):
 
 @dataclass(frozen=True)
 class Document:
-    """One indexed recording. ``amc``/``asf``: the paths as the manifest writes them; index frame
-    ``j`` (0-based, ``0 <= j < frames``) is AMC frame ``first_amc_frame + step * j``; the recording
-    has AMC frames ``first_amc_frame .. last_amc_frame`` at ``native_rate`` Hz."""
+    """One indexed recording. ``amc``/``asf``: the paths as the manifest writes them; ``step`` AMC
+    frames hold ``per`` index frames (lowest terms), index frame ``j`` (0-based, ``0 <= j < frames``)
+    is AMC frame ``first_amc_frame + ceil(step * j / per)`` (:class:`daemon.frames.FrameClock`;
+    every ``step``-th frame when ``per`` = 1); the recording has AMC frames ``first_amc_frame ..
+    last_amc_frame`` at ``native_rate`` Hz."""
 
     amc: str
     asf: str
@@ -72,6 +74,7 @@ class Document:
     step: int
     frames: int
     native_rate: float
+    per: int = 1
 
 
 @dataclass(frozen=True)
@@ -96,9 +99,11 @@ class MotionIndex:
         d = self.documents[doc]
         if not 0 <= start <= end < d.frames:
             raise ValueError(f"frames {start}..{end} are outside 0..{d.frames - 1} of document {doc}")
-        first = d.first_amc_frame + d.step * start
-        last = min(d.first_amc_frame + d.step * end + d.step - 1, d.last_amc_frame)
-        return first, last
+
+        def frame(j: int) -> int:  # as daemon.frames.FrameClock.start
+            return d.first_amc_frame + (j * d.step + d.per - 1) // d.per
+
+        return frame(start), min(frame(end + 1) - 1, d.last_amc_frame)
 
     def document_path(self, doc: int) -> str:
         """Where document ``doc``'s AMC file is, for a reader in the working directory
@@ -118,9 +123,10 @@ def index_from_matrices(
             raise ValueError(
                 f"document {d} ({doc.amc}): matrix shape {m.shape}, expected ({doc.frames}, {N_FEATURES})"
             )
-        if not math.isclose(doc.native_rate / doc.step, rate, rel_tol=1e-9):
+        if not math.isclose(doc.native_rate * doc.per / doc.step, rate, rel_tol=1e-9):
             raise ValueError(
-                f"document {d} ({doc.amc}): {doc.native_rate:g} Hz / {doc.step} is not {rate:g} Hz"
+                f"document {d} ({doc.amc}): {doc.native_rate:g} Hz every {doc.step / doc.per:g} frames "
+                f"is not {rate:g} Hz"
             )
     sets = {s: build_set_index(matrices, s) for s in FEATURE_SETS}
     return MotionIndex(float(rate), tuple(documents), sets, base)
@@ -140,11 +146,6 @@ def read_document(
         got = read_bvh_features(row.bvh, rate, maps)
     else:
         got = read_features(row.asf, row.amc, rate, default_native_rate)
-    if got.per != 1:  # an index's documents sample every step-th frame (its format's "step")
-        raise RateError(
-            f"an index needs a rate that divides the native {got.native_rate:g} Hz, not {rate:g} Hz",
-            path=row.bvh if row.bvh is not None else row.amc,
-        )
     document = Document(
         amc=row.amc_text,
         asf=row.asf_text,
@@ -153,6 +154,7 @@ def read_document(
         step=got.step,
         frames=int(got.matrix.shape[0]),
         native_rate=got.native_rate,
+        per=got.per,
     )
     return document, got.matrix
 
@@ -214,7 +216,10 @@ def save_index(index: MotionIndex, path: str | Path) -> None:
         "version": VERSION,
         "rate": index.rate,
         "base": index.base,
-        "documents": [{f.name: getattr(d, f.name) for f in fields(Document)} for d in index.documents],
+        "documents": [
+            {f.name: getattr(d, f.name) for f in fields(Document) if f.name != "per" or d.per != 1}
+            for d in index.documents
+        ],
         "sets": {
             s: {
                 "bits": index.sets[s].bits,
@@ -359,16 +364,26 @@ def _documents(check: Checker, value: object, rate: float) -> tuple[Document, ..
     out = []
     for i, item in enumerate(check.listing(value, "documents", nonempty=True)):
         where = f"documents[{i}]"
-        d = check.mapping(item, where, [f.name for f in fields(Document)])
+        d = check.mapping(item, where, [f.name for f in fields(Document) if f.name != "per"], ["per"])
         amc, asf = check.string(d["amc"], f"{where}.amc"), check.string(d["asf"], f"{where}.asf")
         first = check.integer(d["first_amc_frame"], f"{where}.first_amc_frame", minimum=None)
         last = check.integer(d["last_amc_frame"], f"{where}.last_amc_frame", minimum=first)
         step = check.integer(d["step"], f"{where}.step", minimum=1)
+        per = check.integer(d.get("per", 1), f"{where}.per", minimum=1)
+        if per > step or math.gcd(step, per) != 1:
+            check.fail(
+                f"{where}.per",
+                f"{per} index frames in {step} AMC frames: not a ratio in lowest terms, at most 1",
+            )
         frames = check.integer(d["frames"], f"{where}.frames", minimum=1)
-        if frames != -(-(last - first + 1) // step):
-            check.fail(f"{where}.frames", f"{frames} does not fit AMC frames {first}..{last} every {step}")
+        if frames != sample_count(last - first + 1, step, per):
+            check.fail(
+                f"{where}.frames", f"{frames} does not fit AMC frames {first}..{last} every {step / per:g}"
+            )
         native = check.positive_number(d["native_rate"], f"{where}.native_rate")
-        if not math.isclose(native / step, rate, rel_tol=1e-9):
-            check.fail(f"{where}.step", f"{native:g} Hz every {step} frames is not {rate:g} Hz (rate)")
-        out.append(Document(amc, asf, first, last, step, frames, native))
+        if not math.isclose(native * per / step, rate, rel_tol=1e-9):
+            check.fail(
+                f"{where}.step", f"{native:g} Hz every {step / per:g} frames is not {rate:g} Hz (rate)"
+            )
+        out.append(Document(amc, asf, first, last, step, frames, native, per))
     return tuple(out)
