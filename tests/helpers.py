@@ -9,6 +9,7 @@ import dataclasses
 import functools
 import getpass
 import json
+import math
 import os
 import re
 import shutil
@@ -26,6 +27,7 @@ from pathlib import Path
 from typing import Any
 
 import msgpack
+import numpy as np
 
 from bench.processes import free_port, samples
 from daemon.keyframes import parse_keyframe_queries
@@ -34,6 +36,7 @@ from daemon.library import ClassTemplate, Library
 from daemon.recordings import read_examples, read_recording
 from daemon.search.segments import Segment, Segmenter
 from daemon.types import BoolArray, FloatArray
+from replay import Motion
 from replay.catalog import CMU_SUBSTITUTES, recordings
 from replay.kinematics import joint_positions
 
@@ -390,11 +393,8 @@ class NatsCollector:
 def looped_detections(asf: str, amc: str, last: int) -> list[dict[str, Any]]:
     """``mocapd detect``'s detections of a stream that looped the recording for sequence numbers
     0 .. ``last`` (as :mod:`bench.cluster_load` publishes it)."""
-    import numpy as np
-
     from daemon.library import default_library_path, load_library
     from daemon.recognizer import detect
-    from replay import Motion
 
     motion = read_recording(Path(asf), Path(amc))
     seqs = np.arange(last + 1)
@@ -765,3 +765,18 @@ class View(ServerProcess):
     def logs(self) -> list[dict[str, Any]]:
         lines = self.stderr_path.read_text().splitlines()
         return [json.loads(line) for line in lines if line.startswith("{")]
+
+
+def resampled_motion(motion: Motion, native: float, rate: float) -> Motion:
+    """``motion`` at ``native`` Hz resampled to ``rate`` Hz, frames numbered from 1: each channel
+    interpolated linearly between the two frames around an instant, angles (radians) the short way
+    round."""
+    n = int((len(motion) - 1) * rate / native) + 1
+    t = np.arange(n) * native / rate
+    i = np.minimum(t.astype(int), len(motion) - 2)
+    w = (t - i)[:, None]
+    channels = np.asarray(motion.channels, dtype=np.float64)
+    step = channels[i + 1] - channels[i]
+    angles = np.asarray(motion.skeleton.angle_channels, dtype=np.intp)
+    step[:, angles] = np.remainder(step[:, angles] + math.pi, 2 * math.pi) - math.pi
+    return dataclasses.replace(motion, frames=np.arange(1, n + 1), channels=channels[i] + w * step)

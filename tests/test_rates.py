@@ -27,7 +27,7 @@ from replay import JOINT_NAMES
 from replay.bvh import write_bvh
 from replay.convert import motion_to_bvh
 from replay.kinematics import joint_positions
-from tests.helpers import assert_ok, hdm05_clip, mocapd, pair_id, recording_pairs
+from tests.helpers import assert_ok, hdm05_clip, mocapd, pair_id, recording_pairs, resampled_motion
 from tests.naive import slow_sample_poses
 
 TRIALS = ("13_29", "86_01", "02_05")
@@ -174,18 +174,8 @@ def test_mocapd_detect_of_a_take_at_100_hz_gives_the_detections_at_120_hz(tmp_pa
     start within an index frame."""
     (asf, amc) = next(p for p in recording_pairs() if pair_id(p) == "13_29")
     motion = read_recording(asf, amc)
-    n = int((len(motion) - 1) * 100 / 120) + 1
-    t = np.arange(n) * 1.2
-    i = np.minimum(t.astype(int), len(motion) - 2)
-    w = (t - i)[:, None]
-    step = np.array(motion.channels[i + 1]) - np.array(motion.channels[i])
-    angles = np.array([not name.endswith(("tx", "ty", "tz")) for name in motion.skeleton.channel_names])
-    step[:, angles] = (step[:, angles] + 180.0) % 360.0 - 180.0
-    lower = dataclasses.replace(
-        motion, frames=np.arange(1, n + 1), channels=np.array(motion.channels[i]) + w * step
-    )
     take = tmp_path / "13_29_100hz.bvh"
-    take.write_bytes(write_bvh(motion_to_bvh(lower, 100.0)))
+    take.write_bytes(write_bvh(motion_to_bvh(resampled_motion(motion, 120.0, 100.0), 100.0)))
     at_100 = mocapd("detect", "--bvh", take, "--json")
     at_120 = mocapd("detect", "--asf", asf, "--amc", amc, "--json")
     assert_ok(at_100)

@@ -28,7 +28,8 @@ from daemon.types import RecognitionSettings
 from protocols.messages import PoseMessage, encode, topic
 from protocols.publish import messages
 from replay import JOINT_NAMES, Motion
-from replay.bvh import read_bvh
+from replay.bvh import read_bvh, write_bvh
+from replay.convert import motion_to_bvh
 from replay.rigs import BUILT_IN, bvh_standard_joints
 from tests.helpers import (
     DATA,
@@ -41,6 +42,7 @@ from tests.helpers import (
     finished,
     hdm05_clip,
     replay,
+    resampled_motion,
     takes,
     wait_for,
 )
@@ -423,18 +425,24 @@ UPPERARM = next(m for m in BUILT_IN if m.name == "upperarm")
 
 @pytest.mark.slow
 @pytest.mark.parametrize(
-    ("transport", "as_positions"),
-    [("zmq", False), ("mqtt", False), ("zmq", True)],
-    ids=["zmq", "mqtt", "rig"],
+    ("transport", "as_positions", "at_100_hz"),
+    [("zmq", False, False), ("mqtt", False, False), ("zmq", True, False), ("zmq", False, True)],
+    ids=["zmq", "mqtt", "rig", "100 Hz"],
 )
 def test_a_bvh_replay_gives_the_detections_of_detect_bvh(
-    tmp_path: Path, transport: str, as_positions: bool
+    tmp_path: Path, transport: str, as_positions: bool, at_100_hz: bool
 ) -> None:
     """``mocapd replay --bvh`` sends the take as it is, its hierarchy in the skeleton and its
     channel rows in the poses (float64 on the wire): a daemon maps the rig as ``mocapd detect
     --bvh`` does and publishes its detections, costs and all. With ``--rig`` (a user's map, which
     the daemon does not know) it sends the mapped standard joints as a positions stream (float32):
-    the batch twin's detections of those, ``detect --bvh``'s but for the costs' last digits."""
+    the batch twin's detections of those, ``detect --bvh``'s but for the costs' last digits. At
+    100 Hz (CMU 13_29 resampled, written as BVH), a rate the library's 30 Hz does not divide."""
+    take_path = BVH_TAKE
+    if at_100_hz:
+        take_path = tmp_path / "13_29_100hz.bvh"
+        lower = resampled_motion(read_recording(*LONG), 120.0, 100.0)
+        take_path.write_bytes(write_bvh(motion_to_bvh(lower, 100.0)))
     broker = Broker(tmp_path).start() if transport == "mqtt" else None
     daemon = (
         Daemon(tmp_path, config=BIG_QUEUE)
@@ -448,7 +456,7 @@ def test_a_bvh_replay_gives_the_detections_of_detect_bvh(
     )
     try:
         to = "zmq+" + daemon.poses if broker is None else broker.url
-        command = [str(MOCAPD_SCRIPT), "replay", "--bvh", str(BVH_TAKE), "--to", to, "--speed", "max"]
+        command = [str(MOCAPD_SCRIPT), "replay", "--bvh", str(take_path), "--to", to, "--speed", "max"]
         out = finished(
             subprocess.Popen(
                 command + (["--rig", str(rig)] if as_positions else []),
@@ -457,16 +465,16 @@ def test_a_bvh_replay_gives_the_detections_of_detect_bvh(
                 text=True,
             )
         )
-        take = read_bvh(BVH_TAKE)
+        take = read_bvh(take_path)
         joints, _ = bvh_standard_joints(take)
-        assert out.startswith(f"replayed {len(joints)} frames of {BVH_TAKE.name}")
-        stream = "dataset-2_wave-right-hand_normal_001"
+        assert out.startswith(f"replayed {len(joints)} frames of {take_path.name}")
+        stream = take_path.name.removesuffix(".gz").removesuffix(".bvh")
         library = load_library(default_library_path())
         numbers = np.arange(1, len(joints) + 1)
         cli = [d.as_json() for d in detect_positions(joints, numbers, library, take.rate, stream=stream)]
         wire = joints.astype(np.float32).astype(np.float64) if as_positions else joints
         want = [d.as_json() for d in detect_positions(wire, numbers, library, take.rate, stream=stream)]
-        wait_for(lambda: len(daemon.detections_printed()) >= len(want), 30, "the take's detections")
+        wait_for(lambda: len(daemon.detections_printed()) >= len(want), 60, "the take's detections")
         assert daemon.stop() == 0
         assert want and detection_keys(daemon.detections_printed()) == detection_keys(want)
         assert [k[:3] + k[4:] for k in detection_keys(cli)] == [k[:3] + k[4:] for k in detection_keys(want)]
