@@ -105,14 +105,21 @@ def bridge_frames(bridge_s: float, rate: float) -> int:
     return round(bridge_s * rate)
 
 
-def bridge(before: FloatArray, after: FloatArray, missing: int, angles: IntArray | None = None) -> FloatArray:
+def bridge(
+    before: FloatArray,
+    after: FloatArray,
+    missing: int,
+    angles: IntArray | None = None,
+    turn: float = 2 * math.pi,
+) -> FloatArray:
     """The ``missing`` frames between frame ``before`` and frame ``after`` (any one shape, e.g.
     ``(C,)`` channels or ``(J, 3)`` positions), interpolated linearly: shape ``(missing, *shape)``.
-    ``angles``: indexes of a channel vector's angles (radians), interpolated along the shorter arc
-    (an Euler angle that wraps from just under π to just over -π turns a little, not nearly once)."""
+    ``angles``: indexes of a channel vector's angles (a whole ``turn``: radians by default, 360 for
+    degrees), interpolated along the shorter arc (an Euler angle that wraps from just under half a
+    turn to just over minus half turns a little, not nearly once)."""
     delta = after - before
     if angles is not None and len(angles):
-        delta[angles] = np.remainder(delta[angles] + math.pi, 2 * math.pi) - math.pi
+        delta[angles] = np.remainder(delta[angles] + turn / 2, turn) - turn / 2
     at = np.arange(1, missing + 1, dtype=np.float64) / (missing + 1)
     out: FloatArray = before + at.reshape((missing,) + (1,) * before.ndim) * delta
     return out

@@ -314,6 +314,10 @@ class BvhPoses:
         self.plan = hierarchy_plan(hierarchy, maps)
         self.width = self.kinematics.width
         self.up = up
+        self.rotations = np.array(
+            [k for k, name in enumerate(hierarchy.channel_names) if name.endswith("rotation")], dtype=np.intp
+        )
+        """The columns of a channel row that are angles (degrees)."""
 
     def joints(self, channels: FloatArray) -> FloatArray:
         p = standard_joints(self.kinematics.positions_frame(channels)[None], self.plan)[0]

@@ -147,6 +147,19 @@ def test_segment_cuts_a_converted_recording_where_it_cuts_the_amc(converted: tup
     assert cuts == [b.frame + 1 for b in result.boundaries] and cuts
 
 
+@pytest.mark.parametrize("name", ["walk_normal_001", "wave-both-hands_active_002"])
+def test_a_rigs_rotation_stream_gives_the_batch_frames_bit_for_bit(name: str) -> None:
+    """A BVH rig's joint rotations one frame at a time (the daemon's segmentation of a BVH stream)
+    equal the batch's (``segment --bvh``), a flush in the middle starting a new stream."""
+    take = read_bvh(BANDAI / f"dataset-2_{name}.bvh.gz")
+    rig = bh.RigRotations(take.hierarchy, bvh_standard_joints(take)[1])
+    stream = rig.stream()
+    half = len(take.channels) // 2
+    for piece in (take.channels[:half], take.channels[half:]):
+        got = [v for c in piece for v in stream.push(c)] + stream.flush()
+        assert np.array_equal(np.array(got), rig(piece))
+
+
 def test_a_take_in_metres_is_recognised_as_in_centimetres(tmp_path: Path) -> None:
     """The features are scale-free (every threshold a multiple of a body length), so a studio's
     BVH in metres gives the detections of the same take in centimetres."""

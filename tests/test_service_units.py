@@ -30,6 +30,7 @@ from daemon.config import (
     load_config,
     parse_config,
 )
+from daemon.frames import bridge
 from daemon.library import Library
 from daemon.recognizer import Recognizer, detect_positions
 from daemon.recordings import read_recording
@@ -485,6 +486,43 @@ def test_boundaries_are_the_online_methods_batch_cuts(
     assert got == want != []
     ids = [e.message.id for e in out if isinstance(e.message, BoundaryMessage)]
     assert len(set(ids)) == len(ids)
+
+
+@pytest.mark.slow
+def test_a_bvh_streams_boundaries_are_its_rigs_batch_cuts(library: Library) -> None:
+    """A segmented BVH stream (13_30 written as BVH) is cut on its rig's joint rotations, as
+    ``mocapd segment --bvh`` cuts the take: its boundaries are the batch cuts (PPCA's forward pass)
+    in sequence numbers, across a gap of four lost poses (their channel rows bridged, angles the
+    short way round in degrees) and a long gap (each side segmented on its own)."""
+    m = read_recording(*SEGMENTED)
+    take = motion_to_bvh(m, 120.0)
+    rig = bh.RigRotations(take.hierarchy, bvh_standard_joints(take)[1])
+    t = StreamTable(
+        library,
+        session="t",
+        service=ServiceConfig(queue_frames=100_000),
+        segmentation=SegmentationConfig("ppca", ("seg*",)),
+    )
+    t.skeleton(SkeletonMessage("segbvh", 120.0, bvh=hierarchy_text(take.hierarchy)), 0.0)
+    channels = take.channels
+    lost, cut = range(700, 704), 1500
+    seqs = [k + 1 if k < cut else k + 1 + 1200 for k in range(len(channels))]
+    for k, (seq, c) in enumerate(zip(seqs, channels, strict=True)):
+        if k not in lost:
+            t.pose(PoseMessage("segbvh", seq, 0.0, channels=c), seq / 120.0)
+    out = []
+    while t.queued:
+        out += t.tick()[0]
+    out += t.flush_all()
+    got = [e.message.frame for e in out if isinstance(e.message, BoundaryMessage)]
+    first = channels[:cut].copy()
+    angles = np.array([k for k, n in enumerate(take.hierarchy.channel_names) if n.endswith("rotation")])
+    first[lost.start : lost.stop] = bridge(
+        channels[lost.start - 1], channels[lost.stop], len(lost), angles, 360.0
+    )
+    want = [seqs[b.frame] for b in bh.ppca_forward(rig(first), 120.0)]
+    want += [seqs[cut + b.frame] for b in bh.ppca_forward(rig(channels[cut:]), 120.0)]
+    assert got == want != []
 
 
 def test_streams_of_one_skeleton_share_its_tables(library: Library) -> None:

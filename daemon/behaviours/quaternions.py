@@ -121,6 +121,12 @@ class JointRotations:
         self.dims = 4 * len(self.nodes)
         self.width = len(skeleton.channel_names)
         self.index = np.array(self.nodes, dtype=np.intp)
+        self._local = np.empty((self.model.n_nodes, 4))
+
+    def local_frame(self, row: FloatArray) -> FloatArray:
+        """:meth:`raw` of one checked frame: ``row`` shape ``(C,)`` gives ``(J, 4)``, bit for bit."""
+        out: FloatArray = self.model.local_rotations_frame(row, self._local)[self.index]
+        return out
 
     def raw(self, channels: npt.ArrayLike) -> FloatArray:
         """The bones' quaternions as forward kinematics gives them (signs not made consistent):
@@ -167,6 +173,11 @@ class RigRotations:
         self.bones: tuple[str, ...] = tuple(joints[k].name for k in self.nodes)
         self.dims = 4 * len(self.nodes)
 
+    @property
+    def width(self) -> int:
+        """Channels in a frame."""
+        return self.kinematics.width
+
     def __call__(self, channels: npt.ArrayLike) -> FloatArray:
         """``channels`` shape ``(N, C)`` (a BVH motion's, degrees) gives shape ``(N, D)``."""
         c = np.asarray(channels, dtype=np.float64)
@@ -174,16 +185,25 @@ class RigRotations:
         q = self.kinematics.local_rotations(c)[:, list(self.nodes)]
         return consistent_signs(q).reshape(q.shape[0], self.dims)
 
+    def local_frame(self, row: FloatArray) -> FloatArray:
+        """The rig joints' local rotations of one checked frame: ``row`` shape ``(C,)`` (degrees)
+        gives ``(J, 4)``, bit for bit a row of the batch's."""
+        out: FloatArray = self.kinematics.local_rotations(row[None])[0, list(self.nodes)]
+        return out
+
+    def stream(self) -> RotationStream:
+        """A new per-frame stream of this representation."""
+        return RotationStream(self)
+
 
 class RotationStream:
     """:class:`JointRotations` one frame at a time, equal bit for bit to the batch: keeps the
     previous frame's raw quaternions and signs (shape ``(J, 4)`` and ``(J,)``). A stage
     (:mod:`daemon.stages`): ``push`` returns the one vector, ``flush`` nothing and starts over."""
 
-    def __init__(self, rotations: JointRotations) -> None:
+    def __init__(self, rotations: JointRotations | RigRotations) -> None:
         self.rotations = rotations
         self._t = 0
-        self._local = np.empty((rotations.model.n_nodes, 4))
         self._previous: FloatArray | None = None
         self._signs: FloatArray | None = None
 
@@ -198,7 +218,7 @@ class RotationStream:
         if not np.isfinite(row).all():
             raise InputError(f"frame {self._t}: channels have a value that is not finite")
         self._t += 1
-        q = self.rotations.model.local_rotations_frame(row, self._local)[self.rotations.index]
+        q = self.rotations.local_frame(row)
         if self._previous is None or self._signs is None:
             signs = _canonical_signs(q)
         else:

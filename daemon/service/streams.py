@@ -26,7 +26,8 @@ the stream's motion: its recogniser is flushed and begins again at the new pose.
 the detections of ``mocapd detect`` on the same frames (:func:`daemon.frames.bridged_runs`).
 
 Behaviour boundaries. With a segmentation method (``segmentation`` of the config), every channel
-stream whose id matches one of its patterns also goes through an online segmenter
+stream (an ASF skeleton's, or a BVH rig's: the channel rows, not the standard joints its recogniser
+takes) whose id matches one of its patterns also goes through an online segmenter
 (:func:`daemon.behaviours.online_segmenter` on :class:`daemon.behaviours.RotationStream`'s joint
 rotations), fed the frames its recogniser took; a cut comes out as a :class:`BoundaryMessage` at the
 sequence number where the new behaviour starts. A long gap, a changed skeleton or the stream's end
@@ -48,7 +49,7 @@ import msgpack
 import numpy as np
 
 from daemon.bank import RecognizerBank
-from daemon.behaviours import Boundary, JointRotations, PcaSegmenter, PpcaSegmenter
+from daemon.behaviours import Boundary, JointRotations, PcaSegmenter, PpcaSegmenter, RigRotations
 from daemon.behaviours import online_segmenter as make_segmenter
 from daemon.config import ProgressConfig, RecognizerConfig, SegmentationConfig, ServiceConfig
 from daemon.errors import InputError, MocapdError, printable
@@ -105,10 +106,13 @@ class Refused(MocapdError):
 
 
 class _Segmenting:
-    """A stream's behaviour segmentation: its joint rotations, the online segmenter, and the frame
-    number of the segmenter's first frame."""
+    """A stream's behaviour segmentation: its joint rotations (an ASF skeleton's bones, or a BVH
+    rig's joints standing for them), the online segmenter, and the frame number of the segmenter's
+    first frame."""
 
-    def __init__(self, rotations: JointRotations, method: Literal["pca", "ppca"], rate: float) -> None:
+    def __init__(
+        self, rotations: JointRotations | RigRotations, method: Literal["pca", "ppca"], rate: float
+    ) -> None:
         self.rotations = rotations.stream()
         self.segmenter: PcaSegmenter | PpcaSegmenter = make_segmenter(rate, method)
         self.first: int | None = None
@@ -151,8 +155,12 @@ class _Stream:
     arrived: deque[float] = field(default_factory=deque)
     """When each queued pose was taken in (the ``now`` of :meth:`StreamTable.pose`), in step with
     :attr:`queue`."""
-    filling: deque[tuple[int, float, float, np.ndarray]] = field(default_factory=deque)
-    """The interpolated frames (frame number, time, arrival, values) of a gap before ``queue[0]``."""
+    filling: deque[tuple[int, float, float, np.ndarray, np.ndarray | None]] = field(default_factory=deque)
+    """The interpolated frames (frame number, time, arrival, values, channels) of a gap before
+    ``queue[0]`` (channels: a segmented BVH stream's, else None)."""
+    last_channels: np.ndarray | None = None
+    """A segmented BVH stream's channel row of frame :attr:`last_fed` (degrees: what its
+    segmentation takes, where the recogniser takes the rig's standard joints)."""
     times: np.ndarray = field(default_factory=lambda: np.zeros(1))
     arrivals: np.ndarray = field(default_factory=lambda: np.zeros(1))
     """When the pose of each recent frame was taken in, a ring like :attr:`times` (the source's
@@ -316,7 +324,7 @@ class StreamTable:
             if rig is not None:
                 joints = JOINT_NAMES
         # everything that can refuse the new skeleton first: a refused one leaves the old stream be
-        segmenting = self._segmenting(message, skeleton)
+        segmenting = self._segmenting(message, skeleton, bvh)
         generation = next(self._generations)
         try:
             recognizer = self.bank.recognizer(
@@ -478,14 +486,20 @@ class StreamTable:
             lambda: BvhPoses(parse_bvh_hierarchy(hierarchy, source), up, self.rigs),
         )
 
-    def _segmenting(self, message: SkeletonMessage, skeleton: Skeleton | None) -> _Segmenting | None:
-        """A segmenter for a channel stream that the segmentation patterns name (None: none)."""
+    def _segmenting(
+        self, message: SkeletonMessage, skeleton: Skeleton | None, bvh: BvhPoses | None
+    ) -> _Segmenting | None:
+        """A segmenter for a channel stream (an ASF skeleton's or a BVH rig's) that the segmentation
+        patterns name (None: none)."""
         method = self.segmentation
-        if method == "none" or skeleton is None:
+        if method == "none" or (skeleton is None and bvh is None):
             return None
         if not any(fnmatch.fnmatchcase(message.stream, p) for p in self.segmented):
             return None
         try:
+            if bvh is not None:
+                return _Segmenting(RigRotations(bvh.kinematics.hierarchy, bvh.plan), method, message.rate)
+            assert skeleton is not None
             return _Segmenting(JointRotations(skeleton), method, message.rate)
         except InputError as e:  # a skeleton without rotating bones, windows that do not fit the rate
             raise Refused("skeleton", f"segmentation: {e}") from None
@@ -567,12 +581,13 @@ class StreamTable:
         gap before it), through one bank push: the detections, and the frames the recognisers
         refused as (stream, problem, why)."""
         frames = []
-        before: dict[str, tuple[int | None, np.ndarray | None]] = {}  # last fed before this frame
+        before: dict[str, tuple[int | None, np.ndarray | None, np.ndarray | None]] = {}  # last fed
         bridging: set[str] = set()  # the streams whose frame this tick is an interpolated one
+        segmented: dict[str, np.ndarray] = {}  # what each stream's segmentation takes of its frame
         out: list[Emitted] = []
         for name, s in list(self._waiting.items()):
             if s.filling:
-                seq, stamp, arrived, values = s.filling.popleft()
+                seq, stamp, arrived, values, channels = s.filling.popleft()
                 bridging.add(name)
             else:
                 pose, arrived = s.queue.popleft(), s.arrived.popleft()
@@ -588,13 +603,17 @@ class StreamTable:
                         s.warming = False
                         s.suppress_before = pose.seq + s.warmup
                 seq, stamp, values = pose.seq, pose.time, self._values(s, pose)
+                channels = None
+                if s.bvh is not None and s.segmenting is not None and pose.channels is not None:
+                    channels = pose.channels.astype(np.float64)
                 if s.last_fed is not None and seq > s.last_fed + 1:
-                    self._bridge(name, s, pose, arrived, values)
-                    seq, stamp, arrived, values = s.filling.popleft()
+                    self._bridge(name, s, pose, arrived, values, channels)
+                    seq, stamp, arrived, values, channels = s.filling.popleft()
                     bridging.add(name)
             self._queued -= 1
-            before[name] = (s.last_fed, s.last_values)
-            s.last_fed, s.last_values = seq, values
+            before[name] = (s.last_fed, s.last_values, s.last_channels)
+            s.last_fed, s.last_values, s.last_channels = seq, values, channels
+            segmented[name] = values if channels is None else channels
             s.times[seq % len(s.times)] = stamp
             s.arrivals[seq % len(s.arrivals)] = arrived
             frames.append((name, seq, values))
@@ -614,7 +633,7 @@ class StreamTable:
             # instead of every later one being refused as a jump
             self.counts[f"recognizer_{error.problem}"] += 1
             s = self.streams[name]
-            s.last_fed, s.last_values = before[name]
+            s.last_fed, s.last_values, s.last_channels = before[name]
             why = str(error)
             if name in bridging:  # the last frame fed was usable: the pose after the gap is not
                 self._queued -= len(s.filling) + 1
@@ -627,10 +646,11 @@ class StreamTable:
             refused.append((name, error.problem, why))
         out += self._kept([self._emitted(d) for d in result.detections])
         if self.segmentation != "none":
-            for name, frame, values in frames:
+            for name, frame, _ in frames:
                 s = self.streams[name]
                 if s.segmenting is not None and name not in taken:
-                    out += [self._boundary(name, s, *cut) for cut in s.segmenting.push(frame, values)]
+                    found = s.segmenting.push(frame, segmented[name])
+                    out += [self._boundary(name, s, *cut) for cut in found]
         for name in [n for n in self._ending if not self.streams[n].queue and not self.streams[n].filling]:
             out += self._remove(name, "ended")
         return out, refused
@@ -655,17 +675,31 @@ class StreamTable:
                 out += self._restart(name, s, pose.epoch)
         return out
 
-    def _bridge(self, name: str, s: _Stream, pose: PoseMessage, arrived: float, values: np.ndarray) -> None:
+    def _bridge(
+        self,
+        name: str,
+        s: _Stream,
+        pose: PoseMessage,
+        arrived: float,
+        values: np.ndarray,
+        channels: np.ndarray | None,
+    ) -> None:
         """Queue the frames of the gap between the last frame fed and ``pose`` (taken in at
-        ``arrived``, its recogniser input ``values``), interpolated, before ``pose`` itself."""
+        ``arrived``, its recogniser input ``values``, a segmented BVH stream's ``channels``),
+        interpolated, before ``pose`` itself."""
         assert s.last_fed is not None and s.last_values is not None
         missing = pose.seq - s.last_fed - 1
         fill = bridge(s.last_values, values, missing, s.turns)
+        bridged: list[np.ndarray | None] = [None] * missing
+        if channels is not None and s.last_channels is not None and s.bvh is not None:
+            bridged = list(bridge(s.last_channels, channels, missing, s.bvh.rotations, turn=360.0))
         start = float(s.times[s.last_fed % len(s.times)])
         stamps = start + (pose.time - start) * np.arange(1, missing + 1) / (missing + 1)
         s.filling.extend(
-            (seq, stamp, arrived, values)
-            for seq, stamp, values in zip(range(s.last_fed + 1, pose.seq), stamps.tolist(), fill, strict=True)
+            (seq, stamp, arrived, values, raw)
+            for seq, stamp, values, raw in zip(
+                range(s.last_fed + 1, pose.seq), stamps.tolist(), fill, bridged, strict=True
+            )
         )
         s.queue.appendleft(pose)
         s.arrived.appendleft(arrived)
