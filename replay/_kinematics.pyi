@@ -41,3 +41,22 @@ class FrameKinematics:
         sin: npt.NDArray[np.float64],
         out: npt.NDArray[np.float64],
     ) -> None: ...
+
+class BvhFrameKinematics:
+    n_joints: int
+    def __init__(
+        self,
+        parent: object,
+        rotations: object,
+        rot_start: object,
+        translations: object,
+        pos_start: object,
+        offsets: object,
+    ) -> None: ...
+    def positions(
+        self,
+        row: npt.NDArray[np.float64],
+        cos: npt.NDArray[np.float64],
+        sin: npt.NDArray[np.float64],
+        out: npt.NDArray[np.float64],
+    ) -> None: ...

@@ -358,3 +358,96 @@ cdef class FrameKinematics:
         if scaled:
             for k in range(3 * self.n_nodes):
                 out[k] = out[k] * scale
+
+
+cdef class BvhFrameKinematics:
+    """One frame of :meth:`replay.bvh.BvhKinematics.positions` in the same order of operations:
+    per joint (parents first) its ``parent`` (-1: a root), its rotation channels as (axis, column)
+    rows ``rotations`` ``(R, 2)`` from ``rot_start[k]`` to ``rot_start[k + 1]``, its position channels
+    likewise (``positions``, ``pos_start``), and its ``offsets`` ``(J, 3)``."""
+
+    cdef int64_t[::1] parent
+    cdef int64_t[:, ::1] rotations
+    cdef int64_t[::1] rot_start
+    cdef int64_t[:, ::1] translations
+    cdef int64_t[::1] pos_start
+    cdef double[:, ::1] offsets
+    cdef double[:, ::1] rot
+    cdef readonly Py_ssize_t n_joints
+
+    def __init__(self, parent, rotations, rot_start, translations, pos_start, offsets):
+        self.parent = np.ascontiguousarray(parent, dtype=np.int64)
+        self.rotations = np.ascontiguousarray(rotations, dtype=np.int64).reshape(-1, 2)
+        self.rot_start = np.ascontiguousarray(rot_start, dtype=np.int64)
+        self.translations = np.ascontiguousarray(translations, dtype=np.int64).reshape(-1, 2)
+        self.pos_start = np.ascontiguousarray(pos_start, dtype=np.int64)
+        self.offsets = np.ascontiguousarray(offsets, dtype=np.float64).reshape(-1, 3)
+        self.n_joints = self.parent.shape[0]
+        if (self.rot_start.shape[0] != self.n_joints + 1 or self.pos_start.shape[0] != self.n_joints + 1
+                or self.offsets.shape[0] != self.n_joints):
+            raise ValueError("BVH kinematics: tables of different joint counts")
+        self.rot = np.zeros((self.n_joints, 4))
+
+    def positions(self, const double[::1] row, const double[::1] cos, const double[::1] sin,
+                  double[:, ::1] out):
+        """Every node's position into ``out`` ``(J, 3)`` from a channel ``row`` and its half angles'
+        cosines and sines (numpy's, as the batch computes them)."""
+        cdef Py_ssize_t k, i, c, axis, p
+        cdef double l[4]
+        cdef double e[4]
+        cdef double q[4]
+        cdef double t[3]
+        cdef double w, x, y, z, vx, vy, vz, tx, ty, tz
+        if out.shape[0] != self.n_joints or out.shape[1] != 3:
+            raise ValueError(f"out must have shape ({self.n_joints}, 3)")
+        for k in range(self.n_joints):
+            l[0] = 1.0
+            l[1] = 0.0
+            l[2] = 0.0
+            l[3] = 0.0
+            for i in range(self.rot_start[k], self.rot_start[k + 1]):
+                axis = self.rotations[i, 0]
+                c = self.rotations[i, 1]
+                e[0] = cos[c]
+                e[1] = 0.0
+                e[2] = 0.0
+                e[3] = 0.0
+                e[1 + axis] = sin[c]
+                qmul(l[0], l[1], l[2], l[3], e[0], e[1], e[2], e[3], q)
+                l[0] = q[0]
+                l[1] = q[1]
+                l[2] = q[2]
+                l[3] = q[3]
+            t[0] = self.offsets[k, 0]
+            t[1] = self.offsets[k, 1]
+            t[2] = self.offsets[k, 2]
+            for i in range(self.pos_start[k], self.pos_start[k + 1]):
+                t[self.translations[i, 0]] = row[self.translations[i, 1]]
+            p = self.parent[k]
+            if p < 0:
+                self.rot[k, 0] = l[0]
+                self.rot[k, 1] = l[1]
+                self.rot[k, 2] = l[2]
+                self.rot[k, 3] = l[3]
+                out[k, 0] = t[0]
+                out[k, 1] = t[1]
+                out[k, 2] = t[2]
+                continue
+            w = self.rot[p, 0]
+            x = self.rot[p, 1]
+            y = self.rot[p, 2]
+            z = self.rot[p, 3]
+            qmul(w, x, y, z, l[0], l[1], l[2], l[3], q)
+            self.rot[k, 0] = q[0]
+            self.rot[k, 1] = q[1]
+            self.rot[k, 2] = q[2]
+            self.rot[k, 3] = q[3]
+            vx = t[0]
+            vy = t[1]
+            vz = t[2]
+            tx = 2.0 * (y * vz - z * vy)
+            ty = 2.0 * (z * vx - x * vz)
+            tz = 2.0 * (x * vy - y * vx)
+            out[k, 0] = out[p, 0] + (vx + w * tx + (y * tz - z * ty))
+            out[k, 1] = out[p, 1] + (vy + w * ty + (z * tx - x * tz))
+            out[k, 2] = out[p, 2] + (vz + w * tz + (x * ty - y * tx))

@@ -30,6 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from daemon.types import FloatArray
+from replay._kinematics import BvhFrameKinematics
 from replay.errors import MocapFormatError
 from replay.kinematics import quaternion_multiply, quaternion_rotate
 from replay.textio import read_bytes
@@ -331,6 +332,16 @@ class BvhKinematics:
                 column += 1
             self._plan.append((k, positions, rotations))
         self._offsets = np.array([j.offset for j in hierarchy.joints], dtype=np.float64).reshape(-1, 3)
+        rotating = [r for _, _, rotations in self._plan for r in rotations]
+        moving = [p for _, positions, _ in self._plan for p in positions]
+        self._frame = BvhFrameKinematics(
+            [j.parent for j in hierarchy.joints],
+            rotating,
+            np.cumsum([0] + [len(r) for _, _, r in self._plan]),
+            moving,
+            np.cumsum([0] + [len(p) for _, p, _ in self._plan]),
+            self._offsets,
+        )
 
     def _rows(self, channels: FloatArray) -> FloatArray:
         rows = np.asarray(channels, dtype=np.float64)
@@ -388,11 +399,14 @@ class BvhKinematics:
 
     def positions_frame(self, channels: FloatArray) -> FloatArray:
         """:meth:`positions` of one frame: shape ``(C,)`` gives shape ``(nodes, 3)``, bit for bit
-        the batch's values."""
-        row = np.asarray(channels, dtype=np.float64)
+        the batch's values: the half angles' cosines and sines by numpy (the batch's functions),
+        the rest in compiled code (:class:`replay._kinematics.BvhFrameKinematics`)."""
+        row = np.ascontiguousarray(channels, dtype=np.float64)
         if row.shape != (self.width,):
             raise ValueError(f"channels must have shape ({self.width},), got {row.shape}")
-        out: FloatArray = self.positions(row[None])[0]
+        half = np.radians(row) * 0.5
+        out: FloatArray = np.empty((len(self.hierarchy.joints), 3))
+        self._frame.positions(row, np.cos(half), np.sin(half), out)
         return out
 
 
