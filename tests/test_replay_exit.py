@@ -42,6 +42,7 @@ def stopped(processes: list[subprocess.Popen[str]]) -> list[tuple[float, int | N
     return out
 
 
+@pytest.mark.slow  # 6-10 s: eight replays at full speed
 @pytest.mark.exclusive  # a bound in real time: no other test beside it under xdist
 def test_replays_over_mqtt_stop_within_a_second_of_sigterm(tmp_path: Path) -> None:
     broker = Broker(tmp_path).start()
