@@ -23,6 +23,7 @@ import pytest
 from hypothesis import settings
 from hypothesis.database import DirectoryBasedExampleDatabase
 
+import tests.blas_threads  # noqa: F401  (first: OpenBLAS's threads under xdist)
 from tests.etcd_server import etcd  # noqa: F401  (the fixture, for every test module)
 from tests.helpers import DATA, SHARED
 
