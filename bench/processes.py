@@ -16,6 +16,29 @@ from pathlib import Path
 _HANDED_OUT: set[int] = set()
 
 
+def _port_range() -> tuple[int, int]:
+    """The ports :func:`free_port` draws from: the 12,000 below the kernel's ephemeral range, or,
+    in a pytest-xdist worker (and the processes it starts, which inherit its environment), that
+    worker's own share of them, so that two workers never draw the same port (each remembers only
+    its own draws; and Hypothesis seeds ``random`` alike in every worker, so their draws would
+    repeat each other's)."""
+    try:
+        low = int(Path("/proc/sys/net/ipv4/ip_local_port_range").read_text().split()[0])
+    except (OSError, ValueError, IndexError):
+        low = 32768
+    start, stop = max(1024, low - 12000), low
+    worker = os.environ.get("PYTEST_XDIST_WORKER", "")
+    try:
+        count = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
+        index = int(worker.removeprefix("gw")) if worker.startswith("gw") else 0
+    except ValueError:
+        return start, stop
+    if count > 1 and 0 <= index < count:
+        share = (stop - start) // count
+        start, stop = start + index * share, start + (index + 1) * share
+    return start, stop
+
+
 def free_port() -> int:
     """A TCP port on loopback nobody listens on now, below the kernel's ephemeral range: a port the
     kernel hands out (bind to 0) can be taken by any process's outgoing connection before the
@@ -23,12 +46,9 @@ def free_port() -> int:
     same port twice in a process: ports drawn for servers not yet started are free too (CI: a fresh
     three-server NATS cluster's MQTT listener found its port "already in use", most likely drawn
     for another of its twelve ports; 12 draws of 12,000 collide once in about 180)."""
-    try:
-        low = int(Path("/proc/sys/net/ipv4/ip_local_port_range").read_text().split()[0])
-    except (OSError, ValueError, IndexError):
-        low = 32768
+    start, stop = _port_range()
     for _ in range(100):
-        port = random.randrange(max(1024, low - 12000), low)
+        port = random.randrange(start, stop)
         if port in _HANDED_OUT:
             continue
         with socket.socket() as s:

@@ -4,18 +4,26 @@ in :mod:`tests.naive`.
 Hypothesis runs derandomized by default (profile ``fixed``: the same examples on every run, no
 example database), so CI fails only on what anyone can reproduce; ``HYPOTHESIS_PROFILE=random``
 draws fresh examples, keeping failures in a database under the system's temporary directory. A
-failure found that way is committed as an explicit ``@example`` or a named test."""
+failure found that way is committed as an explicit ``@example`` or a named test.
+
+Under pytest-xdist (the README's command: ``-n 2 --dist loadgroup``) every test holds a lock shared
+by the workers while it runs, and a test marked ``exclusive`` holds it alone: a test that measures
+real time against a bound (a second to stop, a lease kept beside CPU-bound processes) runs with no
+other test beside it, as it does in a serial run."""
 
 from __future__ import annotations
 
+import fcntl
 import os
 import tempfile
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 from hypothesis import settings
 from hypothesis.database import DirectoryBasedExampleDatabase
 
+import tests.blas_threads  # noqa: F401  (first: OpenBLAS's threads under xdist)
 from tests.etcd_server import etcd  # noqa: F401  (the fixture, for every test module)
 from tests.helpers import DATA, SHARED
 
@@ -39,3 +47,32 @@ def shared_data() -> Path:
             pytrace=False,
         )
     return DATA
+
+
+def _lock_path() -> Path | None:
+    """The file the workers of one xdist run lock (named by the run); none when the tests run in
+    one process."""
+    run = os.environ.get("PYTEST_XDIST_TESTRUNUID")
+    if not os.environ.get("PYTEST_XDIST_WORKER") or not run:
+        return None
+    return Path(tempfile.gettempdir()) / f"mocapd-exclusive-{run}.lock"
+
+
+@pytest.hookimpl(wrapper=True)
+def pytest_runtest_protocol(item: pytest.Item, nextitem: pytest.Item | None) -> Iterator[None]:
+    """A test marked ``exclusive`` runs (its fixtures' setup and teardown too) while no other xdist
+    worker runs one; any other test runs beside any but an exclusive one."""
+    path = _lock_path()
+    if path is None:
+        return (yield)
+    with path.open("a") as lock:  # closing it unlocks
+        fcntl.flock(lock, fcntl.LOCK_EX if item.get_closest_marker("exclusive") else fcntl.LOCK_SH)
+        return (yield)
+
+
+def pytest_sessionfinish(session: pytest.Session) -> None:
+    """A worker done with its tests removes the lock file (the other one, if still running, then
+    runs alone)."""
+    path = _lock_path()
+    if path is not None:
+        path.unlink(missing_ok=True)

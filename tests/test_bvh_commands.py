@@ -187,6 +187,7 @@ def test_a_take_in_metres_is_recognised_as_in_centimetres(tmp_path: Path) -> Non
     assert found(in_m.stdout) == found(in_cm.stdout) and found(in_cm.stdout)
 
 
+@pytest.mark.slow  # 11 s: two mocapd learn runs on twelve takes
 def test_learn_cuts_takes_of_a_periodic_action_into_single_repetitions(tmp_path: Path) -> None:
     """``mocapd learn`` with its defaults on whole takes: walking (a periodic action) is learned from
     the first 2 single repetitions of each take, each named by its frames and equal to those rows of

@@ -32,6 +32,7 @@ RATE = 60.0
 
 
 @pytest.mark.slow
+@pytest.mark.exclusive  # a bound in real time: no other test beside it under xdist
 def test_a_worker_beside_two_cpu_bound_processes_keeps_its_partitions(tmp_path: Path) -> None:
     (tmp_path / "nats").mkdir()
     (tmp_path / "etcd").mkdir()

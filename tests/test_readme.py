@@ -2,7 +2,10 @@
 ``sh`` block of the tour runs, in order, in one shell in a scratch copy of the layout (the repository's
 ``.venv`` and ``../shared`` beside it), and must succeed and print what the tour says; the Python
 subscriber receives a replay's detections; ``mocapd run`` exits as it and ``docs/command-line.md`` say
-when a signal stops it."""
+when a signal stops it.
+
+The tour and the subscriber use the daemon's default ports (5555, 5556, 9464; mosquitto on 1883), so
+under xdist they share one worker (``--dist loadgroup``); every other test takes free ports."""
 
 from __future__ import annotations
 
@@ -53,6 +56,7 @@ def test_the_first_two_commands_are_what_ci_runs() -> None:
 
 
 @pytest.mark.slow
+@pytest.mark.xdist_group("default-ports")  # both bind the shipped defaults
 def test_the_tour_runs_as_written(tmp_path: Path) -> None:
     tour = blocks("sh")[2:]
     assert len(tour) >= 4
@@ -88,6 +92,7 @@ def test_the_tour_runs_as_written(tmp_path: Path) -> None:
 
 
 @pytest.mark.slow
+@pytest.mark.xdist_group("default-ports")  # both bind the shipped defaults
 def test_the_python_subscriber_gets_the_detections(tmp_path: Path) -> None:
     (subscriber,) = blocks("python")
     main = workspace(tmp_path)

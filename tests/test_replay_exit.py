@@ -12,6 +12,7 @@ import subprocess
 import time
 from pathlib import Path
 
+import pytest
 import zmq
 
 from bench.processes import free_port
@@ -41,6 +42,8 @@ def stopped(processes: list[subprocess.Popen[str]]) -> list[tuple[float, int | N
     return out
 
 
+@pytest.mark.slow  # 6-10 s: eight replays at full speed
+@pytest.mark.exclusive  # a bound in real time: no other test beside it under xdist
 def test_replays_over_mqtt_stop_within_a_second_of_sigterm(tmp_path: Path) -> None:
     broker = Broker(tmp_path).start()
     try:
@@ -57,6 +60,7 @@ def test_replays_over_mqtt_stop_within_a_second_of_sigterm(tmp_path: Path) -> No
         broker.stop()
 
 
+@pytest.mark.exclusive  # a bound in real time: no other test beside it under xdist
 def test_a_replay_over_zeromq_whose_daemon_has_gone_stops_within_a_second_of_sigterm() -> None:
     port = free_port()
     ctx = zmq.Context()
