@@ -3,12 +3,8 @@ extra: ``pip install 'mocapd[plot]'``)."""
 
 from __future__ import annotations
 
-import contextlib
-import signal
-import threading
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
-from types import FrameType
 from typing import IO, Any
 
 import numpy as np
@@ -17,6 +13,7 @@ import numpy.typing as npt
 from daemon.behaviours import GmmResult, PcaResult, PpcaResult
 from daemon.errors import MocapdError
 from daemon.features import FEATURE_NAMES, SET_SLICES
+from daemon.storage import uninterrupted
 from daemon.types import N_FEATURES, Band, BoolArray
 
 Target = str | Path | IO[bytes]
@@ -27,36 +24,13 @@ class PlotUnavailable(MocapdError, RuntimeError):
     """matplotlib is not installed."""
 
 
-@contextlib.contextmanager
-def _signals_held() -> Iterator[None]:
-    """SIGINT and SIGTERM wait until the block is left, then act as they would have. Their Python
-    handlers are swapped for a recorder rather than the signals blocked: a signal blocked in the main
-    thread still reaches another thread (OpenBLAS's workers), and Python then runs the handler in the
-    main thread in the middle of the block all the same."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    caught: list[int] = []
-
-    def hold(signum: int, frame: FrameType | None) -> None:
-        caught.append(signum)
-
-    numbers = [n for n in (signal.SIGINT, signal.SIGTERM) if signal.getsignal(n) is not None]
-    before = {number: signal.signal(number, hold) for number in numbers}
-    try:
-        yield
-    finally:
-        for number, handler in before.items():
-            signal.signal(number, handler)
-        for signum in dict.fromkeys(caught):
-            signal.raise_signal(signum)
-
-
 def _pyplot() -> Any:
     # a signal in the middle of importing matplotlib's extension modules left them half made (an
-    # ImportError here, then a crash as Python exits): it waits until the import is over
+    # ImportError here, then a crash as Python exits): it waits until the import is over. Its
+    # handler is held back, not the signal blocked: a signal blocked in the main thread still
+    # reaches another thread (OpenBLAS's workers), and Python then runs the handler mid-import
     try:
-        with _signals_held():
+        with uninterrupted():
             import matplotlib
 
             matplotlib.use("Agg")
