@@ -57,6 +57,23 @@ def test_the_first_two_commands_are_what_ci_runs() -> None:
 
 
 @pytest.mark.slow
+def test_the_test_command_runs_pytest_with_its_arguments() -> None:
+    """``tests/run`` (every program it installs is here) hands its arguments to pytest."""
+    one = f"{__file__}::test_the_first_two_commands_are_what_ci_runs"
+    ran = subprocess.run(
+        [str(REPO / "tests" / "run"), "--collect-only", one],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
+    )
+    assert ran.returncode == 0, ran.stderr
+    assert "installing" not in ran.stderr
+    assert "1 test collected" in ran.stdout or "1 item" in ran.stdout, ran.stdout
+
+
+@pytest.mark.slow
 @pytest.mark.exclusive  # both bind the shipped defaults (xdist_group alone does not keep them apart:
 @pytest.mark.xdist_group("default-ports")  # pytest 9.2 drops loadgroup's groups, pytest-xdist issue 1386)
 def test_the_tour_runs_as_written(tmp_path: Path) -> None:
