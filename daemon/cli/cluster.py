@@ -10,6 +10,7 @@ from typing import TYPE_CHECKING, Any
 
 from daemon.config import ClusterConfig, Config
 from daemon.errors import UsageError
+from daemon.extras import require
 
 if TYPE_CHECKING:  # the command imports etcd's client only when it runs
     from daemon.service.membership import ClusterStatus
@@ -66,6 +67,7 @@ def _partitions_option(parser: argparse.ArgumentParser) -> None:
 
 
 def _mappings(args: argparse.Namespace, config: Config) -> int:
+    require("cluster", "mocapd cluster mappings")
     from protocols.nats import mappings
 
     print(mappings(args.partitions or _configured(config, "partitions") or DEFAULT_PARTITIONS), end="")
@@ -163,6 +165,7 @@ def _numbers(ps: list[int] | None) -> str:
 
 
 def _status(args: argparse.Namespace, config: Config) -> int:
+    require("cluster", "mocapd cluster status")
     from daemon.service.membership import read_cluster
     from protocols.transport import StartupError
 

@@ -12,6 +12,7 @@ from typing import TYPE_CHECKING, Any
 from daemon.cli import _terminate, common
 from daemon.cli.detect import speed
 from daemon.config import Config, workers_of, workers_reason
+from daemon.extras import require
 from daemon.errors import InputError, UsageError
 from daemon.library import default_library_path, load_library
 from daemon.recordings import native_rate, read_recording
@@ -177,6 +178,8 @@ def _serve(args: argparse.Namespace, config: Config) -> int:
     config = _overridden(args, config)
     library = load_library(default_library_path() if args.library is None else args.library)
     clustered = "cluster" in config.service.sources + config.service.sinks
+    if clustered:
+        require("cluster", "cluster mode", "--cluster" if args.cluster is not None else "service.sources")
     if clustered and config.service.workers > 1:
         raise UsageError(
             "a cluster worker is one recognition process: start one worker per core "

@@ -43,7 +43,10 @@ def register(sub: Any) -> None:
 
 def _view(args: argparse.Namespace, config: Config) -> int:
     from daemon.cli import package_version
+    from daemon.extras import require
     from daemon.recordings import read_rig_maps
+
+    require("view", "mocapd view")
     from daemon.service.view.server import serve_view
     from daemon.service.view.settings import view_settings
 
