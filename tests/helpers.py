@@ -734,12 +734,17 @@ class View(ServerProcess):
     at ``metrics``): :meth:`start` waits for its ``/api/status``; :meth:`status` reads it; its stderr
     (JSON log lines) goes to ``where/view.err``."""
 
-    def __init__(self, where: Path, bus: str, *extra: str, metrics: str | None = None) -> None:
+    def __init__(
+        self, where: Path, bus: str, *extra: str, metrics: str | None = None, token: str | None = None
+    ) -> None:
         self.where = where
         self.port = free_port()
+        self.token = token
         self.args = [str(MOCAPD_SCRIPT), "view", "--bus", bus, "--port", str(self.port), *extra]
         if metrics is not None:
             self.args += ["--metrics", metrics]
+        if token is not None:
+            self.args += ["--token", token]
         self.stderr_path = where / "view.err"
 
     @property
@@ -747,24 +752,30 @@ class View(ServerProcess):
         return f"http://127.0.0.1:{self.port}/"
 
     def start(self) -> View:
+        """Start it and wait until it serves (its ``serving`` log line)."""
         with self.stderr_path.open("ab") as err:
             process = self.process = subprocess.Popen(self.args, stdout=subprocess.DEVNULL, stderr=err)
-        wait_for(lambda: self.status() is not None or process.poll() is not None, 30, "mocapd view")
+        served = lambda: any(e["event"] == "serving" for e in self.logs())  # noqa: E731
+        wait_for(lambda: served() or process.poll() is not None, 30, "mocapd view")
         assert process.poll() is None, self.stderr_path.read_text()
         return self
 
     def status(self) -> dict[str, Any] | None:
         """``/api/status``; None while it does not answer."""
+        request = urllib.request.Request(f"{self.url}api/status")
+        if self.token is not None:
+            request.add_header("Authorization", f"Bearer {self.token}")
         try:
-            with urllib.request.urlopen(f"{self.url}api/status", timeout=2) as r:
+            with urllib.request.urlopen(request, timeout=2) as r:
                 out: dict[str, Any] = json.loads(r.read())
                 return out
         except OSError:
             return None
 
     def logs(self) -> list[dict[str, Any]]:
-        lines = self.stderr_path.read_text().splitlines()
-        return [json.loads(line) for line in lines if line.startswith("{")]
+        """Its log lines written so far (whole lines only)."""
+        lines = self.stderr_path.read_text().splitlines(keepends=True)
+        return [json.loads(line) for line in lines if line.startswith("{") and line.endswith("\n")]
 
 
 def resampled_motion(motion: Motion, native: float, rate: float) -> Motion:

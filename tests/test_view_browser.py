@@ -298,3 +298,29 @@ def test_bus_text_is_shown_as_text(tmp_path: Path, browser: Browser) -> None:
         pub.close()
         view.stop()
         broker.stop()
+
+
+def test_the_page_passes_its_token_on_and_shows_no_invalid_date(tmp_path: Path, browser: Browser) -> None:
+    """With ``--token`` the page opened with ``?token=`` connects and one opened without it does
+    not; a status whose start time lies beyond what a Date can hold shows a dash."""
+    token = "the-page-token-0123456789"
+    broker = Broker(tmp_path).start()
+    view = View(tmp_path, broker.url, token=token).start()
+    pub = Publisher(broker.url)
+    page, without = browser.new_page(), browser.new_page()
+    try:
+        without.goto(view.url)
+        page.goto(f"{view.url}?token={token}")
+        until(page, "window.mocapdView && window.mocapdView.snapshots >= 1")
+        pub.send(StatusMessage("d-far", "online", "1", 0, 1e300), retain=False)
+        page.wait_for_selector('#daemons .pill[data-instance="d-far"]', timeout=10_000)
+        text = page.evaluate("document.querySelector('#daemons .pill[data-instance=\"d-far\"]').textContent")
+        assert "Invalid" not in text and "started \u2013" in text
+        assert without.evaluate("window.mocapdView.snapshots") == 0
+        assert not without.evaluate("window.mocapdView.connected")
+    finally:
+        page.close()
+        without.close()
+        pub.close()
+        view.stop()
+        broker.stop()

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 from typing import Any
 
 from daemon.cli.common import positive_float
@@ -38,6 +39,12 @@ def register(sub: Any) -> None:
         metavar="N",
         help="the most poses a second per stream sent to the browsers (default 30)",
     )
+    view.add_argument(
+        "--token",
+        default=None,
+        help="a token /ws and /api/ then ask for (the page passes on its URL's ?token=); default: "
+        "the environment's MOCAPD_VIEW_TOKEN, else none on loopback and a new one, logged, beyond it",
+    )
     view.set_defaults(func=_view)
 
 
@@ -50,6 +57,7 @@ def _view(args: argparse.Namespace, config: Config) -> int:
     from daemon.service.view.server import serve_view
     from daemon.service.view.settings import view_settings
 
-    settings = view_settings(args.bus, args.host, args.port, args.metrics, args.poses_per_s)
+    token = args.token if args.token is not None else os.environ.get("MOCAPD_VIEW_TOKEN") or None
+    settings = view_settings(args.bus, args.host, args.port, args.metrics, args.poses_per_s, token)
     rigs = read_rig_maps(config.replay.rig_maps)  # the daemon's, so that the view maps rigs as it does
     return serve_view(settings, version=package_version(), rigs=rigs)

@@ -11,6 +11,15 @@ one per stream (a newer pose replaces one not yet sent: coalesced, counted), sen
 :data:`MAX_PENDING`, past which they are dropped and the client is sent a fresh snapshot instead,
 so a slow client never grows the server's memory. A tab that closes ends its tasks and its state.
 
+Callers (:class:`Gate`): ``/ws`` and ``/api/`` answer only a request whose ``Host`` names the
+served address (on loopback: ``127.0.0.1``, ``localhost`` or ``[::1]`` with the port; beyond it any
+name, since the token guards it) and whose ``Origin``, when it has one (a browser always sends it on
+a WebSocket), is that same host (another site's page, or one reached by DNS rebinding, is refused
+403); with a token (``--token``; served beyond loopback, one is made and logged with a warning if
+none is given), only one that carries it (``?token=``, as the page passes on its own URL's, or
+``Authorization: Bearer``; else 401). The page and its static files hold no data and are served to
+anyone. No response names the server's software.
+
 Tasks, named, under one :class:`asyncio.TaskGroup`: the bus, the clock (once a second: stats, idle
 streams dropped, the bus state), the daemon's health (``--metrics``: ``/healthz`` and ``/metrics``
 every second) and the shutdown, which on SIGTERM/SIGINT closes every WebSocket (at most
@@ -21,15 +30,18 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import dataclasses
+import hmac
 import itertools
 import json
 import logging
 import os
+import secrets
 import signal
 import socket
 import time
-from collections import deque
-from collections.abc import Sequence
+from collections import Counter, deque
+from collections.abc import Awaitable, Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -64,6 +76,35 @@ SECURITY = {
 }
 """On every response: the page may load only its own script and style and talk only to its server
 (the page never puts bus text into HTML anyway)."""
+
+
+LOOPBACK_NAMES = ("127.0.0.1", "localhost", "[::1]")
+
+
+class Gate:
+    """Who may call ``/ws`` and ``/api/`` of a view serving ``settings`` on ``port`` (the module
+    docstring): :meth:`refusal` of a request's headers and token."""
+
+    def __init__(self, settings: ViewSettings, port: int) -> None:
+        self.token = settings.token
+        self.hosts: frozenset[str] | None = None  # None: any Host (beyond loopback: the token guards)
+        if settings.loopback:
+            names = {*LOOPBACK_NAMES, settings.host.lower()}
+            self.hosts = frozenset({f"{n}:{port}" for n in names} | (set(names) if port == 80 else set()))
+
+    def refusal(self, host: str | None, origin: str | None, token: str | None) -> tuple[int, str] | None:
+        """None if a request with these ``Host``, ``Origin`` and token may go on, else its status
+        and why."""
+        host = (host or "").lower()
+        if not host or (self.hosts is not None and host not in self.hosts):
+            return 403, "Host is not the served address"
+        if origin is not None and origin.lower() not in (f"http://{host}", f"https://{host}"):
+            return 403, "Origin is not the served address"
+        if self.token is not None and not (
+            token is not None and hmac.compare_digest(token.encode(), self.token.encode())
+        ):
+            return 401, "a token is needed (the page's URL ?token=...)"
+        return None
 
 
 class _Stop(Exception):
@@ -132,6 +173,9 @@ class ViewServer:
         self.state = ViewState(settings.poses_per_s, rigs=rigs)
         self.watch = Watch(settings.bus)
         self.clients: dict[int, Client] = {}
+        self.gate: Gate | None = None
+        self.callers_refused: Counter[str] = Counter()
+        self._refusal_logged: dict[str, float] = {}
         self.health: Event | None = None
         self._numbers = itertools.count(1)
         self._bus_said: tuple[Any, ...] | None = None
@@ -178,6 +222,7 @@ class ViewServer:
             "bus": self.bus(),
             "health": self.health,
             "refusals": dict(self.state.refusals),
+            "callers_refused": dict(self.callers_refused),
             "poses_per_s": self.settings.poses_per_s,
         }
 
@@ -214,8 +259,28 @@ class ViewServer:
 
     # ----------------------------------------------------------------------------- the web
 
+    @web.middleware
+    async def _guard(
+        self, request: web.Request, handler: Callable[[web.Request], Awaitable[web.StreamResponse]]
+    ) -> web.StreamResponse:
+        if request.path == "/ws" or request.path.startswith("/api/"):
+            bearer = request.headers.get("Authorization", "")
+            token = bearer[7:] if bearer.startswith("Bearer ") else request.query.get("token")
+            assert self.gate is not None  # made before the site takes requests
+            refused = self.gate.refusal(request.headers.get("Host"), request.headers.get("Origin"), token)
+            if refused is not None:
+                status, why = refused
+                self.callers_refused[why] += 1
+                now = time.monotonic()
+                if now - self._refusal_logged.get(why, -60.0) >= 1.0:  # a flood is counted, not logged
+                    self._refusal_logged[why] = now
+                    fields = {"path": request.path, "peer": request.remote, "why": why}
+                    self.log.warning("caller refused", extra={"fields": fields})
+                return web.Response(status=status, text=why + "\n")
+        return await handler(request)
+
     def app(self) -> web.Application:
-        app = web.Application()
+        app = web.Application(middlewares=[self._guard])
         app.router.add_get("/", self._page)
         app.router.add_get("/ws", self._socket)
         app.router.add_get("/api/status", self._status)
@@ -299,10 +364,24 @@ class ViewServer:
                 ) from None
             host, port = runner.addresses[0][:2]
             self.url = f"http://{host}:{port}/"
+            if not self.settings.loopback and self.settings.token is None:
+                self.settings = dataclasses.replace(self.settings, token=secrets.token_urlsafe(24))
+            self.gate = Gate(self.settings, port)
             self.log.info(
                 "serving",
                 extra={"fields": {"url": self.url, "bus": self.settings.bus, "version": self.version}},
             )
+            if not self.settings.loopback:
+                self.log.warning(
+                    "served beyond loopback",
+                    extra={
+                        "fields": {
+                            "host": self.settings.host,
+                            "open": f"{self.url}?token={self.settings.token}",
+                            "why": "anyone who reaches this address and has the token sees the bus",
+                        }
+                    },
+                )
             try:
                 async with asyncio.TaskGroup() as group:
                     group.create_task(self.watch.run(self.deliver), name="bus")
@@ -327,6 +406,7 @@ class ViewServer:
 
 async def _secured(request: web.Request, response: web.StreamResponse) -> None:
     response.headers.update(SECURITY)
+    response.headers["Server"] = "mocapd"  # not aiohttp's and Python's versions
 
 
 def serve_view(settings: ViewSettings, *, version: str, rigs: Sequence[RigMap] = BUILT_IN) -> int:

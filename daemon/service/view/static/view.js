@@ -43,8 +43,11 @@
     return typeof x === "number" && Number.isFinite(x) ? x.toFixed(digits) : "–";
   }
 
+  const MAX_DATE_MS = 8.64e15; // ECMAScript's time range: a Date past it is "Invalid Date"
+
   function clock(seconds) {
-    return typeof seconds === "number" ? new Date(seconds * 1000).toLocaleTimeString() : "";
+    const ms = typeof seconds === "number" ? seconds * 1000 : NaN;
+    return Number.isFinite(ms) && Math.abs(ms) <= MAX_DATE_MS ? new Date(ms).toLocaleTimeString() : "–";
   }
 
   // ------------------------------------------------------------------------------ a stream's card
@@ -459,7 +462,9 @@
   let retry = 500;
   function connect() {
     const link = $("link");
-    const ws = new WebSocket(`${location.protocol === "https:" ? "wss" : "ws"}://${location.host}/ws`);
+    const token = new URLSearchParams(location.search).get("token");
+    const query = token ? `?token=${encodeURIComponent(token)}` : "";
+    const ws = new WebSocket(`${location.protocol === "https:" ? "wss" : "ws"}://${location.host}/ws${query}`);
     ws.onopen = () => {
       retry = 500;
       record.connected = true;
