@@ -324,3 +324,69 @@ def test_the_page_passes_its_token_on_and_shows_no_invalid_date(tmp_path: Path, 
         pub.close()
         view.stop()
         broker.stop()
+
+
+FACING = {  # a figure facing +z (its left at +x), centimetres, the left arm raised above the head
+    "root": (0, 100, 0), "lhip": (10, 95, 0), "lknee": (10, 50, 0), "lankle": (10, 8, 0),
+    "ltoes": (10, 0, 12), "rhip": (-10, 95, 0), "rknee": (-10, 50, 0), "rankle": (-10, 8, 0),
+    "rtoes": (-10, 0, 12), "belly": (0, 110, 0), "chest": (0, 130, 0), "neck": (0, 150, 0),
+    "head": (0, 160, 0), "headtop": (0, 175, 0), "lclavicle": (0, 150, 0), "lshoulder": (18, 148, 0),
+    "lelbow": (20, 175, 0), "lwrist": (22, 200, 0), "lfingers": (22, 210, 0), "lthumb": (22, 205, 3),
+    "rclavicle": (0, 150, 0), "rshoulder": (-18, 148, 0), "relbow": (-20, 120, 0),
+    "rwrist": (-22, 95, 0), "rfingers": (-22, 85, 0), "rthumb": (-22, 90, 3),
+}  # fmt: skip
+
+
+def test_the_figure_is_drawn_in_true_perspective_and_handedness(tmp_path: Path, browser: Browser) -> None:
+    """The camera (``mocapdView.projection``): facing it, a figure's left (+x) is on the screen's
+    right and a nearer point is drawn larger; seen from above, the floor ring's near edge is wider
+    than its far edge. The page's own drawing of a pose facing +z with the left arm raised: the
+    left wrist is above the head and on the side of the screen that the figure's turn (the drawn
+    yaw) puts it, at every draw."""
+    camera = "{cx: 0, cy: 0, cz: 0, scale: 1, w: 400, h: 400, depth: 4000, yaw: 0, pitch: %s}"
+    broker = Broker(tmp_path).start()
+    view = View(tmp_path, broker.url).start()
+    pub = Publisher(broker.url)
+    page = browser.new_page()
+    try:
+        page.goto(view.url)
+        until(page, "window.mocapdView && window.mocapdView.snapshots >= 1")
+        facing = page.evaluate(
+            f"""() => {{
+                const p = window.mocapdView.projection({camera % 0});
+                return {{left: p(100, 0, 0), near: p(100, 0, 500), far: p(100, 0, -500)}};
+            }}"""
+        )
+        assert facing["left"][0] > 200  # the figure's left on the screen's right
+        assert facing["near"][0] - 200 > facing["left"][0] - 200 > facing["far"][0] - 200 > 0
+        above = page.evaluate(
+            f"""() => {{
+                const p = window.mocapdView.projection({camera % 0.6});
+                const width = (z) => p(500, -900, z)[0] - p(-500, -900, z)[0];
+                const v = (z) => p(0, -900, z)[1];
+                return {{near: width(500), far: width(-500), nearV: v(500), farV: v(-500)}};
+            }}"""
+        )
+        assert above["near"] > 1.2 * above["far"] and above["nearV"] > above["farV"]  # near: lower, wider
+        pub.send(SkeletonMessage("facing", 120.0, JOINT_NAMES))
+        pose = np.array([FACING[j] for j in JOINT_NAMES], np.float32)
+        draws: list[dict[str, Any]] = []
+        for k in range(40):
+            pub.send(PoseMessage("facing", k + 1, time.time(), positions=pose))
+            page.wait_for_timeout(50)
+            drawn = page.evaluate("(window.mocapdView.streams['facing'] || {}).drawn || null")
+            if drawn is not None:
+                draws.append(drawn)
+        assert draws, "the figure was never drawn"
+        lw, head, root = (JOINT_NAMES.index(j) for j in ("lwrist", "head", "root"))
+        for d in draws:
+            screen = d["screen"]
+            assert screen[lw][1] < screen[head][1]  # up is up
+            side = np.cos(d["yaw"])  # the left's x on screen: x·cos(yaw) before perspective
+            if abs(side) > 0.2:
+                assert np.sign(screen[lw][0] - screen[root][0]) == np.sign(side), d
+    finally:
+        page.close()
+        pub.close()
+        view.stop()
+        broker.stop()

@@ -12,7 +12,30 @@
   const LEFT = new Set(["lhip", "lknee", "lankle", "ltoes", "lclavicle", "lshoulder", "lelbow", "lwrist", "lfingers", "lthumb"]);
   const RIGHT = new Set(["rhip", "rknee", "rankle", "rtoes", "rclavicle", "rshoulder", "relbow", "rwrist", "rfingers", "rthumb"]);
 
+  // A camera looking at (cx, cy, cz) from `depth` away, turned by `yaw` about the vertical and
+  // tilted down by `pitch`, scale px/mm, the screen w × h. The world is right-handed with y up, so
+  // before turning the camera sits on +z looking toward -z: +x is the screen's right, and a point
+  // nearer the camera (larger z) is drawn larger. Returns (x, y, z) mm -> [u, v] px.
+  function projection(cam) {
+    const cosY = Math.cos(cam.yaw);
+    const sinY = Math.sin(cam.yaw);
+    const cosP = Math.cos(cam.pitch);
+    const sinP = Math.sin(cam.pitch);
+    return (x, y, z) => {
+      const dx = x - cam.cx;
+      const dy = y - cam.cy;
+      const dz = z - cam.cz;
+      const x1 = dx * cosY + dz * sinY;
+      const z1 = -dx * sinY + dz * cosY;
+      const y2 = dy * cosP - z1 * sinP;
+      const z2 = dy * sinP + z1 * cosP; // toward the camera
+      const s = (cam.scale * cam.depth) / Math.max(cam.depth - z2, 0.05 * cam.depth);
+      return [cam.w / 2 + x1 * s, cam.h / 2 - y2 * s];
+    };
+  }
+
   const record = {
+    projection, // for the tests: the figure's camera
     connected: false,
     snapshots: 0,
     messages: 0,
@@ -74,6 +97,7 @@
         detections: [],
         progress: Object.create(null),
         progressUpdates: 0,
+        drawn: null, // the last figure drawn: { yaw, pitch, screen: [[u, v] per joint] }
       };
       record.streams[this.id] = this.rec;
 
@@ -264,22 +288,9 @@
       const cz = p[2];
       const cy = minY + this.extent / 2;
       const scale = (h * 0.78) / this.extent;
-      const cosY = Math.cos(this.yaw);
-      const sinY = Math.sin(this.yaw);
-      const cosP = Math.cos(this.pitch);
-      const sinP = Math.sin(this.pitch);
-      const depth = this.extent * 4;
-      const project = (x, y, z) => {
-        const dx = x - cx;
-        const dy = y - cy;
-        const dz = z - cz;
-        const x1 = dx * cosY + dz * sinY;
-        const z1 = -dx * sinY + dz * cosY;
-        const y2 = dy * cosP - z1 * sinP;
-        const z2 = dy * sinP + z1 * cosP;
-        const s = (scale * depth) / (depth + z2);
-        return [w / 2 + x1 * s, h / 2 - y2 * s];
-      };
+      const project = projection({
+        cx, cy, cz, scale, w, h, yaw: this.yaw, pitch: this.pitch, depth: this.extent * 4,
+      });
       // the floor under the figure: a ring of radius half its height, for depth
       ctx.strokeStyle = "#2a3646";
       ctx.lineWidth = 1;
@@ -294,6 +305,7 @@
       ctx.stroke();
       const screen = new Array(n);
       for (let j = 0; j < n; j++) screen[j] = project(p[3 * j], p[3 * j + 1], p[3 * j + 2]);
+      this.rec.drawn = { yaw: this.yaw, pitch: this.pitch, screen };
       ctx.lineWidth = 3;
       ctx.lineCap = "round";
       for (const [a, b] of bones) {
