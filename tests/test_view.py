@@ -26,6 +26,7 @@ from paho.mqtt.enums import CallbackAPIVersion
 from bench.processes import free_port
 from daemon.service.view.server import MAX_PENDING
 from protocols.messages import (
+    STATUS_REMINDER_S,
     ClassProgress,
     DetectionMessage,
     Message,
@@ -37,7 +38,7 @@ from protocols.messages import (
     topic,
 )
 from replay import JOINT_NAMES
-from tests.helpers import Broker, View, assert_one_error_line, mocapd, wait_for
+from tests.helpers import Broker, Daemon, View, assert_one_error_line, mocapd, wait_for
 
 ZEROS = np.zeros((26, 3), np.float32)
 
@@ -192,6 +193,41 @@ async def test_the_view_on_zeromq_takes_the_daemons_relay(tmp_path: Path) -> Non
     refused = [m for m in messages if m["type"] == "refused"]
     assert [r["reason"] for r in refused] == ["undecodable"]  # a message of one frame
     assert status is not None and status["bus"]["kind"] == "zmq" and status["bus"]["problem"] is None
+
+
+@pytest.mark.slow
+async def test_a_zeromq_daemon_killed_is_shown_stale_within_two_reminders(tmp_path: Path) -> None:
+    """A real daemon on ZeroMQ, the view on its detections socket: ``online`` while it reminds;
+    after kill -9 (no word said) stale within 12 s (two reminder periods and a tick)."""
+    daemon = Daemon(tmp_path).start()
+    view = View(tmp_path, f"zmq+{daemon.detections}").start()
+    try:
+        async with aiohttp.ClientSession() as session, session.ws_connect(f"{view.url}ws") as ws:
+            seen: list[dict[str, Any]] = []
+
+            async def until(condition: Any, timeout: float) -> float:
+                began = time.monotonic()
+                while not condition():
+                    left = timeout - (time.monotonic() - began)
+                    assert left > 0, [(m["state"], m["stale"]) for m in seen]
+                    msg = await ws.receive_json(timeout=left)
+                    if msg["type"] == "snapshot":
+                        seen.extend(msg["statuses"])
+                    elif msg["type"] == "status":
+                        seen.append(msg)
+                return time.monotonic() - began
+
+            ours = lambda: [m for m in seen if m["instance"] == daemon.instance]  # noqa: E731
+            await until(lambda: bool(ours()), 2 * STATUS_REMINDER_S + 2)
+            assert ours()[-1]["state"] == "online" and not ours()[-1]["stale"]
+            daemon.signal(signal.SIGKILL)
+            daemon.wait(10)
+            took = await until(lambda: ours()[-1]["stale"], 12.0)
+            assert ours()[-1]["state"] == "online"  # it never said offline: the view tells
+            assert took <= 12.0
+    finally:
+        view.stop()
+        daemon.stop()
 
 
 def raw_websocket(port: int) -> socket.socket:

@@ -390,3 +390,30 @@ def test_the_figure_is_drawn_in_true_perspective_and_handedness(tmp_path: Path, 
         pub.close()
         view.stop()
         broker.stop()
+
+
+def test_daemon_pills_are_bounded_live_ones_first(tmp_path: Path, browser: Browser) -> None:
+    """A flood of statuses draws at most four pills, live ones first (most recently heard), and
+    one summary of the rest."""
+    broker = Broker(tmp_path).start()
+    view = View(tmp_path, broker.url).start()
+    pub = Publisher(broker.url)
+    page = browser.new_page()
+    try:
+        page.goto(view.url)
+        until(page, "window.mocapdView && window.mocapdView.snapshots >= 1")
+        pub.send(StatusMessage("d-offline", "offline", "1", 0, 1.0), retain=False)
+        for k in range(7):
+            pub.send(StatusMessage(f"d-{k}", "online", "1", 0, 1.0), retain=False)
+        page.wait_for_selector("#daemons-more", timeout=10_000)
+        until(page, "document.querySelector('#daemons-more').textContent.startsWith('+4 more')")
+        shown = page.evaluate(
+            "[...document.querySelectorAll('#daemons .pill[data-instance]')].map((p) => p.dataset.instance)"
+        )
+        assert shown == ["d-6", "d-5", "d-4", "d-3"]
+        assert page.evaluate("document.querySelector('#daemons-more').textContent") == "+4 more (3 online)"
+    finally:
+        page.close()
+        pub.close()
+        view.stop()
+        broker.stop()

@@ -14,10 +14,12 @@ from daemon.service.metrics import Metrics
 from daemon.service.view.state import (
     BONE_INDICES,
     DETECTIONS_KEPT,
+    INSTANCES_KEPT,
     ViewState,
     daemon_health,
 )
 from protocols.messages import (
+    STATUS_REMINDER_S,
     ClassProgress,
     DetectionMessage,
     Message,
@@ -210,6 +212,7 @@ def test_statuses_and_their_clearing() -> None:
             "version": "0.1.0",
             "streams": 2,
             "started": 5.0,
+            "stale": False,
         }
     ]
     (r,) = state.take(Incoming("mocapd/d-2/status", encode(online), 0.0), 0.0)
@@ -218,6 +221,53 @@ def test_statuses_and_their_clearing() -> None:
         {"type": "status_gone", "instance": "d-1"}
     ]
     assert state.snapshot()["statuses"] == []
+
+
+def statuses_stale(state: ViewState) -> dict[str, bool]:
+    return {e["instance"]: e["stale"] for e in state.snapshot()["statuses"]}
+
+
+def test_a_zeromq_status_not_reminded_for_two_periods_is_stale() -> None:
+    """Over ZeroMQ the daemon says ``online`` again every STATUS_REMINDER_S: silent for two
+    periods, it went without a word (kill -9); heard again, it is live. MQTT's retained statuses
+    (with a will for the word) never go stale."""
+    period = STATUS_REMINDER_S
+    zmq, mqtt = ViewState(30.0, reminded=True), ViewState(30.0)
+    for state in (zmq, mqtt):
+        state.take(wire(StatusMessage("d-1", "online", "1", 0, 5.0)), 0.0)
+        state.take(wire(StatusMessage("d-2", "offline", "1", 0, 5.0)), 0.0)
+        state.take(wire(StatusMessage("d-1", "online", "1", 0, 5.0)), period)  # reminded
+    for state in (zmq, mqtt):
+        assert not [e for e in state.tick(3 * period) if e["type"] == "status"]
+    stale = [e for e in zmq.tick(3 * period + 0.1) if e["type"] == "status"]
+    assert [(e["instance"], e["stale"]) for e in stale] == [("d-1", True)]  # not the offline one
+    assert not [e for e in zmq.tick(3 * period + 1.1) if e["type"] == "status"]  # said once
+    assert statuses_stale(zmq) == {"d-1": True, "d-2": False}
+    for t in (4 * period, 40 * period):
+        assert not [e for e in mqtt.tick(t) if e["type"] == "status"]
+    assert statuses_stale(mqtt) == {"d-1": False, "d-2": False}
+    (back,) = zmq.take(wire(StatusMessage("d-1", "online", "1", 0, 5.0)), 4 * period)
+    assert back["stale"] is False and statuses_stale(zmq)["d-1"] is False
+
+
+def test_a_flood_of_statuses_evicts_stale_and_offline_ones_first() -> None:
+    state = ViewState(30.0, reminded=True)
+    state.take(wire(StatusMessage("real", "online", "1", 3, 5.0)), 0.0)
+    state.take(wire(StatusMessage("gone", "online", "1", 0, 5.0)), 0.0)
+    state.take(wire(StatusMessage("old", "offline", "1", 0, 5.0)), 0.0)
+    for k in range(1, 8):  # the real one reminds; "gone" does not
+        state.take(wire(StatusMessage("real", "online", "1", 3, 5.0)), k * STATUS_REMINDER_S)
+        state.tick(k * STATUS_REMINDER_S + 0.5)
+    for k in range(INSTANCES_KEPT - 1):
+        state.take(wire(StatusMessage(f"fake-{k}", "online", "1", 0, 5.0)), 40.0)
+    kept = statuses_stale(state)
+    assert len(kept) == INSTANCES_KEPT and "real" in kept
+    assert "gone" not in kept and "old" not in kept
+    state.take(wire(StatusMessage("fake-last", "online", "1", 0, 5.0)), 40.0)
+    assert "real" not in statuses_stale(state)  # the longest unheard of the live ones, bounded ...
+    state.take(wire(StatusMessage("real", "online", "1", 3, 5.0)), 40.0 + STATUS_REMINDER_S)
+    kept = statuses_stale(state)  # ... until its next reminder
+    assert len(kept) == INSTANCES_KEPT and kept["real"] is False
 
 
 def test_the_daemons_health_from_its_own_metrics() -> None:

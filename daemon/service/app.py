@@ -48,6 +48,7 @@ from daemon.recordings import read_rig_maps
 from daemon.service.metrics import Metrics, open_http, serve_http
 from daemon.service.streams import Emitted, Refused, StreamTable
 from protocols.messages import (
+    STATUS_REMINDER_S,
     BoundaryMessage,
     EndMessage,
     PoseMessage,
@@ -81,7 +82,7 @@ DROPS = ("lagging",)
 """Taken-in poses not recognised: a full queue; and ``recognizer_<problem>``, the recogniser's refusals."""
 YIELD_EVERY = 64
 """Messages an intake takes before it lets the other tasks run."""
-STATUS_EVERY_S = 5
+STATUS_EVERY_S = STATUS_REMINDER_S
 """How often the daemon's status goes out again where nothing retains it (ZeroMQ: :func:`reminder`)."""
 CATCH_UP_POLL_S = 0.005
 """How often recognition looks whether the cluster transport has read a taken partition's buffer."""

@@ -170,8 +170,9 @@ class ViewServer:
         self.settings = settings
         self.version = version
         self.log = logger
-        self.state = ViewState(settings.poses_per_s, rigs=rigs)
         self.watch = Watch(settings.bus)
+        # only ZeroMQ reminds (MQTT's statuses are retained, and its will says when one is gone)
+        self.state = ViewState(settings.poses_per_s, rigs=rigs, reminded=self.watch.kind == "zmq")
         self.clients: dict[int, Client] = {}
         self.gate: Gate | None = None
         self.callers_refused: Counter[str] = Counter()

@@ -31,6 +31,7 @@ from daemon.errors import InputError, printable
 from daemon.recognizer import joint_order, skeleton_model
 from protocols.messages import (
     DEFAULT_MAX_BYTES,
+    STATUS_REMINDER_S,
     STREAM_ID,
     DetectionMessage,
     EndMessage,
@@ -60,6 +61,9 @@ DRAWERS_KEPT = 16
 DETECTIONS_KEPT = 50
 REFUSED_KEPT = 50
 INSTANCES_KEPT = 16
+STALE_PERIODS = 2
+"""A status reminded every :data:`~protocols.messages.STATUS_REMINDER_S` (ZeroMQ) and not heard for
+this many periods is stale: its daemon went without a word (killed, or cut off)."""
 TEXT_CHARS = 200
 NEW_RUN_S = 1.0
 """A sequence number back by more than this many seconds of frames (or a new epoch) is a new run."""
@@ -217,8 +221,10 @@ class ViewState:
         max_streams: int = MAX_STREAMS,
         max_bytes: int = DEFAULT_MAX_BYTES,
         rigs: Sequence[RigMap] = BUILT_IN,
+        reminded: bool = False,
     ) -> None:
         self.rigs = tuple(rigs)
+        self.stale_s = STALE_PERIODS * STATUS_REMINDER_S if reminded else None
         self.interval = 1.0 / poses_per_s
         self.poses_per_s = poses_per_s
         self.idle_s = idle_s
@@ -227,6 +233,7 @@ class ViewState:
         self.streams: dict[str, StreamView] = {}
         self.skeletons: OrderedDict[str, SkeletonMessage] = OrderedDict()
         self.statuses: OrderedDict[str, Event] = OrderedDict()
+        self._heard: dict[str, float] = {}
         self.refused: deque[Event] = deque(maxlen=REFUSED_KEPT)
         self.refusals: Counter[str] = Counter()
         self.received = 0
@@ -253,7 +260,7 @@ class ViewState:
             raise WireError("undecodable", "not a [topic, payload] message")
         parts = incoming.topic.split("/")
         if len(parts) == 3 and parts[0] == "mocapd" and parts[2] == "status":
-            return self._status(parts[1], incoming)
+            return self._status(parts[1], incoming, now)
         parsed = parse_topic(incoming.topic)
         if parsed is None:
             raise WireError("schema", "not a topic of mocapd's (mocap/<stream>/<kind>)")
@@ -285,10 +292,11 @@ class ViewState:
         assert isinstance(message, ProgressMessage)
         return self._progress(message, now)
 
-    def _status(self, instance: str, incoming: Incoming) -> list[Event]:
+    def _status(self, instance: str, incoming: Incoming, now: float) -> list[Event]:
         if not STREAM_ID.fullmatch(instance):
             raise WireError("schema", "not an instance id in the status topic")
         if not incoming.payload:  # a retained status cleared
+            self._heard.pop(instance, None)
             return (
                 [{"type": "status_gone", "instance": instance}] if self.statuses.pop(instance, None) else []
             )
@@ -302,11 +310,17 @@ class ViewState:
             "version": text(message.version, 40),
             "streams": message.streams,
             "started": message.started,
+            "stale": False,
         }
         self.statuses[instance] = event
         self.statuses.move_to_end(instance)
+        self._heard[instance] = now
         while len(self.statuses) > INSTANCES_KEPT:
-            self.statuses.popitem(last=False)
+            # the least telling goes first: a stale or offline one, else the longest unheard
+            gone = next((i for i, e in self.statuses.items() if e["stale"] or e["state"] != "online"), None)
+            gone = next(iter(self.statuses)) if gone is None else gone
+            del self.statuses[gone]
+            self._heard.pop(gone, None)
         return [event]
 
     def _skeleton(self, message: SkeletonMessage) -> list[Event]:
@@ -445,9 +459,16 @@ class ViewState:
     # ----------------------------------------------------------------------------- the clock
 
     def tick(self, now: float) -> list[Event]:
-        """Once a second: the streams silent for :attr:`idle_s` dropped (``gone``), then every
+        """Once a second: the online statuses not reminded for :attr:`stale_s` marked stale (a
+        ``status`` update), the streams silent for :attr:`idle_s` dropped (``gone``), then every
         stream's rate, lag and missing poses (``stats``)."""
         out: list[Event] = []
+        if self.stale_s is not None:
+            for instance, event in self.statuses.items():
+                silent = now - self._heard[instance]
+                if event["state"] == "online" and not event["stale"] and silent > self.stale_s:
+                    event["stale"] = True
+                    out.append(event)
         for name in [n for n, s in self.streams.items() if now - s.seen > self.idle_s]:
             del self.streams[name]
             out.append({"type": "gone", "stream": name})

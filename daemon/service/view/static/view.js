@@ -356,23 +356,40 @@
   }
 
   function status(s) {
+    s.heard = ++heard;
     daemons.set(s.instance, s);
     renderDaemons();
   }
 
+  const SHOWN_DAEMONS = 4;
+  let heard = 0;
+
   function renderDaemons() {
+    // live ones first, then the most recently heard: a flood of other statuses on the bus
+    // cannot push a live daemon out of sight, and at most SHOWN_DAEMONS pills are drawn
+    const live = (d) => d.state === "online" && !d.stale;
+    const all = [...daemons.values()].sort((a, b) => live(b) - live(a) || b.heard - a.heard);
     const box = $("daemons");
     box.replaceChildren();
-    for (const d of daemons.values()) {
-      const pill = el("span", `pill ${d.state === "online" ? "ok" : "bad"}`);
+    for (const d of all.slice(0, SHOWN_DAEMONS)) {
+      const state = d.stale ? "stale" : d.state;
+      const pill = el("span", `pill ${state === "online" ? "ok" : state === "stale" ? "warn" : "bad"}`);
       pill.dataset.instance = d.instance;
-      pill.dataset.state = d.state;
+      pill.dataset.state = state;
+      if (d.stale) pill.title = "said online, but its reminders stopped: gone without a word";
       pill.append(
         el("strong", "", d.instance),
         // not its "streams": that is the count when it said so (over MQTT, when it started)
-        document.createTextNode(` ${d.state} · started ${clock(d.started)} · mocapd ${d.version}`),
+        document.createTextNode(` ${state} · started ${clock(d.started)} · mocapd ${d.version}`),
       );
       box.append(pill);
+    }
+    if (all.length > SHOWN_DAEMONS) {
+      const rest = all.slice(SHOWN_DAEMONS);
+      const more = el("span", "pill muted", `+${rest.length} more (${rest.filter(live).length} online)`);
+      more.id = "daemons-more";
+      more.title = rest.map((d) => `${d.instance}: ${d.stale ? "stale" : d.state}`).join("\n");
+      box.append(more);
     }
     if (!daemons.size) box.append(el("span", "pill muted", "no daemon status yet"));
   }
@@ -422,7 +439,10 @@
     bones = s.bones;
     for (const id of [...cards.keys()]) gone(id);
     daemons.clear();
-    for (const st of s.statuses) daemons.set(st.instance, st);
+    for (const st of s.statuses) {
+      st.heard = ++heard;
+      daemons.set(st.instance, st);
+    }
     renderDaemons();
     for (const info of s.streams) {
       const c = card(info);
