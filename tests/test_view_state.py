@@ -146,6 +146,30 @@ def test_rate_lag_and_missing_poses() -> None:
     assert state.streams["s"].missing == 11
 
 
+@pytest.mark.parametrize("step", [1, 3, 4])
+def test_the_relays_thinning_is_not_counted_missing(step: int) -> None:
+    """Over ZeroMQ the daemon relays every ``step``-th pose it took in: gaps of ``step`` are its
+    sampling (shown as such), and only what lies beyond them the publisher's loss. On MQTT every
+    gap is a loss."""
+    p = np.zeros((26, 3), np.float32)
+    lost = {17, 18, 40}  # never sent by the publisher
+    taken = [q for q in range(1, 121) if q not in lost]
+    relayed = taken[::step]  # the daemon's relay: every step-th pose it took in
+    for bus, want_sampled in ((True, step), (False, 1)):
+        state = ViewState(30.0, relayed=bus)
+        state.take(wire(SkeletonMessage("s", 120.0, JOINT_NAMES)), 0.0)
+        for k, seq in enumerate(relayed):
+            state.take(wire(PoseMessage("s", seq, 100.0, p)), k / 120)
+        (s,) = state.tick(2.0)[-1]["streams"]
+        gaps = np.diff(relayed)
+        expected = int((gaps - (gaps.min() if bus else 1)).sum())
+        assert s["sampled"] == want_sampled and s["missing"] == expected
+        if bus:  # the relay's count is a lower bound of the publisher's loss, exact unthinned
+            assert 0 < s["missing"] <= len(lost) and (step > 1 or s["missing"] == len(lost))
+        else:
+            assert s["missing"] == len(lost) + (step - 1) * (len(relayed) - 1)
+
+
 def test_a_stream_goes_after_being_idle_and_its_state_is_bounded() -> None:
     state = ViewState(30.0, idle_s=10.0, max_streams=3)
     for k in range(200):
@@ -232,7 +256,7 @@ def test_a_zeromq_status_not_reminded_for_two_periods_is_stale() -> None:
     periods, it went without a word (kill -9); heard again, it is live. MQTT's retained statuses
     (with a will for the word) never go stale."""
     period = STATUS_REMINDER_S
-    zmq, mqtt = ViewState(30.0, reminded=True), ViewState(30.0)
+    zmq, mqtt = ViewState(30.0, relayed=True), ViewState(30.0)
     for state in (zmq, mqtt):
         state.take(wire(StatusMessage("d-1", "online", "1", 0, 5.0)), 0.0)
         state.take(wire(StatusMessage("d-2", "offline", "1", 0, 5.0)), 0.0)
@@ -251,7 +275,7 @@ def test_a_zeromq_status_not_reminded_for_two_periods_is_stale() -> None:
 
 
 def test_a_flood_of_statuses_evicts_stale_and_offline_ones_first() -> None:
-    state = ViewState(30.0, reminded=True)
+    state = ViewState(30.0, relayed=True)
     state.take(wire(StatusMessage("real", "online", "1", 3, 5.0)), 0.0)
     state.take(wire(StatusMessage("gone", "online", "1", 0, 5.0)), 0.0)
     state.take(wire(StatusMessage("old", "offline", "1", 0, 5.0)), 0.0)

@@ -171,8 +171,7 @@ class ViewServer:
         self.version = version
         self.log = logger
         self.watch = Watch(settings.bus)
-        # only ZeroMQ reminds (MQTT's statuses are retained, and its will says when one is gone)
-        self.state = ViewState(settings.poses_per_s, rigs=rigs, reminded=self.watch.kind == "zmq")
+        self.state = ViewState(settings.poses_per_s, rigs=rigs, relayed=self.watch.kind == "zmq")
         self.clients: dict[int, Client] = {}
         self.gate: Gate | None = None
         self.callers_refused: Counter[str] = Counter()

@@ -4,10 +4,15 @@ Pure: :class:`ViewState` takes the bus's messages (:class:`~protocols.transport.
 decoded with :func:`protocols.messages.decode` and otherwise untrusted) and the clock, and returns
 the updates for the browsers (JSON-ready dicts, ``{"type": ...}``); no sockets, no asyncio.
 
+``relayed``: the bus is the daemon's ZeroMQ relay, which thins the poses (``zmq.relay_per_s``) and
+reminds of its status (:data:`~protocols.messages.STATUS_REMINDER_S`); otherwise MQTT, where every
+pose is on the broker and statuses are retained.
+
 Per stream: its skeleton, the standard joints (:data:`replay.JOINT_NAMES`, whole millimetres, y up) of
 at most ``poses_per_s`` poses a second (the only poses whose joints are computed: gathered by name
 for a positions stream, by the package's forward kinematics for a channel stream), the poses
-received a second, the lag (arrival - the pose's ``time``), poses missing (sequence gaps), the latest
+received a second, the lag (arrival - the pose's ``time``), poses missing (sequence gaps beyond
+the relay's step), the latest
 progress and the last :data:`DETECTIONS_KEPT` detections. A stream appears with its first pose,
 detection or progress (a retained skeleton alone is remembered, not shown) and is dropped after
 :data:`IDLE_S` seconds without any of them. Everything is bounded: at most ``max_streams`` streams
@@ -177,6 +182,9 @@ class StreamView:
     last_seq: int | None = None
     received: int = 0
     missing: int = 0
+    step: int | None = None
+    """Over ZeroMQ the daemon relays one pose in ``step`` (``zmq.relay_per_s``): the run's smallest
+    sequence gap (None before its first); on MQTT every pose is on the bus."""
     drawn: int = 0
     next_draw: float = 0.0
     window_received: int = 0
@@ -204,6 +212,7 @@ class StreamView:
             "rate": round(self.rate, 1),
             "lag": None if self.lag is None else round(self.lag, 4),
             "missing": self.missing,
+            "sampled": self.step or 1,
             "received": self.received,
             "drawn": self.drawn,
         }
@@ -221,10 +230,11 @@ class ViewState:
         max_streams: int = MAX_STREAMS,
         max_bytes: int = DEFAULT_MAX_BYTES,
         rigs: Sequence[RigMap] = BUILT_IN,
-        reminded: bool = False,
+        relayed: bool = False,
     ) -> None:
         self.rigs = tuple(rigs)
-        self.stale_s = STALE_PERIODS * STATUS_REMINDER_S if reminded else None
+        self.relayed = relayed
+        self.stale_s = STALE_PERIODS * STATUS_REMINDER_S if relayed else None
         self.interval = 1.0 / poses_per_s
         self.poses_per_s = poses_per_s
         self.idle_s = idle_s
@@ -369,10 +379,13 @@ class ViewState:
         last = s.last_seq
         if last is None or pose.epoch != s.epoch or pose.seq < last - NEW_RUN_S * rate:
             s.epoch = pose.epoch  # a new run of its source: numbered afresh
+            s.step = None
         elif pose.seq <= last:
             return []  # a repeat, or one overtaken
-        elif pose.seq - last - 1 <= GAP_S * rate:
-            s.missing += pose.seq - last - 1
+        elif (gap := pose.seq - last) - 1 <= GAP_S * rate:
+            if self.relayed:  # the relay's thinning is not the publisher's loss; what is beyond it is
+                s.step = gap if s.step is None else min(s.step, gap)
+            s.missing += gap - (s.step or 1)
         s.last_seq = pose.seq
         s.received += 1
         s.window_received += 1

@@ -5,6 +5,7 @@
 
 (() => {
   const AUTO_SPIN = 0.35; // radians a second
+  const LAG_WARN_S = 1.0;
   const RESUME_SPIN_MS = 3000;
   const SHOWN_DETECTIONS = 20;
   const SHOWN_REFUSED = 50;
@@ -165,12 +166,17 @@
     setStats(s) {
       this.rate.textContent = `${fixed(s.rate, 0)} poses/s`;
       this.lag.textContent = `lag ${s.lag === null ? "–" : fixed(s.lag * 1000, 0) + " ms"}`;
-      this.missing.textContent = `missing ${s.missing}`;
+      this.lag.classList.toggle("warn", s.lag !== null && s.lag > LAG_WARN_S);
+      this.lag.title = s.lag !== null && s.lag > LAG_WARN_S ? "the poses arrive over a second late" : "";
+      // the relay's thinning (zmq.relay_per_s) is not the publisher's loss: shown apart
+      const sampled = s.sampled > 1 ? ` · sampled 1 in ${s.sampled}` : "";
+      this.missing.textContent = `missing ${s.missing}${sampled}`;
       const latency = this.rec.latencyMs === null ? "–" : `${fixed(this.rec.latencyMs, 0)} ms`;
       this.latency.textContent = `on screen ${latency} after the pose`;
       this.missing.classList.toggle("warn", s.missing > 0);
       this.root.dataset.rate = String(s.rate);
       this.root.dataset.missing = String(s.missing);
+      this.root.dataset.sampled = String(s.sampled);
       this.root.dataset.posesDrawn = String(this.rec.posesDrawn);
       if (this.rec.latencyMs !== null) this.root.dataset.latencyMs = String(Math.round(this.rec.latencyMs));
     }
@@ -412,8 +418,11 @@
 
   function bus(b) {
     const pill = $("bus");
-    pill.className = `pill ${b.connected ? "ok" : "bad"}`;
-    pill.textContent = `bus ${b.url} ${b.connected ? "connected" : b.problem} · ${b.received} messages · ${b.refused} refused`;
+    const dropped = b.dropped > 0 ? ` · ${b.dropped} dropped by the view` : "";
+    pill.className = `pill ${!b.connected ? "bad" : b.dropped > 0 ? "warn" : "ok"}`;
+    pill.textContent = `bus ${b.url} ${b.connected ? "connected" : b.problem} · ${b.received} messages · ${b.refused} refused${dropped}`;
+    pill.title = b.dropped > 0 ? "the view's own queue overflowed: what it shows is thinned" : "";
+    pill.dataset.dropped = String(b.dropped);
     pill.dataset.connected = String(b.connected);
   }
 
