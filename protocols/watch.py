@@ -65,7 +65,10 @@ class Watch:
     is None while every connection is up, else why not; :attr:`dropped` counts what a full queue
     dropped; :attr:`received` what was delivered."""
 
-    def __init__(self, url: str) -> None:
+    def __init__(self, url: str, keep: str | None = None) -> None:
+        """``keep``: over MQTT, the name of a session the broker keeps for the events connection
+        (detections, statuses, skeletons at QoS 1 are queued while the watcher is away, so one that
+        restarts with the same name misses none of them); None: clean sessions only."""
         self.url = url
         self.kind, self.address = parse_bus_url(url)
         self.received = 0
@@ -82,12 +85,13 @@ class Watch:
                 settings = MqttConfig(
                     url=self.address, queue=queue, keepalive_s=KEEPALIVE_S, reconnect_max_s=RECONNECT_MAX_S
                 )
+                kept = keep is not None and name == "events"
                 self._transports[name] = MqttTransport(
                     settings,
-                    client_id=f"mocapd-view-{self._identity}-{name}",
+                    client_id=f"mocapd-view-{keep if kept else self._identity}-{name}",
                     subscribe=topics,
                     presence=None,
-                    clean_session=True,
+                    clean_session=not kept,
                 )
 
     @property

@@ -131,7 +131,13 @@ async def test_the_view_on_mqtt_shows_what_the_broker_carries(tmp_path: Path, br
     kinds = [m["type"] for m in rest]
     assert {"stream", "poses", "detection", "progress", "stats", "bus"} <= set(kinds)
     (made,) = [m for m in rest if m["type"] == "stream"]
-    assert made == {"type": "stream", "stream": "studio-a", "kind": "positions", "rate": 120.0}
+    assert made == {
+        "type": "stream",
+        "stream": "studio-a",
+        "kind": "positions",
+        "rate": 120.0,
+        "ended": False,
+    }
     poses = [p for m in rest if m["type"] == "poses" for p in m["poses"]]
     # 240 poses sent, at most 30 a second drawn (by arrival: how many depends on how evenly a busy
     # machine delivers them, so below that only that both seconds of the stream are drawn)

@@ -4,6 +4,8 @@ shows is read from its DOM and from what it records on ``window.mocapdView``."""
 
 from __future__ import annotations
 
+import csv
+import json
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -416,4 +418,60 @@ def test_daemon_pills_are_bounded_live_ones_first(tmp_path: Path, browser: Brows
         page.close()
         pub.close()
         view.stop()
+        broker.stop()
+
+
+@pytest.mark.slow
+def test_history_outlives_the_stream_and_a_view_restart(tmp_path: Path, browser: Browser) -> None:
+    """CMU 13_30 replayed to its end through a daemon on MQTT that publishes the trial's last
+    detection only when it forgets the silent stream (``idle_s`` 12, after the view's 10): the
+    card stays, greyed, and takes that detection too; the view restarted mid-replay loses none
+    (the broker keeps its session); the page's log and its CSV and JSON exports are exactly the
+    detections of ``mocapd detect``."""
+    want = [
+        (d.class_name, d.start_frame, d.end_frame)
+        for d in detect(read_recording(*TRIAL), load_library(default_library_path()), 120.0)
+    ]
+    broker = Broker(tmp_path).start()
+    config: dict[str, dict[str, object]] = {"service": {"queue_frames": 100_000, "idle_s": 12}}
+    daemon = Daemon(tmp_path, sources=["mqtt"], sinks=["mqtt"], mqtt=broker.url, config=config).start()
+    view = View(tmp_path, broker.url).start()
+    page = browser.new_page(viewport={"width": 1280, "height": 900})
+    errors: list[str] = []
+    page.on("pageerror", lambda e: errors.append(str(e)))
+    replaying = None
+    try:
+        page.goto(view.url)
+        until(page, "window.mocapdView && window.mocapdView.snapshots >= 1")
+        replaying = replay(*TRIAL, broker.url, speed="2")
+        wait_for(lambda: len((card_of(page, "13_30") or {"detections": []})["detections"]) >= 3, 20, "three")
+        view.stop()  # mid-replay: the page loses its server, which comes back on the same port
+        view.start()
+        until(page, "window.mocapdView.snapshots >= 2", 20)
+        finished(replaying)
+        page.wait_for_selector('section.card[data-stream="13_30"][data-ended="true"]', timeout=20_000)
+        wait_for(lambda: len(card_of(page, "13_30")["detections"]) >= len(want), 30, "the last detection")
+        card = card_of(page, "13_30")
+        assert [(d["class"], d["start"], d["end"]) for d in reversed(card["detections"])] == want
+        logged = page.evaluate("window.mocapdView.log()")
+        assert [(d["class"], d["start_frame"], d["end_frame"]) for d in logged] == want
+        with page.expect_download() as csv_download:
+            page.click("#log-csv")
+        rows = list(csv.DictReader(Path(csv_download.value.path()).read_text().splitlines()))
+        assert [(r["class"], int(r["start_frame"]), int(r["end_frame"])) for r in rows] == want
+        assert {r["stream"] for r in rows} == {"13_30"}
+        with page.expect_download() as json_download:
+            page.click("#log-json")
+        items = json.loads(Path(json_download.value.path()).read_text())
+        assert [(d["class"], d["start_frame"], d["end_frame"]) for d in items] == want
+        page.click('section.card[data-stream="13_30"] button.dismiss')
+        assert card_of(page, "13_30") is None and len(page.evaluate("window.mocapdView.log()")) == len(want)
+        assert errors == []
+    finally:
+        if replaying is not None and replaying.poll() is None:
+            replaying.kill()
+            replaying.communicate()
+        page.close()
+        view.stop()
+        daemon.stop()
         broker.stop()

@@ -3,6 +3,7 @@ browsers' updates out; decimation, the joints drawn, rate, lag, missing poses, r
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -14,6 +15,7 @@ from daemon.service.metrics import Metrics
 from daemon.service.view.state import (
     BONE_INDICES,
     DETECTIONS_KEPT,
+    ENDED_KEPT,
     INSTANCES_KEPT,
     ViewState,
     daemon_health,
@@ -98,7 +100,7 @@ def test_a_positions_stream_is_gathered_by_name_in_cm_y_up() -> None:
     state = ViewState(30.0)
     state.take(wire(SkeletonMessage("s", 60.0, tuple(names), up="z", units="m")), 0.0)
     (made, pose) = state.take(wire(PoseMessage("s", 5, 999.0, positions=joints)), 0.0)
-    assert made == {"type": "stream", "stream": "s", "kind": "positions", "rate": 60.0}
+    assert made == {"type": "stream", "stream": "s", "kind": "positions", "rate": 60.0, "ended": False}
     by_name = {n: joints[i].astype(np.float64) * 100 for i, n in enumerate(names)}
     want = np.array([[by_name[j][0], by_name[j][2], -by_name[j][1]] for j in JOINT_NAMES])
     np.testing.assert_allclose(np.array(pose["p"]).reshape(26, 3) / 10, want, atol=0.0501)
@@ -114,7 +116,7 @@ def test_a_bvh_stream_and_a_rigs_positions_are_drawn_through_the_rig_map() -> No
     state = ViewState(30.0)
     state.take(wire(SkeletonMessage("b", 30.0, bvh=hierarchy_text(take.hierarchy))), 0.0)
     (made, pose) = state.take(wire(PoseMessage("b", 7, 0.0, channels=take.channels[6])), 0.0)
-    assert made == {"type": "stream", "stream": "b", "kind": "bvh", "rate": 30.0}
+    assert made == {"type": "stream", "stream": "b", "kind": "bvh", "rate": 30.0, "ended": False}
     np.testing.assert_allclose(np.array(pose["p"]).reshape(26, 3) / 10, joints[6], atol=0.0501)
     points = [k for k, j in enumerate(take.hierarchy.joints) if not j.end_site or any(j.offset)]
     names = tuple(take.hierarchy.joints[k].name for k in points)  # its End Sites at their joints left out
@@ -184,8 +186,34 @@ def test_a_stream_goes_after_being_idle_and_its_state_is_bounded() -> None:
     (refused,) = state.take(wire(DetectionMessage("y", "d", "Jog", 1, 2, 0.0, 0.1, 3, 1.0, 2.0)), 5.0)
     assert refused["reason"] == "schema" and "more than 3 streams" in str(refused["detail"])
     events = state.tick(10.5)
-    assert [e["stream"] for e in events if e["type"] == "gone"] == ["a"]
-    assert sorted(state.streams) == ["b", "c"]
+    assert [e["stream"] for e in events if e["type"] == "ended"] == ["a"]  # kept, with its history
+    assert [s["stream"] for s in events[-1]["streams"]] == ["b", "c"]
+    assert state.streams["a"].ended and len(state.streams["a"].detections) == DETECTIONS_KEPT
+    # an ended stream is no live one: another may come; its late detection joins it, ended
+    assert [e["type"] for e in state.take(wire(dataclasses.replace(progress, stream="d")), 11.0)] == [
+        "stream",
+        "progress",
+    ]
+    late = DetectionMessage("late", "a", "Squat", 300, 309, 0.01, 0.2, 312, 1.0, 2.0)
+    assert [e["type"] for e in state.take(wire(late), 12.0)] == ["detection"]
+    assert state.streams["a"].ended and state.streams["a"].detections[-1]["id"] == "late"
+    assert [e["id"] for e in state.snapshot()["log"]][-3:] == ["id119", "x", "late"]
+    shown = {i["stream"]: i["ended"] for i in state.snapshot()["streams"]}
+    assert shown == {"a": True, "b": False, "c": False, "d": False}
+    # a pose makes it live again (once a live one has ended, under max_streams)
+    state.tick(21.5)  # b, c, d end
+    assert sorted(n for n, v in state.streams.items() if v.ended) == ["a", "b", "c", "d"]
+    state.take(wire(SkeletonMessage("a", 120.0, JOINT_NAMES)), 22.0)
+    (made, *_) = state.take(wire(PoseMessage("a", 1, 1.0, np.zeros((26, 3), np.float32))), 22.0)
+    assert made == {"type": "stream", "stream": "a", "kind": "positions", "rate": 120.0, "ended": False}
+    assert state.streams["a"].detections[-1]["id"] == "late"  # its history kept
+    # the longest ended go once ENDED_KEPT have ended after them
+    gone = []
+    for k in range(ENDED_KEPT):
+        state.take(wire(DetectionMessage(f"e{k}", f"e{k}", "Jog", 1, 2, 0.0, 0.1, 3, 1.0, 2.0)), 100.0 + k)
+        gone += [e["stream"] for e in state.tick(111.0 + k) if e["type"] == "gone"]
+    assert sum(v.ended for v in state.streams.values()) == ENDED_KEPT
+    assert gone == ["b", "c", "d", "a"]  # in the order they ended (a at 32.0)
     json.dumps(state.snapshot(), allow_nan=False)
 
 

@@ -31,6 +31,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import dataclasses
+import hashlib
 import hmac
 import itertools
 import json
@@ -170,7 +171,11 @@ class ViewServer:
         self.settings = settings
         self.version = version
         self.log = logger
-        self.watch = Watch(settings.bus)
+        # the same view (this machine, this port) restarted resumes its broker session: the
+        # detections published while it was away are queued for it
+        where = f"{socket.gethostname()}:{settings.port}"
+        keep = hashlib.sha256(where.encode()).hexdigest()[:12] if settings.port else None
+        self.watch = Watch(settings.bus, keep=keep)
         self.state = ViewState(settings.poses_per_s, rigs=rigs, relayed=self.watch.kind == "zmq")
         self.clients: dict[int, Client] = {}
         self.gate: Gate | None = None

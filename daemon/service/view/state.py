@@ -14,8 +14,11 @@ for a positions stream, by the package's forward kinematics for a channel stream
 received a second, the lag (arrival - the pose's ``time``), poses missing (sequence gaps beyond
 the relay's step), the latest
 progress and the last :data:`DETECTIONS_KEPT` detections. A stream appears with its first pose,
-detection or progress (a retained skeleton alone is remembered, not shown) and is dropped after
-:data:`IDLE_S` seconds without any of them. Everything is bounded: at most ``max_streams`` streams
+detection or progress (a retained skeleton alone is remembered, not shown) and ends after
+:data:`IDLE_S` seconds without any of them: it is kept, ended, with its detections (a detection the
+daemon sends later, when it forgets the stream, joins them), until :data:`ENDED_KEPT` newer ones
+have ended; a pose makes it live again. The session's last :data:`LOG_KEPT` detections, of every
+stream, are kept in one log. Everything is bounded: at most ``max_streams`` live streams
 (more are refused), :data:`SKELETONS_KEPT` skeletons, :data:`INSTANCES_KEPT` daemon instances, the
 last :data:`REFUSED_KEPT` refusals (per reason at most one a second listed, all counted), and text
 from the bus cut to :data:`TEXT_CHARS` characters.
@@ -59,7 +62,11 @@ Event = dict[str, Any]
 """One JSON message for the browsers."""
 
 IDLE_S = 10.0
-"""A stream with no pose, detection or progress for this long is dropped."""
+"""A stream with no pose, detection or progress for this long has ended."""
+ENDED_KEPT = 50
+"""Ended streams kept (with their detections); past it the longest ended is dropped (``gone``)."""
+LOG_KEPT = 5000
+"""Detections of the session kept in its log, newest last."""
 MAX_STREAMS = 100
 SKELETONS_KEPT = 400
 DRAWERS_KEPT = 16
@@ -194,6 +201,7 @@ class StreamView:
     lag: float | None = None
     pose: Event | None = None
     progress: Event | None = None
+    ended: bool = False
     detections: deque[Event] = field(default_factory=lambda: deque(maxlen=DETECTIONS_KEPT))
     ids: OrderedDict[str, None] = field(default_factory=OrderedDict)
 
@@ -204,6 +212,7 @@ class StreamView:
             "stream": self.name,
             "kind": None if s is None else s.kind,
             "rate": None if s is None else s.rate,
+            "ended": self.ended,
         }
 
     def stats(self) -> Event:
@@ -241,6 +250,8 @@ class ViewState:
         self.max_streams = max_streams
         self.max_bytes = max_bytes
         self.streams: dict[str, StreamView] = {}
+        """Live and ended streams, in the order they started or ended (ended ones move last)."""
+        self.log: deque[Event] = deque(maxlen=LOG_KEPT)
         self.skeletons: OrderedDict[str, SkeletonMessage] = OrderedDict()
         self.statuses: OrderedDict[str, Event] = OrderedDict()
         self._heard: dict[str, float] = {}
@@ -358,14 +369,19 @@ class ViewState:
             self._drawers.popitem(last=False)
         return drawer
 
-    def _stream(self, name: str, now: float) -> StreamView:
-        """The live stream ``name`` (made if new: its ``stream`` update goes out whatever follows)."""
+    def _stream(self, name: str, now: float, revive: bool = True) -> StreamView:
+        """The stream ``name`` (made if new: its ``stream`` update goes out whatever follows); an
+        ended one stays ended unless ``revive`` (a pose: it streams again)."""
         s = self.streams.get(name)
-        if s is not None:
+        if s is not None and not (s.ended and revive):
             s.seen = now
             return s
-        if len(self.streams) >= self.max_streams:
+        if sum(not v.ended for v in self.streams.values()) >= self.max_streams:
             raise WireError("schema", f"more than {self.max_streams} streams at once: not shown")
+        if s is not None:  # ended, and live again
+            s.ended, s.seen = False, now
+            self._made.append(s.info())
+            return s
         s = self.streams[name] = StreamView(name, now)
         known = self.skeletons.get(name)
         if known is not None:
@@ -410,7 +426,7 @@ class ViewState:
         return [s.pose]
 
     def _detection(self, d: DetectionMessage, now: float) -> list[Event]:
-        s = self._stream(d.stream, now)
+        s = self._stream(d.stream, now, revive=False)
         if d.id in s.ids:
             return []  # QoS 1 may deliver one twice
         s.ids[d.id] = None
@@ -430,10 +446,11 @@ class ViewState:
             "emit_time": d.emit_time,
         }
         s.detections.append(event)
+        self.log.append(event)
         return [event]
 
     def _progress(self, p: ProgressMessage, now: float) -> list[Event]:
-        s = self._stream(p.stream, now)
+        s = self._stream(p.stream, now, revive=False)
         s.progress = {
             "type": "progress",
             "stream": s.name,
@@ -473,8 +490,9 @@ class ViewState:
 
     def tick(self, now: float) -> list[Event]:
         """Once a second: the online statuses not reminded for :attr:`stale_s` marked stale (a
-        ``status`` update), the streams silent for :attr:`idle_s` dropped (``gone``), then every
-        stream's rate, lag and missing poses (``stats``)."""
+        ``status`` update), the live streams silent for :attr:`idle_s` ended (``ended``) and the
+        ended ones past :data:`ENDED_KEPT` dropped (``gone``), then every live stream's rate, lag
+        and missing poses (``stats``)."""
         out: list[Event] = []
         if self.stale_s is not None:
             for instance, event in self.statuses.items():
@@ -482,17 +500,25 @@ class ViewState:
                 if event["state"] == "online" and not event["stale"] and silent > self.stale_s:
                     event["stale"] = True
                     out.append(event)
-        for name in [n for n, s in self.streams.items() if now - s.seen > self.idle_s]:
+        for name in [n for n, s in self.streams.items() if not s.ended and now - s.seen > self.idle_s]:
+            s = self.streams.pop(name)
+            s.ended, s.pose = True, None
+            self.streams[name] = s  # ended ones in the order they ended
+            out.append({"type": "ended", "stream": name})
+        ended = [n for n, s in self.streams.items() if s.ended]
+        for name in ended[: max(0, len(ended) - ENDED_KEPT)]:
             del self.streams[name]
             out.append({"type": "gone", "stream": name})
         elapsed = None if self._last_tick is None else max(1e-3, now - self._last_tick)
         self._last_tick = now
         for s in self.streams.values():
+            if s.ended:
+                continue
             if elapsed is not None:
                 s.rate = s.window_received / elapsed
             s.lag = s.lag_sum / s.lag_n if s.lag_n else None
             s.window_received, s.lag_sum, s.lag_n = 0, 0.0, 0
-        out.append({"type": "stats", "streams": [s.stats() for s in self.streams.values()]})
+        out.append({"type": "stats", "streams": [s.stats() for s in self.streams.values() if not s.ended]})
         return out
 
     def snapshot(self) -> Event:
@@ -514,6 +540,7 @@ class ViewState:
                 for s in self.streams.values()
             ],
             "statuses": list(self.statuses.values()),
+            "log": list(self.log),
             "refused": list(self.refused),
             "refusals": dict(self.refusals),
         }

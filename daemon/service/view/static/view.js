@@ -37,6 +37,7 @@
 
   const record = {
     projection, // for the tests: the figure's camera
+    log: () => [...sessionLog.values()], // the session's detections, oldest first
     connected: false,
     snapshots: 0,
     messages: 0,
@@ -54,6 +55,11 @@
   let bones = [];
   const cards = new Map();
   const daemons = new Map();
+  const dismissed = new Set(); // ended streams the operator removed
+  const sessionLog = new Map(); // detection id -> detection, oldest first
+  const logStreams = new Set();
+  const LOG_KEPT = 10000;
+  const SHOWN_LOG = 200;
   const $ = (id) => document.getElementById(id);
 
   function el(tag, className, text) {
@@ -107,6 +113,16 @@
       root.dataset.posesDrawn = "0";
       const head = el("header", "card-head");
       head.append(el("h2", "stream-id", this.id), (this.kind = el("span", "kind muted", "")));
+      // an ended stream stays, greyed, with its detections until the operator dismisses it
+      this.dismiss = el("button", "dismiss", "dismiss");
+      this.dismiss.type = "button";
+      this.dismiss.title = "the stream has ended: remove its card (its detections stay in the log)";
+      this.dismiss.hidden = true;
+      this.dismiss.addEventListener("click", () => {
+        dismissed.add(this.id);
+        gone(this.id);
+      });
+      head.append(this.dismiss);
       const canvas = (this.canvas = el("canvas", "figure"));
       canvas.width = 320;
       canvas.height = 260;
@@ -131,6 +147,15 @@
       const kind = info.kind ? `${info.kind}` : "no skeleton yet";
       const rate = typeof info.rate === "number" ? ` · ${fixed(info.rate, 0)} Hz` : "";
       this.kind.textContent = kind + rate;
+      this.setEnded(info.ended === true);
+    }
+
+    setEnded(ended) {
+      this.ended = ended;
+      this.root.classList.toggle("ended", ended);
+      this.root.dataset.ended = String(ended);
+      this.dismiss.hidden = !ended;
+      if (ended) this.kind.textContent = `${this.kind.textContent.replace(/ · ended$/, "")} · ended`;
     }
 
     orbit() {
@@ -340,6 +365,7 @@
   // ---------------------------------------------------------------------------------- the page
 
   function card(info) {
+    if (!info.ended) dismissed.delete(info.stream);
     let c = cards.get(info.stream);
     if (!c) {
       c = new Card(info);
@@ -443,23 +469,29 @@
   }
 
   function snapshot(s) {
+    // a snapshot comes on every (re)connect, and the server may have restarted and forgotten:
+    // what the page has is merged, never wiped (cards it does not list are kept, ended)
     record.snapshots += 1;
     joints = s.joints;
     bones = s.bones;
-    for (const id of [...cards.keys()]) gone(id);
     daemons.clear();
     for (const st of s.statuses) {
       st.heard = ++heard;
       daemons.set(st.instance, st);
     }
     renderDaemons();
+    const listed = new Set();
     for (const info of s.streams) {
+      if (info.ended && dismissed.has(info.stream)) continue;
+      listed.add(info.stream);
       const c = card(info);
       if (info.pose) c.setPose(info.pose);
       if (info.progress) c.setProgress(info.progress);
       for (const d of info.detections) c.addDetection(d);
       c.setStats(info.stats);
     }
+    for (const [id, c] of cards) if (!listed.has(id)) c.setEnded(true);
+    for (const d of s.log) logDetection(d);
     $("refused").replaceChildren();
     record.refused = [];
     for (const r of s.refused) refused(r);
@@ -467,6 +499,82 @@
     bus(s.bus);
     health(s.health);
     $("empty").hidden = cards.size > 0;
+  }
+
+  // ------------------------------------------------------------------- the session's detections
+
+  function logDetection(d) {
+    if (sessionLog.has(d.id)) return;
+    sessionLog.set(d.id, d);
+    if (sessionLog.size > LOG_KEPT) sessionLog.delete(sessionLog.keys().next().value);
+    if (!logStreams.has(d.stream)) {
+      logStreams.add(d.stream);
+      $("log-stream").append(el("option", "", d.stream));
+    }
+    scheduleLog();
+  }
+
+  function logged() {
+    const stream = $("log-stream").value;
+    const cls = $("log-class").value.trim().toLowerCase();
+    return [...sessionLog.values()].filter(
+      (d) => (!stream || d.stream === stream) && (!cls || d.class.toLowerCase().includes(cls)),
+    );
+  }
+
+  let logPending = false;
+  function scheduleLog() {
+    if (logPending) return;
+    logPending = true;
+    requestAnimationFrame(() => {
+      logPending = false;
+      renderLog();
+    });
+  }
+
+  function renderLog() {
+    const rows = logged();
+    $("log-count").textContent = String(sessionLog.size);
+    const body = $("log-rows");
+    body.replaceChildren();
+    for (const d of rows.slice(-SHOWN_LOG).reverse()) {
+      const tr = el("tr");
+      tr.dataset.id = d.id;
+      for (const text of [d.stream, d.class, `${d.start_frame}–${d.end_frame}`, fixed(d.cost, 3), clock(d.emit_time)]) {
+        tr.append(el("td", "", text));
+      }
+      body.append(tr);
+    }
+    $("log-shown").textContent = rows.length > SHOWN_LOG ? `latest ${SHOWN_LOG} of ${rows.length}` : `${rows.length}`;
+  }
+
+  const LOG_FIELDS = ["stream", "class", "start_frame", "end_frame", "cost", "tau", "emitted_at_frame", "emit_time", "id"];
+
+  function csvField(v) {
+    const text = v === null || v === undefined ? "" : String(v);
+    return /[",\n\r]/.test(text) ? `"${text.replace(/"/g, '""')}"` : text;
+  }
+
+  function download(name, type, text) {
+    const url = URL.createObjectURL(new Blob([text], { type }));
+    const a = el("a");
+    a.href = url;
+    a.download = name;
+    document.body.append(a);
+    a.click();
+    a.remove();
+    setTimeout(() => URL.revokeObjectURL(url), 10_000);
+  }
+
+  function exportLog(kind) {
+    const rows = logged();
+    if (kind === "json") {
+      const picked = rows.map((d) => Object.fromEntries(LOG_FIELDS.map((f) => [f, d[f] ?? null])));
+      download("mocapd-detections.json", "application/json", JSON.stringify(picked, null, 1));
+    } else {
+      const lines = [LOG_FIELDS.join(","), ...rows.map((d) => LOG_FIELDS.map((f) => csvField(d[f])).join(","))];
+      download("mocapd-detections.csv", "text/csv", lines.join("\n") + "\n");
+    }
   }
 
   const handlers = {
@@ -477,7 +585,11 @@
       for (const p of m.poses) cards.get(p.stream)?.setPose(p);
     },
     progress: (m) => cards.get(m.stream)?.setProgress(m),
-    detection: (m) => cards.get(m.stream)?.addDetection(m),
+    detection: (m) => {
+      cards.get(m.stream)?.addDetection(m);
+      logDetection(m);
+    },
+    ended: (m) => cards.get(m.stream)?.setEnded(true),
     status,
     status_gone: (m) => {
       daemons.delete(m.instance);
@@ -544,6 +656,10 @@
     requestAnimationFrame(frame);
   }
 
+  $("log-stream").addEventListener("change", renderLog);
+  $("log-class").addEventListener("input", renderLog);
+  $("log-csv").addEventListener("click", () => exportLog("csv"));
+  $("log-json").addEventListener("click", () => exportLog("json"));
   connect();
   requestAnimationFrame(frame);
 })();
