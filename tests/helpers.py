@@ -755,8 +755,11 @@ class View(ServerProcess):
         """Start it and wait until it serves (its ``serving`` log line)."""
         with self.stderr_path.open("ab") as err:
             process = self.process = subprocess.Popen(self.args, stdout=subprocess.DEVNULL, stderr=err)
-        served = lambda: any(e["event"] == "serving" for e in self.logs())  # noqa: E731
-        wait_for(lambda: served() or process.poll() is not None, 30, "mocapd view")
+        wait_for(
+            lambda: any(e["event"] == "serving" for e in self.logs()) or process.poll() is not None,
+            30,
+            "mocapd view",
+        )
         assert process.poll() is None, self.stderr_path.read_text()
         return self
 

@@ -211,6 +211,9 @@ async def test_a_zeromq_daemon_killed_is_shown_stale_within_two_reminders(tmp_pa
         async with aiohttp.ClientSession() as session, session.ws_connect(f"{view.url}ws") as ws:
             seen: list[dict[str, Any]] = []
 
+            def ours() -> list[dict[str, Any]]:
+                return [m for m in seen if m["instance"] == daemon.instance]
+
             async def until(condition: Any, timeout: float) -> float:
                 began = time.monotonic()
                 while not condition():
@@ -223,7 +226,6 @@ async def test_a_zeromq_daemon_killed_is_shown_stale_within_two_reminders(tmp_pa
                         seen.append(msg)
                 return time.monotonic() - began
 
-            ours = lambda: [m for m in seen if m["instance"] == daemon.instance]  # noqa: E731
             await until(lambda: bool(ours()), 2 * STATUS_REMINDER_S + 2)
             assert ours()[-1]["state"] == "online" and not ours()[-1]["stale"]
             daemon.signal(signal.SIGKILL)

@@ -96,6 +96,8 @@ def card_of(page: Page, stream: str) -> Any:
                     matched: Number(row.dataset.matched), keyframes: Number(row.dataset.keyframes),
                     width: row.querySelector('.fill').style.width,
                     ticks: row.querySelectorAll('.tick.on').length,
+                    keys: row.querySelector('.keys').textContent,
+                    still: row.classList.contains('still'),
                     text: row.querySelector('.class-name').textContent,
                 })),
                 canvas: card.querySelector('canvas').toDataURL(),
@@ -232,10 +234,26 @@ def test_progress_bars_follow_the_progress_messages(tmp_path: Path, browser: Bro
             until(page, f"(window.mocapdView.streams['s']?.progress.Squat?.position ?? -1) === {position}")
             (row,) = card_of(page, "s")["progress"]
             seen.append((row["position"], row["matched"], row["ticks"], row["width"]))
-        assert seen == [(0.2, 0, 0, "20%"), (0.55, 1, 1, "55%"), (0.9, 2, 2, "90%")]
+        # the bar is the closeness, position * (1 - cost/τ), and cost/τ is 0.4·position here
+        widths = [f"{round(p * (1 - 0.4 * p) * 100, 1):g}%" for p in (0.2, 0.55, 0.9)]
+        assert seen == [(0.2, 0, 0, widths[0]), (0.55, 1, 1, widths[1]), (0.9, 2, 2, widths[2])]
         pub.send(ProgressMessage("s", 800, (), time.time(), time.time()))  # nothing under way
         until(page, "Object.keys(window.mocapdView.streams['s'].progress).length === 0")
         assert card_of(page, "s")["idle"] == "no motion under way"
+        (row,) = card_of(page, "s")["progress"]  # its slot stays, at zero: nothing jumps
+        assert (row["class"], row["width"], row["still"]) == ("Squat", "0%", True)
+        # more classes than slots: six rows, the rest counted; 64 keyframes said, not drawn
+        many = tuple(ClassProgress(f"c{i}", 64, tuple(range(1, 41)), 0.5, 0.0, 0.2) for i in range(9))
+        pub.send(ProgressMessage("s", 840, many, time.time(), time.time()))
+        until(page, "window.mocapdView.streams['s'].progressHidden === 3")
+        rows = card_of(page, "s")["progress"]
+        assert [r["class"] for r in rows] == ["c5", "c0", "c1", "c2", "c3", "c4"]  # Squat's slot given up
+        assert all(r["ticks"] == 0 and r["keys"] == "40/64 keyframes" for r in rows)
+        box = page.evaluate("document.querySelector('section.card').getBoundingClientRect().width")
+        inner = page.evaluate(
+            "Math.max(...[...document.querySelectorAll('.class-progress')].map((r) => r.scrollWidth))"
+        )
+        assert inner <= box
     finally:
         page.close()
         pub.close()

@@ -9,6 +9,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 
 from daemon.recordings import read_recording
 from daemon.service.metrics import Metrics
@@ -18,6 +20,7 @@ from daemon.service.view.state import (
     ENDED_KEPT,
     INSTANCES_KEPT,
     ViewState,
+    closeness,
     daemon_health,
 )
 from protocols.messages import (
@@ -273,6 +276,33 @@ def test_statuses_and_their_clearing() -> None:
         {"type": "status_gone", "instance": "d-1"}
     ]
     assert state.snapshot()["statuses"] == []
+
+
+@given(
+    st.floats(0.0, 1.0),
+    st.floats(0.0, 10.0, allow_subnormal=False),
+    st.floats(1e-6, 10.0),
+    st.floats(0.0, 1.0),
+)
+def test_closeness_is_position_times_the_share_of_tau_left(
+    position: float, cost: float, tau: float, more: float
+) -> None:
+    """The bar: in [0, 1], 0 at position 0 or at τ and past it (the daemon's "none within τ" is
+    position 0, cost τ), growing with the position and falling with the cost."""
+    level = closeness(position, cost, tau)
+    assert 0.0 <= level <= 1.0
+    assert level == pytest.approx(position * max(0.0, 1 - cost / tau), abs=1e-4)
+    assert closeness(0.0, tau, tau) == 0.0 and closeness(position, tau * (1 + more), tau) == 0.0
+    assert closeness(min(1.0, position + more), cost, tau) >= level
+    assert closeness(position, cost + more * tau, tau) <= level
+    assert closeness(float("nan"), cost, tau) == 0.0 and closeness(position, cost, 0.0) == 0.0
+
+
+def test_a_progress_update_carries_each_class_closeness() -> None:
+    state = ViewState(30.0)
+    c = ClassProgress("Squat", 3, (10, 20), 0.8, 0.05, 0.2)
+    (_, event) = state.take(wire(ProgressMessage("s", 40, (c,), 1.0, 1.0)), 0.0)
+    assert event["classes"][0]["level"] == closeness(0.8, 0.05, 0.2) == 0.6
 
 
 def statuses_stale(state: ViewState) -> dict[str, bool]:

@@ -112,6 +112,16 @@ BONE_INDICES = tuple((JOINT_NAMES.index(a), JOINT_NAMES.index(b)) for a, b in BO
 TO_CM = {"m": 100.0, "cm": 1.0, "mm": 0.1, "in": 2.54, "asf": 1.0}
 
 
+def closeness(position: float, cost: float, tau: float) -> float:
+    """How near a class is to a detection, in [0, 1], as the page draws its bar: ``position``
+    along the template times the share of τ the match's mean ``cost`` leaves, ``1 - cost/τ`` (0
+    at or past τ). Only a match that reaches the template's end well within τ is near 1; one at
+    position 0 (none within τ, cost = τ) is 0."""
+    if not (tau > 0 and math.isfinite(position) and math.isfinite(cost)):
+        return 0.0
+    return round(min(1.0, max(0.0, position)) * max(0.0, 1.0 - cost / tau), 4)
+
+
 def text(value: str, limit: int = TEXT_CHARS) -> str:
     """Text from the bus as it may be shown: control characters escaped, at most ``limit`` long."""
     out = printable(value[: limit * 4])
@@ -465,6 +475,7 @@ class ViewState:
                     "position": c.position,
                     "cost": c.cost,
                     "tau": c.tau,
+                    "level": closeness(c.position, c.cost, c.tau),
                 }
                 for c in p.classes
             ],

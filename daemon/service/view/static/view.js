@@ -8,6 +8,11 @@
   const LAG_WARN_S = 1.0;
   const RESUME_SPIN_MS = 3000;
   const SHOWN_DETECTIONS = 20;
+  const PROGRESS_SLOTS = 6; // rows of classes under way a card keeps
+  const MAX_TICKS = 16; // keyframes drawn as ticks; more are said as k/n only
+  const NEAR_LEVEL = 0.95; // a bar this full is drawn as nearly complete
+  const STILL_MS = 3000; // a row unchanged this long is greyed
+  const STRIP_S = 30;
   const SHOWN_REFUSED = 50;
   const LATENCIES_KEPT = 4000;
   const LEFT = new Set(["lhip", "lknee", "lankle", "ltoes", "lclavicle", "lshoulder", "lelbow", "lwrist", "lfingers", "lthumb"]);
@@ -136,6 +141,8 @@
       this.progress = el("div", "progress");
       // until a progress message comes, the daemon may not publish any (it does with --progress)
       this.progress.append((this.idle = el("p", "muted small", "no progress yet (mocapd run --progress)")));
+      this.more = el("p", "muted small more", "");
+      this.progress.append(this.more);
       const timelineHead = el("h3", "small", "Detections");
       this.timeline = el("ol", "timeline");
       root.append(head, canvas, stats, el("h3", "small", "Under way"), this.progress, timelineHead, this.timeline);
@@ -144,6 +151,7 @@
     }
 
     update(info) {
+      this.hz = info.rate;
       const kind = info.kind ? `${info.kind}` : "no skeleton yet";
       const rate = typeof info.rate === "number" ? ` · ${fixed(info.rate, 0)} Hz` : "";
       this.kind.textContent = kind + rate;
@@ -206,42 +214,127 @@
       if (this.rec.latencyMs !== null) this.root.dataset.latencyMs = String(Math.round(this.rec.latencyMs));
     }
 
+    // Progress rows: at most PROGRESS_SLOTS, each kept in its place once made (nothing jumps); a
+    // class no longer under way stays, at zero and grey, until a new class needs its slot (the
+    // one idle longest gives it up). The bar is the server's `level`, position × (1 − cost/τ):
+    // it is full only for a match that reaches the template's end well within τ, so a class that
+    // merely sits near the end of a loose template is not drawn as nearly complete. Keyframes
+    // matched are apart from it (ticks, k of n); the strip under them is the last 30 s of the
+    // level, with the class's detections marked.
     setProgress(ev) {
       this.rec.progressUpdates += 1;
-      const seen = new Set();
+      const now = performance.now();
       const rec = Object.create(null);
-      for (const c of ev.classes) {
-        seen.add(c.class);
-        let row = this.progressRows.get(c.class);
-        if (!row) {
-          row = this.progressRow(c.class);
-          this.progressRows.set(c.class, row);
-          this.progress.append(row.root);
+      const listed = new Map(ev.classes.map((c) => [c.class, c]));
+      // the nearest first, so that when slots are short the classes nearest a detection get them
+      const nearest = [...ev.classes].sort((a, b) => (b.level ?? 0) - (a.level ?? 0));
+      for (const c of nearest) if (!this.progressRows.has(c.class)) this.claimRow(c.class, c.level ?? 0, listed, now);
+      let hidden = 0;
+      for (const c of ev.classes) if (!this.progressRows.has(c.class)) hidden += 1;
+      for (const [name, row] of this.progressRows) {
+        const c = listed.get(name);
+        const n = c ? c.keyframes : row.keyframes;
+        const k = c ? c.matched.length : 0;
+        const level = c ? (typeof c.level === "number" ? c.level : 0) : 0;
+        if (n !== row.keyframes) {
+          row.keyframes = n;
+          row.ticks.replaceChildren();
+          if (n <= MAX_TICKS) for (let i = 0; i < n; i++) row.ticks.append(el("span", "tick"));
         }
-        const n = c.keyframes;
-        const k = c.matched.length;
-        while (row.ticks.childElementCount < n) row.ticks.append(el("span", "tick"));
-        while (row.ticks.childElementCount > n) row.ticks.lastChild.remove();
-        Array.from(row.ticks.children).forEach((t, i) => t.classList.toggle("on", i < k));
+        if (n <= MAX_TICKS) Array.from(row.ticks.children).forEach((t, i) => t.classList.toggle("on", i < k));
         row.keys.textContent = n ? `${k}/${n} keyframes` : "no keyframes";
-        row.fill.style.width = `${Math.round(c.position * 1000) / 10}%`;
-        row.cost.textContent = `cost ${fixed(c.cost, 3)} / τ ${fixed(c.tau, 3)}`;
-        row.cost.classList.toggle("ok", c.cost <= c.tau);
-        row.root.dataset.position = String(c.position);
+        if (level !== row.level || k !== row.matched) row.changed = now;
+        row.level = level;
+        row.matched = k;
+        row.fill.style.width = `${Math.round(level * 1000) / 10}%`;
+        row.root.classList.toggle("near", level >= NEAR_LEVEL);
+        row.cost.textContent = c ? `cost ${fixed(c.cost, 3)} / τ ${fixed(c.tau, 3)}` : "not under way";
+        row.cost.classList.toggle("ok", c !== undefined && c.cost < c.tau && c.position > 0);
+        row.root.dataset.position = String(c ? c.position : 0);
+        row.root.dataset.level = String(level);
         row.root.dataset.matched = String(k);
         row.root.dataset.keyframes = String(n);
-        row.root.dataset.cost = String(c.cost);
-        rec[c.class] = { position: c.position, matched: k, keyframes: n, cost: c.cost, tau: c.tau };
+        row.root.dataset.cost = String(c ? c.cost : "");
+        row.history.push([ev.frame, level]);
+        while (row.history.length > 1 && row.history[0][0] < ev.frame - this.stripFrames()) row.history.shift();
+        if (c) rec[name] = { position: c.position, level, matched: k, keyframes: n, cost: c.cost, tau: c.tau };
+        this.drawStrip(row, ev.frame);
       }
-      for (const [name, row] of this.progressRows) {
-        if (!seen.has(name)) {
-          row.root.remove();
-          this.progressRows.delete(name);
-        }
-      }
+      this.lastFrame = ev.frame;
+      this.more.textContent = hidden ? `+${hidden} more under way` : "";
       this.rec.progress = rec;
+      this.rec.progressHidden = hidden;
       this.idle.textContent = "no motion under way";
-      this.idle.hidden = this.progressRows.size > 0;
+      this.idle.hidden = ev.classes.length > 0;
+      this.greyRows(now);
+    }
+
+    stripFrames() {
+      return STRIP_S * (typeof this.hz === "number" && this.hz > 0 ? this.hz : 120);
+    }
+
+    // a slot for `name` (at `level`): a free one, else that of the class idle longest (not under
+    // way now), else that of the farthest class under way if it is farther than `name` and has
+    // not changed for a second (no two classes take one slot in turn every message)
+    claimRow(name, level, listed, now) {
+      if (this.progressRows.size >= PROGRESS_SLOTS) {
+        let oldest = null;
+        for (const [other, row] of this.progressRows) {
+          if (!listed.has(other) && (oldest === null || row.changed < oldest[1].changed)) {
+            oldest = [other, row];
+          }
+        }
+        for (const [other, row] of oldest === null ? this.progressRows : []) {
+          const farther = row.level < level && now - row.changed > 1000;
+          if (farther && (oldest === null || row.level < oldest[1].level)) oldest = [other, row];
+        }
+        if (oldest === null) return;
+        const [other, row] = oldest;
+        this.progressRows.delete(other);
+        this.resetRow(row, name, now);
+        this.progressRows.set(name, row);
+        return;
+      }
+      const row = this.progressRow(name);
+      this.resetRow(row, name, now);
+      this.progressRows.set(name, row);
+      this.progress.insertBefore(row.root, this.more);
+    }
+
+    resetRow(row, name, now) {
+      row.root.dataset.class = name;
+      row.name.textContent = name;
+      row.history = [];
+      row.spans = [];
+      row.level = 0;
+      row.matched = 0;
+      row.keyframes = -1;
+      row.changed = now;
+    }
+
+    greyRows(now) {
+      for (const row of this.progressRows.values()) {
+        row.root.classList.toggle("still", row.level === 0 || now - row.changed > STILL_MS);
+      }
+    }
+
+    drawStrip(row, frame) {
+      const ctx = row.strip.getContext("2d");
+      const w = row.strip.width;
+      const h = row.strip.height;
+      const span = this.stripFrames();
+      const x = (f) => w - ((frame - f) / span) * w;
+      ctx.clearRect(0, 0, w, h);
+      ctx.fillStyle = "#2e7d4f";
+      for (const [a, b] of row.spans) if (b >= frame - span) ctx.fillRect(x(a), 0, Math.max(2, x(b) - x(a)), h);
+      ctx.strokeStyle = "#8ab4f8";
+      ctx.beginPath();
+      row.history.forEach(([f, level], i) => {
+        const y = h - 1 - level * (h - 2);
+        if (i === 0) ctx.moveTo(x(f), y);
+        else ctx.lineTo(x(f), y);
+      });
+      ctx.stroke();
     }
 
     progressRow(name) {
@@ -249,7 +342,8 @@
       root.dataset.class = name;
       const label = el("div", "class-head");
       const keys = el("span", "keys muted small");
-      label.append(el("span", "class-name", name), keys);
+      const nameEl = el("span", "class-name", name);
+      label.append(nameEl, keys);
       const bar = el("div", "bar");
       const fill = el("div", "fill");
       bar.append(fill);
@@ -257,8 +351,12 @@
       const cost = el("span", "cost small");
       const foot = el("div", "class-foot");
       foot.append(ticks, cost);
-      root.append(label, bar, foot);
-      return { root, keys, fill, ticks, cost };
+      const strip = el("canvas", "strip");
+      strip.width = 280;
+      strip.height = 14;
+      strip.title = "the last 30 s: the bar's level, and this class's detections (green)";
+      root.append(label, bar, foot, strip);
+      return { root, keys, name: nameEl, fill, ticks, cost, strip, history: [], spans: [], level: 0, matched: 0, keyframes: -1, changed: 0 };
     }
 
     addDetection(d) {
@@ -278,9 +376,19 @@
       );
       this.timeline.prepend(li);
       while (this.timeline.childElementCount > SHOWN_DETECTIONS) this.timeline.lastChild.remove();
+      const row = this.progressRows.get(d.class);
+      if (row) {
+        row.spans.push([d.start_frame, d.end_frame]);
+        if (row.spans.length > 64) row.spans.shift();
+        if (this.lastFrame !== undefined) this.drawStrip(row, Math.max(this.lastFrame, d.end_frame));
+      }
     }
 
     draw(now) {
+      if (this.progressRows.size && now - (this.greyed || 0) > 250) {
+        this.greyed = now;
+        this.greyRows(now);
+      }
       const spinning = !this.dragging && now - this.touched > RESUME_SPIN_MS;
       const dt = this.lastDraw ? Math.min(0.1, (now - this.lastDraw) / 1000) : 0;
       const fresh = this.pose !== null && this.pose.seq !== this.drawnSeq;
