@@ -12,8 +12,8 @@ from typing import TYPE_CHECKING, Any
 from daemon.cli import _terminate, common
 from daemon.cli.detect import speed
 from daemon.config import Config, workers_of, workers_reason
-from daemon.extras import require
 from daemon.errors import InputError, UsageError
+from daemon.extras import require
 from daemon.library import default_library_path, load_library
 from daemon.recordings import native_rate, read_recording
 from protocols.messages import Up
