@@ -153,6 +153,7 @@ async def test_the_view_on_mqtt_shows_what_the_broker_carries(tmp_path: Path, br
         "position": 0.6,
         "cost": 0.05,
         "tau": 0.1,
+        "level": 0.3,  # closeness: 0.6 * (1 - 0.05 / 0.1)
     }
     assert status is not None and status["streams"] == ["studio-a"] and status["clients"] == 0
     assert status["bus"]["received"] >= 240 + 3 + 2
