@@ -4,6 +4,7 @@ shows is read from its DOM and from what it records on ``window.mocapdView``."""
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import json
 import time
@@ -63,6 +64,27 @@ class Publisher:
     def close(self) -> None:
         self.client.loop_stop()
         self.client.disconnect()
+
+
+@contextlib.contextmanager
+def a_page(
+    tmp_path: Path, browser: Browser, *, token: str | None = None
+) -> Iterator[tuple[Page, Publisher, View]]:
+    """A real mosquitto, ``mocapd view`` on it (with ``token``), a publisher and a tab on the page
+    (its URL with the token), once the page has its first snapshot; all stopped after."""
+    broker = Broker(tmp_path).start()
+    view = View(tmp_path, broker.url, token=token).start()
+    pub = Publisher(broker.url)
+    page = browser.new_page()
+    try:
+        page.goto(view.url if token is None else f"{view.url}?token={token}")
+        until(page, "window.mocapdView && window.mocapdView.snapshots >= 1")
+        yield page, pub, view
+    finally:
+        page.close()
+        pub.close()
+        view.stop()
+        broker.stop()
 
 
 def until(page: Page, expression: str, timeout: float = 10.0) -> None:
@@ -217,13 +239,7 @@ def test_progress_bars_follow_the_progress_messages(tmp_path: Path, browser: Bro
     """Until a stream's first progress message the card says none came (the daemon may not publish
     any); each sets its class's bar to its position and lights its keyframes matched; an empty one
     clears the stream's bars: no motion under way."""
-    broker = Broker(tmp_path).start()
-    view = View(tmp_path, broker.url).start()
-    pub = Publisher(broker.url)
-    page = browser.new_page()
-    try:
-        page.goto(view.url)
-        until(page, "window.mocapdView && window.mocapdView.snapshots >= 1")
+    with a_page(tmp_path, browser) as (page, pub, _):
         pub.send(SkeletonMessage("s", 120.0, JOINT_NAMES))
         pub.send(PoseMessage("s", 1, time.time(), positions=np.zeros((26, 3), np.float32)))
         wait_for(lambda: card_of(page, "s") is not None, 10, "the stream's card")
@@ -254,11 +270,6 @@ def test_progress_bars_follow_the_progress_messages(tmp_path: Path, browser: Bro
             "Math.max(...[...document.querySelectorAll('.class-progress')].map((r) => r.scrollWidth))"
         )
         assert inner <= box
-    finally:
-        page.close()
-        pub.close()
-        view.stop()
-        broker.stop()
 
 
 def test_bus_text_is_shown_as_text(tmp_path: Path, browser: Browser) -> None:
@@ -324,26 +335,16 @@ def test_the_page_passes_its_token_on_and_shows_no_invalid_date(tmp_path: Path, 
     """With ``--token`` the page opened with ``?token=`` connects and one opened without it does
     not; a status whose start time lies beyond what a Date can hold shows a dash."""
     token = "the-page-token-0123456789"
-    broker = Broker(tmp_path).start()
-    view = View(tmp_path, broker.url, token=token).start()
-    pub = Publisher(broker.url)
-    page, without = browser.new_page(), browser.new_page()
-    try:
+    with a_page(tmp_path, browser, token=token) as (page, pub, view):
+        without = browser.new_page()
         without.goto(view.url)
-        page.goto(f"{view.url}?token={token}")
-        until(page, "window.mocapdView && window.mocapdView.snapshots >= 1")
         pub.send(StatusMessage("d-far", "online", "1", 0, 1e300), retain=False)
         page.wait_for_selector('#daemons .pill[data-instance="d-far"]', timeout=10_000)
         text = page.evaluate("document.querySelector('#daemons .pill[data-instance=\"d-far\"]').textContent")
         assert "Invalid" not in text and "started \u2013" in text
         assert without.evaluate("window.mocapdView.snapshots") == 0
         assert not without.evaluate("window.mocapdView.connected")
-    finally:
-        page.close()
         without.close()
-        pub.close()
-        view.stop()
-        broker.stop()
 
 
 FACING = {  # a figure facing +z (its left at +x), centimetres, the left arm raised above the head
@@ -364,13 +365,7 @@ def test_the_figure_is_drawn_in_true_perspective_and_handedness(tmp_path: Path, 
     left wrist is above the head and on the side of the screen that the figure's turn (the drawn
     yaw) puts it, at every draw."""
     camera = "{cx: 0, cy: 0, cz: 0, scale: 1, w: 400, h: 400, depth: 4000, yaw: 0, pitch: %s}"
-    broker = Broker(tmp_path).start()
-    view = View(tmp_path, broker.url).start()
-    pub = Publisher(broker.url)
-    page = browser.new_page()
-    try:
-        page.goto(view.url)
-        until(page, "window.mocapdView && window.mocapdView.snapshots >= 1")
+    with a_page(tmp_path, browser) as (page, pub, _):
         facing = page.evaluate(
             f"""() => {{
                 const p = window.mocapdView.projection({camera % 0});
@@ -405,23 +400,12 @@ def test_the_figure_is_drawn_in_true_perspective_and_handedness(tmp_path: Path, 
             side = np.cos(d["yaw"])  # the left's x on screen: x·cos(yaw) before perspective
             if abs(side) > 0.2:
                 assert np.sign(screen[lw][0] - screen[root][0]) == np.sign(side), d
-    finally:
-        page.close()
-        pub.close()
-        view.stop()
-        broker.stop()
 
 
 def test_daemon_pills_are_bounded_live_ones_first(tmp_path: Path, browser: Browser) -> None:
     """A flood of statuses draws at most four pills, live ones first (most recently heard), and
     one summary of the rest."""
-    broker = Broker(tmp_path).start()
-    view = View(tmp_path, broker.url).start()
-    pub = Publisher(broker.url)
-    page = browser.new_page()
-    try:
-        page.goto(view.url)
-        until(page, "window.mocapdView && window.mocapdView.snapshots >= 1")
+    with a_page(tmp_path, browser) as (page, pub, _):
         pub.send(StatusMessage("d-offline", "offline", "1", 0, 1.0), retain=False)
         for k in range(7):
             pub.send(StatusMessage(f"d-{k}", "online", "1", 0, 1.0), retain=False)
@@ -432,11 +416,6 @@ def test_daemon_pills_are_bounded_live_ones_first(tmp_path: Path, browser: Brows
         )
         assert shown == ["d-6", "d-5", "d-4", "d-3"]
         assert page.evaluate("document.querySelector('#daemons-more').textContent") == "+4 more (3 online)"
-    finally:
-        page.close()
-        pub.close()
-        view.stop()
-        broker.stop()
 
 
 @pytest.mark.slow
