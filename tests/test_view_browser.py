@@ -160,10 +160,7 @@ def test_the_page_shows_a_replay_through_the_daemon(tmp_path: Path, browser: Bro
     before it), the detections ``mocapd detect`` gives on the recording land in its timeline with
     the same classes and frames; every request the page makes is to loopback; a closed tab frees
     the view's client."""
-    want = [
-        (d.class_name, d.start_frame, d.end_frame)
-        for d in detect(read_recording(*TRIAL), load_library(default_library_path()), 120.0)
-    ]
+    want = trial_detections()
     config: dict[str, dict[str, object]] = {
         # a detection held to the trial's last frame is published when the daemon flushes the
         # silent stream: before the view drops the card (10 s)
@@ -189,6 +186,12 @@ def test_the_page_shows_a_replay_through_the_daemon(tmp_path: Path, browser: Bro
         daemon.stop()
         if broker is not None:
             broker.stop()
+
+
+def trial_detections() -> list[tuple[str, int, int]]:
+    """(class, start, end) of what ``mocapd detect`` finds in the trial, with the shipped library."""
+    found = detect(read_recording(*TRIAL), load_library(default_library_path()), 120.0)
+    return [(d.class_name, d.start_frame, d.end_frame) for d in found]
 
 
 def watch_the_replay(browser: Browser, view: View, into: str, want: list[tuple[str, int, int]]) -> None:
@@ -425,10 +428,7 @@ def test_history_outlives_the_stream_and_a_view_restart(tmp_path: Path, browser:
     card stays, greyed, and takes that detection too; the view restarted mid-replay loses none
     (the broker keeps its session); the page's log and its CSV and JSON exports are exactly the
     detections of ``mocapd detect``."""
-    want = [
-        (d.class_name, d.start_frame, d.end_frame)
-        for d in detect(read_recording(*TRIAL), load_library(default_library_path()), 120.0)
-    ]
+    want = trial_detections()
     broker = Broker(tmp_path).start()
     config: dict[str, dict[str, object]] = {"service": {"queue_frames": 100_000, "idle_s": 12}}
     daemon = Daemon(tmp_path, sources=["mqtt"], sinks=["mqtt"], mqtt=broker.url, config=config).start()
