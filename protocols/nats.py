@@ -1048,7 +1048,7 @@ class NatsTransport:
         """Publish ``message``: one with an id (a detection, a boundary) is queued, stored and
         published in turn by a task of its own, so that a store that does not answer (its leader
         electing) holds up no recognition (:attr:`pending` counts what waits); others at once."""
-        if message.relay:  # the publishers' poses are on the bus already
+        if message.relay or message.reminder:  # poses are on the bus already; etcd says who lives
             return
         if message.key is None:
             await self._plain(message)

@@ -65,7 +65,7 @@ class StdoutTransport:
         return 0
 
     async def publish(self, message: Outgoing) -> None:
-        if message.relay:  # a publisher's pose passed on for viewers: not the daemon's output
+        if message.relay or message.reminder:  # for viewers and watchers, not the daemon's output
             return
         body = msgpack.unpackb(message.payload, raw=False)
         out = self.stream or sys.stdout

@@ -80,7 +80,10 @@ class Outgoing:
     can de-duplicates (cluster: a key already published by any worker is not published again);
     ``relay``: a message only a transport with neither a broker nor retained messages publishes
     (ZeroMQ; over MQTT and NATS clients have both): a publisher's skeleton or pose passed on for
-    viewers (``zmq.relay_per_s``), or the daemon's status again for subscribers that joined since."""
+    viewers (``zmq.relay_per_s``); ``reminder``: the daemon's status said again (every
+    :data:`~protocols.messages.STATUS_REMINDER_S`), for subscribers that joined since and for those
+    that judge by it that the daemon still lives (``mocapd view``): ZeroMQ and MQTT publish it,
+    stdout does not print it, and NATS does not send it (cluster mode's liveness is etcd's)."""
 
     topic: str
     payload: bytes
@@ -88,6 +91,7 @@ class Outgoing:
     reliable: bool = False
     key: str | None = None
     relay: bool = False
+    reminder: bool = False
 
 
 class Source(Protocol):

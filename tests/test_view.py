@@ -234,6 +234,42 @@ async def test_a_zeromq_daemon_killed_is_shown_stale_within_two_reminders(tmp_pa
             took = await until(lambda: ours()[-1]["stale"], 12.0)
             assert ours()[-1]["state"] == "online"  # it never said offline: the view tells
             assert took <= 12.0
+        # the reminders went to the bus, not to the daemon's own output
+        assert len([m for m in daemon.printed() if m.get("type") == "status"]) <= 1
+    finally:
+        view.stop()
+        daemon.stop()
+
+
+@pytest.mark.slow
+async def test_retained_fake_statuses_go_stale_and_the_real_daemon_stays_live(
+    tmp_path: Path, broker: Broker
+) -> None:
+    """16 bus clients' retained fake ``online`` statuses, then a real daemon on MQTT: the daemon
+    says its status again every STATUS_REMINDER_S there too, so within two periods the fakes are
+    stale and it alone is live (the page draws live ones first)."""
+    pub = Publisher(broker.url)
+    for k in range(16):
+        pub.send(StatusMessage(f"fake-{k:02d}", "online", "6.6.6", 0, 1.0))
+    pub.close()
+    daemon = Daemon(tmp_path, sources=["mqtt"], sinks=["mqtt"], mqtt=broker.url).start()
+    view = View(tmp_path, broker.url).start()
+    try:
+        latest: dict[str, dict[str, Any]] = {}
+        async with aiohttp.ClientSession() as session, session.ws_connect(f"{view.url}ws") as ws:
+            deadline = time.monotonic() + 2 * STATUS_REMINDER_S + 5
+            while (left := deadline - time.monotonic()) > 0:
+                try:
+                    msg = await ws.receive_json(timeout=left)
+                except TimeoutError:
+                    break
+                for status in msg["statuses"] if msg["type"] == "snapshot" else [msg]:
+                    if status.get("type") == "status":
+                        latest[status["instance"]] = status
+                live = {i for i, s in latest.items() if s["state"] == "online" and not s["stale"]}
+                if len(latest) == 17 and live == {daemon.instance}:
+                    break
+        assert {i for i, s in latest.items() if not s["stale"]} == {daemon.instance}, latest
     finally:
         view.stop()
         daemon.stop()

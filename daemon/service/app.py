@@ -83,7 +83,7 @@ DROPS = ("lagging",)
 YIELD_EVERY = 64
 """Messages an intake takes before it lets the other tasks run."""
 STATUS_EVERY_S = STATUS_REMINDER_S
-"""How often the daemon's status goes out again where nothing retains it (ZeroMQ: :func:`reminder`)."""
+"""How often the daemon's status goes out again (ZeroMQ and MQTT: :func:`reminder`)."""
 CATCH_UP_POLL_S = 0.005
 """How often recognition looks whether the cluster transport has read a taken partition's buffer."""
 STOP_SIGNALS = (signal.SIGTERM, signal.SIGINT, signal.SIGHUP)
@@ -638,9 +638,11 @@ class Service:
 
 
 def reminder(status: Outgoing) -> Outgoing:
-    """``status`` again, for the subscribers that joined since it was published, on the transports
-    that retain nothing (``Outgoing.relay``)."""
-    return replace(status, reliable=False, relay=True)
+    """``status`` again (``Outgoing.reminder``): for the subscribers that joined since it was
+    published where nothing retains it (ZeroMQ), and, on MQTT too, for those that judge by it that
+    the daemon still lives (``mocapd view``: one not reminded for two periods is stale, so a
+    client's fake retained ``online`` cannot pass for a live daemon for long)."""
+    return replace(status, reliable=False, reminder=True)
 
 
 def release_memory() -> None:

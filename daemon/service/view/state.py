@@ -4,9 +4,10 @@ Pure: :class:`ViewState` takes the bus's messages (:class:`~protocols.transport.
 decoded with :func:`protocols.messages.decode` and otherwise untrusted) and the clock, and returns
 the updates for the browsers (JSON-ready dicts, ``{"type": ...}``); no sockets, no asyncio.
 
-``relayed``: the bus is the daemon's ZeroMQ relay, which thins the poses (``zmq.relay_per_s``) and
-reminds of its status (:data:`~protocols.messages.STATUS_REMINDER_S`); otherwise MQTT, where every
-pose is on the broker and statuses are retained.
+``relayed``: the bus is the daemon's ZeroMQ relay, which thins the poses (``zmq.relay_per_s``);
+otherwise MQTT, where every pose is on the broker. On both a daemon says its status again every
+:data:`~protocols.messages.STATUS_REMINDER_S`; one not heard for :data:`STALE_PERIODS` of them is
+stale.
 
 Per stream: its skeleton, the standard joints (:data:`replay.JOINT_NAMES`, whole millimetres, y up) of
 at most ``poses_per_s`` poses a second (the only poses whose joints are computed: gathered by name
@@ -74,8 +75,9 @@ DETECTIONS_KEPT = 50
 REFUSED_KEPT = 50
 INSTANCES_KEPT = 16
 STALE_PERIODS = 2
-"""A status reminded every :data:`~protocols.messages.STATUS_REMINDER_S` (ZeroMQ) and not heard for
-this many periods is stale: its daemon went without a word (killed, or cut off)."""
+"""A status reminded every :data:`~protocols.messages.STATUS_REMINDER_S` and not heard for this many
+periods is stale: its daemon went without a word (killed, cut off), or it never was one (a bus
+client's retained fake)."""
 TEXT_CHARS = 200
 NEW_RUN_S = 1.0
 """A sequence number back by more than this many seconds of frames (or a new epoch) is a new run."""
@@ -253,7 +255,7 @@ class ViewState:
     ) -> None:
         self.rigs = tuple(rigs)
         self.relayed = relayed
-        self.stale_s = STALE_PERIODS * STATUS_REMINDER_S if relayed else None
+        self.stale_s = STALE_PERIODS * STATUS_REMINDER_S
         self.interval = 1.0 / poses_per_s
         self.poses_per_s = poses_per_s
         self.idle_s = idle_s
@@ -505,12 +507,11 @@ class ViewState:
         ended ones past :data:`ENDED_KEPT` dropped (``gone``), then every live stream's rate, lag
         and missing poses (``stats``)."""
         out: list[Event] = []
-        if self.stale_s is not None:
-            for instance, event in self.statuses.items():
-                silent = now - self._heard[instance]
-                if event["state"] == "online" and not event["stale"] and silent > self.stale_s:
-                    event["stale"] = True
-                    out.append(event)
+        for instance, event in self.statuses.items():
+            silent = now - self._heard[instance]
+            if event["state"] == "online" and not event["stale"] and silent > self.stale_s:
+                event["stale"] = True
+                out.append(event)
         for name in [n for n, s in self.streams.items() if not s.ended and now - s.seen > self.idle_s]:
             s = self.streams.pop(name)
             s.ended, s.pose = True, None
