@@ -25,6 +25,7 @@ from paho.mqtt.enums import CallbackAPIVersion
 
 from bench.processes import free_port
 from daemon.service.view.server import MAX_PENDING
+from daemon.service.view.state import INSTANCES_KEPT
 from protocols.messages import (
     STATUS_REMINDER_S,
     ClassProgress,
@@ -266,10 +267,12 @@ async def test_retained_fake_statuses_go_stale_and_the_real_daemon_stays_live(
                 for status in msg["statuses"] if msg["type"] == "snapshot" else [msg]:
                     if status.get("type") == "status":
                         latest[status["instance"]] = status
-                live = {i for i, s in latest.items() if s["state"] == "online" and not s["stale"]}
-                if len(latest) == 17 and live == {daemon.instance}:
+                    elif status.get("type") == "status_gone":  # forgotten past the bound
+                        latest.pop(status["instance"], None)
+                if {i for i, s in latest.items() if not s["stale"]} == {daemon.instance}:
                     break
         assert {i for i, s in latest.items() if not s["stale"]} == {daemon.instance}, latest
+        assert len(latest) == INSTANCES_KEPT  # the daemon and 15 fakes, stale (one forgotten)
     finally:
         view.stop()
         daemon.stop()

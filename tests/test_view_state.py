@@ -340,7 +340,8 @@ def test_a_flood_of_statuses_evicts_stale_and_offline_ones_first() -> None:
     kept = statuses_stale(state)
     assert len(kept) == INSTANCES_KEPT and "real" in kept
     assert "gone" not in kept and "old" not in kept
-    state.take(wire(StatusMessage("fake-last", "online", "1", 0, 5.0)), 40.0)
+    (_, gone) = state.take(wire(StatusMessage("fake-last", "online", "1", 0, 5.0)), 40.0)
+    assert gone == {"type": "status_gone", "instance": "real"}  # the pages are told
     assert "real" not in statuses_stale(state)  # the longest unheard of the live ones, bounded ...
     state.take(wire(StatusMessage("real", "online", "1", 3, 5.0)), 40.0 + STATUS_REMINDER_S)
     kept = statuses_stale(state)  # ... until its next reminder

@@ -348,13 +348,15 @@ class ViewState:
         self.statuses[instance] = event
         self.statuses.move_to_end(instance)
         self._heard[instance] = now
+        out = [event]
         while len(self.statuses) > INSTANCES_KEPT:
             # the least telling goes first: a stale or offline one, else the longest unheard
             gone = next((i for i, e in self.statuses.items() if e["stale"] or e["state"] != "online"), None)
             gone = next(iter(self.statuses)) if gone is None else gone
             del self.statuses[gone]
             self._heard.pop(gone, None)
-        return [event]
+            out.append({"type": "status_gone", "instance": gone})  # the pages forget it too
+        return out
 
     def _skeleton(self, message: SkeletonMessage) -> list[Event]:
         s = self.streams.get(message.stream)
