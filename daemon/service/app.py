@@ -460,7 +460,7 @@ class Service:
         while True:
             await asyncio.sleep(1.0)
             beats += 1
-            if self.remind and beats % STATUS_EVERY_S == 0:
+            if self.remind and not self.stopping and beats % STATUS_EVERY_S == 0:
                 await self._send(reminder(self._status("online")))
             if self.cluster is not None and self.cluster.holding:
                 continue  # idle streams go once the membership is sound again (or are handed over)
