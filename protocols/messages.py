@@ -41,8 +41,8 @@ State = Literal["online", "offline"]
 Kind = Literal["skeleton", "pose", "detection", "boundary", "progress", "status"]
 
 STATUS_REMINDER_S = 5
-"""ZeroMQ retains nothing: a daemon publishes its ``online`` status again this often there, so a
-status not heard for two such periods is of a daemon gone without a word (``mocapd view``: stale)."""
+"""A daemon publishes its ``online`` status again this often on ZeroMQ and MQTT, so a status not
+heard for two such periods is of a daemon gone without a word, or of none (``mocapd view``: stale)."""
 STREAM_ID = re.compile(r"[A-Za-z0-9_:@-]{1,128}")
 """A stream or instance id: one MQTT topic level (no ``/``, ``+``, ``#``) and one NATS subject
 token (no ``.``, which would split the subject cluster mode routes by), at most 128 characters."""
