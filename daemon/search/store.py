@@ -29,6 +29,7 @@ from numpy.lib import format as npy_format
 from daemon.checks import Checker
 from daemon.errors import MocapdError
 from daemon.features import SET_SLICES, sample_count
+from daemon.frames import FrameClock
 from daemon.recordings import ManifestRow, display_path, read_bvh_features, read_features
 from daemon.search.index import SetIndex, build_set_index
 from daemon.storage import check_target, checksum, read_meta, replace_directory, sync, write_json
@@ -99,11 +100,9 @@ class MotionIndex:
         d = self.documents[doc]
         if not 0 <= start <= end < d.frames:
             raise ValueError(f"frames {start}..{end} are outside 0..{d.frames - 1} of document {doc}")
-
-        def frame(j: int) -> int:  # as daemon.frames.FrameClock.start
-            return d.first_amc_frame + (j * d.step + d.per - 1) // d.per
-
-        return frame(start), min(frame(end + 1) - 1, d.last_amc_frame)
+        clock = FrameClock(d.step, 0, d.per)
+        first = clock.start(d.first_amc_frame, start)
+        return first, min(clock.start(d.first_amc_frame, end + 1) - 1, d.last_amc_frame)
 
     def document_path(self, doc: int) -> str:
         """Where document ``doc``'s AMC file is, for a reader in the working directory
