@@ -77,14 +77,27 @@ def a_page(
     pub = Publisher(broker.url)
     page = browser.new_page()
     try:
-        page.goto(view.url if token is None else f"{view.url}?token={token}")
-        until(page, "window.mocapdView && window.mocapdView.snapshots >= 1")
+        opened(page, view.url if token is None else f"{view.url}?token={token}")
         yield page, pub, view
     finally:
         page.close()
         pub.close()
         view.stop()
         broker.stop()
+
+
+def tab(browser: Browser) -> tuple[Page, list[str]]:
+    """A new tab of 1280x900 and the errors its scripts raise (appended as they come)."""
+    page = browser.new_page(viewport={"width": 1280, "height": 900})
+    errors: list[str] = []
+    page.on("pageerror", lambda e: errors.append(str(e)))
+    return page, errors
+
+
+def opened(page: Page, url: str) -> None:
+    """``page`` at ``url``, once the view has sent it its first snapshot."""
+    page.goto(url)
+    until(page, "window.mocapdView && window.mocapdView.snapshots >= 1")
 
 
 def until(page: Page, expression: str, timeout: float = 10.0) -> None:
@@ -196,14 +209,11 @@ def trial_detections() -> list[tuple[str, int, int]]:
 
 def watch_the_replay(browser: Browser, view: View, into: str, want: list[tuple[str, int, int]]) -> None:
     """The page of ``view`` while CMU 13_30 is replayed ``into`` the daemon (see the test above)."""
-    page = browser.new_page(viewport={"width": 1280, "height": 900})
+    page, errors = tab(browser)
     urls = loopback_only(page)
-    errors: list[str] = []
-    page.on("pageerror", lambda e: errors.append(str(e)))
     replaying = None
     try:
-        page.goto(view.url)
-        until(page, "window.mocapdView && window.mocapdView.snapshots >= 1")
+        opened(page, view.url)
         page.wait_for_selector('#health[data-healthy="true"]', timeout=10_000)
         page.evaluate(SAMPLE_BARS, "13_30")
         replaying = replay(*TRIAL, into, speed="3")
@@ -284,8 +294,7 @@ def test_bus_text_is_shown_as_text(tmp_path: Path, browser: Browser) -> None:
     page = browser.new_page()
     urls = loopback_only(page)
     try:
-        page.goto(view.url)
-        until(page, "window.mocapdView && window.mocapdView.snapshots >= 1")
+        opened(page, view.url)
         pose = PoseMessage("evil", 1, time.time(), positions=np.zeros((26, 3), np.float32))
         pub.send(pose, on=f"mocap/{XSS[1]}/pose")  # refused (not a stream id), listed
         pub.send(StatusMessage("d-x", "online", XSS[0], 1, 1.0), retain=False)
@@ -433,13 +442,10 @@ def test_history_outlives_the_stream_and_a_view_restart(tmp_path: Path, browser:
     config: dict[str, dict[str, object]] = {"service": {"queue_frames": 100_000, "idle_s": 12}}
     daemon = Daemon(tmp_path, sources=["mqtt"], sinks=["mqtt"], mqtt=broker.url, config=config).start()
     view = View(tmp_path, broker.url).start()
-    page = browser.new_page(viewport={"width": 1280, "height": 900})
-    errors: list[str] = []
-    page.on("pageerror", lambda e: errors.append(str(e)))
+    page, errors = tab(browser)
     replaying = None
     try:
-        page.goto(view.url)
-        until(page, "window.mocapdView && window.mocapdView.snapshots >= 1")
+        opened(page, view.url)
         replaying = replay(*TRIAL, broker.url, speed="2")
         wait_for(lambda: len((card_of(page, "13_30") or {"detections": []})["detections"]) >= 3, 20, "three")
         view.stop()  # mid-replay: the page loses its server, which comes back on the same port
