@@ -45,8 +45,8 @@ ANNOUNCE_S = 1.0
 FINISH_S = 10.0
 """How long a replay that has sent everything waits for it to leave (a peer gone: no longer)."""
 STOPPED_S = 0.5
-"""How long a replay stopped by a signal still gives what it sent to leave: it exits within a
-second of SIGTERM whatever its peer does."""
+"""How long a replay stopped by a signal still gives what it sent to leave: alone on a machine it
+exits within a second of SIGTERM whatever its peer does."""
 STOP_SIGNALS = (signal.SIGTERM, signal.SIGINT)
 
 
