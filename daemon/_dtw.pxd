@@ -44,7 +44,7 @@ cdef class StreamDTW:
     cdef Py_ssize_t finish_into(self, Candidate *out) noexcept nogil
     cdef bint blocks_c(self, int64_t cost, int64_t start, int64_t end, Py_ssize_t lo,
                        Py_ssize_t hi) noexcept nogil
-    cdef Py_ssize_t progress_c(self, Py_ssize_t t, int64_t *d) noexcept nogil
+    cdef Py_ssize_t progress_c(self, Py_ssize_t t, int64_t since, int64_t *d) noexcept nogil
     cdef bint reaches_c(self, Py_ssize_t lo, Py_ssize_t hi, int64_t end) noexcept nogil
 
 
@@ -70,6 +70,7 @@ cdef class Competition:
     cdef int64_t[:, ::1] hits  # per gated class: its last whole keyframe hit (progress; HIT_* fields)
     cdef list hit_frames  # per gated class: that hit's keyframe frames
     cdef int64_t[:, ::1] last_pub  # per gated class: start, end, frame of its last detection published
+    cdef int64_t[::1] spent  # per class: the last frame a candidate of it ended (-1: none yet)
 
     cdef list push_c(self, uint64_t code)
     cdef Py_ssize_t _open(self, Py_ssize_t g, int64_t a, int64_t b, int64_t j, Py_ssize_t found) except -1
@@ -77,6 +78,7 @@ cdef class Competition:
     cdef Py_ssize_t gated_class(self, Py_ssize_t g) noexcept nogil
     cdef bint _rival(self, const Candidate *x, const Candidate *y) noexcept nogil
     cdef int _arrive(self, Candidate *y) except -1
+    cdef void _spend(self, const Candidate *x) noexcept nogil
     cdef list _decide(self, int64_t j, bint ended)
     cdef void _forget(self, int64_t j) noexcept
     cdef void _follow_hit(self, Py_ssize_t g, int64_t j) except *

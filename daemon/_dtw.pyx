@@ -514,22 +514,23 @@ cdef class StreamDTW:
         d = self._last(template, frame)
         return (d, self._start(template, frame)) if d < INF else (INF, NO_START)
 
-    def progress(self, Py_ssize_t template):
+    def progress(self, Py_ssize_t template, int64_t since=-1):
         """How far along ``template`` (M columns) the stream has got at the last frame pushed: the
         furthest row i of its column whose D(i) is within τ as a mean per template column,
         D(i)·M <= τ·(i + 1) in fixed point (cell costs carry the factor 1/M: D(M - 1) is a
-        detection's cost), as (i, D(i)); (-1, :data:`INF`) if no row is, or no frame was pushed.
-        With the toolbox's steps only cells within τ are kept, and those are exact: every row that
-        qualifies (D(i) <= τ·(i + 1)/M <= τ) is one of them."""
+        detection's cost), and whose path starts after frame ``since``, as (i, D(i)); (-1,
+        :data:`INF`) if no row is, or no frame was pushed. With the toolbox's steps only cells
+        within τ are kept, and those are exact: every row that qualifies (D(i) <= τ·(i + 1)/M <= τ)
+        is one of them."""
         if not 0 <= template < self.k:
             raise IndexError(f"template {template} of {self.k}")
         cdef int64_t d = INF
-        cdef Py_ssize_t i = self.progress_c(template, &d)
+        cdef Py_ssize_t i = self.progress_c(template, since, &d)
         if i < 0:
             return (-1, INF)
         return (i, d)
 
-    cdef Py_ssize_t progress_c(self, Py_ssize_t t, int64_t *d) noexcept nogil:
+    cdef Py_ssize_t progress_c(self, Py_ssize_t t, int64_t since, int64_t *d) noexcept nogil:
         """:meth:`progress` of template ``t`` without its checks: the row (-1: none), D in ``d``."""
         if self.n == 0:
             return -1
@@ -537,7 +538,7 @@ cdef class StreamDTW:
         cdef int64_t m = self.lengths[t], thr = self.thresholds[t], x
         for i in range(self.highest[t, slot], -1, -1):
             x = self.cols[2 * slot, o + i]
-            if x < INF and x * m <= thr * (i + 1):
+            if x < INF and x * m <= thr * (i + 1) and self.cols[2 * slot + 1, o + i] > since:
                 d[0] = x
                 return i
         return -1
@@ -824,6 +825,7 @@ cdef class Competition:
         self.hits = np.full((max(1, self.n_gated), HIT_FIELDS), -1, dtype=np.int64)
         self.hit_frames = [()] * self.n_gated
         self.last_pub = np.full((max(1, self.n_gated), 3), -1, dtype=np.int64)
+        self.spent = np.full(classes, -1, dtype=np.int64)
         buf_init(&self.held, 4)
         buf_init(&self.recent, 4)
         buf_init(&self.published, 3)
@@ -902,9 +904,10 @@ cdef class Competition:
 
     def state(self):
         """What :meth:`restore` needs to go on as this competition would: (frames, the ring of
-        codes, each gated class's window, hit and last detection, the hit's keyframe frames, the
-        held, recent and published candidates as int64 bytes, the DTW's :meth:`StreamDTW.state`,
-        the automata's :meth:`~daemon._automaton.AutomatonSet.state` or None)."""
+        codes, each gated class's window, hit and last detection, each class's last spent start,
+        the hit's keyframe frames, the held, recent and published candidates as int64 bytes, the
+        DTW's :meth:`StreamDTW.state`, the automata's :meth:`~daemon._automaton.AutomatonSet.state`
+        or None)."""
         return (
             self.n,
             np.asarray(self.ring).tobytes(),
@@ -912,6 +915,7 @@ cdef class Competition:
             np.asarray(self.seg_e).tobytes(),
             np.asarray(self.hits).tobytes(),
             np.asarray(self.last_pub).tobytes(),
+            np.asarray(self.spent).tobytes(),
             [list(f) for f in self.hit_frames],
             buf_bytes(&self.held),
             buf_bytes(&self.recent),
@@ -923,13 +927,14 @@ cdef class Competition:
     def restore(self, state):
         """Take over a :meth:`state` of a competition of the same templates, classes and settings;
         ValueError naming the part that does not fit."""
-        n, ring, seg_s, seg_e, hits, last_pub, hit_frames, held, recent, published, dtw, automata = state
+        n, ring, seg_s, seg_e, hits, last_pub, spent, hit_frames, held, recent, published, dtw, automata = state
         for name, view, data, dtype in (
             ("codes", self.ring, ring, np.uint64),
             ("windows", self.seg_s, seg_s, np.int64),
             ("windows", self.seg_e, seg_e, np.int64),
             ("hits", self.hits, hits, np.int64),
             ("detections", self.last_pub, last_pub, np.int64),
+            ("spent", self.spent, spent, np.int64),
         ):
             if len(data) != np.asarray(view).nbytes:
                 raise ValueError(f"competition: {name} of another shape ({len(data)} bytes)")
@@ -944,6 +949,7 @@ cdef class Competition:
         np.asarray(self.hits)[...] = np.frombuffer(hits, dtype=np.int64).reshape(np.asarray(self.hits).shape)
         np.asarray(self.last_pub)[...] = np.frombuffer(last_pub, dtype=np.int64).reshape(
             np.asarray(self.last_pub).shape)
+        np.asarray(self.spent)[...] = np.frombuffer(spent, dtype=np.int64)
         self.hit_frames = [tuple(f) for f in hit_frames]
         buf_load(&self.held, held)
         buf_load(&self.recent, recent)
@@ -968,6 +974,7 @@ cdef class Competition:
         self.seg_e[:] = -2
         self.hits[:, :] = -1
         self.last_pub[:, :] = -1
+        self.spent[:] = -1
         self.hit_frames = [()] * self.n_gated
         buf_clear(&self.held)
         buf_clear(&self.recent)
@@ -981,7 +988,9 @@ cdef class Competition:
 
     cdef int _arrive(self, Candidate *y) except -1:
         """A new candidate: remembered as a rival; held unless something before it beats it or it is
-        a motion already published; a held one it beats is dropped."""
+        a motion already published; a held one it beats is dropped. A candidate beaten by another
+        class's, or the same motion as a detection published, is spent (:meth:`_spend`), as is a
+        held one dropped for another class's."""
         cdef Py_ssize_t i, kept
         cdef Candidate x
         cdef bint beaten = False
@@ -991,23 +1000,36 @@ cdef class Competition:
             get(buf_row(&self.recent, i), &x)
             if before(&x, y) and self._rival(&x, y):
                 beaten = True
-                break
+                if self.owner[x.member] != k:
+                    self._spend(y)
+                    break
         put(buf_append(&self.recent), y)
-        if beaten:
-            return 0
         for i in range(buf_len(&self.published)):
             row = buf_row(&self.published, i)
             if (self.compete or row[2] == k) and same_motion(y.start, y.end, row[0], row[1]):
+                self._spend(y)
                 return 0
+        if beaten:
+            return 0
         kept = 0
         for i in range(buf_len(&self.held)):
             get(buf_row(&self.held, i), &x)
             if not (before(y, &x) and self._rival(&x, y)):
                 put(buf_row(&self.held, kept), &x)
                 kept += 1
+            elif self.owner[x.member] != k:
+                self._spend(&x)
         self.held.n = self.held.head + kept
         put(buf_append(&self.held), y)
         return 0
+
+    cdef void _spend(self, const Candidate *x) noexcept nogil:
+        """``x``'s motion is decided (published, or lost to another class or to a detection): its
+        class's progress (:meth:`progress`) no longer follows paths that start by ``x``'s start, so
+        a bar does not stand on a motion already told or explained, and the next one rises."""
+        cdef int64_t k = self.owner[x.member]
+        if x.start > self.spent[k]:
+            self.spent[k] = x.start
 
     cdef list _decide(self, int64_t j, bint ended):
         """The held candidates that frame ``j`` (the stream's last, if it ``ended``) makes final:
@@ -1050,6 +1072,7 @@ cdef class Competition:
                 self.last_pub[g, 0] = x.start  # for progress: which keyframe hit gave a detection
                 self.last_pub[g, 1] = x.end
                 self.last_pub[g, 2] = j
+            self._spend(&x)
             row = buf_append(&self.published)
             row[0] = x.start
             row[1] = x.end
@@ -1064,8 +1087,9 @@ cdef class Competition:
         of a stream whose progress is followed: it also keeps each gated class's last whole
         keyframe hit). Per class under way — a gated class with keyframes matched, another at a
         position of at least ``floor`` — in class order: (class, template, row, D, frames): the template whose
-        :meth:`StreamDTW.progress` row is furthest along as a share of its length (ties: the lower
-        mean cost D·M/(row + 1), then the first), -1, -1, :data:`INF` if none has one; and for a
+        :meth:`StreamDTW.progress` row, on paths that start after the class's last spent candidate
+        (:meth:`_spend`), is furthest along as a share of its length (ties: the lower mean cost
+        D·M/(row + 1), then the first), -1, -1, :data:`INF` if none has one; and for a
         gated class the frames of its keyframes found: those of its last whole hit while it is
         held, else those of the automaton's most advanced partial match
         (:meth:`~daemon._automaton.AutomatonCore.partial`), else (). A whole hit is held from the
@@ -1088,7 +1112,7 @@ cdef class Competition:
             best_m = 1
             best_cost = 0.0
             for u in range(self.cls_lo[k], self.cls_hi[k]):
-                i = dtw.progress_c(u, &d)
+                i = dtw.progress_c(u, self.spent[k], &d)
                 if i < 0:
                     continue
                 m = dtw.lengths[u]

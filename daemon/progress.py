@@ -17,7 +17,9 @@ that overlaps it is published, or until it can give none. Other classes: n = 0, 
 
 *Position.* Of the class's templates, the furthest column i (of m) of the stream-wide DTW's column
 at this index frame whose accumulated cost D(i) is within τ as a mean per template column
-(:meth:`daemon._dtw.StreamDTW.progress`): position (i + 1)/m, cost the mean D(i)·m/(i + 1) in a
+(:meth:`daemon._dtw.StreamDTW.progress`), on a path that starts after the class's last spent
+candidate (published, or lost to another class or to a detection:
+:meth:`daemon._dtw.Competition.progress`): position (i + 1)/m, cost the mean D(i)·m/(i + 1) in a
 detection's units (a detection's cost is this at position 1); the template furthest along wins,
 ties the cheaper. None within τ: position 0, cost τ.
 

@@ -74,7 +74,7 @@ DEFAULT_SETTINGS = RecognitionSettings()
 FrameProblem = Literal["shape", "non_finite", "type", "repeat", "back", "jump"]
 
 
-STATE_VERSION = 1
+STATE_VERSION = 2
 """The form of :meth:`Recognizer.state`; a state of another is refused."""
 
 

@@ -64,7 +64,9 @@ def ternary(f: int, n: int) -> st.SearchStrategy[FloatArray]:
 def test_stream_dtw_progress_reads_its_definition(k: int, n: int, data: st.DataObject) -> None:
     """At every frame, each template's furthest row i whose D(i) (the full recursion's, unpruned)
     satisfies D(i)·M <= τ·(i + 1), and that D; none: (-1, INF). With the toolbox's steps the
-    columns keep only cells within τ, so this also shows those cells are the exact ones."""
+    columns keep only cells within τ, so this also shows those cells are the exact ones. Asked
+    for paths that start after a frame, the furthest such row whose path (the recursion's start)
+    starts after it."""
     f = 4
     templates = []
     for _ in range(k):
@@ -81,15 +83,18 @@ def test_stream_dtw_progress_reads_its_definition(k: int, n: int, data: st.DataO
     stream = StreamDTW([(tb.masks, tb.values, tb.tables, thr, s == "toolbox") for tb, s, thr in templates])
     assert stream.progress(0) == (-1, INF)  # nothing pushed
     full = [
-        ref_subsequence([[int(v) for v in row] for row in dtw.retrieval_matrix(tb, codes)], s)[0]
+        ref_subsequence([[int(v) for v in row] for row in dtw.retrieval_matrix(tb, codes)], s)
         for tb, s, _ in templates
     ]
     for j, code in enumerate(codes.tolist()):
         stream.push(code)
-        for t, ((_, _, thr), d) in enumerate(zip(templates, full, strict=True)):
+        since = data.draw(st.integers(-1, j))
+        for t, ((_, _, thr), (d, start)) in enumerate(zip(templates, full, strict=True)):
             m = len(d)
             rows = [i for i in range(m) if d[i][j] < INF and d[i][j] * m <= thr * (i + 1)]
             assert stream.progress(t) == ((rows[-1], d[rows[-1]][j]) if rows else (-1, INF))
+            later = [i for i in rows if start[i][j] > since]
+            assert stream.progress(t, since) == ((later[-1], d[later[-1]][j]) if later else (-1, INF))
     with pytest.raises(IndexError):
         stream.progress(k)
 

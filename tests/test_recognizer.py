@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Sequence
+from fractions import Fraction
 from functools import cache
 from pathlib import Path
 
@@ -159,7 +160,12 @@ def test_one_motion_one_detection_and_a_repetition_right_after(library: Library)
 
 
 def slow_recognizer(
-    codes: list[int], classes: Sequence[ClassTemplate], max_gap: int, compete: bool, hold: int
+    codes: list[int],
+    classes: Sequence[ClassTemplate],
+    max_gap: int,
+    compete: bool,
+    hold: int,
+    progress: list[dict[int, tuple[int, int, int]]] | None = None,
 ) -> list[tuple[str, int, int, int, int]]:
     """:class:`CodeRecognizer`'s definition read slowly. A class in mode ``dtw``: each template's
     subsequence DTW cell by cell over the whole stream (fixed point, :func:`tests.naive.ref_subsequence`).
@@ -175,7 +181,14 @@ def slow_recognizer(
     A held candidate is final after ``hold`` frames or when :func:`tests.naive.slow_blocks` (over
     the columns known at that frame) says no template (of its class unless competing) can still end
     a cheaper match of its motion; the final ones are published by (end, start, class). Each as
-    (class, start, end, cost, frame it comes out at)."""
+    (class, start, end, cost, frame it comes out at).
+
+    ``progress``, if given, gets per frame (after its arrivals and publications) and per class
+    the (template, row, D) furthest along as a share of its template's length (ties: the lower
+    D·M/(row + 1), then the first) among the rows of the column known at that frame with
+    D·M <= τ·(row + 1) whose path starts after the class's spent frame: the latest start of its
+    candidates published, beaten by another class's, the same motion as a detection published,
+    or dropped from the held for another class's."""
     n = len(codes)
     sets = {
         fs: [
@@ -253,12 +266,23 @@ def slow_recognizer(
     arrived: list[tuple[int, int, int, int]] = []
     held: list[tuple[int, int, int, int]] = []
     published: list[tuple[int, int, int, int]] = []
+    spent = [-1] * len(classes)
+
+    def spend(x: tuple[int, int, int, int]) -> None:
+        spent[owner[x[2]]] = max(spent[owner[x[2]]], x[3])
+
     out = []
     for j in range(n + 1):  # frame n: the flush
         for y in sorted(found.get(j, [])):
-            beaten = any(x < y and same(x, y) for x in arrived) or any(same(y, p) for p in published)
+            rivals = [x for x in arrived if x < y and same(x, y)]
+            told = any(same(y, p) for p in published)
+            if told or any(owner[x[2]] != owner[y[2]] for x in rivals):
+                spend(y)
             arrived.append(y)
-            if not beaten:
+            if not (rivals or told):
+                for x in held:
+                    if y < x and same(x, y) and owner[x[2]] != owner[y[2]]:
+                        spend(x)
                 held = [x for x in held if not (y < x and same(x, y))] + [y]
         frame = min(j, n - 1)
         final = []
@@ -272,8 +296,31 @@ def slow_recognizer(
         for x in sorted(final, key=lambda x: (x[1], x[3], owner[x[2]])):
             k = owner[x[2]]
             published.append(x)
+            spend(x)
             out.append((classes[k].name, x[3], x[1], x[0], frame))
+        if progress is not None and j < n:
+            progress.append(slow_progress_at(columns_at(j), owner, spent, j))
     return out
+
+
+def slow_progress_at(
+    columns: list[tuple[list[list[int]], list[list[int]], bool, int]],
+    owner: list[int],
+    spent: list[int],
+    j: int,
+) -> dict[int, tuple[int, int, int]]:
+    """Per class, the (template, row, D) :func:`slow_recognizer` gives as its progress at frame ``j``."""
+    best: dict[int, tuple[Fraction, Fraction, int, int, int]] = {}
+    for u, ((d, start, _, thr), k) in enumerate(zip(columns, owner, strict=True)):
+        m = len(d)
+        rows = [
+            i for i in range(m) if d[i][j] < INF and d[i][j] * m <= thr * (i + 1) and start[i][j] > spent[k]
+        ]
+        if rows:
+            i = rows[-1]
+            key = (-Fraction(i + 1, m), Fraction(d[i][j] * m, i + 1), u, i, d[i][j])
+            best[k] = min(best.get(k, key), key)
+    return {k: (u, i, d) for k, (_, _, u, i, d) in best.items()}
 
 
 def confirmations(
@@ -336,6 +383,55 @@ def test_confirmations_equal_the_definition(
     assert got == slow_recognizer(stream, classes, max_gap, compete, hold)
     for _, _, end, _, emitted in got:
         assert end <= emitted  # never before its last frame was seen
+
+
+@settings(max_examples=80, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(
+    streams(shortest=20, longest=120),
+    queries(),
+    queries(tolerant=True),
+    st.integers(0, 2**32 - 1),
+    st.sampled_from([0.2, 0.5]),
+    st.booleans(),
+    st.integers(0, 6),
+    st.sampled_from(["keyframes", "dtw"]),
+    st.booleans(),
+)
+def test_progress_equals_the_definition(
+    codes: dict[FeatureSet, list[int]],
+    q1: KeyframeQuery,
+    q2: KeyframeQuery,
+    seed: int,
+    tau: float,
+    compete: bool,
+    hold: int,
+    mode: str,
+    two: bool,
+) -> None:
+    """At every frame, each class's progress in the compiled competition (its template, row and D
+    along paths that start after the class's spent frame) is :func:`slow_recognizer`'s: reported for
+    every class in mode ``dtw`` that has one (floor 0), and for a gated class whenever it is."""
+    rng = np.random.default_rng(seed)
+    a = random_class("a", q1, rng, tau)
+    b = dataclasses.replace(random_class("b", q2, rng, tau), mode=mode)
+    if two:
+        other = random_class("a2", q1, rng, tau * 0.8)
+        a = dataclasses.replace(a, variants=(Variant(other.quantised, other.tau, other.provenance, (0,)),))
+    classes = [a, b]
+    stream = stream_codes(codes)
+    settings = RecognitionSettings(max_gap_s=4 / 30.0, compete=compete, hold_s=hold / 30.0)
+    recognizer = CodeRecognizer(plans(Library(30.0, {c.name: c for c in classes}), settings), 30.0, settings)
+    core = recognizer.core
+    assert core is not None
+    want: list[dict[int, tuple[int, int, int]]] = []
+    slow_recognizer(stream, classes, 4, compete, hold, want)
+    for code, expected in zip(stream, want, strict=True):
+        recognizer.push(code)
+        got = {k: (u, i, d) for k, u, i, d, _ in core.progress(1e-12)}
+        for k, found in got.items():
+            assert found == expected.get(k, (-1, -1, INF))
+        for k in expected:
+            assert recognizer.keyframes[k] or k in got
 
 
 @settings(max_examples=80, deadline=None, suppress_health_check=[HealthCheck.too_slow])

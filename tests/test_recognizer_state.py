@@ -84,8 +84,9 @@ def test_a_competition_restored_anywhere_goes_on_as_the_uninterrupted_one(
     cuts: list[float],
 ) -> None:
     """Random code streams, a keyframes-first class and one in ``mode``: moved to a fresh
-    competition at each cut (through msgpack), the confirmations are those of the stream pushed to
-    one, and the fresh one's state equals the state it was given (runs shared as before)."""
+    competition at each cut (through msgpack), the confirmations and the progress after each push
+    are those of the stream pushed to one, and the fresh one's state equals the state it was given
+    (runs shared as before)."""
     rng = np.random.default_rng(seed)
     classes = [
         dataclasses.replace(random_class("a", q1, rng, tau), mode="keyframes"),
@@ -96,9 +97,9 @@ def test_a_competition_restored_anywhere_goes_on_as_the_uninterrupted_one(
     stream = stream_codes(codes)
     at = {round(c * len(stream)) for c in cuts}
 
-    def run(cut: set[int]) -> list[tuple[str, int, int, int, int]]:
+    def run(cut: set[int]) -> list[Any]:
         r = CodeRecognizer(class_plans, 30.0, config)
-        out = []
+        out: list[Any] = []
         for j, c in enumerate([*stream, None]):
             if j in cut:
                 state = moved(r.core)
@@ -108,6 +109,8 @@ def test_a_competition_restored_anywhere_goes_on_as_the_uninterrupted_one(
                 assert moved(r.core) == state
             found = r.flush() if c is None else r.push(c)
             out += [(p.name, m.start, m.end, round(m.cost * SCALE), j) for p, m, _ in found]
+            if c is not None and r.core is not None:
+                out.append(r.core.progress(1e-12))
         return out
 
     assert run(at) == run(set())
