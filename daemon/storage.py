@@ -68,6 +68,20 @@ class _Pending(NamedTuple):
 
 _batches: list[list[_Pending]] = []
 """The outputs waiting for the end of the enclosing :func:`together` block (one at most)."""
+_placed: list[bool] = [False]
+"""Whether outputs were put into place since :func:`forget_placed` (see :func:`placed`)."""
+
+
+def placed() -> bool:
+    """Whether outputs were put into place since :func:`forget_placed`: the command line then takes a
+    stop signal as too late (the new outputs are its result, and what is left of it is short), so
+    that a status of 130 or 143 always means the previous outputs are intact."""
+    return _placed[0]
+
+
+def forget_placed() -> None:
+    """A new command begins (:func:`placed` is false again)."""
+    _placed[0] = False
 
 
 @contextmanager
@@ -99,6 +113,7 @@ def together() -> Iterator[None]:
                 for rest in pending[i:]:
                     rest.discard()
                 raise _named(exc, output.target) from None
+        _placed[0] = bool(pending) or _placed[0]
 
 
 def _put_in_place(put: Callable[[], None], discard: Callable[[], None], target: Path) -> None:
@@ -108,6 +123,7 @@ def _put_in_place(put: Callable[[], None], discard: Callable[[], None], target: 
         return
     with uninterrupted():
         put()
+        _placed[0] = True
 
 
 def _beside(target: Path, kind: str) -> Path:

@@ -27,6 +27,9 @@ from pathlib import Path
 
 import pytest
 
+import daemon.cli as cli
+from daemon import storage
+from daemon.cli import Terminated
 from tests.helpers import (
     CMU_AMC,
     CMU_ASF,
@@ -478,3 +481,33 @@ def test_an_error_after_a_signal_ends_the_command_as_the_signal_says() -> None:
         [sys.executable, "-c", script], capture_output=True, text=True, timeout=30, cwd=REPO
     )
     assert (result.returncode, result.stderr) == (130, "mocapd: interrupted\n")
+
+
+@pytest.mark.parametrize(
+    ("signum", "kind"), [(signal.SIGINT, KeyboardInterrupt), (signal.SIGTERM, Terminated)]
+)
+def test_a_signal_once_the_outputs_are_in_place_is_too_late(
+    signum: signal.Signals, kind: type[BaseException], tmp_path: Path
+) -> None:
+    """The command line's handlers (in this process): a stop signal raises until an output is put in
+    place, not after, nor when it came during the swap (deferred until it is over): a run stopped
+    with 130 or 143 then always left the previous outputs (CI once saw ``positions`` exit 130 with its
+    new CSV in place, the signal having come between the rename and the return)."""
+    handler = cli._interrupt if signum == signal.SIGINT else cli._terminate
+    previous = signal.signal(signum, handler)
+    try:
+        storage.forget_placed()
+        with pytest.raises(kind):
+            signal.raise_signal(signum)
+        with storage.uninterrupted():  # the signal comes while the output is put in place
+            signal.raise_signal(signum)
+            with storage.output_file(tmp_path / "out.csv") as out:
+                out.write("new\n")
+        signal.raise_signal(signum)  # and after
+        assert (tmp_path / "out.csv").read_text() == "new\n"
+        storage.forget_placed()  # the next command
+        with pytest.raises(kind):
+            signal.raise_signal(signum)
+    finally:
+        signal.signal(signum, previous)
+        storage.forget_placed()

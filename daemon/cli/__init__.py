@@ -6,7 +6,9 @@ this module is the one place that turns what goes wrong into an exit status and 
 * 0: done; 2: bad input (a :class:`~daemon.errors.MocapdError`: unreadable or malformed files, bad
   options), one line naming the file, line, field or option;
 * 130 on SIGINT (Ctrl-C), 143 on SIGTERM: "interrupted" / "terminated"; every file being written is
-  left as it was (outputs are written beside their target and renamed into place);
+  left as it was (outputs are written beside their target and renamed into place). A signal that
+  comes once the command's outputs are in place (:func:`daemon.storage.placed`) is too late: the
+  command finishes (a summary at most) with its own status;
 * 70 on anything else: one line saying it is a bug in mocapd and how to report it; the traceback
   only with ``--debug``.
 
@@ -68,14 +70,23 @@ a C extension may come back as another error with no trace of it (pybind11 repor
 function arguments" when one lands while it converts a call's arguments, as in matplotlib)."""
 
 
-def _terminate(signum: int, frame: FrameType | None) -> NoReturn:
-    _RECEIVED.append(signal.SIGTERM)
-    raise Terminated
+def _too_late() -> bool:
+    """Whether the command's outputs are in place (:func:`daemon.storage.placed`; the module is
+    looked up, not imported, in a signal handler: none placed anything before it was imported)."""
+    storage = sys.modules.get("daemon.storage")
+    return storage is not None and bool(storage.placed())
 
 
-def _interrupt(signum: int, frame: FrameType | None) -> NoReturn:
-    _RECEIVED.append(signal.SIGINT)
-    raise Interrupted
+def _terminate(signum: int, frame: FrameType | None) -> None:
+    if not _too_late():
+        _RECEIVED.append(signal.SIGTERM)
+        raise Terminated
+
+
+def _interrupt(signum: int, frame: FrameType | None) -> None:
+    if not _too_late():
+        _RECEIVED.append(signal.SIGINT)
+        raise Interrupted
 
 
 def _unraisable(hook: Callable[[Any], object]) -> Callable[[Any], object]:
@@ -157,6 +168,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     arguments = list(sys.argv[1:] if argv is None else argv)
     debug = "--debug" in arguments
     _RECEIVED.clear()
+    if (storage := sys.modules.get("daemon.storage")) is not None:
+        storage.forget_placed()  # an earlier command of this process placed its outputs
     previous: dict[signal.Signals, Any] = {}
     try:
         if signal.getsignal(signal.SIGINT) is signal.default_int_handler:  # not ignored (``command &``)
