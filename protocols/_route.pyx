@@ -74,7 +74,8 @@ cdef inline void put32(char *at, uint32_t value) noexcept nogil:
 cdef class Router:
     """Routes the messages of the socket at ``source`` to the PUSH sockets at ``sinks`` (addresses,
     ``Socket.underlying``); ``functions``: name to address of each of :data:`FUNCTIONS`; ``choose``:
-    a topic's worker (``bytes -> int`` in ``0 .. len(sinks) - 1``), asked once per topic and
+    a topic's worker (``bytes -> int`` in ``0 .. len(sinks) - 1``, or ``len(sinks)``: every
+    worker, for a frame message), asked once per topic and
     remembered, at most ``cached`` topics (then forgotten all at once: a flood of new ids must
     not grow it)."""
 
@@ -138,7 +139,7 @@ cdef class Router:
         if len(self.routes) >= self.cached:
             self.routes.clear()
         k = self.choose(key)
-        if not 0 <= k < self.workers:
+        if not 0 <= k <= self.workers:  # ``workers``: to every worker
             raise ValueError(f"topic {key[:80]!r} routed to worker {k} of {self.workers}")
         self.routes[key] = k
         return k
@@ -185,7 +186,7 @@ cdef class Router:
         """Route up to ``most`` messages that are waiting now; (the messages taken, per worker the
         messages that could not be sent: its queue was full)."""
         cdef mocapd_zmq_msg first, second
-        cdef Py_ssize_t taken = 0, k
+        cdef Py_ssize_t taken = 0, k, w
         cdef bint pair
         try:
             while taken < most:
@@ -206,16 +207,17 @@ cdef class Router:
                             self.init(&second)
                             self.next(&second)
                     k = self.worker(<const char *> self.data(&first), self.size(&first))
-                    if pair:
-                        self.append(
-                            k,
-                            <const char *> self.data(&first),
-                            self.size(&first),
-                            <const char *> self.data(&second),
-                            self.size(&second),
-                        )
-                    else:
-                        self.append(k, NULL, 0, NULL, 0)
+                    for w in range(self.workers) if k == self.workers else range(k, k + 1):
+                        if pair:
+                            self.append(
+                                w,
+                                <const char *> self.data(&first),
+                                self.size(&first),
+                                <const char *> self.data(&second),
+                                self.size(&second),
+                            )
+                        else:
+                            self.append(w, NULL, 0, NULL, 0)
                 finally:
                     self.close(&first)
                     self.close(&second)

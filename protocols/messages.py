@@ -1,7 +1,8 @@
 """The wire (DESIGN.md, "The wire"; schema for other languages in ``protocols/README.md``).
 
 Every message is a msgpack map with ``"v": 1`` and a ``"type"``: ``skeleton`` (a stream announces
-what its poses carry), ``pose`` (one frame), ``detection`` (a recognised motion), ``boundary`` (a
+what its poses carry), ``pose`` (one frame), ``frame`` (one capture frame of several streams, packed
+as arrays), ``detection`` (a recognised motion), ``boundary`` (a
 behaviour cut), ``progress`` (how far the motions under way on a stream have got) and ``status``
 (a daemon instance online or offline). :func:`encode` writes one,
 :func:`decode` reads one and validates it completely — type, version, every field's type, the
@@ -57,6 +58,8 @@ MAX_KEYFRAMES = 64
 """The most keyframes a class's progress counts."""
 MAX_DEPTH = 8
 """The deepest nesting of maps and lists a message may have (a progress message has 4)."""
+MAX_SUBJECTS = 4096
+"""The most poses one frame message carries."""
 
 
 class WireError(MocapdError, ValueError):
@@ -115,6 +118,101 @@ class PoseMessage:
     positions: npt.NDArray[np.float32] | None = None
     channels: npt.NDArray[np.float64] | None = None
     epoch: str | None = None
+
+
+@dataclass(frozen=True, eq=False)
+class FrameMessage:
+    """One capture frame (or a few) of several streams, as a capture system sends it (every subject
+    in one packet), from ``source`` (an id: its topic's level). Per subject i of S: ``streams[i]``,
+    ``seq[i]`` and ``time[i]`` as a :class:`PoseMessage`'s, and ``counts[i]`` values of ``values``
+    (subject after subject: float32 positions, 3 per joint, or float64 channels, by ``kind``).
+    ``epoch``: the source's run, every subject's. A subject may come more than once (a few frames
+    of it, in order). Arrays ``(S,)``: ``seq`` uint64, ``time`` float64, ``counts`` int64.
+
+    :func:`decode` checks the message as a whole (a bad one is refused whole); each subject's own
+    faults (:meth:`poses`) refuse that subject alone."""
+
+    source: str
+    streams: tuple[str, ...]
+    seq: npt.NDArray[np.uint64]
+    time: npt.NDArray[np.float64]
+    counts: npt.NDArray[np.int64]
+    values: npt.NDArray[Any]
+    kind: Literal["positions", "channels"]
+    epoch: str | None = None
+
+    def poses(self) -> list[PoseMessage | WireError]:
+        """Per subject, in order, its pose, or why it is refused, as a pose message of its own would
+        be (:func:`decode`, the first fault in its order): an id that is not one (``schema``), a
+        sequence number beyond :data:`MAX_SEQ` (``schema``), a time not finite (``non_finite``), no
+        values or positions not in threes (``shape``), a value not finite (``non_finite``).
+        Checked over the arrays at once; a Python step per subject only to make its pose."""
+        starts = np.zeros(len(self.counts) + 1, dtype=np.int64)
+        np.cumsum(self.counts, out=starts[1:])
+        finite = np.isfinite(self.values)
+        bad_values = np.zeros(len(self.counts), dtype=bool)
+        if not finite.all():
+            nonempty = self.counts > 0  # reduceat of an empty segment gives the next value
+            sums = np.add.reduceat(~finite, np.minimum(starts[:-1], max(len(finite) - 1, 0)))
+            bad_values = nonempty & (sums > 0)
+        width = 3 if self.kind == "positions" else 1
+        shape = (self.counts == 0) | (self.counts % width != 0)
+        out: list[PoseMessage | WireError] = []
+        for i, (stream, seq, stamp, a, b) in enumerate(
+            zip(
+                self.streams,
+                self.seq.tolist(),
+                self.time.tolist(),
+                starts[:-1].tolist(),
+                starts[1:].tolist(),
+                strict=True,
+            )
+        ):
+            where = f"frame.streams[{i}]"
+            if not is_id(stream):
+                out.append(WireError("schema", f"{where}: {describe(stream)} is not an id ({ID_RULE})"))
+            elif seq > MAX_SEQ:
+                out.append(WireError("schema", f"{where}: seq must be at most {MAX_SEQ}, got {seq}"))
+            elif not math.isfinite(stamp):
+                out.append(WireError("non_finite", f"{where} {stream}: time is not finite"))
+            elif shape[i]:
+                what = f"{b - a} values is not a whole number of positions" if b > a else "no values"
+                out.append(WireError("shape", f"{where} {stream}: {what}"))
+            elif bad_values[i]:
+                out.append(WireError("non_finite", f"{where} {stream}: a value is not finite"))
+            elif self.kind == "positions":
+                out.append(
+                    PoseMessage(
+                        stream, seq, stamp, positions=self.values[a:b].reshape(-1, 3), epoch=self.epoch
+                    )
+                )
+            else:
+                out.append(PoseMessage(stream, seq, stamp, channels=self.values[a:b], epoch=self.epoch))
+        return out
+
+
+def frame_of(poses: list[PoseMessage], source: str, epoch: str | None = None) -> FrameMessage:
+    """The frame message of ``poses`` (all positions or all channels) from ``source``."""
+    positions = [p.positions for p in poses]
+    channels = [p.channels for p in poses]
+    if all(a is not None for a in positions):
+        kind: Literal["positions", "channels"] = "positions"
+        parts = [np.asarray(a, dtype="<f4").reshape(-1) for a in positions if a is not None]
+    elif all(a is not None for a in channels):
+        kind = "channels"
+        parts = [np.asarray(a, dtype="<f8") for a in channels if a is not None]
+    else:
+        raise ValueError("a frame message carries positions or channels, not both")
+    return FrameMessage(
+        source,
+        tuple(p.stream for p in poses),
+        np.array([p.seq for p in poses], dtype=np.uint64),
+        np.array([p.time for p in poses], dtype=np.float64),
+        np.array([len(a) for a in parts], dtype=np.int64),
+        np.concatenate(parts),
+        kind,
+        epoch,
+    )
 
 
 @dataclass(frozen=True)
@@ -203,6 +301,7 @@ class StatusMessage:
 Message = (
     SkeletonMessage
     | PoseMessage
+    | FrameMessage
     | EndMessage
     | DetectionMessage
     | BoundaryMessage
@@ -219,12 +318,17 @@ TOPIC_OF: dict[type[Any], str] = {
     ProgressMessage: "progress",
 }
 """The topic word of each per-stream message: ``mocap/<stream>/<word>``."""
+FRAME_WORD = "frame"
+"""A frame message's topic word: ``mocap/<source>/frame``."""
 
 
 def topic(message: Message) -> str:
-    """The topic a message is published on: ``mocap/<stream>/<word>`` or ``mocapd/<instance>/status``."""
+    """The topic a message is published on: ``mocap/<stream>/<word>``, ``mocap/<source>/frame`` or
+    ``mocapd/<instance>/status``."""
     if isinstance(message, StatusMessage):
         return f"mocapd/{message.instance}/status"
+    if isinstance(message, FrameMessage):
+        return f"mocap/{message.source}/{FRAME_WORD}"
     return f"mocap/{message.stream}/{TOPIC_OF[type(message)]}"
 
 
@@ -262,6 +366,20 @@ def encode(message: Message) -> bytes:
         else:
             assert message.channels is not None
             body["channels"] = np.ascontiguousarray(message.channels, dtype="<f8").tobytes()
+    elif isinstance(message, FrameMessage):
+        body |= {
+            "type": "frame",
+            "source": message.source,
+            "streams": list(message.streams),
+            "seq": np.ascontiguousarray(message.seq, dtype="<u8").tobytes(),
+            "time": np.ascontiguousarray(message.time, dtype="<f8").tobytes(),
+            "counts": np.ascontiguousarray(message.counts, dtype="<u4").tobytes(),
+            message.kind: np.ascontiguousarray(
+                message.values, dtype="<f4" if message.kind == "positions" else "<f8"
+            ).tobytes(),
+        }
+        if message.epoch is not None:
+            body["epoch"] = message.epoch
     elif isinstance(message, EndMessage):
         body |= {"type": "end", "stream": message.stream, "seq": message.seq}
         if message.epoch is not None:
@@ -510,6 +628,16 @@ class _Fields:
             )
         return a
 
+    def packed(self, name: str, dtype: str, n: int) -> npt.NDArray[Any]:
+        """A packed little-endian array of exactly ``n`` ``dtype`` (not checked for finiteness)."""
+        value = self.take(name)
+        if not isinstance(value, bytes):
+            raise self.fail(name, f"must be bytes (packed {dtype}), got {type(value).__name__}")
+        size = np.dtype(dtype).itemsize
+        if len(value) != n * size:
+            raise self.fail(name, f"{len(value)} bytes, expected {n} x {dtype} ({n * size})", "shape")
+        return np.frombuffer(value, dtype=dtype)
+
     def done(self) -> None:
         extra = sorted(str(k) for k in self.body if k not in self.seen)
         if extra:
@@ -565,6 +693,28 @@ def _pose(f: _Fields) -> PoseMessage:
     channels = f.array("channels", "<f8", 1)
     f.done()
     return PoseMessage(stream, seq, time, channels=channels, epoch=epoch)
+
+
+def _frame(f: _Fields) -> FrameMessage:
+    """A frame message checked as a whole: its subjects' own faults are :meth:`FrameMessage.poses`'."""
+    source = f.text("source", STREAM_ID)
+    streams = f.take("streams")
+    if not isinstance(streams, list) or not 0 < len(streams) <= MAX_SUBJECTS:
+        raise f.fail("streams", f"must be a list of 1 to {MAX_SUBJECTS} stream ids, got {describe(streams)}")
+    if not all(type(s) is str for s in streams):
+        raise f.fail("streams", "must be a list of strings")
+    n = len(streams)
+    seq = f.packed("seq", "<u8", n)  # beyond MAX_SEQ: the subject's refusal
+    stamps = f.packed("time", "<f8", n)
+    counts = f.packed("counts", "<u4", n).astype(np.int64)
+    epoch = f.epoch()
+    has_positions, has_channels = "positions" in f.body, "channels" in f.body
+    if has_positions == has_channels:
+        raise f.fail("positions", "a frame carries either 'positions' or 'channels'")
+    kind: Literal["positions", "channels"] = "positions" if has_positions else "channels"
+    values = f.packed(kind, "<f4" if has_positions else "<f8", int(counts.sum()))
+    f.done()
+    return FrameMessage(source, tuple(streams), seq, stamps.astype(np.float64), counts, values, kind, epoch)
 
 
 def _end(f: _Fields) -> EndMessage:
@@ -656,6 +806,7 @@ def _status(f: _Fields) -> StatusMessage:
 _READERS: dict[str, Callable[[_Fields], Message]] = {
     "skeleton": _skeleton,
     "pose": _pose,
+    "frame": _frame,
     "end": _end,
     "detection": _detection,
     "boundary": _boundary,

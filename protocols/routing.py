@@ -9,6 +9,8 @@ from __future__ import annotations
 import hashlib
 from collections.abc import Callable, Sequence
 
+from protocols.messages import is_id
+
 TOPIC_PREFIX = "mocap/"
 ROUTES_CACHED = 100_000
 """The most topics whose worker a :class:`Routes` remembers."""
@@ -32,13 +34,39 @@ def worker_of(stream: str, workers: int) -> int:
     return int.from_bytes(digest, "little") % workers
 
 
+FRAME_SUFFIX = b"/frame"
+"""A frame message's topic ends so (``mocap/<source>/frame``): its subjects are any workers'."""
+
+
 def choose(workers: int) -> Callable[[bytes], int]:
-    """The worker of a topic (UTF-8 bytes, undecodable bytes replaced) of ``workers``."""
+    """The worker of a topic (UTF-8 bytes, undecodable bytes replaced) of ``workers``; ``workers``
+    itself for a frame message's topic (``mocap/<source>/frame``, the source an id), which every
+    worker takes (each its own subjects: :func:`mine`; a frame message refused whole is counted by
+    the source's worker alone)."""
 
     def worker(topic: bytes) -> int:
-        return worker_of(stream_of(topic.decode("utf-8", "replace")), workers)
+        text = topic.decode("utf-8", "replace")
+        if topic.endswith(FRAME_SUFFIX) and text.count("/") == 2 and is_id(stream_of(text)):
+            return workers
+        return worker_of(stream_of(text), workers)
 
     return worker
+
+
+def mine(index: int, workers: int, cached: int = ROUTES_CACHED) -> Callable[[str], bool]:
+    """Whether a stream is worker ``index``'s of ``workers`` (:func:`worker_of`, remembered for at
+    most ``cached`` streams, then all forgotten at once)."""
+    known: dict[str, bool] = {}
+
+    def owned(stream: str) -> bool:
+        found = known.get(stream)
+        if found is None:
+            if len(known) >= cached:
+                known.clear()
+            found = known[stream] = worker_of(stream, workers) == index
+        return found
+
+    return owned
 
 
 class Routes:
@@ -64,13 +92,13 @@ def split(
     messages: Sequence[Sequence[bytes]], worker: Callable[[bytes], int], workers: int
 ) -> list[list[bytes]]:
     """Per worker the frames ``[topic, payload, topic, payload, ...]`` of ``messages`` (each a
-    message's frames, in order) that ``worker`` sends it; a message that is not two frames becomes
-    ``b"", b""`` (refused by the worker as undecodable) for the worker of its first frame."""
+    message's frames, in order) that ``worker`` sends it (``workers``: to every worker); a message
+    that is not two frames becomes ``b"", b""`` (refused by the worker as undecodable) for the
+    worker of its first frame."""
     out: list[list[bytes]] = [[] for _ in range(workers)]
     for frames in messages:
-        mine = out[worker(frames[0])]
-        if len(frames) == 2:
-            mine += frames
-        else:
-            mine += (b"", b"")
+        k = worker(frames[0])
+        pair = frames if len(frames) == 2 else (b"", b"")
+        for to in out if k == workers else (out[k],):
+            to += pair
     return out

@@ -13,11 +13,13 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from protocols.messages import (
+    MAX_SEQ,
     REASONS,
     BoundaryMessage,
     ClassProgress,
     DetectionMessage,
     EndMessage,
+    FrameMessage,
     Message,
     PoseMessage,
     ProgressMessage,
@@ -26,6 +28,7 @@ from protocols.messages import (
     WireError,
     decode,
     encode,
+    frame_of,
     parse_topic,
     topic,
 )
@@ -182,7 +185,7 @@ def test_round_trip(message: Message) -> None:
     back = decode(payload)
     assert same(message, back), (message, back)
     assert encode(back) == payload
-    if not isinstance(message, StatusMessage):
+    if not isinstance(message, StatusMessage | FrameMessage):
         assert parse_topic(topic(message)) == (message.stream, topic(message).rsplit("/", 1)[1])
 
 
@@ -407,3 +410,123 @@ def test_any_value_in_any_field_decodes_or_is_refused_with_a_short_reason(
     except WireError as e:
         assert e.reason in REASONS
         assert len(str(e)) < 300, str(e)
+
+
+# --------------------------------------------------------------------------- frame messages
+
+
+@st.composite
+def frames(draw: st.DrawFn) -> tuple[bytes, list[bytes], str]:
+    """A frame message of 1-12 subjects, some of them faulty (a bad id, a seq beyond MAX_SEQ, a time
+    or a value not finite, values not in threes or none), as its bytes, and each subject as the
+    bytes of a pose message of its own; and the kind."""
+    kind = draw(st.sampled_from(["positions", "channels"]))
+    epoch = draw(epochs)
+    width, dtype = (3, "<f4") if kind == "positions" else (1, "<f8")
+    streams, seqs, stamps, counts, blobs, singles = [], [], [], [], [], []
+    for _ in range(draw(st.integers(1, 12))):
+        stream = draw(ids | st.sampled_from(["a.b", "", "x" * 129, "a/b"]))
+        seq = draw(st.integers(0, MAX_SEQ) | st.sampled_from([MAX_SEQ + 1, 2**64 - 1]))
+        stamp = draw(times | st.sampled_from([float("nan"), float("inf")]))
+        count = draw(st.integers(0, 4)) * width + draw(st.sampled_from([0, 0, 0, 1]))
+        value = st.floats(allow_nan=False, allow_infinity=False, width=32 if width == 3 else 64)
+        value |= st.sampled_from([float("nan"), -float("inf")])
+        values = np.array(draw(st.lists(value, min_size=count, max_size=count)), dtype=dtype)
+        streams.append(stream)
+        seqs.append(seq)
+        stamps.append(stamp)
+        counts.append(count)
+        blobs.append(values.tobytes())
+        body = {"v": 1, "type": "pose", "stream": stream, "seq": seq, "time": stamp, kind: values.tobytes()}
+        if epoch is not None:
+            body["epoch"] = epoch
+        singles.append(msgpack.packb(body))
+    frame = {
+        "v": 1,
+        "type": "frame",
+        "source": "rig",
+        "streams": streams,
+        "seq": np.array(seqs, dtype="<u8").tobytes(),
+        "time": np.array(stamps, dtype="<f8").tobytes(),
+        "counts": np.array(counts, dtype="<u4").tobytes(),
+        kind: b"".join(blobs),
+    }
+    if epoch is not None:
+        frame["epoch"] = epoch
+    return msgpack.packb(frame), singles, kind
+
+
+@settings(max_examples=300, deadline=None)
+@given(frames())
+def test_a_frames_subjects_are_taken_or_refused_as_their_own_pose_messages_would_be(
+    case: tuple[bytes, list[bytes], str],
+) -> None:
+    """Each subject of a frame message, bad ones among good ones: its pose equals the one its own
+    pose message decodes to, or it is refused with the reason that message is refused with; the
+    others are untouched by it."""
+    payload, singles, kind = case
+    frame = decode(payload)
+    assert isinstance(frame, FrameMessage) and frame.kind == kind
+    assert topic(frame) == "mocap/rig/frame"
+    got = frame.poses()
+    assert len(got) == len(singles)
+    for mine, single in zip(got, singles, strict=True):
+        try:
+            want: PoseMessage | WireError = decode(single)  # type: ignore[assignment]
+        except WireError as e:
+            want = e
+        if isinstance(want, WireError):
+            assert isinstance(mine, WireError) and mine.reason == want.reason, (mine, want)
+        else:
+            assert isinstance(mine, PoseMessage) and same(mine, want), (mine, want)
+    back = decode(encode(frame))  # encode writes it back
+    assert isinstance(back, FrameMessage) and len(back.poses()) == len(singles)
+
+
+def test_a_frame_of_good_poses_round_trips_and_is_their_poses() -> None:
+    poses = [
+        PoseMessage("a", 7, 1.5, channels=np.arange(4.0), epoch="e1"),
+        PoseMessage("b", 9, 1.5, channels=np.array([0.5]), epoch="e1"),
+        PoseMessage("a", 8, 1.6, channels=np.arange(4.0) + 1, epoch="e1"),  # a second frame of a
+    ]
+    frame = decode(encode(frame_of(poses, "rig", epoch="e1")))
+    assert isinstance(frame, FrameMessage)
+    got = frame.poses()
+    assert all(isinstance(a, PoseMessage) and same(a, b) for a, b in zip(got, poses, strict=True))
+    with pytest.raises(ValueError, match="not both"):
+        frame_of([poses[0], PoseMessage("c", 1, 1.0, positions=np.zeros((2, 3), np.float32))], "rig")
+
+
+@pytest.mark.parametrize(
+    ("change", "reason", "field"),
+    [
+        ({"counts": np.array([4], dtype="<u4").tobytes()}, "shape", "counts"),
+        ({"seq": b"\x00" * 7}, "shape", "seq"),
+        ({"time": b"\x00" * 24}, "shape", "time"),
+        ({"channels": b"\x00" * 8}, "shape", "channels"),
+        ({"streams": []}, "schema", "streams"),
+        ({"streams": ["a", 3]}, "schema", "streams"),
+        ({"source": "a.b"}, "schema", "source"),
+        ({"positions": b""}, "schema", "positions"),
+        ({"extra": 1}, "schema", "extra"),
+    ],
+)
+def test_a_frame_message_wrong_as_a_whole_is_refused_whole(
+    change: dict[str, Any], reason: str, field: str
+) -> None:
+    """Lengths that do not agree (the subjects cannot be told apart), a field missing or wrong."""
+    body = msgpack.unpackb(
+        encode(
+            frame_of(
+                [
+                    PoseMessage("a", 1, 1.0, channels=np.ones(2)),
+                    PoseMessage("b", 1, 1.0, channels=np.ones(3)),
+                ],
+                "rig",
+            )
+        )
+    )
+    body |= change
+    with pytest.raises(WireError) as caught:
+        decode(msgpack.packb(body))
+    assert caught.value.reason == reason and field in caught.value.detail

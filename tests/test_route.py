@@ -86,7 +86,7 @@ topics = st.one_of(
     st.builds(
         lambda s, w: f"mocap/{s}/{w}".encode(),
         st.text(min_size=0, max_size=20),
-        st.sampled_from(["pose", "skeleton"]),
+        st.sampled_from(["pose", "skeleton", "frame"]),  # a frame message's: every worker's
     ),
     st.binary(max_size=30),
 )

@@ -13,7 +13,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from protocols.routing import stream_of, worker_of
+from protocols.routing import Routes, mine, split, stream_of, worker_of
 from tests.helpers import REPO
 
 ID_CHARS = "ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789_:@-"
@@ -75,3 +75,16 @@ def test_random_ids_spread_over_two_workers(names: list[str]) -> None:
     binomial's 8 standard deviations)."""
     ones = sum(worker_of(n, 2) for n in names)
     assert 120 <= ones <= 280
+
+
+@given(stream_ids, st.lists(stream_ids, max_size=20), st.integers(1, 6))
+def test_a_frame_message_reaches_every_worker_and_each_takes_its_own_subjects(
+    source: str, subjects: list[str], workers: int
+) -> None:
+    """A frame message (``mocap/<source>/frame``) goes to every worker; of its subjects, each worker
+    takes exactly those :func:`worker_of` gives it, so every subject is taken once."""
+    message = [f"mocap/{source}/frame".encode(), b"payload"]
+    assert split([message], Routes(workers), workers) == [message] * workers
+    owners = [mine(k, workers, cached=3) for k in range(workers)]
+    for stream in subjects * 2:  # twice: the second time remembered (or forgotten: 3 at most)
+        assert [k for k, owned in enumerate(owners) if owned(stream)] == [worker_of(stream, workers)]

@@ -48,9 +48,11 @@ from daemon.recordings import read_rig_maps
 from daemon.service.metrics import Metrics, open_http, serve_http
 from daemon.service.streams import Emitted, Refused, StreamTable
 from protocols.messages import (
+    FRAME_WORD,
     STATUS_REMINDER_S,
     BoundaryMessage,
     EndMessage,
+    FrameMessage,
     PoseMessage,
     ProgressMessage,
     SkeletonMessage,
@@ -195,6 +197,7 @@ class Service:
         logger: logging.Logger,
         cluster: Cluster | None = None,
         remind: bool = True,
+        mine: Callable[[str], bool] | None = None,
     ) -> None:
         self.config = config
         self.cluster = cluster
@@ -217,6 +220,9 @@ class Service:
         )
         self.rejects: Counter[str] = Counter()
         self.remind = remind
+        self.mine = mine
+        """Of a frame message's subjects, whether a stream is this process's (a worker of
+        ``--workers N``, which every frame message reaches); None: all are."""
         self.relay_per_s = config.zmq.relay_per_s
         self._relayed: dict[str, tuple[int, float]] = {}  # stream -> its last relayed pose, skeleton
         self._relays: list[Outgoing] = []
@@ -261,13 +267,16 @@ class Service:
         try:
             if not incoming.topic:  # what a transport received was not a [topic, payload] message
                 raise WireError("undecodable", "not a [topic, payload] message")
-            if parsed is None or parsed[1] not in ("skeleton", "pose"):
+            if parsed is None or parsed[1] not in ("skeleton", "pose", FRAME_WORD):
                 raise Refused("topic", f"not a topic mocapd takes: {incoming.topic[:80]!r}")
             if not incoming.payload and parsed[1] == "skeleton":
                 self.events.info("skeleton cleared", {"stream": stream})
                 self.metrics.messages["clear"] += 1
                 return []  # MQTT's way to delete a retained skeleton: nothing to take in
             message = decode(incoming.payload, self.config.service.max_message_bytes)
+            if isinstance(message, FrameMessage) and parsed[1] == FRAME_WORD and message.source == stream:
+                self._subjects(message)
+                return []
             if not isinstance(message, SkeletonMessage | PoseMessage | EndMessage):
                 raise Refused("type", f"a {type(message).__name__} is not taken in")
             on_pose_topic = isinstance(message, PoseMessage | EndMessage)
@@ -301,8 +310,9 @@ class Service:
                 self.events.info("skeleton", {"stream": stream, "kind": message.kind, "rate": message.rate})
             return out
         except WireError as e:
-            self.rejects[e.reason] += 1
-            self.events.warn(stream, e.reason, e.detail)
+            if self._counts(parsed):
+                self.rejects[e.reason] += 1
+                self.events.warn(stream, e.reason, e.detail)
         except Refused as e:
             self.rejects[e.reason] += 1
             self.events.warn(stream, e.reason, str(e))
@@ -315,6 +325,40 @@ class Service:
         finally:
             self.metrics.stage["decode"].observe(time.perf_counter() - started)
         return []
+
+    def _counts(self, parsed: tuple[str, str] | None) -> bool:
+        """Whether a message refused whole is this process's to count: a frame message reaches
+        every worker, and the one its source's id routes to counts it."""
+        return self.mine is None or parsed is None or parsed[1] != FRAME_WORD or self.mine(parsed[0])
+
+    def _subjects(self, frame: FrameMessage) -> None:
+        """Take in a frame message's poses, each as a pose message of its own would be taken (those
+        of another worker's streams skipped, refused or not: :attr:`mine`); a subject refused is
+        counted by its reason and refuses nothing else."""
+        now = time.monotonic()
+        taken = 0
+        for stream, pose in zip(frame.streams, frame.poses(), strict=True):
+            if self.mine is not None and not self.mine(stream):
+                continue
+            if isinstance(pose, WireError):
+                self.rejects[pose.reason] += 1
+                self.events.warn(frame.source, pose.reason, pose.detail)
+                continue
+            try:
+                self.table.pose(pose, now)
+                taken += 1
+                self.metrics.frame_in(pose.stream)
+                if self.relay_per_s:
+                    self._relay_pose(pose, now)
+            except Refused as e:
+                self.rejects[e.reason] += 1
+                self.events.warn(pose.stream, e.reason, str(e))
+                if e.reason == "no_skeleton":
+                    for t in self.transports:
+                        t.ask_skeleton(pose.stream)
+        if taken:
+            self.metrics.messages["pose"] += taken
+            self._work.set()
 
     def _resume(self, stream: str, state: bytes) -> None:
         """Cluster mode: take ``stream`` in ``state``, from the checkpoint its partition was taken
@@ -334,18 +378,28 @@ class Service:
         """Pass a taken-in pose (``seq``) or skeleton (None) on for viewers (``zmq.relay_per_s``):
         a stream's skeleton at most once a second, its poses at most ``relay_per_s`` a second (every
         ``rate / relay_per_s``-th by sequence number)."""
+        if self._relaying(stream, seq, now):
+            self._relays.append(Outgoing(incoming.topic, incoming.payload, relay=True))
+
+    def _relay_pose(self, pose: PoseMessage, now: float) -> None:
+        """:meth:`_relay` of a frame message's pose: passed on as a pose message of its own."""
+        if self._relaying(pose.stream, pose.seq, now):
+            self._relays.append(Outgoing(topic(pose), encode(pose), relay=True))
+
+    def _relaying(self, stream: str, seq: int | None, now: float) -> bool:
+        """Whether to pass this pose or skeleton on (:meth:`_relay`), remembered if so."""
         pose, skeleton_at = self._relayed.get(stream, (-1, -1.0))
         if seq is None:
             if skeleton_at >= 0 and now - skeleton_at < 1.0:
-                return
+                return False
             skeleton_at = now
         else:
             step = max(1, round(self.table.streams[stream].announced.rate / self.relay_per_s))
             if 0 <= pose <= seq < pose + step:
-                return
+                return False
             pose = seq
         self._relayed[stream] = (pose, skeleton_at)
-        self._relays.append(Outgoing(incoming.topic, incoming.payload, relay=True))
+        return True
 
     async def _pass_on(self) -> None:
         """The poses and skeletons taken in to pass on, published."""

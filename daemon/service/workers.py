@@ -88,7 +88,7 @@ from daemon.service.app import (
 )
 from daemon.service.metrics import open_http, serve_http
 from protocols.messages import StatusMessage, decode, encode, topic
-from protocols.routing import Routes, choose, split
+from protocols.routing import Routes, choose, mine, split
 from protocols.transport import Incoming, Outgoing, StartupError, Transport
 from protocols.zeromq import open_socket, receive
 
@@ -345,6 +345,7 @@ def run_worker(setup: WorkerSetup, index: int) -> int:
             version=setup.version,
             logger=logger,
             remind=False,
+            mine=mine(index, len(setup.inbound)),
         )
         try:
             http = await open_http("127.0.0.1", 0, service.health, service.metrics)
@@ -564,7 +565,9 @@ class Front:
         count = 0
         async for incoming in source:
             name = incoming.topic.encode()
-            send(worker(name), [name, incoming.payload])
+            k = worker(name)
+            for to in range(n) if k == n else (k,):  # a frame message: every worker's
+                send(to, [name, incoming.payload])
             count += 1
             if count % YIELD_EVERY == 0:
                 await asyncio.sleep(0)

@@ -44,6 +44,7 @@ from protocols.messages import (
     STREAM_ID,
     DetectionMessage,
     EndMessage,
+    FrameMessage,
     PoseMessage,
     ProgressMessage,
     SkeletonMessage,
@@ -312,7 +313,7 @@ class ViewState:
             "detections": DetectionMessage,
             "progress": ProgressMessage,
         }[word]
-        if not isinstance(message, wanted) or isinstance(message, StatusMessage):
+        if not isinstance(message, wanted) or isinstance(message, StatusMessage | FrameMessage):
             raise WireError("type", f"a {type(message).__name__} on a {word} topic")
         if message.stream != stream:
             raise WireError("schema", f"a message of stream {message.stream!r} on another stream's topic")

@@ -1,0 +1,109 @@
+"""Frame messages (several streams' poses in one message, issue 37) end to end: a real daemon (one
+process, and a front with two workers, which every frame message reaches) over real ZeroMQ sockets,
+poses sent as single pose messages and as frame messages mixed, bad subjects among good ones and a
+frame message wrong as a whole: every stream's detections are ``mocapd detect``'s, and what is bad
+is refused alone, counted by reason (once, whatever the workers)."""
+
+from __future__ import annotations
+
+import time
+from functools import cache
+from pathlib import Path
+from typing import Any
+
+import msgpack
+import numpy as np
+import pytest
+
+from daemon.library import default_library_path, load_library
+from daemon.recognizer import detect
+from daemon.recordings import read_recording
+from protocols.messages import EndMessage, PoseMessage, SkeletonMessage, encode, frame_of, topic
+from protocols.publish import messages
+from tests.helpers import DATA, Daemon, detection_keys, hdm05_clip, raw_publisher, takes
+
+SOURCES = {
+    "s0": (DATA / "cmu" / "13" / "13.asf", DATA / "cmu" / "13" / "13_30.amc.gz"),
+    "s1": hdm05_clip("bd", "squat1Reps", takes("squat1Reps", "bd")[0]),
+    "s2": (DATA / "cmu" / "02" / "02.asf", DATA / "cmu" / "02" / "02_05.amc.gz"),
+    "s3": hdm05_clip("bk", "hopBothLegs1hops", takes("hopBothLegs1hops", "bk")[1]),
+}
+FRAMED = (("s0", "s1"), ("s3",))
+"""The streams sent together in frame messages (s2 goes as pose messages of its own)."""
+BAD_EVERY = 97
+"""Every so many frames, bad subjects ride along in the first frame message."""
+
+
+@cache
+def expected(name: str) -> list[dict[str, Any]]:
+    asf, amc = SOURCES[name]
+    return [
+        d.as_json()
+        for d in detect(read_recording(asf, amc), load_library(default_library_path()), 120.0, stream=name)
+    ]
+
+
+def sent(name: str) -> tuple[SkeletonMessage, list[PoseMessage], EndMessage]:
+    asf, amc = SOURCES[name]
+    items = list(messages(read_recording(asf, amc), asf.read_text(), name, 120.0, 1))
+    skeleton, end = items[0], items[-1]
+    assert isinstance(skeleton, SkeletonMessage) and isinstance(end, EndMessage)
+    return skeleton, [p for p in items[1:-1] if isinstance(p, PoseMessage)], end
+
+
+@pytest.mark.slow  # 10-20 s: four recordings at 8x
+@pytest.mark.parametrize("workers", [1, 2])
+def test_single_and_frame_messages_mixed_give_the_detections_of_detect(workers: int, tmp_path: Path) -> None:
+    daemon = Daemon(tmp_path, config={"service": {"queue_frames": 100_000}}, workers=workers).start()
+    streams = {name: sent(name) for name in SOURCES}
+    bad = 0
+    try:
+        with raw_publisher(daemon.poses) as sock:
+
+            def send(message: Any) -> None:
+                sock.send_multipart([topic(message).encode(), encode(message)])
+
+            for skeleton, _, _ in streams.values():
+                send(skeleton)
+            time.sleep(0.5)
+            whole = msgpack.unpackb(encode(frame_of([streams["s0"][1][0]], "rig")))
+            whole["counts"] = np.array([7], dtype="<u4").tobytes()  # the subjects cannot be told apart
+            sock.send_multipart([b"mocap/rig/frame", msgpack.packb(whole)])
+            longest = max(len(poses) for _, poses, _ in streams.values())
+            for i in range(longest):
+                now = time.time()
+                at = {n: p[i] for n, (_, p, _) in streams.items() if i < len(p)}
+                for k, group in enumerate(FRAMED):
+                    here = [n for n in group if n in at]
+                    poses = [PoseMessage(n, at[n].seq, now, channels=at[n].channels) for n in here]
+                    if k == 0 and i % BAD_EVERY == 0 and poses:
+                        nan = PoseMessage("lost", 1, now, channels=np.full(3, np.nan))
+                        dotted = PoseMessage("a.b", 1, now, channels=np.ones(3))
+                        again = PoseMessage(poses[0].stream, poses[0].seq, now, channels=poses[0].channels)
+                        poses += [nan, dotted, again]  # again: a pose of its seq came before it
+                        bad += 1
+                    if poses:
+                        send(frame_of(poses, f"rig{k}"))
+                if "s2" in at:
+                    send(PoseMessage("s2", at["s2"].seq, now, channels=at["s2"].channels))
+                if i % 8 == 7:
+                    time.sleep(0.001)  # 8x a 120 Hz stream
+            for _, _, end in streams.values():
+                send(end)
+            total = sum(len(p) for _, p, _ in streams.values())
+            deadline = time.monotonic() + 60
+            while daemon.metrics().get("mocapd_frames_in_total", 0) < total and time.monotonic() < deadline:
+                time.sleep(0.05)
+        m = daemon.metrics()
+        assert daemon.stop() == 0
+        got = daemon.detections_printed()
+        for name in SOURCES:
+            mine = [d for d in got if d["stream"] == name]
+            assert detection_keys(mine) == detection_keys(expected(name)), name
+        assert sum(len(expected(n)) for n in SOURCES) > 20
+        assert bad > 10
+        assert m["mocapd_frames_in_total"] == total
+        for reason, count in (("non_finite", bad), ("schema", bad), ("duplicate", bad), ("shape", 1)):
+            assert m.get(f'mocapd_rejects_total{{reason="{reason}"}}') == count, (reason, m)
+    finally:
+        daemon.stop()
