@@ -3,6 +3,7 @@ with no drops, and the end-to-end latency from a pose leaving its source (its ti
 is on loopback) to the detection it completed arriving at a subscriber.
 
     python -m bench.bench_service [--sizes 1,10,50,100,150,200] [--seconds 15] [--workers 1,2]
+                                  [--transport mqtt|zmq] [--subjects-per-message K]
 
 A mosquitto broker on a free loopback port; the daemon (``mocapd run --mqtt``) pinned to core 0;
 one load process on the other core publishes S streams at 120 Hz each (from a plain socket, MQTT
@@ -17,6 +18,11 @@ most ``--p99-ms`` (20). Latency: p50 and p99 of
 (detection received) - (``source_time``, the completing pose's timestamp), in ms. CPU: the
 daemon's (front and workers) and the load's, in µs per pose sent. Baseline in the
 same run: one stream, the floor the broker and the wire add.
+
+``--subjects-per-message K`` (K > 1) sends each tick's poses in frame messages of K subjects
+(``protocols/README.md``, ``frame``) instead of a message per pose. Each row also prints the
+recogniser bank's own CPU per pose for that many streams, measured in this process on the daemon's
+core before the daemon starts (:func:`bank_us`), and the daemon's as a ratio of it.
 
 ``--workers 1,2`` sweeps a daemon of each worker count in turn (``mocapd run --workers N``; N on the
 first N cores, the load then on the last core, shared with a worker) and prints each count's largest
@@ -45,15 +51,18 @@ from pathlib import Path
 
 import msgpack
 import numpy as np
+import numpy.typing as npt
 import paho.mqtt.client as paho
 import zmq
 from paho.mqtt.enums import CallbackAPIVersion
 
-from bench.common import DATA
+from bench.common import DATA, shipped_library
 from bench.machine import describe
 from bench.processes import cpu_seconds, free_port, rss_kib, scrape, wait_healthy, wait_port
+from daemon.bank import RecognizerBank
 from daemon.recordings import read_recording
 from protocols.messages import VERSION, SkeletonMessage, encode
+from replay import parse_asf
 from replay.catalog import CMU_SUBSTITUTES, recordings
 
 RATE = 120.0
@@ -239,6 +248,7 @@ class Load:
         self.seq: dict[str, int] = {}
         self.wire: ZmqLoad | MqttLoad | None = None
         self._tails: dict[int, list[bytes]] = {}
+        self._rows: dict[int, npt.NDArray[np.float64]] = {}
 
     def on_detection(self, payload: bytes) -> None:
         now = time.time()
@@ -247,9 +257,12 @@ class Load:
             with self.lock:
                 self.latencies.append(now - body["source_time"])
 
-    def run(self, streams: int, seconds: float, prefix: str) -> int:
-        """Publish ``streams`` streams for ``seconds``; the poses sent."""
+    def run(self, streams: int, seconds: float, prefix: str, per_message: int = 1) -> int:
+        """Publish ``streams`` streams for ``seconds``; the poses sent. ``per_message`` > 1: each
+        tick's poses in frame messages of that many subjects (``mocap/<prefix>g<k>/frame``)."""
         assert self.wire is not None
+        if per_message > 1:
+            return self.run_frames(streams, seconds, prefix, per_message)
         rng = np.random.default_rng(streams)
         picks = [self.sources[k % len(self.sources)] for k in range(streams)]
         names = [f"{prefix}{k}" for k in range(streams)]
@@ -284,6 +297,61 @@ class Load:
             sent += len(messages)
         return sent
 
+    def run_frames(self, streams: int, seconds: float, prefix: str, per_message: int) -> int:
+        """:meth:`run` with each tick's poses in frame messages of ``per_message`` subjects, each
+        message's fields but its channels and times packed beforehand."""
+        assert self.wire is not None
+        rng = np.random.default_rng(streams)
+        picks = [k % len(self.sources) for k in range(streams)]
+        names = [f"{prefix}{k}" for k in range(streams)]
+        at = [int(rng.integers(len(self.sources[p][1]))) for p in picks]
+        for name, p in zip(names, picks, strict=True):
+            if name not in self.seq:
+                message = SkeletonMessage(name, RATE, asf=self.sources[p][0].decode(), angle_unit="rad")
+                self.wire.send([(f"mocap/{name}/skeleton", encode(message))])
+                self.seq[name] = 0
+        time.sleep(0.5)
+        rows = [self.rows(p) for p in range(len(self.sources))]
+        groups = [list(range(g, min(g + per_message, streams))) for g in range(0, streams, per_message)]
+        packed = []
+        for g, members in enumerate(groups):
+            counts = np.array([rows[picks[k]].shape[1] for k in members], dtype="<u4").tobytes()
+            packed.append((f"mocap/{prefix}g{g}/frame", f"{prefix}g{g}", [names[k] for k in members], counts))
+        start = time.monotonic()
+        sent = 0
+        for tick in range(int(seconds * RATE)):
+            wait = start + tick / RATE - time.monotonic()
+            if wait > 0:
+                time.sleep(wait)
+            messages = []
+            for (topic, source, members_names, counts), members in zip(packed, groups, strict=True):
+                seqs = np.array([self.seq[n] + 1 for n in members_names], dtype="<u8")
+                for n in members_names:
+                    self.seq[n] += 1
+                values = np.concatenate(
+                    [rows[picks[k]][(at[k] + tick) % len(rows[picks[k]])] for k in members]
+                )
+                body = {
+                    "v": VERSION,
+                    "type": "frame",
+                    "source": source,
+                    "streams": members_names,
+                    "seq": seqs.tobytes(),
+                    "time": np.full(len(members), time.time(), dtype="<f8").tobytes(),
+                    "counts": counts,
+                    "channels": values.tobytes(),
+                }
+                messages.append((topic, msgpack.packb(body)))
+            self.wire.send(messages)
+            sent += streams
+        return sent
+
+    def rows(self, k: int) -> npt.NDArray[np.float64]:
+        """Source ``k``'s channels, frame by frame ``(N, C)``."""
+        if k not in self._rows:
+            self._rows[k] = np.array([np.frombuffer(r, dtype="<f8") for r in self.sources[k][1]])
+        return self._rows[k]
+
     def tails(self, k: int) -> list[bytes]:
         """What follows the time in a pose of source ``k``, frame by frame (packed once)."""
         if k not in self._tails:
@@ -314,6 +382,13 @@ def main() -> None:
         help="comma-separated worker counts (mocapd run --workers N), each swept in turn, e.g. 1,2",
     )
     parser.add_argument("--p99-ms", type=float, default=P99_MS, help="a size holds only at this p99 or less")
+    parser.add_argument(
+        "--subjects-per-message",
+        type=int,
+        default=1,
+        metavar="K",
+        help="K > 1: each tick's poses in frame messages of K subjects (protocols/README.md, frame)",
+    )
     args = parser.parse_args()
     sizes = [int(x) for x in args.sizes.split(",")]
     counts = [int(x) for x in args.workers.split(",")]
@@ -337,6 +412,39 @@ def main() -> None:
             ratio = statistics.median(held[n]) / base if base else float("nan")
             print(f"--workers {n}: {held[n]} streams held, {ratio:.2f}x --workers {one} ({held[one]})")
     print(json.dumps({"held": held}))
+
+
+def bank_us(
+    sources: list[tuple[bytes, list[bytes]]], streams: int, cores: list[int], ticks: int = 240
+) -> float:
+    """The recogniser bank's CPU per pose (µs) in this process on the daemon's first core, for
+    ``streams`` streams of ``sources`` as the load sends them (stream k plays source k mod R), after
+    80 ticks of warm-up, the best of three thirds of ``ticks``: the baseline the daemon's cost per
+    pose is a ratio of."""
+    library = shipped_library()
+    bank = RecognizerBank(library)
+    rows = [np.array([np.frombuffer(r, dtype="<f8") for r in frames]) for _, frames in sources]
+    for k in range(streams):
+        asf = sources[k % len(sources)][0].decode()
+        bank.add(f"b{k}", RATE, skeleton=parse_asf(asf.splitlines(), "<bench>"))
+    mine = os.sched_getaffinity(0) if hasattr(os, "sched_getaffinity") else None
+    if mine is not None:
+        os.sched_setaffinity(0, {cores[0]})
+    blocks = [0.0, 0.0, 0.0]  # the best third: this VM's neighbours come and go
+    try:
+        for tick in range(80 + ticks):
+            frames = [
+                (f"b{k}", tick + 1, rows[k % len(rows)][tick % len(rows[k % len(rows)])])
+                for k in range(streams)
+            ]
+            started = time.process_time()
+            bank.push(frames)
+            if tick >= 80:
+                blocks[3 * (tick - 80) // ticks] += time.process_time() - started
+    finally:
+        if mine is not None:
+            os.sched_setaffinity(0, mine)
+    return min(blocks) / (streams * ticks / 3) * 1e6
 
 
 def sweep(
@@ -373,6 +481,7 @@ def sweep(
         where = []
     # one worker on the first core, N on the first N (the front shares them); the load on the last
     daemon_cores = cores[: max(1, min(workers, len(cores)))]
+    banks = {size: bank_us(sources, size, daemon_cores) for size in sizes}  # before the daemon runs
     load_cores = set(cores[1:] or cores) if workers == 1 else {cores[-1]}
     mocapd = str(Path(sys.executable).parent / "mocapd")
     pin = ["taskset", "-c", ",".join(map(str, daemon_cores))]
@@ -392,18 +501,31 @@ def sweep(
         f"{args.transport}{' (mosquitto on loopback)' if broker else ' on loopback'}; --workers {workers}: "
         f"daemon on cores {daemon_cores}, load on {sorted(load_cores)}; {args.seconds:g} s per size"
     )
-    head = ("streams", "poses/s", "lost", "behind", "detections", "p50 ms", "p99 ms", "daemon µs", "load µs")
-    widths = (8, 9, 6, 8, 11, 8, 8, 10, 8)
+    head = (
+        "streams",
+        "poses/s",
+        "lost",
+        "behind",
+        "detections",
+        "p50 ms",
+        "p99 ms",
+        "daemon µs",
+        "load µs",
+        "bank µs",
+        "ratio",
+    )
+    widths = (8, 9, 6, 8, 11, 8, 8, 10, 8, 8, 6)
     print(" ".join(f"{h:>{w}s}" for h, w in zip(head, widths, strict=True)) + "  holds")
     held, failed = 0, 0
     try:
         for size in sizes:
             before = scrape(metrics_port)
-            load.run(size, 2.0, f"w{size}-")  # warm-up: the recognisers made, the phases spread
+            k = args.subjects_per_message
+            load.run(size, 2.0, f"w{size}-", k)  # warm-up: the recognisers made, the phases spread
             load.take_latencies()
             warm = scrape(metrics_port)
             cpu, own = cpu_seconds(daemon.pid), time.process_time()
-            sent = load.run(size, args.seconds, f"w{size}-")
+            sent = load.run(size, args.seconds, f"w{size}-", k)
             cpu, own = cpu_seconds(daemon.pid) - cpu, time.process_time() - own
             time.sleep(0.5)
             after = scrape(metrics_port)
@@ -415,10 +537,11 @@ def sweep(
             ok = gone == 0 and behind <= 0.5 * RATE * size and (not lat.size or p99 <= args.p99_ms)
             held = max(held, size) if ok else held
             failed = 0 if ok else failed + 1
+            bank = banks[size]
             print(
                 f"{size:8d} {sent / args.seconds:9,.0f} {gone:6.0f} {behind / (RATE * size):7.2f}s "
                 f"{lat.size:11d} {p50:8.1f} {p99:8.1f} {cpu / sent * 1e6:10.1f} {own / sent * 1e6:8.1f}"
-                f"  {'yes' if ok else 'no'}",
+                f" {bank:8.1f} {cpu / sent * 1e6 / bank:6.2f}  {'yes' if ok else 'no'}",
                 flush=True,
             )
             if failed == 2:  # two sizes in a row not held: the larger ones will not be

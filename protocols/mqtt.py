@@ -75,9 +75,9 @@ do not)."""
 CLIENT_LOG.setLevel(logging.ERROR)
 
 
-SUBSCRIPTIONS = (("mocap/+/skeleton", 1), ("mocap/+/pose", 0))
+SUBSCRIPTIONS = (("mocap/+/skeleton", 1), ("mocap/+/pose", 0), ("mocap/+/frame", 0))
 """What a daemon taking poses in over MQTT subscribes to: skeletons reliably (they are retained),
-poses as they come."""
+poses and frame messages as they come."""
 PROBE_S = 0.5
 """How long a starting daemon waits, once it asked, for another daemon of its instance or client id
 to answer (:class:`_Presence`)."""

@@ -194,7 +194,7 @@ def test_examples_of_the_schema_document_decode() -> None:
     the JSON-like line above it (bytes fields aside), and re-encodes to the same bytes."""
     text = (REPO / "protocols" / "README.md").read_text(encoding="utf-8")
     pairs = re.findall(r"^    (\{.*\})\n    ([0-9a-f]+)$", text, flags=re.M)
-    assert len(pairs) == 9
+    assert len(pairs) == 10
     kinds = set()
     for shown, hexed in pairs:
         payload = bytes.fromhex(hexed)
@@ -208,7 +208,7 @@ def test_examples_of_the_schema_document_decode() -> None:
                     assert str(body[key]) == value.strip('"').replace("\\n", "\n"), (key, body[key], value)
                 else:
                     assert float(body[key]) == float(value), (key, body[key], value)
-    assert kinds == {"skeleton", "pose", "end", "detection", "boundary", "progress", "status"}
+    assert kinds == {"skeleton", "pose", "frame", "end", "detection", "boundary", "progress", "status"}
     skeleton = decode(encode(SkeletonMessage("studio-a", 120.0, JOINT_NAMES)))
     assert (
         isinstance(skeleton, SkeletonMessage)

@@ -7,6 +7,8 @@ is refused alone, counted by reason (once, whatever the workers)."""
 from __future__ import annotations
 
 import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from functools import cache
 from pathlib import Path
 from typing import Any
@@ -20,7 +22,7 @@ from daemon.recognizer import detect
 from daemon.recordings import read_recording
 from protocols.messages import EndMessage, PoseMessage, SkeletonMessage, encode, frame_of, topic
 from protocols.publish import messages
-from tests.helpers import DATA, Daemon, detection_keys, hdm05_clip, raw_publisher, takes
+from tests.helpers import DATA, Broker, Daemon, detection_keys, hdm05_clip, raw_publisher, takes, wait_for
 
 SOURCES = {
     "s0": (DATA / "cmu" / "13" / "13.asf", DATA / "cmu" / "13" / "13_30.amc.gz"),
@@ -51,24 +53,60 @@ def sent(name: str) -> tuple[SkeletonMessage, list[PoseMessage], EndMessage]:
     return skeleton, [p for p in items[1:-1] if isinstance(p, PoseMessage)], end
 
 
-@pytest.mark.slow  # 10-20 s: four recordings at 8x
-@pytest.mark.parametrize("workers", [1, 2])
-def test_single_and_frame_messages_mixed_give_the_detections_of_detect(workers: int, tmp_path: Path) -> None:
-    daemon = Daemon(tmp_path, config={"service": {"queue_frames": 100_000}}, workers=workers).start()
+@contextmanager
+def publisher(daemon: Daemon, broker: Broker | None) -> Iterator[Callable[[str, bytes], None]]:
+    """Send (topic, payload) to ``daemon``: over its ZeroMQ poses socket, or through ``broker``
+    (QoS 1, so that the comparison is not at the mercy of a dropped pose)."""
+    if broker is None:
+        with raw_publisher(daemon.poses) as sock:
+            yield lambda name, payload: sock.send_multipart([name.encode(), payload])
+        return
+    import paho.mqtt.client as paho
+    from paho.mqtt.enums import CallbackAPIVersion
+
+    client = paho.Client(CallbackAPIVersion.VERSION2, client_id="frames-publisher")
+    client.max_queued_messages_set(0)
+    client.connect("127.0.0.1", broker.port)
+    client.loop_start()
+    try:
+
+        def publish(name: str, payload: bytes) -> None:
+            client.publish(name, payload, qos=1)
+
+        yield publish
+        wait_for(lambda: not client.want_write(), 30, "everything published")
+    finally:
+        client.loop_stop()
+        client.disconnect()
+
+
+@pytest.mark.slow  # 5-10 s: four recordings at 8x
+@pytest.mark.parametrize(("transport", "workers"), [("zmq", 1), ("zmq", 2), ("mqtt", 1)])
+def test_single_and_frame_messages_mixed_give_the_detections_of_detect(
+    transport: str, workers: int, tmp_path: Path
+) -> None:
+    broker = Broker(tmp_path).start() if transport == "mqtt" else None
+    daemon = Daemon(
+        tmp_path,
+        sources=(transport,),
+        mqtt=None if broker is None else broker.url,
+        config={"service": {"queue_frames": 100_000}},
+        workers=workers,
+    ).start()
     streams = {name: sent(name) for name in SOURCES}
     bad = 0
     try:
-        with raw_publisher(daemon.poses) as sock:
+        with publisher(daemon, broker) as publish:
 
             def send(message: Any) -> None:
-                sock.send_multipart([topic(message).encode(), encode(message)])
+                publish(topic(message), encode(message))
 
             for skeleton, _, _ in streams.values():
                 send(skeleton)
             time.sleep(0.5)
             whole = msgpack.unpackb(encode(frame_of([streams["s0"][1][0]], "rig")))
             whole["counts"] = np.array([7], dtype="<u4").tobytes()  # the subjects cannot be told apart
-            sock.send_multipart([b"mocap/rig/frame", msgpack.packb(whole)])
+            publish("mocap/rig/frame", msgpack.packb(whole))
             longest = max(len(poses) for _, poses, _ in streams.values())
             for i in range(longest):
                 now = time.time()
@@ -107,3 +145,5 @@ def test_single_and_frame_messages_mixed_give_the_detections_of_detect(workers: 
             assert m.get(f'mocapd_rejects_total{{reason="{reason}"}}') == count, (reason, m)
     finally:
         daemon.stop()
+        if broker is not None:
+            broker.stop()
