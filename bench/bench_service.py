@@ -22,7 +22,9 @@ same run: one stream, the floor the broker and the wire add.
 ``--subjects-per-message K`` (K > 1) sends each tick's poses in frame messages of K subjects
 (``protocols/README.md``, ``frame``) instead of a message per pose. Each row also prints the
 recogniser bank's own CPU per pose for that many streams, measured in this process on the daemon's
-core before the daemon starts (:func:`bank_us`), and the daemon's as a ratio of it.
+core before the daemon starts (:func:`bank_us`), a tick every 1/120 s as the daemon runs it, the
+daemon's as a ratio of it, and the bank's back to back ("b2b", as ``bench_recognizer`` measures
+it), which a live daemon cannot reach.
 
 ``--workers 1,2`` sweeps a daemon of each worker count in turn (``mocapd run --workers N``; N on the
 first N cores, the load then on the last core, shared with a worker) and prints each count's largest
@@ -415,12 +417,13 @@ def main() -> None:
 
 
 def bank_us(
-    sources: list[tuple[bytes, list[bytes]]], streams: int, cores: list[int], ticks: int = 240
+    sources: list[tuple[bytes, list[bytes]]], streams: int, cores: list[int], paced: bool, ticks: int = 240
 ) -> float:
     """The recogniser bank's CPU per pose (µs) in this process on the daemon's first core, for
     ``streams`` streams of ``sources`` as the load sends them (stream k plays source k mod R), after
-    80 ticks of warm-up, the best of three thirds of ``ticks``: the baseline the daemon's cost per
-    pose is a ratio of."""
+    80 ticks of warm-up, the best of three thirds of ``ticks``; ``paced``: a tick every 1/120 s, as
+    a daemon runs it (its caches cold again after each wait: 1.4-1.6x the cost back to back here),
+    else back to back. The baseline the daemon's cost per pose is a ratio of."""
     library = shipped_library()
     bank = RecognizerBank(library)
     rows = [np.array([np.frombuffer(r, dtype="<f8") for r in frames]) for _, frames in sources]
@@ -431,12 +434,15 @@ def bank_us(
     if mine is not None:
         os.sched_setaffinity(0, {cores[0]})
     blocks = [0.0, 0.0, 0.0]  # the best third: this VM's neighbours come and go
+    start = time.monotonic()
     try:
         for tick in range(80 + ticks):
             frames = [
                 (f"b{k}", tick + 1, rows[k % len(rows)][tick % len(rows[k % len(rows)])])
                 for k in range(streams)
             ]
+            if paced and (wait := start + tick / RATE - time.monotonic()) > 0:
+                time.sleep(wait)
             started = time.process_time()
             bank.push(frames)
             if tick >= 80:
@@ -481,7 +487,11 @@ def sweep(
         where = []
     # one worker on the first core, N on the first N (the front shares them); the load on the last
     daemon_cores = cores[: max(1, min(workers, len(cores)))]
-    banks = {size: bank_us(sources, size, daemon_cores) for size in sizes}  # before the daemon runs
+    # before the daemon runs: the bank paced as the daemon runs it, and back to back
+    banks = {
+        size: (bank_us(sources, size, daemon_cores, True), bank_us(sources, size, daemon_cores, False))
+        for size in sizes
+    }
     load_cores = set(cores[1:] or cores) if workers == 1 else {cores[-1]}
     mocapd = str(Path(sys.executable).parent / "mocapd")
     pin = ["taskset", "-c", ",".join(map(str, daemon_cores))]
@@ -513,8 +523,9 @@ def sweep(
         "load µs",
         "bank µs",
         "ratio",
+        "b2b µs",
     )
-    widths = (8, 9, 6, 8, 11, 8, 8, 10, 8, 8, 6)
+    widths = (8, 9, 6, 8, 11, 8, 8, 10, 8, 8, 6, 7)
     print(" ".join(f"{h:>{w}s}" for h, w in zip(head, widths, strict=True)) + "  holds")
     held, failed = 0, 0
     try:
@@ -537,11 +548,11 @@ def sweep(
             ok = gone == 0 and behind <= 0.5 * RATE * size and (not lat.size or p99 <= args.p99_ms)
             held = max(held, size) if ok else held
             failed = 0 if ok else failed + 1
-            bank = banks[size]
+            bank, back_to_back = banks[size]
             print(
                 f"{size:8d} {sent / args.seconds:9,.0f} {gone:6.0f} {behind / (RATE * size):7.2f}s "
                 f"{lat.size:11d} {p50:8.1f} {p99:8.1f} {cpu / sent * 1e6:10.1f} {own / sent * 1e6:8.1f}"
-                f" {bank:8.1f} {cpu / sent * 1e6 / bank:6.2f}  {'yes' if ok else 'no'}",
+                f" {bank:8.1f} {cpu / sent * 1e6 / bank:6.2f} {back_to_back:7.1f}  {'yes' if ok else 'no'}",
                 flush=True,
             )
             if failed == 2:  # two sizes in a row not held: the larger ones will not be

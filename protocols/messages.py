@@ -150,45 +150,48 @@ class FrameMessage:
         starts = np.zeros(len(self.counts) + 1, dtype=np.int64)
         np.cumsum(self.counts, out=starts[1:])
         finite = np.isfinite(self.values)
-        bad_values = np.zeros(len(self.counts), dtype=bool)
+        faulty = (self.seq > MAX_SEQ) | ~np.isfinite(self.time)
+        faulty |= (self.counts == 0) | (self.counts % (3 if self.kind == "positions" else 1) != 0)
         if not finite.all():
-            nonempty = self.counts > 0  # reduceat of an empty segment gives the next value
             sums = np.add.reduceat(~finite, np.minimum(starts[:-1], max(len(finite) - 1, 0)))
-            bad_values = nonempty & (sums > 0)
-        width = 3 if self.kind == "positions" else 1
-        shape = (self.counts == 0) | (self.counts % width != 0)
+            faulty |= (self.counts > 0) & (sums > 0)  # reduceat of an empty segment: the next value
+        bad = faulty.tolist() if faulty.any() else None
+        at = starts.tolist()
+        seqs, stamps, epoch = self.seq.tolist(), self.time.tolist(), self.epoch
         out: list[PoseMessage | WireError] = []
-        for i, (stream, seq, stamp, a, b) in enumerate(
-            zip(
-                self.streams,
-                self.seq.tolist(),
-                self.time.tolist(),
-                starts[:-1].tolist(),
-                starts[1:].tolist(),
-                strict=True,
-            )
-        ):
-            where = f"frame.streams[{i}]"
-            if not is_id(stream):
-                out.append(WireError("schema", f"{where}: {describe(stream)} is not an id ({ID_RULE})"))
-            elif seq > MAX_SEQ:
-                out.append(WireError("schema", f"{where}: seq must be at most {MAX_SEQ}, got {seq}"))
-            elif not math.isfinite(stamp):
-                out.append(WireError("non_finite", f"{where} {stream}: time is not finite"))
-            elif shape[i]:
-                what = f"{b - a} values is not a whole number of positions" if b > a else "no values"
-                out.append(WireError("shape", f"{where} {stream}: {what}"))
-            elif bad_values[i]:
-                out.append(WireError("non_finite", f"{where} {stream}: a value is not finite"))
-            elif self.kind == "positions":
-                out.append(
-                    PoseMessage(
-                        stream, seq, stamp, positions=self.values[a:b].reshape(-1, 3), epoch=self.epoch
+        if self.kind == "positions":  # a subject's offset need not be a multiple of 3
+            values = self.values
+            for i, stream in enumerate(self.streams):
+                if not is_id(stream) or (bad is not None and bad[i]):
+                    out.append(self._refusal(i, at[i], at[i + 1]))
+                else:
+                    rows = values[at[i] : at[i + 1]].reshape(-1, 3)
+                    out.append(PoseMessage(stream, seqs[i], stamps[i], rows, None, epoch))
+        else:
+            values = self.values
+            for i, stream in enumerate(self.streams):
+                if not is_id(stream) or (bad is not None and bad[i]):
+                    out.append(self._refusal(i, at[i], at[i + 1]))
+                else:
+                    out.append(
+                        PoseMessage(stream, seqs[i], stamps[i], None, values[at[i] : at[i + 1]], epoch)
                     )
-                )
-            else:
-                out.append(PoseMessage(stream, seq, stamp, channels=self.values[a:b], epoch=self.epoch))
         return out
+
+    def _refusal(self, i: int, a: int, b: int) -> WireError:
+        """Why subject ``i`` (values ``a`` .. ``b`` - 1) is refused (:meth:`poses`)."""
+        stream, seq, stamp = self.streams[i], int(self.seq[i]), float(self.time[i])
+        where = f"frame.streams[{i}]"
+        if not is_id(stream):
+            return WireError("schema", f"{where}: {describe(stream)} is not an id ({ID_RULE})")
+        if seq > MAX_SEQ:
+            return WireError("schema", f"{where}: seq must be at most {MAX_SEQ}, got {seq}")
+        if not math.isfinite(stamp):
+            return WireError("non_finite", f"{where} {stream}: time is not finite")
+        if b == a or (b - a) % (3 if self.kind == "positions" else 1):
+            what = f"{b - a} values is not a whole number of positions" if b > a else "no values"
+            return WireError("shape", f"{where} {stream}: {what}")
+        return WireError("non_finite", f"{where} {stream}: a value is not finite")
 
 
 def frame_of(poses: list[PoseMessage], source: str, epoch: str | None = None) -> FrameMessage:

@@ -196,6 +196,10 @@ class _Stream:
     """Detections starting before this sequence number are suppressed (see :attr:`warming`)."""
     progress: StreamProgress | None = None
     """The recogniser's progress (``progress.enabled``), made anew with it."""
+    kind: str = "positions"
+    """The announcement's kind (``positions``, ``channels``, ``bvh``)."""
+    plain: bool = False
+    """Whether the recogniser takes a pose's channels as they come (radians of an ASF skeleton)."""
 
 
 @dataclass(frozen=True)
@@ -361,6 +365,8 @@ class StreamTable:
             warmup=recognizer.clock.lag(recognizer.reach),
             rig=rig,
             bvh=bvh,
+            kind=message.kind,
+            plain=skeleton is not None and angles is None,
         )
         self._follow(s, recognizer)
         return out
@@ -510,7 +516,7 @@ class StreamTable:
         s = self.streams.get(message.stream)
         if s is None:
             raise Refused("no_skeleton", f"stream {message.stream!r} has announced no skeleton")
-        kind = s.announced.kind
+        kind = s.kind
         if (message.positions is None) != (kind != "positions"):
             raise Refused(
                 "shape", f"a {kind} stream got a pose of {'channels' if kind == 'positions' else 'positions'}"
@@ -535,7 +541,7 @@ class StreamTable:
             if last - seq <= rate or message.epoch is not None:
                 raise Refused("out_of_order", f"seq {seq} after {last}")
             self._new_run(s, s.epoch, now)  # numbered from its start again: a restarted source
-        elif last is not None and seq - last > _allowance(rate, now - s.posed):
+        elif last is not None and seq != last + 1 and seq - last > _allowance(rate, now - s.posed):
             jump, s.jump = s.jump, (seq, now)
             if jump is None or not 0 < seq - jump[0] <= _allowance(rate, now - jump[1]):
                 raise Refused(
@@ -585,6 +591,7 @@ class StreamTable:
         bridging: set[str] = set()  # the streams whose frame this tick is an interpolated one
         segmented: dict[str, np.ndarray] = {}  # what each stream's segmentation takes of its frame
         out: list[Emitted] = []
+        segmenting = self.segmentation != "none"
         for name, s in list(self._waiting.items()):
             if s.filling:
                 seq, stamp, arrived, values, channels = s.filling.popleft()
@@ -593,7 +600,13 @@ class StreamTable:
                 pose, arrived = s.queue.popleft(), s.arrived.popleft()
                 if not s.queue:
                     del self._waiting[name]
-                out += self._follows(name, s, pose)
+                last = s.last_fed
+                if (
+                    last is None
+                    or pose.seq != last + 1
+                    or (pose.epoch is not None and pose.epoch != s.fed_epoch)
+                ):
+                    out += self._follows(name, s, pose)  # else the next frame of the run: nothing to say
                 if self.cluster and s.last_fed is None:
                     if pose.seq % s.step:  # every owner begins a motion at the same index frames
                         self.counts["aligning"] += 1
@@ -602,7 +615,8 @@ class StreamTable:
                     if s.warming:
                         s.warming = False
                         s.suppress_before = pose.seq + s.warmup
-                seq, stamp, values = pose.seq, pose.time, self._values(s, pose)
+                seq, stamp = pose.seq, pose.time
+                values = pose.channels if s.plain and pose.channels is not None else self._values(s, pose)
                 channels = None
                 if s.bvh is not None and s.segmenting is not None and pose.channels is not None:
                     channels = pose.channels.astype(np.float64)
@@ -613,7 +627,8 @@ class StreamTable:
             self._queued -= 1
             before[name] = (s.last_fed, s.last_values, s.last_channels)
             s.last_fed, s.last_values, s.last_channels = seq, values, channels
-            segmented[name] = values if channels is None else channels
+            if segmenting:
+                segmented[name] = values if channels is None else channels
             s.times[seq % len(s.times)] = stamp
             s.arrivals[seq % len(s.arrivals)] = arrived
             frames.append((name, seq, values))
