@@ -337,6 +337,7 @@ class Service:
         counted by its reason and refuses nothing else."""
         now = time.monotonic()
         taken = 0
+        labelled = self.metrics.stream_labels
         for stream, pose in zip(frame.streams, frame.poses(), strict=True):
             if self.mine is not None and not self.mine(stream):
                 continue
@@ -347,7 +348,8 @@ class Service:
             try:
                 self.table.pose(pose, now)
                 taken += 1
-                self.metrics.frame_in(pose.stream)
+                if labelled:
+                    self.metrics.frame_in(pose.stream)
                 if self.relay_per_s:
                     self._relay_pose(pose, now)
             except Refused as e:
@@ -358,6 +360,8 @@ class Service:
                         t.ask_skeleton(pose.stream)
         if taken:
             self.metrics.messages["pose"] += taken
+            if not labelled:
+                self.metrics.frames_in(taken)
             self._work.set()
 
     def _resume(self, stream: str, state: bytes) -> None:

@@ -93,6 +93,10 @@ class Metrics(Collector):
     def frame_in(self, stream: str) -> None:
         self.frames[stream if self.stream_labels else ""] += 1
 
+    def frames_in(self, count: int) -> None:
+        """``count`` poses taken in, of streams not labelled (``metrics.stream_labels`` off)."""
+        self.frames[""] += count
+
     def detection_out(self, stream: str) -> None:
         self.detections[stream if self.stream_labels else ""] += 1
 
