@@ -20,7 +20,7 @@ import numpy as np
 import numpy.typing as npt
 
 from daemon.types import FloatArray, IntArray
-from protocols.messages import EndMessage, PoseMessage, SkeletonMessage, Units, Up
+from protocols.messages import EndMessage, FrameMessage, PoseMessage, SkeletonMessage, Units, Up, frame_of
 from replay.amc import Motion
 
 
@@ -58,7 +58,7 @@ class BvhChannels:
 Recording = Motion | Positions | BvhChannels
 """What a replay sends: AMC channels, joint positions, or a BVH take's channels."""
 
-Items = Iterator[SkeletonMessage | PoseMessage | EndMessage]
+Items = Iterator[SkeletonMessage | PoseMessage | FrameMessage | EndMessage]
 """A replay's messages in the order they go out."""
 
 
@@ -108,3 +108,35 @@ def messages(
                 yield PoseMessage(stream, seq, 0.0, channels=values, epoch=epoch)
         done += 1
     yield EndMessage(stream, seq, epoch)
+
+
+def framed(streams: list[Items], source: str) -> Items:
+    """Several streams' messages (each :func:`messages`) as one source sends them (``protocols/
+    README.md``, ``frame``): every skeleton first, then per step the next pose of every stream that
+    has one in one frame message from ``source`` (a second one if the streams carry both channels
+    and positions), each stream's end once its poses are over. Time stamps are filled when sent."""
+    live: list[Items] = []
+    ends: list[EndMessage] = []
+    for items in streams:
+        first = next(items)
+        assert isinstance(first, SkeletonMessage)
+        yield first
+        live.append(items)
+    while live:
+        poses: list[PoseMessage] = []
+        going: list[Items] = []
+        for items in live:
+            m = next(items)
+            if isinstance(m, EndMessage):
+                ends.append(m)
+                continue
+            assert isinstance(m, PoseMessage)
+            poses.append(m)
+            going.append(items)
+        live = going
+        for kind in ("channels", "positions"):
+            mine = [p for p in poses if (p.channels is not None) == (kind == "channels")]
+            if mine:
+                yield frame_of(mine, source, mine[0].epoch)
+        yield from ends
+        ends = []

@@ -22,21 +22,32 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import dataclasses
 import os
 import signal
 import threading
 import time
 import uuid
-from collections.abc import Awaitable, Callable
+from collections.abc import Awaitable, Callable, Sequence
 from typing import Any
 from urllib.parse import urlsplit
 
+import numpy as np
 import zmq
 import zmq.asyncio
 
 from daemon.errors import MocapdError
-from protocols.messages import EndMessage, PoseMessage, StatusMessage, WireError, decode, encode, topic
-from protocols.publish import Items, Recording, due, messages
+from protocols.messages import (
+    EndMessage,
+    FrameMessage,
+    PoseMessage,
+    StatusMessage,
+    WireError,
+    decode,
+    encode,
+    topic,
+)
+from protocols.publish import Items, Recording, due, framed, messages
 from protocols.transport import Outgoing
 
 SEND_HWM = 10_000_000
@@ -65,13 +76,23 @@ async def replay_to(
     loop: bool = False,
     wait_s: float = 10.0,
     retain: bool = True,
+    others: Sequence[tuple[Recording, str, str]] = (),
+    source: str = "replay",
 ) -> int:
     """Replay ``motion`` onto ``url`` (``zmq+tcp://HOST:PORT``: the daemon's poses socket;
-    ``mqtt://HOST:PORT`` or ``mqtts://``: a broker) as ``stream``; the poses sent. :class:`TargetError`
-    for another URL (a ValueError from :func:`protocols.mqtt.parse_url` for a bad MQTT one);
-    TimeoutError when no subscriber or broker answers within ``wait_s``."""
+    ``mqtt://HOST:PORT`` or ``mqtts://``: a broker) as ``stream``; the poses sent. With ``others``
+    (recording, ASF text, stream; at the same ``rate``), every recording's poses of a step go out
+    together in frame messages from ``source`` (:func:`protocols.publish.framed`), as a capture
+    system sends its subjects. :class:`TargetError` for another URL (a ValueError from
+    :func:`protocols.mqtt.parse_url` for a bad MQTT one); TimeoutError when no subscriber or broker
+    answers within ``wait_s``."""
     scheme = urlsplit(url).scheme
-    items = messages(motion, asf_text, stream, rate, None if loop else 1, epoch=uuid.uuid4().hex[:16])
+    epoch, passes = uuid.uuid4().hex[:16], None if loop else 1
+    items = messages(motion, asf_text, stream, rate, passes, epoch=epoch)
+    if others:
+        items = framed(
+            [items, *(messages(m, text, name, rate, passes, epoch=epoch) for m, text, name in others)], source
+        )
     if scheme.startswith("zmq+"):
         return await _to_zmq(url[len("zmq+") :], items, rate, speed, wait_s)
     if scheme in ("mqtt", "mqtts"):
@@ -87,34 +108,47 @@ async def _send_all(
     asked: Callable[[], bool] = lambda: False,
     retain: bool = True,
 ) -> int:
-    """Send every message through ``send(Outgoing)`` (awaited), poses on their due times; the
-    skeleton again every :data:`ANNOUNCE_S` and whenever ``asked()`` says a daemon asks for it;
-    ``retain``: the skeleton retained and reliable (QoS 1 on MQTT), the end reliable."""
+    """Send every message through ``send(Outgoing)`` (awaited), poses on their due times (a frame
+    message's by its step: the k-th is due as frame k); the skeletons again every
+    :data:`ANNOUNCE_S` and whenever ``asked()`` says a daemon asks for them; ``retain``: the
+    skeletons retained and reliable (QoS 1 on MQTT), the ends reliable. The poses sent."""
     sent = 0
     start = time.monotonic()
     i = 0
     first: int | None = None
-    skeleton: Outgoing | None = None
+    steps = 0
+    skeletons: list[Outgoing] = []
     announced = start
     for m in items:
-        if isinstance(m, PoseMessage):
-            first = m.seq if first is None else first
-            wait = due(start, m.seq - first, rate, speed) - time.monotonic()
+        if isinstance(m, PoseMessage | FrameMessage):
+            if isinstance(m, PoseMessage):
+                first = m.seq if first is None else first
+                step = m.seq - first
+            else:
+                step, steps = steps, steps + 1
+            wait = due(start, step, rate, speed) - time.monotonic()
             if wait > 0:
                 await asyncio.sleep(wait)
             elif i % 256 == 0:
                 await asyncio.sleep(0)
-            if skeleton is not None and (asked() or time.monotonic() - announced >= ANNOUNCE_S):
-                await send(skeleton)
+            if skeletons and (asked() or time.monotonic() - announced >= ANNOUNCE_S):
+                for skeleton in skeletons:
+                    await send(skeleton)
                 announced = time.monotonic()
-            m = PoseMessage(m.stream, m.seq, time.time(), m.positions, m.channels, m.epoch)
+            now = time.time()
+            if isinstance(m, PoseMessage):
+                m = PoseMessage(m.stream, m.seq, now, m.positions, m.channels, m.epoch)
+                sent += 1
+            else:
+                m = dataclasses.replace(m, time=np.full(len(m.streams), now))
+                sent += len(m.streams)
             out = Outgoing(topic(m), encode(m))
             i += 1
-            sent += 1
         elif isinstance(m, EndMessage):
             out = Outgoing(topic(m), encode(m), reliable=retain)
         else:
-            out = skeleton = Outgoing(topic(m), encode(m), retain=retain, reliable=retain)
+            out = Outgoing(topic(m), encode(m), retain=retain, reliable=retain)
+            skeletons = [k for k in skeletons if k.topic != out.topic] + [out]
             announced = time.monotonic()
         await send(out)
     return sent
@@ -218,6 +252,8 @@ def replay(
     speed: float | None,
     loop: bool,
     retain: bool = True,
+    others: Sequence[tuple[Recording, str, str]] = (),
+    source: str = "replay",
 ) -> int:
     """:func:`replay_to` run to its end on a fresh event loop (for callers outside asyncio).
 
@@ -247,7 +283,16 @@ def replay(
                     running.add_signal_handler(signum, stop, signum)
         try:
             return await replay_to(
-                url, motion, asf_text, stream=stream, rate=rate, speed=speed, loop=loop, retain=retain
+                url,
+                motion,
+                asf_text,
+                stream=stream,
+                rate=rate,
+                speed=speed,
+                loop=loop,
+                retain=retain,
+                others=others,
+                source=source,
             )
         except asyncio.CancelledError:
             if not received:

@@ -22,7 +22,18 @@ from daemon.recognizer import detect
 from daemon.recordings import read_recording
 from protocols.messages import EndMessage, PoseMessage, SkeletonMessage, encode, frame_of, topic
 from protocols.publish import messages
-from tests.helpers import DATA, Broker, Daemon, detection_keys, hdm05_clip, raw_publisher, takes, wait_for
+from tests.helpers import (
+    DATA,
+    Broker,
+    Daemon,
+    detection_keys,
+    finished,
+    hdm05_clip,
+    raw_publisher,
+    replay,
+    takes,
+    wait_for,
+)
 
 SOURCES = {
     "s0": (DATA / "cmu" / "13" / "13.asf", DATA / "cmu" / "13" / "13_30.amc.gz"),
@@ -147,3 +158,41 @@ def test_single_and_frame_messages_mixed_give_the_detections_of_detect(
         daemon.stop()
         if broker is not None:
             broker.stop()
+
+
+@pytest.mark.slow  # 5-10 s: three recordings at 8x
+def test_a_replay_with_other_recordings_sends_frames_that_give_the_detections_of_detect(
+    tmp_path: Path,
+) -> None:
+    """``mocapd replay --with`` sends the recordings as one source (a frame message a step): each
+    stream gets ``mocapd detect``'s detections."""
+    daemon = Daemon(tmp_path, config={"service": {"queue_frames": 100_000}}).start()
+    try:
+        (asf, amc), others = SOURCES["s0"], [SOURCES["s2"], SOURCES["s1"]]
+        extra = [str(x) for pair in others for x in ("--with", *pair)]
+        out = finished(
+            replay(asf, amc, "zmq+" + daemon.poses, *extra, "--source", "rig", stream="s0", speed="8")
+        )
+        names = ["s0", *(p[1].name.removesuffix(".gz").removesuffix(".amc") for p in others)]
+        assert out.startswith("replayed ") and all(repr(n) in out for n in names)
+        total = sum(len(read_recording(*SOURCES[k])) for k in ("s0", "s1", "s2"))
+        wait_for(lambda: daemon.metrics().get("mocapd_frames_in_total") == total, 60, "every pose received")
+        assert daemon.stop() == 0
+        got = daemon.detections_printed()
+        for name, key in zip(names, ("s0", "s2", "s1"), strict=True):
+            mine = [dict(d, stream=key) for d in got if d["stream"] == name]
+            want = [dict(d, stream=key) for d in expected(key)]
+            assert detection_keys(mine) == detection_keys(want), name
+    finally:
+        daemon.stop()
+
+
+def test_a_replay_with_a_recording_named_as_another_is_refused_in_one_line() -> None:
+    asf, amc = SOURCES["s0"]
+    done = replay(asf, amc, "zmq+tcp://127.0.0.1:9", "--with", str(asf), str(amc))
+    _, err = done.communicate(timeout=60)
+    assert done.returncode == 2
+    assert err.splitlines() == [
+        "mocapd: --with: 13_30.amc.gz: stream '13_30' is taken or not an id "
+        "(letters, digits, _:@-, at most 128)"
+    ]

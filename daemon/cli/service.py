@@ -101,6 +101,22 @@ def register(sub: Any) -> None:
     rep.add_argument(
         "--speed", type=speed, default=1.0, metavar="1|X|max", help="1 = real time (default), X times, max"
     )
+    rep.add_argument(
+        "--with",
+        dest="others",
+        nargs=2,
+        action="append",
+        default=[],
+        type=Path,
+        metavar=("ASF", "AMC"),
+        help="another recording, sent with the first as one source: each step's poses in one frame "
+        "message (protocols/README.md, frame); its stream is the AMC file's name; repeatable",
+    )
+    rep.add_argument(
+        "--source",
+        default="replay",
+        help="with --with: the source id of the frame messages (mocap/<source>/frame; default replay)",
+    )
     rep.add_argument("--loop", action="store_true", help="start over at the end, until interrupted")
     rep.add_argument(
         "--no-retain",
@@ -135,6 +151,7 @@ def _replay(args: argparse.Namespace, config: Config) -> int:
     stream = common.stream_name(source) if args.stream is None else args.stream
     if not is_id(stream):  # the recording's name, unless given
         raise UsageError(f"{stream!r} is not a stream id ({ID_RULE})", field="--stream")
+    others = _others(args, config, rate, stream)
     try:
         sent = replay(
             args.to,
@@ -145,6 +162,8 @@ def _replay(args: argparse.Namespace, config: Config) -> int:
             speed=args.speed,
             loop=args.loop,
             retain=args.retain,
+            others=others,
+            source=args.source,
         )
     except TargetError as e:
         raise UsageError(e.reason, field="--to") from None
@@ -154,8 +173,37 @@ def _replay(args: argparse.Namespace, config: Config) -> int:
         raise UsageError(
             f"nothing answered at {args.to} (is the daemon or broker running?)", field="--to"
         ) from None
-    print(f"replayed {sent} frames of {source.name} as stream {stream!r} to {args.to}")
+    names = "".join(f", {name!r}" for _, _, name in others)
+    print(f"replayed {sent} frames of {source.name} as stream {stream!r}{names} to {args.to}")
     return 0
+
+
+def _others(
+    args: argparse.Namespace, config: Config, rate: float, stream: str
+) -> list[tuple[Recording, str, str]]:
+    """``replay --with``'s recordings as (recording, ASF text, stream), each at ``rate`` and named
+    apart from ``stream`` and each other; UsageError naming ``--with`` or ``--source`` otherwise."""
+    from protocols.messages import ID_RULE, is_id
+
+    if not args.others:
+        return []
+    if not is_id(args.source):
+        raise UsageError(f"{args.source!r} is not a source id ({ID_RULE})", field="--source")
+    out: list[tuple[Recording, str, str]] = []
+    names = {stream}
+    for asf, amc in args.others:
+        motion = read_recording(asf, amc)
+        other = native_rate(motion, common.default_native_rate(args, config))
+        name = common.stream_name(amc)
+        if other != rate:
+            raise UsageError(
+                f"{amc.name} is at {other:g} Hz, the first recording at {rate:g}", field="--with"
+            )
+        if name in names or not is_id(name):
+            raise UsageError(f"{amc.name}: stream {name!r} is taken or not an id ({ID_RULE})", field="--with")
+        names.add(name)
+        out.append((motion, Path(asf).read_text(encoding="utf-8", errors="replace"), name))
+    return out
 
 
 def _run(args: argparse.Namespace, config: Config) -> int:
