@@ -147,6 +147,26 @@ class FrameMessage:
         sequence number beyond :data:`MAX_SEQ` (``schema``), a time not finite (``non_finite``), no
         values or positions not in threes (``shape``), a value not finite (``non_finite``).
         Checked over the arrays at once; a Python step per subject only to make its pose."""
+        bad, at = self.faults()
+        seqs, stamps, epoch, values = self.seq.tolist(), self.time.tolist(), self.epoch, self.values
+        out: list[PoseMessage | WireError] = []
+        for i, stream in enumerate(self.streams):
+            if (bad is not None and bad[i]) or not is_id(stream):
+                out.append(self.refusal(i))
+            elif self.kind == "positions":  # a subject's offset need not be a multiple of 3
+                out.append(
+                    PoseMessage(
+                        stream, seqs[i], stamps[i], values[at[i] : at[i + 1]].reshape(-1, 3), None, epoch
+                    )
+                )
+            else:
+                out.append(PoseMessage(stream, seqs[i], stamps[i], None, values[at[i] : at[i + 1]], epoch))
+        return out
+
+    def faults(self) -> tuple[list[bool] | None, list[int]]:
+        """Per subject whether its seq, time, count or values are at fault (:meth:`poses`; None:
+        none is; its id is not judged here), and where each subject's values start in
+        :attr:`values` (S + 1 offsets, the last the end)."""
         starts = np.zeros(len(self.counts) + 1, dtype=np.int64)
         np.cumsum(self.counts, out=starts[1:])
         finite = np.isfinite(self.values)
@@ -155,32 +175,13 @@ class FrameMessage:
         if not finite.all():
             sums = np.add.reduceat(~finite, np.minimum(starts[:-1], max(len(finite) - 1, 0)))
             faulty |= (self.counts > 0) & (sums > 0)  # reduceat of an empty segment: the next value
-        bad = faulty.tolist() if faulty.any() else None
-        at = starts.tolist()
-        seqs, stamps, epoch = self.seq.tolist(), self.time.tolist(), self.epoch
-        out: list[PoseMessage | WireError] = []
-        if self.kind == "positions":  # a subject's offset need not be a multiple of 3
-            values = self.values
-            for i, stream in enumerate(self.streams):
-                if not is_id(stream) or (bad is not None and bad[i]):
-                    out.append(self._refusal(i, at[i], at[i + 1]))
-                else:
-                    rows = values[at[i] : at[i + 1]].reshape(-1, 3)
-                    out.append(PoseMessage(stream, seqs[i], stamps[i], rows, None, epoch))
-        else:
-            values = self.values
-            for i, stream in enumerate(self.streams):
-                if not is_id(stream) or (bad is not None and bad[i]):
-                    out.append(self._refusal(i, at[i], at[i + 1]))
-                else:
-                    out.append(
-                        PoseMessage(stream, seqs[i], stamps[i], None, values[at[i] : at[i + 1]], epoch)
-                    )
-        return out
+        return (faulty.tolist() if faulty.any() else None), starts.tolist()
 
-    def _refusal(self, i: int, a: int, b: int) -> WireError:
-        """Why subject ``i`` (values ``a`` .. ``b`` - 1) is refused (:meth:`poses`)."""
+    def refusal(self, i: int) -> WireError:
+        """Why subject ``i`` is refused (:meth:`poses`; one :meth:`faults` or its id found)."""
         stream, seq, stamp = self.streams[i], int(self.seq[i]), float(self.time[i])
+        a = int(self.counts[:i].sum())
+        b = a + int(self.counts[i])
         where = f"frame.streams[{i}]"
         if not is_id(stream):
             return WireError("schema", f"{where}: {describe(stream)} is not an id ({ID_RULE})")

@@ -24,6 +24,7 @@ from daemon.library import default_library_path, load_library
 from daemon.recognizer import detect
 from daemon.recordings import read_recording
 from daemon.service.app import Service
+from daemon.service.streams import Pose
 from protocols.messages import PoseMessage, SkeletonMessage, encode
 from protocols.transport import Incoming
 from replay import JOINT_NAMES
@@ -144,7 +145,7 @@ def test_an_exception_one_message_sets_off_costs_that_message_only(caplog: pytes
     service = Service(Config(), library, [], instance="t", version="0", logger=logger)
     take_pose = service.table.pose
 
-    def pose(message: PoseMessage, now: float) -> None:
+    def pose(message: Pose, now: float) -> None:
         if message.stream == "cursed":
             raise _Broken("a defect")
         take_pose(message, now)

@@ -336,33 +336,28 @@ class Service:
         of another worker's streams skipped, refused or not: :attr:`mine`); a subject refused is
         counted by its reason and refuses nothing else."""
         now = time.monotonic()
-        taken = 0
-        labelled = self.metrics.stream_labels
-        for stream, pose in zip(frame.streams, frame.poses(), strict=True):
-            if self.mine is not None and not self.mine(stream):
-                continue
-            if isinstance(pose, WireError):
-                self.rejects[pose.reason] += 1
-                self.events.warn(frame.source, pose.reason, pose.detail)
-                continue
-            try:
-                self.table.pose(pose, now)
-                taken += 1
-                if labelled:
-                    self.metrics.frame_in(pose.stream)
-                if self.relay_per_s:
-                    self._relay_pose(pose, now)
-            except Refused as e:
-                self.rejects[e.reason] += 1
-                self.events.warn(pose.stream, e.reason, str(e))
-                if e.reason == "no_skeleton":
-                    for t in self.transports:
-                        t.ask_skeleton(pose.stream)
-        if taken:
-            self.metrics.messages["pose"] += taken
-            if not labelled:
-                self.metrics.frames_in(taken)
-            self._work.set()
+        taken, refused = self.table.frame(frame, now, self.mine)
+        for stream, e in refused:
+            reason = getattr(e, "reason", "internal")
+            self.rejects[reason] += 1
+            self.events.warn(stream, reason, e.detail if isinstance(e, WireError) else str(e))
+            if reason == "no_skeleton":
+                for t in self.transports:
+                    t.ask_skeleton(stream)
+        if not taken:
+            return
+        self.metrics.messages["pose"] += len(taken)
+        if self.metrics.stream_labels:
+            for pose in taken:
+                self.metrics.frame_in(pose.stream)
+        else:
+            self.metrics.frames_in(len(taken))
+        if self.relay_per_s:
+            for pose in taken:
+                if self._relaying(pose.stream, pose.seq, now):
+                    message = PoseMessage(*pose)
+                    self._relays.append(Outgoing(topic(message), encode(message), relay=True))
+        self._work.set()
 
     def _resume(self, stream: str, state: bytes) -> None:
         """Cluster mode: take ``stream`` in ``state``, from the checkpoint its partition was taken
@@ -384,11 +379,6 @@ class Service:
         ``rate / relay_per_s``-th by sequence number)."""
         if self._relaying(stream, seq, now):
             self._relays.append(Outgoing(incoming.topic, incoming.payload, relay=True))
-
-    def _relay_pose(self, pose: PoseMessage, now: float) -> None:
-        """:meth:`_relay` of a frame message's pose: passed on as a pose message of its own."""
-        if self._relaying(pose.stream, pose.seq, now):
-            self._relays.append(Outgoing(topic(pose), encode(pose), relay=True))
 
     def _relaying(self, stream: str, seq: int | None, now: float) -> bool:
         """Whether to pass this pose or skeleton on (:meth:`_relay`), remembered if so."""

@@ -43,10 +43,11 @@ import uuid
 from collections import Counter, deque
 from collections.abc import Callable, Collection, Sequence
 from dataclasses import dataclass, field
-from typing import Literal, TypeVar
+from typing import Literal, NamedTuple, TypeVar
 
 import msgpack
 import numpy as np
+import numpy.typing as npt
 
 from daemon.bank import RecognizerBank
 from daemon.behaviours import Boundary, JointRotations, PcaSegmenter, PpcaSegmenter, RigRotations
@@ -62,11 +63,13 @@ from protocols.messages import (
     ClassProgress,
     DetectionMessage,
     EndMessage,
+    FrameMessage,
     PoseMessage,
     ProgressMessage,
     SkeletonMessage,
     decode,
     encode,
+    is_id,
 )
 from replay import JOINT_NAMES, MocapFormatError, Skeleton, parse_asf
 from replay.amc import DEG
@@ -76,6 +79,22 @@ from replay.rigs import BUILT_IN, BvhPoses, RigMap, RigPlan, names_plan, standar
 
 K = TypeVar("K")
 V = TypeVar("V")
+
+
+class Queued(NamedTuple):
+    """One subject of a frame message as the table queues it: a pose message's fields (a pose
+    message itself is queued as it is), made for a fraction of a frozen dataclass's cost."""
+
+    stream: str
+    seq: int
+    time: float
+    positions: npt.NDArray[np.float32] | None
+    channels: npt.NDArray[np.float64] | None
+    epoch: str | None
+
+
+Pose = PoseMessage | Queued
+"""A pose the table queues."""
 
 SKELETONS_KEPT = 64
 """How many announced ASF texts (and BVH hierarchies) the table keeps parsed."""
@@ -151,7 +170,7 @@ class _Stream:
     last_fed: int | None = None
     last_values: np.ndarray | None = None
     """The values of frame :attr:`last_fed` (a gap after it is bridged from them)."""
-    queue: deque[PoseMessage] = field(default_factory=deque)
+    queue: deque[Pose] = field(default_factory=deque)
     arrived: deque[float] = field(default_factory=deque)
     """When each queued pose was taken in (the ``now`` of :meth:`StreamTable.pose`), in step with
     :attr:`queue`."""
@@ -510,7 +529,7 @@ class StreamTable:
         except InputError as e:  # a skeleton without rotating bones, windows that do not fit the rate
             raise Refused("skeleton", f"segmentation: {e}") from None
 
-    def pose(self, message: PoseMessage, now: float) -> None:
+    def pose(self, message: Pose, now: float) -> None:
         """Queue a pose, or :class:`Refused` (``no_skeleton``, ``duplicate``, ``out_of_order``,
         ``implausible``, ``stale_epoch``, ``shape``)."""
         s = self.streams.get(message.stream)
@@ -562,6 +581,37 @@ class StreamTable:
         s.arrived.append(now)
         self._queued += 1
         self._waiting.setdefault(message.stream, s)
+
+    def frame(
+        self, frame: FrameMessage, now: float, mine: Callable[[str], bool] | None = None
+    ) -> tuple[list[Queued], list[tuple[str, MocapdError]]]:
+        """Queue a frame message's poses, each as :meth:`pose` would queue it as a message of its own
+        (``mine``: of the streams it says are this table's; None: all): those taken, and the refused
+        as (stream, :class:`~protocols.messages.WireError` or :class:`Refused`), in order. Its
+        arrays checked at once (:meth:`~protocols.messages.FrameMessage.faults`)."""
+        bad, at = frame.faults()
+        seqs, stamps, epoch, values = frame.seq.tolist(), frame.time.tolist(), frame.epoch, frame.values
+        positions = frame.kind == "positions"
+        taken: list[Queued] = []
+        refused: list[tuple[str, MocapdError]] = []
+        for i, stream in enumerate(frame.streams):
+            if mine is not None and not mine(stream):
+                continue
+            if (bad is not None and bad[i]) or not is_id(stream):
+                refused.append((stream, frame.refusal(i)))
+                continue
+            part = values[at[i] : at[i + 1]]
+            if positions:
+                entry = Queued(stream, seqs[i], stamps[i], part.reshape(-1, 3), None, epoch)
+            else:
+                entry = Queued(stream, seqs[i], stamps[i], None, part, epoch)
+            try:
+                self.pose(entry, now)
+            except Refused as e:
+                refused.append((stream, e))
+                continue
+            taken.append(entry)
+        return taken, refused
 
     def end(self, message: EndMessage) -> list[Emitted]:
         """The source ended the run: once the stream's queued poses are recognised (now, or in the
@@ -670,7 +720,7 @@ class StreamTable:
             out += self._remove(name, "ended")
         return out, refused
 
-    def _follows(self, name: str, s: _Stream, pose: PoseMessage) -> list[Emitted]:
+    def _follows(self, name: str, s: _Stream, pose: Pose) -> list[Emitted]:
         """Where ``pose``, the next of ``s`` to be fed, stands: the first of a new run of the source
         or after a gap too long to bridge, it ends the stream's motion (the detections that gives);
         a gap is counted."""
@@ -694,7 +744,7 @@ class StreamTable:
         self,
         name: str,
         s: _Stream,
-        pose: PoseMessage,
+        pose: Pose,
         arrived: float,
         values: np.ndarray,
         channels: np.ndarray | None,
@@ -721,7 +771,7 @@ class StreamTable:
         self._waiting.setdefault(name, s)
         self._queued += missing  # the pose is queued again: counted already
 
-    def _values(self, s: _Stream, pose: PoseMessage) -> np.ndarray:
+    def _values(self, s: _Stream, pose: Pose) -> np.ndarray:
         if pose.positions is not None:
             p = pose.positions.astype(np.float64)
             if s.rig is not None and p.shape == (s.width, 3):
