@@ -274,7 +274,9 @@ class Service:
                 self.metrics.messages["clear"] += 1
                 return []  # MQTT's way to delete a retained skeleton: nothing to take in
             message = decode(incoming.payload, self.config.service.max_message_bytes)
-            if isinstance(message, FrameMessage) and parsed[1] == FRAME_WORD and message.source == stream:
+            if isinstance(message, FrameMessage):
+                if parsed[1] != FRAME_WORD or message.source != stream:
+                    raise Refused("schema", f"a frame message of {message.source!r} on {incoming.topic!r}")
                 self._subjects(message)
                 return []
             if not isinstance(message, SkeletonMessage | PoseMessage | EndMessage):
@@ -338,10 +340,9 @@ class Service:
         now = time.monotonic()
         taken, refused = self.table.frame(frame, now, self.mine)
         for stream, e in refused:
-            reason = getattr(e, "reason", "internal")
-            self.rejects[reason] += 1
-            self.events.warn(stream, reason, e.detail if isinstance(e, WireError) else str(e))
-            if reason == "no_skeleton":
+            self.rejects[e.reason] += 1
+            self.events.warn(stream, e.reason, e.detail if isinstance(e, WireError) else str(e))
+            if e.reason == "no_skeleton":
                 for t in self.transports:
                     t.ask_skeleton(stream)
         if not taken:

@@ -2,7 +2,8 @@
 
 A stream exists once its skeleton arrived: :meth:`StreamTable.skeleton` makes (or, for a changed
 skeleton, remakes) its recogniser in the :class:`~daemon.bank.RecognizerBank`; :meth:`StreamTable.pose`
-checks the sequence number and queues the pose; :meth:`StreamTable.tick` takes one queued pose of
+checks the sequence number and queues the pose (:meth:`StreamTable.frame`: each subject of a frame
+message alike); :meth:`StreamTable.tick` takes one queued pose of
 every stream that has one into one bank push. Everything refused or dropped is counted by reason in
 :attr:`StreamTable.counts`.
 
@@ -67,6 +68,7 @@ from protocols.messages import (
     PoseMessage,
     ProgressMessage,
     SkeletonMessage,
+    WireError,
     decode,
     encode,
     is_id,
@@ -584,7 +586,7 @@ class StreamTable:
 
     def frame(
         self, frame: FrameMessage, now: float, mine: Callable[[str], bool] | None = None
-    ) -> tuple[list[Queued], list[tuple[str, MocapdError]]]:
+    ) -> tuple[list[Queued], list[tuple[str, WireError | Refused]]]:
         """Queue a frame message's poses, each as :meth:`pose` would queue it as a message of its own
         (``mine``: of the streams it says are this table's; None: all): those taken, and the refused
         as (stream, :class:`~protocols.messages.WireError` or :class:`Refused`), in order. Its
@@ -593,7 +595,7 @@ class StreamTable:
         seqs, stamps, epoch, values = frame.seq.tolist(), frame.time.tolist(), frame.epoch, frame.values
         positions = frame.kind == "positions"
         taken: list[Queued] = []
-        refused: list[tuple[str, MocapdError]] = []
+        refused: list[tuple[str, WireError | Refused]] = []
         for i, stream in enumerate(frame.streams):
             if mine is not None and not mine(stream):
                 continue
