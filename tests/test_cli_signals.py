@@ -21,6 +21,7 @@ import signal
 import subprocess
 import sys
 import time
+import types
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -511,3 +512,17 @@ def test_a_signal_once_the_outputs_are_in_place_is_too_late(
     finally:
         signal.signal(signum, previous)
         storage.forget_placed()
+
+
+def test_a_signal_while_the_storage_module_is_being_imported_stops_the_command(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """While ``daemon.storage`` is imported, ``sys.modules`` holds it without its functions yet (a
+    rehearsal's ``index`` run ended 70, "partially initialized module", when SIGTERM came then)."""
+    monkeypatch.setitem(sys.modules, "daemon.storage", types.ModuleType("daemon.storage"))
+    previous = signal.signal(signal.SIGTERM, cli._terminate)
+    try:
+        with pytest.raises(Terminated):
+            signal.raise_signal(signal.SIGTERM)
+    finally:
+        signal.signal(signal.SIGTERM, previous)

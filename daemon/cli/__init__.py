@@ -72,9 +72,10 @@ function arguments" when one lands while it converts a call's arguments, as in m
 
 def _too_late() -> bool:
     """Whether the command's outputs are in place (:func:`daemon.storage.placed`; the module is
-    looked up, not imported, in a signal handler: none placed anything before it was imported)."""
-    storage = sys.modules.get("daemon.storage")
-    return storage is not None and bool(storage.placed())
+    looked up, not imported, in a signal handler: none placed anything before it was imported, nor
+    while it is being imported, when it may not have the function yet)."""
+    placed = getattr(sys.modules.get("daemon.storage"), "placed", None)
+    return placed is not None and bool(placed())
 
 
 def _terminate(signum: int, frame: FrameType | None) -> None:
@@ -168,8 +169,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     arguments = list(sys.argv[1:] if argv is None else argv)
     debug = "--debug" in arguments
     _RECEIVED.clear()
-    if (storage := sys.modules.get("daemon.storage")) is not None:
-        storage.forget_placed()  # an earlier command of this process placed its outputs
+    if (forget := getattr(sys.modules.get("daemon.storage"), "forget_placed", None)) is not None:
+        forget()  # an earlier command of this process placed its outputs
     previous: dict[signal.Signals, Any] = {}
     try:
         if signal.getsignal(signal.SIGINT) is signal.default_int_handler:  # not ignored (``command &``)
