@@ -172,9 +172,10 @@ class FrameMessage:
         finite = np.isfinite(self.values)
         faulty = (self.seq > MAX_SEQ) | ~np.isfinite(self.time)
         faulty |= (self.counts == 0) | (self.counts % (3 if self.kind == "positions" else 1) != 0)
-        if not finite.all():
-            sums = np.add.reduceat(~finite, np.minimum(starts[:-1], max(len(finite) - 1, 0)))
-            faulty |= (self.counts > 0) & (sums > 0)  # reduceat of an empty segment: the next value
+        if not finite.all():  # the non-finite values before each offset, differenced per subject
+            before = np.zeros(len(finite) + 1, dtype=np.int64)
+            np.cumsum(~finite, out=before[1:])
+            faulty |= before[starts[1:]] > before[starts[:-1]]
         return (faulty.tolist() if faulty.any() else None), starts.tolist()
 
     def refusal(self, i: int) -> WireError:

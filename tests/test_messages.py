@@ -9,7 +9,7 @@ from typing import Any
 import msgpack
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from protocols.messages import (
@@ -456,8 +456,41 @@ def frames(draw: st.DrawFn) -> tuple[bytes, list[bytes], str]:
     return msgpack.packb(frame), singles, kind
 
 
+NAN_BEFORE_AN_EMPTY_SUBJECT = (
+    msgpack.packb(
+        {
+            "v": 1,
+            "type": "frame",
+            "source": "rig",
+            "streams": ["0", "a.b"],
+            "seq": bytes(16),
+            "time": bytes(16),
+            "counts": np.array([2, 0], dtype="<u4").tobytes(),
+            "channels": np.array([0.0, np.nan]).tobytes(),
+        }
+    ),
+    [
+        msgpack.packb(
+            {
+                "v": 1,
+                "type": "pose",
+                "stream": "0",
+                "seq": 0,
+                "time": 0.0,
+                "channels": np.array([0.0, np.nan]).tobytes(),
+            }
+        ),
+        msgpack.packb({"v": 1, "type": "pose", "stream": "a.b", "seq": 0, "time": 0.0, "channels": b""}),
+    ],
+    "channels",
+)
+"""A rehearsal's find: a NaN in the last values, its subject followed by one with none (the
+per-subject sums were cut at the empty subject's offset, clamped to the last value)."""
+
+
 @settings(max_examples=300, deadline=None)
 @given(frames())
+@example(NAN_BEFORE_AN_EMPTY_SUBJECT)
 def test_a_frames_subjects_are_taken_or_refused_as_their_own_pose_messages_would_be(
     case: tuple[bytes, list[bytes], str],
 ) -> None:
