@@ -1606,6 +1606,13 @@ class Cluster:
         except BaseException:
             self.close()
             raise
+        quiet = time.monotonic()  # and then no worker told a new assignment for 2 s
+        told = [len(m.events("partitions")) for m in self.members]
+        while time.monotonic() - quiet < 2.0 and time.monotonic() < deadline:
+            time.sleep(0.1)
+            now = [len(m.events("partitions")) for m in self.members]
+            if now != told:
+                told, quiet = now, time.monotonic()
         self.assignments = [len(m.events("partitions")) for m in self.members]
         self.owned = [sorted(m.events("partitions")[-1]["owned"]) for m in self.members]
 

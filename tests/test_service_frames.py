@@ -137,12 +137,14 @@ def test_single_and_frame_messages_mixed_give_the_detections_of_detect(
                     send(PoseMessage("s2", at["s2"].seq, now, channels=at["s2"].channels))
                 if i % 8 == 7:
                     time.sleep(0.001)  # 8x a 120 Hz stream
-            for _, _, end in streams.values():
-                send(end)
             total = sum(len(p) for _, p, _ in streams.values())
+            # every pose in before the ends: over MQTT an end on a stream's pose topic may overtake
+            # the frame messages on their source's topic (the daemon's fair queue is per topic)
             deadline = time.monotonic() + 60
             while daemon.metrics().get("mocapd_frames_in_total", 0) < total and time.monotonic() < deadline:
                 time.sleep(0.05)
+            for _, _, end in streams.values():
+                send(end)
         m = daemon.metrics()
         assert daemon.stop() == 0
         got = daemon.detections_printed()
