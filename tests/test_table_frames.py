@@ -77,7 +77,7 @@ def test_a_frame_is_taken_as_its_poses_one_by_one(
                 except Refused as e:
                     error = e
             want.append((stream, outcome(error)))
-        seen = [(p.stream, "taken") for p in taken] + [(s, outcome(e)) for s, e in refused]
+        seen = [(frame.streams[i], "taken") for i in taken] + [(s, outcome(e)) for s, e in refused]
         assert sorted(seen) == sorted(want)
     for name in KNOWN:
         assert [p.seq for p in batch.streams[name].queue] == [p.seq for p in single.streams[name].queue]

@@ -349,15 +349,18 @@ class Service:
             return
         self.metrics.messages["pose"] += len(taken)
         if self.metrics.stream_labels:
-            for pose in taken:
-                self.metrics.frame_in(pose.stream)
+            for i in taken:
+                self.metrics.frame_in(frame.streams[i])
         else:
             self.metrics.frames_in(len(taken))
         if self.relay_per_s:
-            for pose in taken:
-                if self._relaying(pose.stream, pose.seq, now):
-                    message = PoseMessage(*pose)
-                    self._relays.append(Outgoing(topic(message), encode(message), relay=True))
+            seqs = frame.seq.tolist()
+            relayed = [i for i in taken if self._relaying(frame.streams[i], seqs[i], now)]
+            poses = frame.poses() if relayed else []
+            for i in relayed:
+                pose = poses[i]
+                assert isinstance(pose, PoseMessage)
+                self._relays.append(Outgoing(topic(pose), encode(pose), relay=True))
         self._work.set()
 
     def _resume(self, stream: str, state: bytes) -> None:
@@ -538,7 +541,7 @@ class Service:
 
     def _lag(self) -> float:
         """Seconds the oldest queued pose of any stream has waited (0: none queued)."""
-        oldest = min((s.queue[0].time for s in self.table.streams.values() if s.queue), default=None)
+        oldest = self.table.oldest()
         return 0.0 if oldest is None else round(max(0.0, time.time() - oldest), 3)
 
     def _cluster_series(self) -> list[tuple[str, str, str, float]]:

@@ -98,6 +98,17 @@ class Queued(NamedTuple):
 Pose = PoseMessage | Queued
 """A pose the table queues."""
 
+
+class Ready(NamedTuple):
+    """A pose taken in as the next frame of its stream's run, for the next tick
+    (:meth:`StreamTable._direct`)."""
+
+    seq: int
+    time: float
+    arrived: float
+    values: npt.NDArray[np.float64]
+
+
 SKELETONS_KEPT = 64
 """How many announced ASF texts (and BVH hierarchies) the table keeps parsed."""
 
@@ -292,6 +303,9 @@ class StreamTable:
         self._skeletons: dict[str, Skeleton] = {}  # by ASF text, least recently announced first
         self._bvhs: dict[tuple[str, str], BvhPoses] = {}  # by BVH hierarchy text and up axis, likewise
         self._waiting: dict[str, _Stream] = {}  # the streams with queued poses, in arrival order
+        self._ready: dict[str, Ready] = {}
+        """The streams whose one waiting pose is the next frame of their run, nothing else of theirs
+        waiting (:meth:`_direct`): fed by the next tick without a queue."""
         self.cluster = cluster
 
     def _session(self, generation: int, epoch: str | None) -> str:
@@ -436,10 +450,15 @@ class StreamTable:
         )
         return state
 
+    def oldest(self) -> float | None:
+        """The source time of the oldest pose waiting in any stream (None: none waits)."""
+        queued = [s.queue[0].time for s in self.streams.values() if s.queue]
+        return min([*queued, *(r.time for r in self._ready.values())], default=None)
+
     def waiting(self, name: str) -> bool:
         """Whether a pose of stream ``name`` waits to be fed (queued, or a frame bridging a gap)."""
         s = self.streams[name]
-        return bool(s.queue or s.filling)
+        return bool(s.queue or s.filling) or name in self._ready
 
     def resume(self, state: bytes, now: float) -> str:
         """Take a stream in the :meth:`state` another table gave (cluster mode: a partition taken
@@ -574,6 +593,17 @@ class StreamTable:
         s.last_received = seq
         s.received += 1
         s.seen = s.posed = now
+        if (
+            s.plain
+            and last is not None
+            and seq == last + 1
+            and last == s.last_fed
+            and message.channels is not None
+            and self._direct(message.stream, s, message.epoch)
+        ):
+            self._ready[message.stream] = Ready(seq, message.time, now, message.channels)
+            self._queued += 1
+            return
         if len(s.queue) >= self.queue_frames:
             s.queue.popleft()
             s.arrived.popleft()
@@ -584,25 +614,59 @@ class StreamTable:
         self._queued += 1
         self._waiting.setdefault(message.stream, s)
 
+    def _direct(self, name: str, s: _Stream, epoch: str | None) -> bool:
+        """Whether a pose of ``s`` numbered the frame after the last received, which is the last
+        fed, skips the queue (:attr:`_ready`): nothing else of the stream waits, and the pose goes
+        on the run fed (its epoch none or the one fed). Such a pose is fed by the next tick as a
+        queued one would be, with nothing to say before it (:meth:`_follows`)."""
+        return (
+            not s.queue
+            and not s.filling
+            and name not in self._ready
+            and (epoch is None or epoch == s.fed_epoch)
+        )
+
     def frame(
         self, frame: FrameMessage, now: float, mine: Callable[[str], bool] | None = None
-    ) -> tuple[list[Queued], list[tuple[str, WireError | Refused]]]:
+    ) -> tuple[list[int], list[tuple[str, WireError | Refused]]]:
         """Queue a frame message's poses, each as :meth:`pose` would queue it as a message of its own
-        (``mine``: of the streams it says are this table's; None: all): those taken, and the refused
-        as (stream, :class:`~protocols.messages.WireError` or :class:`Refused`), in order. Its
-        arrays checked at once (:meth:`~protocols.messages.FrameMessage.faults`)."""
+        (``mine``: of the streams it says are this table's; None: all): the positions of those
+        taken in the frame, and the refused as (stream, :class:`~protocols.messages.WireError` or
+        :class:`Refused`), in order. Its arrays checked at once
+        (:meth:`~protocols.messages.FrameMessage.faults`); the next frame of a plain stream's run
+        (:meth:`_direct`) taken with the few checks left to make."""
         bad, at = frame.faults()
         seqs, stamps, epoch, values = frame.seq.tolist(), frame.time.tolist(), frame.epoch, frame.values
         positions = frame.kind == "positions"
-        taken: list[Queued] = []
+        taken: list[int] = []
         refused: list[tuple[str, WireError | Refused]] = []
+        streams, ready = self.streams, self._ready
         for i, stream in enumerate(frame.streams):
             if mine is not None and not mine(stream):
                 continue
             if (bad is not None and bad[i]) or not is_id(stream):
                 refused.append((stream, frame.refusal(i)))
                 continue
-            part = values[at[i] : at[i + 1]]
+            start, end, seq = at[i], at[i + 1], seqs[i]
+            s = streams.get(stream)
+            if (
+                s is not None
+                and s.plain
+                and not positions
+                and end - start == s.width
+                and seq - 1 == s.last_received == s.last_fed
+                and (epoch is None or epoch == s.epoch)
+                and self._direct(stream, s, epoch)
+            ):  # :meth:`pose`'s checks all pass: what it does to such a pose
+                s.jump = None
+                s.last_received = seq
+                s.received += 1
+                s.seen = s.posed = now
+                ready[stream] = Ready(seq, stamps[i], now, values[start:end])
+                self._queued += 1
+                taken.append(i)
+                continue
+            part = values[start:end]
             if positions:
                 entry = Queued(stream, seqs[i], stamps[i], part.reshape(-1, 3), None, epoch)
             else:
@@ -612,7 +676,7 @@ class StreamTable:
             except Refused as e:
                 refused.append((stream, e))
                 continue
-            taken.append(entry)
+            taken.append(i)
         return taken, refused
 
     def end(self, message: EndMessage) -> list[Emitted]:
@@ -627,7 +691,7 @@ class StreamTable:
             if message.epoch in s.retired:
                 raise Refused("stale_epoch", f"the end of run {message.epoch!r}, replaced already")
             return []
-        if s.queue or s.filling:
+        if s.queue or s.filling or message.stream in self._ready:
             self._ending.add(message.stream)
             return []
         return self._remove(message.stream, "ended")
@@ -644,7 +708,20 @@ class StreamTable:
         segmented: dict[str, np.ndarray] = {}  # what each stream's segmentation takes of its frame
         out: list[Emitted] = []
         segmenting = self.segmentation != "none"
+        ready, self._ready = self._ready, {}
+        for name, (seq, stamp, arrived, values) in ready.items():
+            s = self.streams[name]
+            before[name] = (s.last_fed, s.last_values, s.last_channels)
+            s.last_fed, s.last_values, s.last_channels = seq, values, None
+            if segmenting:
+                segmented[name] = values
+            s.times[seq % len(s.times)] = stamp
+            s.arrivals[seq % len(s.arrivals)] = arrived
+            frames.append((name, seq, values))
+        self._queued -= len(ready)
         for name, s in list(self._waiting.items()):
+            if name in ready:
+                continue  # fed its ready pose this tick, its queued ones after it
             if s.filling:
                 seq, stamp, arrived, values, channels = s.filling.popleft()
                 bridging.add(name)
@@ -797,7 +874,9 @@ class StreamTable:
         only not taken in yet)."""
         out = []
         for name in [
-            n for n, s in self.streams.items() if now - s.seen > idle_s and not s.queue and n not in waiting
+            n
+            for n, s in self.streams.items()
+            if now - s.seen > idle_s and not s.queue and n not in waiting and n not in self._ready
         ]:
             out += self._remove(name, "idle")
         return out
@@ -814,7 +893,7 @@ class StreamTable:
     def _remove(self, name: str, reason: str | None) -> list[Emitted]:
         s = self.streams.pop(name)
         self._ending.discard(name)
-        self._queued -= len(s.queue) + len(s.filling)
+        self._queued -= len(s.queue) + len(s.filling) + (self._ready.pop(name, None) is not None)
         self._waiting.pop(name, None)
         if reason is not None:
             self.counts[reason] += 1
