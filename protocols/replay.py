@@ -111,7 +111,8 @@ async def _send_all(
     """Send every message through ``send(Outgoing)`` (awaited), poses on their due times (a frame
     message's by its step: the k-th is due as frame k); the skeletons again every
     :data:`ANNOUNCE_S` and whenever ``asked()`` says a daemon asks for them; ``retain``: the
-    skeletons retained and reliable (QoS 1 on MQTT), the ends reliable. The poses sent."""
+    skeletons retained and reliable (QoS 1 on MQTT), the ends reliable (after frame messages, on
+    their topic). The poses sent."""
     sent = 0
     start = time.monotonic()
     i = 0
@@ -119,6 +120,7 @@ async def _send_all(
     steps = 0
     skeletons: list[Outgoing] = []
     announced = start
+    framing: str | None = None  # the topic of the frame messages sent
     for m in items:
         if isinstance(m, PoseMessage | FrameMessage):
             if isinstance(m, PoseMessage):
@@ -142,10 +144,12 @@ async def _send_all(
             else:
                 m = dataclasses.replace(m, time=np.full(len(m.streams), now))
                 sent += len(m.streams)
+                framing = topic(m)
             out = Outgoing(topic(m), encode(m))
             i += 1
         elif isinstance(m, EndMessage):
-            out = Outgoing(topic(m), encode(m), reliable=retain)
+            # after frame messages, on their topic: on its stream's own it could overtake them
+            out = Outgoing(framing or topic(m), encode(m), reliable=retain)
         else:
             out = Outgoing(topic(m), encode(m), retain=retain, reliable=retain)
             skeletons = [k for k in skeletons if k.topic != out.topic] + [out]

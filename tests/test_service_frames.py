@@ -138,13 +138,16 @@ def test_single_and_frame_messages_mixed_give_the_detections_of_detect(
                 if i % 8 == 7:
                     time.sleep(0.001)  # 8x a 120 Hz stream
             total = sum(len(p) for _, p, _ in streams.values())
-            # every pose in before the ends: over MQTT an end on a stream's pose topic may overtake
-            # the frame messages on their source's topic (the daemon's fair queue is per topic)
+            # the ends at once: a framed stream's on its source's frame topic, after its frames
+            # (on the stream's own pose topic it could overtake them over MQTT)
+            for k, group in enumerate(FRAMED):
+                for name in group:
+                    publish(f"mocap/rig{k}/frame", encode(streams[name][2]))
+            send(streams["s2"][2])
             deadline = time.monotonic() + 60
-            while daemon.metrics().get("mocapd_frames_in_total", 0) < total and time.monotonic() < deadline:
+            ended = 'mocapd_stream_events_total{event="ended"}'
+            while daemon.metrics().get(ended, 0) < len(SOURCES) and time.monotonic() < deadline:
                 time.sleep(0.05)
-            for _, _, end in streams.values():
-                send(end)
         m = daemon.metrics()
         assert daemon.stop() == 0
         got = daemon.detections_printed()
@@ -154,6 +157,8 @@ def test_single_and_frame_messages_mixed_give_the_detections_of_detect(
         assert sum(len(expected(n)) for n in SOURCES) > 20
         assert bad > 10
         assert m["mocapd_frames_in_total"] == total
+        assert m['mocapd_messages_in_total{type="end"}'] == len(SOURCES)
+        assert m[ended] == len(SOURCES)  # every stream ended, none left to go idle
         for reason, count in (("non_finite", bad), ("schema", bad), ("duplicate", bad), ("shape", 1)):
             assert m.get(f'mocapd_rejects_total{{reason="{reason}"}}') == count, (reason, m)
     finally:

@@ -282,7 +282,11 @@ class Service:
             if not isinstance(message, SkeletonMessage | PoseMessage | EndMessage):
                 raise Refused("type", f"a {type(message).__name__} is not taken in")
             on_pose_topic = isinstance(message, PoseMessage | EndMessage)
-            if message.stream != stream or (parsed[1] == "pose") != on_pose_topic:
+            if isinstance(message, EndMessage) and parsed[1] == FRAME_WORD:
+                # a source of frame messages ends its streams on its own topic, after their frames
+                if self.mine is not None and not self.mine(message.stream):
+                    return []  # every worker gets it: the stream's owner takes it
+            elif message.stream != stream or (parsed[1] == "pose") != on_pose_topic:
                 raise Refused(
                     "schema", f"a {type(message).__name__} for {message.stream!r} on {incoming.topic!r}"
                 )
