@@ -4,10 +4,12 @@ each tick's messages in one write (as ``bench_service``'s load).
 
     python -m bench.bench_mqtt_intake [--streams 200] [--seconds 5]
 
-Two receivers, each a process of its own on the first core (the load on the other): ``transport``,
+Three receivers, each a process of its own on the first core (the load on the other): ``transport``,
 the daemon's :class:`protocols.mqtt.MqttTransport` (paho's external-loop API, into the fair queue,
-taken from it), and ``aiomqtt``, aiomqtt's public API (``Client.messages``, into the same fair queue
-and taken): why the transport is built on paho's API and not on aiomqtt's (``protocols/mqtt.py``).
+taken from it); ``aiomqtt``, aiomqtt's public API (``Client.messages``, into the same fair queue
+and taken): why the transport is built on paho's API and not on aiomqtt's (``protocols/mqtt.py``);
+and ``gmqtt`` (the ``bench`` extra), gmqtt's public API (``on_message``, into the same fair queue
+and taken): an asyncio protocol that parses whole reads, the candidate for a faster intake.
 CPU time, not latency, so that a machine shared with other work still gives a fair comparison.
 """
 
@@ -15,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import importlib.util
 import json
 import os
 import shutil
@@ -29,6 +32,7 @@ from bench.machine import describe
 from bench.processes import free_port, wait_port
 
 PAYLOAD_BYTES = 1500
+KINDS = ("transport", "aiomqtt", "gmqtt")
 
 
 async def receive(kind: str, url: str, total: int) -> dict[str, float]:
@@ -54,6 +58,35 @@ async def receive(kind: str, url: str, total: int) -> dict[str, float]:
                 n += 1
                 if n == total:
                     break
+    elif kind == "gmqtt":
+        import gmqtt
+        from gmqtt.mqtt.constants import MQTTv311
+
+        queue = FairQueue(10 * total)
+        done = asyncio.get_running_loop().create_future()
+
+        def on_message(client: object, topic: str, payload: bytes, qos: int, properties: object) -> None:
+            nonlocal n, started
+            started = started or time.process_time()
+            queue.put(Incoming(topic, payload, time.time()))
+            queue.take()
+            n += 1
+            if n == total and not done.done():
+                done.set_result(None)
+
+        client = gmqtt.Client("bench-intake")
+        client.on_message = on_message
+        host, port = url.removeprefix("mqtt://").split(":")
+        await client.connect(host, int(port), version=MQTTv311)
+        subscribed = asyncio.Event()
+        client.on_subscribe = lambda *_: subscribed.set()
+        client.subscribe("mocap/+/pose", qos=0)
+        await subscribed.wait()
+        print("ready", flush=True)
+        await done
+        cpu = time.process_time() - started
+        await client.disconnect()
+        return {"messages": n, "cpu_s": round(cpu, 3), "us_per_message": round(1e6 * cpu / n, 2)}
     else:
         import aiomqtt
 
@@ -93,7 +126,7 @@ def main() -> None:
     )
     parser.add_argument("--streams", type=int, default=200)
     parser.add_argument("--seconds", type=float, default=5.0)
-    parser.add_argument("--receive", choices=("transport", "aiomqtt"), help=argparse.SUPPRESS)
+    parser.add_argument("--receive", choices=KINDS, help=argparse.SUPPRESS)
     parser.add_argument("--url", help=argparse.SUPPRESS)
     parser.add_argument("--total", type=int, help=argparse.SUPPRESS)
     args = parser.parse_args()
@@ -117,7 +150,10 @@ def main() -> None:
     cores = sorted(os.sched_getaffinity(0))
     try:
         wait_port(port)
-        for kind in ("transport", "aiomqtt"):
+        for kind in KINDS:
+            if kind == "gmqtt" and importlib.util.find_spec("gmqtt") is None:
+                print(f"{kind:>10s}: not installed (pip install -e '.[bench]')")
+                continue
             command = [sys.executable, "-m", "bench.bench_mqtt_intake", "--receive", kind]
             command += ["--url", f"mqtt://127.0.0.1:{port}", "--total", str(total)]
             receiver = subprocess.Popen(
