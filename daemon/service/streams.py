@@ -99,16 +99,6 @@ Pose = PoseMessage | Queued
 """A pose the table queues."""
 
 
-class Ready(NamedTuple):
-    """A pose taken in as the next frame of its stream's run, for the next tick
-    (:meth:`StreamTable._direct`)."""
-
-    seq: int
-    time: float
-    arrived: float
-    values: npt.NDArray[np.float64]
-
-
 SKELETONS_KEPT = 64
 """How many announced ASF texts (and BVH hierarchies) the table keeps parsed."""
 
@@ -232,6 +222,13 @@ class _Stream:
     """The announcement's kind (``positions``, ``channels``, ``bvh``)."""
     plain: bool = False
     """Whether the recogniser takes a pose's channels as they come (radians of an ASF skeleton)."""
+    ready_seq: int = -1
+    ready_time: float = 0.0
+    ready_arrived: float = 0.0
+    ready_values: np.ndarray | None = None
+    """The pose :meth:`StreamTable._direct` took for the next tick (its seq, time, arrival and
+    values: kept here, not in an object of its own, which would cost a collector's pass a few
+    hundred poses)."""
 
 
 @dataclass(frozen=True)
@@ -303,7 +300,7 @@ class StreamTable:
         self._skeletons: dict[str, Skeleton] = {}  # by ASF text, least recently announced first
         self._bvhs: dict[tuple[str, str], BvhPoses] = {}  # by BVH hierarchy text and up axis, likewise
         self._waiting: dict[str, _Stream] = {}  # the streams with queued poses, in arrival order
-        self._ready: dict[str, Ready] = {}
+        self._ready: dict[str, _Stream] = {}
         """The streams whose one waiting pose is the next frame of their run, nothing else of theirs
         waiting (:meth:`_direct`): fed by the next tick without a queue."""
         self.cluster = cluster
@@ -453,7 +450,7 @@ class StreamTable:
     def oldest(self) -> float | None:
         """The source time of the oldest pose waiting in any stream (None: none waits)."""
         queued = [s.queue[0].time for s in self.streams.values() if s.queue]
-        return min([*queued, *(r.time for r in self._ready.values())], default=None)
+        return min([*queued, *(s.ready_time for s in self._ready.values())], default=None)
 
     def waiting(self, name: str) -> bool:
         """Whether a pose of stream ``name`` waits to be fed (queued, or a frame bridging a gap)."""
@@ -601,7 +598,13 @@ class StreamTable:
             and message.channels is not None
             and self._direct(message.stream, s, message.epoch)
         ):
-            self._ready[message.stream] = Ready(seq, message.time, now, message.channels)
+            s.ready_seq, s.ready_time, s.ready_arrived, s.ready_values = (
+                seq,
+                message.time,
+                now,
+                message.channels,
+            )
+            self._ready[message.stream] = s
             self._queued += 1
             return
         if len(s.queue) >= self.queue_frames:
@@ -662,7 +665,9 @@ class StreamTable:
                 s.last_received = seq
                 s.received += 1
                 s.seen = s.posed = now
-                ready[stream] = Ready(seq, stamps[i], now, values[start:end])
+                s.ready_seq, s.ready_time, s.ready_arrived = seq, stamps[i], now
+                s.ready_values = values[start:end]
+                ready[stream] = s
                 self._queued += 1
                 taken.append(i)
                 continue
@@ -709,8 +714,10 @@ class StreamTable:
         out: list[Emitted] = []
         segmenting = self.segmentation != "none"
         ready, self._ready = self._ready, {}
-        for name, (seq, stamp, arrived, values) in ready.items():
-            s = self.streams[name]
+        for name, s in ready.items():
+            seq, stamp, arrived, values = s.ready_seq, s.ready_time, s.ready_arrived, s.ready_values
+            assert values is not None
+            s.ready_values = None
             before[name] = (s.last_fed, s.last_values, s.last_channels)
             s.last_fed, s.last_values, s.last_channels = seq, values, None
             if segmenting:

@@ -46,7 +46,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import gc
 import logging
 import os
 import pickle
@@ -84,6 +83,7 @@ from daemon.service.app import (
     internal_error,
     on_stop_signals,
     reminder,
+    settle_collector,
     transports_of,
 )
 from daemon.service.metrics import open_http, serve_http
@@ -362,8 +362,7 @@ def run_worker(setup: WorkerSetup, index: int) -> int:
                     channel.drain_within(0)
                     stop.set()
 
-        gc.collect()
-        gc.freeze()
+        settle_collector()
         return await service.run(stop, [("http", lambda: serve_http(http)), ("report", report)])
 
     try:
@@ -689,8 +688,7 @@ class Front:
             await self._all_ready(stop)
             # the modules and the library are there for good: keep the collector off them, or its
             # full passes over them, set off by the frames forwarded, stall every stream's route
-            gc.collect()
-            gc.freeze()
+            settle_collector()
             self._entered = True
             self.log.info(
                 "online",
