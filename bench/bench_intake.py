@@ -18,6 +18,7 @@ from __future__ import annotations
 import argparse
 import gc
 import time
+from collections.abc import Sequence
 from pathlib import Path
 
 import msgpack
@@ -26,6 +27,7 @@ import numpy as np
 from bench.bench_service import RATE
 from bench.common import DATA, shipped_library
 from bench.machine import describe
+from daemon.bank import BankResult, Frame
 from daemon.recordings import read_recording
 from daemon.service.streams import StreamTable
 from protocols.messages import VERSION, PoseMessage, SkeletonMessage, decode, encode
@@ -57,7 +59,8 @@ def messages(src: list[tuple[str, np.ndarray]], streams: int, per_message: int, 
     names = [f"s{k}" for k in range(streams)]
     rows = [src[k % len(src)][1][(97 * k + tick) % len(src[k % len(src)][1])] for k in range(streams)]
     if per_message == 1:
-        return [encode(PoseMessage(n, tick + 1, 1.0 + tick / RATE, channels=r)) for n, r in zip(names, rows)]
+        stamp = 1.0 + tick / RATE
+        return [encode(PoseMessage(n, tick + 1, stamp, channels=r)) for n, r in zip(names, rows, strict=True)]
     out = []
     for g in range(0, streams, per_message):
         members = range(g, min(g + per_message, streams))
@@ -86,7 +89,7 @@ class Run:
         self.bank_s = 0.0
         push = self.table.bank.push
 
-        def timed(frames: list[tuple[str, int, np.ndarray]]) -> object:
+        def timed(frames: Sequence[Frame]) -> BankResult:
             started = time.process_time()
             try:
                 return push(frames)
@@ -123,10 +126,12 @@ def main() -> None:
     print(describe())
     src = sources()
     print(
-        f"{args.streams} streams of 12 recordings (channels); {BLOCKS} blocks of {args.ticks} capture frames a table"
+        f"{args.streams} streams of 12 recordings (channels); "
+        f"{BLOCKS} blocks of {args.ticks} capture frames a table"
     )
     print(
-        f"{'K':>3s} {'table':>9s} {'decode':>7s} {'intake':>7s} {'tick':>7s} {'bank':>7s} {'all':>7s}  µs/pose"
+        f"{'K':>3s} {'table':>9s} {'decode':>7s} {'intake':>7s} {'tick':>7s} {'bank':>7s} {'all':>7s}"
+        "  µs/pose"
     )
     for k in [int(x) for x in args.subjects_per_message.split(",")]:
         runs = {"shipped": Run(StreamTable, src, args.streams), "queueing": Run(Queueing, src, args.streams)}
@@ -148,12 +153,14 @@ def main() -> None:
         for name, per in best.items():
             decode_us, intake_us, tick_us, bank_us = per
             print(
-                f"{k:3d} {name:>9s} {decode_us:7.2f} {intake_us:7.2f} {tick_us:7.2f} {bank_us:7.2f} {sum(per):7.2f}"
+                f"{k:3d} {name:>9s} {decode_us:7.2f} {intake_us:7.2f} {tick_us:7.2f} {bank_us:7.2f} "
+                f"{sum(per):7.2f}"
             )
         shipped, queueing = best["shipped"], best["queueing"]
         around = sum(shipped) - shipped[3], sum(queueing) - queueing[3]
         print(
-            f"    the Python around the bank: {around[0]:.2f} against {around[1]:.2f} µs ({around[0] / around[1]:.2f}x)"
+            f"    the Python around the bank: {around[0]:.2f} against {around[1]:.2f} µs "
+            f"({around[0] / around[1]:.2f}x)"
         )
 
 
