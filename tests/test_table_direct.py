@@ -12,7 +12,7 @@ from functools import cache
 from typing import Any
 
 import numpy as np
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from daemon.config import RecognizerConfig, SegmentationConfig
@@ -110,6 +110,10 @@ START = ("frame", list(NAMES), 1, None, 2)
 
 @settings(max_examples=150, deadline=None)
 @given(st.lists(actions, min_size=1, max_size=25), st.booleans())
+# each stream's next pose ready (:data:`START`), then what must treat it as waiting
+@example([("tick", 0), ("evict",)], False)
+@example([("end", "a", None), ("tick", 1)], False)
+@example([("announce", "b", None, 60.0), ("tick", 1)], False)
 def test_direct_intake_says_what_the_queue_says(steps: list[tuple[Any, ...]], segmenting: bool) -> None:
     rows = channels()
     asf = ASF.read_text()

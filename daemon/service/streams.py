@@ -98,7 +98,6 @@ class Queued(NamedTuple):
 Pose = PoseMessage | Queued
 """A pose the table queues."""
 
-
 SKELETONS_KEPT = 64
 """How many announced ASF texts (and BVH hierarchies) the table keeps parsed."""
 
@@ -598,14 +597,7 @@ class StreamTable:
             and message.channels is not None
             and self._direct(message.stream, s, message.epoch)
         ):
-            s.ready_seq, s.ready_time, s.ready_arrived, s.ready_values = (
-                seq,
-                message.time,
-                now,
-                message.channels,
-            )
-            self._ready[message.stream] = s
-            self._queued += 1
+            self._make_ready(message.stream, s, seq, message.time, now, message.channels)
             return
         if len(s.queue) >= self.queue_frames:
             s.queue.popleft()
@@ -629,6 +621,15 @@ class StreamTable:
             and (epoch is None or epoch == s.fed_epoch)
         )
 
+    def _make_ready(
+        self, name: str, s: _Stream, seq: int, stamp: float, now: float, values: np.ndarray
+    ) -> None:
+        """Hold a pose :meth:`_direct` lets skip the queue for the next tick."""
+        s.ready_seq, s.ready_time, s.ready_arrived = seq, stamp, now
+        s.ready_values = values
+        self._ready[name] = s
+        self._queued += 1
+
     def frame(
         self, frame: FrameMessage, now: float, mine: Callable[[str], bool] | None = None
     ) -> tuple[list[int], list[tuple[str, WireError | Refused]]]:
@@ -643,7 +644,7 @@ class StreamTable:
         positions = frame.kind == "positions"
         taken: list[int] = []
         refused: list[tuple[str, WireError | Refused]] = []
-        streams, ready = self.streams, self._ready
+        streams = self.streams
         for i, stream in enumerate(frame.streams):
             if mine is not None and not mine(stream):
                 continue
@@ -665,10 +666,7 @@ class StreamTable:
                 s.last_received = seq
                 s.received += 1
                 s.seen = s.posed = now
-                s.ready_seq, s.ready_time, s.ready_arrived = seq, stamps[i], now
-                s.ready_values = values[start:end]
-                ready[stream] = s
-                self._queued += 1
+                self._make_ready(stream, s, seq, stamps[i], now, values[start:end])
                 taken.append(i)
                 continue
             part = values[start:end]
