@@ -36,7 +36,7 @@ from protocols.urls import parse_bus_url
 from protocols.zeromq import RawSource, open_socket
 
 LOG = logging.getLogger("mocapd.watch")
-POSE_TOPICS = (("mocap/+/pose", 0),)
+POSE_TOPICS = (("mocap/+/pose", 0), ("mocap/+/frame", 0))
 EVENT_TOPICS = (
     ("mocap/+/skeleton", 1),
     ("mocap/+/detections", 1),

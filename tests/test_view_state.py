@@ -27,12 +27,14 @@ from protocols.messages import (
     STATUS_REMINDER_S,
     ClassProgress,
     DetectionMessage,
+    EndMessage,
     Message,
     PoseMessage,
     ProgressMessage,
     SkeletonMessage,
     StatusMessage,
     encode,
+    frame_of,
     topic,
 )
 from protocols.publish import messages
@@ -94,6 +96,34 @@ def test_a_channel_stream_is_drawn_by_forward_kinematics_decimated(angle_unit: s
         np.testing.assert_allclose(got, want[frame], atol=0.0501)
     s = state.streams["13_30"]
     assert (s.received, s.missing, s.drawn) == (2465, 0, len(poses))
+
+
+def test_a_frame_messages_subjects_are_drawn_as_their_own_poses() -> None:
+    """Two streams of a recording sent together in frame messages (as ``replay --with`` does), a
+    bad subject among them: each stream drawn as its pose messages are, the bad one refused alone,
+    the run's end on the frame topic shown as nothing."""
+    items = recording()
+    skeleton, poses, end = items[0], items[1:-1], items[-1]
+    assert isinstance(skeleton, SkeletonMessage) and isinstance(end, EndMessage)
+    alone, framed = ViewState(30.0), ViewState(30.0)
+    other = dataclasses.replace(skeleton, stream="twin")
+    for state in (alone, framed):
+        state.take(wire(skeleton), 0.0)
+        state.take(wire(other), 0.0)
+    want, got = [], []
+    for k, m in enumerate(poses):
+        assert isinstance(m, PoseMessage)
+        subjects = [m, dataclasses.replace(m, stream="twin")]
+        for p in subjects:
+            want += alone.take(wire(p, 1000.0 + k / 120), k / 120)
+        if k == 7:
+            subjects.append(PoseMessage("lost", 1, m.time, channels=np.full(3, np.nan)))
+        got += framed.take(wire(frame_of(subjects, "rig"), 1000.0 + k / 120), k / 120)
+    got += framed.take(Incoming("mocap/rig/frame", encode(end), 1000.0), len(poses) / 120)
+    drawn = [e for e in got if e["type"] == "pose"]
+    assert drawn and drawn == [e for e in want if e["type"] == "pose"]
+    assert framed.refusals == {"non_finite": 1}
+    assert framed.streams["twin"].received == alone.streams["twin"].received == len(poses)
 
 
 def test_a_positions_stream_is_gathered_by_name_in_cm_y_up() -> None:

@@ -40,6 +40,7 @@ from daemon.errors import InputError, printable
 from daemon.recognizer import joint_order, skeleton_model
 from protocols.messages import (
     DEFAULT_MAX_BYTES,
+    FRAME_WORD,
     STATUS_REMINDER_S,
     STREAM_ID,
     DetectionMessage,
@@ -299,6 +300,8 @@ class ViewState:
         if parsed is None:
             raise WireError("schema", "not a topic of mocapd's (mocap/<stream>/<kind>)")
         stream, word = parsed
+        if word == FRAME_WORD:
+            return self._frame(stream, incoming, now)
         if word not in ("skeleton", "pose", "detections", "progress"):
             return []  # boundaries and the like: not shown
         if word == "skeleton" and not incoming.payload:  # MQTT's way to clear a retained skeleton
@@ -325,6 +328,24 @@ class ViewState:
             return self._detection(message, now)
         assert isinstance(message, ProgressMessage)
         return self._progress(message, now)
+
+    def _frame(self, source: str, incoming: Incoming, now: float) -> list[Event]:
+        """A frame message's subjects, each as its own pose message would be shown (a subject that
+        cannot be used refused alone); a run's end on the source's topic: nothing."""
+        message = decode(incoming.payload, self.max_bytes)
+        if isinstance(message, EndMessage):
+            return []
+        if not isinstance(message, FrameMessage):
+            raise WireError("type", f"a {type(message).__name__} on a frame topic")
+        if message.source != source:
+            raise WireError("schema", f"a frame message of {message.source!r} on another source's topic")
+        out: list[Event] = []
+        for pose in message.poses():
+            if isinstance(pose, WireError):
+                out += self._refuse(incoming, pose.reason, pose.detail, now)
+            else:
+                out += self._pose(pose, incoming.received, now)
+        return out
 
     def _status(self, instance: str, incoming: Incoming, now: float) -> list[Event]:
         if not STREAM_ID.fullmatch(instance):
