@@ -49,20 +49,22 @@ def shared_data() -> Path:
     return DATA
 
 
-def _lock_path() -> Path | None:
+def _lock_path(config: pytest.Config) -> Path | None:
     """The file the workers of one xdist run lock (named by the run); none when the tests run in
-    one process."""
-    run = os.environ.get("PYTEST_XDIST_TESTRUNUID")
-    if not os.environ.get("PYTEST_XDIST_WORKER") or not run:
+    one process. Asked of xdist's own input to a worker, not of the environment: a pytest that a
+    test starts (``tests/run --collect-only``) inherits a worker's environment, and took it for a
+    worker of this run, removing the lock file at its end while a worker held it."""
+    given = getattr(config, "workerinput", None)
+    if given is None:
         return None
-    return Path(tempfile.gettempdir()) / f"mocapd-exclusive-{run}.lock"
+    return Path(tempfile.gettempdir()) / f"mocapd-exclusive-{given['testrunuid']}.lock"
 
 
 @pytest.hookimpl(wrapper=True)
 def pytest_runtest_protocol(item: pytest.Item, nextitem: pytest.Item | None) -> Iterator[None]:
     """A test marked ``exclusive`` runs (its fixtures' setup and teardown too) while no other xdist
     worker runs one; any other test runs beside any but an exclusive one."""
-    path = _lock_path()
+    path = _lock_path(item.config)
     if path is None:
         return (yield)
     with path.open("a") as lock:  # closing it unlocks
@@ -73,6 +75,6 @@ def pytest_runtest_protocol(item: pytest.Item, nextitem: pytest.Item | None) -> 
 def pytest_sessionfinish(session: pytest.Session) -> None:
     """A worker done with its tests removes the lock file (the other one, if still running, then
     runs alone)."""
-    path = _lock_path()
+    path = _lock_path(session.config)
     if path is not None:
         path.unlink(missing_ok=True)
