@@ -21,7 +21,6 @@ from __future__ import annotations
 import argparse
 import contextlib
 import dataclasses
-import json
 import os
 import signal
 import socket
@@ -38,7 +37,7 @@ import numpy as np
 
 from bench.cluster_load import RATE, streams
 from bench.machine import describe
-from bench.processes import free_port, scrape, wait_healthy
+from bench.processes import free_port, json_lines, scrape, wait_healthy
 from protocols.messages import PoseMessage, encode
 from tests.etcd_server import Etcd
 from tests.nats_server import NatsServer, partitions
@@ -194,8 +193,7 @@ class Worker:
         wait_healthy(self.port, 30)
 
     def events(self, name: str) -> list[dict[str, Any]]:
-        lines = self.err.read_text(encoding="utf-8", errors="replace").splitlines()
-        return [e for e in (json.loads(x) for x in lines if x.startswith("{")) if e.get("event") == name]
+        return [e for e in json_lines(self.err) if e.get("event") == name]
 
     def owned(self) -> set[int]:
         last = self.events("partitions")

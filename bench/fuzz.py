@@ -110,7 +110,7 @@ from paho.mqtt.enums import CallbackAPIVersion
 
 from bench.common import DATA
 from bench.machine import describe
-from bench.processes import free_port, rss_kib, scrape, wait_port
+from bench.processes import free_port, json_lines, rss_kib, scrape, wait_port
 from daemon.config import ClusterConfig
 from daemon.frames import FrameClock
 from daemon.library import default_library_path, load_library
@@ -1570,8 +1570,7 @@ class Member:
             return False
 
     def events(self, name: str) -> list[dict[str, Any]]:
-        lines = self.err.read_text(encoding="utf-8", errors="replace").splitlines()
-        return [e for e in (json.loads(x) for x in lines if x.startswith("{")) if e.get("event") == name]
+        return [e for e in json_lines(self.err) if e.get("event") == name]
 
 
 class Cluster:

@@ -1,10 +1,11 @@
 """What the benchmarks that run real processes share: free loopback ports, waiting for one to
-listen and for a daemon to be healthy, a daemon's /metrics samples and a process's resident
-memory and CPU time."""
+listen and for a daemon to be healthy, a daemon's /metrics samples and JSON log lines, and a
+process's resident memory and CPU time."""
 
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import random
 import socket
@@ -12,6 +13,7 @@ import time
 import urllib.error
 import urllib.request
 from pathlib import Path
+from typing import Any
 
 _HANDED_OUT: set[int] = set()
 
@@ -37,6 +39,13 @@ def _port_range() -> tuple[int, int]:
         share = (stop - start) // count
         start, stop = start + index * share, start + (index + 1) * share
     return start, stop
+
+
+def json_lines(path: Path) -> list[dict[str, Any]]:
+    """The JSON objects that a running process has written whole to ``path`` so far (a log or a
+    sink's file): a line still being written, with no newline yet, is left for the next read."""
+    lines = path.read_text(encoding="utf-8", errors="replace").splitlines(keepends=True)
+    return [json.loads(x) for x in lines if x.startswith("{") and x.endswith("\n")]
 
 
 def free_port() -> int:

@@ -29,7 +29,7 @@ from typing import Any
 import msgpack
 import numpy as np
 
-from bench.processes import free_port, samples
+from bench.processes import free_port, json_lines, samples
 from daemon.keyframes import parse_keyframe_queries
 from daemon.learn.library import learn_class
 from daemon.library import ClassTemplate, Library
@@ -310,8 +310,7 @@ def burner() -> subprocess.Popen[bytes]:
 
 def log_events(log: Path, name: str) -> list[dict[str, Any]]:
     """The JSON log lines of event ``name`` in a daemon's log file ``log``."""
-    lines = log.read_text(encoding="utf-8", errors="replace").splitlines()
-    return [e for e in (json.loads(x) for x in lines if x.startswith("{")) if e.get("event") == name]
+    return [e for e in json_lines(log) if e.get("event") == name]
 
 
 def stop_all(*parts: Any) -> None:
@@ -599,15 +598,13 @@ class Daemon:
 
     def printed(self) -> list[dict[str, Any]]:
         """The messages the stdout sink printed (decoded JSON lines)."""
-        return [json.loads(line) for line in self.stdout_path.read_text().splitlines() if line.strip()]
+        return json_lines(self.stdout_path)
 
     def detections_printed(self) -> list[dict[str, Any]]:
         return [m for m in self.printed() if m.get("type") == "detection"]
 
     def logs(self) -> list[dict[str, Any]]:
-        return [
-            json.loads(line) for line in self.stderr_path.read_text().splitlines() if line.startswith("{")
-        ]
+        return json_lines(self.stderr_path)
 
 
 def replay(
@@ -777,8 +774,7 @@ class View(ServerProcess):
 
     def logs(self) -> list[dict[str, Any]]:
         """Its log lines written so far (whole lines only)."""
-        lines = self.stderr_path.read_text().splitlines(keepends=True)
-        return [json.loads(line) for line in lines if line.startswith("{") and line.endswith("\n")]
+        return json_lines(self.stderr_path)
 
 
 def resampled_motion(motion: Motion, native: float, rate: float) -> Motion:

@@ -24,7 +24,7 @@ from typing import Any
 
 import pytest
 
-from bench.processes import free_port, scrape
+from bench.processes import free_port, json_lines, scrape
 from tests.etcd_server import EtcdCluster
 from tests.helpers import (
     MOCAPD_SCRIPT,
@@ -90,8 +90,7 @@ class Worker:
             )
 
     def logs(self) -> list[dict[str, Any]]:
-        lines = self.err.read_text(encoding="utf-8", errors="replace").splitlines()
-        return [json.loads(line) for line in lines if line.startswith("{")]
+        return json_lines(self.err)
 
     def events(self, name: str) -> list[dict[str, Any]]:
         return [e for e in self.logs() if e.get("event") == name]

@@ -330,8 +330,11 @@ def nested(depth: int) -> list[Any]:
 
 
 def stderr_lines(daemon: Daemon) -> list[dict[str, Any]]:
-    """Every line on the daemon's stderr (its workers' too), each of which must be a JSON object."""
-    return [json.loads(line) for line in daemon.stderr_path.read_text().splitlines()]
+    """Every line on the daemon's stderr (its workers' too), each of which must be a JSON object:
+    while it runs, a last line not yet written whole is left; once it has ended, none may be."""
+    text = daemon.stderr_path.read_text()
+    assert daemon.alive or not text or text.endswith("\n"), text[-200:]
+    return [json.loads(line) for line in text.splitlines(keepends=True) if line.endswith("\n")]
 
 
 @pytest.mark.slow
