@@ -4,12 +4,12 @@ each tick's messages in one write (as ``bench_service``'s load).
 
     python -m bench.bench_mqtt_intake [--streams 200] [--seconds 5]
 
-Three receivers, each a process of its own on the first core (the load on the other): ``transport``,
-the daemon's :class:`protocols.mqtt.MqttTransport` (paho's external-loop API, into the fair queue,
-taken from it); ``aiomqtt``, aiomqtt's public API (``Client.messages``, into the same fair queue
-and taken): why the transport is built on paho's API and not on aiomqtt's (``protocols/mqtt.py``);
-and ``gmqtt`` (the ``bench`` extra), gmqtt's public API (``on_message``, into the same fair queue
-and taken): an asyncio protocol that parses whole reads, the candidate for a faster intake.
+Four receivers, each a process of its own on the first core (the load on the other), each putting
+every message into the daemon's fair queue and taking it: ``transport``, the daemon's
+:class:`protocols.mqtt.MqttTransport` (its subscriptions on a gmqtt connection, ``_Reader``);
+``paho``, the transport's paho connection reading the same subscription (paho's external-loop API,
+what the transport read with before); ``aiomqtt``, aiomqtt's public API (``Client.messages``);
+``gmqtt``, gmqtt's public API alone (``on_message``), the floor the transport's reader adds to.
 CPU time, not latency, so that a machine shared with other work still gives a fair comparison.
 """
 
@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import importlib.util
 import json
 import os
 import shutil
@@ -32,7 +31,7 @@ from bench.machine import describe
 from bench.processes import free_port, wait_port
 
 PAYLOAD_BYTES = 1500
-KINDS = ("transport", "aiomqtt", "gmqtt")
+KINDS = ("transport", "paho", "aiomqtt", "gmqtt")
 
 
 async def receive(kind: str, url: str, total: int) -> dict[str, float]:
@@ -58,6 +57,31 @@ async def receive(kind: str, url: str, total: int) -> dict[str, float]:
                 n += 1
                 if n == total:
                     break
+    elif kind == "paho":
+        queue = FairQueue(10 * total)
+        done = asyncio.get_running_loop().create_future()
+
+        def deliver(topic: str, payload: bytes) -> None:
+            nonlocal n, started
+            started = started or time.process_time()
+            queue.put(Incoming(topic, payload, time.time()))
+            queue.take()
+            n += 1
+            if n == total and not done.done():
+                done.set_result(None)
+
+        transport = MqttTransport(MqttConfig(url=url), client_id="bench-intake", subscribe=[], presence=None)
+        connection = transport.connection_to(
+            None, client_id="bench-intake", clean_session=True, will=None, deliver=deliver, timeout_s=10
+        )
+        async with connection:
+            await connection.subscribe("mocap/+/pose", 0)
+            serving = asyncio.create_task(connection.serve())
+            print("ready", flush=True)
+            await done
+            cpu = time.process_time() - started
+            serving.cancel()
+        return {"messages": n, "cpu_s": round(cpu, 3), "us_per_message": round(1e6 * cpu / n, 2)}
     elif kind == "gmqtt":
         import gmqtt
         from gmqtt.mqtt.constants import MQTTv311
@@ -151,9 +175,6 @@ def main() -> None:
     try:
         wait_port(port)
         for kind in KINDS:
-            if kind == "gmqtt" and importlib.util.find_spec("gmqtt") is None:
-                print(f"{kind:>10s}: not installed (pip install -e '.[bench]')")
-                continue
             command = [sys.executable, "-m", "bench.bench_mqtt_intake", "--receive", kind]
             command += ["--url", f"mqtt://127.0.0.1:{port}", "--total", str(total)]
             receiver = subprocess.Popen(

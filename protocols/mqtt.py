@@ -1,5 +1,6 @@
-"""MQTT: subscriptions in, publications out, over one connection that mends itself; built on
-paho-mqtt's documented external-loop API.
+"""MQTT: subscriptions in over one connection, publications out over another, the pair mended
+together; publishing is built on paho-mqtt's documented external-loop API, reading on gmqtt's
+public API (:class:`_Reader`: it takes a message for half paho's CPU, ``bench/bench_mqtt_intake.py``).
 
 Why paho's own API and not aiomqtt's: aiomqtt (2.x; it is built on paho) reads one packet per
 readable event and hands every message on through an asyncio.Queue, awaited per message; its public
@@ -15,12 +16,16 @@ event loop watches the client's socket (``on_socket_open``, ``on_socket_close``,
 ``on_unsubscribe``. A readable event reads packets for as long as they keep coming (the socket is
 level-triggered: what is left wakes the loop again), so a burst costs one event, and each message
 goes straight into the fair queue. (paho still reads a packet with a few small ``recv`` calls, its
-type byte, its length and the rest; no public API changes that.)
+type byte, its length and the rest; no public API changes that: hence the reader.) Why not gmqtt
+for both: it has no public acknowledgement of a QoS 1 publication, which the outbox needs.
 
-The connection: one paho client per connection (:class:`_Connection`), made again after every loss
-with a capped exponential back-off, subscribing again on every connect. The session is persistent
-(``clean_session=False`` with a fixed client id), so the broker keeps the subscriptions and queued
-QoS 1 messages across the daemon's reconnects and, with persistence on, its own restarts. Reliable
+The connections: one paho client (:class:`_Connection`) and, when there are subscriptions, one
+gmqtt client (:class:`_Reader`, as the client id with ``-in`` appended) per connection, both made
+again after either is lost, with a capped exponential back-off, subscribing again on every connect.
+The reader's session is persistent (``clean_session=False`` with a fixed client id), so the broker
+keeps the subscriptions and queued QoS 1 messages across the daemon's reconnects and, with
+persistence on, its own restarts; the publishing connection's session is then a clean one (a
+session kept from a daemon that subscribed on it would deliver everything a second time). Reliable
 messages (detections: QoS 1) go through an outbox and leave it only when the broker acknowledged
 them; what was not acknowledged when the connection dropped is sent again after the reconnect
 (a consumer may see a repeat: detections carry an event id). With :meth:`MqttTransport.announce`,
@@ -55,8 +60,10 @@ from dataclasses import dataclass, replace
 from types import TracebackType
 from typing import TYPE_CHECKING, Any
 
+import gmqtt
 import msgpack
 import paho.mqtt.client as paho
+from gmqtt.mqtt.constants import MQTTv311
 from paho.mqtt.enums import CallbackAPIVersion, MQTTErrorCode
 from paho.mqtt.properties import Properties
 from paho.mqtt.reasoncodes import ReasonCode
@@ -73,6 +80,11 @@ CLIENT_LOG = logging.getLogger("mocapd.mqtt.client")
 """paho's own logger: only errors (its debug and warning lines say nothing the outbox and /metrics
 do not)."""
 CLIENT_LOG.setLevel(logging.ERROR)
+GMQTT_LOG = logging.getLogger("mocapd.mqtt.reader")
+"""gmqtt's logger for the reading connection: only errors (its warnings and info lines say a
+connection was lost or made, which the transport logs itself)."""
+GMQTT_LOG.setLevel(logging.ERROR)
+logging.getLogger("gmqtt").setLevel(logging.ERROR)  # the loggers of its modules
 
 
 SUBSCRIPTIONS = (("mocap/+/skeleton", 1), ("mocap/+/pose", 0), ("mocap/+/frame", 0))
@@ -110,6 +122,8 @@ CLOSE_S = 1.0
 """How long a clean disconnect waits for the DISCONNECT packet to leave."""
 READ_PACKETS = 512
 """The most packets one readable event takes, so that reading yields to the other tasks."""
+NEVER_S = 1e9
+"""The delay put on gmqtt's own reconnecting (:class:`_Reader`): longer than any daemon runs."""
 MISC_EVERY_S = 1.0
 """How often paho's ``loop_misc`` runs (keepalive pings, and noticing a broker that stopped
 answering them)."""
@@ -445,6 +459,126 @@ class _Connection:
             done.set_result(None)
 
 
+class _Reader:
+    """One connection that only takes messages in, from connect to its end, over gmqtt's public
+    API (``Client``, ``on_message``, ``on_subscribe``, ``on_unsubscribe``, ``on_disconnect``): an
+    asyncio protocol that parses every packet a read brought, where paho reads each packet with
+    several ``recv`` calls (the intake's largest cost: ``bench/bench_mqtt_intake.py``). It has the
+    interface of :class:`_Connection` less publishing (the transport publishes on paho's).
+
+    gmqtt mends a lost connection by itself, once at least even with ``reconnect_retries`` 0, and
+    always as a persistent session under the same client id; the transport makes a new connection
+    of its own instead, so gmqtt's attempt is put off for :data:`NEVER_S` (``reconnect_delay``) and
+    never made: a client stays asleep in it until the event loop ends, one per lost connection."""
+
+    def __init__(
+        self,
+        host: str,
+        port: int,
+        *,
+        client_id: str,
+        clean_session: bool,
+        keepalive_s: int,
+        username: str | None,
+        password: str | None,
+        tls: ssl.SSLContext | None,
+        deliver: Callable[[str, bytes], None],
+        timeout_s: float,
+    ) -> None:
+        self._loop = asyncio.get_running_loop()
+        self._address = (host, port, keepalive_s, tls)
+        self._deliver = deliver
+        self.timeout_s = timeout_s
+        self.lost: asyncio.Future[None] = self._loop.create_future()
+        self.lost.add_done_callback(_retrieved)
+        self._waiting: dict[int, asyncio.Future[None]] = {}  # request id -> its answer
+        client = gmqtt.Client(client_id, clean_session=clean_session, logger=GMQTT_LOG)
+        client.set_config({"reconnect_retries": 0, "reconnect_delay": NEVER_S})
+        if username is not None:
+            client.set_auth_credentials(username, password)
+        client.on_message = self._message_arrived
+        client.on_subscribe = self._answered
+        client.on_unsubscribe = self._answered
+        client.on_disconnect = self._ended
+        self.client = client
+
+    async def __aenter__(self) -> _Reader:
+        host, port, keepalive, tls = self._address
+        try:
+            async with asyncio.timeout(self.timeout_s):
+                await self.client.connect(host, port, ssl=tls or False, keepalive=keepalive, version=MQTTv311)
+        except gmqtt.MQTTConnectError as e:
+            await self._close()
+            refused = "unavailable" not in e.message  # as TRANSIENT_REFUSALS for paho
+            raise MqttLost(f"the broker refused the connection: {e.message}", refused=refused) from None
+        except TimeoutError:
+            await self._close()
+            raise MqttLost("the broker did not answer the connect") from None
+        except (OSError, ValueError) as e:
+            await self._close()
+            raise MqttLost(str(e) or type(e).__name__) from None
+        except asyncio.CancelledError:
+            await self._close()
+            raise
+        return self
+
+    async def __aexit__(
+        self, kind: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        await self._close()
+
+    async def _close(self) -> None:
+        """A clean disconnect, or the socket closed if the connection is already gone."""
+        with contextlib.suppress(Exception):
+            await asyncio.wait_for(self.client.disconnect(), CLOSE_S)
+        self._end(MqttLost("closed"))
+
+    async def serve(self) -> None:
+        """Wait until the connection ends (gmqtt pings the broker, and closes a connection that
+        heard nothing for twice the keepalive); raises MqttLost saying why."""
+        await self.lost
+        raise MqttLost("disconnected")
+
+    async def subscribe(self, topic: str, qos: int) -> None:
+        await self._request(self.client.subscribe(topic, qos=qos), f"subscribing to {topic}")
+
+    async def unsubscribe(self, topic: str) -> None:
+        await self._request(self.client.unsubscribe(topic), f"unsubscribing from {topic}")
+
+    async def _request(self, mid: int, what: str) -> None:
+        if self.lost.done():
+            raise MqttLost(f"{what}: the connection ended")
+        done = self._waiting[mid] = self._loop.create_future()
+        try:
+            async with asyncio.timeout(self.timeout_s):
+                await done
+        except TimeoutError:
+            raise MqttLost(f"{what}: the broker did not answer") from None
+
+    def _answered(self, client: gmqtt.Client, mid: int, *rest: Any) -> None:
+        done = self._waiting.pop(mid, None)
+        if done is not None and not done.done():
+            done.set_result(None)
+
+    def _message_arrived(
+        self, client: gmqtt.Client, topic: str | bytes, payload: bytes, qos: int, properties: Any
+    ) -> int:
+        if isinstance(topic, str):  # bytes: not UTF-8, not a topic mocapd could have subscribed to
+            self._deliver(topic, payload)
+        return 0
+
+    def _ended(self, client: gmqtt.Client, packet: Any, exc: BaseException | None = None) -> None:
+        self._end(MqttLost(f"connection lost ({exc or 'the broker closed it'})"))
+
+    def _end(self, why: MqttLost) -> None:
+        if not self.lost.done():
+            self.lost.set_exception(why)
+        waiting, self._waiting = self._waiting, {}
+        for done in waiting.values():
+            if not done.done():
+                done.set_exception(why)
+
+
 class MqttTransport:
     """An MQTT connection to the broker of ``settings`` (``url``, credentials, TLS files, queue
     bounds, keepalive, reconnect back-off; ``daemon.config.MqttConfig``): ``subscribe`` (topic, QoS)
@@ -542,6 +676,23 @@ class MqttTransport:
             tls=context,
             will=will,
             deliver=deliver,
+            timeout_s=timeout_s,
+        )
+
+    def reader_to(self, context: ssl.SSLContext | None, *, timeout_s: float) -> _Reader:
+        """The connection the subscriptions are taken on: as ``client_id`` with ``-in`` appended,
+        with the transport's kind of session."""
+        s = self.settings
+        return _Reader(
+            self.host,
+            self.port,
+            client_id=f"{self.client_id}-in",
+            clean_session=self.clean_session,
+            keepalive_s=s.keepalive_s,
+            username=s.username,
+            password=s.password,
+            tls=context,
+            deliver=self._deliver,
             timeout_s=timeout_s,
         )
 
@@ -647,10 +798,13 @@ class MqttTransport:
     async def _run(self, context: ssl.SSLContext | None) -> None:
         delay = self.settings.reconnect_min_s
         while not self.failed:
+            # publishing, the will and "online" on paho's connection; the subscriptions, if any,
+            # on a reader's (:class:`_Reader`), whose session is the one the broker keeps
+            reader = self.reader_to(context, timeout_s=TIMEOUT_S) if self.subscriptions else None
             connection = self.connection_to(
                 context,
                 client_id=self.client_id,
-                clean_session=self.clean_session,
+                clean_session=self.clean_session or reader is not None,
                 will=self._offline,
                 deliver=self._deliver,
                 timeout_s=TIMEOUT_S,
@@ -658,14 +812,16 @@ class MqttTransport:
             began: float | None = None
             refused = False
             try:
-                async with connection:
+                async with contextlib.AsyncExitStack() as stack:
+                    await stack.enter_async_context(connection)
+                    subscriber = connection if reader is None else await stack.enter_async_context(reader)
                     began = time.monotonic()
                     self._connection = connection
                     self.connects += 1
                     if self._online is not None:
                         await self._settled(connection, connection.publish(self._online))
                     for topic, qos in self.subscriptions:
-                        await connection.subscribe(topic, qos)
+                        await subscriber.subscribe(topic, qos)
                     self._problem = None
                     self._connected.set()
                     LOG.info(
@@ -673,8 +829,10 @@ class MqttTransport:
                     )
                     async with asyncio.TaskGroup() as tasks:
                         tasks.create_task(connection.serve(), name="mqtt connection")
+                        if reader is not None:
+                            tasks.create_task(reader.serve(), name="mqtt reader")
                         tasks.create_task(self._sender(connection), name="mqtt sender")
-                        tasks.create_task(self._asker(connection), name="mqtt skeleton requests")
+                        tasks.create_task(self._asker(subscriber), name="mqtt skeleton requests")
             except* MqttLost as group:
                 lost = group.exceptions[0]
                 assert isinstance(lost, MqttLost)
@@ -724,7 +882,7 @@ class MqttTransport:
             self._to_ask.append(stream)
             self._ask.set()
 
-    async def _asker(self, connection: _Connection) -> None:
+    async def _asker(self, connection: _Connection | _Reader) -> None:
         """Ask for the skeletons :meth:`ask_skeleton` queued: subscribe to each stream's skeleton
         topic, and a moment later unsubscribe (the wildcard subscription keeps taking it)."""
         while True:

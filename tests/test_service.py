@@ -326,6 +326,11 @@ def test_broker_restart_mid_stream_loses_no_detection(tmp_path: Path) -> None:
         wait_for(lambda: emitted <= {d["id"] for d in collector.detections()}, 20, "every emitted detection")
         connects = [e for e in daemon.logs() if e["event"] == "mqtt connected"]
         assert len(connects) >= 2
+        # the reading connection (gmqtt's) came back once, made by the transport: gmqtt's own
+        # reconnect, seconds later, would take its client id from the one the transport made
+        log = (tmp_path / "mosquitto.log").read_text(encoding="utf-8", errors="replace")
+        assert log.count(f"as mocapd-test-{daemon.metrics_port}-in ") == len(connects)
+        assert "already connected" not in log
     finally:
         sender.kill()
         sender.communicate()
