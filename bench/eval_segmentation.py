@@ -21,11 +21,22 @@ same as published: a segment as short as T), ``gmm`` (§3.3, k = 4, seed 0).
 ``--png DIR`` draws one picture per file: PCA's error derivative and its threshold, PPCA's ``H``
 (first forward pass), GMM's labels, each with its cuts (red) and the true boundaries' tolerance bands
 (green), against time.
+
+``--why`` lists, per method at its defaults, every false cut and every missed boundary: the AMC
+frame and second, the behaviours on both sides (the labels of the truth files), the score that
+decided the cut (Boundary.score) and the signed distance to the nearest true boundary or cut.
+
+``--folds`` chooses each method's parameters by leaving one take out: for every take, the setting
+of :data:`GRIDS` with the best pooled F1 on the other takes (ties: the earlier, the paper's first),
+reported on the take left out; the held-out figures pooled over the takes, beside the defaults.
+With ``--png DIR`` it also draws each method's pooled precision-recall curve over its threshold
+(PPCA's rise R, PCA's kσ, GMM's k), the other parameters at their defaults.
 """
 
 from __future__ import annotations
 
 import argparse
+import csv
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -35,7 +46,7 @@ from typing import Any
 from bench.common import DATA
 from bench.machine import describe
 from daemon import behaviours as bh
-from daemon.plots import segmentation_png
+from daemon.plots import precision_recall_png, segmentation_png
 from daemon.recordings import native_rate, read_boundaries, read_recording
 from daemon.tools.mocap6 import SEGMENTS, trial_recording
 from daemon.types import Band, FloatArray
@@ -86,7 +97,7 @@ def _cuts(result: Any) -> list[bh.Boundary]:
     return list(result) if isinstance(result, list) else list(result.boundaries)
 
 
-def evaluate(data: Path, trial: str, png: Path | None) -> list[Outcome]:
+def evaluate(data: Path, trial: str, png: Path | None, show_why: bool = False) -> list[Outcome]:
     """Every method on one file: an outcome per method; prints the cuts, draws the PNG."""
     asf, amc = trial_recording(data, trial)
     motion = read_recording(asf, amc)
@@ -106,6 +117,9 @@ def evaluate(data: Path, trial: str, png: Path | None) -> list[Outcome]:
         frames = [int(motion.frames[b.frame]) for b in _cuts(results[name])]
         outcomes.append(Outcome(name, trial, frames, len(bands), bh.match_boundaries(frames, bands), spent))
         print(f"  {name:9s} {spent:6.2f} s  cuts {frames}")
+        if show_why and name in GRIDS:
+            take = Take(trial, x, rate, [int(f) for f in motion.frames], bands, load_behaviours(data, trial))
+            why(take, name, [(int(motion.frames[b.frame]), b.score) for b in _cuts(results[name])])
     if png is not None:
         segmentation_png(
             png / f"segmentation_{trial}.png",
@@ -118,17 +132,207 @@ def evaluate(data: Path, trial: str, png: Path | None) -> list[Outcome]:
     return outcomes
 
 
+@dataclass(frozen=True)
+class Take:
+    """A labelled take: its frame vectors ``x`` ``(N, D)`` at ``rate`` Hz, the AMC frame number of
+    each (``frames``), the true boundaries and the labelled behaviours (name, first, last AMC frame)."""
+
+    trial: str
+    x: FloatArray
+    rate: float
+    frames: list[int]
+    bands: list[Band]
+    behaviours: list[tuple[str, int, int]]
+
+    def behaviour(self, frame: int) -> str:
+        return next((name for name, a, b in self.behaviours if a <= frame <= b), "-")
+
+
+def load_behaviours(data: Path, trial: str) -> list[tuple[str, int, int]]:
+    """The labelled behaviours of ``trial`` in its truth file: (name, first, last AMC frame)."""
+    path = data / (CMU86 if trial.startswith("86_") else SEGMENTS)
+    with path.open(newline="", encoding="utf-8") as f:
+        rows = [r for r in csv.DictReader(f) if r["trial"] == trial]
+    return [
+        (r.get("label") or r.get("label_name") or "?", int(r["start_frame"]), int(r["end_frame"]))
+        for r in rows
+    ]
+
+
+def load(data: Path, trial: str) -> Take:
+    asf, amc = trial_recording(data, trial)
+    motion = read_recording(asf, amc)
+    x = bh.JointRotations(motion.skeleton)(motion.channels)
+    frames = [int(f) for f in motion.frames]
+    return Take(trial, x, native_rate(motion), frames, truth(data, trial), load_behaviours(data, trial))
+
+
+PPCA_GRID: list[bh.Params] = [
+    bh.PpcaParams(rise=r, shortest=s)
+    for s in (2.5, 0.0, 1.875, 3.75)
+    for r in (15.0, 5.0, 7.5, 10.0, 20.0, 30.0, 45.0)
+]
+GRIDS: dict[str, list[bh.Params]] = {
+    "ppca": PPCA_GRID,
+    "ppca-fwd": PPCA_GRID,
+    "pca": [bh.PcaParams(k_sigma=k) for k in (3.0, 1.5, 2.0, 2.5, 4.0, 5.0, 7.0)],
+    "gmm": [bh.GmmParams(clusters=c, min_length=m) for m in (1.0, 0.5, 2.0) for c in (4, 3, 5, 6, 8)],
+}
+"""Each method's settings tried by ``--folds``, the paper's first: PPCA's rise R with the shortest
+behaviour 2 T, none, 1.5 T and 3 T (T = 1.25 s), for all passes and for the forward pass alone (what
+runs online); PCA's kσ; GMM's k and shortest segment in seconds."""
+
+BATCH: dict[str, bh.Method] = {"ppca": "ppca", "pca": "pca", "gmm": "gmm"}
+"""The methods of ``--folds`` that run through :func:`daemon.behaviours.segment`."""
+
+THRESHOLD = {"ppca": "rise", "ppca-fwd": "rise", "pca": "k_sigma", "gmm": "clusters"}
+"""The parameter each method's precision-recall curve runs over."""
+
+
+def describe_params(p: bh.Params) -> str:
+    if isinstance(p, bh.PpcaParams):
+        shortest = "3 T" if p.shortest is None else f"{p.shortest / p.window:g} T"
+        return f"R = {p.rise:g}, shortest {shortest}"
+    if isinstance(p, bh.PcaParams):
+        return f"kσ = {p.k_sigma:g}"
+    return f"k = {p.clusters}, shortest {p.min_length:g} s"
+
+
+def cut_frames(take: Take, method: str, params: bh.Params) -> list[tuple[int, float]]:
+    """The AMC frame and score of each cut of ``method`` (batch, PPCA's all passes; ``ppca-fwd``
+    its forward pass) on ``take``."""
+    if method == "ppca-fwd":
+        assert isinstance(params, bh.PpcaParams)
+        cuts = bh.ppca_forward(take.x, take.rate, params=params)
+    else:
+        cuts = bh.segment(take.x, take.rate, BATCH[method], params=params)
+    return [(take.frames[b.frame], b.score) for b in cuts]
+
+
+def f1(hits: int, cuts: int, bounds: int) -> float:
+    return 2 * hits / (cuts + bounds) if cuts + bounds else 0.0
+
+
+Runs = dict[tuple[int, str], tuple[int, int]]
+"""(a setting's index in its grid, trial) -> (cuts, boundaries found)."""
+
+
+def pooled(runs: Runs, k: int, takes: list[Take]) -> tuple[int, int, int]:
+    """Setting ``k``'s boundaries found, cuts and true boundaries over ``takes``."""
+    hits = sum(runs[k, t.trial][1] for t in takes)
+    return hits, sum(runs[k, t.trial][0] for t in takes), sum(len(t.bands) for t in takes)
+
+
+def why(take: Take, method: str, cuts: list[tuple[int, float]]) -> None:
+    """Every false cut and missed boundary of ``cuts`` on ``take``, with what decided it."""
+    frames = [c for c, _ in cuts]
+    pairs = bh.pair_boundaries(frames, take.bands)
+    found = set(pairs.values())
+    first = take.frames[0]
+    for i, (c, score) in enumerate(cuts):
+        if i in pairs:
+            continue
+        near = min(take.bands, key=lambda b: abs(b.frame - c), default=None)
+        off = (
+            ""
+            if near is None
+            else f", {(c - near.frame) / take.rate:+.2f} s from the boundary at {near.frame}"
+        )
+        print(
+            f"    {method:8s} {take.trial} false cut at {c} ({(c - first) / take.rate:.1f} s), inside "
+            f"{take.behaviour(c)}, score {score:.2f}{off}"
+        )
+    for j, band in enumerate(take.bands):
+        if j in found:
+            continue
+        near_cut = min(cuts, key=lambda cs: abs(cs[0] - band.frame), default=None)
+        what = (
+            "no cut"
+            if near_cut is None
+            else f"nearest cut {(near_cut[0] - band.frame) / take.rate:+.2f} s away (score {near_cut[1]:.2f})"
+        )
+        print(
+            f"    {method:8s} {take.trial} missed {take.behaviour(band.frame - 1)} -> "
+            f"{take.behaviour(band.frame)} at {band.frame} ({(band.frame - first) / take.rate:.1f} s, "
+            f"band {band.lo}..{band.hi}): {what}"
+        )
+
+
+def folds(takes: list[Take], png: Path | None, show_why: bool) -> None:
+    """Leave one take out (see the module's docstring): per method, the setting chosen on the other
+    takes and its figures on the one left out, pooled; the defaults beside them."""
+    print(f"\nleave one take out: {len(takes)} folds; a setting's score is its pooled F1 on the other takes")
+    for method, grid in GRIDS.items():
+        runs: Runs = {}  # every fold reuses them
+        for k, params in enumerate(grid):
+            for take in takes:
+                frames = [c for c, _ in cut_frames(take, method, params)]
+                runs[k, take.trial] = (len(frames), bh.match_boundaries(frames, take.bands))
+        print(f"  {method}: {len(grid)} settings")
+        held = [0, 0, 0]  # cuts, hits, boundaries
+        default = [0, 0, 0]
+        for out in takes:
+            rest = [t for t in takes if t is not out]
+            best = max(range(len(grid)), key=lambda k: (f1(*pooled(runs, k, rest)), -k))
+            cuts, hits = runs[best, out.trial]
+            for total, (c, h) in ((held, (cuts, hits)), (default, runs[0, out.trial])):
+                total[0] += c
+                total[1] += h
+                total[2] += len(out.bands)
+            print(
+                f"    {out.trial}: chosen {describe_params(grid[best])} "
+                f"(F1 {f1(*pooled(runs, best, rest)):.2f} on the others): {cuts} cuts, "
+                f"{hits}/{len(out.bands)} boundaries, precision {_fraction(hits, cuts)}"
+            )
+            if show_why:
+                why(out, method, cut_frames(out, method, grid[best]))
+        print(
+            f"  {method} held out, pooled: precision {_fraction(held[1], held[0])}, recall "
+            f"{_fraction(held[1], held[2])} ({held[0]} cuts); the paper's parameters: precision "
+            f"{_fraction(default[1], default[0])}, recall {_fraction(default[1], default[2])} "
+            f"({default[0]} cuts)"
+        )
+        if png is not None:
+            curve(takes, method, grid, runs, png)
+
+
+def curve(takes: list[Take], method: str, grid: list[bh.Params], runs: Runs, png: Path) -> None:
+    """The pooled precision-recall points of ``method`` over its threshold, the rest at grid[0]'s."""
+    name = THRESHOLD[method]
+    rest = {k: v for k, v in vars(grid[0]).items() if k != name}
+    ks = sorted(
+        (k for k, p in enumerate(grid) if {a: b for a, b in vars(p).items() if a != name} == rest),
+        key=lambda k: getattr(grid[k], name),
+    )
+    points = []
+    for k in ks:
+        hits, cuts, bounds = pooled(runs, k, takes)
+        points.append((hits / cuts if cuts else 0.0, hits / bounds))
+    precision_recall_png(
+        {f"{method}, pooled over {len(takes)} takes": points},
+        [float(getattr(grid[k], name)) for k in ks],
+        png / f"segmentation_pr_{method}.png",
+        threshold=name,
+    )
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     parser.add_argument("--data", type=Path, default=DATA)
     parser.add_argument("--png", type=Path, default=None, help="directory for one PNG per file")
+    parser.add_argument("--why", action="store_true", help="every false cut and missed boundary")
+    parser.add_argument("--folds", action="store_true", help="parameters chosen leaving one take out")
     args = parser.parse_args()
     if args.png is not None:
         args.png.mkdir(parents=True, exist_ok=True)
     print(describe())
-    report([o for trial in TRIALS for o in evaluate(args.data, trial, args.png)])
+    if not args.folds:
+        report([o for trial in TRIALS for o in evaluate(args.data, trial, args.png, args.why)])
+        return
+    takes = [load(args.data, trial) for trial in TRIALS]
+    folds(takes, args.png, args.why)
 
 
 def report(outcomes: list[Outcome]) -> None:

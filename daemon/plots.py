@@ -126,17 +126,21 @@ def template_png(
 
 
 def precision_recall_png(
-    curves: Mapping[str, Sequence[tuple[float, float]]], taus: Sequence[float], path: Target
+    curves: Mapping[str, Sequence[tuple[float, float]]],
+    taus: Sequence[float],
+    path: Target,
+    *,
+    threshold: str = "τ",
 ) -> None:
-    """Precision (y) against recall (x) per class, one point per threshold τ of ``taus``
-    (``curves[class]`` = [(precision, recall), ...] in the order of ``taus``)."""
+    """Precision (y) against recall (x) per class, one point per value of the ``threshold`` in
+    ``taus`` (``curves[class]`` = [(precision, recall), ...] in the order of ``taus``)."""
     plt = _pyplot()
     fig, ax = plt.subplots(figsize=(8.0, 6.0))
     for name, points in curves.items():
         precision = [p for p, _ in points]
         recall = [r for _, r in points]
         ax.plot(recall, precision, marker="o", label=name)
-    ax.set_xlabel(f"recall (τ = {', '.join(f'{t:g}' for t in taus)})")
+    ax.set_xlabel(f"recall ({threshold} = {', '.join(f'{t:g}' for t in taus)})")
     ax.set_ylabel("precision")
     ax.set_xlim(0, 1.02)
     ax.set_ylim(0, 1.02)

@@ -23,8 +23,8 @@ REAL = ("86_01", "13_29", "13_30", "14_14", "135_06")
 
 RATE = 10.0
 """Random streams run at 10 Hz so the paper's windows are few frames: PCA k = 20, ℓ = 5, i₀ = 25."""
-PPCA_SMALL = PpcaParams(window=1.5, delta=0.2)
-"""T = 15, Δ = 2 frames at 10 Hz."""
+PPCA_SMALL = PpcaParams(window=1.5, delta=0.2, rise=15.0, shortest=3.0)
+"""T = 15, Δ = 2 frames at 10 Hz, R = 15, the shortest behaviour 2 T = 30 frames."""
 
 Regimes = tuple[int, int, list[int]]
 """The arguments of :func:`regimes`: seed, dimensions, run lengths."""

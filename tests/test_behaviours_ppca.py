@@ -30,8 +30,8 @@ from tests.naive import slow_peak, slow_ppca_forward, slow_ppca_segment
 
 
 def test_windows_are_seconds_scaled_to_the_rate() -> None:
-    assert PPCA_DEFAULT.frames(120.0) == PpcaFrames(150, 10, 300)
-    assert PPCA_DEFAULT.frames(240.0) == PpcaFrames(300, 20, 600)
+    assert PPCA_DEFAULT.frames(120.0) == PpcaFrames(150, 10, 450)
+    assert PPCA_DEFAULT.frames(240.0) == PpcaFrames(300, 20, 900)
     assert PPCA_PUBLISHED.frames(120.0) == PpcaFrames(150, 10, 0)
     for wrong in (
         PpcaParams(delta=2.0),
@@ -55,7 +55,7 @@ def test_ppca_forward_pass_equals_the_paper_read_literally(
     params = PpcaParams(
         window=1.5, delta=0.2, rise=rise, shortest=None if shortest is None else shortest / RATE
     )
-    cuts, trace = slow_ppca_forward(x, 15, 2, rise, 0.95, 30 if shortest is None else shortest)
+    cuts, trace = slow_ppca_forward(x, 15, 2, rise, 0.95, 45 if shortest is None else shortest)
     got = ppca_analysis(x, RATE, params=params)
     forward = ppca_forward(x, RATE, params=params)
     assert [(b.frame, b.emitted) for b in forward] == [(c, e) for c, _, e in cuts]

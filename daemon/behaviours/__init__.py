@@ -58,7 +58,7 @@ from daemon.behaviours.quaternions import (
     RotationStream,
     consistent_signs,
 )
-from daemon.behaviours.scoring import match_boundaries
+from daemon.behaviours.scoring import match_boundaries, pair_boundaries
 
 __all__ = [
     "GMM_PAPER",
@@ -92,6 +92,7 @@ __all__ = [
     "match_boundaries",
     "merge_short_runs",
     "online_segmenter",
+    "pair_boundaries",
     "pca_analysis",
     "pca_segment",
     "ppca_analysis",

@@ -30,18 +30,25 @@ class PpcaFrames:
     shortest: int
 
 
+SHORTEST_WINDOWS = 3
+"""The shortest behaviour by default, in windows T (:class:`PpcaParams`)."""
+
+
 @dataclass(frozen=True)
 class PpcaParams:
     """§3.2's parameters; windows in seconds, the paper's frames at 120 Hz in brackets: ``window``
     T, the look-ahead frames whose mean Mahalanobis distance is ``H`` and the first ``K`` (150);
     ``delta`` Δ, the step of ``K`` (10); ``rise`` R, how far a peak of ``H`` must rise above the
-    valley before it to be a cut (15); ``tau`` τ for the dimension (0.95).
+    valley before it to be a cut (the paper's 15; 20 by default); ``tau`` τ for the dimension (0.95).
 
     ``shortest`` is not the paper's rule but its assumption made one: the shortest behaviour, a
     peak at ``K`` below it is no cut (the segment before would be shorter). None, the default, is
-    ``2 T``: the paper chooses T as "half of the anticipated number of frames in the smallest
-    behavior". ``0`` gives the algorithm as published (:data:`PPCA_PUBLISHED`), where a segment may
-    be as short as T. Chosen on ``bench.dev_segmentation``'s takes, not on the reported files.
+    :data:`SHORTEST_WINDOWS` T (the paper chooses T as "half of the anticipated number of frames in
+    the smallest behavior": 2 T). ``0`` gives the algorithm as published (:data:`PPCA_PUBLISHED`),
+    where a segment may be as short as T.
+
+    The defaults R = 20 and 3 T are what leaving one annotated take out chose on the other three,
+    in each of the four folds (``python -m bench.eval_segmentation --folds``; docs/segmentation.md).
 
     ``min_variance`` is not the paper's: a floor on the variances of the model's covariance ``C``
     (Eq. 9), so that ``C`` stays invertible when the first ``K`` frames do not vary at all (a
@@ -50,7 +57,7 @@ class PpcaParams:
 
     window: float = 1.25
     delta: float = 1 / 12
-    rise: float = 15.0
+    rise: float = 20.0
     tau: float = 0.95
     min_variance: float = 1e-10
     shortest: float | None = None
@@ -67,16 +74,20 @@ class PpcaParams:
         delta = count_frames(self.delta, rate, "delta")
         if delta > window:
             raise InputError(f"delta ({delta} frames) must not exceed window ({window} frames)")
-        shortest = 2 * window if self.shortest is None else count_frames(self.shortest, rate, "shortest", 0)
+        shortest = (
+            SHORTEST_WINDOWS * window
+            if self.shortest is None
+            else count_frames(self.shortest, rate, "shortest", 0)
+        )
         return PpcaFrames(window, delta, shortest)
 
 
 PPCA_DEFAULT = PpcaParams()
-"""§3.2's parameters (T = 150, Δ = 10 frames at 120 Hz, R = 15, τ = 0.95) and behaviours of at
-least 2 T."""
+"""§3.2's windows (T = 150, Δ = 10 frames at 120 Hz, τ = 0.95), R = 20 and behaviours of at least
+3 T, as the folds over the annotated takes chose them."""
 
-PPCA_PUBLISHED = PpcaParams(shortest=0.0)
-"""§3.2 exactly as published: its parameters, and a cut wherever a peak qualifies."""
+PPCA_PUBLISHED = PpcaParams(rise=15.0, shortest=0.0)
+"""§3.2 exactly as published: its parameters (R = 15), and a cut wherever a peak qualifies."""
 
 
 class _PpcaRun:

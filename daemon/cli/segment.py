@@ -80,7 +80,7 @@ def register(sub: Any) -> None:
         "--shortest",
         type=float,
         default=q.shortest,
-        help="s of the shortest behaviour, a peak earlier in its segment no cut (default 2 T; "
+        help="s of the shortest behaviour, a peak earlier in its segment no cut (default 3 T; "
         "0: the algorithm as published)",
     )
     gmm = cmd.add_argument_group("gmm (§3.3)")
