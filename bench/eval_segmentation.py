@@ -273,7 +273,7 @@ def folds(takes: list[Take], png: Path | None, show_why: bool) -> None:
         default = [0, 0, 0]
         for out in takes:
             rest = [t for t in takes if t is not out]
-            best = max(range(len(grid)), key=lambda k: (f1(*pooled(runs, k, rest)), -k))
+            best = choose(runs, len(grid), rest)
             cuts, hits = runs[best, out.trial]
             for total, (c, h) in ((held, (cuts, hits)), (default, runs[0, out.trial])):
                 total[0] += c
@@ -294,6 +294,12 @@ def folds(takes: list[Take], png: Path | None, show_why: bool) -> None:
         )
         if png is not None:
             curve(takes, method, grid, runs, png)
+
+
+def choose(runs: Runs, settings: int, takes: list[Take]) -> int:
+    """The index of the setting with the best pooled F1 over ``takes`` (and only those), the
+    earliest of equals."""
+    return max(range(settings), key=lambda k: (f1(*pooled(runs, k, takes)), -k))
 
 
 def curve(takes: list[Take], method: str, grid: list[bh.Params], runs: Runs, png: Path) -> None:
