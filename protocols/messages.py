@@ -56,6 +56,8 @@ MAX_CLASSES = 256
 """The most classes one progress message reports."""
 MAX_KEYFRAMES = 64
 """The most keyframes a class's progress counts."""
+MAX_SEGMENT_DETECTIONS = 64
+"""The most detections a boundary message lists for the behaviour that ended."""
 MAX_DEPTH = 8
 """The deepest nesting of maps and lists a message may have (a progress message has 4)."""
 MAX_SUBJECTS = 4096
@@ -252,8 +254,20 @@ class DetectionMessage:
 
 
 @dataclass(frozen=True)
+class SegmentDetection:
+    """A detection inside a behaviour that ended (:class:`BoundaryMessage`): its class and frames."""
+
+    class_name: str
+    start_frame: int
+    end_frame: int
+
+
+@dataclass(frozen=True)
 class BoundaryMessage:
-    """A behaviour boundary: ``stream`` cut before ``frame`` by ``method``, with its ``score``."""
+    """A behaviour boundary: ``stream`` cut before ``frame`` by ``method``, with its ``score``; the
+    behaviour that ended there began at ``start`` (None: not said) and held the ``detections``
+    published before the boundary that lie wholly inside it (at most :data:`MAX_SEGMENT_DETECTIONS`,
+    the latest)."""
 
     id: str
     stream: str
@@ -261,6 +275,8 @@ class BoundaryMessage:
     method: str
     score: float
     emit_time: float
+    start: int | None = None
+    detections: tuple[SegmentDetection, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -413,6 +429,12 @@ def encode(message: Message) -> bytes:
             "score": float(message.score),
             "emit_time": float(message.emit_time),
         }
+        if message.start is not None:
+            body["start"] = message.start
+            body["detections"] = [
+                {"class": d.class_name, "start_frame": d.start_frame, "end_frame": d.end_frame}
+                for d in message.detections
+            ]
     elif isinstance(message, ProgressMessage):
         body |= {
             "type": "progress",
@@ -746,14 +768,23 @@ def _detection(f: _Fields) -> DetectionMessage:
 
 
 def _boundary(f: _Fields) -> BoundaryMessage:
-    out = BoundaryMessage(
-        f.text("id"),
-        f.text("stream", STREAM_ID),
-        f.integer("frame"),
-        f.text("method"),
-        f.number("score"),
-        f.number("emit_time"),
-    )
+    head = (f.text("id"), f.text("stream", STREAM_ID), f.integer("frame"), f.text("method"))
+    score, emitted = f.number("score"), f.number("emit_time")
+    start: int | None = None
+    found: list[SegmentDetection] = []
+    if "start" in f.body:
+        start = f.integer("start", high=head[2])
+        entries = f.take("detections")
+        if not isinstance(entries, list) or len(entries) > MAX_SEGMENT_DETECTIONS:
+            raise f.fail("detections", f"must be a list of at most {MAX_SEGMENT_DETECTIONS} maps")
+        for k, entry in enumerate(entries):
+            if not isinstance(entry, dict):
+                raise f.fail(f"detections[{k}]", f"must be a map, got {type(entry).__name__}")
+            d = _Fields(entry, f"boundary.detections[{k}]")
+            d.seen.clear()
+            found.append(SegmentDetection(d.text("class"), d.integer("start_frame"), d.integer("end_frame")))
+            d.done()
+    out = BoundaryMessage(*head, score, emitted, start, tuple(found))
     f.done()
     return out
 

@@ -13,6 +13,7 @@ from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from protocols.messages import (
+    MAX_SEGMENT_DETECTIONS,
     MAX_SEQ,
     REASONS,
     BoundaryMessage,
@@ -23,6 +24,7 @@ from protocols.messages import (
     Message,
     PoseMessage,
     ProgressMessage,
+    SegmentDetection,
     SkeletonMessage,
     StatusMessage,
     WireError,
@@ -122,13 +124,20 @@ def messages(draw: st.DrawFn) -> Message:
             draw(times),
         )
     if kind == "bound":
+        frame = draw(st.integers(0, 2**40))
+        summary = draw(st.booleans())
+        inside = st.builds(
+            SegmentDetection, st.text(min_size=1), st.integers(-(2**40), 2**40), st.integers(0, 2**40)
+        )
         return BoundaryMessage(
             draw(st.uuids()).hex,
             stream,
-            draw(st.integers(0, 2**40)),
+            frame,
             draw(st.sampled_from(["pca", "ppca"])),
             draw(finite),
             draw(times),
+            draw(st.integers(0, frame)) if summary else None,
+            tuple(draw(st.lists(inside, max_size=MAX_SEGMENT_DETECTIONS))) if summary else (),
         )
     if kind == "prog":
         classes = []
@@ -243,6 +252,17 @@ POSE = {
     "time": 1.5,
     "positions": np.zeros(78, "<f4").tobytes(),
 }
+BOUNDARY = {
+    "v": 1,
+    "type": "boundary",
+    "id": "b",
+    "stream": "s",
+    "frame": 2400,
+    "method": "ppca",
+    "score": 17.2,
+    "emit_time": 1.5,
+}
+SEGMENT_DETECTION = {"class": "squat", "start_frame": 20, "end_frame": 30}
 
 
 @pytest.mark.parametrize(
@@ -303,6 +323,28 @@ POSE = {
             raw({"v": 1, "type": "status", "instance": "i", "version": "1", "streams": 0, "started": 0.0}),
             "schema",
             "state",
+        ),
+        (
+            raw({**BOUNDARY, "start": 2401, "detections": []}),
+            "schema",
+            "boundary.start: must be at most 2400",
+        ),
+        (raw({**BOUNDARY, "start": 10}), "schema", "boundary.detections: missing"),
+        (raw({**BOUNDARY, "start": 10, "detections": {}}), "schema", "boundary.detections: must be a list"),
+        (
+            raw({**BOUNDARY, "start": 10, "detections": [[]]}),
+            "schema",
+            "boundary.detections[0]: must be a map",
+        ),
+        (
+            raw({**BOUNDARY, "start": 10, "detections": [{**SEGMENT_DETECTION, "cost": 1.0}]}),
+            "schema",
+            "boundary.detections[0]: unknown field(s) cost",
+        ),
+        (
+            raw({**BOUNDARY, "start": 10, "detections": [SEGMENT_DETECTION] * 65}),
+            "schema",
+            "at most 64",
         ),
     ],
 )

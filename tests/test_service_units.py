@@ -486,6 +486,25 @@ def test_boundaries_are_the_online_methods_batch_cuts(
     assert got == want != []
     ids = [e.message.id for e in out if isinstance(e.message, BoundaryMessage)]
     assert len(set(ids)) == len(ids)
+    # each boundary names the behaviour that ended: from the run's first frame or the boundary
+    # before, with the detections published before it that lie wholly inside
+    starts = {"seg": seqs[0]}
+    published: list[DetectionMessage] = []  # none with this library: test_segmenting.py has some
+    for e in out:
+        message = e.message
+        if isinstance(message, DetectionMessage) and message.stream == "seg":
+            published.append(message)
+        elif isinstance(message, BoundaryMessage):
+            begun = seqs[cut] if message.frame >= seqs[cut] else seqs[0]
+            start = max(begun, starts.get(message.stream, begun))
+            assert message.start == start
+            inside = [
+                (d.class_name, d.start_frame, d.end_frame)
+                for d in published
+                if start <= d.start_frame and d.end_frame < message.frame
+            ]
+            assert [(d.class_name, d.start_frame, d.end_frame) for d in message.detections] == inside
+            starts[message.stream] = message.frame
 
 
 @pytest.mark.slow

@@ -60,6 +60,7 @@ from daemon.library import Library
 from daemon.progress import ProgressEvent, StreamProgress
 from daemon.recognizer import Detection, Recognizer
 from protocols.messages import (
+    MAX_SEGMENT_DETECTIONS,
     BoundaryMessage,
     ClassProgress,
     DetectionMessage,
@@ -67,6 +68,7 @@ from protocols.messages import (
     FrameMessage,
     PoseMessage,
     ProgressMessage,
+    SegmentDetection,
     SkeletonMessage,
     WireError,
     decode,
@@ -126,10 +128,24 @@ class Refused(MocapdError):
         return printable(self.detail)
 
 
+@dataclass(frozen=True)
+class _Cut:
+    """A cut of a stream's segmenter: the frame the new behaviour begins at, the frame at which the
+    cut was known, the segmenter's boundary, and the behaviour that ended (its first frame, and the
+    detections published inside it)."""
+
+    frame: int
+    known: int
+    boundary: Boundary
+    start: int
+    detections: tuple[SegmentDetection, ...]
+
+
 class _Segmenting:
     """A stream's behaviour segmentation: its joint rotations (an ASF skeleton's bones, or a BVH
-    rig's joints standing for them), the online segmenter, and the frame number of the segmenter's
-    first frame."""
+    rig's joints standing for them), the online segmenter, the frame number of the segmenter's
+    first frame and of the current behaviour's, and the latest detections published since that
+    began (at most :data:`~protocols.messages.MAX_SEGMENT_DETECTIONS`)."""
 
     def __init__(
         self, rotations: JointRotations | RigRotations, method: Literal["pca", "ppca"], rate: float
@@ -137,22 +153,40 @@ class _Segmenting:
         self.rotations = rotations.stream()
         self.segmenter: PcaSegmenter | PpcaSegmenter = make_segmenter(rate, method)
         self.first: int | None = None
+        self.begins: int | None = None
+        self.detections: deque[SegmentDetection] = deque(maxlen=MAX_SEGMENT_DETECTIONS)
 
-    def push(self, frame: int, channels: np.ndarray) -> list[tuple[int, int, Boundary]]:
-        """Frame ``frame``'s channels: the cuts that became known, as (frame of the new behaviour,
-        frame at which it was known, boundary)."""
+    def detected(self, d: DetectionMessage) -> None:
+        """A detection of the stream was published."""
+        self.detections.append(SegmentDetection(d.class_name, d.start_frame, d.end_frame))
+
+    def push(self, frame: int, channels: np.ndarray) -> list[_Cut]:
+        """Frame ``frame``'s channels: the cuts that became known."""
         if self.first is None:
-            self.first = frame
-        found = self.segmenter.push(self.rotations.frame(channels))
-        return [(self.first + b.frame, self.first + b.emitted, b) for b in found]
+            self.first = self.begins = frame
+        return self._cuts(self.first, self.segmenter.push(self.rotations.frame(channels)))
 
-    def restart(self) -> list[tuple[int, int, Boundary]]:
+    def restart(self) -> list[_Cut]:
         """The stream's motion ends: what the segmenter still gives, then a fresh one."""
         first = self.first
-        found = self.segmenter.flush()
+        cuts = [] if first is None else self._cuts(first, self.segmenter.flush())
         self.rotations.flush()
-        self.first = None
-        return [] if first is None else [(first + b.frame, first + b.emitted, b) for b in found]
+        self.first = self.begins = None
+        self.detections.clear()
+        return cuts
+
+    def _cuts(self, first: int, found: list[Boundary]) -> list[_Cut]:
+        out = []
+        for b in found:
+            frame = first + b.frame
+            start = first if self.begins is None else self.begins
+            inside = tuple(d for d in self.detections if start <= d.start_frame and d.end_frame < frame)
+            out.append(_Cut(frame, first + b.emitted, b, start, inside))
+            self.begins = frame
+            kept = [d for d in self.detections if d.end_frame >= frame]
+            self.detections.clear()
+            self.detections.extend(kept)
+        return out
 
 
 @dataclass
@@ -799,7 +833,7 @@ class StreamTable:
                 s = self.streams[name]
                 if s.segmenting is not None and name not in taken:
                     found = s.segmenting.push(frame, segmented[name])
-                    out += [self._boundary(name, s, *cut) for cut in found]
+                    out += [self._boundary(name, s, cut) for cut in found]
         for name in [n for n in self._ending if not self.streams[n].queue and not self.streams[n].filling]:
             out += self._remove(name, "ended")
         return out, refused
@@ -944,7 +978,7 @@ class StreamTable:
 
     def _segments_end(self, name: str, s: _Stream) -> list[Emitted]:
         """The boundaries the end of a stream's motion gives (its segmenter starts anew)."""
-        return [] if s.segmenting is None else [self._boundary(name, s, *c) for c in s.segmenting.restart()]
+        return [] if s.segmenting is None else [self._boundary(name, s, c) for c in s.segmenting.restart()]
 
     def _restart(self, name: str, s: _Stream, epoch: str | None) -> list[Emitted]:
         """End the stream's motion at a long gap or a new run (``epoch``): its detections so far,
@@ -970,6 +1004,8 @@ class StreamTable:
             if limit is not None and isinstance(m, DetectionMessage) and m.start_frame < limit:
                 self.counts["warmup_suppressed"] += 1
                 continue
+            if t is not None and t.segmenting is not None and isinstance(m, DetectionMessage):
+                t.segmenting.detected(m)
             out.append(e)
         return out
 
@@ -991,9 +1027,17 @@ class StreamTable:
         )
         return Emitted(message, arrived)
 
-    def _boundary(self, name: str, s: _Stream, frame: int, known: int, b: Boundary) -> Emitted:
-        key = f"{self._session(s.generation, s.epoch)}/{name}/boundary/{b.method}/{frame}"
+    def _boundary(self, name: str, s: _Stream, cut: _Cut) -> Emitted:
+        b = cut.boundary
+        key = f"{self._session(s.generation, s.epoch)}/{name}/boundary/{b.method}/{cut.frame}"
         message = BoundaryMessage(
-            str(uuid.uuid5(uuid.NAMESPACE_URL, key)), name, frame, b.method, b.score, 0.0
+            str(uuid.uuid5(uuid.NAMESPACE_URL, key)),
+            name,
+            cut.frame,
+            b.method,
+            b.score,
+            0.0,
+            cut.start,
+            cut.detections,
         )
-        return Emitted(message, float(s.arrivals[known % len(s.arrivals)]))
+        return Emitted(message, float(s.arrivals[cut.known % len(s.arrivals)]))
