@@ -31,6 +31,8 @@ of :data:`GRIDS` with the best pooled F1 on the other takes (ties: the earlier, 
 reported on the take left out; the held-out figures pooled over the takes, beside the defaults.
 With ``--png DIR`` it also draws each method's pooled precision-recall curve over its threshold
 (PPCA's rise R, PCA's kσ, GMM's k), the other parameters at their defaults.
+
+``--features`` runs PPCA the same way on four representations of the frames (:func:`representations`).
 """
 
 from __future__ import annotations
@@ -39,17 +41,22 @@ import argparse
 import csv
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
+
+import numpy as np
 
 from bench.common import DATA
 from bench.machine import describe
 from daemon import behaviours as bh
+from daemon.features.batch import features
 from daemon.plots import precision_recall_png, segmentation_png
 from daemon.recordings import native_rate, read_boundaries, read_recording
 from daemon.tools.mocap6 import SEGMENTS, trial_recording
 from daemon.types import Band, FloatArray
+from replay import JOINT_NAMES
+from replay.kinematics import joint_positions
 
 CMU86 = Path("annotations") / "cmu86_aca_haca" / "cmu86_segments.csv"
 TRIALS = ("86_01", "13_29", "13_30", "14_14")
@@ -263,11 +270,7 @@ def folds(takes: list[Take], png: Path | None, show_why: bool) -> None:
     takes and its figures on the one left out, pooled; the defaults beside them."""
     print(f"\nleave one take out: {len(takes)} folds; a setting's score is its pooled F1 on the other takes")
     for method, grid in GRIDS.items():
-        runs: Runs = {}  # every fold reuses them
-        for k, params in enumerate(grid):
-            for take in takes:
-                frames = [c for c, _ in cut_frames(take, method, params)]
-                runs[k, take.trial] = (len(frames), bh.match_boundaries(frames, take.bands))
+        runs = every_run(takes, method, grid)
         print(f"  {method}: {len(grid)} settings")
         held = [0, 0, 0]  # cuts, hits, boundaries
         default = [0, 0, 0]
@@ -294,6 +297,57 @@ def folds(takes: list[Take], png: Path | None, show_why: bool) -> None:
         )
         if png is not None:
             curve(takes, method, grid, runs, png)
+
+
+def every_run(takes: list[Take], method: str, grid: list[bh.Params]) -> Runs:
+    """Every setting of ``grid`` on every take (every fold reuses them)."""
+    runs: Runs = {}
+    for k, params in enumerate(grid):
+        for take in takes:
+            frames = [c for c, _ in cut_frames(take, method, params)]
+            runs[k, take.trial] = (len(frames), bh.match_boundaries(frames, take.bands))
+    return runs
+
+
+def representations(data: Path, take: Take) -> dict[str, FloatArray]:
+    """``take``'s frames in the representations ``--features`` compares, each ``(N, D)``: the
+    paper's joint rotations (14 quaternions), those with their velocities (frame differences, x10
+    so that both weigh alike), the 26 standard joints' positions relative to the root (metres),
+    and the 39 relational features of the Bonn catalogue (0/1, a trace of noise so that no
+    covariance is singular)."""
+    motion = read_recording(*trial_recording(data, take.trial))
+    positions = joint_positions(motion)
+    velocity = np.vstack([np.zeros((1, take.x.shape[1])), np.diff(take.x, axis=0)]) * 10
+    relational = features(positions, JOINT_NAMES, take.rate).astype(np.float64)
+    noise = 1e-3 * np.random.default_rng(0).standard_normal(relational.shape)
+    return {
+        "joint rotations (the paper's)": take.x,
+        "rotations and their velocities": np.hstack([take.x, velocity]),
+        "joint positions, root-relative": (positions - positions[:, :1]).reshape(len(positions), -1) / 100,
+        "relational features": relational + noise,
+    }
+
+
+def compare_features(data: Path, takes: list[Take]) -> None:
+    """PPCA (all passes) on each representation of :func:`representations`, its parameters chosen
+    by leaving one take out as ``--folds`` does: the held-out figures pooled."""
+    print(f"\nPPCA on each representation, {len(takes)} folds")
+    each = {t.trial: representations(data, t) for t in takes}
+    for name in each[takes[0].trial]:
+        seen = [replace(t, x=each[t.trial][name]) for t in takes]
+        runs = every_run(seen, "ppca", PPCA_GRID)
+        hits = cuts = bounds = 0
+        chosen = []
+        for out in seen:
+            best = choose(runs, len(PPCA_GRID), [t for t in seen if t is not out])
+            cuts += runs[best, out.trial][0]
+            hits += runs[best, out.trial][1]
+            bounds += len(out.bands)
+            chosen.append(describe_params(PPCA_GRID[best]))
+        print(
+            f"  {name:32s} precision {_fraction(hits, cuts)}, recall {_fraction(hits, bounds)} "
+            f"({cuts} cuts); chosen: {'; '.join(chosen)}"
+        )
 
 
 def choose(runs: Runs, settings: int, takes: list[Take]) -> int:
@@ -330,14 +384,20 @@ def main() -> None:
     parser.add_argument("--png", type=Path, default=None, help="directory for one PNG per file")
     parser.add_argument("--why", action="store_true", help="every false cut and missed boundary")
     parser.add_argument("--folds", action="store_true", help="parameters chosen leaving one take out")
+    parser.add_argument(
+        "--features", action="store_true", help="PPCA on four representations, each by the folds"
+    )
     args = parser.parse_args()
     if args.png is not None:
         args.png.mkdir(parents=True, exist_ok=True)
     print(describe())
-    if not args.folds:
+    if not (args.folds or args.features):
         report([o for trial in TRIALS for o in evaluate(args.data, trial, args.png, args.why)])
         return
     takes = [load(args.data, trial) for trial in TRIALS]
+    if args.features:
+        compare_features(args.data, takes)
+        return
     folds(takes, args.png, args.why)
 
 
