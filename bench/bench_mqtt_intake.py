@@ -42,6 +42,19 @@ async def receive(kind: str, url: str, total: int) -> dict[str, float]:
     from protocols.transport import Incoming
 
     n, started = 0, 0.0
+    queue = FairQueue(10 * total)
+    done = asyncio.get_running_loop().create_future()
+
+    def taken(topic: str, payload: bytes) -> None:
+        """A message a callback delivered, into the fair queue and out (paho's and gmqtt's)."""
+        nonlocal n, started
+        started = started or time.process_time()
+        queue.put(Incoming(topic, payload, time.time()))
+        queue.take()
+        n += 1
+        if n == total and not done.done():
+            done.set_result(None)
+
     if kind == "transport":
         transport = MqttTransport(
             MqttConfig(url=url, queue=10 * total),
@@ -58,21 +71,9 @@ async def receive(kind: str, url: str, total: int) -> dict[str, float]:
                 if n == total:
                     break
     elif kind == "paho":
-        queue = FairQueue(10 * total)
-        done = asyncio.get_running_loop().create_future()
-
-        def deliver(topic: str, payload: bytes) -> None:
-            nonlocal n, started
-            started = started or time.process_time()
-            queue.put(Incoming(topic, payload, time.time()))
-            queue.take()
-            n += 1
-            if n == total and not done.done():
-                done.set_result(None)
-
         transport = MqttTransport(MqttConfig(url=url), client_id="bench-intake", subscribe=[], presence=None)
         connection = transport.connection_to(
-            None, client_id="bench-intake", clean_session=True, will=None, deliver=deliver, timeout_s=10
+            None, client_id="bench-intake", clean_session=True, will=None, deliver=taken, timeout_s=10
         )
         async with connection:
             await connection.subscribe("mocap/+/pose", 0)
@@ -86,20 +87,8 @@ async def receive(kind: str, url: str, total: int) -> dict[str, float]:
         import gmqtt
         from gmqtt.mqtt.constants import MQTTv311
 
-        queue = FairQueue(10 * total)
-        done = asyncio.get_running_loop().create_future()
-
-        def on_message(client: object, topic: str, payload: bytes, qos: int, properties: object) -> None:
-            nonlocal n, started
-            started = started or time.process_time()
-            queue.put(Incoming(topic, payload, time.time()))
-            queue.take()
-            n += 1
-            if n == total and not done.done():
-                done.set_result(None)
-
         client = gmqtt.Client("bench-intake")
-        client.on_message = on_message
+        client.on_message = lambda client, topic, payload, qos, properties: taken(topic, payload)
         host, port = url.removeprefix("mqtt://").split(":")
         await client.connect(host, int(port), version=MQTTv311)
         subscribed = asyncio.Event()
@@ -114,19 +103,14 @@ async def receive(kind: str, url: str, total: int) -> dict[str, float]:
     else:
         import aiomqtt
 
-        queue = FairQueue(10 * total)
         host, port = url.removeprefix("mqtt://").split(":")
         async with aiomqtt.Client(host, int(port), identifier="bench-intake") as client:
             await client.subscribe("mocap/+/pose", qos=0)
             print("ready", flush=True)
             async for message in client.messages:
-                started = started or time.process_time()
-                payload = message.payload
-                assert isinstance(payload, bytes)
-                queue.put(Incoming(str(message.topic), payload, time.time()))
-                queue.take()
-                n += 1
-                if n == total:
+                assert isinstance(message.payload, bytes)
+                taken(str(message.topic), message.payload)
+                if done.done():
                     break
     cpu = time.process_time() - started
     return {"messages": n, "cpu_s": round(cpu, 3), "us_per_message": round(1e6 * cpu / n, 2)}

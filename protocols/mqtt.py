@@ -142,6 +142,19 @@ TRANSIENT_REFUSALS = frozenset({"Server unavailable"})
 """The broker refusals (paho's names of MQTT 3.1.1's CONNACK codes) that may mend by themselves."""
 
 
+@dataclass(frozen=True)
+class _Broker:
+    """Where and how a connection reaches the broker: address, keepalive in seconds, credentials
+    and TLS."""
+
+    host: str
+    port: int
+    keepalive_s: int
+    username: str | None
+    password: str | None
+    tls: ssl.SSLContext | None
+
+
 class _Connection:
     """One connection to the broker, from connect to its end: a paho client driven by the running
     event loop through paho's external-loop API. Enter it to connect (MqttLost if that fails),
@@ -151,22 +164,17 @@ class _Connection:
 
     def __init__(
         self,
-        host: str,
-        port: int,
+        broker: _Broker,
         *,
         client_id: str,
         clean_session: bool,
-        keepalive_s: int,
-        username: str | None,
-        password: str | None,
-        tls: ssl.SSLContext | None,
         will: Outgoing | None,
         deliver: Callable[[str, bytes], None],
         timeout_s: float,
     ) -> None:
         self._loop = asyncio.get_running_loop()
         self._thread = threading.get_ident()
-        self._address = (host, port, keepalive_s)
+        self._broker = broker
         self._deliver = deliver
         self.timeout_s = timeout_s
         self._connected: asyncio.Future[None] = self._loop.create_future()
@@ -186,10 +194,10 @@ class _Connection:
         )
         mqtt.enable_logger(CLIENT_LOG)
         mqtt.max_inflight_messages_set(INFLIGHT)
-        if username is not None:
-            mqtt.username_pw_set(username, password)
-        if tls is not None:
-            mqtt.tls_set_context(tls)
+        if broker.username is not None:
+            mqtt.username_pw_set(broker.username, broker.password)
+        if broker.tls is not None:
+            mqtt.tls_set_context(broker.tls)
         if will is not None:
             mqtt.will_set(will.topic, will.payload, qos=1 if will.reliable else 0, retain=will.retain)
         mqtt.on_connect = self._connect_answered
@@ -237,8 +245,8 @@ class _Connection:
             self._close()
 
     def _connect(self) -> None:
-        host, port, keepalive = self._address
-        self.mqtt.connect(host, port, keepalive)
+        b = self._broker
+        self.mqtt.connect(b.host, b.port, b.keepalive_s)
 
     def _closed_after(self, connecting: asyncio.Future[None]) -> None:
         _retrieved(connecting)
@@ -473,20 +481,15 @@ class _Reader:
 
     def __init__(
         self,
-        host: str,
-        port: int,
+        broker: _Broker,
         *,
         client_id: str,
         clean_session: bool,
-        keepalive_s: int,
-        username: str | None,
-        password: str | None,
-        tls: ssl.SSLContext | None,
         deliver: Callable[[str, bytes], None],
         timeout_s: float,
     ) -> None:
         self._loop = asyncio.get_running_loop()
-        self._address = (host, port, keepalive_s, tls)
+        self._broker = broker
         self._deliver = deliver
         self.timeout_s = timeout_s
         self.lost: asyncio.Future[None] = self._loop.create_future()
@@ -494,8 +497,8 @@ class _Reader:
         self._waiting: dict[int, asyncio.Future[None]] = {}  # request id -> its answer
         client = gmqtt.Client(client_id, clean_session=clean_session, logger=GMQTT_LOG)
         client.set_config({"reconnect_retries": 0, "reconnect_delay": NEVER_S})
-        if username is not None:
-            client.set_auth_credentials(username, password)
+        if broker.username is not None:
+            client.set_auth_credentials(broker.username, broker.password)
         client.on_message = self._message_arrived
         client.on_subscribe = self._answered
         client.on_unsubscribe = self._answered
@@ -503,10 +506,12 @@ class _Reader:
         self.client = client
 
     async def __aenter__(self) -> _Reader:
-        host, port, keepalive, tls = self._address
+        b = self._broker
         try:
             async with asyncio.timeout(self.timeout_s):
-                await self.client.connect(host, port, ssl=tls or False, keepalive=keepalive, version=MQTTv311)
+                await self.client.connect(
+                    b.host, b.port, ssl=b.tls or False, keepalive=b.keepalive_s, version=MQTTv311
+                )
         except gmqtt.MQTTConnectError as e:
             await self._close()
             refused = "unavailable" not in e.message  # as TRANSIENT_REFUSALS for paho
@@ -664,16 +669,10 @@ class MqttTransport:
         deliver: Callable[[str, bytes], None],
         timeout_s: float,
     ) -> _Connection:
-        s = self.settings
         return _Connection(
-            self.host,
-            self.port,
+            self._broker(context),
             client_id=client_id,
             clean_session=clean_session,
-            keepalive_s=s.keepalive_s,
-            username=s.username,
-            password=s.password,
-            tls=context,
             will=will,
             deliver=deliver,
             timeout_s=timeout_s,
@@ -682,19 +681,17 @@ class MqttTransport:
     def reader_to(self, context: ssl.SSLContext | None, *, timeout_s: float) -> _Reader:
         """The connection the subscriptions are taken on: as ``client_id`` with ``-in`` appended,
         with the transport's kind of session."""
-        s = self.settings
         return _Reader(
-            self.host,
-            self.port,
+            self._broker(context),
             client_id=f"{self.client_id}-in",
             clean_session=self.clean_session,
-            keepalive_s=s.keepalive_s,
-            username=s.username,
-            password=s.password,
-            tls=context,
             deliver=self._deliver,
             timeout_s=timeout_s,
         )
+
+    def _broker(self, context: ssl.SSLContext | None) -> _Broker:
+        s = self.settings
+        return _Broker(self.host, self.port, s.keepalive_s, s.username, s.password, context)
 
     async def __aenter__(self) -> MqttTransport:
         context = self._tls_context()

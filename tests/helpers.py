@@ -24,7 +24,7 @@ import urllib.request
 from collections import Counter
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import msgpack
 import numpy as np
@@ -36,6 +36,7 @@ from daemon.library import ClassTemplate, Library
 from daemon.recordings import read_examples, read_recording
 from daemon.search.segments import Segment, Segmenter
 from daemon.types import BoolArray, FloatArray
+from protocols.messages import DetectionMessage, SegmentDetection
 from replay import Motion
 from replay.catalog import CMU_SUBSTITUTES, recordings
 from replay.kinematics import joint_positions
@@ -311,6 +312,39 @@ def burner() -> subprocess.Popen[bytes]:
 def log_events(log: Path, name: str) -> list[dict[str, Any]]:
     """The JSON log lines of event ``name`` in a daemon's log file ``log``."""
     return [e for e in json_lines(log) if e.get("event") == name]
+
+
+class SegmentSummary(Protocol):
+    """What a boundary says of the behaviour that ended (a BoundaryMessage, a segmenter's cut)."""
+
+    @property
+    def frame(self) -> int: ...
+    @property
+    def start(self) -> int | None: ...
+    @property
+    def detections(self) -> Sequence[SegmentDetection]: ...
+
+
+def check_segment_summaries(events: Iterable[DetectionMessage | SegmentSummary | int], first: int) -> int:
+    """Walk what a segmented stream gave, in order: detections published (DetectionMessage),
+    boundaries (anything with ``frame``, ``start`` and ``detections``) and ints (the motion ended;
+    the next begins at that frame), ``first`` the first motion's first frame. Each boundary must say
+    its behaviour began at the motion's first frame or at the boundary before, and list the
+    detections published since the motion began that lie wholly inside it. The boundaries seen."""
+    begun, boundaries = first, 0
+    published: list[tuple[str, int, int]] = []
+    for e in events:
+        if isinstance(e, int):
+            begun, published = e, []
+        elif isinstance(e, DetectionMessage):
+            published.append((e.class_name, e.start_frame, e.end_frame))
+        else:
+            assert e.start == begun, (e.frame, e.start, begun)
+            inside = [d for d in published if begun <= d[1] and d[2] < e.frame]
+            assert [(d.class_name, d.start_frame, d.end_frame) for d in e.detections] == inside
+            begun = e.frame
+            boundaries += 1
+    return boundaries
 
 
 def stop_all(*parts: Any) -> None:

@@ -12,9 +12,9 @@ from hypothesis import strategies as st
 
 from daemon.behaviours import JointRotations
 from daemon.recordings import read_recording
-from daemon.service.streams import _Cut, _Segmenting
+from daemon.service.streams import _Segmenting
 from protocols.messages import DetectionMessage
-from tests.helpers import DATA
+from tests.helpers import DATA, SegmentSummary, check_segment_summaries
 
 TAKE = (DATA / "cmu" / "13" / "13.asf", DATA / "cmu" / "13" / "13_30.amc.gz")
 FRAMES = 1600  # two cuts of PCA's in it
@@ -48,7 +48,7 @@ def test_each_boundary_names_its_behaviours_start_and_the_detections_inside(
         end = first + at
         by_frame.setdefault(end, []).append(detection(k, end - back - length, end - back))
     ends = {first + FRAMES * (r + 1) // (restarts + 1) for r in range(restarts)}
-    events: list[DetectionMessage | _Cut | int] = []  # int: the motion ended, the next begins there
+    events: list[DetectionMessage | SegmentSummary | int] = []  # int: the motion ended, the next begins there
     for i, c in enumerate(channels):
         frame = first + i
         if frame in ends:
@@ -58,22 +58,4 @@ def test_each_boundary_names_its_behaviours_start_and_the_detections_inside(
             events.append(d)
         events += segmenting.push(frame, c)
     events += segmenting.restart()
-    begun = first
-    published: list[DetectionMessage] = []
-    cuts = 0
-    for e in events:
-        if isinstance(e, int):
-            begun, published = e, []
-        elif isinstance(e, DetectionMessage):
-            published.append(e)
-        else:
-            cuts += 1
-            assert e.start == begun
-            inside = [
-                (d.class_name, d.start_frame, d.end_frame)
-                for d in published
-                if begun <= d.start_frame and d.end_frame < e.frame
-            ]
-            assert [(d.class_name, d.start_frame, d.end_frame) for d in e.detections] == inside
-            begun = e.frame
-    assert cuts > 0
+    assert check_segment_summaries(events, first) > 0
