@@ -234,7 +234,7 @@ def test_mqtt_boundaries_of_a_segmented_stream(tmp_path: Path) -> None:
         assert sorted(got.values(), key=lambda g: g[1]) == [
             ("mocap/take7/boundaries", f, "ppca") for f in want
         ]
-        assert len(want) >= 2 and collector.detections()
+        assert len(want) >= 3 and collector.detections()
     finally:
         collector.close()
         daemon.stop()

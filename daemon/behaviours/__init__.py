@@ -42,6 +42,7 @@ from daemon.behaviours.pca import (
 )
 from daemon.behaviours.ppca import (
     PPCA_DEFAULT,
+    PPCA_ONLINE,
     PPCA_PUBLISHED,
     PpcaFrames,
     PpcaParams,
@@ -67,6 +68,7 @@ __all__ = [
     "PCA_GRID",
     "PCA_PAPER",
     "PPCA_DEFAULT",
+    "PPCA_ONLINE",
     "PPCA_PUBLISHED",
     "Boundary",
     "GmmParams",

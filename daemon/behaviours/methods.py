@@ -12,7 +12,14 @@ import numpy.typing as npt
 from daemon.behaviours.common import Boundary, Method
 from daemon.behaviours.gmm import GMM_PAPER, GmmParams, GmmResult, gmm_analysis
 from daemon.behaviours.pca import PCA_PAPER, PcaParams, PcaResult, PcaSegmenter, pca_analysis
-from daemon.behaviours.ppca import PPCA_DEFAULT, PpcaParams, PpcaResult, PpcaSegmenter, ppca_analysis
+from daemon.behaviours.ppca import (
+    PPCA_DEFAULT,
+    PPCA_ONLINE,
+    PpcaParams,
+    PpcaResult,
+    PpcaSegmenter,
+    ppca_analysis,
+)
 from daemon.errors import InputError
 
 Params = PcaParams | PpcaParams | GmmParams
@@ -45,12 +52,12 @@ def analyse(
 def online_segmenter(
     rate: float, method: Method, *, params: Params | None = None
 ) -> PcaSegmenter | PpcaSegmenter:
-    """A streaming segmenter for ``method`` at ``rate`` Hz: PCA, or PPCA's forward pass; GMM has
-    none (``ValueError``)."""
+    """A streaming segmenter for ``method`` at ``rate`` Hz: PCA, or PPCA's forward pass (by default
+    with :data:`~daemon.behaviours.ppca.PPCA_ONLINE`); GMM has none (``ValueError``)."""
     if method == "pca":
         return PcaSegmenter(rate, params=_params(params, PcaParams, PCA_PAPER))
     if method == "ppca":
-        return PpcaSegmenter(rate, params=_params(params, PpcaParams, PPCA_DEFAULT))
+        return PpcaSegmenter(rate, params=_params(params, PpcaParams, PPCA_ONLINE))
     raise InputError(f"segmentation method {method!r} has no online form (pca and ppca do)")
 
 
