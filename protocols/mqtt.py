@@ -142,6 +142,42 @@ TRANSIENT_REFUSALS = frozenset({"Server unavailable"})
 """The broker refusals (paho's names of MQTT 3.1.1's CONNACK codes) that may mend by themselves."""
 
 
+class _Pending:
+    """What a connection awaits the broker's answer to, by message id: acknowledgements of QoS 1
+    publications, answers to (un)subscriptions."""
+
+    def __init__(self, loop: asyncio.AbstractEventLoop) -> None:
+        self._loop = loop
+        self._by_id: dict[int, asyncio.Future[None]] = {}
+
+    def __len__(self) -> int:
+        return len(self._by_id)
+
+    def add(self, mid: int) -> asyncio.Future[None]:
+        done = self._by_id[mid] = self._loop.create_future()
+        return done
+
+    def answer(self, mid: int) -> None:
+        done = self._by_id.pop(mid, None)
+        if done is not None and not done.done():
+            done.set_result(None)
+
+    async def wait(self, mid: int, what: str, timeout_s: float) -> None:
+        """Wait for the answer to request ``mid`` (``what``), at most ``timeout_s`` (MqttLost after)."""
+        try:
+            async with asyncio.timeout(timeout_s):
+                await self.add(mid)
+        except TimeoutError:
+            raise MqttLost(f"{what}: the broker did not answer") from None
+
+    def fail(self, why: MqttLost) -> None:
+        """The connection ended: everything awaited fails with ``why``."""
+        waiting, self._by_id = self._by_id, {}
+        for done in waiting.values():
+            if not done.done():
+                done.set_exception(why)
+
+
 @dataclass(frozen=True)
 class _Broker:
     """Where and how a connection reaches the broker: address, keepalive in seconds, credentials
@@ -181,7 +217,7 @@ class _Connection:
         self.lost: asyncio.Future[None] = self._loop.create_future()
         for future in (self._connected, self.lost):
             future.add_done_callback(_retrieved)
-        self._waiting: dict[int, asyncio.Future[None]] = {}  # message id -> its acknowledgement
+        self._waiting = _Pending(self._loop)
         self._fd = -1
         self._closed = False
         self._progress = 0  # packets that did something, for the read loop to tell when to stop
@@ -356,15 +392,15 @@ class _Connection:
         """Hand ``message`` to the connection; the future is done when the broker acknowledged it
         (reliable: QoS 1) or it was written (QoS 0), and fails with MqttLost if the connection ends
         first."""
-        done = self._loop.create_future()
         qos = 1 if message.reliable else 0
         info = self.mqtt.publish(message.topic, message.payload, qos=qos, retain=message.retain)
+        if info.rc == MQTTErrorCode.MQTT_ERR_SUCCESS and not info.is_published():
+            return self._waiting.add(info.mid)
+        done = self._loop.create_future()
         if info.rc != MQTTErrorCode.MQTT_ERR_SUCCESS:
             done.set_exception(MqttLost(f"publishing: {paho.error_string(info.rc)}"))
-        elif info.is_published():
-            done.set_result(None)
         else:
-            self._waiting[info.mid] = done
+            done.set_result(None)
         return done
 
     @property
@@ -383,12 +419,7 @@ class _Connection:
         """Wait for the broker to answer request ``mid`` (at most :attr:`timeout_s`)."""
         if rc != MQTTErrorCode.MQTT_ERR_SUCCESS or mid is None:
             raise MqttLost(f"{what}: {paho.error_string(rc)}")
-        done = self._waiting[mid] = self._loop.create_future()
-        try:
-            async with asyncio.timeout(self.timeout_s):
-                await done
-        except TimeoutError:
-            raise MqttLost(f"{what}: the broker did not answer") from None
+        await self._waiting.wait(mid, what, self.timeout_s)
 
     # -------------------------------------------------------------------------- paho's callbacks
 
@@ -431,10 +462,7 @@ class _Connection:
                 self.lost.set_result(None)
             else:
                 self.lost.set_exception(why)
-        waiting, self._waiting = self._waiting, {}
-        for done in waiting.values():
-            if not done.done():
-                done.set_exception(failure)
+        self._waiting.fail(failure)
 
     def _message_arrived(self, client: paho.Client, userdata: Any, message: paho.MQTTMessage) -> None:
         self._progress += 1
@@ -449,9 +477,7 @@ class _Connection:
         self, client: paho.Client, userdata: Any, mid: int, reason: ReasonCode, properties: Properties
     ) -> None:
         self._progress += 1
-        done = self._waiting.pop(mid, None)
-        if done is not None and not done.done():
-            done.set_result(None)
+        self._waiting.answer(mid)
 
     def _subscription_answered(
         self,
@@ -462,9 +488,7 @@ class _Connection:
         properties: Properties | None,
     ) -> None:
         self._progress += 1
-        done = self._waiting.pop(mid, None)
-        if done is not None and not done.done():
-            done.set_result(None)
+        self._waiting.answer(mid)
 
 
 class _Reader:
@@ -494,7 +518,7 @@ class _Reader:
         self.timeout_s = timeout_s
         self.lost: asyncio.Future[None] = self._loop.create_future()
         self.lost.add_done_callback(_retrieved)
-        self._waiting: dict[int, asyncio.Future[None]] = {}  # request id -> its answer
+        self._waiting = _Pending(self._loop)
         client = gmqtt.Client(client_id, clean_session=clean_session, logger=GMQTT_LOG)
         client.set_config({"reconnect_retries": 0, "reconnect_delay": NEVER_S})
         if broker.username is not None:
@@ -512,18 +536,15 @@ class _Reader:
                 await self.client.connect(
                     b.host, b.port, ssl=b.tls or False, keepalive=b.keepalive_s, version=MQTTv311
                 )
-        except gmqtt.MQTTConnectError as e:
+        except BaseException as e:
             await self._close()
-            refused = "unavailable" not in e.message  # as TRANSIENT_REFUSALS for paho
-            raise MqttLost(f"the broker refused the connection: {e.message}", refused=refused) from None
-        except TimeoutError:
-            await self._close()
-            raise MqttLost("the broker did not answer the connect") from None
-        except (OSError, ValueError) as e:
-            await self._close()
-            raise MqttLost(str(e) or type(e).__name__) from None
-        except asyncio.CancelledError:
-            await self._close()
+            if isinstance(e, gmqtt.MQTTConnectError):
+                refused = "unavailable" not in e.message  # as TRANSIENT_REFUSALS for paho
+                raise MqttLost(f"the broker refused the connection: {e.message}", refused=refused) from None
+            if isinstance(e, TimeoutError):
+                raise MqttLost("the broker did not answer the connect") from None
+            if isinstance(e, OSError | ValueError):  # ValueError: a certificate that does not match
+                raise MqttLost(str(e) or type(e).__name__) from None
             raise
         return self
 
@@ -553,17 +574,10 @@ class _Reader:
     async def _request(self, mid: int, what: str) -> None:
         if self.lost.done():
             raise MqttLost(f"{what}: the connection ended")
-        done = self._waiting[mid] = self._loop.create_future()
-        try:
-            async with asyncio.timeout(self.timeout_s):
-                await done
-        except TimeoutError:
-            raise MqttLost(f"{what}: the broker did not answer") from None
+        await self._waiting.wait(mid, what, self.timeout_s)
 
     def _answered(self, client: gmqtt.Client, mid: int, *rest: Any) -> None:
-        done = self._waiting.pop(mid, None)
-        if done is not None and not done.done():
-            done.set_result(None)
+        self._waiting.answer(mid)
 
     def _message_arrived(
         self, client: gmqtt.Client, topic: str | bytes, payload: bytes, qos: int, properties: Any
@@ -578,10 +592,7 @@ class _Reader:
     def _end(self, why: MqttLost) -> None:
         if not self.lost.done():
             self.lost.set_exception(why)
-        waiting, self._waiting = self._waiting, {}
-        for done in waiting.values():
-            if not done.done():
-                done.set_exception(why)
+        self._waiting.fail(why)
 
 
 class MqttTransport:
