@@ -106,14 +106,10 @@ def _cuts(result: Any) -> list[bh.Boundary]:
 
 def evaluate(data: Path, trial: str, png: Path | None, show_why: bool = False) -> list[Outcome]:
     """Every method on one file: an outcome per method; prints the cuts, draws the PNG."""
-    asf, amc = trial_recording(data, trial)
-    motion = read_recording(asf, amc)
-    rate = native_rate(motion)
-    rotations = bh.JointRotations(motion.skeleton)
-    x = rotations(motion.channels)
-    bands = truth(data, trial)
+    take = load(data, trial)
+    x, rate, bands = take.x, take.rate, take.bands
     print(
-        f"{trial}: {len(motion)} frames at {rate:g} Hz, {len(rotations.bones)} bones (D = {rotations.dims}); "
+        f"{trial}: {len(x)} frames at {rate:g} Hz, {x.shape[1] // 4} bones (D = {x.shape[1]}); "
         f"true boundaries at AMC frames {[b.frame for b in bands]}"
     )
     results, outcomes = {}, []
@@ -121,18 +117,18 @@ def evaluate(data: Path, trial: str, png: Path | None, show_why: bool = False) -
         began = time.perf_counter()
         results[name] = method(x, rate)
         spent = time.perf_counter() - began
-        frames = [int(motion.frames[b.frame]) for b in _cuts(results[name])]
+        cuts = [(take.frames[b.frame], b.score) for b in _cuts(results[name])]
+        frames = [c for c, _ in cuts]
         outcomes.append(Outcome(name, trial, frames, len(bands), bh.match_boundaries(frames, bands), spent))
         print(f"  {name:9s} {spent:6.2f} s  cuts {frames}")
         if show_why and name in GRIDS:
-            take = Take(trial, x, rate, [int(f) for f in motion.frames], bands, load_behaviours(data, trial))
-            why(take, name, [(int(motion.frames[b.frame]), b.score) for b in _cuts(results[name])])
+            why(take, name, cuts)
     if png is not None:
         segmentation_png(
             png / f"segmentation_{trial}.png",
             f"{trial}: behaviour segmentation (Barbič et al. 2004), the paper's parameters",
             rate,
-            (int(motion.frames[0]), int(motion.frames[-1])),
+            (take.frames[0], take.frames[-1]),
             [results["pca"], results["ppca"], results["gmm"]],
             bands,
         )
@@ -226,8 +222,7 @@ Runs = dict[tuple[int, str], tuple[int, int]]
 
 def pooled(runs: Runs, k: int, takes: list[Take]) -> tuple[int, int, int]:
     """Setting ``k``'s boundaries found, cuts and true boundaries over ``takes``."""
-    hits = sum(runs[k, t.trial][1] for t in takes)
-    return hits, sum(runs[k, t.trial][0] for t in takes), sum(len(t.bands) for t in takes)
+    return scored(runs, [k] * len(takes), takes)
 
 
 def why(take: Take, method: str, cuts: list[tuple[int, float]]) -> None:
@@ -272,16 +267,10 @@ def folds(takes: list[Take], png: Path | None, show_why: bool) -> None:
     for method, grid in GRIDS.items():
         runs = every_run(takes, method, grid)
         print(f"  {method}: {len(grid)} settings")
-        held = [0, 0, 0]  # cuts, hits, boundaries
-        default = [0, 0, 0]
-        for out in takes:
+        picks = held_out(runs, len(grid), takes)
+        for out, best in zip(takes, picks, strict=True):
             rest = [t for t in takes if t is not out]
-            best = choose(runs, len(grid), rest)
             cuts, hits = runs[best, out.trial]
-            for total, (c, h) in ((held, (cuts, hits)), (default, runs[0, out.trial])):
-                total[0] += c
-                total[1] += h
-                total[2] += len(out.bands)
             print(
                 f"    {out.trial}: chosen {describe_params(grid[best])} "
                 f"(F1 {f1(*pooled(runs, best, rest)):.2f} on the others): {cuts} cuts, "
@@ -289,11 +278,12 @@ def folds(takes: list[Take], png: Path | None, show_why: bool) -> None:
             )
             if show_why:
                 why(out, method, cut_frames(out, method, grid[best]))
+        hits, cuts, bounds = scored(runs, picks, takes)
+        paper = scored(runs, [0] * len(takes), takes)
         print(
-            f"  {method} held out, pooled: precision {_fraction(held[1], held[0])}, recall "
-            f"{_fraction(held[1], held[2])} ({held[0]} cuts); the paper's parameters: precision "
-            f"{_fraction(default[1], default[0])}, recall {_fraction(default[1], default[2])} "
-            f"({default[0]} cuts)"
+            f"  {method} held out, pooled: precision {_fraction(hits, cuts)}, recall "
+            f"{_fraction(hits, bounds)} ({cuts} cuts); the paper's parameters: precision "
+            f"{_fraction(paper[0], paper[1])}, recall {_fraction(paper[0], paper[2])} ({paper[1]} cuts)"
         )
         if png is not None:
             curve(takes, method, grid, runs, png)
@@ -336,18 +326,24 @@ def compare_features(data: Path, takes: list[Take]) -> None:
     for name in each[takes[0].trial]:
         seen = [replace(t, x=each[t.trial][name]) for t in takes]
         runs = every_run(seen, "ppca", PPCA_GRID)
-        hits = cuts = bounds = 0
-        chosen = []
-        for out in seen:
-            best = choose(runs, len(PPCA_GRID), [t for t in seen if t is not out])
-            cuts += runs[best, out.trial][0]
-            hits += runs[best, out.trial][1]
-            bounds += len(out.bands)
-            chosen.append(describe_params(PPCA_GRID[best]))
+        picks = held_out(runs, len(PPCA_GRID), seen)
+        hits, cuts, bounds = scored(runs, picks, seen)
         print(
             f"  {name:32s} precision {_fraction(hits, cuts)}, recall {_fraction(hits, bounds)} "
-            f"({cuts} cuts); chosen: {'; '.join(chosen)}"
+            f"({cuts} cuts); chosen: {'; '.join(describe_params(PPCA_GRID[k]) for k in picks)}"
         )
+
+
+def held_out(runs: Runs, settings: int, takes: list[Take]) -> list[int]:
+    """For each take in turn, the setting :func:`choose` picks on the others."""
+    return [choose(runs, settings, [t for t in takes if t is not out]) for out in takes]
+
+
+def scored(runs: Runs, picks: list[int], takes: list[Take]) -> tuple[int, int, int]:
+    """Boundaries found, cuts and true boundaries over ``takes``, each with its setting of ``picks``."""
+    hits = sum(runs[k, t.trial][1] for k, t in zip(picks, takes, strict=True))
+    cuts = sum(runs[k, t.trial][0] for k, t in zip(picks, takes, strict=True))
+    return hits, cuts, sum(len(t.bands) for t in takes)
 
 
 def choose(runs: Runs, settings: int, takes: list[Take]) -> int:
