@@ -145,10 +145,11 @@ class Outcome:
     """The daemon's resident memory (MiB) before the storm, all streams up."""
     rss_rounds: list[float]
     """Its resident memory after each round of the storm. The first round fills the intake queue
-    with messages of distinct streams, and the allocator keeps much of what that peak took (with
-    ``mqtt.queue`` 1,000 instead of 10,000: +2 MiB instead of +11), more or less from run to run
-    (63 to 68 MiB after it, in five runs on one machine): the rounds after it are the measure
-    (:attr:`rss_growth`); memory that grew with the ids would grow round after round."""
+    with messages of distinct streams and the table with streams, and the allocator keeps some of
+    what that peak took (+3 to +4 MiB, two CPU-bound processes beside it): the rounds after it are
+    the measure (:attr:`rss_growth`); memory that grew with the ids would grow round after round,
+    as the front's cache of routes did until it was bounded by the streams the workers may hold
+    (+2.5 MiB a round up to 100,000 topics)."""
     streams_live: int
     streams_after_storm: int
     series_after_storm: int

@@ -10,6 +10,6 @@ class Router:
         source: int,
         sinks: list[int],
         choose: Callable[[bytes], int],
-        cached: int = ...,
+        cached: int,
     ) -> None: ...
     def drain(self, most: int) -> tuple[int, list[int]]: ...

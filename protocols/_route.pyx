@@ -21,7 +21,6 @@ from libc.errno cimport EAGAIN, EINTR
 from libc.stdint cimport uint32_t, uintptr_t
 from libc.string cimport memcpy, memset
 
-from protocols.routing import ROUTES_CACHED
 
 cdef extern from *:
     """
@@ -96,7 +95,7 @@ cdef class Router:
     cdef object choose
     cdef Py_ssize_t cached
 
-    def __cinit__(self, dict functions, uintptr_t source, list sinks, choose, Py_ssize_t cached=ROUTES_CACHED):
+    def __cinit__(self, dict functions, uintptr_t source, list sinks, choose, Py_ssize_t cached):
         missing = [name for name in FUNCTIONS if not functions.get(name)]
         if missing:
             raise ValueError(f"libzmq functions missing: {', '.join(missing)}")

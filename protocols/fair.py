@@ -28,7 +28,9 @@ class FairQueue:
         if size < 1:
             raise ValueError(f"a queue holds at least one message, got {size}")
         self.size = size
-        self._queues: dict[str, deque[Incoming]] = {}
+        # a key holding one message holds it bare: a flood of distinct stream ids (one message
+        # each) would otherwise cost a deque (~600 B) each, a peak the allocator keeps
+        self._queues: dict[str, Incoming | deque[Incoming]] = {}
         self._turns: OrderedDict[str, None] = OrderedDict()  # the keys with messages, in turn order
         self._holding: dict[int, OrderedDict[str, None]] = {}  # n: the keys holding n, as they came to
         self._most = 0
@@ -41,20 +43,25 @@ class FairQueue:
         dropped = False
         if self._held >= self.size:
             largest = next(iter(self._holding[self._most]))
-            self._queues[largest].popleft()
-            self._held -= 1
+            self._popleft(largest)
             dropped = True
-            if not self._shrunk(largest):
+            if largest not in self._queues:
                 del self._turns[largest]
         key = key_of(message.topic)
-        queue = self._queues.get(key)
-        if queue is None:
-            queue = self._queues[key] = deque()
+        held = self._queues.get(key)
+        if held is None:
+            self._queues[key] = message
             self._turns[key] = None
-        queue.append(message)
+            n = 1
+        elif isinstance(held, deque):
+            held.append(message)
+            n = len(held)
+        else:
+            self._queues[key] = deque((held, message))
+            n = 2
         self._held += 1
-        self._move(key, len(queue) - 1, len(queue))
-        self._most = max(self._most, len(queue))
+        self._move(key, n - 1, n)
+        self._most = max(self._most, n)
         return dropped
 
     def take(self) -> Incoming | None:
@@ -62,21 +69,25 @@ class FairQueue:
         if not self._turns:
             return None
         key, _ = self._turns.popitem(last=False)
-        message = self._queues[key].popleft()
-        self._held -= 1
-        if self._shrunk(key):
+        message = self._popleft(key)
+        if key in self._queues:
             self._turns[key] = None
         return message
 
-    def _shrunk(self, key: str) -> bool:
-        """Account for ``key`` having lost a message; False (and the key forgotten) if it holds none."""
-        n = len(self._queues[key])
+    def _popleft(self, key: str) -> Incoming:
+        """``key``'s oldest message, taken and accounted for (the key forgotten if it holds no more)."""
+        held = self._queues[key]
+        if isinstance(held, deque):
+            message, n = held.popleft(), len(held)
+        else:
+            message, n = held, 0
+        if n == 0:
+            del self._queues[key]
+        self._held -= 1
         self._move(key, n + 1, n)
         if n + 1 == self._most and (n + 1) not in self._holding:
             self._most = n  # the key was the last holding the most, and now holds one fewer
-        if n == 0:
-            del self._queues[key]
-        return n > 0
+        return message
 
     def _move(self, key: str, before: int, after: int) -> None:
         if before:

@@ -12,8 +12,16 @@ from collections.abc import Callable, Sequence
 from protocols.messages import is_id
 
 TOPIC_PREFIX = "mocap/"
-ROUTES_CACHED = 100_000
-"""The most topics whose worker a :class:`Routes` remembers."""
+TOPICS_PER_STREAM = 4
+"""A stream's topics a cache of routes makes room for (its poses, skeleton, end and frames)."""
+
+
+def routes_cached(streams: int) -> int:
+    """The most topics whose worker the front remembers when the workers hold ``streams`` streams
+    in all: room for their topics and no more, so that a flood of new stream ids, which clears the
+    cache again and again, holds no more memory than the streams the daemon may take (a cache of
+    100,000 topics grew the front by 2.5 MiB for every 10,000 new ids until it was full)."""
+    return TOPICS_PER_STREAM * max(1, streams)
 
 
 def stream_of(topic: str) -> str:
@@ -53,7 +61,7 @@ def choose(workers: int) -> Callable[[bytes], int]:
     return worker
 
 
-def mine(index: int, workers: int, cached: int = ROUTES_CACHED) -> Callable[[str], bool]:
+def mine(index: int, workers: int, cached: int) -> Callable[[str], bool]:
     """Whether a stream is worker ``index``'s of ``workers`` (:func:`worker_of`, remembered for at
     most ``cached`` streams, then all forgotten at once)."""
     known: dict[str, bool] = {}
@@ -73,7 +81,7 @@ class Routes:
     """:func:`choose` remembered per topic, at most ``cached`` topics (then all forgotten at once:
     a flood of new ids must not grow it): a lookup per message, not a hash."""
 
-    def __init__(self, workers: int, cached: int = ROUTES_CACHED) -> None:
+    def __init__(self, workers: int, cached: int) -> None:
         self.workers = workers
         self.cached = max(1, cached)
         self._choose = choose(workers)

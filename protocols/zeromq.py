@@ -183,15 +183,18 @@ class ZmqTransport:
     def source(self) -> _Source | None:
         return None if self._sub is None else _Source(self._sub)
 
-    def router(self, sinks: list[zmq.Socket[bytes]], choose: Callable[[bytes], int]) -> Routed | None:
+    def router(
+        self, sinks: list[zmq.Socket[bytes]], choose: Callable[[bytes], int], cached: int
+    ) -> Routed | None:
         """The poses socket's messages routed in C to the PUSH sockets ``sinks`` by ``choose`` (a
-        topic's index in ``sinks``), as :func:`protocols.routing.split` would: for ``mocapd run
-        --workers``' front; None where the compiled router cannot call the libzmq pyzmq loaded."""
+        topic's index in ``sinks``, remembered for at most ``cached`` topics), as
+        :func:`protocols.routing.split` would: for ``mocapd run --workers``' front; None where the
+        compiled router cannot call the libzmq pyzmq loaded."""
         functions = libzmq_functions()
         if self._sub is None or functions is None:
             return None
         return Routed(
-            self._sub, Router(functions, self._sub.underlying, [s.underlying for s in sinks], choose)
+            self._sub, Router(functions, self._sub.underlying, [s.underlying for s in sinks], choose, cached)
         )
 
     def raw_source(self) -> RawSource | None:

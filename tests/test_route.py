@@ -52,7 +52,7 @@ class Rig:
             self.sinks.append(sink)
             self.drains.append(drain)
 
-    def router(self, cached: int = 100_000) -> Router:
+    def router(self, cached: int = 1000) -> Router:
         functions = libzmq_functions()
         assert functions is not None, "the libzmq pyzmq loaded was not found"
         return Router(
@@ -118,7 +118,7 @@ def test_the_router_gives_each_worker_what_split_gives(
         while (parts := receive(rig.source)) is not None:
             twin.append(parts)
         assert twin == batch
-        assert rig.received() == split(twin, Routes(workers), workers)
+        assert rig.received() == split(twin, Routes(workers, 1000), workers)
     finally:
         rig.close()
 
@@ -128,7 +128,7 @@ def test_a_large_payload_and_a_full_worker(ctx: zmq.Context[zmq.Socket[bytes]]) 
     rig = Rig(ctx, 2, sink_hwm=1)
     try:
         router = rig.router()
-        route = Routes(2)
+        route = Routes(2, 1000)
         mine = [t for t in (f"mocap/s{k}/pose".encode() for k in range(50)) if route(t) == 0][:3]
         theirs = next(t for t in (f"mocap/t{k}/pose".encode() for k in range(50)) if route(t) == 1)
         big = bytes(range(256)) * 4000  # 1 MB: the frame's buffer grows
@@ -183,11 +183,11 @@ def test_a_router_refuses_a_worker_out_of_range(ctx: zmq.Context[zmq.Socket[byte
     try:
         functions = libzmq_functions()
         assert functions is not None
-        router = Router(functions, rig.source.underlying, [s.underlying for s in rig.sinks], lambda t: 5)
+        router = Router(functions, rig.source.underlying, [s.underlying for s in rig.sinks], lambda t: 5, 10)
         rig.send([[b"mocap/a/pose", b"p"]])
         with pytest.raises(ValueError, match="worker 5 of 2"):
             router.drain(10)
         with pytest.raises(ValueError, match="libzmq functions missing: zmq_msg_init"):
-            Router({}, 0, [0], lambda t: 0)
+            Router({}, 0, [0], lambda t: 0, 10)
     finally:
         rig.close()

@@ -84,7 +84,7 @@ def test_a_frame_message_reaches_every_worker_and_each_takes_its_own_subjects(
     """A frame message (``mocap/<source>/frame``) goes to every worker; of its subjects, each worker
     takes exactly those :func:`worker_of` gives it, so every subject is taken once."""
     message = [f"mocap/{source}/frame".encode(), b"payload"]
-    assert split([message], Routes(workers), workers) == [message] * workers
+    assert split([message], Routes(workers, 100), workers) == [message] * workers
     owners = [mine(k, workers, cached=3) for k in range(workers)]
     for stream in subjects * 2:  # twice: the second time remembered (or forgotten: 3 at most)
         assert [k for k, owned in enumerate(owners) if owned(stream)] == [worker_of(stream, workers)]

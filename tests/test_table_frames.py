@@ -62,7 +62,7 @@ def outcome(e: Exception | None) -> str:
 def test_a_frame_is_taken_as_its_poses_one_by_one(
     sent: list[FrameMessage], share: tuple[int, int] | None
 ) -> None:
-    owned = None if share is None else mine(*share)
+    owned = None if share is None else mine(*share, cached=3)
     batch, single = table(), table()
     for frame in sent:
         taken, refused = batch.frame(frame, 1.0, owned)

@@ -88,7 +88,7 @@ from daemon.service.app import (
 )
 from daemon.service.metrics import open_http, serve_http
 from protocols.messages import StatusMessage, decode, encode, topic
-from protocols.routing import Routes, choose, mine, split
+from protocols.routing import Routes, choose, mine, routes_cached, split
 from protocols.transport import Incoming, Outgoing, StartupError, Transport
 from protocols.zeromq import open_socket, receive
 
@@ -345,7 +345,8 @@ def run_worker(setup: WorkerSetup, index: int) -> int:
             version=setup.version,
             logger=logger,
             remind=False,
-            mine=mine(index, len(setup.inbound)),
+            # the subjects of a frame message are any worker's: every worker's streams remembered
+            mine=mine(index, len(setup.inbound), config.service.max_streams * len(setup.inbound)),
         )
         try:
             http = await open_http("127.0.0.1", 0, service.health, service.metrics)
@@ -526,8 +527,9 @@ class Front:
         def lost(k: int, count: int) -> None:
             self.drops["worker_full" if slots[k].ready else "worker_down"] += count
 
+        cached = routes_cached(self.config.service.max_streams * n)
         router = getattr(transport, "router", None)
-        routed = router(socks, choose(n)) if router is not None else None
+        routed = router(socks, choose(n), cached) if router is not None else None
         if router is not None and routed is None:
             fields = {"transport": transport.name, "reason": "the libzmq pyzmq loaded was not found"}
             self.log.warning("routing in Python", extra={"fields": fields})
@@ -538,7 +540,7 @@ class Front:
                         lost(k, count)
                 await asyncio.sleep(0)
             return
-        worker = Routes(n)
+        worker = Routes(n, cached)
 
         def send(k: int, frames: list[bytes]) -> None:
             """``frames`` (topic, payload, topic, payload, ...) to worker ``k`` as one message of one
