@@ -29,8 +29,8 @@ decided the cut (Boundary.score) and the signed distance to the nearest true bou
 ``--folds`` chooses each method's parameters by leaving one take out: for every take, the setting
 of :data:`GRIDS` with the best pooled F1 on the other takes (ties: the earlier, the paper's first),
 reported on the take left out; the held-out figures pooled over the takes, beside the defaults.
-With ``--png DIR`` it also draws each method's pooled precision-recall curve over its threshold
-(PPCA's rise R, PCA's kσ, GMM's k), the other parameters at their defaults.
+With ``--png DIR`` it also prints and draws each method's pooled precision-recall curve over its
+threshold (PPCA's rise R, PCA's kσ, GMM's k), the other parameters at the grid's first (the paper's).
 
 ``--features`` runs PPCA the same way on four representations of the frames (:func:`representations`).
 """
@@ -364,6 +364,12 @@ def curve(takes: list[Take], method: str, grid: list[bh.Params], runs: Runs, png
     for k in ks:
         hits, cuts, bounds = pooled(runs, k, takes)
         points.append((hits / cuts if cuts else 0.0, hits / bounds))
+    print(
+        f"  {method} curve, pooled ({name}: precision / recall): "
+        + ", ".join(
+            f"{getattr(grid[k], name):g}: {p:.2f} / {r:.2f}" for k, (p, r) in zip(ks, points, strict=True)
+        )
+    )
     precision_recall_png(
         {f"{method}, pooled over {len(takes)} takes": points},
         [float(getattr(grid[k], name)) for k in ks],
