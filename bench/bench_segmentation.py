@@ -8,7 +8,8 @@ between runs (per-frame forward kinematics of every 20th frame, as the other ben
 representation, batch and one frame at a time); PCA (§3.1) online, one ``push`` per frame, with the
 error evaluated every frame (the paper) and every ℓ frames (``PCA_GRID``); PPCA's forward pass online
 (§3.2); the same online methods from channels, each frame's representation computed as it comes
-(``live``: what a segmented stream of the daemon runs per pose); and the batch functions: PCA both
+(``live``: what a segmented stream of the daemon runs per pose, PCA every frame and as the daemon
+runs it, every 1/12 s: ``PCA_ONLINE``); and the batch functions: PCA both
 ways, PPCA's forward pass and all its passes, GMM (§3.3). The other segmenter rows take the
 representation's frames (computed once, not timed).
 
@@ -113,6 +114,10 @@ def main() -> None:
         ),
         ("PPCA online (forward pass)", online(lambda rate: bh.PpcaSegmenter(rate))),
         ("live: channels -> PCA online, every frame", live(lambda rate: bh.PcaSegmenter(rate))),
+        (
+            "live: channels -> PCA every 1/12 s (daemon)",
+            live(lambda rate: bh.PcaSegmenter(rate, params=bh.PCA_ONLINE)),
+        ),
         ("live: channels -> PPCA online", live(lambda rate: bh.PpcaSegmenter(rate))),
         ("PCA batch, every frame", batch(lambda x, rate: bh.pca_segment(x, rate))),
         ("PCA batch, every ℓ frames", batch(lambda x, rate: bh.pca_segment(x, rate, params=bh.PCA_GRID))),

@@ -12,6 +12,7 @@ from hypothesis import strategies as st
 
 from daemon.behaviours.pca import (
     PCA_GRID,
+    PCA_ONLINE,
     PCA_PAPER,
     PcaFrames,
     PcaParams,
@@ -28,7 +29,10 @@ def test_windows_are_seconds_scaled_to_the_rate() -> None:
     assert PCA_PAPER.frames(120.0) == PcaFrames(240, 60, 300, 1)
     assert PCA_PAPER.frames(60.0) == PcaFrames(120, 30, 150, 1)
     assert PCA_GRID.frames(120.0) == PcaFrames(240, 60, 300, 60)
-    for bad in (PcaParams(step=0.3), PcaParams(tau=1.0), PcaParams(k=0.4), PcaParams(k_sigma=-1)):
+    # the step rounded down to a divisor of k and ℓ: 10 frames at 120 Hz, 5 at 100 Hz (ℓ = 50)
+    assert [PCA_ONLINE.frames(r).step for r in (120.0, 100.0, 30.0)] == [10, 5, 1]
+    assert PcaParams(step=0.3).frames(120.0).step == 30
+    for bad in (PcaParams(tau=1.0), PcaParams(k=0.4), PcaParams(k_sigma=-1)):
         with pytest.raises(ValueError):
             bad.frames(120.0)
     with pytest.raises(ValueError, match="rate"):

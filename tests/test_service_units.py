@@ -8,7 +8,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import re
-from functools import cache
+from functools import cache, partial
 from itertools import pairwise
 from pathlib import Path
 from typing import Literal
@@ -453,7 +453,7 @@ def test_boundaries_are_the_online_methods_batch_cuts(
     patterns do not name, and a stream of positions, get none."""
     m = read_recording(*SEGMENTED)
     x = JointRotations(m.skeleton)(m.channels)
-    batch = bh.pca_segment if method == "pca" else bh.ppca_forward
+    batch = partial(bh.pca_segment, params=bh.PCA_ONLINE) if method == "pca" else bh.ppca_forward
     t = StreamTable(
         library,
         session="t",

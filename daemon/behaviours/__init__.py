@@ -32,6 +32,7 @@ from daemon.behaviours.methods import Params, analyse, online_segmenter, segment
 from daemon.behaviours.moments import dimension, projection_error, spectrum
 from daemon.behaviours.pca import (
     PCA_GRID,
+    PCA_ONLINE,
     PCA_PAPER,
     PcaFrames,
     PcaParams,
@@ -66,6 +67,7 @@ __all__ = [
     "METHODS",
     "PAPER_BONES",
     "PCA_GRID",
+    "PCA_ONLINE",
     "PCA_PAPER",
     "PPCA_DEFAULT",
     "PPCA_ONLINE",

@@ -11,7 +11,7 @@ import numpy.typing as npt
 
 from daemon.behaviours.common import Boundary, Method
 from daemon.behaviours.gmm import GMM_PAPER, GmmParams, GmmResult, gmm_analysis
-from daemon.behaviours.pca import PCA_PAPER, PcaParams, PcaResult, PcaSegmenter, pca_analysis
+from daemon.behaviours.pca import PCA_ONLINE, PCA_PAPER, PcaParams, PcaResult, PcaSegmenter, pca_analysis
 from daemon.behaviours.ppca import (
     PPCA_DEFAULT,
     PPCA_ONLINE,
@@ -52,10 +52,11 @@ def analyse(
 def online_segmenter(
     rate: float, method: Method, *, params: Params | None = None
 ) -> PcaSegmenter | PpcaSegmenter:
-    """A streaming segmenter for ``method`` at ``rate`` Hz: PCA, or PPCA's forward pass (by default
-    with :data:`~daemon.behaviours.ppca.PPCA_ONLINE`); GMM has none (``ValueError``)."""
+    """A streaming segmenter for ``method`` at ``rate`` Hz: PCA (by default with
+    :data:`~daemon.behaviours.pca.PCA_ONLINE`), or PPCA's forward pass (by default with
+    :data:`~daemon.behaviours.ppca.PPCA_ONLINE`); GMM has none (``ValueError``)."""
     if method == "pca":
-        return PcaSegmenter(rate, params=_params(params, PcaParams, PCA_PAPER))
+        return PcaSegmenter(rate, params=_params(params, PcaParams, PCA_ONLINE))
     if method == "ppca":
         return PpcaSegmenter(rate, params=_params(params, PpcaParams, PPCA_ONLINE))
     raise InputError(f"segmentation method {method!r} has no online form (pca and ppca do)")
