@@ -443,7 +443,8 @@ def each_once_as_detect(
     """What ``detections()`` gives comes to be ``mocapd detect``'s detections of what was ``sent``
     (per stream id, its recording's ``asf`` and ``amc`` looped up to sequence number ``last``, as
     :mod:`bench.cluster_load` prints it), of no other stream, each id once: waits up to ``within``
-    seconds for every stream's count, then a second for a repeat. The detections expected."""
+    seconds for every stream's count, then a second for a repeat, and says per stream what is
+    missing or extra. The detections expected."""
     wants = {n: detection_keys(looped_detections(s["asf"], s["amc"], s["last"])) for n, s in sent.items()}
 
     def complete() -> bool:
@@ -452,7 +453,9 @@ def each_once_as_detect(
             arrived[d["stream"]] = arrived.get(d["stream"], 0) + 1
         return all(arrived.get(n, 0) >= len(want) for n, want in wants.items())
 
-    wait_for(complete, within, "every stream's detections")
+    deadline = time.monotonic() + within
+    while not complete() and time.monotonic() < deadline:
+        time.sleep(0.02)
     time.sleep(1.0)
     got = detections()
     ids = [d["id"] for d in got]
