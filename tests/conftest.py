@@ -9,14 +9,10 @@ failure found that way is committed as an explicit ``@example`` or a named test.
 Under pytest-xdist (the README's command: ``-n 2 --dist loadgroup``) every test holds a lock shared
 by the workers while it runs, and a test marked ``exclusive`` holds it alone: a test that measures
 real time against a bound (a second to stop, a lease kept beside CPU-bound processes) runs with no
-other test beside it, as it does in a serial run. A test marked ``heavy`` (a cluster or a disrupted
-daemon, with its own load beside it) holds a second lock alone: the heavy ones run one at a time,
-each beside light tests (two of them at once on two cores starved each other: the chaos run and
-the cluster's takeovers both failed together, and each passed alone)."""
+other test beside it, as it does in a serial run."""
 
 from __future__ import annotations
 
-import contextlib
 import fcntl
 import os
 import tempfile
@@ -53,37 +49,32 @@ def shared_data() -> Path:
     return DATA
 
 
-def _lock_path(config: pytest.Config, kind: str = "exclusive") -> Path | None:
-    """The file the workers of one xdist run lock (named by the run and ``kind``); none when the
-    tests run in one process. Asked of xdist's own input to a worker, not of the environment: a pytest that a
+def _lock_path(config: pytest.Config) -> Path | None:
+    """The file the workers of one xdist run lock (named by the run); none when the tests run in
+    one process. Asked of xdist's own input to a worker, not of the environment: a pytest that a
     test starts (``tests/run --collect-only``) inherits a worker's environment, and took it for a
     worker of this run, removing the lock file at its end while a worker held it."""
     given = getattr(config, "workerinput", None)
     if given is None:
         return None
-    return Path(tempfile.gettempdir()) / f"mocapd-{kind}-{given['testrunuid']}.lock"
+    return Path(tempfile.gettempdir()) / f"mocapd-exclusive-{given['testrunuid']}.lock"
 
 
 @pytest.hookimpl(wrapper=True)
 def pytest_runtest_protocol(item: pytest.Item, nextitem: pytest.Item | None) -> Iterator[None]:
     """A test marked ``exclusive`` runs (its fixtures' setup and teardown too) while no other xdist
-    worker runs one, a test marked ``heavy`` while no other worker runs a heavy one; any other test
-    runs beside any but an exclusive one. The locks are always taken in that order."""
-    path, heavy = _lock_path(item.config), _lock_path(item.config, "heavy")
-    if path is None or heavy is None:
+    worker runs one; any other test runs beside any but an exclusive one."""
+    path = _lock_path(item.config)
+    if path is None:
         return (yield)
-    with contextlib.ExitStack() as held:  # closing a file unlocks it
-        lock = held.enter_context(path.open("a"))
+    with path.open("a") as lock:  # closing it unlocks
         fcntl.flock(lock, fcntl.LOCK_EX if item.get_closest_marker("exclusive") else fcntl.LOCK_SH)
-        if item.get_closest_marker("heavy"):
-            fcntl.flock(held.enter_context(heavy.open("a")), fcntl.LOCK_EX)
         return (yield)
 
 
 def pytest_sessionfinish(session: pytest.Session) -> None:
     """A worker done with its tests removes the lock file (the other one, if still running, then
     runs alone)."""
-    for kind in ("exclusive", "heavy"):
-        path = _lock_path(session.config, kind)
-        if path is not None:
-            path.unlink(missing_ok=True)
+    path = _lock_path(session.config)
+    if path is not None:
+        path.unlink(missing_ok=True)

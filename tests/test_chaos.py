@@ -35,7 +35,6 @@ from tests.helpers import DATA
 
 
 @pytest.mark.slow
-@pytest.mark.heavy
 def test_every_disruption_is_survived_and_detections_stay_exact() -> None:
     plan = Plan(
         streams=3,

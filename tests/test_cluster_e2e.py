@@ -143,7 +143,7 @@ def first_live_after(workers: list[Worker], partition: int, after: float) -> flo
 
 
 @pytest.mark.slow
-@pytest.mark.heavy
+@pytest.mark.exclusive  # leases and elections in real time beside its own load, and no other test's
 def test_takeovers_lose_and_repeat_no_detection(tmp_path: Path) -> None:
     cluster = NatsCluster(tmp_path / "nats", PARTITIONS).start()
     server = cluster.servers[0]  # every client's
