@@ -453,9 +453,8 @@ def each_once_as_detect(
             arrived[d["stream"]] = arrived.get(d["stream"], 0) + 1
         return all(arrived.get(n, 0) >= len(want) for n, want in wants.items())
 
-    deadline = time.monotonic() + within
-    while not complete() and time.monotonic() < deadline:
-        time.sleep(0.02)
+    with contextlib.suppress(AssertionError):  # what is missing is said below, per stream
+        wait_for(complete, within, "every stream's detections")
     time.sleep(1.0)
     got = detections()
     ids = [d["id"] for d in got]
