@@ -18,6 +18,7 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
+import aetcd
 import pytest
 
 from bench.processes import free_port
@@ -226,6 +227,47 @@ async def test_a_member_whose_keep_alives_go_unanswered_pauses_and_goes_on_with_
         finally:
             etcd.process.send_signal(signal.SIGCONT)
         await until(lambda: w.problem is None, w.lease_ttl, "w to go on")
+        await asyncio.sleep(0.05)
+        assert states == ["live", "paused", "live"], states
+        assert seen == [{"w"}]  # nothing moved
+        assert w._lease.id == lease
+    follower.cancel()
+
+
+async def test_a_watch_broken_for_longer_than_the_lease_only_pauses_while_keep_alives_hold(
+    etcd: Etcd,
+) -> None:
+    """The watch of the others broken for 1.5 TTL while every keep-alive is answered: the member is
+    paused (publishes nothing) but never out, keeps its lease and its place, and goes on when it
+    has listed the members again. The fault is real: values under the prefix whose listing is more
+    than gRPC's 4 MiB a client takes (each put is under etcd's 1.5 MiB a request), then the watch
+    cancelled, so every new listing fails while the keep-alives get through. Before, a watch broken
+    for a TTL made the member out: it dropped its partitions though nobody else could own them."""
+    async with Membership(etcd.url, "w") as w:
+        seen: list[frozenset[str]] = []
+        states: list[str] = []
+        follower = asyncio.create_task(_follow_states(w, seen, states), name="follow w")
+        await until(lambda: seen == [{"w"}] and states == ["live"], 1, "the current set")
+        lease = w._lease.id
+        host, port = etcd.url.removeprefix("etcd://").split(":")
+        other = aetcd.Client(host, int(port))
+        try:
+            big = [f"{w.prefix}status/big{i}".encode() for i in range(3)]
+            for key in big:
+                await other.put(key, b"x" * 1_400_000)
+            await until(lambda: w.problem is None, 1, "the puts watched")
+            await w._call(w._watch.cancel())
+            await until(lambda: w.problem is not None, 1, "the watch to break")
+            end = time.monotonic() + 1.5 * w.lease_ttl
+            while time.monotonic() < end:
+                assert w.paused and not w.out and w.members == {"w"}, w.problem
+                await asyncio.sleep(0.05)
+            assert "watch" in (w.problem or ""), w.problem
+            for key in big:
+                await other.delete(key)
+        finally:
+            await other.close()
+        await until(lambda: w.problem is None, w.lease_ttl, "w to list and watch again")
         await asyncio.sleep(0.05)
         assert states == ["live", "paused", "live"], states
         assert seen == [{"w"}]  # nothing moved

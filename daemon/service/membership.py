@@ -24,11 +24,16 @@ other worker can own them yet. When a keep-alive is answered again before the le
 expired, it goes on where it stopped, having moved nothing (before issue 34 a worker fenced itself
 by dropping every partition and re-reading every buffer, even when the answer came a millisecond
 later). Only when the lease may have expired (TTL after the last answered keep-alive, etcd said it
-did, the member's own key was deleted, or the watch stayed broken for a TTL) is the member **out**
+did, or the member's own key was deleted) is the member **out**
 (:attr:`Membership.out`): :attr:`Membership.members` then leaves it out, so ``ring.owned(member,
 members, P)`` is empty and the worker drops its partitions and their state; the others may own them
 now. Keep-alives go on being tried; when the lease did expire the member joins again with a new
 lease (unless another worker took its name meanwhile: ``problem`` says so until it leaves).
+A broken watch pauses the member until it has listed the members and watched again, however long
+that takes, but never makes it out while its lease is kept alive: nobody else can own its
+partitions then, so dropping them would only throw their state away (before, a watch broken for a
+TTL did, and an etcd election under load, each endpoint tried in turn, took that long: a healthy
+worker gave up its partitions and re-read their buffers).
 
 Consistency over availability: while etcd cannot be reached nobody can know who owns what, so
 every worker pauses two thirds of a TTL after its last answered keep-alive and is out a third of a
@@ -189,7 +194,6 @@ class Membership:
         self._next_keep = 0.0
         self._lease_problem: str | None = None
         self._watch_problem: str | None = None
-        self._watch_broken_at: float | None = None  # monotonic: since when the watch has been broken
         self._report_problem: str | None = None
         self._watch: Any = None
         self._changed = asyncio.Event()  # of the worker's loop
@@ -236,20 +240,13 @@ class Membership:
             return f"etcd deleted the key of {self.member!r}"
         return None
 
-    def _out_at(self) -> float:
-        """Monotonic time from which this member may have lost its lease (or its view of the others
-        is too old to act on), if nothing is answered before."""
-        if self._watch_broken_at is None:
-            return self._expires_at
-        return min(self._expires_at, self._watch_broken_at + self.lease_ttl)
-
     @property
     def out(self) -> bool:
         """True when this member may no longer own anything: left, its tasks ended, its lease may
-        have expired, its key is gone, or the others have not been seen for a TTL."""
+        have expired, or its key is gone (a broken watch only pauses it: see the module's "Fencing")."""
         if self._closed or self._runner is None or self._runner.done():
             return True
-        return self.member not in self._seen or time.monotonic() >= self._out_at()
+        return self.member not in self._seen or time.monotonic() >= self._expires_at
 
     @property
     def paused(self) -> bool:
@@ -281,7 +278,7 @@ class Membership:
                 yield current[0]
                 continue
             changed = self._changed
-            wait = self._out_at() - time.monotonic() if self.member in current[0] else None
+            wait = self._expires_at - time.monotonic() if self.member in current[0] else None
             with contextlib.suppress(TimeoutError):
                 async with asyncio.timeout(None if wait is None else max(wait, 0.001)):
                     await changed.wait()
@@ -461,7 +458,6 @@ class Membership:
             self.prefix.encode(), start_revision=listing.header.revision + 1
         )
         self._watch_problem = None
-        self._watch_broken_at = None
         self._notify()
 
     async def _run(self) -> None:
@@ -552,8 +548,6 @@ class Membership:
                     f"watching the members in etcd at {self.coordinator} failed: {_why(exc)}"
                 )
                 await self._switch(client)
-            if self._watch_broken_at is None:
-                self._watch_broken_at = time.monotonic()
             self._watch = None
             self._notify()
             await asyncio.sleep(RETRY_S)
