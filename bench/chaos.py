@@ -27,7 +27,10 @@ time until the daemon takes the stream's poses again (its ``frames_in`` series g
 its first detection of poses sent after the disruption began was published.
 
 Checked, per stream, in every span it is left alone — from ``SETTLE_S`` after it is back to
-``hold_s`` + 1 s before the next disruption concerning it: the detections equal ``mocapd detect``'s
+``hold_s`` + :data:`SLACK_S` before the next disruption concerning it (more when the stream's
+detections arrived later than that after their poses were sent, on a loaded machine: a motion
+ending later would be published after the disruption began, and a kill loses it by design): the
+detections equal ``mocapd detect``'s
 on the same frames (the looped clip's poses by sequence number, from ``CONTEXT_S`` before the span
 but never before the run's first pose, decimated in the phase the daemon's detections show). Also
 counted: ids delivered more than once (QoS 1 may), and one motion published under two ids (never
@@ -85,6 +88,11 @@ CONTEXT_S = 4.0
 SETTLE_S = CONTEXT_S + 1.5
 """A checked span starts this long after the stream is back: the daemon must have its frames from
 ``CONTEXT_S`` before the span, so it has 1.5 s to recover."""
+SLACK_S = 1.0
+"""A checked span ends ``hold_s`` + this before the next disruption at least, or ``hold_s`` +
+:data:`AFTER_LAG_S` more than the worst lag (a detection's arrival after its pose was sent) seen
+in the span and up to the disruption."""
+AFTER_LAG_S = 0.5
 GIVE_UP_S = 30.0
 GARBAGE = b"\xc1" * 400
 """Not msgpack, a pose's size."""
@@ -129,6 +137,9 @@ class Span:
     last: int
     expected: frozenset[tuple[str, int, int]]
     got: frozenset[tuple[str, int, int]]
+    lag: float
+    """The worst seconds from a pose sent to the detection it emitted arriving, from the span's
+    start to the next disruption (0: none arrived)."""
 
 
 @dataclass(frozen=True)
@@ -630,17 +641,19 @@ def check(
 ) -> list[Span]:
     """Per stream, each span it was left alone: the detections against ``mocapd detect``'s."""
     step = decimation_factor(RATE, library.rate)
-    by_run: dict[tuple[str, int], list[dict[str, Any]]] = defaultdict(list)
-    for _, det in detections:
-        by_run[(det["stream"], replays[det["stream"]].run_of(det["source_time"]))].append(det)
+    by_run: dict[tuple[str, int], list[tuple[float, dict[str, Any]]]] = defaultdict(list)
+    for arrived, det in detections:
+        by_run[(det["stream"], replays[det["stream"]].run_of(det["source_time"]))].append((arrived, det))
     spans = []
     for s, name in streams.items():
         mine = [d for d in disruptions if s in d.streams]
         for d, following in zip(mine, [*mine[1:], None], strict=True):
             t0 = d.back + SETTLE_S
-            t1 = (following.at if following else end) - plan.hold_s - 1.0
+            until = following.at if following else end
             run_ = replays[s].run_of(t0)
-            found = by_run[(s, run_)]
+            found = [x for _, x in by_run[(s, run_)]]
+            lag = max((a - x["source_time"] for a, x in by_run[(s, run_)] if t0 <= a < until), default=0.0)
+            t1 = until - plan.hold_s - max(SLACK_S, lag + AFTER_LAG_S)
             if t1 - t0 < 1.0 or not found:
                 continue
             # a pose's sequence number from its send time, by the run's detections (robust to a burst)
@@ -654,7 +667,7 @@ def check(
             phases = Counter(start % step for _, start, _ in got)
             phase = phases.most_common(1)[0][0] if phases else 0
             expected = reference(clips[name], library, first, last, phase, step, plan.hold_s)
-            spans.append(Span(s, first, last, expected, got))
+            spans.append(Span(s, first, last, expected, got, lag))
     return spans
 
 
@@ -690,7 +703,8 @@ def table(outcome: Outcome) -> str:
     lines += [
         "",
         f"spans left alone: {len(outcome.spans)} ({seconds:.0f} s of frames); detections there: "
-        f"expected {expected}, got {got}, equal {equal}; spans that differ: {len(wrong)}",
+        f"expected {expected}, got {got}, equal {equal}; spans that differ: {len(wrong)}; worst lag "
+        f"of a detection in a span: {max((s.lag for s in outcome.spans), default=0.0):.2f} s",
         f"detections: {outcome.detections} ids; delivered twice: {outcome.redelivered}; "
         f"one motion under two ids: {outcome.doubled}",
         f"storm of {outcome.plan.storm:,} stream ids ({outcome.storm_refused:,} poses refused): daemon RSS "
@@ -701,7 +715,7 @@ def table(outcome: Outcome) -> str:
     ]
     for s in wrong[:5]:
         missing, extra = sorted(s.expected - s.got), sorted(s.got - s.expected)
-        lines.append(f"  {s.stream} {s.first}-{s.last}: missing {missing}, extra {extra}")
+        lines.append(f"  {s.stream} {s.first}-{s.last} (lag {s.lag:.2f} s): missing {missing}, extra {extra}")
     return "\n".join(lines)
 
 
