@@ -140,6 +140,9 @@ class Span:
     lag: float
     """The worst seconds from a pose sent to the detection it emitted arriving, from the span's
     start to the next disruption (0: none arrived)."""
+    straddling: frozenset[tuple[str, int, int]] = frozenset()
+    """Detections of the run overlapping the span's frames but not within them (not checked: said
+    when the span differs, to tell a missing motion from one whose frames moved)."""
 
 
 @dataclass(frozen=True)
@@ -664,10 +667,18 @@ def check(
                 for x in found
                 if x["start_frame"] >= first and x["end_frame"] <= last
             )
+            straddling = (
+                frozenset(
+                    (x["class"], x["start_frame"], x["end_frame"])
+                    for x in found
+                    if x["start_frame"] <= last and x["end_frame"] >= first
+                )
+                - got
+            )
             phases = Counter(start % step for _, start, _ in got)
             phase = phases.most_common(1)[0][0] if phases else 0
             expected = reference(clips[name], library, first, last, phase, step, plan.hold_s)
-            spans.append(Span(s, first, last, expected, got, lag))
+            spans.append(Span(s, first, last, expected, got, lag, straddling))
     return spans
 
 
@@ -715,7 +726,10 @@ def table(outcome: Outcome) -> str:
     ]
     for s in wrong[:5]:
         missing, extra = sorted(s.expected - s.got), sorted(s.got - s.expected)
-        lines.append(f"  {s.stream} {s.first}-{s.last} (lag {s.lag:.2f} s): missing {missing}, extra {extra}")
+        lines.append(
+            f"  {s.stream} {s.first}-{s.last} (lag {s.lag:.2f} s): missing {missing}, extra {extra}, "
+            f"straddling its ends {sorted(s.straddling)}"
+        )
     return "\n".join(lines)
 
 
