@@ -20,12 +20,13 @@ from pathlib import Path
 
 import aetcd
 import pytest
+import yaml
 
 from bench.processes import free_port
 from daemon.errors import InputError
 from daemon.service.membership import STARTUP_S, Membership, cluster_status
 from protocols.transport import StartupError
-from tests.etcd_server import Etcd, EtcdCluster
+from tests.etcd_server import CONFIG, Etcd, EtcdCluster
 from tests.helpers import REPO, freeze
 
 SEEN_S = 0.5
@@ -235,44 +236,49 @@ async def test_a_member_whose_keep_alives_go_unanswered_pauses_and_goes_on_with_
 
 
 async def test_a_watch_broken_for_longer_than_the_lease_only_pauses_while_keep_alives_hold(
-    etcd: Etcd,
+    tmp_path: Path,
 ) -> None:
     """The watch of the others broken for 1.5 TTL while every keep-alive is answered: the member is
     paused (publishes nothing) but never out, keeps its lease and its place, and goes on when it
-    has listed the members again. The fault is real: values under the prefix whose listing is more
-    than gRPC's 4 MiB a client takes (each put is under etcd's 1.5 MiB a request), then the watch
-    cancelled, so every new listing fails while the keep-alives get through. Before, a watch broken
-    for a TTL made the member out: it dropped its partitions though nobody else could own them."""
-    async with Membership(etcd.url, "w") as w:
-        seen: list[frozenset[str]] = []
-        states: list[str] = []
-        follower = asyncio.create_task(_follow_states(w, seen, states), name="follow w")
-        await until(lambda: seen == [{"w"}] and states == ["live"], 1, "the current set")
-        lease = w._lease.id
-        host, port = etcd.url.removeprefix("etcd://").split(":")
-        other = aetcd.Client(host, int(port))
-        try:
-            big = [f"{w.prefix}status/big{i}".encode() for i in range(3)]
-            for key in big:
-                await other.put(key, b"x" * 1_400_000)
-            await until(lambda: w.problem is None, 1, "the puts watched")
-            await w._call(w._watch.cancel())
-            await until(lambda: w.problem is not None, 1, "the watch to break")
-            end = time.monotonic() + 1.5 * w.lease_ttl
-            while time.monotonic() < end:
-                assert w.paused and not w.out and w.members == {"w"}, w.problem
-                await asyncio.sleep(0.05)
-            assert "watch" in (w.problem or ""), w.problem
-            for key in big:
-                await other.delete(key)
-        finally:
-            await other.close()
-        await until(lambda: w.problem is None, w.lease_ttl, "w to list and watch again")
-        await asyncio.sleep(0.05)
-        assert states == ["live", "paused", "live"], states
-        assert seen == [{"w"}]  # nothing moved
-        assert w._lease.id == lease
-    follower.cancel()
+    has listed the members again. The fault is real: an etcd that takes requests of up to 6 MiB,
+    and a 5 MB value put under the prefix, which the client's gRPC (4 MiB a message) can neither
+    receive as a watch event nor in a listing, while the keep-alives get through; then the value
+    deleted. Before, a watch broken for a TTL made the member out: it dropped its partitions though
+    nobody else could own them."""
+    config = tmp_path / "etcd.conf.yml"
+    shipped = yaml.safe_load(CONFIG.read_text(encoding="utf-8"))
+    config.write_text(yaml.safe_dump(shipped | {"max-request-bytes": 6 << 20}), encoding="utf-8")
+    (tmp_path / "etcd").mkdir()
+    etcd = Etcd(tmp_path / "etcd", config).start()
+    try:
+        async with Membership(etcd.url, "w") as w:
+            seen: list[frozenset[str]] = []
+            states: list[str] = []
+            follower = asyncio.create_task(_follow_states(w, seen, states), name="follow w")
+            await until(lambda: seen == [{"w"}] and states == ["live"], 1, "the current set")
+            lease = w._lease.id
+            host, port = etcd.url.removeprefix("etcd://").split(":")
+            other = aetcd.Client(host, int(port))
+            try:
+                big = f"{w.prefix}status/big".encode()
+                await other.put(big, b"x" * 5_000_000)
+                await until(lambda: w.problem is not None, 2, "the watch to break")
+                end = time.monotonic() + 1.5 * w.lease_ttl
+                while time.monotonic() < end:
+                    assert w.paused and not w.out and w.members == {"w"}, w.problem
+                    await asyncio.sleep(0.05)
+                assert "watch" in (w.problem or ""), w.problem
+                await other.delete(big)
+            finally:
+                await other.close()
+            await until(lambda: w.problem is None, w.lease_ttl, "w to list and watch again")
+            await asyncio.sleep(0.05)
+            assert states == ["live", "paused", "live"], states
+            assert seen == [{"w"}]  # nothing moved
+            assert w._lease.id == lease
+        follower.cancel()
+    finally:
+        etcd.stop()
 
 
 @pytest.mark.slow
