@@ -438,13 +438,18 @@ def looped_detections(asf: str, amc: str, last: int) -> list[dict[str, Any]]:
 
 
 def each_once_as_detect(
-    sent: Mapping[str, Mapping[str, Any]], detections: Callable[[], list[dict[str, Any]]], within: float
+    sent: Mapping[str, Mapping[str, Any]],
+    detections: Callable[[], list[dict[str, Any]]],
+    within: float,
+    excused: Callable[[list[dict[str, Any]]], Counter[tuple[str, str]]] | None = None,
 ) -> int:
     """What ``detections()`` gives comes to be ``mocapd detect``'s detections of what was ``sent``
     (per stream id, its recording's ``asf`` and ``amc`` looped up to sequence number ``last``, as
     :mod:`bench.cluster_load` prints it), of no other stream, each id once: waits up to ``within``
     seconds for every stream's count, then a second for a repeat, and says per stream what is
-    missing or extra. The detections expected."""
+    missing or extra. ``excused``, given what came, counts per (stream, class) the detections that
+    may be missing (a loss the design documents, each proven by the logs). The detections
+    expected."""
     wants = {n: detection_keys(looped_detections(s["asf"], s["amc"], s["last"])) for n, s in sent.items()}
 
     def complete() -> bool:
@@ -460,8 +465,13 @@ def each_once_as_detect(
     ids = [d["id"] for d in got]
     assert len(set(ids)) == len(ids), "a detection delivered twice"
     assert {d["stream"] for d in got} <= set(sent)
+    allowed = Counter() if excused is None else excused(got)
     for n, want in wants.items():
         have = Counter(detection_keys([d for d in got if d["stream"] == n]))
+        for key in sorted((Counter(want) - have).elements()):
+            if allowed[(n, key[0])] > 0:
+                allowed[(n, key[0])] -= 1
+                have[key] += 1
         assert have == Counter(want), (
             f"{n}: missing {sorted((Counter(want) - have).elements())}, "
             f"extra {sorted((have - Counter(want)).elements())}"

@@ -19,6 +19,7 @@ import signal
 import subprocess
 import time
 from collections import Counter
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -131,6 +132,33 @@ def most_buffers_led(cluster: NatsCluster) -> int:
     return max((1, 2), key=lambda k: led[k])
 
 
+KILL_WINDOW_S = 5.0
+"""How long before its kill -9 a worker's detection may have been logged (when it is queued for
+the store, one store at a time) and not yet published."""
+
+
+def lost_to_the_kill(
+    killed: Worker, at: float, workers: list[Worker]
+) -> Callable[[list[dict[str, Any]]], Counter[tuple[str, str]]]:
+    """The loss ``protocols/nats.py`` documents: a worker killed between storing a detection in
+    ``MOCAPD_OUT`` and publishing it loses it (its taker's copy is acknowledged as a duplicate and
+    not published). Per (stream, class), the detections that never came, the ``killed`` worker
+    logged in the :data:`KILL_WINDOW_S` before its kill at ``at``, and another worker's store found
+    stored already; on a loaded machine the worker's event loop may take that long from the store's
+    answer to the publish (2 runs in 5 lost one with a CPU-bound process more than this test's)."""
+
+    def excused(got: list[dict[str, Any]]) -> Counter[tuple[str, str]]:
+        came = {d["id"] for d in got}
+        stored = {e["id"] for w in workers if w is not killed for e in w.events("duplicate")}
+        return Counter(
+            (e["stream"], e["class"])
+            for e in killed.events("detection")
+            if at - KILL_WINDOW_S <= e["ts"] <= at and e["id"] in stored and e["id"] not in came
+        )
+
+    return excused
+
+
 def first_live_after(workers: list[Worker], partition: int, after: float) -> float | None:
     """When a worker first consumed a live pose of ``partition`` after ``after`` (wall clock)."""
     times = [
@@ -180,7 +208,21 @@ def test_takeovers_lose_and_repeat_no_detection(tmp_path: Path) -> None:
         time.sleep(4)
         w4 = Worker(tmp_path, "w4", cluster.url, etcd.url)
         workers.append(w4)
-        time.sleep(4)
+        # the NATS server killed once the new worker owns its partitions: a worker starting takes
+        # 4-8 s under this load, and killed before it joined, the server's buffers lost their poses
+        # of the election while the joiner then took its partitions from checkpoints older than
+        # that gap, which no path brings again (docs/cluster.md, "A known gap")
+        w3 = workers[2]
+        wait_for(
+            lambda: (
+                bool(w4.owned())
+                and w3.owned() | w4.owned() == set(range(PARTITIONS))
+                and not w3.owned() & w4.owned()
+            ),
+            30,
+            "the new worker to own its partitions and the other to have given them up",
+        )
+        time.sleep(2)
         cluster.servers[most_buffers_led(cluster)].kill()
         out, err = load.communicate(timeout=SECONDS + 30)
         burner.kill()
@@ -189,7 +231,10 @@ def test_takeovers_lose_and_repeat_no_detection(tmp_path: Path) -> None:
         assert len(sent) == STREAMS
         # each stream's last detection comes once it is idle (3 s), its owner flushing it as detect
         # ends a recording; later where its poses came late
-        assert each_once_as_detect(sent, lambda: nats.messages, 30) > 3 * STREAMS
+        assert (
+            each_once_as_detect(sent, lambda: nats.messages, 30, lost_to_the_kill(w1, killed_at, workers))
+            > 3 * STREAMS
+        )
 
         # takeovers: the first live pose of every partition of the killed and the stopped worker
         # that streams hash to (a partition with none has no pose to consume). The killed one's
