@@ -60,8 +60,8 @@ def main() -> None:
 
     def merged() -> None:
         merge: Merge[Delivery] = Merge(HOLD_S, REMEMBER_S, HELD_MOST)
-        merge.replaying = False
         now = time.monotonic()
+        merge.went_live(now)
         for seq, d in enumerate(ds, 1):
             key = merge_key(Delivery(d.subject, d.reply, d.headers, bytes(d.data)))  # a fresh copy's hash
             merge.push(key, d, now)
@@ -72,8 +72,8 @@ def main() -> None:
     def twinned() -> None:  # both live paths, then the merge (protocols.merge.Twice)
         twice = Twice(TWIN_S)
         merge: Merge[Delivery] = Merge(HOLD_S, REMEMBER_S, HELD_MOST)
-        merge.replaying = False
         now = time.monotonic()
+        merge.went_live(now)
         for seq, d in enumerate(ds, 1):
             for path in (0, 1):
                 key = merge_key(Delivery(d.subject, d.reply, d.headers, bytes(d.data)))

@@ -8,8 +8,8 @@ replayed and lost while the worker's own connection moves). :class:`Merge` passe
 once:
 
 * a live copy is held until its buffered copy comes, which is then passed and the live one dropped;
-  once the buffer is live (not replaying), a live copy held for ``hold_s`` is passed itself (the
-  buffer lost it, or is slow);
+  once the buffer is live (not replaying), a live copy held for ``hold_s``, and for ``hold_s``
+  since the buffer went live, is passed itself (the buffer lost it, or is slow);
 * a buffered copy that matches a held live copy first passes every live copy held before that one:
   they came first on the live path, and the buffer lost them (or has them later in another order
   of streams), so they go first;
@@ -32,7 +32,8 @@ buffers' leaders may be electing meanwhile: the buffer has lost them too).
 Exact (each message once, every stream's messages in the order they were published) when only the
 buffer loses messages and the live copy of a message comes before its buffered copy (a live copy
 is routed while the buffered one is still being replicated), or when only the live path loses and
-the buffer brings each message within ``hold_s`` of the live path's next one. When both lose
+the buffer brings each message within ``hold_s`` of the live path's next one or of the buffer
+going live (:meth:`Merge.went_live`). When both lose
 messages of one stream within ``hold_s`` of each other, two of its messages can be passed out of
 order (the stream table then refuses the later one as ``out_of_order``); a copy that comes more
 than ``remember_s`` after the other is passed again (the stream table refuses it as a
@@ -114,7 +115,8 @@ class Merge(Generic[T]):
         self.replaying = True
         """Whether the buffer is still replaying what it held when its consumer started (its live
         copies are held however long it takes: passed before the buffered messages before them,
-        they would come out of order). The owner sets it."""
+        they would come out of order). The owner sets it, and clears it by :meth:`went_live`."""
+        self._live_at = -math.inf
         self.dropped = 0
         self._fifo: deque[_Held[T]] = deque()
         self._held: dict[int, deque[_Held[T]]] = {}
@@ -162,13 +164,26 @@ class Merge(Generic[T]):
         self._buffered_passed.add(key, now)
         return [(seq, item)]
 
+    def went_live(self, now: float) -> None:
+        """The buffer has replayed what it held when its consumer started (or no replay comes):
+        from ``now`` a held live copy is passed alone once it has waited ``hold_s``, counted from
+        ``now`` for those held during the replay. From when each came instead, a long replay (a
+        loaded worker reading a long buffer) ended with every copy held during it passed at once,
+        before the buffered copies of messages published just before them, which the replay's
+        snapshot of the buffer did not include and the live path never brought (published before
+        the subscription): a stream's poses came out of order, and one was refused. Live
+        already: nothing changes (a consumer that cannot be made, tried again and again)."""
+        if self.replaying:
+            self.replaying = False
+            self._live_at = now
+
     def release(self, now: float) -> list[Passed[T]]:
-        """The live copies held for ``hold_s`` (none while :attr:`replaying`); forgets what is
-        older than ``remember_s``."""
+        """The live copies held for ``hold_s`` since they came and since the buffer went live (none
+        while :attr:`replaying`); forgets what is older than ``remember_s``."""
         self._live_passed.forget(now)
         self._buffered_passed.forget(now)
         out: list[Passed[T]] = []
-        if not self.replaying:
+        if not self.replaying and self._live_at <= now - self.hold_s:
             while self._fifo and self._fifo[0].at <= now - self.hold_s:
                 out.append(self._release(now))
         return out

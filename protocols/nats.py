@@ -822,7 +822,7 @@ class NatsTransport:
                 log.warning("partition not read", extra={"fields": {"partition": p, "error": repr(e)}})
                 merge = self._merges.get(p)
                 if merge is not None:  # no replay comes until a consumer is made: the live path goes on
-                    merge.replaying = False
+                    merge.went_live(time.monotonic())
                 with contextlib.suppress(TimeoutError):
                     async with asyncio.timeout(RETRY_S):
                         await given_up.wait()
@@ -922,7 +922,7 @@ class NatsTransport:
             now = time.monotonic()
             passed = merge.push(merge_key(d), d, now, seq)
             if merge.replaying and seq >= last:
-                merge.replaying = False
+                merge.went_live(now)
                 passed += merge.release(now)
             await self._pass(p, passed, replayed=not live)
 
@@ -950,7 +950,7 @@ class NatsTransport:
             if not given_up.is_set():
                 self._consumer_names[p] = consumer.name
                 if merge is not None and not replay:
-                    merge.replaying = False
+                    merge.went_live(time.monotonic())
             heard = time.monotonic()
             if merge is not None:
                 merge.rewatch()

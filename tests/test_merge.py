@@ -26,6 +26,7 @@ class Message:
 class Run:
     messages: list[Message]
     before: int  # messages published before the partition was taken: buffered only, replayed
+    replay_s: float  # how long their replay takes (a loaded worker reads a long buffer slowly)
     buffered: list[tuple[float, int]]  # (arrival, index), in arrival order
     live: list[tuple[float, int]]
     hold_s: float
@@ -33,11 +34,12 @@ class Run:
 
 @st.composite
 def runs(draw: st.DrawFn, regime: str, repeats: bool = False) -> Run:
-    """Deliveries of random messages of 1-3 streams, 0.1 s apart. ``regime``: ``buffer_loses``
-    (the live path loses nothing and its copies come first), ``live_loses`` (the buffer loses
-    nothing and brings each message at most ``0.9 hold_s`` after its live copy would have come),
-    ``both_lose`` (anything). ``repeats``: some messages are a
-    stream's skeleton, identical each time."""
+    """Deliveries of random messages of 1-3 streams, 0.1 s apart, those published before the take
+    replayed over ``replay_s`` after it (the live copies of those published meanwhile held).
+    ``regime``: ``buffer_loses`` (the live path loses nothing and its copies come first),
+    ``live_loses`` (the buffer loses nothing and brings each message at most ``0.9 hold_s`` after
+    its live copy would have come, or with the end of the replay), ``both_lose`` (anything).
+    ``repeats``: some messages are a stream's skeleton, identical each time."""
     n = draw(st.integers(1, 50))
     streams = draw(st.lists(st.integers(0, 2), min_size=n, max_size=n))
     messages: list[Message] = []
@@ -48,6 +50,7 @@ def runs(draw: st.DrawFn, regime: str, repeats: bool = False) -> Run:
         messages.append(Message(i, s, f"{s}:skeleton" if skeleton else f"{s}:{seqs[s]}"))
     before = draw(st.integers(0, n))
     hold_s = draw(st.sampled_from([0.05, 0.5, 1.0, 2.0]))
+    replay_s = draw(st.sampled_from([0.0, 0.5, 3.0])) if before else 0.0
     lags = st.floats(0.0, 3.0)
     buffered: list[tuple[float, int]] = []
     live: list[tuple[float, int]] = []
@@ -63,7 +66,7 @@ def runs(draw: st.DrawFn, regime: str, repeats: bool = False) -> Run:
         else:
             buffer_lag = draw(lags)
         if m.index < before:
-            last_b = max(last_b, taken + 0.001 * m.index)  # replayed at once
+            last_b = max(last_b, taken + replay_s * (m.index + 1) / before)
         else:
             last_b = max(last_b, published + buffer_lag)
             last_l = max(last_l, published + live_lag)
@@ -73,7 +76,7 @@ def runs(draw: st.DrawFn, regime: str, repeats: bool = False) -> Run:
             buffered.append((last_b, m.index))
         if m.index >= before and not lost_l:
             live.append((last_l, m.index))
-    return Run(messages, before, buffered, live, hold_s)
+    return Run(messages, before, replay_s, buffered, live, hold_s)
 
 
 def merged(run: Run, remember_s: float = math.inf) -> list[Passed[Message]]:
@@ -91,11 +94,11 @@ def merged(run: Run, remember_s: float = math.inf) -> list[Passed[Message]]:
         if buffered:
             out += merge.push(key, m, t, seq=i + 1)
             if merge.replaying and i >= run.before - 1:
-                merge.replaying = False
+                merge.went_live(t)
                 out += merge.release(t)
         else:
             out += merge.push(key, m, t)
-    merge.replaying = False
+    merge.went_live(events[-1][0] if events else 0.0)
     out += merge.release(math.inf)
     assert merge.held == 0
     return out
@@ -171,7 +174,9 @@ def test_a_held_live_copy_waits_while_replaying_and_hold_s_after() -> None:
     merge: Merge[str] = Merge(hold_s=1.0, remember_s=10.0, most=100)
     assert merge.push(1, "a", 0.0) == []
     assert merge.release(5.0) == []  # replaying: held however long
-    merge.replaying = False
+    merge.went_live(4.0)
+    assert merge.release(4.9) == []  # hold_s from when the buffer went live
+    merge.went_live(4.5)  # live already: the hold does not start again
     assert merge.release(5.0) == [(-1, "a")]
     assert merge.awaiting(5.0)  # its buffered copy not seen: a position now would precede it
     assert merge.stalled(5.5, 0.4) and not merge.stalled(5.5, 0.6)  # passed alone since 5.0
@@ -189,7 +194,7 @@ def test_a_held_live_copy_waits_while_replaying_and_hold_s_after() -> None:
 
 def test_what_is_remembered_is_forgotten_after_remember_s() -> None:
     merge: Merge[str] = Merge(hold_s=1.0, remember_s=10.0, most=100)
-    merge.replaying = False
+    merge.went_live(0.0)
     assert merge.push(1, "a", 0.0, seq=1) == [(1, "a")]
     assert merge.push(1, "a", 5.0) == []  # its buffered copy was passed
     assert merge.push(2, "b", 6.0, seq=2) == [(2, "b")]
@@ -203,7 +208,7 @@ def test_past_most_the_oldest_held_copy_is_dropped() -> None:
     for k, item in enumerate("abc"):
         merge.push(k, item, 0.0)
     assert merge.held == 2 and merge.dropped == 1
-    merge.replaying = False
+    merge.went_live(0.0)
     assert merge.release(2.0) == [(-1, "b"), (-1, "c")]
 
 
