@@ -202,6 +202,26 @@ async def _follow_states(w: Membership, seen: list[frozenset[str]], states: list
         tasks.create_task(poll(), name="poll w's state")
 
 
+async def _followed(w: Membership) -> tuple[list[frozenset[str]], list[str], asyncio.Task[None]]:
+    """:func:`_follow_states` of ``w`` started, once it said the current set (``w`` alone, live)."""
+    seen: list[frozenset[str]] = []
+    states: list[str] = []
+    follower = asyncio.create_task(_follow_states(w, seen, states), name=f"follow {w.member}")
+    await until(lambda: seen == [{w.member}] and states == ["live"], 1, "the current set")
+    return seen, states, follower
+
+
+async def _went_on_with_nothing_moved(
+    w: Membership, seen: list[frozenset[str]], states: list[str], lease: int, what: str
+) -> None:
+    """``w`` live again after one pause, its members never changed, on the same lease."""
+    await until(lambda: w.problem is None, w.lease_ttl, what)
+    await asyncio.sleep(0.05)
+    assert states == ["live", "paused", "live"], states
+    assert seen == [{w.member}]  # nothing moved
+    assert w._lease.id == lease
+
+
 @pytest.mark.slow
 async def test_a_member_whose_keep_alives_go_unanswered_pauses_and_goes_on_with_nothing_moved(
     etcd: Etcd,
@@ -212,10 +232,7 @@ async def test_a_member_whose_keep_alives_go_unanswered_pauses_and_goes_on_with_
     state), and it is live again on the same lease."""
     assert etcd.process is not None
     async with Membership(etcd.url, "w") as w:
-        seen: list[frozenset[str]] = []
-        states: list[str] = []
-        follower = asyncio.create_task(_follow_states(w, seen, states), name="follow w")
-        await until(lambda: seen == [{"w"}] and states == ["live"], 1, "the current set")
+        seen, states, follower = await _followed(w)
         lease = w._lease.id
         freeze(etcd.process)
         frozen = time.monotonic()
@@ -227,11 +244,7 @@ async def test_a_member_whose_keep_alives_go_unanswered_pauses_and_goes_on_with_
             assert paused < 2 * w.interval + 0.05  # from the last answer (before frozen): ≤ 2/3 TTL
         finally:
             etcd.process.send_signal(signal.SIGCONT)
-        await until(lambda: w.problem is None, w.lease_ttl, "w to go on")
-        await asyncio.sleep(0.05)
-        assert states == ["live", "paused", "live"], states
-        assert seen == [{"w"}]  # nothing moved
-        assert w._lease.id == lease
+        await _went_on_with_nothing_moved(w, seen, states, lease, "w to go on")
     follower.cancel()
 
 
@@ -252,10 +265,7 @@ async def test_a_watch_broken_for_longer_than_the_lease_only_pauses_while_keep_a
     etcd = Etcd(tmp_path / "etcd", config).start()
     try:
         async with Membership(etcd.url, "w") as w:
-            seen: list[frozenset[str]] = []
-            states: list[str] = []
-            follower = asyncio.create_task(_follow_states(w, seen, states), name="follow w")
-            await until(lambda: seen == [{"w"}] and states == ["live"], 1, "the current set")
+            seen, states, follower = await _followed(w)
             lease = w._lease.id
             host, port = etcd.url.removeprefix("etcd://").split(":")
             other = aetcd.Client(host, int(port))
@@ -271,11 +281,7 @@ async def test_a_watch_broken_for_longer_than_the_lease_only_pauses_while_keep_a
                 await other.delete(big)
             finally:
                 await other.close()
-            await until(lambda: w.problem is None, w.lease_ttl, "w to list and watch again")
-            await asyncio.sleep(0.05)
-            assert states == ["live", "paused", "live"], states
-            assert seen == [{"w"}]  # nothing moved
-            assert w._lease.id == lease
+            await _went_on_with_nothing_moved(w, seen, states, lease, "w to list and watch again")
         follower.cancel()
     finally:
         etcd.stop()
